@@ -1,0 +1,39 @@
+"""Errors raised for bad user input.
+
+Every problem with a file the user gave us (a case manifest, a volume, a burr,
+a trajectory) is raised as a :class:`BonesimError` whose message names the
+file (and, where it applies, the field, row or packet) and says what is wrong.
+The command-line interface prints these as one line, never as a traceback.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class BonesimError(Exception):
+    """A clear, user-facing error about an input.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, in one sentence.
+    path : str or Path, optional
+        The file or folder the problem is in.
+    field : str, optional
+        The field, key, column or row inside that file.
+    """
+
+    def __init__(self, message: str, path: str | Path | None = None,
+                 field: str | None = None):
+        self.message = message
+        self.path = None if path is None else Path(path)
+        self.field = field
+        where = ""
+        if self.path is not None:
+            where = str(self.path)
+            if field:
+                where += f" [{field}]"
+            where += ": "
+        elif field:
+            where = f"[{field}]: "
+        super().__init__(where + message)

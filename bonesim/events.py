@@ -1,0 +1,119 @@
+"""Event rings: how the haptic step publishes what happened to its consumers.
+
+The haptic step never waits for anybody. It appends fixed-size records to
+single-producer ring buffers (plain numpy arrays plus a monotonically growing
+write counter); each consumer (surface, dust, sound, recorder, metrics) keeps
+its own read counter and drains at its own pace. A consumer that falls more
+than ``capacity`` records behind has lost records, which :meth:`Ring.read`
+reports as an overflow instead of returning garbage.
+
+Three rings exist per :class:`~bonesim.model.State`:
+
+``removed``
+    one record per voxel whose density reached 0:
+    ``ijk`` (int32, 3), ``label`` (uint8), ``t_s`` (float64 [s]).
+``touched``
+    voxels whose density dropped but stayed positive (vertex shading only);
+    a voxel is pushed once until a consumer clears its flag.
+``injuries``
+    contact with or removal of a structure whose material emits injuries:
+    ``label`` (uint8), ``kind`` (0 contact onset, 1 voxels removed),
+    ``t_s`` [s], ``pos_mm`` (3) tool centre [mm], ``voxels`` lost this step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+INJURY_CONTACT = 0
+INJURY_REMOVAL = 1
+INJURY_KINDS = ("contact", "removal")
+
+
+class RingOverflow(RuntimeError):
+    """A consumer read records that were already overwritten."""
+
+
+@dataclass
+class Ring:
+    """A single-producer ring of records stored column-wise.
+
+    Attributes
+    ----------
+    fields : dict of str -> ndarray
+        Column arrays, each with first dimension ``capacity``.
+    head : (1,) int64
+        Total number of records ever written (the producer's counter). Kept in
+        an array so numba kernels can advance it in place.
+    """
+
+    fields: dict
+    head: np.ndarray
+
+    @classmethod
+    def create(cls, capacity: int, **spec) -> "Ring":
+        """Allocate a ring; ``spec`` maps field name -> ``(dtype, trailing shape)``."""
+        if capacity <= 0 or capacity & (capacity - 1):
+            raise ValueError("ring capacity must be a positive power of two")
+        fields = {name: np.zeros((capacity,) + tuple(shape), dtype=dtype)
+                  for name, (dtype, shape) in spec.items()}
+        return cls(fields, np.zeros(1, dtype=np.int64))
+
+    @property
+    def capacity(self) -> int:
+        return next(iter(self.fields.values())).shape[0]
+
+    @property
+    def count(self) -> int:
+        """Records written so far."""
+        return int(self.head[0])
+
+    def read(self, start: int, stop: int | None = None) -> dict:
+        """Copy records ``start .. stop-1`` (absolute counters) out of the ring.
+
+        Raises
+        ------
+        RingOverflow
+            If some of those records were already overwritten.
+        """
+        stop = self.count if stop is None else stop
+        cap = self.capacity
+        if stop - start > cap or start < self.count - cap:
+            raise RingOverflow(f"consumer fell {self.count - start} records behind a ring "
+                               f"of {cap}")
+        idx = np.arange(start, stop) & (cap - 1)
+        return {name: arr[idx] for name, arr in self.fields.items()}
+
+    def reset(self) -> None:
+        self.head[0] = 0
+
+
+class Cursor:
+    """A consumer's position in a :class:`Ring`."""
+
+    def __init__(self, ring: Ring, start: int | None = None):
+        self.ring = ring
+        self.pos = ring.count if start is None else start
+
+    def drain(self) -> dict:
+        """Everything written since the last drain."""
+        stop = self.ring.count
+        out = self.ring.read(self.pos, stop)
+        self.pos = stop
+        return out
+
+
+def removal_ring(capacity: int = 1 << 20) -> Ring:
+    return Ring.create(capacity, ijk=(np.int32, (3,)), label=(np.uint8, ()),
+                       t_s=(np.float64, ()))
+
+
+def touched_ring(capacity: int = 1 << 18) -> Ring:
+    return Ring.create(capacity, ijk=(np.int32, (3,)))
+
+
+def injury_ring(capacity: int = 1 << 14) -> Ring:
+    return Ring.create(capacity, label=(np.uint8, ()), kind=(np.uint8, ()),
+                       t_s=(np.float64, ()), pos_mm=(np.float64, (3,)),
+                       voxels=(np.int32, ()))

@@ -1,0 +1,309 @@
+"""Hashed voxel grid: bone stored as a hash table of small dense bricks.
+
+Layout
+------
+Voxels are addressed by integer coordinates ``(i, j, k)`` along the case
+frame's ``(x, y, z)`` axes. The centre of voxel ``(i, j, k)`` lies at
+``origin_mm + spacing_mm * (i, j, k)``.
+
+Voxels are grouped in bricks of ``BRICK**3 = 8**3`` voxels. Brick
+``(bi, bj, bk) = (i >> 3, j >> 3, k >> 3)`` is found through an
+open-addressing hash table (linear probing, power-of-two capacity) keyed by the
+packed brick coordinate; inside a brick a voxel sits at the flat offset
+``((i & 7) << 6) | ((j & 7) << 3) | (k & 7)``. Memory is proportional to the
+number of bricks that hold bone (plus a one-voxel halo, so that every voxel
+26-adjacent to bone lives in an allocated brick), and a lookup is O(1): one
+hash probe (rarely more) and one array read.
+
+Per voxel the grid stores
+
+* ``density`` (float32): the amount of material left to remove, 1.0 for
+  intact tissue and 0.0 for empty space;
+* ``label`` (uint8): the structure index (0 = none, ``s >= 1`` is the model's
+  structure ``s - 1``).
+
+Bricks are never inserted during a run (material is only removed), so the
+table is static after :meth:`Grid.from_dense` and kernels can read it without
+locks.
+
+The numba kernels below take the plain arrays (``keys, vals`` for the table,
+``density`` / ``label`` of shape ``(n_bricks, 512)``) so that any other kernel
+(surface, haptics, dust) can inline lookups.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+BRICK = 8
+BRICK_SHIFT = 3
+BRICK_MASK = 7
+BRICK_VOXELS = BRICK ** 3
+_KEY_OFFSET = 1 << 20          # brick coordinates in [-2**20, 2**20)
+_KEY_BITS = 21
+_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+EMPTY_KEY = np.int64(-1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def pack_brick_key(bi, bj, bk):
+    """Pack a brick coordinate into one non-negative int64."""
+    return ((np.int64(bi) + _KEY_OFFSET) << (2 * _KEY_BITS)) | \
+           ((np.int64(bj) + _KEY_OFFSET) << _KEY_BITS) | (np.int64(bk) + _KEY_OFFSET)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hash_slot(key, mask):
+    h = np.uint64(key) * _HASH_MULT
+    return np.int64((h >> np.uint64(32)) & np.uint64(mask))
+
+
+@njit(cache=True, nogil=True)
+def find_brick(keys, vals, bi, bj, bk):
+    """Index of brick ``(bi, bj, bk)`` in the brick arrays, or -1 if absent.
+
+    Parameters
+    ----------
+    keys : (capacity,) int64
+        Hash table keys (``-1`` marks an empty slot).
+    vals : (capacity,) int32
+        Brick index stored with each key.
+    bi, bj, bk : int
+        Brick coordinates (voxel coordinates shifted right by 3).
+    """
+    key = pack_brick_key(bi, bj, bk)
+    mask = keys.shape[0] - 1
+    s = _hash_slot(key, mask)
+    while True:
+        k = keys[s]
+        if k == key:
+            return vals[s]
+        if k == -1:
+            return -1
+        s = (s + 1) & mask
+
+
+@njit(cache=True, nogil=True, inline="always")
+def voxel_offset(i, j, k):
+    """Flat offset of voxel ``(i, j, k)`` inside its brick."""
+    return ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3) | (k & BRICK_MASK)
+
+
+@njit(cache=True, nogil=True)
+def density_at(keys, vals, density, i, j, k):
+    """Density of voxel ``(i, j, k)``; 0.0 where no brick is allocated."""
+    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+    if b < 0:
+        return np.float32(0.0)
+    return density[b, voxel_offset(i, j, k)]
+
+
+@njit(cache=True, nogil=True)
+def _insert_all(keys, vals, bcoords):
+    mask = keys.shape[0] - 1
+    for b in range(bcoords.shape[0]):
+        key = pack_brick_key(bcoords[b, 0], bcoords[b, 1], bcoords[b, 2])
+        s = _hash_slot(key, mask)
+        while keys[s] != -1:
+            s = (s + 1) & mask
+        keys[s] = key
+        vals[s] = b
+
+
+@njit(cache=True, nogil=True)
+def _gather_dense(keys, vals, arr, out, lo_i, lo_j, lo_k):
+    """Copy per-voxel values of the box starting at ``lo`` into ``out``."""
+    nx, ny, nz = out.shape
+    for x in range(nx):
+        i = lo_i + x
+        for y in range(ny):
+            j = lo_j + y
+            for z in range(nz):
+                k = lo_k + z
+                b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                               k >> BRICK_SHIFT)
+                if b >= 0:
+                    out[x, y, z] = arr[b, voxel_offset(i, j, k)]
+
+
+class Grid:
+    """Hashed brick grid of tissue density and structure labels.
+
+    Build one with :meth:`from_dense`. The arrays are public so that numba
+    kernels can take them directly.
+
+    Attributes
+    ----------
+    spacing_mm : float
+        Isotropic voxel edge [mm].
+    origin_mm : (3,) float64
+        Case-frame position of the centre of voxel (0, 0, 0) [mm].
+    shape : tuple of int
+        Extent ``(nx, ny, nz)`` of the volume the grid was built from [voxels].
+    keys : (capacity,) int64
+        Hash table of packed brick coordinates, ``-1`` for empty slots.
+    vals : (capacity,) int32
+        Brick index for each key.
+    bricks : (n_bricks, 3) int32
+        Brick coordinates ``(bi, bj, bk)``, sorted lexicographically.
+    density : (n_bricks, 512) float32
+        Material left to remove per voxel (1 intact, 0 empty).
+    label : (n_bricks, 512) uint8
+        Structure index per voxel (0 none, s >= 1 is structure s - 1).
+    """
+
+    def __init__(self, spacing_mm, origin_mm, shape, keys, vals, bricks, density, label):
+        self.spacing_mm = float(spacing_mm)
+        self.origin_mm = np.asarray(origin_mm, dtype=np.float64).reshape(3)
+        self.shape = tuple(int(s) for s in shape)
+        self.keys = keys
+        self.vals = vals
+        self.bricks = bricks
+        self.density = density
+        self.label = label
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def from_dense(cls, label, density=None, spacing_mm=0.5, origin_mm=(0.0, 0.0, 0.0)):
+        """Build a grid from dense volumes.
+
+        Parameters
+        ----------
+        label : (nx, ny, nz) integer array
+            Structure index per voxel, axis order ``(x, y, z)``; 0 is empty.
+            Values must be in ``[0, 255]``.
+        density : (nx, ny, nz) float array, optional
+            Initial density where ``label > 0``; default 1.0. Ignored where
+            ``label == 0``.
+        spacing_mm : float
+            Isotropic voxel edge [mm].
+        origin_mm : (3,) float
+            Case-frame position of voxel (0, 0, 0) [mm].
+        """
+        label = np.asarray(label)
+        if label.ndim != 3:
+            raise ValueError(f"label volume must be 3-D, got shape {label.shape}")
+        if label.size and (label.min() < 0 or label.max() > 255):
+            raise ValueError("labels must lie in [0, 255]")
+        if not spacing_mm > 0:
+            raise ValueError(f"spacing_mm must be positive, got {spacing_mm}")
+        occ = label > 0
+        if density is None:
+            dens = occ.astype(np.float32)
+        else:
+            density = np.asarray(density, dtype=np.float32)
+            if density.shape != label.shape:
+                raise ValueError("density and label volumes differ in shape")
+            dens = np.where(occ, density, np.float32(0.0)).astype(np.float32)
+            if (dens < 0).any() or not np.isfinite(dens).all():
+                raise ValueError("density must be finite and non-negative")
+            occ = dens > 0
+        lab = np.where(occ, label, 0).astype(np.uint8)
+        shape = label.shape
+        # Pad by one voxel (halo) plus up to a whole brick so the padded box
+        # starts at voxel -BRICK and is brick-aligned.
+        pad_lo = BRICK
+        nb = [(s + 1 + pad_lo + BRICK - 1) // BRICK for s in shape]
+        occ_p = np.zeros([n * BRICK for n in nb], dtype=bool)
+        occ_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
+              pad_lo:pad_lo + shape[2]] = occ
+        # dilate by one voxel (26-neighbourhood) so every neighbour of bone has a brick
+        dil = occ_p.copy()
+        for ax in range(3):
+            d = dil.copy()
+            sl_a = [slice(None)] * 3
+            sl_b = [slice(None)] * 3
+            sl_a[ax] = slice(1, None)
+            sl_b[ax] = slice(None, -1)
+            d[tuple(sl_a)] |= dil[tuple(sl_b)]
+            d[tuple(sl_b)] |= dil[tuple(sl_a)]
+            dil = d
+        bmask = dil.reshape(nb[0], BRICK, nb[1], BRICK, nb[2], BRICK).any(axis=(1, 3, 5))
+        bidx = np.argwhere(bmask)                      # lexicographic order
+        bricks = (bidx - pad_lo // BRICK).astype(np.int32)
+        n_b = len(bricks)
+        cap = 16
+        while cap < 2 * max(n_b, 1):
+            cap *= 2
+        keys = np.full(cap, -1, dtype=np.int64)
+        vals = np.full(cap, -1, dtype=np.int32)
+        _insert_all(keys, vals, bricks)
+        dens_p = np.zeros(occ_p.shape, dtype=np.float32)
+        lab_p = np.zeros(occ_p.shape, dtype=np.uint8)
+        dens_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
+               pad_lo:pad_lo + shape[2]] = dens
+        lab_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
+              pad_lo:pad_lo + shape[2]] = lab
+
+        def brick_view(vol):
+            v = vol.reshape(nb[0], BRICK, nb[1], BRICK, nb[2], BRICK)
+            v = v.transpose(0, 2, 4, 1, 3, 5)[bidx[:, 0], bidx[:, 1], bidx[:, 2]]
+            return np.ascontiguousarray(v.reshape(n_b, BRICK_VOXELS))
+
+        return cls(spacing_mm, origin_mm, shape, keys, vals, bricks,
+                   brick_view(dens_p), brick_view(lab_p))
+
+    def copy(self) -> "Grid":
+        """Deep copy of the mutable per-voxel arrays (the table is shared, read-only)."""
+        return Grid(self.spacing_mm, self.origin_mm, self.shape, self.keys, self.vals,
+                    self.bricks, self.density.copy(), self.label.copy())
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def n_bricks(self) -> int:
+        return int(self.bricks.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the grid [bytes]."""
+        return int(self.keys.nbytes + self.vals.nbytes + self.bricks.nbytes
+                   + self.density.nbytes + self.label.nbytes)
+
+    def brick_index(self, i: int, j: int, k: int) -> int:
+        """Brick holding voxel ``(i, j, k)``, or -1."""
+        return int(find_brick(self.keys, self.vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                              k >> BRICK_SHIFT))
+
+    def density_at(self, i: int, j: int, k: int) -> float:
+        """Density of voxel ``(i, j, k)`` (0.0 outside allocated bricks)."""
+        return float(density_at(self.keys, self.vals, self.density, i, j, k))
+
+    def label_at(self, i: int, j: int, k: int) -> int:
+        """Structure index of voxel ``(i, j, k)`` (0 where empty)."""
+        b = self.brick_index(i, j, k)
+        return 0 if b < 0 else int(self.label[b, voxel_offset(i, j, k)])
+
+    def to_dense(self, lo=(0, 0, 0), shape=None):
+        """Dense copies ``(density, label)`` of a box of voxels.
+
+        Parameters
+        ----------
+        lo : (3,) int
+            First voxel of the box.
+        shape : (3,) int, optional
+            Box extent [voxels]; default the source volume's shape.
+
+        Returns
+        -------
+        density : (nx, ny, nz) float32
+        label : (nx, ny, nz) uint8
+        """
+        shape = self.shape if shape is None else tuple(int(s) for s in shape)
+        d = np.zeros(shape, dtype=np.float32)
+        lab = np.zeros(shape, dtype=np.uint8)
+        _gather_dense(self.keys, self.vals, self.density, d, *map(int, lo))
+        _gather_dense(self.keys, self.vals, self.label, lab, *map(int, lo))
+        return d, lab
+
+    def voxel_centers(self, ijk) -> np.ndarray:
+        """Case-frame centres [mm] of voxels ``ijk`` (shape (n, 3))."""
+        return self.origin_mm + self.spacing_mm * np.asarray(ijk, dtype=np.float64)
+
+    def occupied_count(self) -> int:
+        """Number of voxels with density > 0."""
+        return int(np.count_nonzero(self.density > 0))
+
+    def counts_by_label(self, n_labels: int) -> np.ndarray:
+        """Voxels with density > 0 per structure index ``0 .. n_labels``."""
+        occ = self.density > 0
+        return np.bincount(self.label[occ].ravel(), minlength=n_labels + 1)

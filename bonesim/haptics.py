@@ -1,0 +1,419 @@
+"""Volume-sampled drill haptics: forces, tangential drag and bone removal.
+
+The burr is a sphere of radius ``r`` [mm] discretized into a lattice of
+*samples* finer than the bone grid (spacing ``h = voxel / oversample`` [mm];
+oversample 2 by default). Sample offsets are stored in the **tool frame**
+(``z`` along the drill axis ``d``), so every per-sample quantity that depends
+only on the geometry of the burr is precomputed once (no trigonometry in the
+loop):
+
+``unit``
+    unit vector from the tool centre toward the sample, ``o / |o|``;
+``tang``
+    ``(p - s_c) x d`` in the tool frame, i.e. ``(o_y, -o_x, 0)`` [mm]: the
+    sample's lever arm about the axis turned along the spin;
+``lat``
+    the latitude removal weight ``max(0, R_max - falloff * |pi/2 - theta|)``
+    [1/(N s)], with ``theta`` the angle between ``d`` and ``o``; the equator
+    (``theta = pi/2``) removes most, the poles least.
+
+One haptic step with the tool centre ``t_c`` and unit axis ``d``
+(:func:`haptic_kernel`):
+
+1. every sample ``s = t_c + R o`` (``R`` the tool-to-case rotation) that lies
+   in a voxel with density > 0 is *immersed*; it adds the **unit** vector from
+   ``s`` toward ``t_c`` (``-R unit``) weighted by its material's stiffness
+   factor ``w``; the immersed volume is ``V = h^3 sum w`` [mm^3];
+2. **multi-gain** magnitude ``|F| = K_low V`` for ``V <= V_t``, else
+   ``K_low V_t + K_high (V - V_t)`` [N] (gains in N/mm^3, ``V_t`` a fraction of
+   the burr volume), clamped to the smaller of the burr's and the device's
+   maximum force; the normal force is ``|F|`` along the summed direction;
+3. while the drill runs, a **tangential** drag ``K_tan h^3 sigma phi R sum w
+   tang`` [N] is added (``sigma = +1`` forward, ``-1`` reverse, ``phi`` the
+   speed relative to the burr's default speed); the total is clamped again;
+4. while the drill runs, each immersed sample removes
+   ``f lat m phi dt h^3 / voxel^3`` density from its voxel (``f`` the applied
+   force magnitude from step 2, ``m`` the material's removal factor). A voxel
+   whose density reaches 0 is removed and published to the ``removed`` ring;
+   a voxel that only lost density is published (once) to the ``touched`` ring.
+5. structures whose material emits injuries get an injury record on contact
+   onset (drill running) and on every step that removes their voxels.
+
+All state the kernel touches is passed as plain arrays; the kernel allocates
+nothing and is deterministic (same inputs, bit-identical grid).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .grid import BRICK_SHIFT, find_brick, voxel_offset
+
+# Layout of the float64 ``params`` vector handed to the kernel.
+(P_K_LOW, P_K_HIGH, P_V_T, P_K_TAN, P_MAX_FORCE, P_H3, P_INV_VOXEL_VOL,
+ P_RADIUS) = range(8)
+N_PARAMS = 8
+# Layout of the float64 ``out`` vector the kernel fills.
+(O_FX, O_FY, O_FZ, O_TX, O_TY, O_TZ, O_MAG, O_VOLUME, O_N_IMMERSED, O_N_REMOVED,
+ O_N_TOUCHED) = range(11)
+N_OUT = 11
+# Directions whose summed unit contributions are shorter than this (relative
+# to the number of immersed samples) are treated as having no direction: the
+# burr is enclosed symmetrically and pushes nowhere in particular.
+_MIN_DIRECTION = 1e-9
+
+
+@dataclass(frozen=True)
+class Stencil:
+    """Precomputed samples of a spherical burr in the tool frame.
+
+    Attributes
+    ----------
+    offsets : (n, 3) float64
+        Sample positions relative to the tool centre, tool frame (z = axis) [mm].
+    unit : (n, 3) float64
+        ``offsets / |offsets|``.
+    tang : (n, 3) float64
+        ``(o_y, -o_x, 0)``: lever arm about the axis, turned along the spin [mm].
+    lat : (n,) float64
+        Latitude removal weight ``max(0, r_max - falloff |pi/2 - theta|)`` [1/(N s)].
+    spacing_mm : float
+        Lattice spacing ``h`` [mm].
+    radius_mm : float
+        Burr radius [mm].
+    """
+
+    offsets: np.ndarray
+    unit: np.ndarray
+    tang: np.ndarray
+    lat: np.ndarray
+    spacing_mm: float
+    radius_mm: float
+
+    @property
+    def n(self) -> int:
+        return int(self.offsets.shape[0])
+
+    @property
+    def sample_volume_mm3(self) -> float:
+        return self.spacing_mm ** 3
+
+    @property
+    def volume_mm3(self) -> float:
+        """Volume the samples stand for, ``n h^3`` [mm^3]."""
+        return self.n * self.sample_volume_mm3
+
+
+def make_stencil(radius_mm: float, spacing_mm: float, r_max: float,
+                 falloff: float) -> Stencil:
+    """Sample a spherical burr on a cubic lattice.
+
+    Lattice points sit at ``h (n + 1/2)`` along each tool-frame axis, so the
+    samples are symmetric about the centre and none lies on it.
+
+    Parameters
+    ----------
+    radius_mm : float
+        Burr radius [mm].
+    spacing_mm : float
+        Lattice spacing ``h`` [mm], usually ``voxel / oversample``.
+    r_max : float
+        Removal rate per unit force at the equator [1/(N s)].
+    falloff : float
+        Loss of removal rate per radian away from the equator [1/(N s rad)].
+    """
+    if not radius_mm > 0 or not spacing_mm > 0:
+        raise ValueError("radius and spacing must be positive")
+    if r_max < 0 or falloff < 0:
+        raise ValueError("r_max and falloff must be non-negative")
+    m = int(np.ceil(radius_mm / spacing_mm))
+    ax = (np.arange(-m, m) + 0.5) * spacing_mm
+    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
+    r = np.linalg.norm(g, axis=1)
+    keep = r <= radius_mm
+    if not keep.any():
+        raise ValueError("burr smaller than one sample; raise the oversampling")
+    g, r = g[keep], r[keep]
+    unit = g / r[:, None]
+    tang = np.stack([g[:, 1], -g[:, 0], np.zeros(len(g))], axis=1)
+    theta = np.arccos(np.clip(unit[:, 2], -1.0, 1.0))
+    lat = np.maximum(0.0, r_max - falloff * np.abs(np.pi / 2 - theta))
+    arrs = [np.ascontiguousarray(a, dtype=np.float64) for a in (g, unit, tang, lat)]
+    for a in arrs:
+        a.flags.writeable = False
+    return Stencil(*arrs, spacing_mm=float(spacing_mm), radius_mm=float(radius_mm))
+
+
+def block_size(radius_mm: float, voxel_mm: float) -> tuple[int, int]:
+    """Scratch sizes for a burr: local voxel block edge and brick block edge."""
+    n_vox = int(np.ceil(2 * radius_mm / voxel_mm)) + 3
+    n_brick = n_vox // 8 + 2
+    return n_vox, n_brick
+
+
+@njit(cache=True, nogil=True)
+def tool_frame(axis, R):
+    """Fill ``R`` (3x3) with the tool-to-case rotation for a unit ``axis``.
+
+    Columns are ``u, v, d`` with ``d = axis`` and ``u, v`` a deterministic
+    right-handed perpendicular pair (the burr is a sphere, so the spin angle
+    about ``d`` is immaterial).
+    """
+    dx, dy, dz = axis[0], axis[1], axis[2]
+    if abs(dx) < 0.9:
+        ex, ey, ez = 1.0, 0.0, 0.0
+    else:
+        ex, ey, ez = 0.0, 1.0, 0.0
+    # u = normalize(e x d)
+    ux = ey * dz - ez * dy
+    uy = ez * dx - ex * dz
+    uz = ex * dy - ey * dx
+    n = np.sqrt(ux * ux + uy * uy + uz * uz)
+    ux /= n
+    uy /= n
+    uz /= n
+    # v = d x u
+    vx = dy * uz - dz * uy
+    vy = dz * ux - dx * uz
+    vz = dx * uy - dy * ux
+    R[0, 0], R[1, 0], R[2, 0] = ux, uy, uz
+    R[0, 1], R[1, 1], R[2, 1] = vx, vy, vz
+    R[0, 2], R[1, 2], R[2, 2] = dx, dy, dz
+
+
+@njit(cache=True, nogil=True)
+def multi_gain(volume, k_low, k_high, v_t):
+    """Force magnitude [N] for an immersed volume [mm^3] (two-gain curve)."""
+    if volume <= v_t:
+        return k_low * volume
+    return k_low * v_t + k_high * (volume - v_t)
+
+
+@njit(cache=True, nogil=True)
+def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
+                  stiff, removal, injury,
+                  offs, unit, tang, lat, params,
+                  pos, axis, drill, direction, speed_factor, dt, t,
+                  R, n_vox, lbrick, acc, dirty, contact, prev_contact, lost,
+                  rem_ijk, rem_label, rem_t, rem_head,
+                  tch_ijk, tch_head,
+                  inj_label, inj_kind, inj_t, inj_pos, inj_vox, inj_head,
+                  out):
+    """One haptic step: force, tangential drag, removal and events.
+
+    Parameters
+    ----------
+    keys, vals, density, label : arrays
+        The grid (see :mod:`bonesim.grid`); ``density`` is modified in place.
+    touched_flag : (n_bricks, 512) uint8
+        Set to 1 when a voxel is published to the touched ring.
+    origin : (3,) float64
+        Case-frame centre of voxel (0, 0, 0) [mm].
+    spacing : float
+        Voxel edge [mm].
+    stiff, removal : (n_labels + 1,) float64
+        Per-label stiffness and removal factors.
+    injury : (n_labels + 1,) uint8
+        1 where touching or removing the label is an injury.
+    offs, unit, tang, lat : stencil arrays (see :class:`Stencil`).
+    params : (N_PARAMS,) float64
+        ``k_low [N/mm^3], k_high [N/mm^3], V_t [mm^3], k_tan [N/mm^4],
+        max_force [N], h^3 [mm^3], 1/voxel^3 [1/mm^3], burr radius [mm]``.
+    pos : (3,) float64
+        Tool centre [mm].
+    axis : (3,) float64
+        Unit drill axis.
+    drill : bool
+        Drill running.
+    direction : float
+        +1 forward, -1 reverse spin.
+    speed_factor : float
+        Speed relative to the burr's default speed.
+    dt : float
+        Step duration [s].
+    t : float
+        Simulation time at the end of the step [s].
+    R : (3, 3) float64
+        Scratch for the tool frame.
+    n_vox : int
+        Edge of the local voxel block (see :func:`block_size`).
+    lbrick : (nb, nb, nb) int32
+        Scratch: brick indices of the burr's neighbourhood.
+    acc : (n_vox**3,) float64
+        Scratch accumulator; must be all zero on entry (left zero on exit).
+    dirty : (n_vox**3,) int32
+        Scratch list of local voxels with removal.
+    contact : (n_labels + 1,) int64
+        Out: immersed samples per label.
+    prev_contact : (n_labels + 1,) uint8
+        In/out: 1 where the label was in contact with the drill running.
+    lost : (n_labels + 1,) int64
+        Out: voxels removed per label.
+    rem_*, tch_*, inj_* : ring columns and their (1,) int64 heads.
+    out : (N_OUT,) float64
+        Out: force ``(fx, fy, fz)`` [N] (including tangential), tangential part
+        ``(tx, ty, tz)`` [N], normal magnitude ``|F|`` [N], immersed volume
+        [mm^3], immersed samples, voxels removed, voxels touched.
+    """
+    for q in range(out.shape[0]):
+        out[q] = 0.0
+    for q in range(contact.shape[0]):
+        contact[q] = 0
+        lost[q] = 0
+    nbk = lbrick.shape[0]
+    tool_frame(axis, R)
+    # local block of voxels around the burr
+    rad = params[P_RADIUS]
+    lo0 = int(np.floor((pos[0] - rad - origin[0]) / spacing + 0.5)) - 1
+    lo1 = int(np.floor((pos[1] - rad - origin[1]) / spacing + 0.5)) - 1
+    lo2 = int(np.floor((pos[2] - rad - origin[2]) / spacing + 0.5)) - 1
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    any_brick = False
+    for x in range(nbk):
+        for y in range(nbk):
+            for z in range(nbk):
+                b = find_brick(keys, vals, b0 + x, b1 + y, b2 + z)
+                lbrick[x, y, z] = b
+                if b >= 0:
+                    any_brick = True
+    if not any_brick:
+        for q in range(prev_contact.shape[0]):
+            prev_contact[q] = 0
+        return
+    sux = suy = suz = 0.0
+    stx = sty = stz = 0.0
+    wsum = 0.0
+    n_imm = 0
+    n_dirty = 0
+    p0, p1, p2 = pos[0], pos[1], pos[2]
+    inv = 1.0 / spacing
+    for s in range(offs.shape[0]):
+        ox, oy, oz = offs[s, 0], offs[s, 1], offs[s, 2]
+        wx = p0 + R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz
+        wy = p1 + R[1, 0] * ox + R[1, 1] * oy + R[1, 2] * oz
+        wz = p2 + R[2, 0] * ox + R[2, 1] * oy + R[2, 2] * oz
+        i = int(np.floor((wx - origin[0]) * inv + 0.5))
+        j = int(np.floor((wy - origin[1]) * inv + 0.5))
+        k = int(np.floor((wz - origin[2]) * inv + 0.5))
+        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
+        if b < 0:
+            continue
+        off = voxel_offset(i, j, k)
+        if density[b, off] <= 0.0:
+            continue
+        lab = label[b, off]
+        w = stiff[lab]
+        n_imm += 1
+        wsum += w
+        contact[lab] += 1
+        sux += w * unit[s, 0]
+        suy += w * unit[s, 1]
+        suz += w * unit[s, 2]
+        stx += w * tang[s, 0]
+        sty += w * tang[s, 1]
+        stz += w * tang[s, 2]
+        if drill:
+            a = lat[s] * removal[lab]
+            if a > 0.0:
+                li = ((i - lo0) * n_vox + (j - lo1)) * n_vox + (k - lo2)
+                if acc[li] == 0.0:
+                    dirty[n_dirty] = li
+                    n_dirty += 1
+                acc[li] += a
+    h3 = params[P_H3]
+    volume = wsum * h3
+    max_force = params[P_MAX_FORCE]
+    mag = multi_gain(volume, params[P_K_LOW], params[P_K_HIGH], params[P_V_T])
+    if mag > max_force:
+        mag = max_force
+    # normal force: along minus the summed outward unit vectors, in case frame
+    fx = -(R[0, 0] * sux + R[0, 1] * suy + R[0, 2] * suz)
+    fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
+    fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
+    fn = np.sqrt(fx * fx + fy * fy + fz * fz)
+    if fn > _MIN_DIRECTION * (n_imm + 1):
+        fx *= mag / fn
+        fy *= mag / fn
+        fz *= mag / fn
+    else:
+        fx = fy = fz = 0.0
+    tx = ty = tz = 0.0
+    if drill:
+        g = params[P_K_TAN] * h3 * direction * speed_factor
+        tx = g * (R[0, 0] * stx + R[0, 1] * sty + R[0, 2] * stz)
+        ty = g * (R[1, 0] * stx + R[1, 1] * sty + R[1, 2] * stz)
+        tz = g * (R[2, 0] * stx + R[2, 1] * sty + R[2, 2] * stz)
+    Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
+    Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
+    if Fm > max_force:
+        Fx *= max_force / Fm
+        Fy *= max_force / Fm
+        Fz *= max_force / Fm
+    out[O_FX], out[O_FY], out[O_FZ] = Fx, Fy, Fz
+    out[O_TX], out[O_TY], out[O_TZ] = tx, ty, tz
+    out[O_MAG] = mag
+    out[O_VOLUME] = volume
+    out[O_N_IMMERSED] = n_imm
+    # removal: each immersed sample took lat*m*f*phi*dt of its voxel's share
+    scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
+    n_rem = 0
+    n_tch = 0
+    rcap = rem_label.shape[0] - 1
+    tcap = tch_ijk.shape[0] - 1
+    nn = n_vox * n_vox
+    for q in range(n_dirty):
+        li = dirty[q]
+        amount = acc[li] * scale
+        acc[li] = 0.0
+        if amount <= 0.0:
+            continue
+        i = lo0 + li // nn
+        j = lo1 + (li // n_vox) % n_vox
+        k = lo2 + li % n_vox
+        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
+        off = voxel_offset(i, j, k)
+        d = density[b, off] - amount
+        if d <= 0.0:
+            density[b, off] = 0.0
+            lab = label[b, off]
+            lost[lab] += 1
+            h = rem_head[0] & rcap
+            rem_ijk[h, 0], rem_ijk[h, 1], rem_ijk[h, 2] = i, j, k
+            rem_label[h] = lab
+            rem_t[h] = t
+            rem_head[0] += 1
+            n_rem += 1
+        else:
+            density[b, off] = np.float32(d)
+            if touched_flag[b, off] == 0:
+                touched_flag[b, off] = 1
+                h = tch_head[0] & tcap
+                tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
+                tch_head[0] += 1
+                n_tch += 1
+    out[O_N_REMOVED] = n_rem
+    out[O_N_TOUCHED] = n_tch
+    # injuries
+    icap = inj_label.shape[0] - 1
+    for lab in range(contact.shape[0]):
+        touching = drill and contact[lab] > 0
+        if injury[lab]:
+            if touching and prev_contact[lab] == 0:
+                h = inj_head[0] & icap
+                inj_label[h] = lab
+                inj_kind[h] = 0
+                inj_t[h] = t
+                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = p0, p1, p2
+                inj_vox[h] = 0
+                inj_head[0] += 1
+            if lost[lab] > 0:
+                h = inj_head[0] & icap
+                inj_label[h] = lab
+                inj_kind[h] = 1
+                inj_t[h] = t
+                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = p0, p1, p2
+                inj_vox[h] = lost[lab]
+                inj_head[0] += 1
+        prev_contact[lab] = 1 if touching else 0
