@@ -1,0 +1,58 @@
+"""Small in-memory structures, burrs and materials for engine tests.
+
+They carry exactly the fields the engine reads, so kernel tests do not depend
+on the shipped data files (those are tested on their own).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from bonesim.model import make_model, make_state
+
+
+class FakeStructure(NamedTuple):
+    name: str
+    kind: str
+    display_color: tuple = (230, 220, 200)
+
+
+class FakeBurr(NamedTuple):
+    radius_mm: float = 1.5
+    r_max: float = 4.0
+    falloff: float = 2.0
+    k_low: float = 1.0
+    k_high: float = 4.0
+    n_t_fraction: float = 0.02
+    k_tan: float = 0.05
+    max_force_n: float = 4.0
+    default_speed_rpm: float = 60000.0
+    name: str = "fake"
+
+
+class FakeMaterial(NamedTuple):
+    stiffness: float
+    removal: float
+    injury: bool
+
+
+MATERIALS = {
+    "bone": FakeMaterial(1.0, 1.0, False),
+    "critical": FakeMaterial(0.6, 0.5, True),
+    "soft": FakeMaterial(0.25, 1.5, True),
+}
+
+BONE = FakeStructure("bone", "bone")
+NERVE = FakeStructure("nerve", "critical", (240, 220, 40))
+
+
+def block_model(shape=(40, 40, 40), fill_z=20, burr=None, spacing=0.5, structures=None,
+                labels=None, **kw):
+    """A model of a bone block filling ``k < fill_z`` (top surface facing +z)."""
+    if labels is None:
+        labels = np.zeros(shape, np.uint8)
+        labels[:, :, :fill_z] = 1
+    structures = [BONE] if structures is None else structures
+    m = make_model(labels, spacing, structures, burr or FakeBurr(), materials=MATERIALS, **kw)
+    return m, make_state(m)
