@@ -1,0 +1,281 @@
+"""The ``bonesim`` command line.
+
+Every subcommand has ``--help``. Bad input (a missing case, a malformed
+manifest, a broken trajectory) is reported as one line naming the file and the
+problem, with exit status 2; no traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .errors import BonesimError
+
+DEFAULT_CASE = "phantom"
+DEFAULT_BURR = "cutting-5mm"
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=2))
+
+
+def _table(rows: list[dict], cols: list[str]) -> None:
+    widths = [max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols]
+    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    for r in rows:
+        print("  ".join(str(r.get(c, "")).ljust(w) for c, w in zip(cols, widths)))
+
+
+# ------------------------------------------------------------------ cases
+def cmd_cases(args) -> int:
+    from .case import list_cases
+
+    rows = [{"name": c.name, "side": c.side, "format": c.volume.format,
+             "manifest": str(c.manifest), "description": c.description}
+            for c in list_cases()]
+    if args.json:
+        _print_json(rows)
+    else:
+        _table(rows, ["name", "side", "format", "description"])
+    return 0
+
+
+def cmd_case_info(args) -> int:
+    from .case import case_info, load_case
+
+    info = case_info(load_case(args.case))
+    if args.json:
+        _print_json(info)
+        return 0
+    for k, v in info.items():
+        if isinstance(v, dict):
+            print(f"{k}:")
+            for kk, vv in v.items():
+                print(f"  {kk}: {vv}")
+        else:
+            print(f"{k}: {v}")
+    return 0
+
+
+def cmd_case_export(args) -> int:
+    from .case import export_case, load_case
+
+    manifest = export_case(load_case(args.case), args.format, Path(args.dir))
+    print(f"wrote {args.format} export of case '{args.case}' to {args.dir} "
+          f"(manifest {manifest})")
+    return 0
+
+
+# ------------------------------------------------------------------ burrs
+def cmd_burrs(args) -> int:
+    from .burrs import burr_table, list_burrs
+
+    rows = burr_table(list_burrs())
+    if args.json:
+        _print_json(rows)
+    else:
+        cols = [c for c in ("name", "kind", "diameter_mm", "max_force_n",
+                            "default_speed_rpm") if c in rows[0]]
+        _table(rows, cols)
+    return 0
+
+
+# ------------------------------------------------------ trajectories / runs
+def _demo_trajectory(case, burr_name: str):
+    import numpy as np
+
+    from .burrs import load_burr
+    from .toolpath import DemoPlan, demo_mastoidectomy
+    from .trajectory import Trajectory
+
+    burr = load_burr(burr_name)
+    vol = case.load_volume()
+    cam = case.camera
+    plan = DemoPlan(burr_radius_mm=burr.radius_mm, speed_rpm=burr.default_speed_rpm)
+    t, pos, axis, drill = demo_mastoidectomy(vol.labels, vol.spacing_mm, vol.origin_mm,
+                                             case.structures, cam.eye_mm, cam.focal_mm,
+                                             plan)
+    n = len(t)
+    return Trajectory(t_s=t, pos_mm=pos, axis=axis, drill=drill,
+                      speed_rpm=np.full(n, plan.speed_rpm),
+                      direction=np.ones(n, dtype=np.int8))
+
+
+def cmd_trajectory(args) -> int:
+    from .case import load_case
+    from .trajectory import write_trajectory
+
+    case = load_case(args.case)
+    traj = _demo_trajectory(case, args.burr)
+    write_trajectory(args.out, traj)
+    print(f"wrote {args.kind} trajectory for case '{case.name}' ({len(traj.t_s)} points, "
+          f"{traj.t_s[-1]:.1f} s) to {args.out}")
+    return 0
+
+
+def _run(case, burr, traj, args) -> dict:
+    from .model import load_model, warmup
+    from .simulate import run_trajectory
+
+    warmup()
+    model = load_model(case, burr, oversample=args.oversample)
+    return run_trajectory(model, traj, check=args.check, out_dir=args.out,
+                          mesh_format=args.mesh_format)
+
+
+def cmd_simulate(args) -> int:
+    from .trajectory import read_trajectory
+
+    traj = read_trajectory(args.trajectory)
+    summary = _run(args.case, args.burr, traj, args)
+    if args.json:
+        _print_json(summary)
+    else:
+        _print_summary(summary)
+    return 0
+
+
+def _print_summary(s: dict) -> None:
+    print(f"case {s['case']}, burr {s['burr']}: {s['steps']} haptic steps "
+          f"({s['duration_s']} s simulated) in {s['wall_s']} s")
+    print(f"removed {s['voxels_removed']} voxels ({s['volume_removed_mm3']} mm^3): "
+          + ", ".join(f"{k} {v}" for k, v in s["removed_by_structure"].items()))
+    print(f"injuries: {len(s['injuries'])}"
+          + "".join(f"\n  {i['t_s']:8.3f} s  {i['kind']:8s} {i['structure']} "
+                    f"({i['voxels']} voxels)" for i in s["injuries"][:20]))
+    print(f"force: mean {s['force_n']['mean']} N, in contact "
+          f"{s['force_n']['mean_in_contact']} N, max {s['force_n']['max']} N")
+    print(f"haptic step: p50 {s['haptic_step_us']['p50']} us, "
+          f"p99 {s['haptic_step_us']['p99']} us")
+    if "vertices" in s:
+        print(f"surface: {s['vertices']} vertices, {s['triangles']} triangles")
+    if "surface_consistent" in s:
+        print(f"surface consistent with a from-scratch tessellation: "
+              f"{s['surface_consistent']}")
+    if "mesh" in s:
+        print(f"wrote {s['mesh']} and {s['summary']}")
+
+
+def cmd_demo(args) -> int:
+    from .case import load_case
+    from .trajectory import write_trajectory
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    case = load_case(args.case)
+    traj = _demo_trajectory(case, args.burr)
+    tpath = out / "trajectory.csv"
+    write_trajectory(tpath, traj)
+    print(f"planned a demo mastoidectomy on case '{case.name}' with {args.burr}: "
+          f"{traj.t_s[-1]:.1f} s of drilling, written to {tpath}")
+    args.check = True
+    summary = _run(case.manifest, args.burr, traj, args)
+    _print_summary(summary)
+    return 0 if summary.get("surface_consistent", True) else 1
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_benchmarks
+
+    results = run_benchmarks(only=args.only, quick=args.quick)
+    if args.json:
+        _print_json(results)
+    else:
+        for name, r in results.items():
+            print(f"{name:34s} {r['value']:>12.4g} {r['unit']}")
+    return 0
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="bonesim",
+        description="Temporal-bone drilling simulator: cases, burrs, headless runs, "
+                    "benchmarks.")
+    from . import __version__
+    p.add_argument("--version", action="version", version=f"bonesim {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("cases", help="list the bundled cases")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_cases)
+
+    s = sub.add_parser("case-info", help="grid size, voxel size and voxels per structure")
+    s.add_argument("case", help="bundled case name or path of a case.toml")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_case_info)
+
+    s = sub.add_parser("case-export", help="write a case's volume as DICOM/NRRD/NIfTI/"
+                                           "label stack with a case.toml")
+    s.add_argument("case", help="bundled case name or path of a case.toml")
+    s.add_argument("--format", required=True,
+                   choices=["dicom", "nrrd", "nifti", "label-stack"])
+    s.add_argument("dir", help="output folder")
+    s.set_defaults(func=cmd_case_export)
+
+    s = sub.add_parser("burrs", help="list the burrs")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_burrs)
+
+    def run_opts(s, need_traj):
+        s.add_argument("--case", default=DEFAULT_CASE,
+                       help=f"case name or case.toml path (default {DEFAULT_CASE})")
+        s.add_argument("--burr", default=DEFAULT_BURR,
+                       help=f"burr name or file (default {DEFAULT_BURR})")
+        if need_traj:
+            s.add_argument("--trajectory", required=True,
+                           help="CSV: t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,"
+                                "speed_rpm[,direction]")
+        s.add_argument("--oversample", type=int, default=2,
+                       help="burr samples per voxel edge (default 2)")
+        s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
+                       help="final surface mesh format (default ply)")
+
+    s = sub.add_parser("simulate", help="drill a scripted trajectory headless at 1 kHz")
+    run_opts(s, True)
+    s.add_argument("--out", help="folder for the final mesh and summary.json")
+    s.add_argument("--check", action="store_true",
+                   help="verify the incremental surface against a from-scratch one")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("trajectory", help="write a planned trajectory for a case")
+    s.add_argument("--case", default=DEFAULT_CASE, help="case name or case.toml path")
+    s.add_argument("--kind", default="demo-mastoidectomy", choices=["demo-mastoidectomy"])
+    s.add_argument("--burr", default=DEFAULT_BURR, help="burr the path is planned for")
+    s.add_argument("--out", required=True, help="output CSV")
+    s.set_defaults(func=cmd_trajectory)
+
+    s = sub.add_parser("demo", help="headless demo: plan and drill a mastoidectomy on "
+                                    "the default case, write the mesh and a summary")
+    run_opts(s, False)
+    s.add_argument("--out", default="bonesim-demo", help="output folder")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("bench", help="run the performance benchmarks")
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.add_argument("--only", action="append", metavar="NAME",
+                   help="run only this benchmark (repeatable)")
+    s.add_argument("--quick", action="store_true",
+                   help="fewer repetitions (for smoke tests; figures are noisier)")
+    s.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except BonesimError as exc:
+        print(f"bonesim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("bonesim: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""Headless runs: a scripted trajectory through the haptic step at 1 kHz.
+
+:func:`run_trajectory` is what ``bonesim simulate`` does. The trajectory is
+resampled at the model's haptic rate (simulated time, not wall-clock) and fed
+sample by sample to :func:`bonesim.model.step`, exactly as an interactive run
+feeds device samples. A consumer drains the removal and touched rings at the
+frame rate and updates the hybrid surface incrementally, as the renderer
+will. The haptic step never waits for it.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import events
+from .haptics import O_N_IMMERSED
+from .model import Model, Sample, clear_touched, make_state, step
+
+#: Frame rate at which the surface consumer drains the rings [Hz].
+FRAME_HZ = 60.0
+
+
+class SurfaceConsumer:
+    """Keeps a :class:`~bonesim.surface.Surface` in step with a state's rings."""
+
+    def __init__(self, model: Model, state):
+        from .surface import Surface
+
+        self.state = state
+        self.surface = Surface.build(state.grid, model.colors)
+        self.removed = events.Cursor(state.removed)
+        self.touched = events.Cursor(state.touched)
+        self.update_s: list[float] = []
+
+    def drain(self) -> None:
+        """Apply everything the haptic side published since the last call."""
+        rem = self.removed.drain()["ijk"]
+        tch = self.touched.drain()["ijk"]
+        if len(rem) == 0 and len(tch) == 0:
+            return
+        t0 = time.perf_counter()
+        self.surface.update(self.state.grid, rem, tch)
+        self.update_s.append(time.perf_counter() - t0)
+        clear_touched(self.state, tch)
+
+
+def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
+                   mesh_format: str = "ply", surface: bool = True,
+                   progress=None) -> dict:
+    """Drill ``traj`` into ``model`` and summarize the run.
+
+    Parameters
+    ----------
+    model : Model
+    traj : bonesim.trajectory.Trajectory
+        Case-frame tool path.
+    check : bool
+        Compare the incrementally updated surface with a from-scratch
+        tessellation of the final grid and report ``surface_consistent``.
+    out_dir : path, optional
+        Where to write the final mesh (``surface.ply`` or ``.vtp``) and
+        ``summary.json``.
+    mesh_format : {"ply", "vtp"}
+    surface : bool
+        Maintain the surface (False: haptics only, for benchmarks).
+    progress : callable, optional
+        Called with the fraction done now and then.
+
+    Returns
+    -------
+    dict
+        JSON-ready summary (see ``bonesim simulate --help``).
+    """
+    wall0 = time.perf_counter()
+    rate = model.haptic_rate_hz
+    samples = traj.resample(rate)
+    state = make_state(model)
+    consumer = SurfaceConsumer(model, state) if surface else None
+    n = len(samples.t_s)
+    frame_every = max(int(round(rate / FRAME_HZ)), 1)
+    step_ns = np.zeros(n, dtype=np.int64)
+    force = np.zeros(n)
+    contact = np.zeros(n, dtype=bool)
+    perf = time.perf_counter_ns
+    pos, axis = samples.pos_mm, samples.axis
+    for q in range(n):
+        smp = Sample(samples.t_s[q], pos[q], axis[q], bool(samples.drill[q]),
+                     float(samples.speed_rpm[q]), int(samples.direction[q]))
+        t0 = perf()
+        f = step(model, state, smp)
+        step_ns[q] = perf() - t0
+        force[q] = np.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        contact[q] = state.out[O_N_IMMERSED] > 0
+        if consumer is not None and q % frame_every == frame_every - 1:
+            consumer.drain()
+        if progress is not None and q % 5000 == 0:
+            progress(q / n)
+    if consumer is not None:
+        consumer.drain()
+    summary = _summary(model, state, step_ns, force, contact, consumer)
+    if check and consumer is not None:
+        from .surface import Surface
+
+        fresh = Surface.build(state.grid, model.colors)
+        summary["surface_consistent"] = bool(_same_surface(fresh, consumer.surface))
+    if out_dir is not None and consumer is not None:
+        from .meshio import write_mesh
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        mesh = out / f"surface.{mesh_format}"
+        p, nrm, col, tri = consumer.surface.arrays()
+        write_mesh(mesh, p, tri, nrm=nrm, col=col)
+        summary["mesh"] = str(mesh)
+        summary["summary"] = str(out / "summary.json")
+    summary["wall_s"] = round(time.perf_counter() - wall0, 3)
+    if out_dir is not None and consumer is not None:
+        Path(summary["summary"]).write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _same_surface(a, b) -> bool:
+    ca, cb = a.canonical(), b.canonical()
+    if isinstance(ca, dict):
+        return ca.keys() == cb.keys() and all(np.array_equal(ca[k], cb[k]) for k in ca)
+    return all(np.array_equal(x, y) for x, y in zip(ca, cb))
+
+
+def _summary(model, state, step_ns, force, contact, consumer) -> dict:
+    names = [model.structure_name(s) for s in range(len(model.structures) + 1)]
+    rem = {names[s]: int(c) for s, c in enumerate(state.removed_by_label) if s and c}
+    inj = state.injuries.read(0)
+    injuries = [{"structure": names[int(lab)], "kind": events.INJURY_KINDS[int(k)],
+                 "t_s": round(float(t), 4),
+                 "pos_mm": [round(float(x), 3) for x in p], "voxels": int(v)}
+                for lab, k, t, p, v in zip(inj["label"], inj["kind"], inj["t_s"],
+                                           inj["pos_mm"], inj["voxels"])]
+    us = step_ns / 1e3
+    out = {
+        "case": model.name,
+        "burr": getattr(model.burr, "name", "?"),
+        "duration_s": round(float(state.t_s), 4) if len(step_ns) else 0.0,
+        "steps": int(len(step_ns)),
+        "voxels_removed": int(state.removed.count),
+        "volume_removed_mm3": round(state.removed.count * model.spacing_mm ** 3, 3),
+        "removed_by_structure": rem,
+        "injuries": injuries,
+        "force_n": {
+            "mean": round(float(force.mean()), 4) if len(force) else 0.0,
+            "mean_in_contact": round(float(force[contact].mean()), 4) if contact.any()
+            else 0.0,
+            "max": round(float(force.max()), 4) if len(force) else 0.0,
+        },
+        "haptic_step_us": {
+            "p50": round(float(np.percentile(us, 50)), 2) if len(us) else 0.0,
+            "p99": round(float(np.percentile(us, 99)), 2) if len(us) else 0.0,
+        },
+    }
+    if consumer is not None:
+        s = consumer.surface
+        upd = np.array(consumer.update_s) * 1e3
+        out["vertices"] = int(s.n_vertices)
+        out["triangles"] = int(s.n_triangles)
+        out["surface_update_ms"] = {
+            "p50": round(float(np.percentile(upd, 50)), 3) if len(upd) else 0.0,
+            "p99": round(float(np.percentile(upd, 99)), 3) if len(upd) else 0.0,
+            "updates": int(len(upd)),
+        }
+    return out
