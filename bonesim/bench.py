@@ -1,0 +1,265 @@
+"""Benchmarks behind ``bonesim bench``.
+
+Each benchmark returns ``{"value": number, "unit": str, ...detail}``. Inputs
+are generated deterministically (fixed seeds), kernels are compiled before
+timing, and references (scikit-image's marching cubes, a from-scratch
+tessellation) are timed in the same run on the same data, so ratios are
+comparable across machines. Figures are wall-clock on whatever machine runs
+them; they are reported, never asserted in tests.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: Synthetic CT size for the tessellation benchmarks [voxels].
+CT_SHAPE = (512, 512, 300)
+
+
+def _pct(values, q) -> float:
+    return float(np.percentile(np.asarray(values, float), q))
+
+
+# ----------------------------------------------------------------- haptics
+def bench_haptic_step(quick=False) -> dict:
+    """Haptic step with the 7 mm cutting burr half immersed in a bone block."""
+    from .burrs import load_burr
+    from .model import Sample, make_model, make_state, step, warmup
+
+    warmup()
+    burr = load_burr("cutting-7mm")
+    labels = np.zeros((120, 120, 60), np.uint8)
+    labels[:, :, :40] = 1
+    from types import SimpleNamespace
+
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
+    model = make_model(labels, 0.5, [bone], burr)
+    top = 40 * 0.5 - 0.25                      # top face of the block [mm]
+    n = 2000 if quick else 20000
+    per_reset = 500
+    ns = np.empty(n, dtype=np.int64)
+    axis = np.array([0.3, 0.0, -1.0])
+    perf = time.perf_counter_ns
+    state = None
+    for q in range(n):
+        if q % per_reset == 0:
+            state = make_state(model)          # fresh bone, outside the timing
+        # sweep slowly so the burr stays half immersed in fresh bone
+        u = q % per_reset
+        pos = np.array([10.0 + (0.08 * u) % 40.0, 10.0 + 8.0 * ((q // per_reset) % 5), top])
+        smp = Sample(q * 1e-3, pos, axis, True, burr.default_speed_rpm, 1)
+        t0 = perf()
+        step(model, state, smp)
+        ns[q] = perf() - t0
+    us = ns / 1e3
+    return {
+        "haptic_step_7mm_p50_us": {"value": round(_pct(us, 50), 2), "unit": "us",
+                                   "samples": model.stencil.n, "steps": n,
+                                   "oversample": model.oversample},
+        "haptic_step_7mm_p99_us": {"value": round(_pct(us, 99), 2), "unit": "us",
+                                   "samples": model.stencil.n, "steps": n},
+    }
+
+
+# ----------------------------------------------------------------- surface
+def _ball_offsets(radius_vox: float) -> np.ndarray:
+    m = int(np.ceil(radius_vox))
+    g = np.stack(np.meshgrid(*[np.arange(-m, m + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return g[(g ** 2).sum(1) <= radius_vox ** 2].astype(np.int32)
+
+
+def bench_surface(quick=False) -> dict:
+    """From-scratch and incremental tessellation of the phantom."""
+    from .model import load_model
+    from .surface import Surface, warmup
+
+    warmup()
+    model = load_model("phantom", "cutting-5mm")
+    grid = model.grid.copy()
+    reps = 2 if quick else 5
+    full = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        surf = Surface.build(grid, model.colors)
+        full.append(time.perf_counter() - t0)
+    t_full = float(np.median(full))
+    # incremental: remove burr-shaped blobs of ~1000 voxels at surface vertices
+    rng = np.random.default_rng(0)
+    ball = _ball_offsets(6.2)                  # ~1000 voxels
+    per_k = []
+    n_blobs = 10 if quick else 60
+    pos, _, _, _ = surf.arrays()
+    verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
+    for _ in range(n_blobs):
+        c = verts[rng.integers(len(verts))]
+        ijk = c + ball
+        dens, _ = grid.to_dense(lo=c - 7, shape=(15, 15, 15))
+        local = ijk - (c - 7)
+        keep = dens[tuple(local.T)] > 0
+        ijk = np.ascontiguousarray(ijk[keep])
+        if len(ijk) < 200:
+            continue
+        _zero(grid, ijk)
+        t0 = time.perf_counter()
+        surf.update(grid, ijk)
+        dt = time.perf_counter() - t0
+        per_k.append(dt * 1000.0 / len(ijk))
+    per_k = np.array(per_k)
+    return {
+        "tessellate_phantom_s": {"value": round(t_full, 4), "unit": "s",
+                                 "vertices": int(surf.n_vertices),
+                                 "triangles": int(surf.n_triangles)},
+        "retessellate_1000_p99_ms": {"value": round(_pct(per_k, 99) * 1e3, 3), "unit": "ms",
+                                     "p50_ms": round(_pct(per_k, 50) * 1e3, 3),
+                                     "blobs": int(len(per_k))},
+        "retessellate_speedup_vs_full": {
+            "value": round(t_full / float(np.mean(per_k)), 1), "unit": "x",
+            "reference": "Surface.build of the phantom vs incremental update per 1000 "
+                         "removed voxels (mean)"},
+    }
+
+
+def _zero(grid, ijk):
+    from .grid import BRICK_SHIFT, find_brick, voxel_offset
+
+    for i, j, k in ijk:
+        b = find_brick(grid.keys, grid.vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                       k >> BRICK_SHIFT)
+        if b >= 0:
+            grid.density[b, voxel_offset(i, j, k)] = 0.0
+
+
+def synthetic_ct(shape=CT_SHAPE, seed=0) -> np.ndarray:
+    """A skull-like label volume: an ellipsoidal shell with inner ridges.
+
+    Returns
+    -------
+    (nx, ny, nz) uint8
+        1 where bone.
+    """
+    rng = np.random.default_rng(seed)
+    nx, ny, nz = shape
+    x = (np.arange(nx, dtype=np.float32) - nx / 2) / (nx * 0.45)
+    y = (np.arange(ny, dtype=np.float32) - ny / 2) / (ny * 0.45)
+    out = np.zeros(shape, np.uint8)
+    r2xy = x[:, None] ** 2 + y[None, :] ** 2
+    thick = 0.035
+    blobs = rng.uniform(-0.5, 0.5, size=(12, 3)).astype(np.float32)
+    for k in range(nz):
+        z = (k - nz / 2) / (nz * 0.48)
+        r = np.sqrt(r2xy + z * z)
+        slab = (r < 1.0) & (r > 1.0 - thick)
+        for b in blobs:                       # dense inner structures (petrous-like)
+            slab |= ((x[:, None] - b[0]) ** 2 + (y[None, :] - b[1]) ** 2
+                     + (z - b[2]) ** 2) < 0.004
+        out[:, :, k] = slab
+    return out
+
+
+def bench_ct512(quick=False) -> dict:
+    """Surface stage of a synthetic 512x512x300 CT beside skimage marching cubes."""
+    from skimage.measure import marching_cubes
+
+    from .grid import Grid
+    from .surface import Surface, warmup
+
+    warmup()
+    labels = synthetic_ct()
+    grid = Grid.from_dense(labels, spacing_mm=0.5)
+    colors = np.array([[0, 0, 0], [230, 220, 200]], np.uint8)
+    reps = 1 if quick else 3
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        surf = Surface.build(grid, colors)
+        ts.append(time.perf_counter() - t0)
+    vol = labels.astype(np.float32)
+    t0 = time.perf_counter()
+    verts, faces, _, _ = marching_cubes(vol, level=0.5, spacing=(0.5, 0.5, 0.5))
+    t_mc = time.perf_counter() - t0
+    t_ours = float(np.median(ts))
+    return {
+        "tessellate_ct512_s": {"value": round(t_ours, 3), "unit": "s",
+                               "shape": list(CT_SHAPE), "vertices": int(surf.n_vertices),
+                               "triangles": int(surf.n_triangles),
+                               "bone_voxels": int(labels.sum())},
+        "marching_cubes_ct512_s": {"value": round(t_mc, 3), "unit": "s",
+                                   "reference": "skimage.measure.marching_cubes, same "
+                                                "volume", "triangles": int(len(faces)),
+                                   "ratio_ours_over_mc": round(t_ours / t_mc, 3)},
+    }
+
+
+# -------------------------------------------------------------- simulate
+def bench_simulate(quick=False) -> dict:
+    """Wall time of a warm ``bonesim simulate`` of a 5 s trajectory (new process)."""
+    from .case import load_case
+    from .cli import DEFAULT_BURR, _demo_trajectory
+    from .trajectory import Trajectory, write_trajectory
+
+    traj = _demo_trajectory(load_case("phantom"), DEFAULT_BURR)
+    keep = traj.t_s <= 5.0
+    cut = Trajectory(t_s=traj.t_s[keep], pos_mm=traj.pos_mm[keep], axis=traj.axis[keep],
+                     drill=traj.drill[keep], speed_rpm=traj.speed_rpm[keep],
+                     direction=traj.direction[keep])
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "five_seconds.csv"
+        write_trajectory(path, cut)
+        cmd = [sys.executable, "-m", "bonesim.cli", "simulate", "--case", "phantom",
+               "--burr", DEFAULT_BURR, "--trajectory", str(path), "--json"]
+        env = dict(os.environ)
+        subprocess.run(cmd, check=True, capture_output=True, env=env)   # warm the cache
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, check=True, capture_output=True, env=env)
+        wall = time.perf_counter() - t0
+    import json
+
+    summary = json.loads(res.stdout)
+    return {"simulate_warm_s": {"value": round(wall, 3), "unit": "s",
+                                "trajectory_s": round(float(cut.t_s[-1]), 3),
+                                "voxels_removed": summary["voxels_removed"],
+                                "steps": summary["steps"]}}
+
+
+BENCHMARKS = {
+    "haptic_step_7mm_p50_us": bench_haptic_step,
+    "haptic_step_7mm_p99_us": bench_haptic_step,
+    "retessellate_1000_p99_ms": bench_surface,
+    "retessellate_speedup_vs_full": bench_surface,
+    "tessellate_phantom_s": bench_surface,
+    "tessellate_ct512_s": bench_ct512,
+    "marching_cubes_ct512_s": bench_ct512,
+    "simulate_warm_s": bench_simulate,
+}
+
+
+def run_benchmarks(only=None, quick=False) -> dict:
+    """Run the named benchmarks (all by default) and return their figures."""
+    from .errors import BonesimError
+
+    names = list(BENCHMARKS) if not only else list(only)
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        raise BonesimError(f"unknown benchmark(s) {unknown}; known: {list(BENCHMARKS)}",
+                           field="--only")
+    results: dict = {}
+    done = set()
+    for name in names:
+        fn = BENCHMARKS[name]
+        if fn in done:
+            continue
+        done.add(fn)
+        for k, v in fn(quick=quick).items():
+            if k in names or not only:
+                results[k] = v
+    machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0],
+               "quick": bool(quick)}
+    for v in results.values():
+        v["machine"] = machine
+    return results
