@@ -196,7 +196,7 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                   stiff, removal, injury,
                   offs, unit, tang, lat, params,
                   pos, axis, drill, direction, speed_factor, dt, t,
-                  R, n_vox, lbrick, acc, dirty, contact, prev_contact, lost,
+                  R, n_vox, lbrick, ldens, llab, acc, dirty, contact, prev_contact, lost,
                   rem_ijk, rem_label, rem_t, rem_head,
                   tch_ijk, tch_head,
                   inj_label, inj_kind, inj_t, inj_pos, inj_vox, inj_head,
@@ -241,6 +241,10 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         Edge of the local voxel block (see :func:`block_size`).
     lbrick : (nb, nb, nb) int32
         Scratch: brick indices of the burr's neighbourhood.
+    ldens : (n_vox**3,) float32
+        Scratch: densities of the burr's neighbourhood.
+    llab : (n_vox**3,) uint8
+        Scratch: labels of the burr's neighbourhood.
     acc : (n_vox**3,) float64
         Scratch accumulator; must be all zero on entry (left zero on exit).
     dirty : (n_vox**3,) int32
@@ -282,28 +286,47 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         for q in range(prev_contact.shape[0]):
             prev_contact[q] = 0
         return
+    # gather the block's density and labels into dense local scratch
+    nn = n_vox * n_vox
+    for x in range(n_vox):
+        i = lo0 + x
+        bx = (i >> BRICK_SHIFT) - b0
+        for y in range(n_vox):
+            j = lo1 + y
+            by = (j >> BRICK_SHIFT) - b1
+            base = x * nn + y * n_vox
+            for z in range(n_vox):
+                k = lo2 + z
+                b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
+                if b >= 0:
+                    off = voxel_offset(i, j, k)
+                    ldens[base + z] = density[b, off]
+                    llab[base + z] = label[b, off]
+                else:
+                    ldens[base + z] = 0.0
+                    llab[base + z] = 0
     sux = suy = suz = 0.0
     stx = sty = stz = 0.0
     wsum = 0.0
     n_imm = 0
     n_dirty = 0
-    p0, p1, p2 = pos[0], pos[1], pos[2]
     inv = 1.0 / spacing
+    # tool centre in local block coordinates, shifted by +1/2 so that
+    # truncation toward zero rounds to the nearest voxel (all values > 0)
+    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
+    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
+    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
+    r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
+    r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
+    r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
     for s in range(offs.shape[0]):
         ox, oy, oz = offs[s, 0], offs[s, 1], offs[s, 2]
-        wx = p0 + R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz
-        wy = p1 + R[1, 0] * ox + R[1, 1] * oy + R[1, 2] * oz
-        wz = p2 + R[2, 0] * ox + R[2, 1] * oy + R[2, 2] * oz
-        i = int(np.floor((wx - origin[0]) * inv + 0.5))
-        j = int(np.floor((wy - origin[1]) * inv + 0.5))
-        k = int(np.floor((wz - origin[2]) * inv + 0.5))
-        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
-        if b < 0:
+        li = (int(c0 + r00 * ox + r01 * oy + r02 * oz) * n_vox
+              + int(c1 + r10 * ox + r11 * oy + r12 * oz)) * n_vox \
+            + int(c2 + r20 * ox + r21 * oy + r22 * oz)
+        if ldens[li] <= 0.0:
             continue
-        off = voxel_offset(i, j, k)
-        if density[b, off] <= 0.0:
-            continue
-        lab = label[b, off]
+        lab = llab[li]
         w = stiff[lab]
         n_imm += 1
         wsum += w
@@ -317,7 +340,6 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         if drill:
             a = lat[s] * removal[lab]
             if a > 0.0:
-                li = ((i - lo0) * n_vox + (j - lo1)) * n_vox + (k - lo2)
                 if acc[li] == 0.0:
                     dirty[n_dirty] = li
                     n_dirty += 1
@@ -362,7 +384,6 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     n_tch = 0
     rcap = rem_label.shape[0] - 1
     tcap = tch_ijk.shape[0] - 1
-    nn = n_vox * n_vox
     for q in range(n_dirty):
         li = dirty[q]
         amount = acc[li] * scale
@@ -405,7 +426,7 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                 inj_label[h] = lab
                 inj_kind[h] = 0
                 inj_t[h] = t
-                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = p0, p1, p2
+                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = pos[0], pos[1], pos[2]
                 inj_vox[h] = 0
                 inj_head[0] += 1
             if lost[lab] > 0:
@@ -413,7 +434,7 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                 inj_label[h] = lab
                 inj_kind[h] = 1
                 inj_t[h] = t
-                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = p0, p1, p2
+                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = pos[0], pos[1], pos[2]
                 inj_vox[h] = lost[lab]
                 inj_head[0] += 1
         prev_contact[lab] = 1 if touching else 0

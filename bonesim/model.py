@@ -289,6 +289,8 @@ class State:
     _R: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     _n_vox: int = 0
     _lbrick: np.ndarray = None
+    _ldens: np.ndarray = None
+    _llab: np.ndarray = None
     _acc: np.ndarray = None
     _dirty: np.ndarray = None
     _contact: np.ndarray = None
@@ -308,6 +310,8 @@ class State:
         if n_vox > self._n_vox:
             self._n_vox = n_vox
             self._lbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
+            self._ldens = np.zeros(n_vox ** 3, dtype=np.float32)
+            self._llab = np.zeros(n_vox ** 3, dtype=np.uint8)
             self._acc = np.zeros(n_vox ** 3)
             self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
 
@@ -374,7 +378,8 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
                   g.spacing_mm, model.stiff, model.removal, model.injury,
                   st.offsets, st.unit, st.tang, st.lat, model.params,
                   pos, ax, drill, direction, speed_factor, dt, t,
-                  state._R, state._n_vox, state._lbrick, state._acc, state._dirty,
+                  state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
+                  state._acc, state._dirty,
                   state._contact, state._prev_contact, state._lost,
                   rem["ijk"], rem["label"], rem["t_s"], state.removed.head,
                   tch["ijk"], state.touched.head,
