@@ -58,7 +58,7 @@ import burrs as _burr_package
 from .errors import BonesimError
 from .tomlfile import check_keys, get_str, read_toml
 
-__all__ = ["BURR_KINDS", "Burr", "burr_folder", "load_burr", "load_burr_file",
+__all__ = ["BURR_KINDS", "CONTACT_LEVELS", "Burr", "burr_folder", "load_burr", "load_burr_file",
            "list_burrs", "burr_table"]
 
 #: Burr kinds the simulator models.
