@@ -1,0 +1,1334 @@
+"""Hybrid voxel / triangle bone surface: the vertices *are* surface voxels.
+
+This module keeps a triangle mesh of the bone whose vertices sit at the
+centres of surface voxels of a :class:`bonesim.grid.Grid`, and updates it in
+time proportional to the number of voxels the drill removed.
+
+Definitions
+-----------
+Voxels are addressed by integer ``(i, j, k)`` along the case frame's
+``(x, y, z)`` axes; voxel ``(i, j, k)`` has its centre at
+``origin_mm + spacing_mm * (i, j, k)`` [mm].
+
+Occupied voxel
+    density > 0. Voxels in bricks the grid did not allocate are empty.
+Surface voxel
+    an occupied voxel with at least one empty voxel among its 26 neighbours.
+    Each surface voxel carries exactly one vertex, at its centre.
+Vertex normal
+    the unit vector along minus the density gradient, the gradient taken with
+    the 3x3x3 Sobel stencil (derivative ``[-1, 0, 1]`` along the axis,
+    smoothing ``[1, 2, 1]`` along the two others) of the current density. If
+    the gradient's norm is at most :data:`GRAD_EPS`, the normal is the
+    normalised sum of the integer offsets ``(di, dj, dk)`` towards the empty
+    26-neighbours, and if that sum is zero too, ``+z``.
+Vertex colour
+    RGBA uint8: the display colour of the voxel's structure (row ``label`` of
+    the ``(n_labels + 1, 3)`` colour table) times
+    ``SHADE_MIN + (1 - SHADE_MIN) * clip(density, 0, 1)``, rounded half up;
+    alpha is 255.
+Cell
+    the 2x2x2 block of voxels ``m + {0, 1}^3`` named by its minimum corner
+    ``m``. Corner ``c`` (0..7) of a cell is the voxel ``m + (c >> 2 & 1,
+    c >> 1 & 1, c & 1)``, so corner order is lexicographic ``(i, j, k)``
+    order. The cell's *code* is the 8-bit mask of its occupied corners.
+Triangle
+    three corners of one cell (any three corners of a cell are pairwise
+    26-adjacent); a cell has 56 such triples.
+Qualifying triple
+    triple ``T`` of cell ``C`` *qualifies in C* when its three corners are
+    occupied, every occupied corner of ``C`` off ``T``'s plane lies on one
+    side of that plane (the "-" side), and at least one *empty* corner of
+    ``C`` lies strictly on the other side (the "+" side): ``T`` is a face of
+    the convex hull of ``C``'s occupied corners that looks at empty space
+    inside ``C``. Its normal points to "+", out of the bone. If no occupied
+    corner lies off the plane and empty corners lie on both sides (a sheet
+    one voxel thick), "+" is the side whose normal has its first non-zero
+    component (in ``x, y, z`` order) *negative*; this matches the rule for
+    sheets lying in a cell face below.
+Coplanar quads
+    when the plane of ``T`` holds four corners of the cell (the six faces and
+    the six diagonal rectangles) and all four are occupied, only the two
+    triangles that contain the quad's diagonal through its lowest corner
+    (lexicographic ``(i, j, k)``) may qualify. The lowest corner is a global
+    property of the four voxels, so the two cells sharing a face agree.
+Each triangle once
+    a triple lying in a face shared by cells ``L`` (below, along the face's
+    axis) and ``U = L + e_axis`` is emitted once if it qualifies in either;
+    it is *owned* by ``L`` and oriented as in ``L`` if it qualifies there,
+    otherwise owned by and oriented as in ``U``. (Qualifying in ``L`` means
+    ``L``'s far half is empty, so a face sheet gets the normal ``-e_axis``.)
+    All other triples belong to their only cell. The identity of a triangle
+    is ``(owner cell, triple id, orientation)``. Every corner of a qualifying
+    triple is 26-adjacent to an empty corner of the owner, hence is a surface
+    voxel with a vertex; the kernels check this and report a violation.
+Winding
+    vertices are stored counter-clockwise seen from the "+" side, so the
+    right-hand normal ``(b - a) x (c - a)`` points out of the bone.
+
+Implementation
+--------------
+Everything the kernels need about the 56 triples is precomputed at import,
+from the geometric definition above, into a 256-entry table: for each code,
+the (at most four) qualifying triples with their orientation. Ownership of
+face triples adds one test per axis: a triple in ``C``'s minimum face along
+``a`` is dropped from ``C`` when the four voxels just below that face are
+empty (then it qualifies in, and belongs to, the lower cell).
+
+Vertex -> triangles map: every live triangle ``t`` is threaded on three
+singly linked lists, one per corner. ``vhead[v]`` is the first triangle of
+vertex ``v``'s list, and if ``tri[t, s] == v`` the next one is
+``tnext[t, s]`` (``-1`` ends the list). Adding a triangle is O(1), removing
+it walks the (short: at most 32 entries) lists of its corners. The lists are
+rebuilt in one pass after a full tessellation.
+
+Voxel -> vertex map: ``vmap`` is an int32 array shaped like the grid's bricks
+``(n_bricks, 512)``, ``-1`` where a voxel has no vertex.
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from bonesim.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, Grid,
+                          find_brick, voxel_offset)
+
+__all__ = ["Surface", "CanonicalSurface", "SHADE_MIN", "GRAD_EPS", "warmup",
+           "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
+
+#: Darkest shade factor, applied to a voxel of density 0 (density 1 is full colour).
+SHADE_MIN = 0.35
+#: Gradients with a norm at most this are treated as zero (fallback normal).
+GRAD_EPS = 1e-6
+#: Alpha of every vertex colour.
+ALPHA = 255
+#: Most triples that qualify in one cell (checked when the table is built).
+MAX_PER_CELL = 4
+
+# ----------------------------------------------------------------------------
+# Geometry tables, built from the definition at import.
+# ----------------------------------------------------------------------------
+#: (8, 3) int32: offset of each cell corner from the cell's minimum corner.
+CORNER_OFFSETS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)],
+                          dtype=np.int32)
+#: (56, 3) int32: the three corners (ascending) of each triple id.
+TRIPLE_CORNERS = np.array(list(itertools.combinations(range(8), 3)), dtype=np.int32)
+N_TRIPLES = TRIPLE_CORNERS.shape[0]
+#: bits of the corners with a 0 along axis a (the cell's low half along a)
+_LOW_HALF = np.array([0x0F, 0x33, 0x55], dtype=np.int64)
+
+
+def _triple_face(t):
+    """-1 for a triple inside the cell, ``a`` if it lies in the minimum face
+    along axis ``a``, ``3 + a`` if in the maximum face."""
+    offs = [tuple(int(v) for v in CORNER_OFFSETS[c]) for c in t]
+    for a in range(3):
+        vals = {o[a] for o in offs}
+        if len(vals) == 1:
+            return a if vals.pop() == 0 else 3 + a
+    return -1
+
+
+def _qualify(code, t):
+    """Orientation (+1: right-hand normal of the ascending triple, -1:
+    opposite) if triple ``t`` qualifies in a cell of occupancy ``code``,
+    else ``None``. Direct transcription of the definition."""
+    if any(not (code >> c) & 1 for c in t):
+        return None
+    p = [tuple(int(v) for v in CORNER_OFFSETS[c]) for c in t]
+    u = [p[1][i] - p[0][i] for i in range(3)]
+    w = [p[2][i] - p[0][i] for i in range(3)]
+    n = (u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0])
+    side = {}
+    for c in range(8):
+        if c in t:
+            continue
+        o = CORNER_OFFSETS[c]
+        side[c] = sum(n[i] * (int(o[i]) - p[0][i]) for i in range(3))
+    coplanar = [c for c, s in side.items() if s == 0]
+    if coplanar:                                   # a quad: face or diagonal rectangle
+        (c4,) = coplanar
+        if (code >> c4) & 1:
+            quad = sorted(list(t) + [c4])
+            low = quad[0]
+            far = max(quad, key=lambda c: sum((int(CORNER_OFFSETS[c][i])
+                                               - int(CORNER_OFFSETS[low][i])) ** 2
+                                              for i in range(3)))
+            if not (low in t and far in t):
+                return None
+    occ_pos = any((code >> c) & 1 and s > 0 for c, s in side.items())
+    occ_neg = any((code >> c) & 1 and s < 0 for c, s in side.items())
+    emp_pos = any(not (code >> c) & 1 and s > 0 for c, s in side.items())
+    emp_neg = any(not (code >> c) & 1 and s < 0 for c, s in side.items())
+    if occ_pos and occ_neg:
+        return None
+    if occ_neg:
+        return 1 if emp_pos else None
+    if occ_pos:
+        return -1 if emp_neg else None
+    if emp_pos and emp_neg:                        # one-voxel sheet
+        first = next(x for x in n if x != 0)
+        return -1 if first > 0 else 1
+    return 1 if emp_pos else -1
+
+
+def qualifying_triples(code):
+    """Triples that qualify in a cell of occupancy ``code``.
+
+    Returns
+    -------
+    list of (tid, oriented corners)
+        ``oriented corners`` is a 3-tuple of corner indices in winding order.
+    """
+    out = []
+    for tid in range(N_TRIPLES):
+        t = tuple(int(c) for c in TRIPLE_CORNERS[tid])
+        o = _qualify(code, t)
+        if o is not None:
+            out.append((tid, t if o > 0 else (t[0], t[2], t[1])))
+    return out
+
+
+def _build_tables():
+    face = np.array([_triple_face(TRIPLE_CORNERS[t]) for t in range(N_TRIPLES)], dtype=np.int8)
+    qn = np.zeros(256, dtype=np.int32)
+    qkey = np.full((256, MAX_PER_CELL), -1, dtype=np.int16)
+    qnmin = np.zeros((256, 3), dtype=np.int32)
+    for code in range(256):
+        q = qualifying_triples(code)
+        if len(q) > MAX_PER_CELL:
+            raise AssertionError("qualifying-triple bound violated")
+        qn[code] = len(q)
+        for s, (tid, oc) in enumerate(q):
+            flip = 0 if oc == tuple(TRIPLE_CORNERS[tid]) else 1
+            qkey[code, s] = 2 * tid + flip
+            if 0 <= face[tid] < 3:
+                qnmin[code, face[tid]] += 1
+    return face, qn, qkey, qnmin
+
+
+#: (56,) int8: -1 interior triple, a = min face along axis a, 3 + a = max face.
+TRIPLE_FACE, QUAL_N, QUAL_KEY, QUAL_NMIN = _build_tables()
+# QUAL_N[code]: number of qualifying triples; QUAL_KEY[code, s] = 2 * tid + flip
+# (flip 1: winding (c0, c2, c1)); QUAL_NMIN[code, a]: how many of them lie in
+# the minimum face along a.
+
+
+def _sobel():
+    w = {-1: 1.0, 0: 2.0, 1: 1.0}
+    k = np.zeros((3, 27), dtype=np.float64)
+    d = np.zeros((27, 3), dtype=np.int64)
+    for idx, (a, b, c) in enumerate(itertools.product((-1, 0, 1), repeat=3)):
+        k[0, idx] = a * w[b] * w[c]
+        k[1, idx] = b * w[a] * w[c]
+        k[2, idx] = c * w[a] * w[b]
+        d[idx] = (a, b, c)
+    return k, d
+
+
+#: (3, 27) Sobel weights of the 3x3x3 neighbourhood in (di, dj, dk) lexicographic order.
+SOBEL, NB27 = _sobel()
+
+# Offsets (from a removed voxel p) of every cell whose owned triangles may
+# change: cells containing p (p - {0,1}^3) and their 6 face neighbours.
+_AFFECTED = sorted({tuple(int(x) for x in (-np.array(d) + e))
+                    for d in itertools.product((0, 1), repeat=3)
+                    for e in [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
+                              (0, 0, 1), (0, 0, -1)]})
+AFFECTED_CELL_OFFSETS = np.array(_AFFECTED, dtype=np.int32)
+
+# counters kept in Surface._cnt
+_V_HW, _V_NFREE, _T_HW, _T_NFREE, _V_ALIVE, _T_ALIVE = range(6)
+# status / statistics slots of the update kernel
+(_S_STATUS, _S_NEED_V, _S_NEED_T, _S_V_ADD, _S_V_DEL, _S_T_ADD, _S_T_DEL,
+ _S_RESHADE, _S_CELLS, _S_ERR) = range(10)
+_N_STATS = 10
+
+
+# ----------------------------------------------------------------------------
+# Small kernels shared by both paths
+# ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True)
+def _brick_neighbours(keys, vals, bricks):
+    """(n_bricks, 27) int32: index of each brick's 26 neighbours and itself
+    (slot ``9 * (di + 1) + 3 * (dj + 1) + (dk + 1)``), -1 when absent."""
+    n = bricks.shape[0]
+    out = np.empty((n, 27), dtype=np.int32)
+    for b in range(n):
+        s = 0
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    out[b, s] = find_brick(keys, vals, bricks[b, 0] + di,
+                                           bricks[b, 1] + dj, bricks[b, 2] + dk)
+                    s += 1
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nb_slot(qi, qj, qk, i, j, k):
+    """Slot in the 27-neighbour row of voxel q's brick that holds voxel (i, j, k)."""
+    return (((i >> BRICK_SHIFT) - (qi >> BRICK_SHIFT) + 1) * 9
+            + ((j >> BRICK_SHIFT) - (qj >> BRICK_SHIFT) + 1) * 3
+            + ((k >> BRICK_SHIFT) - (qk >> BRICK_SHIFT) + 1))
+
+
+@njit(cache=True, nogil=True)
+def _vertex_attrs(d27, lab, colors, nrm, col, v):
+    """Write normal and colour of vertex ``v`` from its 3x3x3 densities.
+
+    ``d27`` holds the densities of the neighbourhood in ``(di, dj, dk)``
+    lexicographic order (centre at 13). Both the full and the incremental
+    tessellation call this, so they agree bit for bit.
+    """
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    for idx in range(27):
+        val = np.float64(d27[idx])
+        gx += SOBEL[0, idx] * val
+        gy += SOBEL[1, idx] * val
+        gz += SOBEL[2, idx] * val
+    g = np.sqrt(gx * gx + gy * gy + gz * gz)
+    if g > GRAD_EPS:
+        nx = -gx / g
+        ny = -gy / g
+        nz = -gz / g
+    else:
+        sx = 0
+        sy = 0
+        sz = 0
+        for idx in range(27):
+            if idx != 13 and not d27[idx] > 0:
+                sx += NB27[idx, 0]
+                sy += NB27[idx, 1]
+                sz += NB27[idx, 2]
+        s = np.sqrt(np.float64(sx * sx + sy * sy + sz * sz))
+        if s > 0:
+            nx = sx / s
+            ny = sy / s
+            nz = sz / s
+        else:
+            nx = 0.0
+            ny = 0.0
+            nz = 1.0
+    nrm[v, 0] = nx
+    nrm[v, 1] = ny
+    nrm[v, 2] = nz
+    dens = min(max(np.float64(d27[13]), 0.0), 1.0)
+    shade = SHADE_MIN + (1.0 - SHADE_MIN) * dens
+    if lab >= colors.shape[0]:
+        lab = 0
+    for ch in range(3):
+        val = np.floor(np.float64(colors[lab, ch]) * shade + 0.5)
+        col[v, ch] = np.uint8(min(val, 255.0))
+    col[v, 3] = ALPHA
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _slot_of(tri, t, v):
+    if tri[t, 0] == v:
+        return 0
+    if tri[t, 1] == v:
+        return 1
+    return 2
+
+
+@njit(cache=True, nogil=True)
+def _triangles_of_vertex(vhead, tri, tnext, v, out):
+    """Fill ``out`` with the triangles of vertex ``v``; return their number
+    (which may exceed ``out``'s length; then only the first ones are written)."""
+    n = 0
+    t = vhead[v]
+    while t >= 0:
+        if n < out.shape[0]:
+            out[n] = t
+        n += 1
+        t = tnext[t, _slot_of(tri, t, v)]
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _link_all(tri, tnext, vhead, ttid, n_t):
+    for t in range(n_t - 1, -1, -1):
+        if ttid[t] < 0:
+            continue
+        for s in range(3):
+            v = tri[t, s]
+            tnext[t, s] = vhead[v]
+            vhead[v] = t
+
+
+# ----------------------------------------------------------------------------
+# Full tessellation, per brick
+# ----------------------------------------------------------------------------
+_CHUNK = 32            # bricks per parallel work item
+_L = BRICK + 2         # local box: brick plus a one-voxel halo on each side
+
+
+@njit(cache=True, nogil=True)
+def _gather_local(density, nbr, b, loc):
+    """Copy the densities of brick ``b`` plus a one-voxel halo into ``loc``
+    (``(10, 10, 10)``; ``loc[x + 1, y + 1, z + 1]`` is voxel ``(x, y, z)`` of
+    the brick). Returns ``(occupied in the brick and its upper halo,
+    occupied in the whole box)``."""
+    n_up = 0
+    n_all = 0
+    for lx in range(_L):
+        x = lx - 1
+        sx = ((x >> BRICK_SHIFT) + 1) * 9
+        ox = (x & BRICK_MASK) << 6
+        for ly in range(_L):
+            y = ly - 1
+            sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
+            oy = ox | ((y & BRICK_MASK) << 3)
+            for lz in range(_L):
+                z = lz - 1
+                nb = nbr[b, sy + (z >> BRICK_SHIFT) + 1]
+                if nb >= 0:
+                    d = density[nb, oy | (z & BRICK_MASK)]
+                else:
+                    d = np.float32(0.0)
+                loc[lx, ly, lz] = d
+                if d > 0:
+                    n_all += 1
+                    if lx > 0 and ly > 0 and lz > 0:
+                        n_up += 1
+    return n_up, n_all
+
+
+@njit(cache=True, nogil=True)
+def _local_codes(loc, codes):
+    """Occupancy code of each cell with minimum corner at local (0..8)^3."""
+    for x in range(_L - 1):
+        for y in range(_L - 1):
+            for z in range(_L - 1):
+                c = 0
+                for cn in range(8):
+                    if loc[x + (cn >> 2), y + ((cn >> 1) & 1), z + (cn & 1)] > 0:
+                        c |= 1 << cn
+                codes[x, y, z] = c
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _is_surface_local(loc, x, y, z):
+    if not loc[x, y, z] > 0:
+        return False
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            for c in range(-1, 2):
+                if not loc[x + a, y + b, z + c] > 0:
+                    return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _owned_count(codes, x, y, z):
+    code = codes[x, y, z]
+    n = QUAL_N[code]
+    if n > 0:
+        if codes[x - 1, y, z] & 0x0F == 0:
+            n -= QUAL_NMIN[code, 0]
+        if codes[x, y - 1, z] & 0x33 == 0:
+            n -= QUAL_NMIN[code, 1]
+        if codes[x, y, z - 1] & 0x55 == 0:
+            n -= QUAL_NMIN[code, 2]
+    return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _build_count(density, nbr, nv, nt):
+    nb_tot = nbr.shape[0]
+    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    for ch in prange(n_chunks):
+        loc = np.empty((_L, _L, _L), dtype=np.float32)
+        codes = np.empty((_L - 1, _L - 1, _L - 1), dtype=np.int64)
+        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+            n_up, n_all = _gather_local(density, nbr, b, loc)
+            if n_up == 0 or n_all == _L * _L * _L:
+                nv[b] = 0
+                nt[b] = 0
+                continue
+            cv = 0
+            for x in range(1, _L - 1):
+                for y in range(1, _L - 1):
+                    for z in range(1, _L - 1):
+                        if _is_surface_local(loc, x, y, z):
+                            cv += 1
+            _local_codes(loc, codes)
+            ct = 0
+            for x in range(1, _L - 1):
+                for y in range(1, _L - 1):
+                    for z in range(1, _L - 1):
+                        ct += _owned_count(codes, x, y, z)
+            nv[b] = cv
+            nt[b] = ct
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _build_vertices(density, label, nbr, bricks, colors, origin, spacing, voff,
+                    vmap, pos, nrm, col, vijk):
+    nb_tot = nbr.shape[0]
+    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    for ch in prange(n_chunks):
+        loc = np.empty((_L, _L, _L), dtype=np.float32)
+        d27 = np.empty(27, dtype=np.float32)
+        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+            for o in range(BRICK_VOXELS):
+                vmap[b, o] = -1
+            if voff[b + 1] == voff[b]:
+                continue
+            _gather_local(density, nbr, b, loc)
+            v = voff[b]
+            bi = bricks[b, 0] << BRICK_SHIFT
+            bj = bricks[b, 1] << BRICK_SHIFT
+            bk = bricks[b, 2] << BRICK_SHIFT
+            for x in range(1, _L - 1):
+                for y in range(1, _L - 1):
+                    for z in range(1, _L - 1):
+                        if not _is_surface_local(loc, x, y, z):
+                            continue
+                        s = 0
+                        for a in range(-1, 2):
+                            for bb in range(-1, 2):
+                                for c in range(-1, 2):
+                                    d27[s] = loc[x + a, y + bb, z + c]
+                                    s += 1
+                        o = ((x - 1) << 6) | ((y - 1) << 3) | (z - 1)
+                        i = bi + x - 1
+                        j = bj + y - 1
+                        k = bk + z - 1
+                        vmap[b, o] = v
+                        vijk[v, 0] = i
+                        vijk[v, 1] = j
+                        vijk[v, 2] = k
+                        pos[v, 0] = origin[0] + spacing * i
+                        pos[v, 1] = origin[1] + spacing * j
+                        pos[v, 2] = origin[2] + spacing * k
+                        _vertex_attrs(d27, label[b, o], colors, nrm, col, v)
+                        v += 1
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _build_triangles(density, nbr, toff, vmap, tri, ttid, err):
+    nb_tot = nbr.shape[0]
+    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    for ch in prange(n_chunks):
+        loc = np.empty((_L, _L, _L), dtype=np.float32)
+        codes = np.empty((_L - 1, _L - 1, _L - 1), dtype=np.int64)
+        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+            if toff[b + 1] == toff[b]:
+                continue
+            _gather_local(density, nbr, b, loc)
+            _local_codes(loc, codes)
+            t = toff[b]
+            for x in range(1, _L - 1):
+                for y in range(1, _L - 1):
+                    for z in range(1, _L - 1):
+                        code = codes[x, y, z]
+                        n = QUAL_N[code]
+                        if n == 0:
+                            continue
+                        low0 = codes[x - 1, y, z] & 0x0F == 0
+                        low1 = codes[x, y - 1, z] & 0x33 == 0
+                        low2 = codes[x, y, z - 1] & 0x55 == 0
+                        for q in range(n):
+                            key = QUAL_KEY[code, q]
+                            tid = key >> 1
+                            f = TRIPLE_FACE[tid]
+                            if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
+                                continue
+                            for s in range(3):
+                                cs = s
+                                if key & 1 and s > 0:
+                                    cs = 3 - s
+                                cn = TRIPLE_CORNERS[tid, cs]
+                                # brick-relative coordinates of the corner (0..8)
+                                rx = x - 1 + (cn >> 2)
+                                ry = y - 1 + ((cn >> 1) & 1)
+                                rz = z - 1 + (cn & 1)
+                                nb = nbr[b, ((rx >> BRICK_SHIFT) + 1) * 9
+                                         + ((ry >> BRICK_SHIFT) + 1) * 3
+                                         + (rz >> BRICK_SHIFT) + 1]
+                                v = -1
+                                if nb >= 0:
+                                    v = vmap[nb, ((rx & BRICK_MASK) << 6)
+                                             | ((ry & BRICK_MASK) << 3) | (rz & BRICK_MASK)]
+                                if v < 0:
+                                    err[ch] += 1
+                                tri[t, s] = v
+                            ttid[t] = key
+                            t += 1
+
+
+# ----------------------------------------------------------------------------
+# Incremental update
+# ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True, inline="always")
+def _hslot(key, mask):
+    h = np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
+    return np.int64((h >> np.uint64(29)) & np.uint64(mask))
+
+
+@njit(cache=True, nogil=True)
+def _hset_new(n):
+    cap = 64
+    while cap < 2 * n:
+        cap *= 2
+    return np.full(cap, -1, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hset_add(h, key):
+    """Insert ``key`` (>= 0) into the open-addressing set ``h``; True if new."""
+    mask = h.shape[0] - 1
+    s = _hslot(key, mask)
+    while True:
+        k = h[s]
+        if k == key:
+            return False
+        if k == -1:
+            h[s] = key
+            return True
+        s = (s + 1) & mask
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vkey(i, j, k):
+    # voxel coordinates packed like brick keys (non-negative for |coord| < 2**20)
+    return ((np.int64(i) + (1 << 20)) << 42) | ((np.int64(j) + (1 << 20)) << 21) \
+        | (np.int64(k) + (1 << 20))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _occ_near(density, nbr, b, qi, qj, qk, i, j, k):
+    """Is voxel (i, j, k), within one brick of voxel q (brick b), occupied?"""
+    nb = nbr[b, _nb_slot(qi, qj, qk, i, j, k)]
+    if nb < 0:
+        return False
+    return density[nb, voxel_offset(i, j, k)] > 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vmap_near(vmap, nbr, b, qi, qj, qk, i, j, k):
+    nb = nbr[b, _nb_slot(qi, qj, qk, i, j, k)]
+    if nb < 0:
+        return -1
+    return vmap[nb, voxel_offset(i, j, k)]
+
+
+@njit(cache=True, nogil=True)
+def _unlink(t, v, vhead, tri, tnext):
+    """Remove triangle t from vertex v's list; False if it was not there."""
+    prev = -1
+    prev_s = 0
+    cur = vhead[v]
+    while cur >= 0 and cur != t:
+        prev = cur
+        prev_s = _slot_of(tri, cur, v)
+        cur = tnext[cur, prev_s]
+    if cur < 0:
+        return False
+    nxt = tnext[t, _slot_of(tri, t, v)]
+    if prev < 0:
+        vhead[v] = nxt
+    else:
+        tnext[prev, prev_s] = nxt
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
+                   removed, touched,
+                   vmap, pos, nrm, col, vijk, valive, vhead, vfree,
+                   tri, tnext, ttid, tfree, cnt, stats):
+    """Re-tessellate around ``removed`` and re-shade around ``touched``.
+
+    Works in two phases: a read-only plan (affected cells with their old and
+    new owned triangles, vertices to create or drop) and, if the vertex and
+    triangle arrays have room for it, the edit. Without room, it sets
+    ``stats[_S_STATUS] = 1`` and the extra slots needed, and changes nothing.
+    """
+    for s in range(stats.shape[0]):
+        stats[s] = 0
+    nr = removed.shape[0]
+    ntch = touched.shape[0]
+    n_aff = AFFECTED_CELL_OFFSETS.shape[0]
+
+    # ---- plan 1: affected cells -----------------------------------------
+    hc = _hset_new(nr * n_aff)
+    cells = np.empty((nr * n_aff, 3), dtype=np.int32)
+    nc = 0
+    for r in range(nr):
+        pi = removed[r, 0]
+        pj = removed[r, 1]
+        pk = removed[r, 2]
+        for o in range(n_aff):
+            ci = pi + AFFECTED_CELL_OFFSETS[o, 0]
+            cj = pj + AFFECTED_CELL_OFFSETS[o, 1]
+            ck = pk + AFFECTED_CELL_OFFSETS[o, 2]
+            if _hset_add(hc, _vkey(ci, cj, ck)):
+                cells[nc, 0] = ci
+                cells[nc, 1] = cj
+                cells[nc, 2] = ck
+                nc += 1
+    stats[_S_CELLS] = nc
+    cbrick = np.empty(nc, dtype=np.int32)
+    newk = np.empty((nc, MAX_PER_CELL), dtype=np.int16)
+    nnew = np.zeros(nc, dtype=np.int32)
+    oldk = np.empty((nc, 2 * MAX_PER_CELL), dtype=np.int16)
+    oldt = np.empty((nc, 2 * MAX_PER_CELL), dtype=np.int32)
+    nold = np.zeros(nc, dtype=np.int32)
+    n_tadd = 0
+    n_tdel = 0
+    for c in range(nc):
+        ci = cells[c, 0]
+        cj = cells[c, 1]
+        ck = cells[c, 2]
+        b = find_brick(keys, vals, ci >> BRICK_SHIFT, cj >> BRICK_SHIFT, ck >> BRICK_SHIFT)
+        cbrick[c] = b
+        if b < 0:
+            continue              # no corner of this cell was ever tissue
+        code = 0
+        for cn in range(8):
+            if _occ_near(density, nbr, b, ci, cj, ck, ci + (cn >> 2),
+                         cj + ((cn >> 1) & 1), ck + (cn & 1)):
+                code |= 1 << cn
+        n = QUAL_N[code]
+        m = 0
+        if n > 0:
+            low0 = True
+            low1 = True
+            low2 = True
+            for u in range(2):
+                for w in range(2):
+                    if _occ_near(density, nbr, b, ci, cj, ck, ci - 1, cj + u, ck + w):
+                        low0 = False
+                    if _occ_near(density, nbr, b, ci, cj, ck, ci + u, cj - 1, ck + w):
+                        low1 = False
+                    if _occ_near(density, nbr, b, ci, cj, ck, ci + u, cj + w, ck - 1):
+                        low2 = False
+            for q in range(n):
+                key = QUAL_KEY[code, q]
+                f = TRIPLE_FACE[key >> 1]
+                if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
+                    continue
+                newk[c, m] = key
+                m += 1
+        nnew[c] = m
+        # triangles this cell owns now: scan the lists of its corners
+        mo = 0
+        for cn in range(8):
+            v = _vmap_near(vmap, nbr, b, ci, cj, ck, ci + (cn >> 2),
+                           cj + ((cn >> 1) & 1), ck + (cn & 1))
+            if v < 0:
+                continue
+            t = vhead[v]
+            while t >= 0:
+                key = ttid[t]
+                c0 = TRIPLE_CORNERS[key >> 1, 0]
+                v0 = tri[t, 0]
+                if (vijk[v0, 0] - CORNER_OFFSETS[c0, 0] == ci
+                        and vijk[v0, 1] - CORNER_OFFSETS[c0, 1] == cj
+                        and vijk[v0, 2] - CORNER_OFFSETS[c0, 2] == ck):
+                    seen = False
+                    for x in range(mo):
+                        if oldt[c, x] == t:
+                            seen = True
+                    if not seen:
+                        if mo == 2 * MAX_PER_CELL:
+                            stats[_S_ERR] += 1
+                        else:
+                            oldt[c, mo] = t
+                            oldk[c, mo] = key
+                            mo += 1
+                t = tnext[t, _slot_of(tri, t, v)]
+        nold[c] = mo
+        for x in range(m):
+            keep = False
+            for y in range(mo):
+                if oldk[c, y] == newk[c, x]:
+                    keep = True
+            if not keep:
+                n_tadd += 1
+        for y in range(mo):
+            keep = False
+            for x in range(m):
+                if oldk[c, y] == newk[c, x]:
+                    keep = True
+            if not keep:
+                n_tdel += 1
+
+    # ---- plan 2: vertices to create / drop, vertices to re-shade ---------
+    hv = _hset_new(27 * (nr + ntch))
+    cand = np.empty((27 * (nr + ntch), 3), dtype=np.int32)
+    ncand = 0
+    n_topo = 0
+    for r in range(nr + ntch):
+        if r < nr:
+            pi = removed[r, 0]
+            pj = removed[r, 1]
+            pk = removed[r, 2]
+        else:
+            pi = touched[r - nr, 0]
+            pj = touched[r - nr, 1]
+            pk = touched[r - nr, 2]
+        for a in range(-1, 2):
+            for bb in range(-1, 2):
+                for cc in range(-1, 2):
+                    if _hset_add(hv, _vkey(pi + a, pj + bb, pk + cc)):
+                        cand[ncand, 0] = pi + a
+                        cand[ncand, 1] = pj + bb
+                        cand[ncand, 2] = pk + cc
+                        ncand += 1
+        if r == nr - 1:
+            n_topo = ncand          # candidates whose surface status may change
+    qstat = np.zeros(ncand, dtype=np.int8)     # 1 create, 2 drop
+    qbrick = np.empty(ncand, dtype=np.int32)
+    n_vadd = 0
+    n_vdel = 0
+    for q in range(ncand):
+        qi = cand[q, 0]
+        qj = cand[q, 1]
+        qk = cand[q, 2]
+        b = find_brick(keys, vals, qi >> BRICK_SHIFT, qj >> BRICK_SHIFT, qk >> BRICK_SHIFT)
+        qbrick[q] = b
+        if b < 0 or q >= n_topo:
+            continue
+        o = voxel_offset(qi, qj, qk)
+        surf = False
+        if density[b, o] > 0:
+            for a in range(-1, 2):
+                for bb in range(-1, 2):
+                    for cc in range(-1, 2):
+                        if not _occ_near(density, nbr, b, qi, qj, qk, qi + a, qj + bb, qk + cc):
+                            surf = True
+        if surf and vmap[b, o] < 0:
+            qstat[q] = 1
+            n_vadd += 1
+        elif not surf and vmap[b, o] >= 0:
+            qstat[q] = 2
+            n_vdel += 1
+
+    # ---- room? -----------------------------------------------------------
+    v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
+    t_room = cnt[_T_NFREE] + (tri.shape[0] - cnt[_T_HW]) + n_tdel
+    if n_vadd > v_room or n_tadd > t_room:
+        stats[_S_STATUS] = 1
+        stats[_S_NEED_V] = max(0, n_vadd - v_room)
+        stats[_S_NEED_T] = max(0, n_tadd - t_room)
+        return
+
+    # ---- edit 1: drop triangles no longer owned ---------------------------
+    for c in range(nc):
+        for y in range(nold[c]):
+            keep = False
+            for x in range(nnew[c]):
+                if oldk[c, y] == newk[c, x]:
+                    keep = True
+            if keep:
+                continue
+            t = oldt[c, y]
+            for s in range(3):
+                if not _unlink(t, tri[t, s], vhead, tri, tnext):
+                    stats[_S_ERR] += 1
+            ttid[t] = -1
+            tfree[cnt[_T_NFREE]] = t
+            cnt[_T_NFREE] += 1
+            cnt[_T_ALIVE] -= 1
+            stats[_S_T_DEL] += 1
+    # ---- edit 2: drop vertices of voxels that left the surface -------------
+    for q in range(ncand):
+        if qstat[q] != 2:
+            continue
+        o = voxel_offset(cand[q, 0], cand[q, 1], cand[q, 2])
+        v = vmap[qbrick[q], o]
+        if vhead[v] >= 0:
+            stats[_S_ERR] += 1
+        vmap[qbrick[q], o] = -1
+        valive[v] = 0
+        vfree[cnt[_V_NFREE]] = v
+        cnt[_V_NFREE] += 1
+        cnt[_V_ALIVE] -= 1
+        stats[_S_V_DEL] += 1
+    # ---- edit 3: vertices for voxels that joined the surface ---------------
+    for q in range(ncand):
+        if qstat[q] != 1:
+            continue
+        if cnt[_V_NFREE] > 0:
+            cnt[_V_NFREE] -= 1
+            v = vfree[cnt[_V_NFREE]]
+        else:
+            v = cnt[_V_HW]
+            cnt[_V_HW] += 1
+        qi = cand[q, 0]
+        qj = cand[q, 1]
+        qk = cand[q, 2]
+        vmap[qbrick[q], voxel_offset(qi, qj, qk)] = v
+        vijk[v, 0] = qi
+        vijk[v, 1] = qj
+        vijk[v, 2] = qk
+        pos[v, 0] = origin[0] + spacing * qi
+        pos[v, 1] = origin[1] + spacing * qj
+        pos[v, 2] = origin[2] + spacing * qk
+        vhead[v] = -1
+        valive[v] = 1
+        cnt[_V_ALIVE] += 1
+        stats[_S_V_ADD] += 1
+    # ---- edit 4: new triangles ---------------------------------------------
+    for c in range(nc):
+        b = cbrick[c]
+        ci = cells[c, 0]
+        cj = cells[c, 1]
+        ck = cells[c, 2]
+        for x in range(nnew[c]):
+            key = newk[c, x]
+            keep = False
+            for y in range(nold[c]):
+                if oldk[c, y] == key:
+                    keep = True
+            if keep:
+                continue
+            if cnt[_T_NFREE] > 0:
+                cnt[_T_NFREE] -= 1
+                t = tfree[cnt[_T_NFREE]]
+            else:
+                t = cnt[_T_HW]
+                cnt[_T_HW] += 1
+            tid = key >> 1
+            for s in range(3):
+                cs = s
+                if key & 1 and s > 0:
+                    cs = 3 - s
+                cn = TRIPLE_CORNERS[tid, cs]
+                v = _vmap_near(vmap, nbr, b, ci, cj, ck, ci + (cn >> 2),
+                               cj + ((cn >> 1) & 1), ck + (cn & 1))
+                if v < 0:
+                    stats[_S_ERR] += 1
+                    v = 0
+                tri[t, s] = v
+            ttid[t] = key
+            for s in range(3):
+                v = tri[t, s]
+                tnext[t, s] = vhead[v]
+                vhead[v] = t
+            cnt[_T_ALIVE] += 1
+            stats[_S_T_ADD] += 1
+    # ---- edit 5: re-shade vertices whose 3x3x3 densities changed -----------
+    d27 = np.empty(27, dtype=np.float32)
+    for q in range(ncand):
+        b = qbrick[q]
+        if b < 0:
+            continue
+        qi = cand[q, 0]
+        qj = cand[q, 1]
+        qk = cand[q, 2]
+        o = voxel_offset(qi, qj, qk)
+        v = vmap[b, o]
+        if v < 0:
+            continue
+        s = 0
+        for a in range(-1, 2):
+            for bb in range(-1, 2):
+                for cc in range(-1, 2):
+                    nb = nbr[b, _nb_slot(qi, qj, qk, qi + a, qj + bb, qk + cc)]
+                    if nb >= 0:
+                        d27[s] = density[nb, voxel_offset(qi + a, qj + bb, qk + cc)]
+                    else:
+                        d27[s] = np.float32(0.0)
+                    s += 1
+        _vertex_attrs(d27, label[b, o], colors, nrm, col, v)
+        stats[_S_RESHADE] += 1
+
+
+# ----------------------------------------------------------------------------
+# Python front end
+# ----------------------------------------------------------------------------
+_COORD_LIMIT = (1 << 20) - 2 * BRICK
+
+
+def _as_ijk(a, name):
+    """Validate an (n, 3) array of integer voxel coordinates -> int32 C array."""
+    if a is None:
+        return np.zeros((0, 3), dtype=np.int32)
+    arr = np.asarray(a)
+    if arr.size == 0:
+        return np.zeros((0, 3), dtype=np.int32)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise TypeError(f"{name} must hold integer voxel coordinates, got {arr.dtype}")
+    if np.abs(arr).max() >= _COORD_LIMIT:
+        raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
+    return np.ascontiguousarray(arr, dtype=np.int32)
+
+
+def _as_colors(colors):
+    c = np.asarray(colors)
+    if c.ndim != 2 or c.shape[1] != 3 or c.shape[0] < 1:
+        raise ValueError(f"colors must have shape (n_labels + 1, 3), got {c.shape}")
+    if not np.issubdtype(c.dtype, np.integer) or c.min() < 0 or c.max() > 255:
+        raise ValueError("colors must be integers in [0, 255]")
+    return np.ascontiguousarray(c, dtype=np.uint8)
+
+
+def _initial_capacity(n):
+    return int(max(64, n + n // 4))
+
+
+def _grown(arr, cap, fill):
+    out = np.full((cap,) + arr.shape[1:], fill, dtype=arr.dtype)
+    out[:arr.shape[0]] = arr
+    return out
+
+
+@dataclass(eq=False)
+class CanonicalSurface:
+    """Order-independent form of a :class:`Surface`, for equality tests.
+
+    Attributes
+    ----------
+    ijk : (n, 3) int32
+        Vertex voxels, sorted lexicographically.
+    pos, nrm : (n, 3) float32
+        Position [mm] and unit normal of each vertex, in ``ijk`` order.
+    col : (n, 4) uint8
+        RGBA colour of each vertex.
+    tris : (m, 9) int32
+        Oriented triangles as the voxel coordinates of their three corners in
+        winding order, rotated so the lexicographically smallest corner comes
+        first; rows sorted lexicographically.
+    """
+
+    ijk: np.ndarray
+    pos: np.ndarray
+    nrm: np.ndarray
+    col: np.ndarray
+    tris: np.ndarray
+
+    def differences(self, other, atol=0.0):
+        """Human-readable list of what differs from ``other`` (empty if equal).
+
+        ``atol`` is the tolerance on normals (positions and colours are exact).
+        """
+        out = []
+        if not np.array_equal(self.ijk, other.ijk):
+            a = {tuple(r) for r in self.ijk.tolist()}
+            b = {tuple(r) for r in other.ijk.tolist()}
+            out.append(f"vertices differ: only here {sorted(a - b)[:5]}, "
+                       f"only there {sorted(b - a)[:5]}")
+            return out
+        if not np.array_equal(self.pos, other.pos):
+            out.append("positions differ")
+        if atol == 0:
+            bad = np.flatnonzero((self.nrm != other.nrm).any(axis=1))
+        else:
+            bad = np.flatnonzero((np.abs(self.nrm - other.nrm) > atol).any(axis=1))
+        if bad.size:
+            out.append(f"normals differ at {self.ijk[bad[:5]].tolist()}")
+        bad = np.flatnonzero((self.col != other.col).any(axis=1))
+        if bad.size:
+            out.append(f"colours differ at {self.ijk[bad[:5]].tolist()}")
+        if not np.array_equal(self.tris, other.tris):
+            a = {tuple(r) for r in self.tris.tolist()}
+            b = {tuple(r) for r in other.tris.tolist()}
+            out.append(f"triangles differ: {len(self.tris)} vs {len(other.tris)}; "
+                       f"only here {sorted(a - b)[:3]}, only there {sorted(b - a)[:3]}")
+        return out
+
+    def __eq__(self, other):
+        if not isinstance(other, CanonicalSurface):
+            return NotImplemented
+        return not self.differences(other)
+
+
+class Surface:
+    """Triangle surface of a :class:`~bonesim.grid.Grid` with one vertex per
+    surface voxel, kept up to date as voxels are removed.
+
+    Build one with :meth:`build`; then call :meth:`update` after each batch
+    of removed voxels. See the module docstring for the definitions.
+
+    Vertex and triangle data live in arrays with spare capacity; a slot is
+    in use when ``alive[v]`` (vertices) / ``tri_key[t] >= 0`` (triangles).
+    Freed slots are reused. Use :meth:`arrays` for compact copies.
+
+    Attributes
+    ----------
+    pos : (vcap, 3) float32
+        Vertex positions [mm] (voxel centres, case frame).
+    nrm : (vcap, 3) float32
+        Unit vertex normals (pointing out of the bone).
+    col : (vcap, 4) uint8
+        Vertex RGBA colours.
+    ijk : (vcap, 3) int32
+        Voxel of each vertex.
+    alive : (vcap,) uint8
+        1 for slots holding a vertex.
+    tri : (tcap, 3) int32
+        Vertex slots of each triangle, counter-clockwise seen from outside.
+    tri_key : (tcap,) int16
+        ``2 * triple_id + flip`` for live triangles (``-1`` for free slots);
+        with the owner cell (``ijk[tri[t, 0]] - CORNER_OFFSETS[TRIPLE_CORNERS[
+        key >> 1, 0]]``) it is the triangle's identity.
+    vmap : (n_bricks, 512) int32
+        Vertex slot of each grid voxel (same layout as ``grid.density``), -1
+        for none.
+    vhead : (vcap,) int32, tnext : (tcap, 3) int32
+        Vertex -> triangle lists (see module docstring).
+    """
+
+    def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vhead, vfree,
+                 tri, tnext, tri_key, tfree, cnt, origin_mm, spacing_mm):
+        self._keys = keys
+        self._vals = vals
+        self.colors = colors
+        self._nbr = nbr
+        self.vmap = vmap
+        self.pos = pos
+        self.nrm = nrm
+        self.col = col
+        self.ijk = ijk
+        self.alive = alive
+        self.vhead = vhead
+        self._vfree = vfree
+        self.tri = tri
+        self.tnext = tnext
+        self.tri_key = tri_key
+        self._tfree = tfree
+        self._cnt = cnt
+        self._origin = np.asarray(origin_mm, dtype=np.float64)
+        self._spacing = float(spacing_mm)
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def build(cls, grid: Grid, colors) -> "Surface":
+        """Tessellate ``grid`` from scratch.
+
+        Parameters
+        ----------
+        grid : Grid
+            The bone; its ``density``/``label`` arrays are read, not kept.
+        colors : (n_labels + 1, 3) uint8 array_like
+            Display RGB of each structure index (row 0 for label 0); must
+            cover every label present in the grid.
+
+        Returns
+        -------
+        Surface
+        """
+        if not isinstance(grid, Grid):
+            raise TypeError(f"grid must be a bonesim.grid.Grid, got {type(grid).__name__}")
+        colors = _as_colors(colors)
+        if grid.label.size and int(grid.label.max()) >= colors.shape[0]:
+            raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
+                             f"label {int(grid.label.max())}")
+        n_b = grid.n_bricks
+        nbr = _brick_neighbours(grid.keys, grid.vals, grid.bricks)
+        nv = np.zeros(n_b, dtype=np.int64)
+        nt = np.zeros(n_b, dtype=np.int64)
+        _build_count(grid.density, nbr, nv, nt)
+        voff = np.zeros(n_b + 1, dtype=np.int64)
+        np.cumsum(nv, out=voff[1:])
+        toff = np.zeros(n_b + 1, dtype=np.int64)
+        np.cumsum(nt, out=toff[1:])
+        n_v = int(voff[-1])
+        n_t = int(toff[-1])
+        vcap = _initial_capacity(n_v)
+        tcap = _initial_capacity(n_t)
+        vmap = np.empty((n_b, BRICK_VOXELS), dtype=np.int32)
+        pos = np.zeros((vcap, 3), dtype=np.float32)
+        nrm = np.zeros((vcap, 3), dtype=np.float32)
+        col = np.zeros((vcap, 4), dtype=np.uint8)
+        ijk = np.zeros((vcap, 3), dtype=np.int32)
+        _build_vertices(grid.density, grid.label, nbr, grid.bricks, colors, grid.origin_mm,
+                        grid.spacing_mm, voff, vmap, pos, nrm, col, ijk)
+        tri = np.zeros((tcap, 3), dtype=np.int32)
+        tri_key = np.full(tcap, -1, dtype=np.int16)
+        err = np.zeros(max(1, (n_b + _CHUNK - 1) // _CHUNK), dtype=np.int64)
+        _build_triangles(grid.density, nbr, toff, vmap, tri, tri_key, err)
+        if err.sum():
+            raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
+        alive = np.zeros(vcap, dtype=np.uint8)
+        alive[:n_v] = 1
+        vhead = np.full(vcap, -1, dtype=np.int32)
+        tnext = np.full((tcap, 3), -1, dtype=np.int32)
+        _link_all(tri, tnext, vhead, tri_key, n_t)
+        cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
+        return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vhead,
+                   np.zeros(vcap, dtype=np.int32), tri, tnext, tri_key,
+                   np.zeros(tcap, dtype=np.int32), cnt, grid.origin_mm, grid.spacing_mm)
+
+    # ----------------------------------------------------------------- update
+    def update(self, grid: Grid, removed, touched=None) -> dict:
+        """Re-tessellate after voxels were removed from ``grid``.
+
+        Work is proportional to the number of voxels given, not to the
+        surface: cells around removed voxels are re-evaluated, vertices
+        created for voxels that became surface and dropped for removed ones,
+        and vertices whose 3x3x3 density neighbourhood changed are re-shaded.
+
+        Parameters
+        ----------
+        grid : Grid
+            The grid this surface was built from (or a copy sharing its hash
+            table), in its new state.
+        removed : (n, 3) int array_like
+            Voxels ``(i, j, k)`` whose density was set to 0 since the last
+            update. Duplicates are harmless.
+        touched : (m, 3) int array_like, optional
+            Voxels whose density was lowered but stayed > 0.
+
+        Returns
+        -------
+        dict
+            ``vertices_added``, ``vertices_removed``, ``triangles_added``,
+            ``triangles_removed``, ``vertices_reshaded``, ``cells_visited``.
+        """
+        if not isinstance(grid, Grid):
+            raise TypeError(f"grid must be a bonesim.grid.Grid, got {type(grid).__name__}")
+        if grid.density.shape != self.vmap.shape or not (
+                grid.keys is self._keys or np.array_equal(grid.keys, self._keys)):
+            raise ValueError("update() needs the grid this surface was built from")
+        removed = _as_ijk(removed, "removed")
+        touched = _as_ijk(touched, "touched")
+        stats = np.zeros(_N_STATS, dtype=np.int64)
+        while True:
+            _update_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
+                           self.colors, self._origin, self._spacing, removed, touched,
+                           self.vmap, self.pos, self.nrm, self.col, self.ijk, self.alive,
+                           self.vhead, self._vfree, self.tri, self.tnext, self.tri_key,
+                           self._tfree, self._cnt, stats)
+            if stats[_S_STATUS] == 0:
+                break
+            self._grow(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
+        if stats[_S_ERR]:
+            raise RuntimeError(f"surface update found {int(stats[_S_ERR])} inconsistencies")
+        return {"vertices_added": int(stats[_S_V_ADD]),
+                "vertices_removed": int(stats[_S_V_DEL]),
+                "triangles_added": int(stats[_S_T_ADD]),
+                "triangles_removed": int(stats[_S_T_DEL]),
+                "vertices_reshaded": int(stats[_S_RESHADE]),
+                "cells_visited": int(stats[_S_CELLS])}
+
+    def _grow(self, need_v, need_t):
+        if need_v > 0:
+            cap = max(2 * self.pos.shape[0], self.pos.shape[0] + need_v)
+            self.pos = _grown(self.pos, cap, 0)
+            self.nrm = _grown(self.nrm, cap, 0)
+            self.col = _grown(self.col, cap, 0)
+            self.ijk = _grown(self.ijk, cap, 0)
+            self.alive = _grown(self.alive, cap, 0)
+            self.vhead = _grown(self.vhead, cap, -1)
+            self._vfree = _grown(self._vfree, cap, 0)
+        if need_t > 0:
+            cap = max(2 * self.tri.shape[0], self.tri.shape[0] + need_t)
+            self.tri = _grown(self.tri, cap, 0)
+            self.tnext = _grown(self.tnext, cap, -1)
+            self.tri_key = _grown(self.tri_key, cap, -1)
+            self._tfree = _grown(self._tfree, cap, 0)
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def n_vertices(self) -> int:
+        """Number of live vertices (= surface voxels)."""
+        return int(self._cnt[_V_ALIVE])
+
+    @property
+    def n_triangles(self) -> int:
+        """Number of live triangles."""
+        return int(self._cnt[_T_ALIVE])
+
+    @property
+    def vertex_slots(self) -> np.ndarray:
+        """Indices of the live vertex slots, ascending."""
+        return np.flatnonzero(self.alive[:self._cnt[_V_HW]])
+
+    @property
+    def triangle_slots(self) -> np.ndarray:
+        """Indices of the live triangle slots, ascending."""
+        return np.flatnonzero(self.tri_key[:self._cnt[_T_HW]] >= 0)
+
+    def vertex_at(self, i: int, j: int, k: int) -> int:
+        """Vertex slot of voxel ``(i, j, k)``, or -1 if it is not a surface voxel."""
+        b = int(find_brick(self._keys, self._vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                           k >> BRICK_SHIFT))
+        return -1 if b < 0 else int(self.vmap[b, voxel_offset(i, j, k)])
+
+    def triangles_of(self, v: int) -> np.ndarray:
+        """Triangle slots containing vertex slot ``v`` (int32 array)."""
+        if not (0 <= v < self.alive.shape[0]) or not self.alive[v]:
+            raise IndexError(f"no live vertex in slot {v}")
+        out = np.empty(4 * MAX_PER_CELL * 2, dtype=np.int32)
+        n = _triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
+        if n > out.shape[0]:
+            out = np.empty(n, dtype=np.int32)
+            _triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
+        return out[:n].copy()
+
+    def triangle_owner(self, t: int):
+        """Identity ``((i, j, k) of the owner cell, triple id, flip)`` of live triangle ``t``."""
+        key = int(self.tri_key[t])
+        if key < 0:
+            raise IndexError(f"no live triangle in slot {t}")
+        c0 = TRIPLE_CORNERS[key >> 1, 0]
+        cell = self.ijk[self.tri[t, 0]] - CORNER_OFFSETS[c0]
+        return tuple(int(x) for x in cell), key >> 1, key & 1
+
+    # ----------------------------------------------------------------- export
+    def arrays(self):
+        """Compact copies of the mesh.
+
+        Returns
+        -------
+        pos : (n, 3) float32
+            Vertex positions [mm].
+        nrm : (n, 3) float32
+            Unit vertex normals.
+        col : (n, 4) uint8
+            RGBA vertex colours.
+        tris : (m, 3) int32
+            Vertex indices (into the arrays above) of each triangle,
+            counter-clockwise seen from outside the bone.
+        """
+        vs = self.vertex_slots
+        remap = np.full(self.alive.shape[0], -1, dtype=np.int32)
+        remap[vs] = np.arange(vs.size, dtype=np.int32)
+        tris = remap[self.tri[self.triangle_slots]]
+        return self.pos[vs].copy(), self.nrm[vs].copy(), self.col[vs].copy(), tris
+
+    def canonical(self) -> CanonicalSurface:
+        """Order-independent form (see :class:`CanonicalSurface`); two surfaces
+        are the same mesh iff their canonical forms compare equal."""
+        vs = self.vertex_slots
+        ijk = self.ijk[vs]
+        order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
+        rank = np.full(self.alive.shape[0], -1, dtype=np.int64)
+        rank[vs[order]] = np.arange(vs.size)
+        tr = rank[self.tri[self.triangle_slots]]
+        if tr.size:
+            first = np.argmin(tr, axis=1)
+            rows = np.arange(tr.shape[0])[:, None]
+            tr = tr[rows, (first[:, None] + np.arange(3)[None, :]) % 3]
+            tr = tr[np.lexsort((tr[:, 2], tr[:, 1], tr[:, 0]))]
+        ijk_s = ijk[order]
+        tris = ijk_s[tr].reshape(-1, 9).astype(np.int32)
+        return CanonicalSurface(ijk_s.copy(), self.pos[vs][order], self.nrm[vs][order],
+                                self.col[vs][order], tris)
+
+
+def warmup() -> None:
+    """Compile (or load from the cache) every kernel of this module on a tiny grid."""
+    lab = np.zeros((6, 6, 6), dtype=np.uint8)
+    lab[1:5, 1:5, 1:5] = 1
+    grid = Grid.from_dense(lab)
+    surf = Surface.build(grid, np.array([[0, 0, 0], [200, 200, 180]], dtype=np.uint8))
+    b = grid.brick_index(2, 2, 1)
+    grid.density[b, voxel_offset(2, 2, 1)] = 0.0
+    b = grid.brick_index(2, 2, 2)
+    grid.density[b, voxel_offset(2, 2, 2)] = 0.5
+    surf.update(grid, np.array([[2, 2, 1]], dtype=np.int32), np.array([[2, 2, 2]]))
+    surf.triangles_of(int(surf.vertex_slots[0]))
