@@ -133,6 +133,16 @@ HU_BY_PART = {"sigmoid_sinus": 50.0, "posterior_fossa_dura": 40.0,
 
 
 
+def _point_on_path(path, z):
+    """Point of a polyline (descending in z) at height ``z`` [mm]."""
+    p = np.asarray(path, float)
+    for a, b in zip(p[:-1], p[1:]):
+        if min(a[2], b[2]) <= z <= max(a[2], b[2]) and a[2] != b[2]:
+            t = (z - a[2]) / (b[2] - a[2])
+            return a + t * (b - a)
+    raise ValueError(f"path does not reach z = {z}")
+
+
 def lateral_surface_x_mm(y_mm: float, z_mm: float) -> float:
     """x [mm] of the bone block's lateral surface (mastoid cortex) at (y, z).
 
@@ -148,7 +158,7 @@ LANDMARKS_MM = {
     "mastoid_cortex": (lateral_surface_x_mm(4.0, -3.0), 4.0, -3.0),
     "antrum": ANTRUM_CENTER_MM,
     "facial_second_genu": FACIAL_PATH_MM[1],
-    "facial_mastoid_mid": FACIAL_PATH_MM[3],
+    "facial_mastoid_mid": tuple(float(v) for v in _point_on_path(FACIAL_PATH_MM, -8.0)),
     "sigmoid_sinus_lateral": (SINUS_PATH_MM[2][0] + SINUS_RADIUS_MM,
                               *SINUS_PATH_MM[2][1:]),   # lateral wall of the sinus
     "lateral_canal": SCC_MM["lateral"][0],
@@ -261,16 +271,6 @@ class _Canvas:
         h = px * n[0] + py * n[1] + pz * n[2]
         rho = np.sqrt(np.maximum(px * px + py * py + pz * pz - h * h, 0.0))
         mask[sl] |= (rho - R) ** 2 + h * h <= r * r
-
-
-def _point_on_path(path, z):
-    """Point of a polyline (descending in z) at height ``z`` [mm]."""
-    p = np.asarray(path, float)
-    for a, b in zip(p[:-1], p[1:]):
-        if min(a[2], b[2]) <= z <= max(a[2], b[2]) and a[2] != b[2]:
-            t = (z - a[2]) / (b[2] - a[2])
-            return a + t * (b - a)
-    raise ValueError(f"path does not reach z = {z}")
 
 
 def _envelope(cv: _Canvas):
@@ -391,7 +391,7 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
              "chorda_tympani": chorda, "ossicles": ossicles}
     # paint order: later parts win where they overlap
     order = ("bone", "posterior_fossa_dura", "middle_fossa_dura", "sigmoid_sinus",
-             "labyrinth", "facial_nerve", "chorda_tympani", "ossicles")
+             "labyrinth", "chorda_tympani", "facial_nerve", "ossicles")
     painted = np.zeros(cv.shape, dtype=np.uint8)
     for i, name in enumerate(order, start=1):
         painted[masks[name]] = i

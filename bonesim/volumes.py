@@ -555,7 +555,8 @@ def write_nifti(path: str | Path, data: np.ndarray, spacing_mm: float, origin_mm
 def natural_key(name: str) -> tuple:
     """Sort key that orders embedded numbers numerically (plane2 < plane10)."""
     parts = re.split(r"(\d+)", name)
-    return tuple((0, int(p), p) if p.isdigit() else (1, p.lower(), p) for p in parts)
+    key = tuple((0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts)
+    return key, name
 
 
 def _pack_rgb(rgb) -> np.ndarray:
