@@ -312,6 +312,8 @@ def _air_cells(cv: _Canvas, rng, envelope, protected):
     # distance [mm] to the nearest non-bone / protected voxel, in a padded box
     pad = CORTEX_MM + AIR_CELL_RADIUS_MM[1] + 2 * cv.h
     b = cv.box(c - semi - pad, c + semi + pad)
+    if b is None:                                 # grid too small to hold the mastoid
+        return cv.empty()
     sl = b[0]
     d_out = ndimage.distance_transform_edt(envelope[sl], sampling=cv.h)
     d_prot = ndimage.distance_transform_edt(~protected[sl], sampling=cv.h)

@@ -1,13 +1,13 @@
 """Readers, writers, labelling and resampling of CT volumes (bonesim.volumes)."""
 from __future__ import annotations
 
-import warnings
 
 import nibabel as nib
 import nrrd
 import numpy as np
-import pydicom
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
@@ -261,6 +261,14 @@ def test_natural_key():
     names = ["plane10.png", "plane2.png", "plane1.png", "Plane03.png"]
     assert sorted(names, key=V.natural_key) == ["plane1.png", "plane2.png",
                                                  "Plane03.png", "plane10.png"]
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 10_000), min_size=1, max_size=30, unique=True))
+def test_natural_key_orders_numbers(nums):
+    names = [f"plane{n}.png" for n in nums]
+    got = sorted(names, key=V.natural_key)
+    assert got == [f"plane{n}.png" for n in sorted(nums)]
 
 
 def _stray_stack(folder):
