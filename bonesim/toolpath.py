@@ -39,11 +39,17 @@ class DemoPlan:
     layer_mm : float
         Depth added per pass [mm].
     n_layers : int
-        Number of passes.
+        Largest number of passes (planning stops when a pass would cut nothing).
+    column_mm : float
+        Spacing of the planned points along a raster line [mm].
     margin_mm : float
         Least distance between the burr surface and any non-bone structure [mm].
     speed_mm_s : float
-        Tool speed along the raster lines [mm/s].
+        Tool speed along the raster lines where the pass cuts [mm/s].
+    travel_mm_s : float
+        Tool speed in air and over columns already at their depth [mm/s].
+    plunge_mm_s : float
+        Tool speed entering and leaving a raster line [mm/s].
     bite_mm : float
         How far the burr centre of the first pass sits below the first bone
         met along the approach [mm].
@@ -54,12 +60,15 @@ class DemoPlan:
     """
 
     burr_radius_mm: float = 2.5
-    region_radius_mm: float = 11.0
-    line_overlap: float = 0.6
-    layer_mm: float = 0.6
-    n_layers: int = 6
+    region_radius_mm: float = 9.0
+    line_overlap: float = 0.5
+    column_mm: float = 0.5
+    layer_mm: float = 1.0
+    n_layers: int = 20
     margin_mm: float = 1.0
-    speed_mm_s: float = 12.0
+    speed_mm_s: float = 20.0
+    travel_mm_s: float = 60.0
+    plunge_mm_s: float = 10.0
     bite_mm: float = 0.5
     sample_hz: float = 100.0
     speed_rpm: float = 60000.0
@@ -133,13 +142,13 @@ def demo_mastoidectomy(labels, spacing_mm, origin_mm, structures, eye_mm, focal_
 
     # depths along the approach, measured from the plane through the eye
     step = spacing_mm / 2
-    reach = np.linalg.norm(np.asarray(eye_mm, float) - focal) + 2 * np.linalg.norm(
-        shape * spacing_mm)
-    depth = np.arange(0.0, reach, step)
     eye = np.asarray(eye_mm, float)
+    corners = origin + spacing_mm * (np.array(list(np.ndindex(2, 2, 2))) * (shape - 1))
+    reach = np.linalg.norm(corners - eye, axis=1).max() + r   # far side of the volume
+    depth = np.arange(0.0, reach, step)
     line_step = 2 * r * (1 - plan.line_overlap) if plan.line_overlap < 1 else r
     line_step = max(line_step, spacing_mm)
-    along_step = plan.speed_mm_s / plan.sample_hz
+    along_step = plan.column_mm
     ws = np.arange(-plan.region_radius_mm, plan.region_radius_mm + 1e-9, line_step)
     cols = []           # (a, b, entry depth, floor depth)
     for a in ws:
@@ -161,36 +170,55 @@ def demo_mastoidectomy(labels, spacing_mm, origin_mm, structures, eye_mm, focal_
     cols = np.array(cols)
     top = cols[:, 2].min()               # most lateral bone met in the region
     lift = top - r - 2.0                 # travel height, clear of all bone
-    pts, drills = [], []
+    # waypoints with the speed [mm/s] used to reach each one
+    pts = [eye + lift * view]
+    speeds = [plan.travel_mm_s]
+    drills = [False]
 
-    def travel(p_from, p_to):
-        n = max(int(np.ceil(np.linalg.norm(p_to - p_from) / along_step)), 1)
-        for s in np.linspace(0, 1, n + 1)[1:]:
-            pts.append(p_from + s * (p_to - p_from))
-            drills.append(True)
+    def go(p, speed, drill=True):
+        pts.append(p)
+        speeds.append(speed)
+        drills.append(drill)
 
-    start = eye + lift * view
-    pts.append(start)
-    drills.append(False)
+    prev = np.full(len(cols), -np.inf)    # depth reached by the previous pass
     for layer in range(plan.n_layers):
         d_layer = top - r + plan.bite_mm + layer * plan.layer_mm
+        depth_now = np.minimum(d_layer, cols[:, 3])
+        # a column cuts in this pass if the burr reaches bone there and the
+        # pass goes deeper than the previous one did
+        cuts = (depth_now > cols[:, 2] - r) & (depth_now > prev + 1e-9)
+        if not cuts.any():
+            break
         for n_line, a in enumerate(np.unique(cols[:, 0])):
-            line = cols[cols[:, 0] == a]
+            on = np.flatnonzero((cols[:, 0] == a))
+            if not cuts[on].any():
+                continue
             if n_line % 2:
-                line = line[::-1]          # boustrophedon
-            d = np.minimum(d_layer, line[:, 3])
-            # only where the pass actually reaches below this column's surface
-            line_pts = eye + line[:, 0:1] * u + line[:, 1:2] * v + d[:, None] * view
-            first = line_pts[0]
-            above = first.copy() - (d[0] - lift) * view
-            travel(pts[-1], above)
-            travel(above, first)
-            for p in line_pts[1:]:
-                pts.append(p)
-                drills.append(True)
-            travel(pts[-1], pts[-1] - (d[-1] - lift) * view)
+                on = on[::-1]              # boustrophedon
+            line = eye + cols[on, 0:1] * u + cols[on, 1:2] * v + depth_now[on, None] * view
+            first = on[0]
+            go(line[0] - (depth_now[first] - lift) * view, plan.travel_mm_s)
+            # down the column drilled by the previous pass quickly, then bite
+            opened = max(prev[first], lift)
+            if opened < depth_now[first]:
+                go(line[0] - (depth_now[first] - opened) * view, plan.travel_mm_s)
+            go(line[0], plan.plunge_mm_s)
+            for q in range(1, len(on)):
+                fast = not (cuts[on[q]] or cuts[on[q - 1]])
+                go(line[q], plan.travel_mm_s if fast else plan.speed_mm_s)
+            go(line[-1] - (depth_now[on[-1]] - lift) * view, plan.travel_mm_s)
+        prev = depth_now
     drills[-1] = False
-    pos = np.array(pts)
-    t = np.arange(len(pos)) / plan.sample_hz
-    axis = np.repeat(view[None, :], len(pos), axis=0)
-    return t, pos, axis, np.array(drills, bool)
+    pts = np.array(pts)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1) / np.array(speeds[1:])
+    t_way = np.concatenate([[0.0], np.cumsum(seg)])
+    # resample the waypoints at sample_hz (linear in time)
+    t = np.arange(0.0, t_way[-1], 1.0 / plan.sample_hz)
+    t = np.append(t, t_way[-1]) if t_way[-1] - t[-1] > 1e-9 else t
+    pos = np.stack([np.interp(t, t_way, pts[:, c]) for c in range(3)], axis=1)
+    # the drill state of the waypoint a sample is heading to
+    nxt = np.minimum(np.searchsorted(t_way, t, side="left"), len(t_way) - 1)
+    drill = np.array(drills, bool)[nxt]
+    drill[0] = False
+    axis = np.repeat(view[None, :], len(t), axis=0)
+    return t, pos, axis, drill
