@@ -123,10 +123,8 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
 
 
 def _same_surface(a, b) -> bool:
-    ca, cb = a.canonical(), b.canonical()
-    if isinstance(ca, dict):
-        return ca.keys() == cb.keys() and all(np.array_equal(ca[k], cb[k]) for k in ca)
-    return all(np.array_equal(x, y) for x, y in zip(ca, cb))
+    """Same vertices (position, normal, colour) and same oriented triangles."""
+    return not a.canonical().differences(b.canonical())
 
 
 def _summary(model, state, step_ns, force, contact, consumer) -> dict:
