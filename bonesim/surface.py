@@ -1136,7 +1136,9 @@ def _as_ijk(a, name):
         raise TypeError(f"{name} must hold integer voxel coordinates, got {arr.dtype}")
     if np.abs(arr).max() >= _COORD_LIMIT:
         raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
-    return np.ascontiguousarray(arr, dtype=np.int32)
+    # always a fresh, writable C array: read-only or strided inputs would
+    # make numba compile another specialisation of every kernel
+    return np.array(arr, dtype=np.int32, order="C", copy=True)
 
 
 def _as_colors(colors):
@@ -1145,7 +1147,7 @@ def _as_colors(colors):
         raise ValueError(f"colors must have shape (n_labels + 1, 3), got {c.shape}")
     if not np.issubdtype(c.dtype, np.integer) or c.min() < 0 or c.max() > 255:
         raise ValueError("colors must be integers in [0, 255]")
-    return np.ascontiguousarray(c, dtype=np.uint8)
+    return np.array(c, dtype=np.uint8, order="C", copy=True)
 
 
 def _initial_capacity(n):
