@@ -402,35 +402,17 @@ def clear_touched(state: State, ijk: np.ndarray) -> None:
 
 def warmup() -> None:
     """Compile every kernel :func:`step` uses (cached on disk after the first run)."""
+    from types import SimpleNamespace
+
+    from .burrs import load_burr
+
     labels = np.zeros((12, 12, 12), dtype=np.uint8)
     labels[:, :, :6] = 1
-
-    class _S(NamedTuple):
-        name: str
-        kind: str
-        display_color: tuple
-
-    class _B(NamedTuple):
-        radius_mm: float = 1.0
-        r_max: float = 1.0
-        falloff: float = 0.5
-        k_low: float = 1.0
-        k_high: float = 2.0
-        n_t_fraction: float = 0.01
-        k_tan: float = 0.1
-        max_force_n: float = 3.0
-        default_speed_rpm: float = 1000.0
-
-    class _M(NamedTuple):
-        stiffness: float = 1.0
-        removal: float = 1.0
-        injury: bool = True
-
-    m = make_model(labels, 0.5, [_S("bone", "bone", (255, 255, 255))], _B(),
-                   materials={"bone": _M()})
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
+    m = make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
     s = make_state(m)
-    step(m, s, Sample(0.0, np.array([3.0, 3.0, 3.2]), np.array([0.0, 0.0, 1.0]),
-                      True, 1000.0, 1))
+    step(m, s, Sample(0.0, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
+                      True, m.burr.default_speed_rpm, 1))
     clear_touched(s, s.touched.read(0)["ijk"])
 
 

@@ -37,11 +37,12 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import Iterator
 
 import numpy as np
 
 from .errors import BonesimError
+from .model import Sample
 
 __all__ = ["COLUMNS", "OPTIONAL_COLUMNS", "Trajectory", "TrajectorySample",
            "read_trajectory", "write_trajectory"]
@@ -63,31 +64,8 @@ _DRILL_VALUES = (0.0, 1.0)
 _STEP_SLACK = 1e-9
 
 
-class TrajectorySample(NamedTuple):
-    """One tool sample; the same fields as :class:`bonesim.model.Sample`.
-
-    Attributes
-    ----------
-    t_s : float
-        Time [s].
-    pos_mm : (3,) ndarray
-        Burr centre, case frame [mm].
-    axis : (3,) ndarray
-        Unit drill axis.
-    drill : bool
-        Drill running.
-    speed_rpm : float
-        Spindle speed [rpm].
-    direction : int
-        +1 forward, -1 reverse.
-    """
-
-    t_s: float
-    pos_mm: np.ndarray
-    axis: np.ndarray
-    drill: bool
-    speed_rpm: float
-    direction: int
+#: A trajectory's samples are the engine's own device samples.
+TrajectorySample = Sample
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
