@@ -73,14 +73,44 @@ from the geometric definition above, into a 256-entry table: for each code,
 the (at most four) qualifying triples with their orientation. Ownership of
 face triples adds one test per axis: a triple in ``C``'s minimum face along
 ``a`` is dropped from ``C`` when the four voxels just below that face are
-empty (then it qualifies in, and belongs to, the lower cell).
+empty (then it qualifies in, and belongs to, the lower cell). So the
+triangles a cell owns depend only on its own code and on those 3 x 4 voxels.
+
+Full tessellation (:meth:`Surface.build`) works per brick, in parallel: each
+brick and its one-voxel halo are gathered into a 10x10x10 array; bricks whose
+box is all bone or whose brick-plus-upper-halo is all empty are skipped. A
+first pass counts vertices and owned triangles per brick, prefix sums give
+every brick its output ranges, a second pass writes vertices (and the
+voxel -> vertex map), a third writes triangles.
+
+Incremental update (:meth:`Surface.update`): a removed voxel that is empty
+now is a *source*. Only cells containing a source change code, so only those
+and their six face neighbours (32 cells per source) can change what they own;
+only the 26 neighbours of a source can join or leave the surface (and every
+occupied neighbour of an empty voxel is a surface voxel). For each affected
+cell the kernel compares the triangles it owns now (found through the owner
+lists below) with those it should own, drops the difference, creates the
+vertices of voxels that became surface, drops the vertices of emptied
+voxels, adds the new triangles, and re-shades every vertex within one voxel
+of a removed or touched voxel. Cells and voxels are deduplicated with a
+dense window of flags over the inputs' bounding box (hash sets when that box
+is large), so the cost is proportional to the number of input voxels. The
+old triangles come from the mesh itself, not from a guess of the old
+occupancy, so extra entries (voxels listed twice, still bone, already empty
+before the batch, or never bone) are harmless; what must hold is that every
+voxel whose density changed since the last update is listed.
 
 Vertex -> triangles map: every live triangle ``t`` is threaded on three
 singly linked lists, one per corner. ``vhead[v]`` is the first triangle of
 vertex ``v``'s list, and if ``tri[t, s] == v`` the next one is
-``tnext[t, s]`` (``-1`` ends the list). Adding a triangle is O(1), removing
-it walks the (short: at most 32 entries) lists of its corners. The lists are
-rebuilt in one pass after a full tessellation.
+``tnext[t, s]`` (``-1`` ends the list). A vertex lies in 8 cells that own at
+most 4 triangles each, so a list has at most 32 entries. Adding a triangle
+is O(1), removing it walks the lists of its corners. A second, private list
+per vertex (the *owner list*) holds only the triangles whose first vertex
+``tri[t, 0]`` it is; since the first vertex is the owner cell's corner
+``c0`` of the triple, a cell finds the triangles it owns by walking the owner
+lists of its corners 0..5. The lists are built in one pass after a full
+tessellation.
 
 Voxel -> vertex map: ``vmap`` is an int32 array shaped like the grid's bricks
 ``(n_bricks, 512)``, ``-1`` where a voxel has no vertex.
@@ -1228,8 +1258,12 @@ class Surface:
     of removed voxels. See the module docstring for the definitions.
 
     Vertex and triangle data live in arrays with spare capacity; a slot is
-    in use when ``alive[v]`` (vertices) / ``tri_key[t] >= 0`` (triangles).
-    Freed slots are reused. Use :meth:`arrays` for compact copies.
+    in use when ``alive[v]`` (vertices) / ``tri_key[t] >= 0`` (triangles);
+    free slots hold stale data. Freed slots are reused, and when an update
+    needs more room the arrays are replaced by larger copies (amortised
+    doubling), so re-read the attributes after :meth:`update` rather than
+    keeping references. Use :meth:`arrays` for compact copies. A surface is
+    not safe to update from two threads at once, nor to read while updating.
 
     Attributes
     ----------
@@ -1253,7 +1287,10 @@ class Surface:
         Vertex slot of each grid voxel (same layout as ``grid.density``), -1
         for none.
     vhead : (vcap,) int32, tnext : (tcap, 3) int32
-        Vertex -> triangle lists (see module docstring).
+        Vertex -> triangle lists (see module docstring); use
+        :meth:`triangles_of`.
+    colors : (n_labels + 1, 3) uint8
+        The structure colour table given to :meth:`build`.
     """
 
     def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vhead, vfree,

@@ -562,3 +562,17 @@ def test_touched_only_reshades():
 def test_warmup_runs():
     from bonesim.surface import warmup
     warmup()
+
+
+def test_removed_voxels_listed_again_are_harmless():
+    lab = _ball(12, 5)
+    grid = Grid.from_dense(lab)
+    surf = Surface.build(grid, COLORS)
+    a = np.argwhere(lab > 0)[:40]
+    _set_density(grid, a, 0.0)
+    surf.update(grid, a)
+    b = np.argwhere(grid.to_dense()[0] > 0)[:30]
+    _set_density(grid, b, 0.0)
+    surf.update(grid, np.concatenate([a, b, a]))       # a was already processed
+    _assert_same_as_rebuild(surf, grid)
+    _assert_links(surf)
