@@ -147,8 +147,12 @@ CORNER_OFFSETS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)
 #: (56, 3) int32: the three corners (ascending) of each triple id.
 TRIPLE_CORNERS = np.array(list(itertools.combinations(range(8), 3)), dtype=np.int32)
 N_TRIPLES = TRIPLE_CORNERS.shape[0]
-#: bits of the corners with a 0 along axis a (the cell's low half along a)
-_LOW_HALF = np.array([0x0F, 0x33, 0x55], dtype=np.int64)
+# Code bits of the corners with coordinate 0 along x, y, z (a cell's low half):
+# the cell below C along that axis has its far half empty iff its code has
+# none of these bits.
+_LOW_HALF_X = 0x0F
+_LOW_HALF_Y = 0x33
+_LOW_HALF_Z = 0x55
 
 
 def _triple_face(t):
@@ -463,11 +467,11 @@ def _owned_count(codes, x, y, z):
     code = codes[x, y, z]
     n = QUAL_N[code]
     if n > 0:
-        if codes[x - 1, y, z] & 0x0F == 0:
+        if codes[x - 1, y, z] & _LOW_HALF_X == 0:
             n -= QUAL_NMIN[code, 0]
-        if codes[x, y - 1, z] & 0x33 == 0:
+        if codes[x, y - 1, z] & _LOW_HALF_Y == 0:
             n -= QUAL_NMIN[code, 1]
-        if codes[x, y, z - 1] & 0x55 == 0:
+        if codes[x, y, z - 1] & _LOW_HALF_Z == 0:
             n -= QUAL_NMIN[code, 2]
     return n
 
@@ -565,9 +569,9 @@ def _build_triangles(density, nbr, toff, vmap, tri, ttid, err):
                         n = QUAL_N[code]
                         if n == 0:
                             continue
-                        low0 = codes[x - 1, y, z] & 0x0F == 0
-                        low1 = codes[x, y - 1, z] & 0x33 == 0
-                        low2 = codes[x, y, z - 1] & 0x55 == 0
+                        low0 = codes[x - 1, y, z] & _LOW_HALF_X == 0
+                        low1 = codes[x, y - 1, z] & _LOW_HALF_Y == 0
+                        low2 = codes[x, y, z - 1] & _LOW_HALF_Z == 0
                         for q in range(n):
                             key = QUAL_KEY[code, q]
                             tid = key >> 1
