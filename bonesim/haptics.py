@@ -69,16 +69,21 @@ _MIN_DIRECTION = 1e-9
 class Stencil:
     """Precomputed samples of a spherical burr in the tool frame.
 
+    The kernel reads one packed float32 row per sample (20 bytes, so the
+    stencil of the 7 mm burr stays in cache); the float64 views below hold
+    the same values, for references and analysis.
+
     Attributes
     ----------
     offsets : (n, 3) float64
         Sample positions relative to the tool centre, tool frame (z = axis) [mm].
-    unit : (n, 3) float64
-        ``offsets / |offsets|``.
-    tang : (n, 3) float64
-        ``(o_y, -o_x, 0)``: lever arm about the axis, turned along the spin [mm].
+    inv_r : (n,) float64
+        ``1 / |offsets|`` [1/mm] (rounded to float32, as the kernel uses it).
     lat : (n,) float64
-        Latitude removal weight ``max(0, r_max - falloff |pi/2 - theta|)`` [1/(N s)].
+        Latitude removal weight ``max(0, r_max - falloff |pi/2 - theta|)``
+        [1/(N s)] (rounded to float32).
+    packed : (n, 5) float32
+        Rows ``(o_x, o_y, o_z, 1/|o|, lat)`` for :func:`haptic_kernel`.
     spacing_mm : float
         Lattice spacing ``h`` [mm].
     radius_mm : float
@@ -86,15 +91,26 @@ class Stencil:
     """
 
     offsets: np.ndarray
-    unit: np.ndarray
-    tang: np.ndarray
+    inv_r: np.ndarray
     lat: np.ndarray
+    packed: np.ndarray
     spacing_mm: float
     radius_mm: float
 
     @property
     def n(self) -> int:
         return int(self.offsets.shape[0])
+
+    @property
+    def unit(self) -> np.ndarray:
+        """(n, 3) unit vectors from the tool centre toward each sample."""
+        return self.offsets * self.inv_r[:, None]
+
+    @property
+    def tang(self) -> np.ndarray:
+        """(n, 3) ``(p - s_c) x d = (o_y, -o_x, 0)`` in the tool frame [mm]."""
+        o = self.offsets
+        return np.stack([o[:, 1], -o[:, 0], np.zeros(len(o))], axis=1)
 
     @property
     def sample_volume_mm3(self) -> float:
@@ -136,11 +152,14 @@ def make_stencil(radius_mm: float, spacing_mm: float, r_max: float,
     if not keep.any():
         raise ValueError("burr smaller than one sample; raise the oversampling")
     g, r = g[keep], r[keep]
-    unit = g / r[:, None]
-    tang = np.stack([g[:, 1], -g[:, 0], np.zeros(len(g))], axis=1)
-    theta = np.arccos(np.clip(unit[:, 2], -1.0, 1.0))
+    theta = np.arccos(np.clip(g[:, 2] / r, -1.0, 1.0))
     lat = np.maximum(0.0, r_max - falloff * np.abs(np.pi / 2 - theta))
-    arrs = [np.ascontiguousarray(a, dtype=np.float64) for a in (g, unit, tang, lat)]
+    packed = np.empty((len(g), 5), dtype=np.float32)
+    packed[:, :3] = g
+    packed[:, 3] = 1.0 / r
+    packed[:, 4] = lat
+    arrs = [packed[:, :3].astype(np.float64), packed[:, 3].astype(np.float64),
+            packed[:, 4].astype(np.float64), packed]
     for a in arrs:
         a.flags.writeable = False
     return Stencil(*arrs, spacing_mm=float(spacing_mm), radius_mm=float(radius_mm))
@@ -194,7 +213,7 @@ def multi_gain(volume, k_low, k_high, v_t):
 @njit(cache=True, nogil=True)
 def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                   stiff, removal, injury,
-                  offs, unit, tang, lat, params,
+                  samples, params,
                   pos, axis, drill, direction, speed_factor, dt, t,
                   R, n_vox, lbrick, ldens, llab, acc, dirty, contact, prev_contact, lost,
                   rem_ijk, rem_label, rem_t, rem_head,
@@ -217,7 +236,9 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         Per-label stiffness and removal factors.
     injury : (n_labels + 1,) uint8
         1 where touching or removing the label is an injury.
-    offs, unit, tang, lat : stencil arrays (see :class:`Stencil`).
+    samples : (n, 5) float32
+        The stencil's packed rows ``(o_x, o_y, o_z, 1/|o|, lat)`` (see
+        :class:`Stencil`).
     params : (N_PARAMS,) float64
         ``k_low [N/mm^3], k_high [N/mm^3], V_t [mm^3], k_tan [N/mm^4],
         max_force [N], h^3 [mm^3], 1/voxel^3 [1/mm^3], burr radius [mm]``.
@@ -306,7 +327,7 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                     ldens[base + z] = 0.0
                     llab[base + z] = 0
     sux = suy = suz = 0.0
-    stx = sty = stz = 0.0
+    stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
     n_dirty = 0
@@ -319,8 +340,10 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
     r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
     r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
-    for s in range(offs.shape[0]):
-        ox, oy, oz = offs[s, 0], offs[s, 1], offs[s, 2]
+    for s in range(samples.shape[0]):
+        ox = np.float64(samples[s, 0])
+        oy = np.float64(samples[s, 1])
+        oz = np.float64(samples[s, 2])
         li = (int(c0 + r00 * ox + r01 * oy + r02 * oz) * n_vox
               + int(c1 + r10 * ox + r11 * oy + r12 * oz)) * n_vox \
             + int(c2 + r20 * ox + r21 * oy + r22 * oz)
@@ -331,14 +354,14 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         n_imm += 1
         wsum += w
         contact[lab] += 1
-        sux += w * unit[s, 0]
-        suy += w * unit[s, 1]
-        suz += w * unit[s, 2]
-        stx += w * tang[s, 0]
-        sty += w * tang[s, 1]
-        stz += w * tang[s, 2]
+        wr = w * np.float64(samples[s, 3])
+        sux += wr * ox
+        suy += wr * oy
+        suz += wr * oz
+        stx += w * oy
+        sty -= w * ox
         if drill:
-            a = lat[s] * removal[lab]
+            a = np.float64(samples[s, 4]) * removal[lab]
             if a > 0.0:
                 if acc[li] == 0.0:
                     dirty[n_dirty] = li
@@ -364,9 +387,9 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     tx = ty = tz = 0.0
     if drill:
         g = params[P_K_TAN] * h3 * direction * speed_factor
-        tx = g * (R[0, 0] * stx + R[0, 1] * sty + R[0, 2] * stz)
-        ty = g * (R[1, 0] * stx + R[1, 1] * sty + R[1, 2] * stz)
-        tz = g * (R[2, 0] * stx + R[2, 1] * sty + R[2, 2] * stz)
+        tx = g * (R[0, 0] * stx + R[0, 1] * sty)
+        ty = g * (R[1, 0] * stx + R[1, 1] * sty)
+        tz = g * (R[2, 0] * stx + R[2, 1] * sty)
     Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
     Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
     if Fm > max_force:

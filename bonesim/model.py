@@ -376,7 +376,7 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     rem, tch, inj = state.removed.fields, state.touched.fields, state.injuries.fields
     haptic_kernel(g.keys, g.vals, g.density, g.label, state.touched_flag, g.origin_mm,
                   g.spacing_mm, model.stiff, model.removal, model.injury,
-                  st.offsets, st.unit, st.tang, st.lat, model.params,
+                  st.packed, model.params,
                   pos, ax, drill, direction, speed_factor, dt, t,
                   state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
                   state._acc, state._dirty,
