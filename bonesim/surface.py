@@ -122,6 +122,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from bonesim.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                           find_brick, voxel_offset)
@@ -310,41 +311,55 @@ def _nb_slot(qi, qj, qk, i, j, k):
             + ((k >> BRICK_SHIFT) - (qk >> BRICK_SHIFT) + 1))
 
 
-@njit(cache=True, nogil=True)
-def _vertex_attrs(d27, lab, colors, nrm, col, v):
-    """Write normal and colour of vertex ``v`` from its 3x3x3 densities.
+@njit(cache=True, nogil=True, inline="always")
+def _vertex_attrs_at(d, c0, sx, sy, lab, colors, nrm, col, v):
+    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
+    ``d[c0 + di * sx + dj * sy + dk]``, ``di, dj, dk`` in ``{-1, 0, 1}``.
 
-    ``d27`` holds the densities of the neighbourhood in ``(di, dj, dk)``
-    lexicographic order (centre at 13). Both the full and the incremental
-    tessellation call this, so they agree bit for bit.
+    The Sobel sums run over the neighbourhood in ``(di, dj, dk)``
+    lexicographic order, skipping the terms of weight 0 (adding ``0 * d``,
+    a zero, to a partial sum that is never ``-0`` leaves it unchanged, so
+    this is the plain 27-term sum bit for bit). Both the full and the
+    incremental tessellation use this, so they agree bit for bit.
     """
     gx = 0.0
     gy = 0.0
     gz = 0.0
-    for idx in range(27):
-        val = np.float64(d27[idx])
-        gx += SOBEL[0, idx] * val
-        gy += SOBEL[1, idx] * val
-        gz += SOBEL[2, idx] * val
+    for a in range(3):
+        wa = 2.0 if a == 1 else 1.0
+        for b in range(3):
+            wb = 2.0 if b == 1 else 1.0
+            for c in range(3):
+                wc = 2.0 if c == 1 else 1.0
+                val = np.float64(d[c0 + (a - 1) * sx + (b - 1) * sy + (c - 1)])
+                if a != 1:
+                    gx += (np.float64(a - 1) * wb * wc) * val
+                if b != 1:
+                    gy += (wa * np.float64(b - 1) * wc) * val
+                if c != 1:
+                    gz += (wa * wb * np.float64(c - 1)) * val
     g = np.sqrt(gx * gx + gy * gy + gz * gz)
     if g > GRAD_EPS:
         nx = -gx / g
         ny = -gy / g
         nz = -gz / g
     else:
-        sx = 0
-        sy = 0
-        sz = 0
-        for idx in range(27):
-            if idx != 13 and not d27[idx] > 0:
-                sx += NB27[idx, 0]
-                sy += NB27[idx, 1]
-                sz += NB27[idx, 2]
-        s = np.sqrt(np.float64(sx * sx + sy * sy + sz * sz))
-        if s > 0:
-            nx = sx / s
-            ny = sy / s
-            nz = sz / s
+        sxx = 0
+        syy = 0
+        szz = 0
+        for a in range(3):
+            for b in range(3):
+                for c in range(3):
+                    if (a != 1 or b != 1 or c != 1) and \
+                            not d[c0 + (a - 1) * sx + (b - 1) * sy + (c - 1)] > 0:
+                        sxx += a - 1
+                        syy += b - 1
+                        szz += c - 1
+        sn = np.sqrt(np.float64(sxx * sxx + syy * syy + szz * szz))
+        if sn > 0:
+            nx = sxx / sn
+            ny = syy / sn
+            nz = szz / sn
         else:
             nx = 0.0
             ny = 0.0
@@ -352,7 +367,7 @@ def _vertex_attrs(d27, lab, colors, nrm, col, v):
     nrm[v, 0] = nx
     nrm[v, 1] = ny
     nrm[v, 2] = nz
-    dens = min(max(np.float64(d27[13]), 0.0), 1.0)
+    dens = min(max(np.float64(d[c0]), 0.0), 1.0)
     shade = SHADE_MIN + (1.0 - SHADE_MIN) * dens
     if lab >= colors.shape[0]:
         lab = 0
@@ -360,6 +375,13 @@ def _vertex_attrs(d27, lab, colors, nrm, col, v):
         val = np.floor(np.float64(colors[lab, ch]) * shade + 0.5)
         col[v, ch] = np.uint8(min(val, 255.0))
     col[v, 3] = ALPHA
+
+
+@njit(cache=True, nogil=True)
+def _vertex_attrs(d27, lab, colors, nrm, col, v):
+    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
+    ``d27`` in ``(di, dj, dk)`` lexicographic order (centre at 13)."""
+    _vertex_attrs_at(d27, 13, 9, 3, lab, colors, nrm, col, v)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1096,7 +1118,7 @@ def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
         whi[a] = hi + _WINDOW_MARGIN
     wd = whi - wlo + 1
     vol = wd[0] * wd[1] * wd[2]
-    use_win = vol <= max(32768, win_per_input * n_in)
+    use_win = win_per_input > 0 and vol <= max(32768, win_per_input * n_in)
     blo = wlo >> BRICK_SHIFT
     bd = (whi >> BRICK_SHIFT) - blo + 1
     if use_win:
@@ -1149,6 +1171,623 @@ def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
     _add_triangles(cells, cbrick, newk, nnew, nc, nbr, vmap, vhead, tri, tnext, ttid,
                    tfree, cnt, stats, ohead, onext)
     _reshade(density, label, nbr, colors, vmap, cand, qbrick, ncand, nrm, col, stats)
+
+
+# ----------------------------------------------------------------------------
+# Incremental update, window path
+# ----------------------------------------------------------------------------
+# When the inputs of an update fit a small box (the usual case: a burr's
+# worth of voxels), the update works on dense copies of that box instead of
+# looking voxels up one by one:
+#
+# * the window is the inputs' bounding box plus _FAST_MARGIN voxels (every
+#   voxel an update reads lies within 2 voxels of an input);
+# * sets of voxels / cells are bit rows: one uint64 per (x, y) row of the
+#   window, bit z for voxel (or cell minimum corner) z along k; the sets the
+#   update needs (cells to re-evaluate, voxels that may join or leave the
+#   surface, voxels to re-shade) are dilations of the set of inputs, a few
+#   shifts and ORs per row, and they are visited in (i, j, k) order;
+# * the densities and the voxel -> vertex map of the window are gathered
+#   once into local arrays, with the occupancy as bit rows, so a cell's code
+#   is a handful of shifts.
+#
+# Cells to re-evaluate: the 8 cells containing a source (their code may have
+# changed) and the 12 cells whose minimum face has a source just below it
+# (their ownership test reads it). A cell's owned triangles depend on
+# nothing else, so no other cell can gain or lose one.
+#
+# Scratch memory lives in the Surface and grows on demand (status 2).
+
+#: Margin [voxels] of the window around the inputs.
+_FAST_MARGIN = 2
+#: The window path is taken when the window holds at most
+#: ``FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_inputs`` voxels and is at
+#: most 64 voxels deep along k.
+FAST_MIN_VOXELS = 32768
+FAST_VOXELS_PER_INPUT = 64
+# bit-row sets
+(_R_SRC, _R_SEED, _R_AFF, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED, _R_DIRTY,
+ _R_T1, _R_T2) = range(11)
+_N_ROWSETS = 11
+# per-slot bit masks of the qualifying triples lying in the minimum face along a
+_QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
+for _code in range(256):
+    for _s in range(int(QUAL_N[_code])):
+        _f = int(TRIPLE_FACE[int(QUAL_KEY[_code, _s]) >> 1])
+        if 0 <= _f < 3:
+            _QUAL_FMASK[_code, _f] |= 1 << _s
+_QUAL_ALL = np.array([(1 << int(n)) - 1 for n in QUAL_N], dtype=np.uint8)
+_POP4 = np.array([bin(m).count("1") for m in range(16)], dtype=np.int32)
+
+
+@njit(cache=True, nogil=True)
+def _fw_mark(removed, touched, density, wbr, wlo, wd, blo, bd, rows, nrows):
+    """Set SRC (sources) and SEED (all inputs) bits."""
+    src0 = _R_SRC * nrows
+    seed0 = _R_SEED * nrows
+    for r in range(2 * nrows):
+        rows[src0 + r] = np.uint64(0)   # SRC and SEED are adjacent
+    nr = removed.shape[0]
+    for r in range(nr + touched.shape[0]):
+        if r < nr:
+            i = removed[r, 0]
+            j = removed[r, 1]
+            k = removed[r, 2]
+        else:
+            i = touched[r - nr, 0]
+            j = touched[r - nr, 1]
+            k = touched[r - nr, 2]
+        row = (i - wlo[0]) * wd[1] + (j - wlo[1])
+        bit = np.uint64(1) << np.uint64(k - wlo[2])
+        rows[seed0 + row] |= bit
+        if r < nr:
+            b = wbr[(((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1]))
+                    * bd[2] + ((k >> BRICK_SHIFT) - blo[2])]
+            if b >= 0 and not density[b, voxel_offset(i, j, k)] > 0:
+                rows[src0 + row] |= bit
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row(rows, base, wd0, wd1, x, y):
+    if x < 0 or x >= wd0 or y < 0 or y >= wd1:
+        return np.uint64(0)
+    return rows[base + x * wd1 + y]
+
+
+@njit(cache=True, nogil=True)
+def _fw_dilate(rows, nrows, wd0, wd1):
+    """AFF, TOPO and RESH from SRC and SEED (see the comment above)."""
+    one = np.uint64(1)
+    S = _R_SRC * nrows
+    E = _R_SEED * nrows
+    A = _R_AFF * nrows
+    T = _R_TOPO * nrows
+    R = _R_RESH * nrows
+    T1 = _R_T1 * nrows
+    T2 = _R_T2 * nrows
+    # cells containing a source, and the face cells above it along i / j
+    for r in range(nrows):
+        s = rows[S + r]
+        rows[T1 + r] = s | (s >> one)                      # cell k in {p_k - 1, p_k}
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x, y + 1)
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[A + x * wd1 + y] = (rows[T2 + x * wd1 + y]
+                                     | _row(rows, T2, wd0, wd1, x + 1, y)
+                                     | _row(rows, T2, wd0, wd1, x - 1, y))
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x + 1, y)
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[A + x * wd1 + y] |= _row(rows, T2, wd0, wd1, x, y - 1)
+    # the face cells above a source along k
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[A + x * wd1 + y] |= (rows[S + x * wd1 + y]
+                                      | _row(rows, S, wd0, wd1, x, y + 1)
+                                      | _row(rows, S, wd0, wd1, x + 1, y)
+                                      | _row(rows, S, wd0, wd1, x + 1, y + 1)) << one
+    # voxels the update reads: within 2 voxels (each axis) of an input
+    two = np.uint64(2)
+    N = _R_NEED * nrows
+    for r in range(nrows):
+        s = rows[E + r]
+        rows[T1 + r] = s | (s >> one) | (s >> two) | (s << one) | (s << two)
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[T2 + x * wd1 + y] = (rows[T1 + x * wd1 + y]
+                                      | _row(rows, T1, wd0, wd1, x, y - 2)
+                                      | _row(rows, T1, wd0, wd1, x, y - 1)
+                                      | _row(rows, T1, wd0, wd1, x, y + 1)
+                                      | _row(rows, T1, wd0, wd1, x, y + 2))
+    for x in range(wd0):
+        for y in range(wd1):
+            rows[N + x * wd1 + y] = (rows[T2 + x * wd1 + y]
+                                     | _row(rows, T2, wd0, wd1, x - 2, y)
+                                     | _row(rows, T2, wd0, wd1, x - 1, y)
+                                     | _row(rows, T2, wd0, wd1, x + 1, y)
+                                     | _row(rows, T2, wd0, wd1, x + 2, y))
+    # 3x3x3 dilations: TOPO of the sources, RESH of all inputs
+    for pas in range(2):
+        src = S if pas == 0 else E
+        dst = T if pas == 0 else R
+        for r in range(nrows):
+            s = rows[src + r]
+            rows[T1 + r] = s | (s >> one) | (s << one)
+        for x in range(wd0):
+            for y in range(wd1):
+                rows[T2 + x * wd1 + y] = (rows[T1 + x * wd1 + y]
+                                          | _row(rows, T1, wd0, wd1, x, y - 1)
+                                          | _row(rows, T1, wd0, wd1, x, y + 1))
+        for x in range(wd0):
+            for y in range(wd1):
+                rows[dst + x * wd1 + y] = (rows[T2 + x * wd1 + y]
+                                           | _row(rows, T2, wd0, wd1, x - 1, y)
+                                           | _row(rows, T2, wd0, wd1, x + 1, y))
+
+
+@njit(cache=True, nogil=True)
+def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
+    """Densities and vertex slots of the voxels in NEED (elsewhere ``ld``
+    and ``lv`` are left stale), occupancy and has-vertex bit rows."""
+    wd0 = wd[0]
+    wd1 = wd[1]
+    wd2 = wd[2]
+    occ0 = _R_OCC * nrows
+    hv0 = _R_HASV * nrows
+    need0 = _R_NEED * nrows
+    for x in range(wd0):
+        i = wlo[0] + x
+        for y in range(wd1):
+            j = wlo[1] + y
+            r = x * wd1 + y
+            need = rows[need0 + r]
+            if need == 0:
+                rows[occ0 + r] = np.uint64(0)
+                rows[hv0 + r] = np.uint64(0)
+                continue
+            zlo = np.int64(trailing_zeros(need))
+            zhi = 64 - np.int64(leading_zeros(need))
+            bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+            ob = ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
+            li = r * wd2
+            occ = np.uint64(0)
+            hv = np.uint64(0)
+            z = zlo
+            while z < zhi:
+                k = wlo[2] + z
+                n = min(zhi - z, BRICK - (k & BRICK_MASK))
+                b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+                if b >= 0:
+                    o = ob | (k & BRICK_MASK)
+                    for u in range(n):
+                        d = density[b, o + u]
+                        vv = vmap[b, o + u]
+                        ld[li + z + u] = d
+                        lv[li + z + u] = vv
+                        occ |= np.uint64(d > 0) << np.uint64(z + u)
+                        hv |= np.uint64(vv >= 0) << np.uint64(z + u)
+                else:
+                    for u in range(n):
+                        ld[li + z + u] = np.float32(0.0)
+                        lv[li + z + u] = -1
+                z += n
+            rows[occ0 + r] = occ
+            rows[hv0 + r] = hv
+
+
+@njit(cache=True, nogil=True)
+def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
+    """Code and active slots of every cell to re-evaluate; list the cells that
+    own or may own a triangle. Returns ``(n_listed, bound on triangles to add,
+    vertices to add, vertices to drop)``."""
+    wd0 = wd[0]
+    wd1 = wd[1]
+    wd2 = wd[2]
+    one = np.uint64(1)
+    three = np.uint64(3)
+    A = _R_AFF * nrows
+    O = _R_OCC * nrows
+    H = _R_HASV * nrows
+    T = _R_TOPO * nrows
+    nl = 0
+    tbound = 0
+    ncells = 0
+    for x in range(1, wd0 - 1):
+        for y in range(1, wd1 - 1):
+            r = x * wd1 + y
+            bits = rows[A + r]
+            if bits == 0:
+                continue
+            o00 = rows[O + r]
+            o01 = rows[O + r + 1]
+            o10 = rows[O + r + wd1]
+            o11 = rows[O + r + wd1 + 1]
+            ox = rows[O + r - wd1] | rows[O + r - wd1 + 1]       # x - 1 plane
+            oy = rows[O + r - 1] | rows[O + r + wd1 - 1]         # y - 1 plane
+            oz = o00 | o01 | o10 | o11
+            hv = rows[H + r] | rows[H + r + 1] | rows[H + r + wd1]
+            while bits != 0:
+                z = trailing_zeros(bits)
+                bits &= bits - one
+                ncells += 1
+                zz = np.uint64(z)
+                code = (((o00 >> zz) & three) | (((o01 >> zz) & three) << np.uint64(2))
+                        | (((o10 >> zz) & three) << np.uint64(4))
+                        | (((o11 >> zz) & three) << np.uint64(6)))
+                act = np.int64(_QUAL_ALL[code])
+                if act != 0:
+                    if (ox >> zz) & three == 0:
+                        act &= ~np.int64(_QUAL_FMASK[code, 0])
+                    if (oy >> zz) & three == 0:
+                        act &= ~np.int64(_QUAL_FMASK[code, 1])
+                    if (oz >> (zz - one)) & one == 0:
+                        act &= ~np.int64(_QUAL_FMASK[code, 2])
+                if act == 0 and (hv >> zz) & three == 0:
+                    continue            # owns nothing and will own nothing
+                li = r * wd2 + z
+                lcode[li] = code
+                lact[li] = act
+                clist[nl] = li
+                nl += 1
+                tbound += _POP4[act]
+    stats[_S_CELLS] = ncells
+    # vertices to create / drop
+    nvadd = 0
+    nvdel = 0
+    for r in range(nrows):
+        bits = rows[T + r]
+        occ = rows[O + r]
+        hv = rows[H + r]
+        add = bits & occ & ~hv
+        dele = bits & ~occ & hv
+        while add != 0:
+            add &= add - one
+            nvadd += 1
+        while dele != 0:
+            dele &= dele - one
+            nvdel += 1
+    return nl, tbound, nvadd, nvdel
+
+
+@njit(cache=True, nogil=True)
+def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, tri, ttid, tfree, cnt,
+              stats, ohead, onext):
+    """Drop the triangles the listed cells own but should not: off their
+    owner list, slot freed, key -1; they stay on the vertex lists of their
+    corners, which are marked DIRTY (see :func:`_fw_unlink_dead`). Keep in
+    ``lact`` the slots still to add and compact the list to the cells with
+    something to add. Returns ``(new list length, dead list entries)``."""
+    wd1 = wd[1]
+    wd2 = wd[2]
+    sy = wd2
+    sx = wd1 * wd2
+    D = _R_DIRTY * nrows
+    for r in range(nrows):
+        rows[D + r] = np.uint64(0)
+    na = 0
+    n_dead = 0
+    for q in range(nl):
+        li = clist[q]
+        code = lcode[li]
+        act = np.int64(lact[li])
+        have = np.int64(0)
+        for cn in range(6):
+            v = lv[li + (cn >> 2) * sx + ((cn >> 1) & 1) * sy + (cn & 1)]
+            if v < 0:
+                continue
+            prev = -1
+            t = ohead[v]
+            while t >= 0:
+                nxt = onext[t]
+                key = ttid[t]
+                if TRIPLE_CORNERS[key >> 1, 0] != cn:
+                    prev = t
+                    t = nxt
+                    continue
+                keep = False
+                for s in range(QUAL_N[code]):
+                    if QUAL_KEY[code, s] == key:
+                        bit = np.int64(1) << s
+                        if act & bit and not have & bit:
+                            have |= bit
+                            keep = True
+                        break
+                if keep:
+                    prev = t
+                    t = nxt
+                    continue
+                # drop t: owner list (we hold its predecessor), vertex lists
+                if prev < 0:
+                    ohead[v] = nxt
+                else:
+                    onext[prev] = nxt
+                # (an emptied corner's vertex is about to go with all its
+                # triangles: its list is dropped whole in _fw_vertices)
+                tid = key >> 1
+                rc = li // wd2
+                zc = li - rc * wd2
+                for s in range(3):
+                    c = TRIPLE_CORNERS[tid, s]
+                    if not ld[li + (c >> 2) * sx + ((c >> 1) & 1) * sy + (c & 1)] > 0:
+                        continue
+                    rows[D + rc + (c >> 2) * wd1 + ((c >> 1) & 1)] |= \
+                        np.uint64(1) << np.uint64(zc + (c & 1))
+                    n_dead += 1
+                ttid[t] = -1
+                tfree[cnt[_T_NFREE]] = t
+                cnt[_T_NFREE] += 1
+                cnt[_T_ALIVE] -= 1
+                stats[_S_T_DEL] += 1
+                t = nxt
+        rest = act & ~have
+        if rest != 0:
+            lact[li] = rest
+            clist[na] = li
+            na += 1
+    return na, n_dead
+
+
+@njit(cache=True, nogil=True)
+def _fw_unlink_dead(rows, nrows, wd, lv, vhead, tri, tnext, ttid):
+    """Splice the dead triangles (key -1) out of the vertex lists of the
+    DIRTY voxels, one walk per list. Returns the number of entries removed."""
+    one = np.uint64(1)
+    wd2 = wd[2]
+    D = _R_DIRTY * nrows
+    n = 0
+    for r in range(nrows):
+        bits = rows[D + r]
+        while bits != 0:
+            z = trailing_zeros(bits)
+            bits &= bits - one
+            v = lv[r * wd2 + z]
+            prev = -1
+            prev_s = 0
+            cur = vhead[v]
+            while cur >= 0:
+                s = _slot_of(tri, cur, v)
+                nxt = tnext[cur, s]
+                if ttid[cur] < 0:
+                    if prev < 0:
+                        vhead[v] = nxt
+                    else:
+                        tnext[prev, prev_s] = nxt
+                    n += 1
+                else:
+                    prev = cur
+                    prev_s = s
+                cur = nxt
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
+                 valive, vhead, ohead, vfree, cnt, stats):
+    """Drop the vertices of emptied voxels and create those of new surface voxels."""
+    one = np.uint64(1)
+    wd1 = wd[1]
+    wd2 = wd[2]
+    T = _R_TOPO * nrows
+    O = _R_OCC * nrows
+    H = _R_HASV * nrows
+    for r in range(nrows):
+        bits = rows[T + r]
+        occ = rows[O + r]
+        hv = rows[H + r]
+        chg = bits & (occ ^ hv)
+        if chg == 0:
+            continue
+        x = r // wd1
+        y = r - x * wd1
+        i = wlo[0] + x
+        j = wlo[1] + y
+        bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+        while chg != 0:
+            z = trailing_zeros(chg)
+            chg &= chg - one
+            k = wlo[2] + z
+            b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+            o = voxel_offset(i, j, k)
+            li = r * wd2 + z
+            if (occ >> np.uint64(z)) & one:          # became surface
+                if cnt[_V_NFREE] > 0:
+                    cnt[_V_NFREE] -= 1
+                    v = vfree[cnt[_V_NFREE]]
+                else:
+                    v = cnt[_V_HW]
+                    cnt[_V_HW] += 1
+                vmap[b, o] = v
+                lv[li] = v
+                vijk[v, 0] = i
+                vijk[v, 1] = j
+                vijk[v, 2] = k
+                pos[v, 0] = origin[0] + spacing * i
+                pos[v, 1] = origin[1] + spacing * j
+                pos[v, 2] = origin[2] + spacing * k
+                vhead[v] = -1
+                ohead[v] = -1
+                valive[v] = 1
+                cnt[_V_ALIVE] += 1
+                stats[_S_V_ADD] += 1
+            else:                                   # emptied
+                v = lv[li]
+                if ohead[v] >= 0:
+                    stats[_S_ERR] += 1
+                vhead[v] = -1                       # its triangles are all gone
+                vmap[b, o] = -1
+                lv[li] = -1
+                valive[v] = 0
+                vfree[cnt[_V_NFREE]] = v
+                cnt[_V_NFREE] += 1
+                cnt[_V_ALIVE] -= 1
+                stats[_S_V_DEL] += 1
+
+
+@njit(cache=True, nogil=True)
+def _fw_add(clist, na, wd, lv, lcode, lact, vhead, tri, tnext, ttid, tfree, cnt, stats,
+            ohead, onext):
+    sy = wd[2]
+    sx = wd[1] * wd[2]
+    for q in range(na):
+        li = clist[q]
+        code = lcode[li]
+        rest = np.int64(lact[li])
+        for slot in range(QUAL_N[code]):
+            if not (rest >> slot) & 1:
+                continue
+            key = QUAL_KEY[code, slot]
+            if cnt[_T_NFREE] > 0:
+                cnt[_T_NFREE] -= 1
+                t = tfree[cnt[_T_NFREE]]
+            else:
+                t = cnt[_T_HW]
+                cnt[_T_HW] += 1
+            tid = key >> 1
+            for s in range(3):
+                cs = s
+                if key & 1 and s > 0:
+                    cs = 3 - s
+                cn = TRIPLE_CORNERS[tid, cs]
+                v = lv[li + (cn >> 2) * sx + ((cn >> 1) & 1) * sy + (cn & 1)]
+                if v < 0:
+                    stats[_S_ERR] += 1
+                    v = 0
+                tri[t, s] = v
+            ttid[t] = key
+            for s in range(3):
+                v = tri[t, s]
+                tnext[t, s] = vhead[v]
+                vhead[v] = t
+            v = tri[t, 0]
+            onext[t] = ohead[v]
+            ohead[v] = t
+            cnt[_T_ALIVE] += 1
+            stats[_S_T_ADD] += 1
+
+
+@njit(cache=True, nogil=True)
+def _fw_reshade(rows, nrows, wd, wlo, wbr, blo, bd, ld, lv, label, colors, nrm, col, stats):
+    one = np.uint64(1)
+    wd1 = wd[1]
+    wd2 = wd[2]
+    sy = wd2
+    sx = wd1 * wd2
+    R = _R_RESH * nrows
+    for r in range(nrows):
+        bits = rows[R + r]
+        if bits == 0:
+            continue
+        x = r // wd1
+        y = r - x * wd1
+        i = wlo[0] + x
+        j = wlo[1] + y
+        bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+        while bits != 0:
+            z = trailing_zeros(bits)
+            bits &= bits - one
+            li = r * wd2 + z
+            v = lv[li]
+            if v < 0:
+                continue
+            k = wlo[2] + z
+            b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+            _vertex_attrs_at(ld, li, sx, sy, label[b, voxel_offset(i, j, k)], colors, nrm,
+                             col, v)
+            stats[_S_RESHADE] += 1
+
+
+@njit(cache=True, nogil=True)
+def _update_window(keys, vals, density, label, colors, origin, spacing,
+                   removed, touched, win_per_input,
+                   vmap, pos, nrm, col, vijk, valive, vhead, vfree,
+                   tri, tnext, ttid, tfree, cnt, stats, ohead, onext,
+                   sf32, si32, su8, su64):
+    """The update on dense copies of the inputs' window (see above).
+
+    Sets ``stats[_S_STATUS]``: 0 done, 1 vertex / triangle arrays too small
+    (nothing changed), 2 scratch too small (``stats[_S_NEED_V]`` voxels,
+    ``stats[_S_NEED_T]`` rows; nothing changed), 3 window unsuitable (use
+    :func:`_update_kernel`; nothing changed).
+    """
+    for s in range(stats.shape[0]):
+        stats[s] = 0
+    nr = removed.shape[0]
+    ntch = touched.shape[0]
+    n_in = nr + ntch
+    if n_in == 0:
+        return
+    wlo = np.empty(3, dtype=np.int64)
+    wd = np.empty(3, dtype=np.int64)
+    blo = np.empty(3, dtype=np.int64)
+    bd = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        lo = removed[0, a] if nr > 0 else touched[0, a]
+        hi = lo
+        for r in range(nr):
+            lo = min(lo, removed[r, a])
+            hi = max(hi, removed[r, a])
+        for r in range(ntch):
+            lo = min(lo, touched[r, a])
+            hi = max(hi, touched[r, a])
+        wlo[a] = lo - _FAST_MARGIN
+        wd[a] = hi - lo + 1 + 2 * _FAST_MARGIN
+        blo[a] = wlo[a] >> BRICK_SHIFT
+        bd[a] = ((wlo[a] + wd[a] - 1) >> BRICK_SHIFT) - blo[a] + 1
+    vol = wd[0] * wd[1] * wd[2]
+    nrows = wd[0] * wd[1]
+    if (win_per_input <= 0 or wd[2] > 64
+            or vol > FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_in):
+        stats[_S_STATUS] = 3
+        return
+    nwb = bd[0] * bd[1] * bd[2]
+    if sf32.shape[0] < vol or si32.shape[0] < 2 * vol + nwb or su8.shape[0] < 2 * vol \
+            or su64.shape[0] < _N_ROWSETS * nrows:
+        stats[_S_STATUS] = 2
+        stats[_S_NEED_V] = vol + nwb
+        stats[_S_NEED_T] = nrows
+        return
+    ld = sf32
+    lv = si32[:vol]
+    clist = si32[vol:2 * vol]
+    wbr = si32[2 * vol:2 * vol + nwb]
+    lcode = su8[:vol]
+    lact = su8[vol:2 * vol]
+    s = 0
+    for bi in range(blo[0], blo[0] + bd[0]):
+        for bj in range(blo[1], blo[1] + bd[1]):
+            for bk in range(blo[2], blo[2] + bd[2]):
+                wbr[s] = find_brick(keys, vals, bi, bj, bk)
+                s += 1
+
+    # ---- plan (read-only) ----------------------------------------------------
+    _fw_mark(removed, touched, density, wbr, wlo, wd, blo, bd, su64, nrows)
+    _fw_dilate(su64, nrows, wd[0], wd[1])
+    _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nrows)
+    nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nrows, wd, lv, lcode, lact, clist, stats)
+
+    # ---- room? (triangles: bound, ignoring the ones that will be freed) ------
+    v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
+    t_room = cnt[_T_NFREE] + (tri.shape[0] - cnt[_T_HW])
+    if n_vadd > v_room or tbound > t_room:
+        stats[_S_STATUS] = 1
+        stats[_S_NEED_V] = max(0, n_vadd - v_room)
+        stats[_S_NEED_T] = max(0, tbound - t_room)
+        return
+
+    # ---- edit ------------------------------------------------------------------
+    na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nrows, tri, ttid, tfree,
+                           cnt, stats, ohead, onext)
+    if _fw_unlink_dead(su64, nrows, wd, lv, vhead, tri, tnext, ttid) != n_dead:
+        stats[_S_ERR] += 1
+    _fw_vertices(su64, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
+                 valive, vhead, ohead, vfree, cnt, stats)
+    _fw_add(clist, na, wd, lv, lcode, lact, vhead, tri, tnext, ttid, tfree, cnt, stats,
+            ohead, onext)
+    _fw_reshade(su64, nrows, wd, wlo, wbr, blo, bd, ld, lv, label, colors, nrm, col, stats)
 
 
 # ----------------------------------------------------------------------------
@@ -1321,6 +1960,8 @@ class Surface:
         self._ohead = ohead
         self._onext = onext
         self._win_per_input = WINDOW_VOXELS_PER_INPUT   # tests set 0 to force hash sets
+        self._stats = np.zeros(_N_STATS, dtype=np.int64)
+        self._grow_scratch(4096, 256)
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -1417,17 +2058,34 @@ class Surface:
             raise ValueError("update() needs the grid this surface was built from")
         removed = _as_ijk(removed, "removed")
         touched = _as_ijk(touched, "touched")
-        stats = np.zeros(_N_STATS, dtype=np.int64)
+        stats = self._stats
+        window = True
         while True:
-            _update_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
-                           self.colors, self._origin, self._spacing, removed, touched,
-                           self._win_per_input,
-                           self.vmap, self.pos, self.nrm, self.col, self.ijk, self.alive,
-                           self.vhead, self._vfree, self.tri, self.tnext, self.tri_key,
-                           self._tfree, self._cnt, stats, self._ohead, self._onext)
-            if stats[_S_STATUS] == 0:
+            if window:
+                _update_window(grid.keys, grid.vals, grid.density, grid.label, self.colors,
+                               self._origin, self._spacing, removed, touched,
+                               self._win_per_input,
+                               self.vmap, self.pos, self.nrm, self.col, self.ijk, self.alive,
+                               self.vhead, self._vfree, self.tri, self.tnext, self.tri_key,
+                               self._tfree, self._cnt, stats, self._ohead, self._onext,
+                               self._sf32, self._si32, self._su8, self._su64)
+            else:
+                _update_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
+                               self.colors, self._origin, self._spacing, removed, touched,
+                               self._win_per_input,
+                               self.vmap, self.pos, self.nrm, self.col, self.ijk,
+                               self.alive, self.vhead, self._vfree, self.tri, self.tnext,
+                               self.tri_key, self._tfree, self._cnt, stats, self._ohead,
+                               self._onext)
+            status = stats[_S_STATUS]
+            if status == 0:
                 break
-            self._grow(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
+            if status == 1:
+                self._grow(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
+            elif status == 2:
+                self._grow_scratch(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
+            else:
+                window = False
         if stats[_S_ERR]:
             raise RuntimeError(f"surface update found {int(stats[_S_ERR])} inconsistencies")
         return {"vertices_added": int(stats[_S_V_ADD]),
@@ -1436,6 +2094,19 @@ class Surface:
                 "triangles_removed": int(stats[_S_T_DEL]),
                 "vertices_reshaded": int(stats[_S_RESHADE]),
                 "cells_visited": int(stats[_S_CELLS])}
+
+    def _grow_scratch(self, vol, nrows):
+        """Scratch of the window path for windows of ``vol`` voxels, ``nrows`` rows."""
+        cur = getattr(self, "_sf32", None)
+        if cur is None or cur.shape[0] < vol:
+            v = vol if cur is None else max(vol, 2 * cur.shape[0])
+            self._sf32 = np.zeros(v, dtype=np.float32)
+            self._si32 = np.zeros(3 * v, dtype=np.int32)
+            self._su8 = np.zeros(2 * v, dtype=np.uint8)
+        cur = getattr(self, "_su64", None)
+        if cur is None or cur.shape[0] < _N_ROWSETS * nrows:
+            n = nrows if cur is None else max(nrows, 2 * cur.shape[0] // _N_ROWSETS)
+            self._su64 = np.zeros(_N_ROWSETS * n, dtype=np.uint64)
 
     def _grow(self, need_v, need_t):
         if need_v > 0:
