@@ -126,6 +126,69 @@ def _gather_dense(keys, vals, arr, out, lo_i, lo_j, lo_k):
                     out[x, y, z] = arr[b, voxel_offset(i, j, k)]
 
 
+@njit(cache=True, nogil=True)
+def _mark_bricks(lab, dens, has_dens, bmask):
+    """Flag bricks (offset by +1) that hold tissue or touch it across a face,
+    edge or corner: every voxel 26-adjacent to tissue gets a brick. Tissue is
+    ``lab > 0`` (and ``dens > 0`` when ``has_dens``)."""
+    nx, ny, nz = lab.shape
+    for i in range(nx):
+        bi = (i >> BRICK_SHIFT) + 1
+        li = i & BRICK_MASK
+        di0 = -1 if li == 0 else 0
+        di1 = 1 if li == BRICK_MASK else 0
+        for j in range(ny):
+            bj = (j >> BRICK_SHIFT) + 1
+            lj = j & BRICK_MASK
+            dj0 = -1 if lj == 0 else 0
+            dj1 = 1 if lj == BRICK_MASK else 0
+            for k in range(nz):
+                if lab[i, j, k] == 0 or (has_dens and dens[i, j, k] <= 0.0):
+                    continue
+                bk = (k >> BRICK_SHIFT) + 1
+                lk = k & BRICK_MASK
+                if li != 0 and li != BRICK_MASK and lj != 0 and lj != BRICK_MASK \
+                        and lk != 0 and lk != BRICK_MASK:
+                    bmask[bi, bj, bk] = True
+                    continue
+                dk0 = -1 if lk == 0 else 0
+                dk1 = 1 if lk == BRICK_MASK else 0
+                for a in range(di0, di1 + 1):
+                    for b in range(dj0, dj1 + 1):
+                        for c in range(dk0, dk1 + 1):
+                            bmask[bi + a, bj + b, bk + c] = True
+
+
+@njit(cache=True, nogil=True)
+def _fill_bricks(lab, dens, has_dens, bricks, out_d, out_l):
+    """Copy the dense volumes into their bricks (tissue voxels only; density
+    1.0 where ``has_dens`` is False)."""
+    nx, ny, nz = lab.shape
+    for b in range(bricks.shape[0]):
+        i0 = bricks[b, 0] * BRICK
+        j0 = bricks[b, 1] * BRICK
+        k0 = bricks[b, 2] * BRICK
+        for x in range(BRICK):
+            i = i0 + x
+            if i < 0 or i >= nx:
+                continue
+            for y in range(BRICK):
+                j = j0 + y
+                if j < 0 or j >= ny:
+                    continue
+                for z in range(BRICK):
+                    k = k0 + z
+                    if k < 0 or k >= nz:
+                        continue
+                    if lab[i, j, k] == 0:
+                        continue
+                    d = dens[i, j, k] if has_dens else np.float32(1.0)
+                    if d > 0.0:
+                        off = (x << 6) | (y << 3) | z
+                        out_d[b, off] = d
+                        out_l[b, off] = lab[i, j, k]
+
+
 class Grid:
     """Hashed brick grid of tissue density and structure labels.
 
@@ -183,44 +246,27 @@ class Grid:
         label = np.asarray(label)
         if label.ndim != 3:
             raise ValueError(f"label volume must be 3-D, got shape {label.shape}")
-        if label.size and (label.min() < 0 or label.max() > 255):
+        if label.dtype != np.uint8 and label.size and (label.min() < 0 or label.max() > 255):
             raise ValueError("labels must lie in [0, 255]")
         if not spacing_mm > 0:
             raise ValueError(f"spacing_mm must be positive, got {spacing_mm}")
-        occ = label > 0
+        shape = label.shape
+        lab = np.ascontiguousarray(label, dtype=np.uint8)
         if density is None:
-            dens = occ.astype(np.float32)
+            dens = np.zeros((1, 1, 1), dtype=np.float32)     # unused: 1.0 where labelled
         else:
-            density = np.asarray(density, dtype=np.float32)
-            if density.shape != label.shape:
+            dens = np.ascontiguousarray(density, dtype=np.float32)
+            if dens.shape != shape:
                 raise ValueError("density and label volumes differ in shape")
-            dens = np.where(occ, density, np.float32(0.0)).astype(np.float32)
             if (dens < 0).any() or not np.isfinite(dens).all():
                 raise ValueError("density must be finite and non-negative")
-            occ = dens > 0
-        lab = np.where(occ, label, 0).astype(np.uint8)
-        shape = label.shape
-        # Pad by one voxel (halo) plus up to a whole brick so the padded box
-        # starts at voxel -BRICK and is brick-aligned.
-        pad_lo = BRICK
-        nb = [(s + 1 + pad_lo + BRICK - 1) // BRICK for s in shape]
-        occ_p = np.zeros([n * BRICK for n in nb], dtype=bool)
-        occ_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
-              pad_lo:pad_lo + shape[2]] = occ
-        # dilate by one voxel (26-neighbourhood) so every neighbour of bone has a brick
-        dil = occ_p.copy()
-        for ax in range(3):
-            d = dil.copy()
-            sl_a = [slice(None)] * 3
-            sl_b = [slice(None)] * 3
-            sl_a[ax] = slice(1, None)
-            sl_b[ax] = slice(None, -1)
-            d[tuple(sl_a)] |= dil[tuple(sl_b)]
-            d[tuple(sl_b)] |= dil[tuple(sl_a)]
-            dil = d
-        bmask = dil.reshape(nb[0], BRICK, nb[1], BRICK, nb[2], BRICK).any(axis=(1, 3, 5))
-        bidx = np.argwhere(bmask)                      # lexicographic order
-        bricks = (bidx - pad_lo // BRICK).astype(np.int32)
+        has_dens = density is not None
+        # bricks holding tissue or a voxel 26-adjacent to tissue (the halo);
+        # brick coordinates start at -1 so the halo below voxel 0 fits
+        nb = tuple((s + BRICK - 1) // BRICK + 2 for s in shape)
+        bmask = np.zeros(nb, dtype=np.bool_)
+        _mark_bricks(lab, dens, has_dens, bmask)
+        bricks = (np.argwhere(bmask) - 1).astype(np.int32)      # lexicographic order
         n_b = len(bricks)
         cap = 16
         while cap < 2 * max(n_b, 1):
@@ -228,20 +274,10 @@ class Grid:
         keys = np.full(cap, -1, dtype=np.int64)
         vals = np.full(cap, -1, dtype=np.int32)
         _insert_all(keys, vals, bricks)
-        dens_p = np.zeros(occ_p.shape, dtype=np.float32)
-        lab_p = np.zeros(occ_p.shape, dtype=np.uint8)
-        dens_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
-               pad_lo:pad_lo + shape[2]] = dens
-        lab_p[pad_lo:pad_lo + shape[0], pad_lo:pad_lo + shape[1],
-              pad_lo:pad_lo + shape[2]] = lab
-
-        def brick_view(vol):
-            v = vol.reshape(nb[0], BRICK, nb[1], BRICK, nb[2], BRICK)
-            v = v.transpose(0, 2, 4, 1, 3, 5)[bidx[:, 0], bidx[:, 1], bidx[:, 2]]
-            return np.ascontiguousarray(v.reshape(n_b, BRICK_VOXELS))
-
-        return cls(spacing_mm, origin_mm, shape, keys, vals, bricks,
-                   brick_view(dens_p), brick_view(lab_p))
+        bd = np.zeros((n_b, BRICK_VOXELS), dtype=np.float32)
+        bl = np.zeros((n_b, BRICK_VOXELS), dtype=np.uint8)
+        _fill_bricks(lab, dens, has_dens, bricks, bd, bl)
+        return cls(spacing_mm, origin_mm, shape, keys, vals, bricks, bd, bl)
 
     def copy(self) -> "Grid":
         """Deep copy of the mutable per-voxel arrays (the table is shared, read-only)."""
