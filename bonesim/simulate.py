@@ -41,10 +41,12 @@ class SurfaceConsumer:
         tch = self.touched.drain()["ijk"]
         if len(rem) == 0 and len(tch) == 0:
             return
+        # clear the flags before reading densities: a voxel the haptic side
+        # lowers again after this point is published again, never lost
+        clear_touched(self.state, tch)
         t0 = time.perf_counter()
         self.surface.update(self.state.grid, rem, tch)
         self.update_s.append(time.perf_counter() - t0)
-        clear_touched(self.state, tch)
 
 
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
