@@ -275,6 +275,20 @@ _AFFECTED = sorted({tuple(int(x) for x in (-np.array(d) + e))
                               (0, 0, 1), (0, 0, -1)]})
 AFFECTED_CELL_OFFSETS = np.array(_AFFECTED, dtype=np.int32)
 
+# Triangle records: Surface._trec is (tcap, 8) int32, one 32-byte row per
+# triangle slot holding everything the update reads about it, so a step along
+# a list touches one cache line: corners (tri), key, the next triangle on
+# each corner's vertex list (tnext) and on the owner list.
+_TR_KEY = 3
+_TR_NEXT = 4
+_TR_ONEXT = 7
+_TR_WIDTH = 8
+_TR_FILL = np.array([0, 0, 0, -1, -1, -1, -1, -1], dtype=np.int32)
+# Vertex records: Surface._vrec is (vcap, 2) int32: head of the vertex list
+# (vhead) and of the owner list.
+_VR_HEAD = 0
+_VR_OHEAD = 1
+
 # counters kept in Surface._cnt
 _V_HW, _V_NFREE, _T_HW, _T_NFREE, _V_ALIVE, _T_ALIVE = range(6)
 # status / statistics slots of the update kernel
@@ -311,17 +325,21 @@ def _nb_slot(qi, qj, qk, i, j, k):
             + ((k >> BRICK_SHIFT) - (qk >> BRICK_SHIFT) + 1))
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _vertex_attrs_at(d, c0, sx, sy, lab, colors, nrm, col, v):
-    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
-    ``d[c0 + di * sx + dj * sy + dk]``, ``di, dj, dk`` in ``{-1, 0, 1}``.
+#: Densities ``d`` with ``d == 0`` or ``SOBEL_EXACT_MIN <= |d| < SOBEL_EXACT_MAX``
+#: are multiples of 2**-46 (float32: 24-bit significands) and a Sobel sum of
+#: them never exceeds 32 * 4 = 128 in magnitude, so every partial sum is
+#: exact in float64 and the sums do not depend on the order of the terms.
+SOBEL_EXACT_MIN = 2.0 ** -23
+SOBEL_EXACT_MAX = 4.0
 
-    The Sobel sums run over the neighbourhood in ``(di, dj, dk)``
-    lexicographic order, skipping the terms of weight 0 (adding ``0 * d``,
-    a zero, to a partial sum that is never ``-0`` leaves it unchanged, so
-    this is the plain 27-term sum bit for bit). Both the full and the
-    incremental tessellation use this, so they agree bit for bit.
-    """
+
+@njit(cache=True, nogil=True, inline="always")
+def _sobel_seq(d, c0, sx, sy):
+    """Sobel gradient of the densities ``d[c0 + di * sx + dj * sy + dk]``,
+    the reference order: terms in ``(di, dj, dk)`` lexicographic order,
+    those of weight 0 skipped (adding ``0 * d``, a zero, to a partial sum
+    that is never ``-0`` leaves it unchanged: this is the plain 27-term sum
+    bit for bit)."""
     gx = 0.0
     gy = 0.0
     gz = 0.0
@@ -338,6 +356,52 @@ def _vertex_attrs_at(d, c0, sx, sy, lab, colors, nrm, col, v):
                     gy += (wa * np.float64(b - 1) * wc) * val
                 if c != 1:
                     gz += (wa * wb * np.float64(c - 1)) * val
+    return gx, gy, gz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sobel_sep(d, c0, sx, sy):
+    """The same gradient, separably (few operations, short dependency
+    chains). Equal to :func:`_sobel_seq` bit for bit when every density of
+    the neighbourhood is 0 or within ``[SOBEL_EXACT_MIN, SOBEL_EXACT_MAX)``
+    in magnitude (then all sums are exact); otherwise it may differ."""
+    sm0 = 0.0      # per di: smoothing (1, 2, 1) over dj of the dk-smoothed row
+    sm2 = 0.0
+    gy = 0.0
+    gz = 0.0
+    for a in range(3):
+        wa = 2.0 if a == 1 else 1.0
+        base = c0 + (a - 1) * sx
+        p0 = (np.float64(d[base - sy - 1]) + 2.0 * np.float64(d[base - sy])
+              + np.float64(d[base - sy + 1]))
+        p1 = (np.float64(d[base - 1]) + 2.0 * np.float64(d[base])
+              + np.float64(d[base + 1]))
+        p2 = (np.float64(d[base + sy - 1]) + 2.0 * np.float64(d[base + sy])
+              + np.float64(d[base + sy + 1]))
+        q0 = np.float64(d[base - sy + 1]) - np.float64(d[base - sy - 1])
+        q1 = np.float64(d[base + 1]) - np.float64(d[base - 1])
+        q2 = np.float64(d[base + sy + 1]) - np.float64(d[base + sy - 1])
+        if a == 0:
+            sm0 = p0 + 2.0 * p1 + p2
+        elif a == 2:
+            sm2 = p0 + 2.0 * p1 + p2
+        gy += wa * (p2 - p0)
+        gz += wa * (q0 + 2.0 * q1 + q2)
+    return sm2 - sm0, gy, gz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vertex_attrs_at(d, c0, sx, sy, exact, lab, colors, nrm, col, v):
+    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
+    ``d[c0 + di * sx + dj * sy + dk]``, ``di, dj, dk`` in ``{-1, 0, 1}``.
+    ``exact``: the caller knows the densities allow :func:`_sobel_sep`.
+    Both the full and the incremental tessellation use this, so they agree
+    bit for bit.
+    """
+    if exact:
+        gx, gy, gz = _sobel_sep(d, c0, sx, sy)
+    else:
+        gx, gy, gz = _sobel_seq(d, c0, sx, sy)
     g = np.sqrt(gx * gx + gy * gy + gz * gz)
     if g > GRAD_EPS:
         nx = -gx / g
@@ -381,7 +445,7 @@ def _vertex_attrs_at(d, c0, sx, sy, lab, colors, nrm, col, v):
 def _vertex_attrs(d27, lab, colors, nrm, col, v):
     """Write normal and colour of vertex ``v`` from its 3x3x3 densities
     ``d27`` in ``(di, dj, dk)`` lexicographic order (centre at 13)."""
-    _vertex_attrs_at(d27, 13, 9, 3, lab, colors, nrm, col, v)
+    _vertex_attrs_at(d27, 13, 9, 3, False, lab, colors, nrm, col, v)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -408,17 +472,17 @@ def _triangles_of_vertex(vhead, tri, tnext, v, out):
 
 
 @njit(cache=True, nogil=True)
-def _link_all(tri, tnext, vhead, ttid, n_t, ohead, onext):
+def _link_all(trec, vrec, n_t):
     for t in range(n_t - 1, -1, -1):
-        if ttid[t] < 0:
+        if trec[t, _TR_KEY] < 0:
             continue
         for s in range(3):
-            v = tri[t, s]
-            tnext[t, s] = vhead[v]
-            vhead[v] = t
-        v = tri[t, 0]
-        onext[t] = ohead[v]
-        ohead[v] = t
+            v = trec[t, s]
+            trec[t, _TR_NEXT + s] = vrec[v, _VR_HEAD]
+            vrec[v, _VR_HEAD] = t
+        v = trec[t, 0]
+        trec[t, _TR_ONEXT] = vrec[v, _VR_OHEAD]
+        vrec[v, _VR_OHEAD] = t
 
 
 # ----------------------------------------------------------------------------
@@ -572,7 +636,7 @@ def _build_vertices(density, label, nbr, bricks, colors, origin, spacing, voff,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _build_triangles(density, nbr, toff, vmap, tri, ttid, err):
+def _build_triangles(density, nbr, toff, vmap, trec, err):
     nb_tot = nbr.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     for ch in prange(n_chunks):
@@ -618,8 +682,8 @@ def _build_triangles(density, nbr, toff, vmap, tri, ttid, err):
                                              | ((ry & BRICK_MASK) << 3) | (rz & BRICK_MASK)]
                                 if v < 0:
                                     err[ch] += 1
-                                tri[t, s] = v
-                            ttid[t] = key
+                                trec[t, s] = v
+                            trec[t, _TR_KEY] = key
                             t += 1
 
 
@@ -1200,15 +1264,17 @@ def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
 
 #: Margin [voxels] of the window around the inputs.
 _FAST_MARGIN = 2
+#: Voxel coordinates must have a magnitude below this (packed keys, margins).
+_COORD_LIMIT = (1 << 20) - 2 * BRICK
 #: The window path is taken when the window holds at most
 #: ``FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_inputs`` voxels and is at
 #: most 64 voxels deep along k.
 FAST_MIN_VOXELS = 32768
 FAST_VOXELS_PER_INPUT = 64
 # bit-row sets
-(_R_SRC, _R_SEED, _R_AFF, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED, _R_DIRTY,
- _R_T1, _R_T2) = range(11)
-_N_ROWSETS = 11
+(_R_SRC, _R_SEED, _R_AFF, _R_CELL, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED,
+ _R_DIRTY, _R_LIST, _R_T1, _R_T2) = range(13)
+_N_ROWSETS = 13
 # per-slot bit masks of the qualifying triples lying in the minimum face along a
 _QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
 for _code in range(256):
@@ -1218,6 +1284,11 @@ for _code in range(256):
             _QUAL_FMASK[_code, _f] |= 1 << _s
 _QUAL_ALL = np.array([(1 << int(n)) - 1 for n in QUAL_N], dtype=np.uint8)
 _POP4 = np.array([bin(m).count("1") for m in range(16)], dtype=np.int32)
+# _KEY_SLOT[code, key]: slot s with QUAL_KEY[code, s] == key, or -1
+_KEY_SLOT = np.full((256, 2 * N_TRIPLES), -1, dtype=np.int8)
+for _code in range(256):
+    for _s in range(int(QUAL_N[_code])):
+        _KEY_SLOT[_code, int(QUAL_KEY[_code, _s])] = _s
 
 
 @njit(cache=True, nogil=True)
@@ -1261,11 +1332,12 @@ def _fw_dilate(rows, nrows, wd0, wd1):
     S = _R_SRC * nrows
     E = _R_SEED * nrows
     A = _R_AFF * nrows
+    C = _R_CELL * nrows
     T = _R_TOPO * nrows
     R = _R_RESH * nrows
     T1 = _R_T1 * nrows
     T2 = _R_T2 * nrows
-    # cells containing a source, and the face cells above it along i / j
+    # cells containing a source (CELL), and the face cells above it along i / j
     for r in range(nrows):
         s = rows[S + r]
         rows[T1 + r] = s | (s >> one)                      # cell k in {p_k - 1, p_k}
@@ -1274,9 +1346,9 @@ def _fw_dilate(rows, nrows, wd0, wd1):
             rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x, y + 1)
     for x in range(wd0):
         for y in range(wd1):
-            rows[A + x * wd1 + y] = (rows[T2 + x * wd1 + y]
-                                     | _row(rows, T2, wd0, wd1, x + 1, y)
-                                     | _row(rows, T2, wd0, wd1, x - 1, y))
+            c = rows[T2 + x * wd1 + y] | _row(rows, T2, wd0, wd1, x + 1, y)
+            rows[C + x * wd1 + y] = c
+            rows[A + x * wd1 + y] = c | _row(rows, T2, wd0, wd1, x - 1, y)
     for x in range(wd0):
         for y in range(wd1):
             rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x + 1, y)
@@ -1339,6 +1411,7 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
     occ0 = _R_OCC * nrows
     hv0 = _R_HASV * nrows
     need0 = _R_NEED * nrows
+    inexact = False
     for x in range(wd0):
         i = wlo[0] + x
         for y in range(wd1):
@@ -1370,6 +1443,9 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
                         lv[li + z + u] = vv
                         occ |= np.uint64(d > 0) << np.uint64(z + u)
                         hv |= np.uint64(vv >= 0) << np.uint64(z + u)
+                        ad = abs(d)
+                        inexact |= d != 0 and not (ad >= SOBEL_EXACT_MIN
+                                                   and ad < SOBEL_EXACT_MAX)
                 else:
                     for u in range(n):
                         ld[li + z + u] = np.float32(0.0)
@@ -1377,6 +1453,7 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
                 z += n
             rows[occ0 + r] = occ
             rows[hv0 + r] = hv
+    return not inexact
 
 
 @njit(cache=True, nogil=True)
@@ -1390,9 +1467,13 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
     one = np.uint64(1)
     three = np.uint64(3)
     A = _R_AFF * nrows
+    C = _R_CELL * nrows
     O = _R_OCC * nrows
     H = _R_HASV * nrows
     T = _R_TOPO * nrows
+    L = _R_LIST * nrows
+    for r in range(nrows):
+        rows[L + r] = np.uint64(0)
     nl = 0
     tbound = 0
     ncells = 0
@@ -1402,6 +1483,8 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
             bits = rows[A + r]
             if bits == 0:
                 continue
+            lbits = np.uint64(0)
+            cbits = rows[C + r]
             o00 = rows[O + r]
             o01 = rows[O + r + 1]
             o10 = rows[O + r + wd1]
@@ -1419,13 +1502,21 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
                         | (((o10 >> zz) & three) << np.uint64(4))
                         | (((o11 >> zz) & three) << np.uint64(6)))
                 act = np.int64(_QUAL_ALL[code])
+                lowm = np.int64(0)      # slots dropped by the ownership test
                 if act != 0:
                     if (ox >> zz) & three == 0:
-                        act &= ~np.int64(_QUAL_FMASK[code, 0])
+                        lowm |= np.int64(_QUAL_FMASK[code, 0])
                     if (oy >> zz) & three == 0:
-                        act &= ~np.int64(_QUAL_FMASK[code, 1])
+                        lowm |= np.int64(_QUAL_FMASK[code, 1])
                     if (oz >> (zz - one)) & one == 0:
-                        act &= ~np.int64(_QUAL_FMASK[code, 2])
+                        lowm |= np.int64(_QUAL_FMASK[code, 2])
+                    act &= ~lowm
+                if (cbits >> zz) & one == 0 and lowm == 0:
+                    # no source in the cell: same code as before the batch;
+                    # its ownership tests read voxels that were occupied
+                    # before if they are now, so if all of them pass now
+                    # they passed before: nothing changed
+                    continue
                 if act == 0 and (hv >> zz) & three == 0:
                     continue            # owns nothing and will own nothing
                 li = r * wd2 + z
@@ -1434,6 +1525,8 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
                 clist[nl] = li
                 nl += 1
                 tbound += _POP4[act]
+                lbits |= one << zz
+            rows[L + r] = lbits
     stats[_S_CELLS] = ncells
     # vertices to create / drop
     nvadd = 0
@@ -1454,76 +1547,88 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
 
 
 @njit(cache=True, nogil=True)
-def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, tri, ttid, tfree, cnt,
-              stats, ohead, onext):
-    """Drop the triangles the listed cells own but should not: off their
-    owner list, slot freed, key -1; they stay on the vertex lists of their
-    corners, which are marked DIRTY (see :func:`_fw_unlink_dead`). Keep in
-    ``lact`` the slots still to add and compact the list to the cells with
-    something to add. Returns ``(new list length, dead list entries)``."""
+def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, trec, vrec, tfree, cnt, stats):
+    """Drop the triangles the listed cells own but should not own.
+
+    Every triangle a listed cell owns is on the owner list of the vertex at
+    its corner ``c0``; each such list is walked once (vertices in (i, j, k)
+    order). A dropped triangle leaves its owner list, its slot is freed and
+    its key set to -1; it stays on the vertex lists of its corners, which
+    are marked DIRTY (see :func:`_fw_unlink_dead`). ``lact`` holds the
+    active slots of a listed cell in bits 0-3 and collects the slots it
+    still owns in bits 4-7; on return it holds the slots to add, and the
+    list is compacted to the cells with something to add.
+    Returns ``(new list length, dead list entries)``."""
+    one = np.uint64(1)
+    wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
     sy = wd2
     sx = wd1 * wd2
     D = _R_DIRTY * nrows
+    L = _R_LIST * nrows
+    H = _R_HASV * nrows
     for r in range(nrows):
         rows[D + r] = np.uint64(0)
-    na = 0
     n_dead = 0
+    for x in range(1, wd0):
+        for y in range(1, wd1):
+            r = x * wd1 + y
+            # vertices at corner 0..5 of a listed cell
+            lw = rows[L + r] | rows[L + r - 1] | rows[L + r - wd1]
+            vw = (lw | (lw << one)) & rows[H + r]
+            while vw != 0:
+                z = trailing_zeros(vw)
+                vw &= vw - one
+                lvx = r * wd2 + z
+                v = lv[lvx]
+                prev = -1
+                t = vrec[v, _VR_OHEAD]
+                while t >= 0:
+                    nxt = trec[t, _TR_ONEXT]
+                    key = trec[t, _TR_KEY]
+                    c0 = TRIPLE_CORNERS[key >> 1, 0]
+                    rc = r - (c0 >> 2) * wd1 - ((c0 >> 1) & 1)
+                    zc = z - (c0 & 1)
+                    if (rows[L + rc] >> np.uint64(zc)) & one == 0:
+                        prev = t                # owner not listed: unchanged
+                        t = nxt
+                        continue
+                    li = rc * wd2 + zc
+                    ah = np.int64(lact[li])
+                    slot = _KEY_SLOT[lcode[li], key]
+                    if slot >= 0 and (ah >> slot) & 1 and not (ah >> (slot + 4)) & 1:
+                        lact[li] = ah | (np.int64(16) << slot)
+                        prev = t
+                        t = nxt
+                        continue
+                    # drop t: off the owner list (we hold its predecessor); the
+                    # vertex lists of its surviving corners are cleaned later
+                    # (an emptied corner's vertex goes with all its triangles:
+                    # its list is dropped whole in _fw_vertices)
+                    if prev < 0:
+                        vrec[v, _VR_OHEAD] = nxt
+                    else:
+                        trec[prev, _TR_ONEXT] = nxt
+                    tid = key >> 1
+                    for s in range(3):
+                        c = TRIPLE_CORNERS[tid, s]
+                        if not ld[li + (c >> 2) * sx + ((c >> 1) & 1) * sy + (c & 1)] > 0:
+                            continue
+                        rows[D + rc + (c >> 2) * wd1 + ((c >> 1) & 1)] |= \
+                            one << np.uint64(zc + (c & 1))
+                        n_dead += 1
+                    trec[t, _TR_KEY] = -1
+                    tfree[cnt[_T_NFREE]] = t
+                    cnt[_T_NFREE] += 1
+                    cnt[_T_ALIVE] -= 1
+                    stats[_S_T_DEL] += 1
+                    t = nxt
+    na = 0
     for q in range(nl):
         li = clist[q]
-        code = lcode[li]
-        act = np.int64(lact[li])
-        have = np.int64(0)
-        for cn in range(6):
-            v = lv[li + (cn >> 2) * sx + ((cn >> 1) & 1) * sy + (cn & 1)]
-            if v < 0:
-                continue
-            prev = -1
-            t = ohead[v]
-            while t >= 0:
-                nxt = onext[t]
-                key = ttid[t]
-                if TRIPLE_CORNERS[key >> 1, 0] != cn:
-                    prev = t
-                    t = nxt
-                    continue
-                keep = False
-                for s in range(QUAL_N[code]):
-                    if QUAL_KEY[code, s] == key:
-                        bit = np.int64(1) << s
-                        if act & bit and not have & bit:
-                            have |= bit
-                            keep = True
-                        break
-                if keep:
-                    prev = t
-                    t = nxt
-                    continue
-                # drop t: owner list (we hold its predecessor), vertex lists
-                if prev < 0:
-                    ohead[v] = nxt
-                else:
-                    onext[prev] = nxt
-                # (an emptied corner's vertex is about to go with all its
-                # triangles: its list is dropped whole in _fw_vertices)
-                tid = key >> 1
-                rc = li // wd2
-                zc = li - rc * wd2
-                for s in range(3):
-                    c = TRIPLE_CORNERS[tid, s]
-                    if not ld[li + (c >> 2) * sx + ((c >> 1) & 1) * sy + (c & 1)] > 0:
-                        continue
-                    rows[D + rc + (c >> 2) * wd1 + ((c >> 1) & 1)] |= \
-                        np.uint64(1) << np.uint64(zc + (c & 1))
-                    n_dead += 1
-                ttid[t] = -1
-                tfree[cnt[_T_NFREE]] = t
-                cnt[_T_NFREE] += 1
-                cnt[_T_ALIVE] -= 1
-                stats[_S_T_DEL] += 1
-                t = nxt
-        rest = act & ~have
+        ah = np.int64(lact[li])
+        rest = ah & ~(ah >> 4) & 15
         if rest != 0:
             lact[li] = rest
             clist[na] = li
@@ -1532,7 +1637,7 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, tri, ttid, tfree,
 
 
 @njit(cache=True, nogil=True)
-def _fw_unlink_dead(rows, nrows, wd, lv, vhead, tri, tnext, ttid):
+def _fw_unlink_dead(rows, nrows, wd, lv, trec, vrec):
     """Splice the dead triangles (key -1) out of the vertex lists of the
     DIRTY voxels, one walk per list. Returns the number of entries removed."""
     one = np.uint64(1)
@@ -1547,15 +1652,15 @@ def _fw_unlink_dead(rows, nrows, wd, lv, vhead, tri, tnext, ttid):
             v = lv[r * wd2 + z]
             prev = -1
             prev_s = 0
-            cur = vhead[v]
+            cur = vrec[v, _VR_HEAD]
             while cur >= 0:
-                s = _slot_of(tri, cur, v)
-                nxt = tnext[cur, s]
-                if ttid[cur] < 0:
+                s = 0 if trec[cur, 0] == v else (1 if trec[cur, 1] == v else 2)
+                nxt = trec[cur, _TR_NEXT + s]
+                if trec[cur, _TR_KEY] < 0:
                     if prev < 0:
-                        vhead[v] = nxt
+                        vrec[v, _VR_HEAD] = nxt
                     else:
-                        tnext[prev, prev_s] = nxt
+                        trec[prev, _TR_NEXT + prev_s] = nxt
                     n += 1
                 else:
                     prev = cur
@@ -1566,7 +1671,7 @@ def _fw_unlink_dead(rows, nrows, wd, lv, vhead, tri, tnext, ttid):
 
 @njit(cache=True, nogil=True)
 def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
-                 valive, vhead, ohead, vfree, cnt, stats):
+                 valive, vrec, vfree, cnt, stats):
     """Drop the vertices of emptied voxels and create those of new surface voxels."""
     one = np.uint64(1)
     wd1 = wd[1]
@@ -1581,6 +1686,7 @@ def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, 
         chg = bits & (occ ^ hv)
         if chg == 0:
             continue
+        rows[H + r] = hv ^ chg                      # has a vertex after the edit
         x = r // wd1
         y = r - x * wd1
         i = wlo[0] + x
@@ -1608,16 +1714,16 @@ def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, 
                 pos[v, 0] = origin[0] + spacing * i
                 pos[v, 1] = origin[1] + spacing * j
                 pos[v, 2] = origin[2] + spacing * k
-                vhead[v] = -1
-                ohead[v] = -1
+                vrec[v, _VR_HEAD] = -1
+                vrec[v, _VR_OHEAD] = -1
                 valive[v] = 1
                 cnt[_V_ALIVE] += 1
                 stats[_S_V_ADD] += 1
             else:                                   # emptied
                 v = lv[li]
-                if ohead[v] >= 0:
+                if vrec[v, _VR_OHEAD] >= 0:
                     stats[_S_ERR] += 1
-                vhead[v] = -1                       # its triangles are all gone
+                vrec[v, _VR_HEAD] = -1              # its triangles are all gone
                 vmap[b, o] = -1
                 lv[li] = -1
                 valive[v] = 0
@@ -1628,8 +1734,7 @@ def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, 
 
 
 @njit(cache=True, nogil=True)
-def _fw_add(clist, na, wd, lv, lcode, lact, vhead, tri, tnext, ttid, tfree, cnt, stats,
-            ohead, onext):
+def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
     sy = wd[2]
     sx = wd[1] * wd[2]
     for q in range(na):
@@ -1656,29 +1761,29 @@ def _fw_add(clist, na, wd, lv, lcode, lact, vhead, tri, tnext, ttid, tfree, cnt,
                 if v < 0:
                     stats[_S_ERR] += 1
                     v = 0
-                tri[t, s] = v
-            ttid[t] = key
-            for s in range(3):
-                v = tri[t, s]
-                tnext[t, s] = vhead[v]
-                vhead[v] = t
-            v = tri[t, 0]
-            onext[t] = ohead[v]
-            ohead[v] = t
+                trec[t, s] = v
+                trec[t, _TR_NEXT + s] = vrec[v, _VR_HEAD]
+                vrec[v, _VR_HEAD] = t
+            trec[t, _TR_KEY] = key
+            v = trec[t, 0]
+            trec[t, _TR_ONEXT] = vrec[v, _VR_OHEAD]
+            vrec[v, _VR_OHEAD] = t
             cnt[_T_ALIVE] += 1
             stats[_S_T_ADD] += 1
 
 
 @njit(cache=True, nogil=True)
-def _fw_reshade(rows, nrows, wd, wlo, wbr, blo, bd, ld, lv, label, colors, nrm, col, stats):
+def _fw_reshade(rows, nrows, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
+                stats):
     one = np.uint64(1)
     wd1 = wd[1]
     wd2 = wd[2]
     sy = wd2
     sx = wd1 * wd2
     R = _R_RESH * nrows
+    H = _R_HASV * nrows
     for r in range(nrows):
-        bits = rows[R + r]
+        bits = rows[R + r] & rows[H + r]
         if bits == 0:
             continue
         x = r // wd1
@@ -1695,23 +1800,23 @@ def _fw_reshade(rows, nrows, wd, wlo, wbr, blo, bd, ld, lv, label, colors, nrm, 
                 continue
             k = wlo[2] + z
             b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
-            _vertex_attrs_at(ld, li, sx, sy, label[b, voxel_offset(i, j, k)], colors, nrm,
-                             col, v)
+            _vertex_attrs_at(ld, li, sx, sy, exact, label[b, voxel_offset(i, j, k)], colors,
+                             nrm, col, v)
             stats[_S_RESHADE] += 1
 
 
 @njit(cache=True, nogil=True)
 def _update_window(keys, vals, density, label, colors, origin, spacing,
                    removed, touched, win_per_input,
-                   vmap, pos, nrm, col, vijk, valive, vhead, vfree,
-                   tri, tnext, ttid, tfree, cnt, stats, ohead, onext,
-                   sf32, si32, su8, su64):
+                   vmap, pos, nrm, col, vijk, valive, vrec, vfree,
+                   trec, tfree, cnt, stats, sf32, si32, su8, su64):
     """The update on dense copies of the inputs' window (see above).
 
     Sets ``stats[_S_STATUS]``: 0 done, 1 vertex / triangle arrays too small
     (nothing changed), 2 scratch too small (``stats[_S_NEED_V]`` voxels,
     ``stats[_S_NEED_T]`` rows; nothing changed), 3 window unsuitable (use
-    :func:`_update_kernel`; nothing changed).
+    :func:`_update_kernel`; nothing changed), 4 / 5 a removed / touched voxel
+    has a coordinate of magnitude ``_COORD_LIMIT`` or more (nothing changed).
     """
     for s in range(stats.shape[0]):
         stats[s] = 0
@@ -1725,14 +1830,20 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
     blo = np.empty(3, dtype=np.int64)
     bd = np.empty(3, dtype=np.int64)
     for a in range(3):
-        lo = removed[0, a] if nr > 0 else touched[0, a]
+        lo = np.int64(removed[0, a] if nr > 0 else touched[0, a])
         hi = lo
         for r in range(nr):
             lo = min(lo, removed[r, a])
             hi = max(hi, removed[r, a])
+        if nr > 0 and (lo <= -_COORD_LIMIT or hi >= _COORD_LIMIT):
+            stats[_S_STATUS] = 4
+            return
         for r in range(ntch):
             lo = min(lo, touched[r, a])
             hi = max(hi, touched[r, a])
+        if lo <= -_COORD_LIMIT or hi >= _COORD_LIMIT:
+            stats[_S_STATUS] = 5
+            return
         wlo[a] = lo - _FAST_MARGIN
         wd[a] = hi - lo + 1 + 2 * _FAST_MARGIN
         blo[a] = wlo[a] >> BRICK_SHIFT
@@ -1766,12 +1877,12 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
     # ---- plan (read-only) ----------------------------------------------------
     _fw_mark(removed, touched, density, wbr, wlo, wd, blo, bd, su64, nrows)
     _fw_dilate(su64, nrows, wd[0], wd[1])
-    _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nrows)
+    exact = _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nrows)
     nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nrows, wd, lv, lcode, lact, clist, stats)
 
     # ---- room? (triangles: bound, ignoring the ones that will be freed) ------
     v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
-    t_room = cnt[_T_NFREE] + (tri.shape[0] - cnt[_T_HW])
+    t_room = cnt[_T_NFREE] + (trec.shape[0] - cnt[_T_HW])
     if n_vadd > v_room or tbound > t_room:
         stats[_S_STATUS] = 1
         stats[_S_NEED_V] = max(0, n_vadd - v_room)
@@ -1779,27 +1890,31 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
         return
 
     # ---- edit ------------------------------------------------------------------
-    na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nrows, tri, ttid, tfree,
-                           cnt, stats, ohead, onext)
-    if _fw_unlink_dead(su64, nrows, wd, lv, vhead, tri, tnext, ttid) != n_dead:
+    na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nrows, trec, vrec, tfree,
+                           cnt, stats)
+    if _fw_unlink_dead(su64, nrows, wd, lv, trec, vrec) != n_dead:
         stats[_S_ERR] += 1
     _fw_vertices(su64, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
-                 valive, vhead, ohead, vfree, cnt, stats)
-    _fw_add(clist, na, wd, lv, lcode, lact, vhead, tri, tnext, ttid, tfree, cnt, stats,
-            ohead, onext)
-    _fw_reshade(su64, nrows, wd, wlo, wbr, blo, bd, ld, lv, label, colors, nrm, col, stats)
+                 valive, vrec, vfree, cnt, stats)
+    _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats)
+    _fw_reshade(su64, nrows, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
+                stats)
 
 
 # ----------------------------------------------------------------------------
 # Python front end
 # ----------------------------------------------------------------------------
-_COORD_LIMIT = (1 << 20) - 2 * BRICK
 
 
 def _as_ijk(a, name):
-    """Validate an (n, 3) array of integer voxel coordinates -> int32 C array."""
+    """Validate an (n, 3) array of integer voxel coordinates -> int32 C array.
+
+    int32 (n, 3) arrays take a short path: copied as they are, their range
+    is checked by :func:`_update_window` (status 4 / 5)."""
     if a is None:
         return np.zeros((0, 3), dtype=np.int32)
+    if type(a) is np.ndarray and a.dtype == np.int32 and a.ndim == 2 and a.shape[1] == 3:
+        return a.copy(order="C")
     arr = np.asarray(a)
     if arr.size == 0:
         return np.zeros((0, 3), dtype=np.int32)
@@ -1936,8 +2051,8 @@ class Surface:
         The structure colour table given to :meth:`build`.
     """
 
-    def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vhead, vfree,
-                 tri, tnext, tri_key, tfree, cnt, origin_mm, spacing_mm, ohead, onext):
+    def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec, vfree,
+                 trec, tfree, cnt, origin_mm, spacing_mm):
         self._keys = keys
         self._vals = vals
         self.colors = colors
@@ -1948,17 +2063,14 @@ class Surface:
         self.col = col
         self.ijk = ijk
         self.alive = alive
-        self.vhead = vhead
+        self._vrec = vrec
         self._vfree = vfree
-        self.tri = tri
-        self.tnext = tnext
-        self.tri_key = tri_key
+        self._trec = trec
         self._tfree = tfree
         self._cnt = cnt
         self._origin = np.asarray(origin_mm, dtype=np.float64)
         self._spacing = float(spacing_mm)
-        self._ohead = ohead
-        self._onext = onext
+        self._record_views()
         self._win_per_input = WINDOW_VOXELS_PER_INPUT   # tests set 0 to force hash sets
         self._stats = np.zeros(_N_STATS, dtype=np.int64)
         self._grow_scratch(4096, 256)
@@ -2006,24 +2118,20 @@ class Surface:
         ijk = np.zeros((vcap, 3), dtype=np.int32)
         _build_vertices(grid.density, grid.label, nbr, grid.bricks, colors, grid.origin_mm,
                         grid.spacing_mm, voff, vmap, pos, nrm, col, ijk)
-        tri = np.zeros((tcap, 3), dtype=np.int32)
-        tri_key = np.full(tcap, -1, dtype=np.int16)
+        trec = np.empty((tcap, _TR_WIDTH), dtype=np.int32)
+        trec[:] = _TR_FILL
         err = np.zeros(max(1, (n_b + _CHUNK - 1) // _CHUNK), dtype=np.int64)
-        _build_triangles(grid.density, nbr, toff, vmap, tri, tri_key, err)
+        _build_triangles(grid.density, nbr, toff, vmap, trec, err)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         alive = np.zeros(vcap, dtype=np.uint8)
         alive[:n_v] = 1
-        vhead = np.full(vcap, -1, dtype=np.int32)
-        tnext = np.full((tcap, 3), -1, dtype=np.int32)
-        ohead = np.full(vcap, -1, dtype=np.int32)
-        onext = np.full(tcap, -1, dtype=np.int32)
-        _link_all(tri, tnext, vhead, tri_key, n_t, ohead, onext)
+        vrec = np.full((vcap, 2), -1, dtype=np.int32)
+        _link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
-        return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vhead,
-                   np.zeros(vcap, dtype=np.int32), tri, tnext, tri_key,
-                   np.zeros(tcap, dtype=np.int32), cnt, grid.origin_mm, grid.spacing_mm,
-                   ohead, onext)
+        return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec,
+                   np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), cnt,
+                   grid.origin_mm, grid.spacing_mm)
 
     # ----------------------------------------------------------------- update
     def update(self, grid: Grid, removed, touched=None) -> dict:
@@ -2066,9 +2174,8 @@ class Surface:
                                self._origin, self._spacing, removed, touched,
                                self._win_per_input,
                                self.vmap, self.pos, self.nrm, self.col, self.ijk, self.alive,
-                               self.vhead, self._vfree, self.tri, self.tnext, self.tri_key,
-                               self._tfree, self._cnt, stats, self._ohead, self._onext,
-                               self._sf32, self._si32, self._su8, self._su64)
+                               self._vrec, self._vfree, self._trec, self._tfree, self._cnt,
+                               stats, self._sf32, self._si32, self._su8, self._su64)
             else:
                 _update_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
                                self.colors, self._origin, self._spacing, removed, touched,
@@ -2077,23 +2184,24 @@ class Surface:
                                self.alive, self.vhead, self._vfree, self.tri, self.tnext,
                                self.tri_key, self._tfree, self._cnt, stats, self._ohead,
                                self._onext)
-            status = stats[_S_STATUS]
+            st = stats.tolist()
+            status = st[_S_STATUS]
             if status == 0:
                 break
             if status == 1:
-                self._grow(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
+                self._grow(st[_S_NEED_V], st[_S_NEED_T])
             elif status == 2:
-                self._grow_scratch(int(stats[_S_NEED_V]), int(stats[_S_NEED_T]))
-            else:
+                self._grow_scratch(st[_S_NEED_V], st[_S_NEED_T])
+            elif status == 3:
                 window = False
-        if stats[_S_ERR]:
-            raise RuntimeError(f"surface update found {int(stats[_S_ERR])} inconsistencies")
-        return {"vertices_added": int(stats[_S_V_ADD]),
-                "vertices_removed": int(stats[_S_V_DEL]),
-                "triangles_added": int(stats[_S_T_ADD]),
-                "triangles_removed": int(stats[_S_T_DEL]),
-                "vertices_reshaded": int(stats[_S_RESHADE]),
-                "cells_visited": int(stats[_S_CELLS])}
+            else:
+                name = "removed" if status == 4 else "touched"
+                raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
+        if st[_S_ERR]:
+            raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
+        return {"vertices_added": st[_S_V_ADD], "vertices_removed": st[_S_V_DEL],
+                "triangles_added": st[_S_T_ADD], "triangles_removed": st[_S_T_DEL],
+                "vertices_reshaded": st[_S_RESHADE], "cells_visited": st[_S_CELLS]}
 
     def _grow_scratch(self, vol, nrows):
         """Scratch of the window path for windows of ``vol`` voxels, ``nrows`` rows."""
@@ -2108,6 +2216,15 @@ class Surface:
             n = nrows if cur is None else max(nrows, 2 * cur.shape[0] // _N_ROWSETS)
             self._su64 = np.zeros(_N_ROWSETS * n, dtype=np.uint64)
 
+    def _record_views(self):
+        """Public views of the packed vertex / triangle records."""
+        self.vhead = self._vrec[:, _VR_HEAD]
+        self._ohead = self._vrec[:, _VR_OHEAD]
+        self.tri = self._trec[:, 0:3]
+        self.tri_key = self._trec[:, _TR_KEY]
+        self.tnext = self._trec[:, _TR_NEXT:_TR_NEXT + 3]
+        self._onext = self._trec[:, _TR_ONEXT]
+
     def _grow(self, need_v, need_t):
         if need_v > 0:
             cap = max(2 * self.pos.shape[0], self.pos.shape[0] + need_v)
@@ -2116,16 +2233,16 @@ class Surface:
             self.col = _grown(self.col, cap, 0)
             self.ijk = _grown(self.ijk, cap, 0)
             self.alive = _grown(self.alive, cap, 0)
-            self.vhead = _grown(self.vhead, cap, -1)
-            self._ohead = _grown(self._ohead, cap, -1)
+            self._vrec = _grown(self._vrec, cap, -1)
             self._vfree = _grown(self._vfree, cap, 0)
         if need_t > 0:
             cap = max(2 * self.tri.shape[0], self.tri.shape[0] + need_t)
-            self.tri = _grown(self.tri, cap, 0)
-            self.tnext = _grown(self.tnext, cap, -1)
-            self._onext = _grown(self._onext, cap, -1)
-            self.tri_key = _grown(self.tri_key, cap, -1)
+            old = self._trec
+            self._trec = np.empty((cap, _TR_WIDTH), dtype=np.int32)
+            self._trec[:old.shape[0]] = old
+            self._trec[old.shape[0]:] = _TR_FILL
             self._tfree = _grown(self._tfree, cap, 0)
+        self._record_views()
 
     # ---------------------------------------------------------------- queries
     @property
