@@ -38,7 +38,8 @@ from numba import njit
 from .grid import BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["STEP_FRACTION", "BISECT_ITERS", "MIN_GRADIENT", "NO_CONTACT",
-           "ThicknessBuffers", "bone_thickness_mm", "contact_thickness", "thickness_kernel", "warmup"]
+           "ThicknessBuffers", "bone_thickness_mm", "contact_thickness", "thickness_kernel",
+           "warmup"]
 
 #: Ray-marching step as a fraction of the voxel edge.
 STEP_FRACTION = 0.25

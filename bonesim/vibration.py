@@ -58,8 +58,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["NYQUIST_FRACTION", "SUBHARMONIC_TOL", "RAMP_S", "MAX_DT_S", "Vibration", "vibration_signal",
-           "free_components", "contact_components", "warmup"]
+__all__ = ["NYQUIST_FRACTION", "SUBHARMONIC_TOL", "RAMP_S", "MAX_DT_S", "Vibration",
+           "vibration_signal", "free_components", "contact_components", "warmup"]
 
 #: Components are rendered only below this fraction of the Nyquist frequency,
 #: so none sits at Nyquist, where a sampled sine's amplitude depends on phase.
