@@ -104,16 +104,39 @@ class Cursor:
         return out
 
 
-def removal_ring(capacity: int = 1 << 20) -> Ring:
-    return Ring.create(capacity, ijk=(np.int32, (3,)), label=(np.uint8, ()),
-                       t_s=(np.float64, ()))
+#: Ring name -> (capacity, {field: (dtype, trailing shape)}).
+RINGS = {
+    "removed": (1 << 20, {"ijk": (np.int32, (3,)), "label": (np.uint8, ()),
+                          "t_s": (np.float64, ())}),
+    "touched": (1 << 18, {"ijk": (np.int32, (3,))}),
+    "injuries": (1 << 14, {"label": (np.uint8, ()), "kind": (np.uint8, ()),
+                           "t_s": (np.float64, ()), "pos_mm": (np.float64, (3,)),
+                           "voxels": (np.int32, ())}),
+}
 
 
-def touched_ring(capacity: int = 1 << 18) -> Ring:
-    return Ring.create(capacity, ijk=(np.int32, (3,)))
+def ring_arrays_spec(name: str, capacity: int | None = None) -> list:
+    """``(array name, shape, dtype)`` of a ring's columns and head, for shared memory."""
+    cap, fields = RINGS[name]
+    cap = cap if capacity is None else capacity
+    out = [(f"{name}.{f}", (cap,) + tuple(shape), dt) for f, (dt, shape) in fields.items()]
+    out.append((f"{name}.head", (1,), np.int64))
+    return out
 
 
-def injury_ring(capacity: int = 1 << 14) -> Ring:
-    return Ring.create(capacity, label=(np.uint8, ()), kind=(np.uint8, ()),
-                       t_s=(np.float64, ()), pos_mm=(np.float64, (3,)),
-                       voxels=(np.int32, ()))
+def ring_from_arrays(name: str, arrays: dict) -> Ring:
+    """A :class:`Ring` over existing column arrays (e.g. in shared memory)."""
+    fields = {f: arrays[f"{name}.{f}"] for f in RINGS[name][1]}
+    return Ring(fields, arrays[f"{name}.head"])
+
+
+def removal_ring(capacity: int = RINGS["removed"][0]) -> Ring:
+    return Ring.create(capacity, **RINGS["removed"][1])
+
+
+def touched_ring(capacity: int = RINGS["touched"][0]) -> Ring:
+    return Ring.create(capacity, **RINGS["touched"][1])
+
+
+def injury_ring(capacity: int = RINGS["injuries"][0]) -> Ring:
+    return Ring.create(capacity, **RINGS["injuries"][1])

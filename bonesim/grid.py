@@ -343,3 +343,45 @@ class Grid:
         """Voxels with density > 0 per structure index ``0 .. n_labels``."""
         occ = self.density > 0
         return np.bincount(self.label[occ].ravel(), minlength=n_labels + 1)
+
+
+@njit(cache=True, nogil=True)
+def _sync_replica(keys, vals, replica, live, removed, touched):
+    for q in range(removed.shape[0]):
+        i, j, k = removed[q, 0], removed[q, 1], removed[q, 2]
+        b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+        if b >= 0:
+            replica[b, voxel_offset(i, j, k)] = 0.0
+    for q in range(touched.shape[0]):
+        i, j, k = touched[q, 0], touched[q, 1], touched[q, 2]
+        b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+        if b >= 0:
+            off = voxel_offset(i, j, k)
+            d = live[b, off]
+            # a zero here is a removal still on its way through the ring:
+            # keep the old value until the removal itself arrives
+            if d > 0.0 and replica[b, off] > 0.0:
+                replica[b, off] = d
+
+
+def sync_replica(replica: Grid, live: Grid, removed, touched) -> None:
+    """Bring a consumer's copy of a grid up to date with published events.
+
+    A consumer in another thread or process must not read the live density
+    directly: the producer may already have changed voxels it has not
+    published yet. The replica changes only through the events: ``removed``
+    voxels become empty, ``touched`` voxels take the live density (unless
+    that is already 0, i.e. their removal is still to come).
+
+    Parameters
+    ----------
+    replica, live : Grid
+        Grids sharing one brick table (``replica = live.copy()``).
+    removed, touched : (n, 3) int32
+        Voxels drained from the removal and touched rings.
+    """
+    if replica.keys is not live.keys:
+        raise ValueError("replica and live grid must share their brick table")
+    _sync_replica(replica.keys, replica.vals, replica.density, live.density,
+                  np.ascontiguousarray(removed, dtype=np.int32).reshape(-1, 3),
+                  np.ascontiguousarray(touched, dtype=np.int32).reshape(-1, 3))

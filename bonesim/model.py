@@ -294,7 +294,7 @@ class State:
     _acc: np.ndarray = None
     _dirty: np.ndarray = None
     _contact: np.ndarray = None
-    _prev_contact: np.ndarray = None
+    _prev_contact: np.ndarray | None = None
     _lost: np.ndarray = None
     _pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -316,20 +316,62 @@ class State:
             self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
 
 
-def make_state(model: Model) -> State:
-    """A fresh state: the model's initial grid, no events, time unset."""
+def state_arrays_spec(model: Model) -> list:
+    """The state arrays another process may need to see, as
+    ``(name, shape, dtype)``: density, touched flags, removal totals and the
+    event rings (for :class:`bonesim.shared.SharedArrays`)."""
+    n_b = model.grid.n_bricks
+    spec = [("density", (n_b, BRICK_VOXELS), np.float32),
+            ("touched_flag", (n_b, BRICK_VOXELS), np.uint8),
+            ("removed_by_label", (len(model.structures) + 1,), np.int64)]
+    for ring in events.RINGS:
+        spec += events.ring_arrays_spec(ring)
+    return spec
+
+
+def make_state(model: Model, arrays: dict | None = None) -> State:
+    """A fresh state: the model's initial grid, no events, time unset.
+
+    Parameters
+    ----------
+    model : Model
+    arrays : dict, optional
+        Arrays laid out as :func:`state_arrays_spec` says (e.g. in shared
+        memory) to hold the state; they are reset to the model's initial
+        tissue and empty rings. Default: private arrays.
+    """
+    if arrays is None:
+        arrays = {name: np.zeros(shape, dtype=dt)
+                  for name, shape, dt in state_arrays_spec(model)}
     n = len(model.structures) + 1
-    grid = model.grid.copy()
-    st = State(grid=grid,
-               touched_flag=np.zeros((grid.n_bricks, BRICK_VOXELS), dtype=np.uint8),
-               removed=events.removal_ring(), touched=events.touched_ring(),
-               injuries=events.injury_ring(),
-               removed_by_label=np.zeros(n, dtype=np.int64))
+    g0 = model.grid
+    grid = Grid(g0.spacing_mm, g0.origin_mm, g0.shape, g0.keys, g0.vals, g0.bricks,
+                arrays["density"], g0.label)
+    st = State(grid=grid, touched_flag=arrays["touched_flag"],
+               removed=events.ring_from_arrays("removed", arrays),
+               touched=events.ring_from_arrays("touched", arrays),
+               injuries=events.ring_from_arrays("injuries", arrays),
+               removed_by_label=arrays["removed_by_label"])
+    reset_state(model, st)
     st._contact = np.zeros(n, dtype=np.int64)
     st._prev_contact = np.zeros(n, dtype=np.uint8)
     st._lost = np.zeros(n, dtype=np.int64)
     st.fit_scratch(model)
     return st
+
+
+def reset_state(model: Model, state: State) -> None:
+    """Put the model's initial tissue back and empty the rings, in place."""
+    state.grid.density[:] = model.grid.density
+    state.touched_flag[:] = 0
+    state.removed_by_label[:] = 0
+    for ring in (state.removed, state.touched, state.injuries):
+        ring.reset()
+    state.t_s = math.nan
+    state.n_steps = 0
+    state.force_n[:] = 0.0
+    if state._prev_contact is not None:
+        state._prev_contact[:] = 0
 
 
 def step(model: Model, state: State, sample: Sample) -> np.ndarray:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from . import events
+from .grid import sync_replica
 from .haptics import O_N_IMMERSED
 from .model import Model, Sample, clear_touched, make_state, step
 
@@ -30,9 +31,16 @@ class SurfaceConsumer:
         from .surface import Surface
 
         self.state = state
-        self.surface = Surface.build(state.grid, model.colors)
+        # Cursors first, then a snapshot: whatever the haptic side changes
+        # after the cursors were set is drained later (re-listing a voxel the
+        # snapshot already shows removed is harmless), so the surface stays
+        # exact even while another process is drilling.
         self.removed = events.Cursor(state.removed)
         self.touched = events.Cursor(state.touched)
+        #: The consumer's replica of the tissue: it changes only through the
+        #: events drained, so it always matches what the surface was told.
+        self.grid = state.grid.copy()
+        self.surface = Surface.build(self.grid, model.colors)
         self.update_s: list[float] = []
 
     def drain(self) -> None:
@@ -45,7 +53,8 @@ class SurfaceConsumer:
         # lowers again after this point is published again, never lost
         clear_touched(self.state, tch)
         t0 = time.perf_counter()
-        self.surface.update(self.state.grid, rem, tch)
+        sync_replica(self.grid, self.state.grid, rem, tch)
+        self.surface.update(self.grid, rem, tch)
         self.update_s.append(time.perf_counter() - t0)
 
 

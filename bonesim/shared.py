@@ -1,0 +1,88 @@
+"""Numpy arrays in shared memory, for state shared between processes.
+
+The haptic loop runs in its own process (so that neither rendering nor Python's
+global interpreter lock can delay it); the window, sound and recorder read the
+state it writes. :class:`SharedArrays` lays out named numpy arrays in one
+:class:`multiprocessing.shared_memory.SharedMemory` block; its picklable
+:attr:`~SharedArrays.handle` lets another process attach to the same memory.
+
+Each array has a single writer; readers poll. Ring heads are written after
+the records they publish (see :mod:`bonesim.events`).
+"""
+from __future__ import annotations
+
+from multiprocessing import shared_memory
+
+import numpy as np
+
+_ALIGN = 64
+
+
+def _layout(spec):
+    out, off = [], 0
+    for name, shape, dtype in spec:
+        dt = np.dtype(dtype)
+        shape = tuple(int(s) for s in shape)
+        n = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+        out.append((name, shape, dt.str, off))
+        off += (n + _ALIGN - 1) // _ALIGN * _ALIGN
+    return out, max(off, _ALIGN)
+
+
+class SharedArrays:
+    """Named arrays in one shared-memory block.
+
+    Parameters
+    ----------
+    spec : list of (name, shape, dtype)
+        The arrays, created zero-filled.
+    """
+
+    def __init__(self, shm, layout, owner: bool):
+        self._shm = shm
+        self._layout = layout
+        self.owner = owner
+        self.arrays = {name: np.ndarray(shape, dtype=np.dtype(dt), buffer=shm.buf, offset=off)
+                       for name, shape, dt, off in layout}
+
+    @classmethod
+    def create(cls, spec) -> "SharedArrays":
+        layout, size = _layout(spec)
+        shm = shared_memory.SharedMemory(create=True, size=size)
+        arr = cls(shm, layout, owner=True)
+        for a in arr.arrays.values():
+            a.fill(0)
+        return arr
+
+    @property
+    def handle(self) -> tuple:
+        """Picklable ``(block name, layout)`` for :meth:`attach`."""
+        return self._shm.name, self._layout
+
+    @classmethod
+    def attach(cls, handle) -> "SharedArrays":
+        name, layout = handle
+        # The creating process owns (and unlinks) the block. Processes it
+        # spawns share its resource tracker, which unlinks only what is left
+        # when all of them are gone, so attaching needs no unregistering.
+        try:
+            shm = shared_memory.SharedMemory(name=name, track=False)
+        except TypeError:                       # Python < 3.13: no 'track'
+            shm = shared_memory.SharedMemory(name=name)
+        return cls(shm, layout, owner=False)
+
+    def __getitem__(self, name) -> np.ndarray:
+        return self.arrays[name]
+
+    def close(self) -> None:
+        """Drop this process's mapping (and free the block if we created it)."""
+        self.arrays = {}
+        try:
+            self._shm.close()
+        except BufferError:
+            return                     # views still alive; the OS frees at exit
+        if self.owner:
+            try:
+                self._shm.unlink()
+            except FileNotFoundError:
+                pass
