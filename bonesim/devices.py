@@ -223,6 +223,9 @@ class VirtualCoupling:
     At rest the spring balances the bone (``|F| = K |x_t - x|``): pushing the
     mouse deeper presses harder, the harder press removes bone faster, and
     the tool advances as the bone goes. The step is clamped to ``max_speed``.
+    The bone force is low-passed (time constant ``force_filter_s``): the
+    sampled contact force rises in steps as lattice layers enter the bone,
+    and an unfiltered admittance chatters between two layers.
 
     Parameters
     ----------
@@ -232,26 +235,32 @@ class VirtualCoupling:
         Damper ``b`` [N s/mm].
     max_speed_mm_s : float
         Largest tool speed [mm/s].
+    force_filter_s : float
+        Time constant of the bone-force low-pass [s].
     """
 
     def __init__(self, stiffness_n_per_mm=1.0, damping_ns_per_mm=0.02,
-                 max_speed_mm_s=200.0):
-        if stiffness_n_per_mm <= 0 or damping_ns_per_mm <= 0 or max_speed_mm_s <= 0:
-            raise ValueError("coupling stiffness, damping and speed must be positive")
+                 max_speed_mm_s=200.0, force_filter_s=0.02):
+        if min(stiffness_n_per_mm, damping_ns_per_mm, max_speed_mm_s, force_filter_s) <= 0:
+            raise ValueError("coupling stiffness, damping, speed and filter must be positive")
         self.k = float(stiffness_n_per_mm)
         self.b = float(damping_ns_per_mm)
         self.vmax = float(max_speed_mm_s)
+        self.tau = float(force_filter_s)
         self.pos = None
+        self.force = np.zeros(3)
 
     def reset(self, pos_mm) -> None:
         self.pos = np.array(pos_mm, dtype=float)
+        self.force[:] = 0.0
 
     def update(self, target_mm, force_n, dt_s: float) -> np.ndarray:
         """Advance the tool by ``dt_s`` [s]; returns its new position [mm]."""
         if self.pos is None:
             self.reset(target_mm)
             return self.pos
-        v = (self.k * (np.asarray(target_mm) - self.pos) + np.asarray(force_n)) / self.b
+        self.force += (np.asarray(force_n) - self.force) * min(1.0, dt_s / self.tau)
+        v = (self.k * (np.asarray(target_mm) - self.pos) + self.force) / self.b
         speed = float(np.sqrt(v @ v))
         if speed > self.vmax:
             v *= self.vmax / speed
