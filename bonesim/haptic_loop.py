@@ -20,11 +20,18 @@ Two small shared float64 arrays connect the sides:
 
 The loop also writes each measured period into the ``periods`` ring, from
 which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99.
+
+The loop process asks for real-time scheduling (``SCHED_FIFO``) and runs with
+Python's garbage collector frozen; ``status[ST_REALTIME]`` says whether the
+operating system granted the priority (it needs the right to, e.g. root or
+``CAP_SYS_NICE``; without it the loop still runs, at normal priority).
 """
 from __future__ import annotations
 
+import gc
 import math
 import multiprocessing as mp
+import os
 import time
 
 import numpy as np
@@ -42,7 +49,7 @@ N_IN = 16
 # status: loop -> window
 ST_T, ST_POS, ST_AXIS, ST_FORCE = 0, 1, 4, 7
 (ST_MAG, ST_VOLUME, ST_IMMERSED, ST_DRILL, ST_SPEED, ST_DIR, ST_BURR, ST_STEPS,
- ST_EPOCH, ST_READY, ST_DONE, ST_OVERRUNS, ST_HAND_FORCE) = range(10, 23)
+ ST_EPOCH, ST_READY, ST_DONE, ST_OVERRUNS, ST_HAND_FORCE, ST_REALTIME) = range(10, 24)
 N_ST = 32
 #: Periods kept for rate statistics.
 PERIOD_RING = 1 << 16
@@ -50,6 +57,21 @@ PERIOD_RING = 1 << 16
 SPIN_S = 0.0004
 #: How long :meth:`HapticLoop.start` waits for the loop to warm up [s].
 START_TIMEOUT_S = 120.0
+#: Real-time (SCHED_FIFO) priority the loop asks for; granted where allowed.
+RT_PRIORITY = 20
+
+
+def _ask_realtime() -> bool:
+    """Best effort: real-time scheduling for this process. True if granted."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+        return True
+    except (AttributeError, OSError, PermissionError):
+        try:
+            os.nice(-10)
+        except (AttributeError, OSError, PermissionError):
+            pass
+        return False
 
 
 def _loop_spec(model: Model) -> list:
@@ -87,6 +109,11 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
         and isinstance(device, SharedInputDevice) else None
     warmup()
     device.open()
+    status[ST_REALTIME] = 1.0 if _ask_realtime() else 0.0
+    # everything the loop needs exists now; no collector pauses from here on
+    gc.collect()
+    gc.freeze()
+    gc.disable()
     period = 1.0 / rate_hz
     pmask = periods.shape[0] - 1
     epoch = io[IN_RESET]
