@@ -60,6 +60,17 @@ array that :meth:`SoundSynth.render` reads once per block; no lock is taken
 block). Exactly one thread may render a given synthesizer.
 
 ``sounddevice`` (PortAudio) is imported only inside :func:`open_output`.
+
+Use::
+
+    synth = SoundSynth(model.burr)
+    rec = WavRecorder(path, synth.sample_rate) if wav else None   # --wav FILE
+    out = open_output(synth, recorder=rec)    # never raises; out.notice says why muted
+    ...  # haptic loop, every step or every few ms:
+    synth.set_params(sample.drill, sample.speed_rpm, state.out[O_MAG],
+                     bone_thickness_mm(state.grid, state.pos_mm, model.burr.radius_mm))
+    ...
+    out.close(); rec and rec.close()
 """
 from __future__ import annotations
 

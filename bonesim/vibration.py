@@ -50,6 +50,19 @@ the waveform, and start from values drawn from a seeded generator
 linearly toward 1 (active) or 0 over ``RAMP_S`` as the contact state
 changes, so switching sets does not jolt the device. With the drill off (or
 at zero speed) both envelopes fall to exactly 0 within ``RAMP_S``.
+
+Use in the haptic loop (after :func:`bonesim.model.step`)::
+
+    vib = Vibration(model.burr, model.haptic_rate_hz)
+    ...
+    force = step(model, state, sample)
+    force += vib.sample(sample.t_s, state.axis, sample.drill,
+                        state.out[O_N_IMMERSED] > 0, state.out[O_MAG],
+                        sample.speed_rpm)
+
+(``O_N_IMMERSED``, ``O_MAG`` from :mod:`bonesim.haptics`). Make a new
+:class:`Vibration` when the burr changes; the caller clamps the total to the
+device's maximum force if it needs to.
 """
 from __future__ import annotations
 
