@@ -1,0 +1,152 @@
+"""Text of the head-up display and of the help overlay (no VTK here).
+
+:func:`format_hud` turns the dictionary the app passes to
+:meth:`bonesim.render.scene.Scene.set_hud` into lines. Recognised keys
+(all optional; units in the names):
+
+===================  ====================================================
+``case``             case name
+``burr``             burr name (e.g. ``cutting-5mm``)
+``burr_kind``        ``cutting`` / ``diamond``
+``burr_diameter_mm`` burr diameter [mm]
+``tool``             ``burr`` or ``suction``
+``drill``            bool, drill running
+``direction``        +1 / -1 (or ``"forward"`` / ``"reverse"``)
+``speed_rpm``        spindle speed [rpm]
+``force_n``          applied force magnitude [N]
+``haptic_hz``        haptic loop rate [Hz]
+``frame_hz``         frame rate [Hz] (default: measured by the scene)
+``elapsed_s``        run time [s]
+``injuries``         count, list of structure names, or text
+``message``          one free line (status, warnings)
+===================  ====================================================
+
+Any other key is shown as ``key: value``.
+"""
+from __future__ import annotations
+
+KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "drill", "direction",
+         "speed_rpm", "force_n", "haptic_hz", "frame_hz", "elapsed_s", "injuries", "message")
+
+
+def _num(v, fmt):
+    try:
+        return format(float(v), fmt)
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def _direction(v) -> str:
+    if isinstance(v, str):
+        return "REV" if v.lower().startswith("rev") else "FWD"
+    try:
+        return "REV" if float(v) < 0 else "FWD"
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def _injuries(v) -> str:
+    if v is None:
+        return "none"
+    if isinstance(v, (list, tuple)):
+        if not v:
+            return "none"
+        names = [str(x) for x in v]
+        text = ", ".join(names[:3]) + (f" +{len(names) - 3}" if len(names) > 3 else "")
+        return f"{len(names)} ({text})"
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return "none" if v == 0 else str(int(v))
+    return str(v)
+
+
+def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
+    """Lines of the HUD for ``info`` (see the module docstring).
+
+    Parameters
+    ----------
+    info : dict
+        Values to show.
+    measured_frame_hz : float, optional
+        Shown as the frame rate when ``info`` has no ``frame_hz``.
+
+    Returns
+    -------
+    str
+        Newline-separated text.
+    """
+    lines = []
+    if "case" in info:
+        lines.append(f"case: {info['case']}")
+    tool = str(info.get("tool", "burr"))
+    if tool == "suction":
+        lines.append("tool: suction")
+    if any(k in info for k in ("burr", "burr_kind", "burr_diameter_mm")):
+        parts = []
+        if "burr_kind" in info:
+            parts.append(str(info["burr_kind"]))
+        if "burr_diameter_mm" in info:
+            parts.append(_num(info["burr_diameter_mm"], ".1f") + " mm")
+        if "burr" in info:
+            parts.append(f"({info['burr']})" if parts else str(info["burr"]))
+        lines.append("burr: " + " ".join(parts))
+    drill = []
+    if "drill" in info:
+        drill.append("ON" if info["drill"] else "off")
+    if "direction" in info:
+        drill.append(_direction(info["direction"]))
+    if "speed_rpm" in info:
+        drill.append(_num(info["speed_rpm"], ",.0f") + " rpm")
+    if drill:
+        lines.append("drill: " + "  ".join(drill))
+    if "force_n" in info:
+        lines.append("force: " + _num(info["force_n"], ".2f") + " N")
+    rates = []
+    if "haptic_hz" in info:
+        rates.append("haptic " + _num(info["haptic_hz"], ".0f") + " Hz")
+    fr = info.get("frame_hz", measured_frame_hz)
+    if fr is not None:
+        rates.append("frame " + _num(fr, ".0f") + " Hz")
+    if rates:
+        lines.append("rate: " + "  ".join(rates))
+    if "elapsed_s" in info:
+        lines.append("time: " + _num(info["elapsed_s"], ".1f") + " s")
+    if "injuries" in info:
+        lines.append("injuries: " + _injuries(info["injuries"]))
+    for k, v in info.items():
+        if k not in KNOWN:
+            lines.append(f"{k}: {v}")
+    if info.get("message"):
+        lines.append(str(info["message"]))
+    return "\n".join(lines)
+
+
+def format_help(keys: dict, mouse_lines=()) -> str:
+    """Help overlay text: one ``key(s)  action`` line per action.
+
+    Parameters
+    ----------
+    keys : dict
+        Key symbol -> action name (as :data:`bonesim.render.window.DEFAULT_KEYS`).
+    mouse_lines : sequence of str
+        Extra lines describing the mouse.
+    """
+    by_action: dict = {}
+    for sym, action in keys.items():
+        by_action.setdefault(action, []).append(_pretty_key(sym))
+    width = max((len(" / ".join(v)) for v in by_action.values()), default=0)
+    out = ["keys"]
+    for action, syms in by_action.items():
+        out.append(f"  {' / '.join(syms).ljust(width)}  {action.replace('_', ' ')}")
+    if mouse_lines:
+        out.append("mouse")
+        out += [f"  {ln}" for ln in mouse_lines]
+    return "\n".join(out)
+
+
+_PRETTY = {"space": "Space", "plus": "+", "equal": "=", "minus": "-", "KP_Add": "keypad +",
+           "KP_Subtract": "keypad -", "BackSpace": "Backspace", "Escape": "Esc",
+           "Prior": "PgUp", "Next": "PgDn"}
+
+
+def _pretty_key(sym: str) -> str:
+    return _PRETTY.get(sym, sym)

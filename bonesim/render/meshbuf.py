@@ -1,0 +1,269 @@
+"""Index buffers for drawing a :class:`~bonesim.surface.Surface`: all live
+triangles, and the *visible subset*.
+
+No VTK here: these are numpy arrays that :mod:`bonesim.render.scene` hands
+to VTK without copying, and numba kernels that fill them.
+
+The surface keeps vertices and triangles in slot arrays with free slots
+(see :class:`bonesim.surface.Surface`). Vertex arrays are drawn as they are
+(a free slot is simply never referenced); triangles are *compacted*: one
+pass over the triangle slots writes the vertex indices of every live
+triangle into a flat int32 connectivity buffer. That pass is O(triangle
+slots) in a numba loop (~0.1 ms per 100,000 slots).
+
+Visible subset (SPEC, "Hybrid voxel / surface data structure")
+--------------------------------------------------------------
+A vertex *faces the camera* when its normal points toward the eye:
+``dot(n, eye - p) > 0`` for a perspective camera, ``dot(n, -d) > 0`` for a
+parallel one looking along ``d``. A triangle is *visible* when at least one
+of its vertices faces the camera. When the camera comes to rest,
+:meth:`SurfaceBuffers.start_visible` copies the surface's arrays (a
+snapshot) and a background thread computes the visible flag of every
+triangle slot of the snapshot (numba, ``nogil``; it touches no VTK object
+and not the live surface). When it is done and the camera has not moved,
+:meth:`SurfaceBuffers.adopt` installs it.
+
+The surface keeps changing while the subset is in use, so each compaction
+keeps a live triangle in the subset if it was visible in the snapshot *or*
+it is not the same as in the snapshot: a slot past the snapshot's end, a
+different key or corners, or a corner vertex whose position or normal
+differs from the snapshot. New and re-shaded geometry around the drill is
+therefore always drawn, and the subset never loses a triangle the full
+array would show facing the camera at the time of the snapshot.
+"""
+from __future__ import annotations
+
+import threading
+import weakref
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
+             full, vis):
+    """Write live triangles into ``full`` (and the visible ones into ``vis``).
+
+    Returns ``(n_full, n_vis)`` triangle counts."""
+    if with_vis:
+        nvs = s_pos.shape[0]
+        for v in range(pos.shape[0]):
+            if v >= nvs:
+                vdirty[v] = 1
+            elif (pos[v, 0] != s_pos[v, 0] or pos[v, 1] != s_pos[v, 1]
+                  or pos[v, 2] != s_pos[v, 2] or nrm[v, 0] != s_nrm[v, 0]
+                  or nrm[v, 1] != s_nrm[v, 1] or nrm[v, 2] != s_nrm[v, 2]):
+                vdirty[v] = 1
+            else:
+                vdirty[v] = 0
+    nts = s_key.shape[0]
+    nf = 0
+    nv = 0
+    for t in range(key.shape[0]):
+        k = key[t]
+        if k < 0:
+            continue
+        a = tri[t, 0]
+        b = tri[t, 1]
+        c = tri[t, 2]
+        full[3 * nf] = a
+        full[3 * nf + 1] = b
+        full[3 * nf + 2] = c
+        nf += 1
+        if with_vis:
+            keep = False
+            if t >= nts:
+                keep = True
+            elif (s_key[t] != k or s_tri[t, 0] != a or s_tri[t, 1] != b
+                  or s_tri[t, 2] != c):
+                keep = True
+            elif s_tvis[t] != 0 or vdirty[a] != 0 or vdirty[b] != 0 or vdirty[c] != 0:
+                keep = True
+            if keep:
+                vis[3 * nv] = a
+                vis[3 * nv + 1] = b
+                vis[3 * nv + 2] = c
+                nv += 1
+    return nf, nv
+
+
+@njit(cache=True, nogil=True)
+def _visible_flags(pos, nrm, tri, key, eye, dirn, parallel, vflag, tvis):
+    """Facing flag per vertex slot, visible flag per triangle slot."""
+    for v in range(pos.shape[0]):
+        if parallel:
+            d = -(nrm[v, 0] * dirn[0] + nrm[v, 1] * dirn[1] + nrm[v, 2] * dirn[2])
+        else:
+            d = (nrm[v, 0] * (eye[0] - pos[v, 0]) + nrm[v, 1] * (eye[1] - pos[v, 1])
+                 + nrm[v, 2] * (eye[2] - pos[v, 2]))
+        vflag[v] = 1 if d > 0.0 else 0
+    n = 0
+    for t in range(key.shape[0]):
+        if key[t] >= 0 and (vflag[tri[t, 0]] | vflag[tri[t, 1]] | vflag[tri[t, 2]]):
+            tvis[t] = 1
+            n += 1
+        else:
+            tvis[t] = 0
+    return n
+
+
+class VisibleJob:
+    """One background computation of the visible subset.
+
+    Attributes
+    ----------
+    tag : object
+        What the caller computed it for (the camera state); compared on adopt.
+    done : threading.Event
+        Set when the flags are ready.
+    n_visible : int
+        Visible triangles in the snapshot.
+    seconds : float
+        Wall time of the computation [s].
+    """
+
+    def __init__(self, surface, eye, direction, parallel, tag):
+        # the snapshot is taken here, on the caller's (main) thread
+        self.s_pos = surface.pos.copy()
+        self.s_nrm = surface.nrm.copy()
+        self.s_tri = np.ascontiguousarray(surface.tri)
+        self.s_key = np.ascontiguousarray(surface.tri_key)
+        self.eye = np.asarray(eye, dtype=np.float64).copy()
+        self.dirn = np.asarray(direction, dtype=np.float64).copy()
+        self.parallel = bool(parallel)
+        self.tag = tag
+        self.surface_ref = weakref.ref(surface)
+        self.tvis = np.zeros(self.s_key.shape[0], dtype=np.uint8)
+        self.done = threading.Event()
+        self.n_visible = 0
+        self.seconds = 0.0
+        self.error = None
+        self._thread = threading.Thread(target=self._run, name="bonesim-visible",
+                                        daemon=True)
+
+    def start(self) -> "VisibleJob":
+        self._thread.start()
+        return self
+
+    def _run(self):
+        import time
+
+        t0 = time.perf_counter()
+        try:
+            vflag = np.zeros(self.s_pos.shape[0], dtype=np.uint8)
+            self.n_visible = int(_visible_flags(self.s_pos, self.s_nrm, self.s_tri,
+                                                self.s_key, self.eye, self.dirn,
+                                                self.parallel, vflag, self.tvis))
+        except Exception as exc:   # pragma: no cover - reported by adopt()
+            self.error = exc
+        self.seconds = time.perf_counter() - t0
+        self.done.set()
+
+    def wait(self, timeout=None) -> bool:
+        return self.done.wait(timeout)
+
+
+class SurfaceBuffers:
+    """Connectivity buffers of one surface (full and visible), reused across
+    frames and grown by doubling.
+
+    Attributes
+    ----------
+    full : (3 * cap,) int32
+        Vertex slots of the live triangles, ``n_full`` of them.
+    vis : (3 * cap,) int32
+        The visible subset, ``n_vis`` triangles, meaningful when
+        :attr:`vis_valid`.
+    offsets : (cap + 1,) int32
+        ``0, 3, 6, ...``: cell offsets for any prefix of either buffer.
+    """
+
+    def __init__(self):
+        self.full = np.zeros(0, dtype=np.int32)
+        self.vis = np.zeros(0, dtype=np.int32)
+        self.offsets = np.zeros(1, dtype=np.int32)
+        self.n_full = 0
+        self.n_vis = 0
+        self._vdirty = np.zeros(0, dtype=np.uint8)
+        self._job: VisibleJob | None = None      # the adopted snapshot
+        self._empty_f = np.zeros((0, 3), dtype=np.float32)
+        self._empty_i = np.zeros((0, 3), dtype=np.int32)
+        self._empty_k = np.zeros(0, dtype=np.int16)
+        self._empty_u = np.zeros(0, dtype=np.uint8)
+
+    @property
+    def vis_valid(self) -> bool:
+        """A visible subset is installed."""
+        return self._job is not None
+
+    @property
+    def vis_tag(self):
+        return None if self._job is None else self._job.tag
+
+    def _fit(self, n_tri_slots: int, n_vert_slots: int) -> None:
+        if self.full.shape[0] < 3 * n_tri_slots:
+            cap = max(n_tri_slots, 2 * self.full.shape[0] // 3, 1024)
+            self.full = np.zeros(3 * cap, dtype=np.int32)
+            self.vis = np.zeros(3 * cap, dtype=np.int32)
+            self.offsets = np.arange(0, 3 * (cap + 1), 3, dtype=np.int32)
+        if self._vdirty.shape[0] < n_vert_slots:
+            self._vdirty = np.zeros(max(n_vert_slots, 2 * self._vdirty.shape[0]),
+                                    dtype=np.uint8)
+
+    def sync(self, surface) -> tuple[int, int]:
+        """Recompute both index lists from ``surface``'s current arrays.
+
+        Returns
+        -------
+        (n_full, n_vis) : triangle counts (``n_vis`` is 0 without a subset).
+        """
+        self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
+        job = self._job
+        if job is not None and job.surface_ref() is not surface:
+            self._job = job = None
+        if job is None:
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
+                              self._empty_i, self._empty_k, self._empty_f, self._empty_f,
+                              self._empty_u, self._vdirty, False, self.full, self.vis)
+        else:
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
+                              job.s_tri, job.s_key, job.s_pos, job.s_nrm, job.tvis,
+                              self._vdirty, True, self.full, self.vis)
+        self.n_full, self.n_vis = int(nf), int(nv)
+        return self.n_full, self.n_vis
+
+    def start_visible(self, surface, eye, direction, parallel=False, tag=None) -> VisibleJob:
+        """Snapshot ``surface`` and compute its visible subset in a thread.
+
+        Parameters
+        ----------
+        surface : Surface
+        eye : (3,) float
+            Camera position [mm].
+        direction : (3,) float
+            Unit view direction (used for parallel projection).
+        parallel : bool
+            Parallel projection.
+        tag : object
+            Returned with the job; :meth:`adopt` callers compare it with the
+            current camera state.
+        """
+        return VisibleJob(surface, eye, direction, parallel, tag).start()
+
+    def adopt(self, job: VisibleJob, surface) -> bool:
+        """Install a finished job's subset and recompute the lists.
+
+        Returns False (and installs nothing) if the job failed or was made
+        for another surface."""
+        if (not job.done.is_set() or job.error is not None
+                or job.surface_ref() is not surface):
+            return False
+        self._job = job
+        self.sync(surface)
+        return True
+
+    def invalidate(self) -> None:
+        """Drop the visible subset (the camera moved)."""
+        self._job = None
+        self.n_vis = 0
