@@ -1,0 +1,197 @@
+"""Rendering benchmarks (figures for ``bonesim bench``; never asserted).
+
+:func:`bench_render` returns
+
+``render_update_1000_ms``
+    Re-tessellating 1000 removed voxels (``Surface.update``) plus pushing
+    the result into the VTK buffers (:meth:`Scene.update_surface`), per
+    blob of ~1000 bone voxels removed at a random surface point of the
+    intact phantom (reset between blobs, untimed), scaled to exactly 1000. ``value`` is the 99th percentile;
+    the detail gives the median, the two parts, and the time of the frame
+    rendered after each update (``render_ms``, not part of the budget).
+    Measured with the visible subset installed (the heavier path: each
+    update also re-checks the subset).
+``first_frame_s``
+    A new Python process, with warm caches (numba's on disk, files in the
+    OS cache: one untimed run first), from its start to the first rendered
+    frame of the phantom scene (800 x 600): imports, OpenGL probe, case
+    load, tessellation, structure meshes, first render.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+SIZE = (800, 600)
+
+
+def _pct(values, q) -> float:
+    return float(np.percentile(np.asarray(values, float), q))
+
+
+def _ball(radius_vox: float) -> np.ndarray:
+    m = int(np.ceil(radius_vox))
+    g = np.stack(np.meshgrid(*[np.arange(-m, m + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return g[(g ** 2).sum(1) <= radius_vox ** 2].astype(np.int32)
+
+
+def _zero_voxels(grid, ijk) -> np.ndarray:
+    """Set density 0 at the occupied voxels of ``ijk``; returns those voxels."""
+    from ..grid import BRICK_SHIFT, find_brick, voxel_offset
+
+    out = []
+    for i, j, k in ijk:
+        b = find_brick(grid.keys, grid.vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                       k >> BRICK_SHIFT)
+        if b >= 0:
+            o = voxel_offset(i, j, k)
+            if grid.density[b, o] > 0:
+                grid.density[b, o] = 0.0
+                out.append((i, j, k))
+    return np.array(out, dtype=np.int32).reshape(-1, 3)
+
+
+def bench_update(quick: bool = False) -> dict:
+    """``render_update_1000_ms`` (see the module docstring)."""
+    from ..model import load_model, make_state
+    from ..surface import Surface
+    from ..surface import warmup as surface_warmup
+    from .scene import Scene
+
+    surface_warmup()
+    model = load_model("phantom", "cutting-5mm")
+    state = make_state(model)
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    scene = Scene.from_model(model, surf, size=SIZE)
+    scene.render()
+    pos, _, _, _ = surf.arrays()
+    verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
+    rng = np.random.default_rng(0)
+    ball = _ball(7.8)                       # ~2000 voxels; about half in bone
+    n_blobs = 8 if quick else 40
+    upd, push, frame, sizes = [], [], [], []
+    tries = 0
+    while len(upd) < n_blobs + 2 and tries < 50 * n_blobs:
+        tries += 1
+        # every blob is cut into the intact phantom (untimed reset)
+        grid.density[:] = model.grid.density
+        c = verts[rng.integers(len(verts))]
+        ijk = _zero_voxels(grid, c + ball)
+        if len(ijk) < 600:
+            continue
+        surf = Surface.build(model.grid, model.colors)
+        scene.update_surface(surf)
+        if not scene.refresh_visible():
+            raise RuntimeError("visible subset was not installed")
+        scene.render()
+        t0 = time.perf_counter()
+        surf.update(grid, ijk)
+        t1 = time.perf_counter()
+        scene.update_surface(surf)
+        t2 = time.perf_counter()
+        scene.render()
+        t3 = time.perf_counter()
+        scale = 1000.0 / len(ijk)
+        upd.append((t1 - t0) * 1e3 * scale)
+        push.append((t2 - t1) * 1e3 * scale)
+        frame.append((t3 - t2) * 1e3)
+        sizes.append(len(ijk))
+    # the first two include one-off compilation / first-upload costs
+    upd, push, frame, sizes = upd[2:], push[2:], frame[2:], sizes[2:]
+    total = np.array(upd) + np.array(push)
+    scene.close()
+    return {"render_update_1000_ms": {
+        "value": round(_pct(total, 99), 3), "unit": "ms", "stat": "p99",
+        "p50_ms": round(_pct(total, 50), 3),
+        "surface_update_p50_ms": round(_pct(upd, 50), 3),
+        "vtk_push_p50_ms": round(_pct(push, 50), 3),
+        "vtk_push_p99_ms": round(_pct(push, 99), 3),
+        "render_ms_p50": round(_pct(frame, 50), 2),
+        "render_size": list(SIZE),
+        "blobs": len(sizes), "voxels_per_blob_mean": round(float(np.mean(sizes)), 1),
+        "triangles": int(surf.n_triangles), "budget_ms": 10.0,
+        "gl": scene.gl.describe()}}
+
+
+def _first_frame_child() -> None:
+    """Body of the ``first_frame_s`` child process."""
+    t0 = time.perf_counter()
+    from . import gl
+
+    gl.start_probe(True)                 # overlaps the probe with the case load
+    from ..model import load_model
+    from ..surface import Surface
+    from .scene import Scene
+
+    t_imp = time.perf_counter()
+    model = load_model("phantom", "cutting-5mm")
+    t_load = time.perf_counter()
+    surf = Surface.build(model.grid, model.colors)
+    t_surf = time.perf_counter()
+    scene = Scene.from_model(model, surf, size=SIZE)
+    t_scene = time.perf_counter()
+    scene.render()
+    t_frame = time.perf_counter()
+    print("FIRST_FRAME " + json.dumps({
+        "imports_s": t_imp - t0, "load_s": t_load - t_imp, "tessellate_s": t_surf - t_load,
+        "scene_s": t_scene - t_surf, "render_s": t_frame - t_scene,
+        "in_process_s": t_frame - t0, "gl": scene.gl.describe()}), flush=True)
+    os._exit(0)                          # skip interpreter teardown
+
+
+def bench_first_frame(quick: bool = False) -> dict:
+    """``first_frame_s`` (see the module docstring)."""
+    cmd = [sys.executable, "-c",
+           "from bonesim.render.bench import _first_frame_child; _first_frame_child()"]
+    env = dict(os.environ)
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH")
+                                else "")
+    runs = 1 if quick else 3
+    walls, details = [], []
+    subprocess.run(cmd, env=env, capture_output=True, check=True, timeout=600)   # warm
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        detail = None
+        for line in proc.stdout:
+            if line.startswith("FIRST_FRAME "):
+                walls.append(time.perf_counter() - t0)
+                detail = json.loads(line.split(" ", 1)[1])
+                break
+        proc.communicate(timeout=600)
+        if detail is None:
+            raise RuntimeError(f"first-frame child failed (exit {proc.returncode})")
+        details.append(detail)
+    best = int(np.argmin(walls))
+    d = details[best]
+    return {"first_frame_s": {
+        "value": round(float(np.median(walls)), 3), "unit": "s", "stat": "median",
+        "runs": runs, "min_s": round(min(walls), 3),
+        **{k: round(v, 3) for k, v in d.items() if isinstance(v, float)},
+        "gl": d["gl"], "size": list(SIZE)}}
+
+
+def bench_render(quick: bool = False) -> dict:
+    """Both rendering figures: ``render_update_1000_ms`` and ``first_frame_s``.
+
+    Parameters
+    ----------
+    quick : bool
+        Fewer repetitions.
+
+    Returns
+    -------
+    dict
+        Name -> ``{"value": number, "unit": str, ...detail}``.
+    """
+    out = bench_update(quick)
+    out.update(bench_first_frame(quick))
+    return out
