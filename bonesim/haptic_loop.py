@@ -39,6 +39,7 @@ import numpy as np
 from . import events
 from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevice,
                       VirtualCoupling)
+from .haptics import O_MAG, O_N_IMMERSED, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
 from .shared import SharedArrays
 
@@ -92,7 +93,7 @@ def _make_device(spec, io):
 
 
 def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
-               run_s: float | None) -> None:
+               run_s: float | None, vibration: bool) -> None:
     """Body of the haptic process."""
     from .model import warmup
 
@@ -100,7 +101,10 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
     arr = sh.arrays
     io, status = arr["io"], arr["status"]
     periods, p_head = arr["periods"], arr["periods.head"]
+    from .vibration import Vibration
+
     models = [model if b is None else model.with_burr(b) for b in burrs]
+    vibs = [Vibration(m.burr, rate_hz) if vibration else None for m in models]
     state = make_state(models[0], arr)
     for m in models:                       # scratch for the largest burr, once
         state.fit_scratch(m)
@@ -114,6 +118,7 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
     gc.collect()
     gc.freeze()
     gc.disable()
+    out_f = np.zeros(3)
     period = 1.0 / rate_hz
     pmask = periods.shape[0] - 1
     epoch = io[IN_RESET]
@@ -153,14 +158,24 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
             direction = (1 if io[IN_DIR] >= 0 else -1) if r.direction is None \
                 else r.direction
             f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction))
+            if vibs[burr] is not None:
+                # felt, not simulated: added to what the device renders only
+                fv = vibs[burr].sample(t, state.axis, drill, state.out[O_N_IMMERSED] > 0,
+                                       state.out[O_MAG], speed)
+                out_f[:] = f
+                out_f += fv
+                norm = math.sqrt(out_f[0] ** 2 + out_f[1] ** 2 + out_f[2] ** 2)
+                if norm > m.device.max_force_n:
+                    out_f *= m.device.max_force_n / norm
+                f = out_f
             device.write_force(f)
             status[ST_T] = t
             status[ST_POS:ST_POS + 3] = state.pos_mm
             status[ST_AXIS:ST_AXIS + 3] = state.axis
             status[ST_FORCE:ST_FORCE + 3] = f
-            status[ST_MAG] = state.out[6]
-            status[ST_VOLUME] = state.out[7]
-            status[ST_IMMERSED] = state.out[8]
+            status[ST_MAG] = state.out[O_MAG]
+            status[ST_VOLUME] = state.out[O_VOLUME]
+            status[ST_IMMERSED] = state.out[O_N_IMMERSED]
             status[ST_DRILL] = drill
             status[ST_SPEED] = speed
             status[ST_DIR] = direction
@@ -201,6 +216,8 @@ class HapticLoop:
         Servo rate [Hz].
     run_s : float, optional
         Stop by itself after this long [s] (benchmarks, scripted runs).
+    vibration : bool
+        Add the burr's synthesized vibration to the force sent to the device.
 
     Attributes
     ----------
@@ -214,12 +231,13 @@ class HapticLoop:
     """
 
     def __init__(self, model: Model, burrs=(), device=("mouse",), rate_hz: float = 1000.0,
-                 run_s: float | None = None):
+                 run_s: float | None = None, vibration: bool = True):
         self.model = model
         self.burrs = [None] + list(burrs)
         self.device = tuple(device)
         self.rate_hz = float(rate_hz)
         self.run_s = run_s
+        self.vibration = bool(vibration)
         self._sh = SharedArrays.create(_loop_spec(model))
         self.state = make_state(model, self._sh.arrays)
         self.io = self._sh["io"]
@@ -237,7 +255,7 @@ class HapticLoop:
         self._proc = ctx.Process(
             target=_loop_main, name="bonesim-haptic", daemon=True,
             args=(self._sh.handle, self.model, [b for b in self.burrs], self.device,
-                  self.rate_hz, self.run_s))
+                  self.rate_hz, self.run_s, self.vibration))
         self._proc.start()
         t_end = time.monotonic() + timeout_s
         while self.status[ST_READY] == 0.0:
@@ -277,6 +295,11 @@ class HapticLoop:
 
     def __exit__(self, *exc):
         self.close()
+
+    @property
+    def handle(self) -> tuple:
+        """Shared-memory handle for other processes (sound, recorder)."""
+        return self._sh.handle
 
     @property
     def running(self) -> bool:

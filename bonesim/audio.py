@@ -1,0 +1,123 @@
+"""The drill's sound, in its own process, steered by the haptic loop.
+
+Audio callbacks need the interpreter lock every few milliseconds; in the
+window's process VTK holds it for whole frames, and the haptic process must
+not be disturbed. So the synthesizer (:mod:`bonesim.sound`) runs in a small
+process of its own. It reads the haptic loop's shared status (drill, speed,
+applied force, tool position, burr) at :data:`CONTROL_HZ`, estimates the bone
+thickness under the burr by ray casting (:mod:`bonesim.thickness`) on the
+shared tissue, and hands the four numbers to the synthesizer, whose output
+stream (or silent sink, without a sound device) renders blocks in its own
+callback. ``wav`` records exactly what is rendered.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+
+#: Rate at which sound parameters follow the haptic loop [Hz].
+CONTROL_HZ = 100.0
+#: Longest ray cast for the thickness estimate [mm].
+THICKNESS_MAX_MM = 6.0
+# audio status slots (written by the audio process)
+A_READY, A_SILENT, A_DONE, A_QUIT = range(4)
+
+
+def _audio_main(handle, model, burrs, wav, status_handle) -> None:
+    from .grid import Grid
+    from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED)
+    from .shared import SharedArrays
+    from .sound import SoundSynth, WavRecorder, open_output
+    from .sound import warmup as sound_warmup
+    from .thickness import bone_thickness_mm
+    from .thickness import warmup as thickness_warmup
+
+    sh = SharedArrays.attach(handle)
+    ash = SharedArrays.attach(status_handle)
+    astat = ash["audio"]
+    status = sh["status"]
+    g0 = model.grid
+    grid = Grid(g0.spacing_mm, g0.origin_mm, g0.shape, g0.keys, g0.vals, g0.bricks,
+                sh["density"], g0.label)
+    all_burrs = [model.burr] + [b for b in burrs if b is not None]
+    sound_warmup()
+    thickness_warmup()
+    synth = SoundSynth(all_burrs[0])
+    recorder = WavRecorder(wav, synth.sample_rate) if wav else None
+    out = open_output(synth, recorder=recorder)
+    astat[A_SILENT] = 0.0 if out.notice is None else 1.0
+    astat[A_READY] = 1.0
+    burr = 0
+    try:
+        while astat[A_QUIT] == 0.0:
+            b = int(status[ST_BURR])
+            if b != burr and 0 <= b < len(all_burrs):
+                burr = b
+                synth.set_burr(all_burrs[b])
+            drill = bool(status[ST_DRILL])
+            force = float(status[ST_MAG])
+            thick = float("inf")
+            if drill and force > 0.0:
+                thick = bone_thickness_mm(grid, status[ST_POS:ST_POS + 3].copy(),
+                                          all_burrs[burr].radius_mm, THICKNESS_MAX_MM)
+            synth.set_params(drill, float(status[ST_SPEED]), force, thick)
+            time.sleep(1.0 / CONTROL_HZ)
+    finally:
+        out.close()
+        if recorder is not None:
+            recorder.close()
+        astat[A_DONE] = 1.0
+        ash.close()
+        sh.close()
+
+
+class AudioProcess:
+    """Plays (or records) the drill sound of a running :class:`HapticLoop`.
+
+    Parameters
+    ----------
+    loop : HapticLoop
+        The loop whose status steers the sound.
+    wav : path, optional
+        Also write everything rendered to this WAV file.
+    """
+
+    def __init__(self, loop, wav=None):
+        import numpy as np
+
+        from .shared import SharedArrays
+
+        self.loop = loop
+        self.wav = None if wav is None else str(wav)
+        self._ash = SharedArrays.create([("audio", (4,), np.float64)])
+        self.status = self._ash["audio"]
+        self._proc = None
+
+    def start(self, timeout_s: float = 60.0) -> "AudioProcess":
+        ctx = mp.get_context("spawn")
+        self._proc = ctx.Process(target=_audio_main, name="bonesim-audio", daemon=True,
+                                 args=(self.loop.handle, self.loop.model,
+                                       self.loop.burrs[1:], self.wav, self._ash.handle))
+        self._proc.start()
+        end = time.monotonic() + timeout_s
+        while self.status[A_READY] == 0.0:
+            if not self._proc.is_alive():
+                raise RuntimeError("the audio process exited during start-up")
+            if time.monotonic() > end:
+                break
+            time.sleep(0.01)
+        return self
+
+    @property
+    def silent(self) -> bool:
+        """True when no sound device was found (a silent sink renders instead)."""
+        return bool(self.status[A_SILENT])
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        self.status[A_QUIT] = 1.0
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+            self._proc = None
+        self._ash.close()
