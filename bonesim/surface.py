@@ -1247,23 +1247,31 @@ def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
 # * the window is the inputs' bounding box plus _FAST_MARGIN voxels (every
 #   voxel an update reads lies within 2 voxels of an input);
 # * sets of voxels / cells are bit rows: one uint64 per (x, y) row of the
-#   window, bit z for voxel (or cell minimum corner) z along k; the sets the
-#   update needs (cells to re-evaluate, voxels that may join or leave the
-#   surface, voxels to re-shade) are dilations of the set of inputs, a few
-#   shifts and ORs per row, and they are visited in (i, j, k) order;
-# * the densities and the voxel -> vertex map of the window are gathered
-#   once into local arrays, with the occupancy as bit rows, so a cell's code
-#   is a handful of shifts.
+#   window, bit z for voxel (or cell minimum corner) z along k. Rows are
+#   stored with two guard rows / columns on each side (row index
+#   ``(x + 2) * (wd1 + 4) + y + 2``), so neighbouring rows can be read
+#   without bounds checks. The sets the update needs (cells to re-evaluate,
+#   voxels that may join or leave the surface, voxels to re-shade, voxels
+#   to read) are dilations of the set of inputs, a few shifts and ORs per
+#   row, and they are visited in (i, j, k) order;
+# * the densities and the voxel -> vertex map of the voxels it reads are
+#   gathered once into local arrays laid out like the rows (voxel
+#   ``row * wd2 + z``), with the occupancy as bit rows, so a cell's code is
+#   a handful of shifts.
 #
 # Cells to re-evaluate: the 8 cells containing a source (their code may have
 # changed) and the 12 cells whose minimum face has a source just below it
 # (their ownership test reads it). A cell's owned triangles depend on
-# nothing else, so no other cell can gain or lose one.
+# nothing else, so no other cell can gain or lose one. Sources are the
+# removed voxels that are empty now (those outside any brick included:
+# re-evaluating a cell is harmless).
 #
 # Scratch memory lives in the Surface and grows on demand (status 2).
 
 #: Margin [voxels] of the window around the inputs.
 _FAST_MARGIN = 2
+#: Guard rows / columns around the window's bit rows.
+_GUARD = 2
 #: Voxel coordinates must have a magnitude below this (packed keys, margins).
 _COORD_LIMIT = (1 << 20) - 2 * BRICK
 #: The window path is taken when the window holds at most
@@ -1271,10 +1279,10 @@ _COORD_LIMIT = (1 << 20) - 2 * BRICK
 #: most 64 voxels deep along k.
 FAST_MIN_VOXELS = 32768
 FAST_VOXELS_PER_INPUT = 64
-# bit-row sets
-(_R_SRC, _R_SEED, _R_AFF, _R_CELL, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED,
- _R_DIRTY, _R_LIST, _R_T1, _R_T2) = range(13)
-_N_ROWSETS = 13
+# bit-row sets (_R_T0.. are temporaries of the dilations)
+(_R_REM, _R_SEED, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED,
+ _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4, _R_T5, _R_T6) = range(19)
+_N_ROWSETS = 19
 # per-slot bit masks of the qualifying triples lying in the minimum face along a
 _QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
 for _code in range(256):
@@ -1292,131 +1300,109 @@ for _code in range(256):
 
 
 @njit(cache=True, nogil=True)
-def _fw_mark(removed, touched, density, wbr, wlo, wd, blo, bd, rows, nrows):
-    """Set SRC (sources) and SEED (all inputs) bits."""
-    src0 = _R_SRC * nrows
-    seed0 = _R_SEED * nrows
-    for r in range(2 * nrows):
-        rows[src0 + r] = np.uint64(0)   # SRC and SEED are adjacent
+def _fw_mark(removed, touched, wlo, w1, rows, nr_p):
+    """REM (removed) and SEED (all inputs) bit rows."""
+    rem0 = _R_REM * nr_p
+    seed0 = _R_SEED * nr_p
+    for r in range(2 * nr_p):
+        rows[rem0 + r] = np.uint64(0)       # REM and SEED are adjacent
     nr = removed.shape[0]
-    for r in range(nr + touched.shape[0]):
-        if r < nr:
-            i = removed[r, 0]
-            j = removed[r, 1]
-            k = removed[r, 2]
-        else:
-            i = touched[r - nr, 0]
-            j = touched[r - nr, 1]
-            k = touched[r - nr, 2]
-        row = (i - wlo[0]) * wd[1] + (j - wlo[1])
-        bit = np.uint64(1) << np.uint64(k - wlo[2])
+    for q in range(nr):
+        row = (removed[q, 0] - wlo[0] + _GUARD) * w1 + (removed[q, 1] - wlo[1] + _GUARD)
+        bit = np.uint64(1) << np.uint64(removed[q, 2] - wlo[2])
+        rows[rem0 + row] |= bit
         rows[seed0 + row] |= bit
-        if r < nr:
-            b = wbr[(((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1]))
-                    * bd[2] + ((k >> BRICK_SHIFT) - blo[2])]
-            if b >= 0 and not density[b, voxel_offset(i, j, k)] > 0:
-                rows[src0 + row] |= bit
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _row(rows, base, wd0, wd1, x, y):
-    if x < 0 or x >= wd0 or y < 0 or y >= wd1:
-        return np.uint64(0)
-    return rows[base + x * wd1 + y]
+    for q in range(touched.shape[0]):
+        row = (touched[q, 0] - wlo[0] + _GUARD) * w1 + (touched[q, 1] - wlo[1] + _GUARD)
+        rows[seed0 + row] |= np.uint64(1) << np.uint64(touched[q, 2] - wlo[2])
 
 
 @njit(cache=True, nogil=True)
-def _fw_dilate(rows, nrows, wd0, wd1):
-    """AFF, TOPO and RESH from SRC and SEED (see the comment above)."""
+def _fw_need(rows, nr_p, w0, w1):
+    """NEED: the voxels within 2 (along each axis) of an input."""
     one = np.uint64(1)
-    S = _R_SRC * nrows
-    E = _R_SEED * nrows
-    A = _R_AFF * nrows
-    C = _R_CELL * nrows
-    T = _R_TOPO * nrows
-    R = _R_RESH * nrows
-    T1 = _R_T1 * nrows
-    T2 = _R_T2 * nrows
-    # cells containing a source (CELL), and the face cells above it along i / j
-    for r in range(nrows):
-        s = rows[S + r]
-        rows[T1 + r] = s | (s >> one)                      # cell k in {p_k - 1, p_k}
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x, y + 1)
-    for x in range(wd0):
-        for y in range(wd1):
-            c = rows[T2 + x * wd1 + y] | _row(rows, T2, wd0, wd1, x + 1, y)
-            rows[C + x * wd1 + y] = c
-            rows[A + x * wd1 + y] = c | _row(rows, T2, wd0, wd1, x - 1, y)
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[T2 + x * wd1 + y] = rows[T1 + x * wd1 + y] | _row(rows, T1, wd0, wd1, x + 1, y)
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[A + x * wd1 + y] |= _row(rows, T2, wd0, wd1, x, y - 1)
-    # the face cells above a source along k
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[A + x * wd1 + y] |= (rows[S + x * wd1 + y]
-                                      | _row(rows, S, wd0, wd1, x, y + 1)
-                                      | _row(rows, S, wd0, wd1, x + 1, y)
-                                      | _row(rows, S, wd0, wd1, x + 1, y + 1)) << one
-    # voxels the update reads: within 2 voxels (each axis) of an input
     two = np.uint64(2)
-    N = _R_NEED * nrows
-    for r in range(nrows):
-        s = rows[E + r]
-        rows[T1 + r] = s | (s >> one) | (s >> two) | (s << one) | (s << two)
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[T2 + x * wd1 + y] = (rows[T1 + x * wd1 + y]
-                                      | _row(rows, T1, wd0, wd1, x, y - 2)
-                                      | _row(rows, T1, wd0, wd1, x, y - 1)
-                                      | _row(rows, T1, wd0, wd1, x, y + 1)
-                                      | _row(rows, T1, wd0, wd1, x, y + 2))
-    for x in range(wd0):
-        for y in range(wd1):
-            rows[N + x * wd1 + y] = (rows[T2 + x * wd1 + y]
-                                     | _row(rows, T2, wd0, wd1, x - 2, y)
-                                     | _row(rows, T2, wd0, wd1, x - 1, y)
-                                     | _row(rows, T2, wd0, wd1, x + 1, y)
-                                     | _row(rows, T2, wd0, wd1, x + 2, y))
-    # 3x3x3 dilations: TOPO of the sources, RESH of all inputs
-    for pas in range(2):
-        src = S if pas == 0 else E
-        dst = T if pas == 0 else R
-        for r in range(nrows):
-            s = rows[src + r]
-            rows[T1 + r] = s | (s >> one) | (s << one)
-        for x in range(wd0):
-            for y in range(wd1):
-                rows[T2 + x * wd1 + y] = (rows[T1 + x * wd1 + y]
-                                          | _row(rows, T1, wd0, wd1, x, y - 1)
-                                          | _row(rows, T1, wd0, wd1, x, y + 1))
-        for x in range(wd0):
-            for y in range(wd1):
-                rows[dst + x * wd1 + y] = (rows[T2 + x * wd1 + y]
-                                           | _row(rows, T2, wd0, wd1, x - 1, y)
-                                           | _row(rows, T2, wd0, wd1, x + 1, y))
+    E = _R_SEED * nr_p
+    N = _R_NEED * nr_p
+    T0 = _R_T0 * nr_p
+    T1 = _R_T1 * nr_p
+    for r in range(nr_p):
+        e = rows[E + r]
+        rows[T0 + r] = e | (e >> one) | (e >> two) | (e << one) | (e << two)
+    for x in range(w0):
+        for r in range(x * w1 + 2, x * w1 + w1 - 2):
+            rows[T1 + r] = (rows[T0 + r - 2] | rows[T0 + r - 1] | rows[T0 + r]
+                            | rows[T0 + r + 1] | rows[T0 + r + 2])
+    for x in range(2, w0 - 2):
+        for r in range(x * w1 + 2, x * w1 + w1 - 2):
+            rows[N + r] = (rows[T1 + r - 2 * w1] | rows[T1 + r - w1] | rows[T1 + r]
+                           | rows[T1 + r + w1] | rows[T1 + r + 2 * w1])
 
 
 @njit(cache=True, nogil=True)
-def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
+def _fw_dilate(rows, nr_p, w0, w1):
+    """SRC = REM minus OCC; from it and SEED: AFF (cells to re-evaluate),
+    CELL (cells containing a source), TOPO (3x3x3 of the sources) and RESH
+    (3x3x3 of all inputs). See the comment above."""
+    one = np.uint64(1)
+    M = _R_REM * nr_p
+    O = _R_OCC * nr_p
+    S = _R_SRC * nr_p
+    E = _R_SEED * nr_p
+    A = _R_AFF * nr_p
+    C = _R_CELL * nr_p
+    T = _R_TOPO * nr_p
+    R = _R_RESH * nr_p
+    K1 = _R_T0 * nr_p           # cells along k containing a source: k in {p - 1, p}
+    K3S = _R_T1 * nr_p          # sources dilated by 1 along k
+    K3E = _R_T2 * nr_p          # inputs dilated by 1 along k
+    CJ = _R_T3 * nr_p           # K1 dilated to cells along j
+    J3S = _R_T4 * nr_p          # K3S dilated by 1 along j
+    J3E = _R_T5 * nr_p          # K3E dilated by 1 along j
+    SJ = _R_T6 * nr_p           # sources dilated to cells along j
+    for r in range(nr_p):
+        s = rows[M + r] & ~rows[O + r]      # (OCC is stale where REM is 0)
+        e = rows[E + r]
+        rows[S + r] = s
+        rows[K1 + r] = s | (s >> one)
+        rows[K3S + r] = s | (s >> one) | (s << one)
+        rows[K3E + r] = e | (e >> one) | (e << one)
+    for x in range(w0):
+        for r in range(x * w1 + 2, x * w1 + w1 - 2):
+            rows[CJ + r] = rows[K1 + r] | rows[K1 + r + 1]
+            rows[J3S + r] = rows[K3S + r - 1] | rows[K3S + r] | rows[K3S + r + 1]
+            rows[J3E + r] = rows[K3E + r - 1] | rows[K3E + r] | rows[K3E + r + 1]
+            rows[SJ + r] = rows[S + r] | rows[S + r + 1]
+    for x in range(2, w0 - 2):
+        for r in range(x * w1 + 2, x * w1 + w1 - 2):
+            c = rows[CJ + r] | rows[CJ + r + w1]
+            rows[C + r] = c
+            rows[A + r] = (c | rows[CJ + r - w1]                        # + face along i
+                           | rows[K1 + r - 1] | rows[K1 + r + w1 - 1]   # + face along j
+                           | ((rows[SJ + r] | rows[SJ + r + w1]) << one))  # along k
+            rows[T + r] = rows[J3S + r - w1] | rows[J3S + r] | rows[J3S + r + w1]
+            rows[R + r] = rows[J3E + r - w1] | rows[J3E + r] | rows[J3E + r + w1]
+
+
+@njit(cache=True, nogil=True)
+def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
     """Densities and vertex slots of the voxels in NEED (elsewhere ``ld``
-    and ``lv`` are left stale), occupancy and has-vertex bit rows."""
+    and ``lv`` are left stale), occupancy and has-vertex bit rows of the
+    window. Returns whether every density copied allows the separable
+    Sobel."""
     wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
-    occ0 = _R_OCC * nrows
-    hv0 = _R_HASV * nrows
-    need0 = _R_NEED * nrows
+    w1 = wd1 + 2 * _GUARD
+    occ0 = _R_OCC * nr_p
+    hv0 = _R_HASV * nr_p
+    need0 = _R_NEED * nr_p
     inexact = False
     for x in range(wd0):
         i = wlo[0] + x
         for y in range(wd1):
             j = wlo[1] + y
-            r = x * wd1 + y
+            r = (x + _GUARD) * w1 + y + _GUARD
             need = rows[need0 + r]
             if need == 0:
                 rows[occ0 + r] = np.uint64(0)
@@ -1457,29 +1443,44 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nrows):
 
 
 @njit(cache=True, nogil=True)
-def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
+def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
     """Code and active slots of every cell to re-evaluate; list the cells that
-    own or may own a triangle. Returns ``(n_listed, bound on triangles to add,
-    vertices to add, vertices to drop)``."""
+    own or may own a triangle (LIST bits, ``clist``). Returns ``(n_listed,
+    bound on triangles to add, vertices to add, vertices to drop)``."""
     wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
+    w1 = wd1 + 2 * _GUARD
     one = np.uint64(1)
     three = np.uint64(3)
-    A = _R_AFF * nrows
-    C = _R_CELL * nrows
-    O = _R_OCC * nrows
-    H = _R_HASV * nrows
-    T = _R_TOPO * nrows
-    L = _R_LIST * nrows
-    for r in range(nrows):
+    A = _R_AFF * nr_p
+    C = _R_CELL * nr_p
+    O = _R_OCC * nr_p
+    H = _R_HASV * nr_p
+    T = _R_TOPO * nr_p
+    L = _R_LIST * nr_p
+    for r in range(nr_p):
         rows[L + r] = np.uint64(0)
     nl = 0
     tbound = 0
     ncells = 0
-    for x in range(1, wd0 - 1):
-        for y in range(1, wd1 - 1):
-            r = x * wd1 + y
+    nvadd = 0
+    nvdel = 0
+    for x in range(wd0):
+        for r in range((x + _GUARD) * w1 + _GUARD, (x + _GUARD) * w1 + _GUARD + wd1):
+            # vertices to create / drop
+            tb = rows[T + r]
+            if tb != 0:
+                occ = rows[O + r]
+                hv = rows[H + r]
+                add = tb & occ & ~hv
+                dele = tb & ~occ & hv
+                while add != 0:
+                    add &= add - one
+                    nvadd += 1
+                while dele != 0:
+                    dele &= dele - one
+                    nvdel += 1
             bits = rows[A + r]
             if bits == 0:
                 continue
@@ -1487,12 +1488,12 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
             cbits = rows[C + r]
             o00 = rows[O + r]
             o01 = rows[O + r + 1]
-            o10 = rows[O + r + wd1]
-            o11 = rows[O + r + wd1 + 1]
-            ox = rows[O + r - wd1] | rows[O + r - wd1 + 1]       # x - 1 plane
-            oy = rows[O + r - 1] | rows[O + r + wd1 - 1]         # y - 1 plane
+            o10 = rows[O + r + w1]
+            o11 = rows[O + r + w1 + 1]
+            ox = rows[O + r - w1] | rows[O + r - w1 + 1]       # x - 1 plane
+            oy = rows[O + r - 1] | rows[O + r + w1 - 1]         # y - 1 plane
             oz = o00 | o01 | o10 | o11
-            hv = rows[H + r] | rows[H + r + 1] | rows[H + r + wd1]
+            hv = rows[H + r] | rows[H + r + 1] | rows[H + r + w1]
             while bits != 0:
                 z = trailing_zeros(bits)
                 bits &= bits - one
@@ -1528,26 +1529,11 @@ def _fw_plan(rows, nrows, wd, lv, lcode, lact, clist, stats):
                 lbits |= one << zz
             rows[L + r] = lbits
     stats[_S_CELLS] = ncells
-    # vertices to create / drop
-    nvadd = 0
-    nvdel = 0
-    for r in range(nrows):
-        bits = rows[T + r]
-        occ = rows[O + r]
-        hv = rows[H + r]
-        add = bits & occ & ~hv
-        dele = bits & ~occ & hv
-        while add != 0:
-            add &= add - one
-            nvadd += 1
-        while dele != 0:
-            dele &= dele - one
-            nvdel += 1
     return nl, tbound, nvadd, nvdel
 
 
 @njit(cache=True, nogil=True)
-def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, trec, vrec, tfree, cnt, stats):
+def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree, cnt, stats):
     """Drop the triangles the listed cells own but should not own.
 
     Every triangle a listed cell owns is on the owner list of the vertex at
@@ -1563,32 +1549,31 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, trec, vrec, tfree
     wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
+    w1 = wd1 + 2 * _GUARD
     sy = wd2
-    sx = wd1 * wd2
-    D = _R_DIRTY * nrows
-    L = _R_LIST * nrows
-    H = _R_HASV * nrows
-    for r in range(nrows):
+    sx = w1 * wd2
+    D = _R_DIRTY * nr_p
+    L = _R_LIST * nr_p
+    H = _R_HASV * nr_p
+    for r in range(nr_p):
         rows[D + r] = np.uint64(0)
     n_dead = 0
-    for x in range(1, wd0):
-        for y in range(1, wd1):
-            r = x * wd1 + y
+    for x in range(wd0):
+        for r in range((x + _GUARD) * w1 + _GUARD, (x + _GUARD) * w1 + _GUARD + wd1):
             # vertices at corner 0..5 of a listed cell
-            lw = rows[L + r] | rows[L + r - 1] | rows[L + r - wd1]
+            lw = rows[L + r] | rows[L + r - 1] | rows[L + r - w1]
             vw = (lw | (lw << one)) & rows[H + r]
             while vw != 0:
                 z = trailing_zeros(vw)
                 vw &= vw - one
-                lvx = r * wd2 + z
-                v = lv[lvx]
+                v = lv[r * wd2 + z]
                 prev = -1
                 t = vrec[v, _VR_OHEAD]
                 while t >= 0:
                     nxt = trec[t, _TR_ONEXT]
                     key = trec[t, _TR_KEY]
                     c0 = TRIPLE_CORNERS[key >> 1, 0]
-                    rc = r - (c0 >> 2) * wd1 - ((c0 >> 1) & 1)
+                    rc = r - (c0 >> 2) * w1 - ((c0 >> 1) & 1)
                     zc = z - (c0 & 1)
                     if (rows[L + rc] >> np.uint64(zc)) & one == 0:
                         prev = t                # owner not listed: unchanged
@@ -1615,7 +1600,7 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, trec, vrec, tfree
                         c = TRIPLE_CORNERS[tid, s]
                         if not ld[li + (c >> 2) * sx + ((c >> 1) & 1) * sy + (c & 1)] > 0:
                             continue
-                        rows[D + rc + (c >> 2) * wd1 + ((c >> 1) & 1)] |= \
+                        rows[D + rc + (c >> 2) * w1 + ((c >> 1) & 1)] |= \
                             one << np.uint64(zc + (c & 1))
                         n_dead += 1
                     trec[t, _TR_KEY] = -1
@@ -1637,106 +1622,113 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nrows, trec, vrec, tfree
 
 
 @njit(cache=True, nogil=True)
-def _fw_unlink_dead(rows, nrows, wd, lv, trec, vrec):
+def _fw_unlink_dead(rows, nr_p, wd, lv, trec, vrec):
     """Splice the dead triangles (key -1) out of the vertex lists of the
     DIRTY voxels, one walk per list. Returns the number of entries removed."""
     one = np.uint64(1)
+    wd0 = wd[0]
+    wd1 = wd[1]
     wd2 = wd[2]
-    D = _R_DIRTY * nrows
+    w1 = wd1 + 2 * _GUARD
+    D = _R_DIRTY * nr_p
     n = 0
-    for r in range(nrows):
-        bits = rows[D + r]
-        while bits != 0:
-            z = trailing_zeros(bits)
-            bits &= bits - one
-            v = lv[r * wd2 + z]
-            prev = -1
-            prev_s = 0
-            cur = vrec[v, _VR_HEAD]
-            while cur >= 0:
-                s = 0 if trec[cur, 0] == v else (1 if trec[cur, 1] == v else 2)
-                nxt = trec[cur, _TR_NEXT + s]
-                if trec[cur, _TR_KEY] < 0:
-                    if prev < 0:
-                        vrec[v, _VR_HEAD] = nxt
+    for x in range(wd0):
+        for r in range((x + _GUARD) * w1 + _GUARD, (x + _GUARD) * w1 + _GUARD + wd1):
+            bits = rows[D + r]
+            while bits != 0:
+                z = trailing_zeros(bits)
+                bits &= bits - one
+                v = lv[r * wd2 + z]
+                prev = -1
+                prev_s = 0
+                cur = vrec[v, _VR_HEAD]
+                while cur >= 0:
+                    s = 0 if trec[cur, 0] == v else (1 if trec[cur, 1] == v else 2)
+                    nxt = trec[cur, _TR_NEXT + s]
+                    if trec[cur, _TR_KEY] < 0:
+                        if prev < 0:
+                            vrec[v, _VR_HEAD] = nxt
+                        else:
+                            trec[prev, _TR_NEXT + prev_s] = nxt
+                        n += 1
                     else:
-                        trec[prev, _TR_NEXT + prev_s] = nxt
-                    n += 1
-                else:
-                    prev = cur
-                    prev_s = s
-                cur = nxt
+                        prev = cur
+                        prev_s = s
+                    cur = nxt
     return n
 
 
 @njit(cache=True, nogil=True)
-def _fw_vertices(rows, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
+def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats):
-    """Drop the vertices of emptied voxels and create those of new surface voxels."""
+    """Drop the vertices of emptied voxels and create those of new surface
+    voxels; HASV becomes the set of voxels with a vertex after the edit."""
     one = np.uint64(1)
+    wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
-    T = _R_TOPO * nrows
-    O = _R_OCC * nrows
-    H = _R_HASV * nrows
-    for r in range(nrows):
-        bits = rows[T + r]
-        occ = rows[O + r]
-        hv = rows[H + r]
-        chg = bits & (occ ^ hv)
-        if chg == 0:
-            continue
-        rows[H + r] = hv ^ chg                      # has a vertex after the edit
-        x = r // wd1
-        y = r - x * wd1
+    w1 = wd1 + 2 * _GUARD
+    T = _R_TOPO * nr_p
+    O = _R_OCC * nr_p
+    H = _R_HASV * nr_p
+    for x in range(wd0):
         i = wlo[0] + x
-        j = wlo[1] + y
-        bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
-        while chg != 0:
-            z = trailing_zeros(chg)
-            chg &= chg - one
-            k = wlo[2] + z
-            b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
-            o = voxel_offset(i, j, k)
-            li = r * wd2 + z
-            if (occ >> np.uint64(z)) & one:          # became surface
-                if cnt[_V_NFREE] > 0:
-                    cnt[_V_NFREE] -= 1
-                    v = vfree[cnt[_V_NFREE]]
-                else:
-                    v = cnt[_V_HW]
-                    cnt[_V_HW] += 1
-                vmap[b, o] = v
-                lv[li] = v
-                vijk[v, 0] = i
-                vijk[v, 1] = j
-                vijk[v, 2] = k
-                pos[v, 0] = origin[0] + spacing * i
-                pos[v, 1] = origin[1] + spacing * j
-                pos[v, 2] = origin[2] + spacing * k
-                vrec[v, _VR_HEAD] = -1
-                vrec[v, _VR_OHEAD] = -1
-                valive[v] = 1
-                cnt[_V_ALIVE] += 1
-                stats[_S_V_ADD] += 1
-            else:                                   # emptied
-                v = lv[li]
-                if vrec[v, _VR_OHEAD] >= 0:
-                    stats[_S_ERR] += 1
-                vrec[v, _VR_HEAD] = -1              # its triangles are all gone
-                vmap[b, o] = -1
-                lv[li] = -1
-                valive[v] = 0
-                vfree[cnt[_V_NFREE]] = v
-                cnt[_V_NFREE] += 1
-                cnt[_V_ALIVE] -= 1
-                stats[_S_V_DEL] += 1
+        for y in range(wd1):
+            r = (x + _GUARD) * w1 + y + _GUARD
+            bits = rows[T + r]
+            occ = rows[O + r]
+            hv = rows[H + r]
+            chg = bits & (occ ^ hv)
+            if chg == 0:
+                continue
+            rows[H + r] = hv ^ chg
+            j = wlo[1] + y
+            bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+            while chg != 0:
+                z = trailing_zeros(chg)
+                chg &= chg - one
+                k = wlo[2] + z
+                b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+                o = voxel_offset(i, j, k)
+                li = r * wd2 + z
+                if (occ >> np.uint64(z)) & one:          # became surface
+                    if cnt[_V_NFREE] > 0:
+                        cnt[_V_NFREE] -= 1
+                        v = vfree[cnt[_V_NFREE]]
+                    else:
+                        v = cnt[_V_HW]
+                        cnt[_V_HW] += 1
+                    vmap[b, o] = v
+                    lv[li] = v
+                    vijk[v, 0] = i
+                    vijk[v, 1] = j
+                    vijk[v, 2] = k
+                    pos[v, 0] = origin[0] + spacing * i
+                    pos[v, 1] = origin[1] + spacing * j
+                    pos[v, 2] = origin[2] + spacing * k
+                    vrec[v, _VR_HEAD] = -1
+                    vrec[v, _VR_OHEAD] = -1
+                    valive[v] = 1
+                    cnt[_V_ALIVE] += 1
+                    stats[_S_V_ADD] += 1
+                else:                                   # emptied
+                    v = lv[li]
+                    if vrec[v, _VR_OHEAD] >= 0:
+                        stats[_S_ERR] += 1
+                    vrec[v, _VR_HEAD] = -1              # its triangles are all gone
+                    vmap[b, o] = -1
+                    lv[li] = -1
+                    valive[v] = 0
+                    vfree[cnt[_V_NFREE]] = v
+                    cnt[_V_NFREE] += 1
+                    cnt[_V_ALIVE] -= 1
+                    stats[_S_V_DEL] += 1
 
 
 @njit(cache=True, nogil=True)
 def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
     sy = wd[2]
-    sx = wd[1] * wd[2]
+    sx = (wd[1] + 2 * _GUARD) * wd[2]
     for q in range(na):
         li = clist[q]
         code = lcode[li]
@@ -1773,36 +1765,37 @@ def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
 
 
 @njit(cache=True, nogil=True)
-def _fw_reshade(rows, nrows, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
+def _fw_reshade(rows, nr_p, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
                 stats):
+    """Normal and colour of every vertex in RESH."""
     one = np.uint64(1)
+    wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
+    w1 = wd1 + 2 * _GUARD
     sy = wd2
-    sx = wd1 * wd2
-    R = _R_RESH * nrows
-    H = _R_HASV * nrows
-    for r in range(nrows):
-        bits = rows[R + r] & rows[H + r]
-        if bits == 0:
-            continue
-        x = r // wd1
-        y = r - x * wd1
+    sx = w1 * wd2
+    R = _R_RESH * nr_p
+    H = _R_HASV * nr_p
+    for x in range(wd0):
         i = wlo[0] + x
-        j = wlo[1] + y
-        bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
-        while bits != 0:
-            z = trailing_zeros(bits)
-            bits &= bits - one
-            li = r * wd2 + z
-            v = lv[li]
-            if v < 0:
+        for y in range(wd1):
+            r = (x + _GUARD) * w1 + y + _GUARD
+            bits = rows[R + r] & rows[H + r]
+            if bits == 0:
                 continue
-            k = wlo[2] + z
-            b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
-            _vertex_attrs_at(ld, li, sx, sy, exact, label[b, voxel_offset(i, j, k)], colors,
-                             nrm, col, v)
-            stats[_S_RESHADE] += 1
+            j = wlo[1] + y
+            bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+            while bits != 0:
+                z = trailing_zeros(bits)
+                bits &= bits - one
+                li = r * wd2 + z
+                v = lv[li]
+                k = wlo[2] + z
+                b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+                _vertex_attrs_at(ld, li, sx, sy, exact, label[b, voxel_offset(i, j, k)], colors,
+                                 nrm, col, v)
+                stats[_S_RESHADE] += 1
 
 
 @njit(cache=True, nogil=True)
@@ -1825,48 +1818,64 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
     n_in = nr + ntch
     if n_in == 0:
         return
+    lo0 = hi0 = np.int64(removed[0, 0] if nr > 0 else touched[0, 0])
+    lo1 = hi1 = np.int64(removed[0, 1] if nr > 0 else touched[0, 1])
+    lo2 = hi2 = np.int64(removed[0, 2] if nr > 0 else touched[0, 2])
+    for q in range(nr):
+        lo0 = min(lo0, removed[q, 0])
+        hi0 = max(hi0, removed[q, 0])
+        lo1 = min(lo1, removed[q, 1])
+        hi1 = max(hi1, removed[q, 1])
+        lo2 = min(lo2, removed[q, 2])
+        hi2 = max(hi2, removed[q, 2])
+    if nr > 0 and (min(lo0, lo1, lo2) <= -_COORD_LIMIT or max(hi0, hi1, hi2) >= _COORD_LIMIT):
+        stats[_S_STATUS] = 4
+        return
+    for q in range(ntch):
+        lo0 = min(lo0, touched[q, 0])
+        hi0 = max(hi0, touched[q, 0])
+        lo1 = min(lo1, touched[q, 1])
+        hi1 = max(hi1, touched[q, 1])
+        lo2 = min(lo2, touched[q, 2])
+        hi2 = max(hi2, touched[q, 2])
+    if min(lo0, lo1, lo2) <= -_COORD_LIMIT or max(hi0, hi1, hi2) >= _COORD_LIMIT:
+        stats[_S_STATUS] = 5
+        return
     wlo = np.empty(3, dtype=np.int64)
     wd = np.empty(3, dtype=np.int64)
     blo = np.empty(3, dtype=np.int64)
     bd = np.empty(3, dtype=np.int64)
+    wlo[0] = lo0 - _FAST_MARGIN
+    wlo[1] = lo1 - _FAST_MARGIN
+    wlo[2] = lo2 - _FAST_MARGIN
+    wd[0] = hi0 - lo0 + 1 + 2 * _FAST_MARGIN
+    wd[1] = hi1 - lo1 + 1 + 2 * _FAST_MARGIN
+    wd[2] = hi2 - lo2 + 1 + 2 * _FAST_MARGIN
     for a in range(3):
-        lo = np.int64(removed[0, a] if nr > 0 else touched[0, a])
-        hi = lo
-        for r in range(nr):
-            lo = min(lo, removed[r, a])
-            hi = max(hi, removed[r, a])
-        if nr > 0 and (lo <= -_COORD_LIMIT or hi >= _COORD_LIMIT):
-            stats[_S_STATUS] = 4
-            return
-        for r in range(ntch):
-            lo = min(lo, touched[r, a])
-            hi = max(hi, touched[r, a])
-        if lo <= -_COORD_LIMIT or hi >= _COORD_LIMIT:
-            stats[_S_STATUS] = 5
-            return
-        wlo[a] = lo - _FAST_MARGIN
-        wd[a] = hi - lo + 1 + 2 * _FAST_MARGIN
         blo[a] = wlo[a] >> BRICK_SHIFT
         bd[a] = ((wlo[a] + wd[a] - 1) >> BRICK_SHIFT) - blo[a] + 1
     vol = wd[0] * wd[1] * wd[2]
-    nrows = wd[0] * wd[1]
     if (win_per_input <= 0 or wd[2] > 64
             or vol > FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_in):
         stats[_S_STATUS] = 3
         return
+    w0 = wd[0] + 2 * _GUARD
+    w1 = wd[1] + 2 * _GUARD
+    nr_p = w0 * w1
+    vol_p = nr_p * wd[2]
     nwb = bd[0] * bd[1] * bd[2]
-    if sf32.shape[0] < vol or si32.shape[0] < 2 * vol + nwb or su8.shape[0] < 2 * vol \
-            or su64.shape[0] < _N_ROWSETS * nrows:
+    if sf32.shape[0] < vol_p or si32.shape[0] < 2 * vol_p + nwb or su8.shape[0] < 2 * vol_p \
+            or su64.shape[0] < _N_ROWSETS * nr_p:
         stats[_S_STATUS] = 2
-        stats[_S_NEED_V] = vol + nwb
-        stats[_S_NEED_T] = nrows
+        stats[_S_NEED_V] = vol_p
+        stats[_S_NEED_T] = nr_p
         return
     ld = sf32
-    lv = si32[:vol]
-    clist = si32[vol:2 * vol]
-    wbr = si32[2 * vol:2 * vol + nwb]
-    lcode = su8[:vol]
-    lact = su8[vol:2 * vol]
+    lv = si32[:vol_p]
+    clist = si32[vol_p:2 * vol_p]
+    wbr = si32[2 * vol_p:2 * vol_p + nwb]
+    lcode = su8[:vol_p]
+    lact = su8[vol_p:2 * vol_p]
     s = 0
     for bi in range(blo[0], blo[0] + bd[0]):
         for bj in range(blo[1], blo[1] + bd[1]):
@@ -1875,10 +1884,11 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
                 s += 1
 
     # ---- plan (read-only) ----------------------------------------------------
-    _fw_mark(removed, touched, density, wbr, wlo, wd, blo, bd, su64, nrows)
-    _fw_dilate(su64, nrows, wd[0], wd[1])
-    exact = _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nrows)
-    nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nrows, wd, lv, lcode, lact, clist, stats)
+    _fw_mark(removed, touched, wlo, w1, su64, nr_p)
+    _fw_need(su64, nr_p, w0, w1)
+    exact = _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nr_p)
+    _fw_dilate(su64, nr_p, w0, w1)
+    nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nr_p, wd, lcode, lact, clist, stats)
 
     # ---- room? (triangles: bound, ignoring the ones that will be freed) ------
     v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
@@ -1890,14 +1900,14 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
         return
 
     # ---- edit ------------------------------------------------------------------
-    na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nrows, trec, vrec, tfree,
+    na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nr_p, trec, vrec, tfree,
                            cnt, stats)
-    if _fw_unlink_dead(su64, nrows, wd, lv, trec, vrec) != n_dead:
+    if _fw_unlink_dead(su64, nr_p, wd, lv, trec, vrec) != n_dead:
         stats[_S_ERR] += 1
-    _fw_vertices(su64, nrows, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
+    _fw_vertices(su64, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats)
     _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats)
-    _fw_reshade(su64, nrows, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
+    _fw_reshade(su64, nr_p, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
                 stats)
 
 
