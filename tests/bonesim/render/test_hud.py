@@ -1,0 +1,35 @@
+"""HUD and help text."""
+from __future__ import annotations
+
+from bonesim.render.hud import format_help, format_hud
+from bonesim.render.window import DEFAULT_KEYS
+
+
+def test_hud_lines_with_units():
+    text = format_hud({"case": "phantom", "burr": "cutting-5mm", "burr_kind": "cutting",
+                       "burr_diameter_mm": 5, "drill": True, "direction": -1,
+                       "speed_rpm": 60000, "force_n": 1.234, "haptic_hz": 998.6,
+                       "elapsed_s": 3.21, "injuries": ["facial_nerve"]}, 59.7)
+    lines = text.splitlines()
+    assert lines[0] == "case: phantom"
+    assert "burr: cutting 5.0 mm (cutting-5mm)" in lines
+    assert "drill: ON  REV  60,000 rpm" in lines
+    assert "force: 1.23 N" in lines
+    assert "rate: haptic 999 Hz  frame 60 Hz" in lines
+    assert "time: 3.2 s" in lines
+    assert "injuries: 1 (facial_nerve)" in lines
+
+
+def test_hud_frame_rate_from_info_wins_and_extras_are_listed():
+    text = format_hud({"frame_hz": 30, "drill": False, "tool": "suction", "foo": 3}, 60.0)
+    assert "rate: frame 30 Hz" in text
+    assert "drill: off" in text and "tool: suction" in text and "foo: 3" in text
+    assert format_hud({"injuries": 0}) == "injuries: none"
+
+
+def test_help_lists_every_action_once():
+    text = format_help(DEFAULT_KEYS, ["right drag  orbit"])
+    for action in set(DEFAULT_KEYS.values()):
+        assert sum(line.strip().endswith(action.replace("_", " "))
+                   for line in text.splitlines()) == 1
+    assert "Space" in text and "Esc" in text and "orbit" in text

@@ -1,0 +1,127 @@
+"""Index buffers of the hybrid surface: compaction and the visible subset."""
+from __future__ import annotations
+
+import numpy as np
+
+from bonesim.grid import voxel_offset
+from bonesim.render.meshbuf import SurfaceBuffers
+from bonesim.surface import Surface
+
+EYE = np.array([8.0, 8.0, 60.0])          # above the block's top face (z = 7.75 mm)
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def remove(grid, ijk):
+    ijk = np.asarray(ijk, dtype=np.int32).reshape(-1, 3)
+    for i, j, k in ijk:
+        grid.density[grid.brick_index(i, j, k), voxel_offset(i, j, k)] = 0.0
+    return ijk
+
+
+def pit(i0, i1, j0, j1, k0, k1):
+    g = np.mgrid[i0:i1, j0:j1, k0:k1].reshape(3, -1).T
+    return g.astype(np.int32)
+
+
+def triples(a):
+    return {tuple(int(x) for x in t) for t in np.asarray(a).reshape(-1, 3)}
+
+
+def live(surf):
+    return surf.tri[surf.triangle_slots]
+
+
+def facing_tris(surf, eye):
+    p, n = surf.pos, surf.nrm
+    face = ((n * (eye - p)).sum(axis=1) > 0)
+    t = live(surf)
+    return t[face[t].any(axis=1)]
+
+
+def adopt(buf, surf, eye=EYE, direction=DOWN, parallel=False):
+    job = buf.start_visible(surf, eye, direction, parallel, tag="cam")
+    assert job.wait(30)
+    assert buf.adopt(job, surf)
+    return job
+
+
+def test_full_list_is_every_live_triangle(block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    buf = SurfaceBuffers()
+    nf, nv = buf.sync(surf)
+    assert (nf, nv) == (surf.n_triangles, 0)
+    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), live(surf))
+    assert np.array_equal(buf.offsets[:nf + 1], np.arange(0, 3 * nf + 1, 3))
+
+
+def test_visible_subset_is_the_triangles_with_a_facing_vertex(block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    buf = SurfaceBuffers()
+    buf.sync(surf)
+    job = adopt(buf, surf)
+    assert buf.vis_valid and buf.vis_tag == "cam"
+    got = triples(buf.vis[:3 * buf.n_vis])
+    assert got == triples(facing_tris(surf, EYE))
+    assert job.n_visible == buf.n_vis < 0.6 * buf.n_full       # the far side is dropped
+
+
+def test_parallel_projection_uses_the_view_direction(block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    buf = SurfaceBuffers()
+    adopt(buf, surf, eye=(0.0, 0.0, 0.0), direction=DOWN, parallel=True)
+    face = (surf.nrm @ -DOWN) > 0
+    t = live(surf)
+    assert triples(buf.vis[:3 * buf.n_vis]) == triples(t[face[t].any(axis=1)])
+
+
+def test_subset_keeps_all_geometry_changed_since_the_snapshot(block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    buf = SurfaceBuffers()
+    adopt(buf, surf)
+    before = triples(live(surf))
+    # dig a pit from the top face down to the nerve, in two updates
+    surf.update(grid, remove(grid, pit(10, 22, 10, 22, 12, 16)))
+    buf.sync(surf)
+    surf.update(grid, remove(grid, pit(12, 20, 12, 20, 10, 12)))
+    nf, nv = buf.sync(surf)
+    full = triples(buf.full[:3 * nf])
+    vis = triples(buf.vis[:3 * nv])
+    assert full == triples(live(surf))
+    assert vis <= full
+    assert triples(facing_tris(surf, EYE)) <= vis          # nothing facing is lost
+    assert (full - before) <= vis                          # every new triangle is drawn
+    assert nv < nf
+
+
+def test_buffers_grow_with_the_surface(block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    buf = SurfaceBuffers()
+    buf.sync(surf)
+    cap0 = buf.full.shape[0]
+    # a comb of one-voxel slots multiplies the surface
+    for i in range(1, 31, 2):
+        surf.update(grid, remove(grid, pit(i, i + 1, 1, 31, 2, 16)))
+    nf, _ = buf.sync(surf)
+    assert nf == surf.n_triangles and buf.full.shape[0] > cap0
+    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), live(surf))
+
+
+def test_invalidate_and_other_surface_drop_the_subset(block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    buf = SurfaceBuffers()
+    job = adopt(buf, surf)
+    buf.invalidate()
+    assert not buf.vis_valid and buf.n_vis == 0
+    other = Surface.build(state.grid, model.colors)
+    assert not buf.adopt(job, other)
+    assert buf.adopt(job, surf)
+    buf.sync(other)                      # a new surface: the old snapshot is dropped
+    assert not buf.vis_valid
