@@ -1,0 +1,175 @@
+"""Scene: zero-copy surface buffers, visible subset, tool, dust, camera, text."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.util import numpy_support
+
+from bonesim.render.scene import Scene, tool_matrix
+from bonesim.surface import Surface
+from tests.bonesim.render.test_meshbuf import live, pit, remove, triples
+
+
+@pytest.fixture
+def scene(gl_info):
+    sc = Scene(size=(160, 120))
+    yield sc
+    sc.close()
+
+
+def drawn_triangles(sc):
+    cells = sc._pd.GetPolys()
+    conn = numpy_support.vtk_to_numpy(cells.GetConnectivityArray())
+    return conn.reshape(-1, 3)
+
+
+def test_surface_is_shared_not_copied(scene, block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    info = scene.update_surface(surf)
+    assert info == {"triangles": surf.n_triangles, "drawn": surf.n_triangles, "mode": "full"}
+    pts = scene._pd.GetPoints()
+    assert pts.GetNumberOfPoints() == surf.pos.shape[0]
+    v = int(surf.vertex_slots[0])
+    surf.pos[v] = (1.5, 2.5, 3.5)               # VTK sees the surface's own memory
+    assert pts.GetPoint(v) == (1.5, 2.5, 3.5)
+    col = numpy_support.vtk_to_numpy(scene._pd.GetPointData().GetScalars())
+    assert np.shares_memory(col, surf.col)
+    assert triples(drawn_triangles(scene)) == triples(live(surf))
+
+
+def test_incremental_update_and_growth_rebind(scene, block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    scene.update_surface(surf)
+    scene.render()
+    pos0 = surf.pos
+    for i in range(1, 31, 2):
+        surf.update(grid, remove(grid, pit(i, i + 1, 1, 31, 2, 16)))
+    assert surf.pos is not pos0                  # the surface grew its arrays
+    scene.update_surface(surf)
+    scene.render()
+    pts = scene._pd.GetPoints()
+    assert pts.GetNumberOfPoints() == surf.pos.shape[0]
+    assert np.shares_memory(numpy_support.vtk_to_numpy(pts.GetData()), surf.pos)
+    assert triples(drawn_triangles(scene)) == triples(live(surf))
+    # bounds come from referenced points only (free slots are ignored)
+    b = scene._pd.GetBounds()
+    p = surf.pos[surf.vertex_slots]
+    assert np.allclose(b[0::2], p.min(0)) and np.allclose(b[1::2], p.max(0))
+
+
+def test_visible_subset_while_resting_full_while_moving(scene, block):
+    model, state = block
+    surf = Surface.build(state.grid, model.colors)
+    scene.update_surface(surf)
+    scene.set_camera((8.0, 8.0, 60.0), (8.0, 8.0, 4.0), (0.0, 1.0, 0.0))
+    scene.render()
+    assert scene.drawing == "full"
+    assert scene.refresh_visible()
+    assert scene.drawing == "visible" and scene.stats["n_vis"] < scene.stats["n_full"]
+    n_vis = len(drawn_triangles(scene))
+    assert n_vis == scene.stats["n_vis"]
+    scene.camera.Azimuth(20.0)                  # the camera moves: full list again
+    scene.render()
+    assert scene.drawing == "full" and len(drawn_triangles(scene)) == surf.n_triangles
+
+
+def test_visible_subset_is_built_by_itself_when_the_camera_rests(gl_info, block):
+    import time
+
+    model, state = block
+    sc = Scene(size=(160, 120), rest_s=0.05)
+    try:
+        sc.update_surface(Surface.build(state.grid, model.colors))
+        sc.fit_camera()
+        t_end = time.perf_counter() + 20.0
+        while sc.drawing != "visible" and time.perf_counter() < t_end:
+            sc.render()
+            time.sleep(0.02)
+        assert sc.drawing == "visible" and sc.stats["visible_jobs"] == 1
+    finally:
+        sc.close()
+
+
+def test_structures_are_meshed_from_labels(scene, block):
+    model, state = block
+    counts = scene.add_structures(model.grid, model.structures)
+    assert list(counts) == ["nerve"] and counts["nerve"] > 50
+    actor = scene._structures["nerve"]
+    b = actor.GetMapper().GetInput().GetBounds()
+    # rod: x all along, y 14..17, z 8..9 voxels of 0.5 mm
+    assert b[2] > 6.5 and b[3] < 9.0 and b[4] > 3.5 and b[5] < 5.0
+    assert actor.GetProperty().GetColor() == pytest.approx((240 / 255, 220 / 255, 40 / 255))
+
+
+def test_tool_pose(scene):
+    scene.set_tool((1.0, 2.0, 3.0), (0.0, 0.0, -2.0), 1.5, drill_on=True)
+    burr = scene._burr
+    b = np.array(burr.GetBounds())
+    assert np.allclose(0.5 * (b[0::2] + b[1::2]), (1, 2, 3), atol=1e-6)
+    assert np.allclose(b[1::2] - b[0::2], 3.0, atol=0.05)
+    s = np.array(scene._shaft.GetBounds())       # the shaft rises along -axis (+z)
+    assert s[4] == pytest.approx(3.0, abs=1e-6) and s[5] > 30.0
+    m = tool_matrix((0, 0, 0), (1.0, 1.0, 0.0))
+    assert np.allclose(m[:3, 1], -np.array([1, 1, 0]) / np.sqrt(2))
+    assert np.linalg.det(m[:3, :3]) == pytest.approx(1.0)
+    scene.set_tool((0, 0, 0), (1, 0, 0), 2.0, kind="suction")
+    assert not burr.GetVisibility() and scene._shaft.GetVisibility()
+    with pytest.raises(ValueError):
+        scene.set_tool((0, 0, 0), (1, 0, 0), 0.0)
+    with pytest.raises(ValueError):
+        scene.set_tool((0, 0, 0), (1, 0, 0), 1.0, kind="laser")
+
+
+def test_dust_sprites(scene):
+    p = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], np.float32)
+    scene.set_dust(p, np.array([1.0, 0.0, 0.5], np.float32), cell_mm=1.0)
+    pd = scene._dust_pd
+    assert pd.GetNumberOfPoints() == 2           # empty cells are not drawn
+    r = numpy_support.vtk_to_numpy(pd.GetPointData().GetArray("radius"))
+    assert r[0] == pytest.approx(0.7) and r[1] == pytest.approx(0.7 * 0.5 ** (1 / 3))
+    scene.set_dust(np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+    assert not scene.dust_actor.GetVisibility()
+    with pytest.raises(ValueError):
+        scene.set_dust(p, np.ones(2, np.float32))
+
+
+def test_mouse_plane_through_the_tool(scene):
+    scene.set_camera((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    scene.set_tool((3.0, -2.0, 10.0), (0, 0, -1), 1.0)
+    scene.render()
+    centre = scene.display_to_plane(80, 60)
+    assert centre == pytest.approx((0.0, 0.0, 10.0), abs=0.4)
+    p = scene.display_to_plane(150, 20)
+    assert p[2] == pytest.approx(10.0, abs=1e-6)
+    assert p[0] > 5.0 and p[1] < -5.0             # right and down in the view
+    q = scene.display_to_plane(150, 20, through_mm=(0, 0, -20.0))
+    assert q[2] == pytest.approx(-20.0, abs=1e-6) and abs(q[0]) > abs(p[0])
+
+
+def test_hud_help_and_frame_rate(scene):
+    scene.set_hud({"case": "x", "haptic_hz": 1000})
+    for _ in range(3):
+        scene.render()
+    assert scene.frame_hz is not None and scene.frame_hz > 0
+    scene.set_hud({"case": "x", "haptic_hz": 1000})
+    assert "haptic 1000 Hz" in scene.hud_text and "frame" in scene.hud_text
+    scene.set_help("keys\n  h  help")
+    assert scene.show_help() is True and scene.help_actor.GetVisibility()
+    assert scene.toggle_help() is False
+
+
+def test_camera_reset_and_screenshot(scene, tmp_path):
+    scene.set_case_camera((50, 0, 0), (0, 0, 0), (0, 0, 1))
+    scene.camera.Azimuth(30)
+    scene.reset_camera()
+    assert scene.camera.GetPosition() == pytest.approx((50, 0, 0))
+    assert scene.view_direction() == pytest.approx((-1, 0, 0))
+    img = scene.image()
+    assert img.shape == (120, 160, 3) and img.dtype == np.uint8
+    path = scene.screenshot(tmp_path / "s" / "shot.png")
+    from bonesim.render.imagecmp import read_png
+
+    assert read_png(path).shape == (120, 160, 3)
