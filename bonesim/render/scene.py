@@ -63,7 +63,7 @@ BURR_ON_RGB = (0.95, 0.82, 0.45)
 SHAFT_RGB = (0.55, 0.57, 0.6)
 SUCTION_RGB = (0.35, 0.55, 0.75)
 #: Shaft length drawn behind the burr [mm] and its largest radius [mm].
-SHAFT_LENGTH_MM = 80.0
+SHAFT_LENGTH_MM = 40.0
 SHAFT_MAX_RADIUS_MM = 0.8
 #: Bone-dust colour (RGB 0-1).
 DUST_RGB = (0.93, 0.9, 0.8)
@@ -95,8 +95,8 @@ def _point_to(arr, buf: np.ndarray, n_values: int) -> None:
     arr.Modified()
 
 
-def tool_matrix(pos_mm, axis, scale) -> np.ndarray:
-    """4x4 placing a unit model whose +y axis runs along ``-axis`` at ``pos_mm``.
+def tool_matrix(pos_mm, axis, scale=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """4x4 placing a model whose +y axis runs along ``-axis`` at ``pos_mm``.
 
     Parameters
     ----------
@@ -534,41 +534,47 @@ class Scene:
 
     # ------------------------------------------------------------------ tool
     def _build_tool(self):
-        sph = vtkSphereSource()
-        sph.SetRadius(1.0)
-        sph.SetThetaResolution(40)
-        sph.SetPhiResolution(28)
-        sph.Update()
-        cyl = vtkCylinderSource()          # along +y, from 0 to 1
-        cyl.SetRadius(1.0)
-        cyl.SetHeight(1.0)
-        cyl.SetCenter(0.0, 0.5, 0.0)
-        cyl.SetResolution(28)
-        cyl.CappingOn()
-        cyl.Update()
-        self._burr = self._static_actor(sph.GetOutput(), BURR_IDLE_RGB, specular=0.6)
-        self._shaft = self._static_actor(cyl.GetOutput(), SHAFT_RGB, specular=0.5)
+        # geometry is built at its real size (rigid placement keeps the
+        # lighting right); sources are re-run only when a radius changes
+        self._burr_src = vtkSphereSource()
+        self._burr_src.SetThetaResolution(40)
+        self._burr_src.SetPhiResolution(28)
+        self._shaft_src = vtkCylinderSource()          # along +y, from 0 to length
+        self._shaft_src.SetResolution(28)
+        self._shaft_src.CappingOn()
+        self._burr = self._static_actor(self._burr_src, BURR_IDLE_RGB, specular=0.6)
+        self._shaft = self._static_actor(self._shaft_src, SHAFT_RGB, specular=0.5)
         for a in (self._burr, self._shaft):
             a.SetVisibility(False)
             a.PickableOff()
             self.renderer.AddActor(a)
+        self._tool_radii = (None, None)
         self.tool_pos_mm = None
         self.tool_axis = np.array([0.0, 0.0, -1.0])
 
     @staticmethod
-    def _static_actor(pd, rgb, specular=0.3):
+    def _static_actor(src, rgb, specular=0.3):
         m = vtkPolyDataMapper()
-        m.SetInputData(pd)
+        m.SetInputConnection(src.GetOutputPort())
         m.ScalarVisibilityOff()
         a = vtkActor()
         a.SetMapper(m)
         p = a.GetProperty()
         p.SetColor(*rgb)
-        p.SetAmbient(0.15)
+        p.SetAmbient(0.2)
         p.SetDiffuse(0.75)
         p.SetSpecular(specular)
         p.SetSpecularPower(40.0)
         return a
+
+    def _tool_geometry(self, burr_r: float, shaft_r: float) -> None:
+        if self._tool_radii == (burr_r, shaft_r):
+            return
+        self._burr_src.SetRadius(burr_r)
+        self._shaft_src.SetRadius(shaft_r)
+        self._shaft_src.SetHeight(SHAFT_LENGTH_MM)
+        self._shaft_src.SetCenter(0.0, 0.5 * SHAFT_LENGTH_MM, 0.0)
+        self._tool_radii = (burr_r, shaft_r)
 
     def set_tool(self, pos_mm, axis, radius_mm: float, drill_on: bool = False,
                  kind: str = "burr") -> None:
@@ -590,21 +596,25 @@ class Scene:
         pos = np.asarray(pos_mm, dtype=float).reshape(3)
         ax = np.asarray(axis, dtype=float).reshape(3)
         r = float(radius_mm)
+        if not (r > 0 and np.all(np.isfinite(pos)) and np.all(np.isfinite(ax))):
+            raise ValueError("set_tool needs a finite position and axis and a positive radius")
         self.tool_pos_mm = pos.copy()
         n = np.linalg.norm(ax)
         self.tool_axis = ax / n if n > 0 else np.array([0.0, 0.0, -1.0])
+        place = _vtk_matrix(tool_matrix(pos, ax, (1.0, 1.0, 1.0)))
         if kind == "suction":
+            self._tool_geometry(r, r)
             self._burr.SetVisibility(False)
-            self._shaft.SetUserMatrix(_vtk_matrix(tool_matrix(pos, ax, (r, SHAFT_LENGTH_MM, r))))
             self._shaft.GetProperty().SetColor(*SUCTION_RGB)
-        else:
-            self._burr.SetUserMatrix(_vtk_matrix(tool_matrix(pos, ax, (r, r, r))))
+        elif kind == "burr":
+            self._tool_geometry(r, min(SHAFT_MAX_RADIUS_MM, 0.45 * r))
+            self._burr.SetUserMatrix(place)
             self._burr.GetProperty().SetColor(*(BURR_ON_RGB if drill_on else BURR_IDLE_RGB))
             self._burr.SetVisibility(True)
-            rs = min(SHAFT_MAX_RADIUS_MM, 0.45 * r)
-            self._shaft.SetUserMatrix(_vtk_matrix(tool_matrix(pos, ax,
-                                                              (rs, SHAFT_LENGTH_MM, rs))))
             self._shaft.GetProperty().SetColor(*SHAFT_RGB)
+        else:
+            raise ValueError(f"unknown tool kind {kind!r} (burr or suction)")
+        self._shaft.SetUserMatrix(place)
         self._shaft.SetVisibility(True)
 
     def hide_tool(self) -> None:
@@ -681,7 +691,7 @@ class Scene:
         tp.SetFontSize(14)
         tp.SetColor(0.95, 0.95, 0.9)
         tp.SetBackgroundColor(0.0, 0.0, 0.0)
-        tp.SetBackgroundOpacity(0.45)
+        tp.SetBackgroundOpacity(0.35)
         tp.SetVerticalJustificationToBottom()
         hud.SetPosition(8, 8)
         hud.SetVisibility(False)
@@ -708,7 +718,16 @@ class Scene:
         self._hud_info = dict(info)
         self._draw_hud(time.perf_counter())
 
+    def _font_px(self) -> int:
+        """Text size for the window's height: 9 px at 300 rows, 18 px at 600+."""
+        h = self.render_window.GetSize()[1] if self.render_window is not None else 600
+        return int(np.clip(round(h / 33.0), 9, 18))
+
     def _draw_hud(self, now):
+        fs = self._font_px()
+        for a in (self.hud_actor, self.help_actor):
+            if a.GetTextProperty().GetFontSize() != fs:
+                a.GetTextProperty().SetFontSize(fs)
         self.hud_actor.SetInput(format_hud(self._hud_info, self.frame_hz))
         self.hud_actor.SetVisibility(bool(self._hud_info))
         self._hud_drawn_at = now
@@ -725,6 +744,7 @@ class Scene:
     def show_help(self, visible: bool | None = None) -> bool:
         """Show, hide (or with None toggle) the help overlay; returns the new state."""
         v = (not self.help_actor.GetVisibility()) if visible is None else bool(visible)
+        self.help_actor.GetTextProperty().SetFontSize(self._font_px())
         self.help_actor.SetVisibility(v)
         return v
 
