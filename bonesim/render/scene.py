@@ -243,6 +243,7 @@ class Scene:
         self._cam_still_since = time.perf_counter()
         self._job = None
         self._bound = (None, None, None)
+        self._cell_refs = None
         self.stats = {"visible_jobs": 0, "visible_job_s": 0.0, "n_full": 0, "n_vis": 0}
         # frame clock
         self._frame_times = collections.deque(maxlen=61)
@@ -350,26 +351,29 @@ class Scene:
             self.surface = surface
             self._buffers.invalidate()
             self._cancel_job()
-        bound = (surface.pos, surface.nrm, surface.col)
-        if any(b is not c for b, c in zip(bound, self._bound)):
-            # new or grown arrays: point VTK at them (views kept alive by self._bound)
-            pos, nrm, col = bound
-            for arr, buf in ((self._pos_arr, pos), (self._nrm_arr, nrm), (self._col_arr, col)):
-                if not buf.flags.c_contiguous:
-                    raise ValueError("surface arrays must be C-contiguous")
-                _point_to(arr, buf, buf.size)
-            self._bound = bound
-            self._points.Modified()
-        else:
-            self._pos_arr.Modified()
-            self._nrm_arr.Modified()
-            self._col_arr.Modified()
-            self._points.Modified()
+        self._bind_vertices(surface)
         self._buffers.sync(surface)
         self._push_cells()
         self.surface_actor.SetVisibility(True)
         return {"triangles": self._buffers.n_full, "drawn": self._drawn_count(),
                 "mode": self._drawn}
+
+    def _bind_vertices(self, surface):
+        """Point VTK's vertex arrays at the surface's (again, if it grew) and
+        mark them modified."""
+        bound = (surface.pos, surface.nrm, surface.col)
+        if any(b is not c for b, c in zip(bound, self._bound)):
+            # new or grown arrays: point VTK at them (kept alive by self._bound)
+            for arr, buf in zip((self._pos_arr, self._nrm_arr, self._col_arr), bound):
+                if not buf.flags.c_contiguous:
+                    raise ValueError("surface arrays must be C-contiguous")
+                _point_to(arr, buf, buf.size)
+            self._bound = bound
+        else:
+            self._pos_arr.Modified()
+            self._nrm_arr.Modified()
+            self._col_arr.Modified()
+        self._points.Modified()
 
     def _drawn_count(self) -> int:
         b = self._buffers
@@ -383,6 +387,7 @@ class Scene:
         else:
             buf, n = b.full, b.n_full
             self._drawn = "full"
+        self._cell_refs = (buf, b.offsets)        # keep the memory VTK reads alive
         _point_to(self._conn_arr, buf, 3 * n)
         _point_to(self._offs_arr, b.offsets, n + 1)
         self._cells.SetData(self._offs_arr, self._conn_arr)
@@ -423,6 +428,8 @@ class Scene:
         if job is not None and job.done.is_set():
             self._job = None
             if job.tag == self._cam_sig and self._buffers.adopt(job, self.surface):
+                # adopt() re-read the surface: show its vertex data as of now too
+                self._bind_vertices(self.surface)
                 self.stats["visible_jobs"] += 1
                 self.stats["visible_job_s"] = job.seconds
                 self._push_cells()

@@ -173,3 +173,36 @@ def test_camera_reset_and_screenshot(scene, tmp_path):
     from bonesim.render.imagecmp import read_png
 
     assert read_png(path).shape == (120, 160, 3)
+
+
+def test_a_new_surface_replaces_the_old_one(scene, block):
+    model, state = block
+    grid = state.grid
+    a = Surface.build(grid, model.colors)
+    scene.update_surface(a)
+    scene.render()
+    assert scene.refresh_visible()
+    lower = grid.copy()
+    remove(lower, pit(0, 32, 0, 32, 10, 16))                # a lower block
+    b = Surface.build(lower, model.colors)
+    info = scene.update_surface(b)
+    assert info["mode"] == "full" and scene.surface is b
+    assert triples(drawn_triangles(scene)) == triples(live(b))
+    assert np.shares_memory(numpy_support.vtk_to_numpy(scene._pd.GetPoints().GetData()),
+                            b.pos)
+    scene.render()
+
+
+def test_subset_adopted_after_an_unpushed_update_shows_current_vertices(scene, block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    scene.update_surface(surf)
+    scene.render()
+    for i in range(1, 31, 2):                 # grow the surface without update_surface
+        surf.update(grid, remove(grid, pit(i, i + 1, 1, 31, 2, 16)))
+    assert scene.refresh_visible()
+    assert np.shares_memory(numpy_support.vtk_to_numpy(scene._pd.GetPoints().GetData()),
+                            surf.pos)
+    assert int(drawn_triangles(scene).max()) < surf.pos.shape[0]
+    scene.render()
