@@ -14,6 +14,40 @@ imports it). The submodules:
     :func:`bench_render` figures.
 
 Names are loaded lazily, so ``import bonesim.render`` alone stays cheap.
+
+Driving it from the app (sketch; the haptic loop and devices are the app's)::
+
+    from bonesim.render import gl
+    gl.start_probe(offscreen=False)            # overlap the GL probe with loading
+    from bonesim.render.scene import Scene
+    from bonesim.render.window import Window
+
+    scene = Scene.from_model(model, consumer.surface, offscreen=False)
+
+    def on_frame(scene):                       # main thread, once per frame
+        consumer.drain()                       # rings -> Surface.update
+        scene.update_surface(consumer.surface)
+        scene.set_tool(pos_mm, axis, model.burr.radius_mm, drill_on)
+        scene.set_dust(dust_pos, dust_density)
+        scene.set_hud({"case": model.name, "burr": model.burr.name,
+                       "burr_kind": model.burr.kind,
+                       "burr_diameter_mm": model.burr.diameter_mm,
+                       "drill": drill_on, "direction": direction,
+                       "speed_rpm": rpm, "force_n": f, "haptic_hz": rate,
+                       "elapsed_s": t, "injuries": names})
+
+    def on_key(action): ...                    # "next_burr", "drill_toggle", ...
+    def on_mouse(world_mm, buttons): ...       # target point on the tool's view plane
+
+    Window(scene, on_frame, on_key, on_mouse, frame_hz=60).run()
+
+For headless runs make the scene with ``offscreen=True`` and call
+``Window(...).run_offscreen(n_frames, screenshot="last.png")``.
+
+Threads: every call into a :class:`Scene` and every ``Surface.update`` of
+the drawn surface must happen on the thread that made the scene (VTK is not
+thread-safe); the scene's own background work (the visible subset) only
+reads private copies.
 """
 from __future__ import annotations
 
