@@ -529,24 +529,29 @@ def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds,
         _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall)
         srow = src[b]
         drow = dst[b]
+        lo_d = np.int64(_FULL_Q)
+        for off in range(BRICK_VOXELS):
+            lo_d = min(lo_d, np.int64(srow[off]))
+        inner = lo_d < _FULL_Q            # else no cell of the brick has room
         for q in range(ng):
             a = ip[I_GAX + q]
             s = ip[I_GSG + q]
             w = ip[I_GWQ + q]
             delta, edge, sh, o0, o1 = _dir_geometry(a, s)
-            # inside the brick: 1-D views indexed from 0, so that the loop
-            # has no negative-index handling and vectorizes
-            ss = srow[o0:o1]
-            sn = srow[o0 + delta:o1 + delta]
-            ws = wall[o0:o1]
-            wn = wall[o0 + delta:o1 + delta]
-            fl = flux[o0:o1]
-            for i in range(fl.shape[0]):
-                f = _gravity_flux(np.int64(ss[i]), np.int64(sn[i]), rate, w)
-                ok = (f > 0) & ((((o0 + i) >> sh) & 7) != edge) & (ws[i] == 0) & \
-                    (wn[i] == 0)
-                fl[i] = f if ok else 0
-            _apply_inside(drow, flux, o0, o1, delta)
+            if inner:
+                # inside the brick: 1-D views indexed from 0, so that the loop
+                # has no negative-index handling and vectorizes
+                ss = srow[o0:o1]
+                sn = srow[o0 + delta:o1 + delta]
+                ws = wall[o0:o1]
+                wn = wall[o0 + delta:o1 + delta]
+                fl = flux[o0:o1]
+                for i in range(fl.shape[0]):
+                    f = _gravity_flux(np.int64(ss[i]), np.int64(sn[i]), rate, w)
+                    ok = (f > 0) & ((((o0 + i) >> sh) & 7) != edge) & (ws[i] == 0) & \
+                        (wn[i] == 0)
+                    fl[i] = f if ok else 0
+                _apply_inside(drow, flux, o0, o1, delta)
             # across the face
             dd = 2 * a + (1 if s > 0 else 0)
             if sc[12 + dd] == 0:
@@ -587,8 +592,13 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
         drow = dst[b]
         # eligible sources: above the repose, not in a wall, and overfull or
         # supported (the cell below is a wall or full)
+        lo_d = np.int64(_FULL_Q)
+        hi_d = np.int64(0)
         for off in range(BRICK_VOXELS):
-            elig[off] = (srow[off] > _FULL_Q) & (wall[off] == 0)
+            v = np.int64(srow[off])
+            elig[off] = (v > _FULL_Q) & (wall[off] == 0)
+            lo_d = min(lo_d, v)
+            hi_d = max(hi_d, v)
         delta, edge, sh, o0, o1 = _dir_geometry(dom, dsgn)
         ss = srow[o0:o1]
         sn = srow[o0 + delta:o1 + delta]
@@ -612,6 +622,14 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
                 if okx == 0 or (bbn >= 0 and bone_dens[bbn, noff] > 0.0) \
                         or src[nb, noff] >= _FULL_Q:
                     elig[off] = 1
+        n_elig = 0
+        for off in range(BRICK_VOXELS):
+            n_elig += elig[off]
+        if n_elig == 0:
+            continue
+        # nothing overfull and no difference above the repose: no flux between
+        # cells of this brick (only across its faces)
+        inner = hi_d > _FULL_Q or hi_d - lo_d > repose
         # four lateral directions, then up (overfull cells only)
         for q in range(5):
             lateral = q < 4
@@ -622,20 +640,21 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
                 a = dom
                 s = -dsgn
             delta, edge, sh, o0, o1 = _dir_geometry(a, s)
-            ss = srow[o0:o1]
-            sn = srow[o0 + delta:o1 + delta]
-            wn = wall[o0 + delta:o1 + delta]
-            el = elig[o0:o1]
-            fl = flux[o0:o1]
-            for i in range(fl.shape[0]):
-                d = np.int64(ss[i])
-                dn = np.int64(sn[i])
-                excess = d - dn - repose if lateral else d - _FULL_Q
-                f = _spill_flux(excess, dn, kq)
-                ok = (f > 0) & (el[i] != 0) & ((((o0 + i) >> sh) & 7) != edge) & \
-                    (wn[i] == 0)
-                fl[i] = f if ok else 0
-            _apply_inside(drow, flux, o0, o1, delta)
+            if inner:
+                ss = srow[o0:o1]
+                sn = srow[o0 + delta:o1 + delta]
+                wn = wall[o0 + delta:o1 + delta]
+                el = elig[o0:o1]
+                fl = flux[o0:o1]
+                for i in range(fl.shape[0]):
+                    d = np.int64(ss[i])
+                    dn = np.int64(sn[i])
+                    excess = d - dn - repose if lateral else d - _FULL_Q
+                    f = _spill_flux(excess, dn, kq)
+                    ok = (f > 0) & (el[i] != 0) & ((((o0 + i) >> sh) & 7) != edge) & \
+                        (wn[i] == 0)
+                    fl[i] = f if ok else 0
+                _apply_inside(drow, flux, o0, o1, delta)
             dd = 2 * a + (1 if s > 0 else 0)
             if sc[12 + dd] == 0:
                 continue

@@ -128,14 +128,20 @@ def rates(p: DustParams, dt):
 
 
 # ------------------------------------------------------------------ helpers
-def make_case(shape, seed, bone_p=0.1, dust_max=1.0, floor=2):
-    """Bone grid (a floor plus scattered voxels) and random dust in free cells."""
+def make_case(shape, seed, bone_p=0.1, dust_max=1.0, floor=2, packed=False):
+    """Bone grid (a floor plus scattered voxels) and random dust in free cells;
+    ``packed``: also a bone-free block of exactly full cells (whole bricks)."""
     rng = np.random.default_rng(seed)
     lab = (rng.random(shape) < bone_p).astype(np.uint8)
     lab[:, :, :floor] = 1
+    block = (slice(0, 16), slice(0, 16), slice(8, 24))
+    if packed:
+        lab[block] = 0
     bone = Grid.from_dense(lab, spacing_mm=H, origin_mm=ORIGIN)
     dust_q = np.where(lab == 0, rng.integers(0, int(dust_max * Q), size=shape), 0)
     dust_q[rng.random(shape) < 0.3] = 0
+    if packed:
+        dust_q[block] = Q
     return bone, lab > 0, dust_q.astype(np.int64)
 
 
@@ -157,7 +163,7 @@ def check_mass(dust: DustGrid):
     assert int(dense_q(dust).sum()) == total
 
 
-SHAPES = [(13, 11, 17), (20, 17, 24), (9, 26, 16)]
+SHAPES = [(13, 11, 17), (20, 17, 24), (9, 26, 16), (25, 18, 27)]
 GRAVITIES = [(0, 0, -1), (1, 0, 0), (0, -1, 0), (0.3, -0.5, -1.0), (-1, 0.4, 0.2)]
 
 
@@ -166,7 +172,7 @@ GRAVITIES = [(0, 0, -1), (1, 0, 0), (0, -1, 0), (0.3, -0.5, -1.0), (-1, 0.4, 0.2
 @pytest.mark.parametrize("split", [True, False])
 def test_gravity_matches_reference(g, split):
     for n, shape in enumerate(SHAPES):
-        bone, wall, d = make_case(shape, seed=n)
+        bone, wall, d = make_case(shape, seed=n, packed=n == 3)
         prm = DustParams(spill_rate=0.0, settle_rate=300.0, split_gravity=split,
                          initial_bricks=4)
         dust = DustGrid.for_grid(bone, g, prm)
@@ -183,7 +189,7 @@ def test_gravity_matches_reference(g, split):
 @pytest.mark.parametrize("g", GRAVITIES)
 def test_spill_matches_reference(g):
     for n, shape in enumerate(SHAPES):
-        bone, wall, d = make_case(shape, seed=10 + n, dust_max=2.5)
+        bone, wall, d = make_case(shape, seed=10 + n, dust_max=2.5, packed=n == 3)
         prm = DustParams(settle_rate=0.0, spill_rate=150.0, repose=0.3, initial_bricks=4)
         dust = DustGrid.for_grid(bone, g, prm)
         load(dust, d)
