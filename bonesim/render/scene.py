@@ -330,7 +330,7 @@ class Scene:
         self.surface_actor = a
         self._surface_mapper = m
 
-    def update_surface(self, surface) -> dict:
+    def update_surface(self, surface, removed=None, touched=None) -> dict:
         """Show ``surface`` as it is now (call after each ``Surface.update``).
 
         Cost: one numba pass over the triangle slots plus a few VTK calls;
@@ -340,6 +340,12 @@ class Scene:
         Parameters
         ----------
         surface : bonesim.surface.Surface
+        removed, touched : (n, 3) int array_like, optional
+            The voxels given to ``Surface.update`` since the previous call
+            (every one of them; concatenate over several updates). They let
+            the visible subset follow the changes by marks instead of a
+            comparison pass over all vertices (see
+            :mod:`bonesim.render.meshbuf`); leave both None if unknown.
 
         Returns
         -------
@@ -352,7 +358,7 @@ class Scene:
             self._buffers.invalidate()
             self._cancel_job()
         self._bind_vertices(surface)
-        self._buffers.sync(surface)
+        self._buffers.sync(surface, removed, touched)
         self._push_cells()
         self.surface_actor.SetVisibility(True)
         return {"triangles": self._buffers.n_full, "drawn": self._drawn_count(),

@@ -125,3 +125,62 @@ def test_invalidate_and_other_surface_drop_the_subset(block):
     assert buf.adopt(job, surf)
     buf.sync(other)                      # a new surface: the old snapshot is dropped
     assert not buf.vis_valid
+
+
+def drill_twice(buf, surf, grid, pass_voxels):
+    a = remove(grid, pit(10, 22, 10, 22, 12, 16))
+    surf.update(grid, a)
+    buf.sync(surf, a if pass_voxels else None)
+    b = remove(grid, pit(12, 20, 12, 20, 10, 12))
+    touched = np.array([[5, 5, 15]], np.int32)
+    grid.density[grid.brick_index(5, 5, 15), voxel_offset(5, 5, 15)] = 0.4
+    surf.update(grid, b, touched)
+    return buf.sync(surf, b if pass_voxels else None, touched if pass_voxels else None)
+
+
+def test_change_marks_keep_the_same_invariants(block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    buf = SurfaceBuffers()
+    adopt(buf, surf)
+    assert buf.marks_in_use
+    before = triples(live(surf))
+    nf, nv = drill_twice(buf, surf, grid, pass_voxels=True)
+    assert buf.marks_in_use
+    full = triples(buf.full[:3 * nf])
+    vis = triples(buf.vis[:3 * nv])
+    assert full == triples(live(surf))
+    assert vis <= full
+    assert triples(facing_tris(surf, EYE)) <= vis
+    assert (full - before) <= vis
+    assert nv < nf
+
+
+def test_marks_and_comparison_agree_closely(block):
+    """Marks keep a superset of what the comparison keeps, and not much more."""
+    from tests.bonesim.render.scenes import nerve_block
+
+    results = []
+    for pass_voxels in (True, False):
+        model, state = nerve_block()
+        surf = Surface.build(state.grid, model.colors)
+        buf = SurfaceBuffers()
+        adopt(buf, surf)
+        nf, nv = drill_twice(buf, surf, state.grid, pass_voxels)
+        assert buf.marks_in_use == pass_voxels
+        results.append(triples(buf.vis[:3 * nv]))
+    marked, compared = results
+    assert compared <= marked and len(marked) < 1.2 * len(compared)
+
+
+def test_unknown_changes_fall_back_to_comparison(block):
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    buf = SurfaceBuffers()
+    adopt(buf, surf)
+    buf.sync(surf)                                   # changes unknown
+    assert buf.vis_valid and not buf.marks_in_use
+    adopt(buf, surf)                                 # a new snapshot: marks again
+    assert buf.marks_in_use
