@@ -1,0 +1,17 @@
+"""bench_render returns both figures in the bench format (values not asserted)."""
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.mark.slow
+def test_bench_render_quick(gl_info):
+    from bonesim.render.bench import bench_render
+
+    out = bench_render(quick=True)
+    assert set(out) == {"render_update_1000_ms", "first_frame_s"}
+    upd, ff = out["render_update_1000_ms"], out["first_frame_s"]
+    assert upd["unit"] == "ms" and upd["value"] > 0 and upd["blobs"] == 8
+    assert upd["subset_by_marks"] is True
+    assert 600 < upd["voxels_per_blob_mean"] < 2000
+    assert ff["unit"] == "s" and ff["value"] > 0 and ff["render_s"] > 0
