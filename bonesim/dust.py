@@ -1050,6 +1050,14 @@ class DustGrid:
 
     Attributes
     ----------
+    spacing_mm : float
+        Cell edge [mm].
+    origin_mm : (3,) float64
+        Centre of cell (0, 0, 0) [mm].
+    gravity : (3,) float64
+        Unit gravity vector (case frame).
+    bounds : (6,) int64
+        Domain ``lo, hi`` [cells] (valid once set).
     keys, vals : (table,) int64 / int32
         Brick hash table (``-1`` empty), as in :mod:`bonesim.grid`.
     bcoord : (pool, 3) int32
@@ -1266,6 +1274,11 @@ class DustGrid:
         """Dust removed by suction so far [cells]."""
         return int(self._ctr[C_SUCKED]) / Q
 
+    @property
+    def last_pushed_cells(self) -> float:
+        """Dust the tool pushed out of its sphere in the last step [cells]."""
+        return int(self._ctr[C_PUSHED]) / Q
+
     def to_dense(self, lo=None, shape=None) -> np.ndarray:
         """Dense copy of a box of densities [cells] (float64, exact).
 
@@ -1429,7 +1442,13 @@ class DustGrid:
 
 
 def warmup() -> None:
-    """Compile (or load from the cache) every kernel of this module."""
+    """Compile (or load from the cache) every kernel of this module.
+
+    The step is compiled for a writable bone density array (the run's
+    :class:`~bonesim.model.State` grid); a read-only one (e.g. the
+    :class:`~bonesim.model.Model`'s initial grid) is another numba type and
+    compiles its own specialization (~10 s) on first use.
+    """
     from .grid import Grid
 
     lab = np.zeros((20, 20, 20), dtype=np.uint8)
@@ -1444,6 +1463,3 @@ def warmup() -> None:
         dust.to_dense()
         dust.recount_q()
         dust.recycle()
-    ro = Grid.from_dense(lab, spacing_mm=0.5)
-    ro.density.flags.writeable = False
-    dust.step(ro, 0.01)

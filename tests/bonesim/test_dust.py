@@ -363,6 +363,7 @@ def test_tool_pushes_dust_out_of_its_sphere():
     r = np.linalg.norm(ORIGIN + H * idx - tool, axis=-1)
     assert d[r < rad].sum() == 0
     assert before[r < rad].sum() > 10
+    assert dust.last_pushed_cells == before[r < rad].sum()
     shell = (r >= rad) & (r < rad + 1.5 * H)
     assert d[shell].sum() > before[shell].sum() + 0.9 * before[r < rad].sum()
     check_mass(dust)
