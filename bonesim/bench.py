@@ -267,6 +267,18 @@ def bench_haptic_loop(quick=False) -> dict:
                  "main process drains removals into the surface at 60 Hz"}}
 
 
+def bench_audio(quick=False) -> dict:
+    from .bench_sound import bench_audio as run
+
+    return run(quick=quick)
+
+
+def bench_dust(quick=False) -> dict:
+    from .bench_dust import bench_dust as run
+
+    return run(quick=quick)
+
+
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -277,6 +289,8 @@ BENCHMARKS = {
     "marching_cubes_ct512_s": bench_ct512,
     "simulate_warm_s": bench_simulate,
     "haptic_loop_period_p99_ms": bench_haptic_loop,
+    "audio_rtf_p99": bench_audio,
+    "dust_step_64_ms": bench_dust,
 }
 
 
