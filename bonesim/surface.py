@@ -369,18 +369,29 @@ def _sobel_sep(d, c0, sx, sy):
     sm2 = 0.0
     gy = 0.0
     gz = 0.0
+    # unsigned indices (all in range): no negative-index fix-ups
+    one = np.uint64(1)
+    usy = np.uint64(sy)
     for a in range(3):
         wa = 2.0 if a == 1 else 1.0
-        base = c0 + (a - 1) * sx
-        p0 = (np.float64(d[base - sy - 1]) + 2.0 * np.float64(d[base - sy])
-              + np.float64(d[base - sy + 1]))
-        p1 = (np.float64(d[base - 1]) + 2.0 * np.float64(d[base])
-              + np.float64(d[base + 1]))
-        p2 = (np.float64(d[base + sy - 1]) + 2.0 * np.float64(d[base + sy])
-              + np.float64(d[base + sy + 1]))
-        q0 = np.float64(d[base - sy + 1]) - np.float64(d[base - sy - 1])
-        q1 = np.float64(d[base + 1]) - np.float64(d[base - 1])
-        q2 = np.float64(d[base + sy + 1]) - np.float64(d[base + sy - 1])
+        bm = np.uint64(c0 + (a - 1) * sx - sy)     # row dj = -1
+        b0 = bm + usy
+        bp = b0 + usy
+        dm0 = np.float64(d[bm - one])
+        dm1 = np.float64(d[bm])
+        dm2 = np.float64(d[bm + one])
+        d00 = np.float64(d[b0 - one])
+        d01 = np.float64(d[b0])
+        d02 = np.float64(d[b0 + one])
+        dp0 = np.float64(d[bp - one])
+        dp1 = np.float64(d[bp])
+        dp2 = np.float64(d[bp + one])
+        p0 = dm0 + 2.0 * dm1 + dm2
+        p1 = d00 + 2.0 * d01 + d02
+        p2 = dp0 + 2.0 * dp1 + dp2
+        q0 = dm2 - dm0
+        q1 = d02 - d00
+        q2 = dp2 - dp0
         if a == 0:
             sm0 = p0 + 2.0 * p1 + p2
         elif a == 2:
@@ -1421,12 +1432,15 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
                 n = min(zhi - z, BRICK - (k & BRICK_MASK))
                 b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
                 if b >= 0:
-                    o = ob | (k & BRICK_MASK)
+                    ub = np.uint64(b)
+                    o = np.uint64(ob | (k & BRICK_MASK))
+                    lz = np.uint64(li + z)
                     for u in range(n):
-                        d = density[b, o + u]
-                        vv = vmap[b, o + u]
-                        ld[li + z + u] = d
-                        lv[li + z + u] = vv
+                        uu = np.uint64(u)
+                        d = density[ub, o + uu]
+                        vv = vmap[ub, o + uu]
+                        ld[lz + uu] = d
+                        lv[lz + uu] = vv
                         occ |= np.uint64(d > 0) << np.uint64(z + u)
                         hv |= np.uint64(vv >= 0) << np.uint64(z + u)
                         ad = abs(d)
@@ -1466,13 +1480,19 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
     ncells = 0
     nvadd = 0
     nvdel = 0
+    # unsigned indices below: no negative-index fix-ups
+    uw1 = np.uint64(w1)
+    uwd2 = np.uint64(wd2)
     for x in range(wd0):
         for r in range((x + _GUARD) * w1 + _GUARD, (x + _GUARD) * w1 + _GUARD + wd1):
+            ur = np.uint64(r)
+            uO = np.uint64(O) + ur
+            uH = np.uint64(H) + ur
             # vertices to create / drop
-            tb = rows[T + r]
+            tb = rows[np.uint64(T) + ur]
             if tb != 0:
-                occ = rows[O + r]
-                hv = rows[H + r]
+                occ = rows[uO]
+                hv = rows[uH]
                 add = tb & occ & ~hv
                 dele = tb & ~occ & hv
                 while add != 0:
@@ -1481,19 +1501,24 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
                 while dele != 0:
                     dele &= dele - one
                     nvdel += 1
-            bits = rows[A + r]
+            bits = rows[np.uint64(A) + ur]
             if bits == 0:
                 continue
             lbits = np.uint64(0)
-            cbits = rows[C + r]
-            o00 = rows[O + r]
-            o01 = rows[O + r + 1]
-            o10 = rows[O + r + w1]
-            o11 = rows[O + r + w1 + 1]
-            ox = rows[O + r - w1] | rows[O + r - w1 + 1]       # x - 1 plane
-            oy = rows[O + r - 1] | rows[O + r + w1 - 1]         # y - 1 plane
+            cbits = rows[np.uint64(C) + ur]
+            o00 = rows[uO]
+            o01 = rows[uO + one]
+            o10 = rows[uO + uw1]
+            o11 = rows[uO + uw1 + one]
+            ox = rows[uO - uw1] | rows[uO - uw1 + one]          # x - 1 plane
+            oy = rows[uO - one] | rows[uO + uw1 - one]          # y - 1 plane
             oz = o00 | o01 | o10 | o11
-            hv = rows[H + r] | rows[H + r + 1] | rows[H + r + w1]
+            hv = rows[uH] | rows[uH + one] | rows[uH + uw1]
+            # cells with all corners empty or all occupied own no triangle:
+            # unless a corner 0..5 has a vertex (old triangles), skip them
+            oa = o00 & o01 & o10 & o11
+            mixed = (oz | (oz >> one)) & ~(oa & (oa >> one))
+            bits &= mixed | hv | (hv >> one)
             while bits != 0:
                 z = trailing_zeros(bits)
                 bits &= bits - one
@@ -1520,14 +1545,14 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
                     continue
                 if act == 0 and (hv >> zz) & three == 0:
                     continue            # owns nothing and will own nothing
-                li = r * wd2 + z
+                li = ur * uwd2 + z
                 lcode[li] = code
                 lact[li] = act
                 clist[nl] = li
                 nl += 1
                 tbound += _POP4[act]
                 lbits |= one << zz
-            rows[L + r] = lbits
+            rows[np.uint64(L) + ur] = lbits
     stats[_S_CELLS] = ncells
     return nl, tbound, nvadd, nvdel
 
@@ -1550,7 +1575,6 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
     wd1 = wd[1]
     wd2 = wd[2]
     w1 = wd1 + 2 * _GUARD
-    sy = wd2
     sx = w1 * wd2
     D = _R_DIRTY * nr_p
     L = _R_LIST * nr_p
@@ -1558,28 +1582,35 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
     for r in range(nr_p):
         rows[D + r] = np.uint64(0)
     n_dead = 0
+    # unsigned indices below (all in range): no negative-index fix-ups
+    uw1 = np.uint64(w1)
+    uwd2 = np.uint64(wd2)
+    usx = np.uint64(sx)
+    uL = np.uint64(L)
     for x in range(wd0):
         for r in range((x + _GUARD) * w1 + _GUARD, (x + _GUARD) * w1 + _GUARD + wd1):
+            ur = np.uint64(r)
             # vertices at corner 0..5 of a listed cell
-            lw = rows[L + r] | rows[L + r - 1] | rows[L + r - w1]
-            vw = (lw | (lw << one)) & rows[H + r]
+            lw = rows[uL + ur] | rows[uL + ur - one] | rows[uL + ur - uw1]
+            vw = (lw | (lw << one)) & rows[np.uint64(H) + ur]
             while vw != 0:
                 z = trailing_zeros(vw)
                 vw &= vw - one
-                v = lv[r * wd2 + z]
+                v = np.uint64(lv[ur * uwd2 + z])
                 prev = -1
                 t = vrec[v, _VR_OHEAD]
                 while t >= 0:
-                    nxt = trec[t, _TR_ONEXT]
-                    key = trec[t, _TR_KEY]
-                    c0 = TRIPLE_CORNERS[key >> 1, 0]
-                    rc = r - (c0 >> 2) * w1 - ((c0 >> 1) & 1)
-                    zc = z - (c0 & 1)
-                    if (rows[L + rc] >> np.uint64(zc)) & one == 0:
+                    ut = np.uint64(t)
+                    nxt = trec[ut, _TR_ONEXT]
+                    key = np.uint64(trec[ut, _TR_KEY])
+                    c0 = np.uint64(TRIPLE_CORNERS[key >> one, 0])
+                    urc = ur - (c0 >> np.uint64(2)) * uw1 - ((c0 >> one) & one)
+                    zc = z - (c0 & one)
+                    if (rows[uL + urc] >> zc) & one == 0:
                         prev = t                # owner not listed: unchanged
                         t = nxt
                         continue
-                    li = rc * wd2 + zc
+                    li = urc * uwd2 + zc
                     ah = np.int64(lact[li])
                     slot = _KEY_SLOT[lcode[li], key]
                     if slot >= 0 and (ah >> slot) & 1 and not (ah >> (slot + 4)) & 1:
@@ -1595,13 +1626,15 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
                         vrec[v, _VR_OHEAD] = nxt
                     else:
                         trec[prev, _TR_ONEXT] = nxt
-                    tid = key >> 1
+                    tid = key >> one
                     for s in range(3):
-                        c = TRIPLE_CORNERS[tid, s]
-                        if not ld[li + (c >> 2) * sx + ((c >> 1) & 1) * sy + (c & 1)] > 0:
+                        c = np.uint64(TRIPLE_CORNERS[tid, s])
+                        ca = c >> np.uint64(2)
+                        cb = (c >> one) & one
+                        cc = c & one
+                        if not ld[li + ca * usx + cb * uwd2 + cc] > 0:
                             continue
-                        rows[D + rc + (c >> 2) * w1 + ((c >> 1) & 1)] |= \
-                            one << np.uint64(zc + (c & 1))
+                        rows[np.uint64(D) + urc + ca * uw1 + cb] |= one << (zc + cc)
                         n_dead += 1
                     trec[t, _TR_KEY] = -1
                     tfree[cnt[_T_NFREE]] = t
@@ -1661,8 +1694,9 @@ def _fw_unlink_dead(rows, nr_p, wd, lv, trec, vrec):
 @njit(cache=True, nogil=True)
 def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats):
-    """Drop the vertices of emptied voxels and create those of new surface
-    voxels; HASV becomes the set of voxels with a vertex after the edit."""
+    """Drop the vertices of emptied voxels, then create those of new surface
+    voxels (which so reuse the slots just freed, whose lines are in cache);
+    HASV becomes the set of voxels with a vertex after the edit."""
     one = np.uint64(1)
     wd0 = wd[0]
     wd1 = wd[1]
@@ -1671,58 +1705,62 @@ def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, p
     T = _R_TOPO * nr_p
     O = _R_OCC * nr_p
     H = _R_HASV * nr_p
-    for x in range(wd0):
-        i = wlo[0] + x
-        for y in range(wd1):
-            r = (x + _GUARD) * w1 + y + _GUARD
-            bits = rows[T + r]
-            occ = rows[O + r]
-            hv = rows[H + r]
-            chg = bits & (occ ^ hv)
-            if chg == 0:
-                continue
-            rows[H + r] = hv ^ chg
-            j = wlo[1] + y
-            bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
-            while chg != 0:
-                z = trailing_zeros(chg)
-                chg &= chg - one
-                k = wlo[2] + z
-                b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
-                o = voxel_offset(i, j, k)
-                li = r * wd2 + z
-                if (occ >> np.uint64(z)) & one:          # became surface
-                    if cnt[_V_NFREE] > 0:
-                        cnt[_V_NFREE] -= 1
-                        v = vfree[cnt[_V_NFREE]]
-                    else:
-                        v = cnt[_V_HW]
-                        cnt[_V_HW] += 1
-                    vmap[b, o] = v
-                    lv[li] = v
-                    vijk[v, 0] = i
-                    vijk[v, 1] = j
-                    vijk[v, 2] = k
-                    pos[v, 0] = origin[0] + spacing * i
-                    pos[v, 1] = origin[1] + spacing * j
-                    pos[v, 2] = origin[2] + spacing * k
-                    vrec[v, _VR_HEAD] = -1
-                    vrec[v, _VR_OHEAD] = -1
-                    valive[v] = 1
-                    cnt[_V_ALIVE] += 1
-                    stats[_S_V_ADD] += 1
-                else:                                   # emptied
-                    v = lv[li]
-                    if vrec[v, _VR_OHEAD] >= 0:
-                        stats[_S_ERR] += 1
-                    vrec[v, _VR_HEAD] = -1              # its triangles are all gone
-                    vmap[b, o] = -1
-                    lv[li] = -1
-                    valive[v] = 0
-                    vfree[cnt[_V_NFREE]] = v
-                    cnt[_V_NFREE] += 1
-                    cnt[_V_ALIVE] -= 1
-                    stats[_S_V_DEL] += 1
+    for create in range(2):
+        for x in range(wd0):
+            i = wlo[0] + x
+            for y in range(wd1):
+                r = (x + _GUARD) * w1 + y + _GUARD
+                occ = rows[O + r]
+                hv = rows[H + r]
+                if create:
+                    chg = rows[T + r] & occ & ~hv
+                else:
+                    chg = rows[T + r] & ~occ & hv
+                if chg == 0:
+                    continue
+                rows[H + r] = hv ^ chg
+                j = wlo[1] + y
+                bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1]
+                         + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
+                while chg != 0:
+                    z = trailing_zeros(chg)
+                    chg &= chg - one
+                    k = wlo[2] + z
+                    b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
+                    o = voxel_offset(i, j, k)
+                    li = r * wd2 + z
+                    if create:                              # became surface
+                        if cnt[_V_NFREE] > 0:
+                            cnt[_V_NFREE] -= 1
+                            v = vfree[cnt[_V_NFREE]]
+                        else:
+                            v = cnt[_V_HW]
+                            cnt[_V_HW] += 1
+                        vmap[b, o] = v
+                        lv[li] = v
+                        vijk[v, 0] = i
+                        vijk[v, 1] = j
+                        vijk[v, 2] = k
+                        pos[v, 0] = origin[0] + spacing * i
+                        pos[v, 1] = origin[1] + spacing * j
+                        pos[v, 2] = origin[2] + spacing * k
+                        vrec[v, _VR_HEAD] = -1
+                        vrec[v, _VR_OHEAD] = -1
+                        valive[v] = 1
+                        cnt[_V_ALIVE] += 1
+                        stats[_S_V_ADD] += 1
+                    else:                                   # emptied
+                        v = lv[li]
+                        if vrec[v, _VR_OHEAD] >= 0:
+                            stats[_S_ERR] += 1
+                        vrec[v, _VR_HEAD] = -1              # its triangles are all gone
+                        vmap[b, o] = -1
+                        lv[li] = -1
+                        valive[v] = 0
+                        vfree[cnt[_V_NFREE]] = v
+                        cnt[_V_NFREE] += 1
+                        cnt[_V_ALIVE] -= 1
+                        stats[_S_V_DEL] += 1
 
 
 @njit(cache=True, nogil=True)
