@@ -176,6 +176,55 @@ def cmd_demo(args) -> int:
     return 0 if summary.get("surface_consistent", True) else 1
 
 
+def cmd_run(args) -> int:
+    import os
+
+    from .app import App
+    from .case import load_case
+    from .trajectory import read_trajectory
+
+    offscreen = args.offscreen
+    script = read_trajectory(args.script) if args.script else None
+    frames = args.frames
+    screenshot = args.screenshot
+    if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
+            "WAYLAND_DISPLAY"):
+        print("bonesim: no display found; running the headless demo instead "
+              "(use --offscreen to ask for it explicitly)")
+        offscreen = True
+    if offscreen:
+        if script is None:                 # headless demo: the planned mastoidectomy
+            traj = _demo_trajectory(load_case(args.case), args.burr)
+            import numpy as np
+
+            start = int(np.flatnonzero(traj.drill)[0])
+            script = traj.at_times(traj.t_s[start:])
+        frames = frames or 300
+        screenshot = screenshot or "bonesim-run.png"
+    app = App(args.case, args.burr, script=script, offscreen=offscreen,
+              size=tuple(args.size), sound=not args.no_sound, wav=args.wav)
+    try:
+        app.start()
+        summary = app.run(frames=frames, screenshot=screenshot)
+    finally:
+        app.close()
+    if args.json:
+        _print_json(summary)
+    else:
+        print(f"case {summary['case']}, burr {summary['burr']}: {summary['frames']} frames "
+              f"at {summary['frame_hz']} Hz; haptic loop {summary['haptic_rate_hz']} Hz "
+              f"(period p99 {summary['haptic_period_p99_ms']} ms)")
+        print(f"removed {summary['voxels_removed']} voxels; injuries: "
+              f"{', '.join(summary['injuries']) or 'none'}")
+        for note in summary["notices"]:
+            print(f"note: {note}")
+        if "screenshot" in summary:
+            print(f"wrote {summary['screenshot']}")
+        if "wav" in summary:
+            print(f"wrote {summary['wav']}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_benchmarks
 
@@ -253,6 +302,26 @@ def build_parser() -> argparse.ArgumentParser:
     run_opts(s, False)
     s.add_argument("--out", default="bonesim-demo", help="output folder")
     s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("run", help="the interactive simulator (window, haptic loop, "
+                                   "sound, dust); headless with --offscreen")
+    s.add_argument("--case", default=DEFAULT_CASE,
+                   help=f"case name or case.toml path (default {DEFAULT_CASE})")
+    s.add_argument("--burr", default=DEFAULT_BURR, help=f"starting burr (default {DEFAULT_BURR})")
+    s.add_argument("--offscreen", action="store_true",
+                   help="render without a display (OSMesa/EGL); default when none exists")
+    s.add_argument("--script", metavar="TRAJECTORY",
+                   help="drive the tool from a trajectory CSV instead of the mouse "
+                        "(offscreen default: the demo mastoidectomy)")
+    s.add_argument("--frames", type=int, help="stop after this many frames "
+                                              "(offscreen default 300)")
+    s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
+    s.add_argument("--wav", metavar="FILE.wav", help="record the drill sound")
+    s.add_argument("--no-sound", action="store_true", help="no audio process")
+    s.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"),
+                   help="window size [px]")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")
     s.add_argument("--json", action="store_true", help="print one JSON object")

@@ -43,12 +43,18 @@ class SurfaceConsumer:
         self.surface = Surface.build(self.grid, model.colors)
         self.update_s: list[float] = []
 
-    def drain(self) -> None:
-        """Apply everything the haptic side published since the last call."""
+    def drain(self):
+        """Apply everything the haptic side published since the last call.
+
+        Returns
+        -------
+        removed, touched : (n, 3) int32
+            The voxels drained (for other consumers of the same frame).
+        """
         rem = self.removed.drain()["ijk"]
         tch = self.touched.drain()["ijk"]
         if len(rem) == 0 and len(tch) == 0:
-            return
+            return rem, tch
         # clear the flags before reading densities: a voxel the haptic side
         # lowers again after this point is published again, never lost
         clear_touched(self.state, tch)
@@ -56,6 +62,7 @@ class SurfaceConsumer:
         sync_replica(self.grid, self.state.grid, rem, tch)
         self.surface.update(self.grid, rem, tch)
         self.update_s.append(time.perf_counter() - t0)
+        return rem, tch
 
 
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,

@@ -1,0 +1,248 @@
+"""The interactive simulator: window, haptic loop, sound and dust together.
+
+:class:`App` wires the subsystems; ``bonesim run`` drives it.
+
+* The haptic loop (:mod:`bonesim.haptic_loop`) runs in its own process at
+  1 kHz with the device: the mouse/keyboard device (the window writes the
+  target, a virtual coupling keeps the burr on the bone) or a scripted
+  trajectory.
+* The sound (:mod:`bonesim.audio`) runs in a third process, steered by the
+  loop's shared status.
+* The window's frame callback (main thread) drains the loop's rings into the
+  hybrid surface and the bone dust, moves the tool, and fills the HUD. It
+  never blocks the loop: it only reads what the loop has published.
+
+Mouse and keys: the mouse moves the tool in the view plane; the wheel (or
+Up/Down) sets how hard the hand presses along the view, in millimetres of
+coupling-spring stretch (1 mm = 1 N with the default coupling): at 0 the burr
+hovers, above 0 it sinks until it rests on bone and drills its way in.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import events
+from .haptic_loop import (IN_DIR, IN_DRILL, IN_SPEED, ST_AXIS, ST_BURR, ST_DIR, ST_DRILL,
+                          ST_EPOCH, ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
+
+#: Press depth change per wheel click or Up/Down key [mm] (1 mm = 1 N).
+PRESS_STEP_MM = 0.5
+#: Spindle speed change per key press [rpm].
+SPEED_STEP_RPM = 5000.0
+#: Where the tool starts: this far from the case's focal point toward the eye [mm].
+START_STANDOFF_MM = 10.0
+#: How often the HUD's haptic-rate statistics are recomputed [frames].
+RATE_EVERY_FRAMES = 15
+#: Suction tip radius [mm].
+SUCTION_RADIUS_MM = 1.5
+
+
+class App:
+    """One simulator session.
+
+    Parameters
+    ----------
+    case : str
+        Case name or ``case.toml`` path.
+    burr : str
+        Starting burr; the others of the burr table are a key press away.
+    script : Trajectory, optional
+        Drive the tool from this trajectory instead of the mouse.
+    offscreen : bool
+        Render without a display.
+    size : (int, int)
+        Window size [px].
+    sound : bool
+        Play the drill sound (a silent sink with one notice if there is no
+        audio device).
+    wav : path, optional
+        Record the sound to this WAV file.
+    """
+
+    def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
+                 size=(1024, 768), sound: bool = True, wav=None):
+        from .burrs import list_burrs, load_burr
+        from .model import load_model
+
+        chosen = load_burr(burr)
+        table = list_burrs()
+        names = [b.name for b in table]
+        if chosen.name not in names:
+            table.insert(0, chosen)
+            names.insert(0, chosen.name)
+        i0 = names.index(chosen.name)
+        self.burrs = table[i0:] + table[:i0]          # index 0 = the chosen burr
+        self.model = load_model(case, chosen)
+        cam = self.model.case.camera
+        view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+        self.view = view / np.linalg.norm(view)
+        device = ("mouse",) if script is None else ("scripted", script)
+        self.scripted = script is not None
+        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device)
+        self.loop.set_target(np.asarray(cam.focal_mm, float)
+                             - START_STANDOFF_MM * self.view, self.view)
+        self.press_mm = 0.0
+        self.suction = False
+        self.suction_pos = None
+        self.offscreen = offscreen
+        self.size = size
+        self.sound = sound or wav is not None
+        self.wav = wav
+        self.audio = None
+        self.notices: list[str] = []
+        self.injuries: list[str] = []
+        self.frames = 0
+        self.t_start = None
+        self._rates = {}
+        self.scene = self.window = None
+
+    # -------------------------------------------------------------- set-up
+    def _fresh_consumers(self):
+        from .dust import DustGrid
+        from .simulate import SurfaceConsumer
+
+        self.consumer = SurfaceConsumer(self.model, self.loop.state)
+        self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
+        self.injury_cursor = events.Cursor(self.loop.state.injuries)
+        self.epoch = float(self.loop.status[ST_EPOCH])
+
+    def start(self) -> "App":
+        """Start the haptic (and audio) processes and build the scene."""
+        from .render import gl
+        from .render.scene import Scene
+        from .render.window import Window
+
+        gl.start_probe(offscreen=self.offscreen)      # overlaps with the loop's warm-up
+        self.loop.start()
+        if self.sound:
+            from .audio import AudioProcess
+
+            self.audio = AudioProcess(self.loop, wav=self.wav).start()
+            if self.audio.silent:
+                self.notices.append("no audio device: sound muted"
+                                    + (f", recorded to {self.wav}" if self.wav else ""))
+        self._fresh_consumers()
+        self.scene = Scene.from_model(self.model, self.consumer.surface,
+                                      offscreen=self.offscreen, size=self.size)
+        self.window = Window(self.scene, self.on_frame, self.on_key, self.on_mouse)
+        self.t_start = time.perf_counter()
+        return self
+
+    def close(self) -> None:
+        if self.audio is not None:
+            self.audio.close()
+            self.audio = None
+        self.loop.close()
+        if self.scene is not None:
+            self.scene.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -------------------------------------------------------------- frames
+    @property
+    def burr(self):
+        return self.burrs[int(self.loop.status[ST_BURR])]
+
+    def on_frame(self, scene) -> None:
+        st = self.loop.status
+        if st[ST_EPOCH] != self.epoch:                 # the case was reset
+            self._fresh_consumers()
+            self.injuries.clear()
+        rem, tch = self.consumer.drain()
+        scene.update_surface(self.consumer.surface, rem, tch)
+        pos = st[ST_POS:ST_POS + 3].copy()
+        axis = st[ST_AXIS:ST_AXIS + 3].copy()
+        burr = self.burr
+        if len(rem):
+            self.dust.add_removed(rem)
+        dt = 1.0 / self.window.frame_hz
+        suction = self.suction_pos if self.suction else None
+        self.dust.step(self.consumer.grid, dt, tool_pos_mm=pos, tool_radius_mm=burr.radius_mm,
+                       suction_pos_mm=suction,
+                       suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0)
+        scene.set_dust(*self.dust.sprites())
+        drill = bool(st[ST_DRILL])
+        scene.set_tool(pos, axis, burr.radius_mm, drill)
+        inj = self.injury_cursor.drain()
+        for lab in inj["label"]:
+            name = self.model.structure_name(int(lab))
+            if name not in self.injuries:
+                self.injuries.append(name)
+        if self.frames % RATE_EVERY_FRAMES == 0:
+            self._rates = self.loop.rate_stats(1000)
+        scene.set_hud({
+            "case": self.model.name, "burr": burr.name, "burr_kind": burr.kind,
+            "burr_diameter_mm": burr.diameter_mm,
+            "tool": "suction" if self.suction else "burr",
+            "drill": drill, "direction": st[ST_DIR], "speed_rpm": st[ST_SPEED],
+            "force_n": float(np.linalg.norm(st[ST_FORCE:ST_FORCE + 3])),
+            "haptic_hz": self._rates.get("rate_hz", 0.0),
+            "elapsed_s": time.perf_counter() - self.t_start,
+            "injuries": list(self.injuries),
+            "message": "; ".join(self.notices) if self.notices else None,
+        })
+        self.frames += 1
+
+    def on_mouse(self, world_mm, buttons) -> None:
+        if self.scripted:
+            return
+        if self.suction:
+            self.suction_pos = np.asarray(world_mm, float)
+            return
+        self.loop.set_target(np.asarray(world_mm, float) + self.press_mm * self.view,
+                             self.view)
+
+    def on_key(self, action: str) -> bool:
+        loop, st = self.loop, self.loop.status
+        if action in ("next_burr", "previous_burr"):
+            step = 1 if action == "next_burr" else -1
+            loop.set_burr((int(st[ST_BURR]) + step) % len(self.burrs))
+        elif action == "drill_toggle":
+            loop.set_drill(not bool(loop.io[IN_DRILL]))
+        elif action == "reverse":
+            loop.set_drill(bool(loop.io[IN_DRILL]), direction=-1 if loop.io[IN_DIR] >= 0 else 1)
+        elif action in ("speed_up", "speed_down"):
+            b = self.burr
+            sign = 1 if action == "speed_up" else -1
+            rpm = float(np.clip(loop.io[IN_SPEED] + sign * SPEED_STEP_RPM, 0.0, b.max_speed_rpm))
+            loop.set_drill(bool(loop.io[IN_DRILL]), speed_rpm=rpm)
+        elif action == "suction":
+            self.suction = not self.suction
+        elif action == "reset_case":
+            loop.reset()
+        elif action in ("depth_in", "depth_out"):
+            self.press_mm += PRESS_STEP_MM if action == "depth_in" else -PRESS_STEP_MM
+        else:
+            return False                               # help, screenshot, quit, view
+        return True
+
+    # ----------------------------------------------------------------- run
+    def run(self, frames: int | None = None, screenshot=None) -> dict:
+        """Run the window (or ``frames`` offscreen frames); returns a summary."""
+        if self.offscreen:
+            out = self.window.run_offscreen(frames or 1, screenshot=screenshot, realtime=True)
+        else:
+            out = self.window.run(max_frames=frames)
+            if screenshot is not None:
+                out["screenshot"] = str(self.scene.screenshot(screenshot))
+        rates = self.loop.rate_stats(5000)
+        out.update({
+            "case": self.model.name, "burr": self.burr.name,
+            "haptic_rate_hz": round(rates["rate_hz"], 1),
+            "haptic_period_p99_ms": round(rates["period_p99_ms"], 3),
+            "voxels_removed": int(self.loop.state.removed.count),
+            "triangles": int(self.consumer.surface.n_triangles),
+            "dust_cells": float(round(self.dust.total_cells, 2)),
+            "injuries": list(self.injuries),
+            "notices": list(self.notices),
+        })
+        if self.wav is not None:
+            out["wav"] = str(Path(self.wav))
+        return out
