@@ -190,7 +190,7 @@ def cmd_run(args) -> int:
     if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
             "WAYLAND_DISPLAY"):
         print("bonesim: no display found; running the headless demo instead "
-              "(use --offscreen to ask for it explicitly)")
+              "(use --offscreen to ask for it explicitly)", file=sys.stderr)
         offscreen = True
     if offscreen:
         if script is None:                 # headless demo: the planned mastoidectomy

@@ -11,9 +11,14 @@ if command -v apt-get >/dev/null 2>&1; then
   sudo=""
   if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
   $sudo apt-get update -qq
-  # Python >= 3.11 with venv (Debian 12 ships 3.11).
+  # Python >= 3.11 with venv (Debian 12 ships 3.11); Mesa's software OpenGL
+  # (EGL, OSMesa, GLX) and Xvfb for the window with or without a display;
+  # PortAudio for sound (bonesim falls back to silence without a device).
   $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
-    python3 python3-venv python3-pip >/dev/null
+    python3 python3-venv python3-pip \
+    libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libglx-mesa0 libosmesa6 \
+    libx11-6 libxcursor1 libxrender1 libxt6 xvfb xauth \
+    libportaudio2 >/dev/null
 fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip

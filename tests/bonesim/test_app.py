@@ -1,0 +1,83 @@
+"""The interactive app: offscreen, under Xvfb with its real timer loop, and
+without a display or an audio device."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bonesim.case import load_case
+from bonesim.cli import _demo_trajectory
+from bonesim.trajectory import write_trajectory
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def script(tmp_path_factory):
+    """A few seconds of the demo path, from where it starts drilling bone."""
+    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(traj.drill)[0])
+    traj = traj.at_times(traj.t_s[start:start + 500])
+    path = tmp_path_factory.mktemp("app") / "script.csv"
+    write_trajectory(path, traj)
+    return traj, path
+
+
+def _bonesim(args, env_update=None, drop=(), timeout=240):
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    env.update(env_update or {})
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run([sys.executable, "-m", "bonesim.cli", *args], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
+    from bonesim.app import App
+
+    traj, _ = script
+    app = App("phantom", "cutting-5mm", script=traj, offscreen=True, size=(320, 240),
+              sound=False)
+    try:
+        app.start()
+        before = app.consumer.surface.canonical()
+        out = app.run(frames=90, screenshot=tmp_path / "shot.png")
+        hud = app.scene.hud_text
+    finally:
+        app.close()
+    assert out["frames"] == 90 and out["voxels_removed"] > 0
+    # the drawn mesh followed the drilling
+    assert app.consumer.update_s and app.consumer.surface.canonical().differences(before)
+    assert out["haptic_rate_hz"] > 0 and "haptic" in hud and "frame" in hud
+    assert app.dust.total_cells > 0                   # removed bone became dust
+    assert (tmp_path / "shot.png").stat().st_size > 1000
+
+
+def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
+    _, path = script
+    res = _bonesim(["run", "--script", str(path), "--frames", "60", "--no-sound",
+                    "--size", "320", "240", "--json"], env_update={"DISPLAY": xdisplay})
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert out["frames"] == 60 and out["voxels_removed"] > 0
+    assert out["haptic_rate_hz"] > 500
+    assert "no display" not in res.stderr             # it really used the X server
+
+
+def test_no_display_and_no_audio_fall_back_with_clear_messages(tmp_path):
+    wav = tmp_path / "drill.wav"
+    res = _bonesim(["run", "--frames", "20", "--size", "320", "240", "--wav", str(wav),
+                    "--screenshot", str(tmp_path / "x.png"), "--json"],
+                   drop=("DISPLAY", "WAYLAND_DISPLAY"))
+    assert res.returncode == 0, res.stderr
+    assert "no display found" in res.stderr
+    assert res.stderr.count("no audio output") == 1    # one notice, then silence
+    out = json.loads(res.stdout)
+    assert out["frames"] == 20 and Path(out["screenshot"]).is_file()
+    assert wav.is_file() and wav.stat().st_size > 1000
