@@ -84,33 +84,48 @@ every brick its output ranges, a second pass writes vertices (and the
 voxel -> vertex map), a third writes triangles.
 
 Incremental update (:meth:`Surface.update`): a removed voxel that is empty
-now is a *source*. Only cells containing a source change code, so only those
-and their six face neighbours (32 cells per source) can change what they own;
-only the 26 neighbours of a source can join or leave the surface (and every
+now is a *source*. Only cells containing a source change code, and besides
+them only the cells whose minimum face has a source just below it (their
+ownership test reads it): 20 cells per source can change what they own.
+Only the 26 neighbours of a source can join or leave the surface (and every
 occupied neighbour of an empty voxel is a surface voxel). For each affected
 cell the kernel compares the triangles it owns now (found through the owner
-lists below) with those it should own, drops the difference, creates the
-vertices of voxels that became surface, drops the vertices of emptied
-voxels, adds the new triangles, and re-shades every vertex within one voxel
-of a removed or touched voxel. Cells and voxels are deduplicated with a
-dense window of flags over the inputs' bounding box (hash sets when that box
-is large), so the cost is proportional to the number of input voxels. The
-old triangles come from the mesh itself, not from a guess of the old
-occupancy, so extra entries (voxels listed twice, still bone, already empty
-before the batch, or never bone) are harmless; what must hold is that every
-voxel whose density changed since the last update is listed.
+lists below) with those it should own, drops the difference, drops the
+vertices of emptied voxels, creates the vertices of voxels that became
+surface, adds the new triangles, and re-shades every vertex within one
+voxel of a removed or touched voxel. The old triangles come from the mesh
+itself, not from a guess of the old occupancy, so extra entries (voxels
+listed twice, still bone, already empty before the batch, or never bone)
+are harmless; what must hold is that every voxel whose density changed
+since the last update is listed.
+
+When the inputs fit a box of moderate size (the usual case, see
+``FAST_MIN_VOXELS``), the update runs on dense copies of that box: sets of
+voxels and cells are bit rows (one uint64 per row of the box along k),
+obtained from the inputs by a few shifts and ORs, and visited in (i, j, k)
+order; the densities, occupancy and vertex slots of the box are gathered
+once. Otherwise (inputs spread far apart, or a box deeper than 64 voxels
+along k) cells and voxels are deduplicated with a window of flags or hash
+sets and visited one by one. Either way the cost is proportional to the
+number of input voxels, and the result is the same.
 
 Vertex -> triangles map: every live triangle ``t`` is threaded on three
 singly linked lists, one per corner. ``vhead[v]`` is the first triangle of
 vertex ``v``'s list, and if ``tri[t, s] == v`` the next one is
 ``tnext[t, s]`` (``-1`` ends the list). A vertex lies in 8 cells that own at
 most 4 triangles each, so a list has at most 32 entries. Adding a triangle
-is O(1), removing it walks the lists of its corners. A second, private list
-per vertex (the *owner list*) holds only the triangles whose first vertex
-``tri[t, 0]`` it is; since the first vertex is the owner cell's corner
-``c0`` of the triple, a cell finds the triangles it owns by walking the owner
-lists of its corners 0..5. The lists are built in one pass after a full
-tessellation.
+is O(1), removing it walks the lists of its corners (the update removes all
+dead triangles of a list in one walk). A second, private list per vertex
+(the *owner list*) holds only the triangles whose first vertex ``tri[t, 0]``
+it is; since the first vertex is the owner cell's corner ``c0`` of the
+triple, the triangles a cell owns are on the owner lists of its corners
+0..5. The lists are built in one pass after a full tessellation.
+
+Storage: everything the update reads about a triangle slot (corners, key,
+list links) is one 32-byte row of a ``(tcap, 8)`` int32 array, and the two
+list heads of a vertex share an 8-byte row, so a step along a list touches
+one cache line; ``tri``, ``tri_key``, ``tnext`` and ``vhead`` are views of
+these rows.
 
 Voxel -> vertex map: ``vmap`` is an int32 array shaped like the grid's bricks
 ``(n_bricks, 512)``, ``-1`` where a voxel has no vertex.
@@ -1954,13 +1969,16 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
 # ----------------------------------------------------------------------------
 
 
+_NO_VOXELS = np.zeros((0, 3), dtype=np.int32)    # kernels never write their inputs
+
+
 def _as_ijk(a, name):
     """Validate an (n, 3) array of integer voxel coordinates -> int32 C array.
 
     int32 (n, 3) arrays take a short path: copied as they are, their range
     is checked by :func:`_update_window` (status 4 / 5)."""
     if a is None:
-        return np.zeros((0, 3), dtype=np.int32)
+        return _NO_VOXELS
     if type(a) is np.ndarray and a.dtype == np.int32 and a.ndim == 2 and a.shape[1] == 3:
         return a.copy(order="C")
     arr = np.asarray(a)
@@ -2084,8 +2102,10 @@ class Surface:
     alive : (vcap,) uint8
         1 for slots holding a vertex.
     tri : (tcap, 3) int32
-        Vertex slots of each triangle, counter-clockwise seen from outside.
-    tri_key : (tcap,) int16
+        Vertex slots of each triangle, counter-clockwise seen from outside
+        (a view of the packed triangle records, like ``tri_key``, ``tnext``
+        and ``vhead``: not C-contiguous).
+    tri_key : (tcap,) int32
         ``2 * triple_id + flip`` for live triangles (``-1`` for free slots);
         with the owner cell (``ijk[tri[t, 0]] - CORNER_OFFSETS[TRIPLE_CORNERS[
         key >> 1, 0]]``) it is the triangle's identity.
@@ -2392,4 +2412,8 @@ def warmup() -> None:
     b = grid.brick_index(2, 2, 2)
     grid.density[b, voxel_offset(2, 2, 2)] = 0.5
     surf.update(grid, np.array([[2, 2, 1]], dtype=np.int32), np.array([[2, 2, 2]]))
+    surf._win_per_input = 0                 # the kernel for spread-out inputs
+    b = grid.brick_index(3, 2, 1)
+    grid.density[b, voxel_offset(3, 2, 1)] = 0.0
+    surf.update(grid, np.array([[3, 2, 1]], dtype=np.int32))
     surf.triangles_of(int(surf.vertex_slots[0]))
