@@ -267,6 +267,52 @@ def bench_haptic_loop(quick=False) -> dict:
                  "main process drains removals into the surface at 60 Hz"}}
 
 
+def bench_haptic_loop_rendering(quick=False) -> dict:
+    """Haptic loop period while the window renders the phantom at full speed
+    (offscreen software OpenGL, frames back to back, the app's own frame
+    callback: surface, dust, tool and HUD updates)."""
+    from .app import App
+    from .case import load_case
+    from .cli import DEFAULT_BURR, _demo_trajectory
+    from .render import gl
+
+    traj = _demo_trajectory(load_case("phantom"), DEFAULT_BURR)
+    start = int(np.flatnonzero(traj.drill)[0])
+    traj = traj.at_times(traj.t_s[start:])
+    frames = 100 if quick else 300
+    app = App("phantom", DEFAULT_BURR, script=traj, offscreen=True, size=(800, 600),
+              sound=False)
+    try:
+        app.start()
+        head0 = app.loop._periods.count
+        t0 = time.perf_counter()
+        out = app.window.run_offscreen(frames, realtime=False)
+        wall = time.perf_counter() - t0
+        n = app.loop._periods.count - head0
+        p = app.loop.recent_periods(n)[1:] * 1e3
+        from .haptic_loop import ST_REALTIME
+
+        realtime = bool(app.loop.status[ST_REALTIME])
+    finally:
+        app.close()
+    info = gl.select_backend(offscreen=True)
+    return {"haptic_loop_period_p99_ms_rendering": {
+        "value": round(_pct(p, 99), 3), "unit": "ms", "p50_ms": round(_pct(p, 50), 3),
+        "max_ms": round(float(p.max()), 3), "rate_hz": round(1e3 / float(p.mean()), 1),
+        "periods": int(len(p)), "frames": out["frames"],
+        "frame_hz": round(out["frames"] / wall, 1), "realtime_priority": realtime,
+        "gl": {"backend": info.backend, "renderer": info.renderer,
+               "software": info.software,
+               "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS", "default (one per core)")},
+        "size_px": [800, 600]}}
+
+
+def bench_render(quick=False) -> dict:
+    from .render.bench import bench_render as run
+
+    return run(quick=quick)
+
+
 def bench_audio(quick=False) -> dict:
     from .bench_sound import bench_audio as run
 
@@ -289,6 +335,9 @@ BENCHMARKS = {
     "marching_cubes_ct512_s": bench_ct512,
     "simulate_warm_s": bench_simulate,
     "haptic_loop_period_p99_ms": bench_haptic_loop,
+    "haptic_loop_period_p99_ms_rendering": bench_haptic_loop_rendering,
+    "render_update_1000_ms": bench_render,
+    "first_frame_s": bench_render,
     "audio_rtf_p99": bench_audio,
     "dust_step_64_ms": bench_dust,
 }
