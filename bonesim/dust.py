@@ -123,7 +123,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, _hash_slot, find_brick,
+from .grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, _hash_slot, find_brick, gather_box,
                    pack_brick_key, voxel_offset)
 
 #: Fixed-point units per full cell of dust.
@@ -987,21 +987,6 @@ def _fill_sprites(alive, bmass, hw, den, thr, bcoord, origin, h, pos, val):
 
 
 @njit(cache=True, nogil=True)
-def _gather(keys, vals, den, out, lo_i, lo_j, lo_k):
-    nx, ny, nz = out.shape
-    for x in range(nx):
-        i = lo_i + x
-        for y in range(ny):
-            j = lo_j + y
-            for z in range(nz):
-                k = lo_k + z
-                b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
-                               k >> BRICK_SHIFT)
-                if b >= 0:
-                    out[x, y, z] = den[b, voxel_offset(i, j, k)]
-
-
-@njit(cache=True, nogil=True)
 def _recount(alive, hw, den):
     t = np.int64(0)
     for b in range(hw):
@@ -1295,7 +1280,7 @@ class DustGrid:
         lo = self.bounds[:3] if lo is None else np.asarray(lo, dtype=np.int64).reshape(3)
         shape = tuple(self.bounds[3:] - self.bounds[:3]) if shape is None else shape
         out = np.zeros(tuple(int(s) for s in shape), dtype=np.int32)
-        _gather(self.keys, self.vals, self.density_q, out, *map(int, lo))
+        gather_box(self.keys, self.vals, self.density_q, out, *map(int, lo))
         return out.astype(np.float64) / Q
 
     def sprites(self, threshold: float | None = None):

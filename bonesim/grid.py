@@ -111,8 +111,20 @@ def _insert_all(keys, vals, bcoords):
 
 
 @njit(cache=True, nogil=True)
-def _gather_dense(keys, vals, arr, out, lo_i, lo_j, lo_k):
-    """Copy per-voxel values of the box starting at ``lo`` into ``out``."""
+def gather_box(keys, vals, arr, out, lo_i, lo_j, lo_k):
+    """Copy per-voxel values of a brick array into a dense box.
+
+    Parameters
+    ----------
+    keys, vals : hash table of a brick grid.
+    arr : (n_bricks, 512) array
+        Per-voxel values (density, label, dust, ...).
+    out : (nx, ny, nz) array
+        Filled with the values of voxels ``lo + (x, y, z)``; voxels without a
+        brick are left as they are.
+    lo_i, lo_j, lo_k : int
+        First voxel of the box.
+    """
     nx, ny, nz = out.shape
     for x in range(nx):
         i = lo_i + x
@@ -327,8 +339,8 @@ class Grid:
         shape = self.shape if shape is None else tuple(int(s) for s in shape)
         d = np.zeros(shape, dtype=np.float32)
         lab = np.zeros(shape, dtype=np.uint8)
-        _gather_dense(self.keys, self.vals, self.density, d, *map(int, lo))
-        _gather_dense(self.keys, self.vals, self.label, lab, *map(int, lo))
+        gather_box(self.keys, self.vals, self.density, d, *map(int, lo))
+        gather_box(self.keys, self.vals, self.label, lab, *map(int, lo))
         return d, lab
 
     def voxel_centers(self, ijk) -> np.ndarray:
