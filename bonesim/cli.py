@@ -344,6 +344,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("bonesim: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:                 # output piped into head, less, ...
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -112,7 +112,15 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
     coupling = VirtualCoupling() if not math.isfinite(device.caps.max_force_n) \
         and isinstance(device, SharedInputDevice) else None
     warmup()
+    if vibration:
+        from .vibration import warmup as vibration_warmup
+
+        vibration_warmup()
+        for v in vibs:                     # first calls out of the timed loop
+            v.sample(0.0, np.array([0.0, 0.0, -1.0]), False, False, 0.0, 0.0)
+            v.reset()
     device.open()
+    device.read(0.0)
     status[ST_REALTIME] = 1.0 if _ask_realtime() else 0.0
     # everything the loop needs exists now; no collector pauses from here on
     gc.collect()
