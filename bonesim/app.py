@@ -239,6 +239,8 @@ class App:
             "haptic_period_p99_ms": round(rates["period_p99_ms"], 3),
             "voxels_removed": int(self.loop.state.removed.count),
             "triangles": int(self.consumer.surface.n_triangles),
+            "surface_updates": len(self.consumer.update_s),
+            "hud": self.scene.hud_text,
             "dust_cells": float(round(self.dust.total_cells, 2)),
             "injuries": list(self.injuries),
             "notices": list(self.notices),

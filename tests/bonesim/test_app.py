@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -49,13 +50,21 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         before = app.consumer.surface.canonical()
         out = app.run(frames=90, screenshot=tmp_path / "shot.png")
         hud = app.scene.hud_text
+        dust = app.dust.total_cells
+        bone = app.consumer.grid.density.sum(dtype=np.float64)
+        # reset the case: the loop restores the bone, the app rebuilds its side
+        epoch = app.epoch
+        app.window.press("reset_case")
+        app.window.run_offscreen(10, realtime=True)
+        assert app.epoch != epoch and not app.injuries
+        assert app.consumer.grid.density.sum(dtype=np.float64) > bone
     finally:
         app.close()
     assert out["frames"] == 90 and out["voxels_removed"] > 0
     # the drawn mesh followed the drilling
     assert app.consumer.update_s and app.consumer.surface.canonical().differences(before)
     assert out["haptic_rate_hz"] > 0 and "haptic" in hud and "frame" in hud
-    assert app.dust.total_cells > 0                   # removed bone became dust
+    assert dust > 0                                   # removed bone became dust
     assert (tmp_path / "shot.png").stat().st_size > 1000
 
 
@@ -67,6 +76,8 @@ def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
     out = json.loads(res.stdout)
     assert out["frames"] == 60 and out["voxels_removed"] > 0
     assert out["haptic_rate_hz"] > 500
+    assert out["surface_updates"] > 0                 # the mesh followed the drilling
+    assert re.search(r"haptic \d+ Hz\s+frame \d+ Hz", out["hud"]), out["hud"]
     assert "no display" not in res.stderr             # it really used the X server
 
 
