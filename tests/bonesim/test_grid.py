@@ -84,3 +84,41 @@ def test_density_values_and_copy_independent():
 def test_bad_input(bad, msg):
     with pytest.raises(ValueError, match=msg):
         Grid.from_dense(**bad)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=hs.integers(0, 2**31 - 1))
+def test_sync_replica_applies_exactly_the_published_events(seed):
+    """Removed voxels empty, touched voxels take the live value unless the
+    live value is already 0 (its removal is still in flight); nothing else
+    changes."""
+    from bonesim.grid import sync_replica
+
+    rng = np.random.default_rng(seed)
+    labels = (rng.random((12, 10, 9)) < 0.7).astype(np.uint8)
+    live = Grid.from_dense(labels)
+    replica = live.copy()
+    occ = np.argwhere(labels > 0).astype(np.int32)
+    # the producer lowers some voxels, removes others, publishes only a part
+    lowered = occ[rng.random(len(occ)) < 0.3]
+    removed = occ[rng.random(len(occ)) < 0.2]
+    for i, j, k in lowered:
+        live.density[live.brick_index(i, j, k), (i & 7) << 6 | (j & 7) << 3 | (k & 7)] = 0.4
+    for i, j, k in removed:
+        live.density[live.brick_index(i, j, k), (i & 7) << 6 | (j & 7) << 3 | (k & 7)] = 0.0
+    pub_rem = removed[rng.random(len(removed)) < 0.5]
+    pub_tch = np.concatenate([lowered[rng.random(len(lowered)) < 0.5],
+                              removed[rng.random(len(removed)) < 0.3]])
+    before, _ = replica.to_dense()
+    sync_replica(replica, live, pub_rem, pub_tch)
+    # reference, one voxel at a time
+    expect = before.copy()
+    live_d, _ = live.to_dense()
+    for i, j, k in pub_rem:
+        expect[i, j, k] = 0.0
+    for i, j, k in pub_tch:
+        if live_d[i, j, k] > 0 and expect[i, j, k] > 0:
+            expect[i, j, k] = live_d[i, j, k]
+    np.testing.assert_array_equal(replica.to_dense()[0], expect)
+    with pytest.raises(ValueError, match="share"):
+        sync_replica(Grid.from_dense(labels), live, pub_rem, pub_tch)
