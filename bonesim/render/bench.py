@@ -32,33 +32,13 @@ import time
 
 import numpy as np
 
+from ..bench import ball_offsets, remove_voxels
+
 SIZE = (800, 600)
 
 
 def _pct(values, q) -> float:
     return float(np.percentile(np.asarray(values, float), q))
-
-
-def _ball(radius_vox: float) -> np.ndarray:
-    m = int(np.ceil(radius_vox))
-    g = np.stack(np.meshgrid(*[np.arange(-m, m + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    return g[(g ** 2).sum(1) <= radius_vox ** 2].astype(np.int32)
-
-
-def _zero_voxels(grid, ijk) -> np.ndarray:
-    """Set density 0 at the occupied voxels of ``ijk``; returns those voxels."""
-    from ..grid import BRICK_SHIFT, find_brick, voxel_offset
-
-    out = []
-    for i, j, k in ijk:
-        b = find_brick(grid.keys, grid.vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
-                       k >> BRICK_SHIFT)
-        if b >= 0:
-            o = voxel_offset(i, j, k)
-            if grid.density[b, o] > 0:
-                grid.density[b, o] = 0.0
-                out.append((i, j, k))
-    return np.array(out, dtype=np.int32).reshape(-1, 3)
 
 
 def bench_update(quick: bool = False) -> dict:
@@ -78,7 +58,7 @@ def bench_update(quick: bool = False) -> dict:
     pos, _, _, _ = surf.arrays()
     verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
     rng = np.random.default_rng(0)
-    ball = _ball(7.8)                       # ~2000 voxels; about half in bone
+    ball = ball_offsets(7.8)                       # ~2000 voxels; about half in bone
     n_blobs = 8 if quick else 40
     upd, push, frame, static, sizes = [], [], [], [], []
     tries = 0
@@ -87,7 +67,7 @@ def bench_update(quick: bool = False) -> dict:
         # every blob is cut into the intact phantom (untimed reset)
         grid.density[:] = model.grid.density
         c = verts[rng.integers(len(verts))]
-        ijk = _zero_voxels(grid, c + ball)
+        ijk = remove_voxels(grid, c + ball)
         if len(ijk) < 600:
             continue
         surf = Surface.build(model.grid, model.colors)
