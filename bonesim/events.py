@@ -131,12 +131,5 @@ def ring_from_arrays(name: str, arrays: dict) -> Ring:
 
 
 def removal_ring(capacity: int = RINGS["removed"][0]) -> Ring:
+    """A private removal ring (tests, single-process tools)."""
     return Ring.create(capacity, **RINGS["removed"][1])
-
-
-def touched_ring(capacity: int = RINGS["touched"][0]) -> Ring:
-    return Ring.create(capacity, **RINGS["touched"][1])
-
-
-def injury_ring(capacity: int = RINGS["injuries"][0]) -> Ring:
-    return Ring.create(capacity, **RINGS["injuries"][1])

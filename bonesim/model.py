@@ -299,11 +299,6 @@ class State:
     _pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
-    @property
-    def contact_by_label(self) -> np.ndarray:
-        """Immersed samples per label in the last step."""
-        return self._contact
-
     def fit_scratch(self, model: Model) -> None:
         """Size the kernel's scratch for the model's burr (call after a burr change)."""
         n_vox, n_brick = block_size(model.burr.radius_mm, model.spacing_mm)
