@@ -286,11 +286,11 @@ def bench_haptic_loop_rendering(quick=False) -> dict:
               sound=False)
     try:
         app.start()
-        head0 = app.loop._periods.count
+        head0 = app.loop.steps_measured
         t0 = time.perf_counter()
         out = app.window.run_offscreen(frames, realtime=False)
         wall = time.perf_counter() - t0
-        n = app.loop._periods.count - head0
+        n = app.loop.steps_measured - head0
         p = app.loop.recent_periods(n)[1:] * 1e3
         from .haptic_loop import ST_REALTIME
 

@@ -339,6 +339,11 @@ class HapticLoop:
         return float(self.io[IN_RESET])
 
     # --------------------------------------------------------------- stats
+    @property
+    def steps_measured(self) -> int:
+        """Loop periods measured so far (for slicing :meth:`recent_periods`)."""
+        return self._periods.count
+
     def recent_periods(self, n: int = 2000) -> np.ndarray:
         """The last ``n`` measured loop periods [s]."""
         head = self._periods.count
