@@ -237,7 +237,7 @@ class App:
             "case": self.model.name, "burr": self.burr.name,
             "haptic_rate_hz": round(rates["rate_hz"], 1),
             "haptic_period_p99_ms": round(rates["period_p99_ms"], 3),
-            "voxels_removed": int(self.loop.state.removed.count),
+            "voxels_removed": int(self.loop.state.removed_by_label.sum()),
             "triangles": int(self.consumer.surface.n_triangles),
             "surface_updates": len(self.consumer.update_s),
             "hud": self.scene.hud_text,

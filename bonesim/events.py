@@ -115,9 +115,41 @@ RINGS = {
 }
 
 
+#: Rings that live beside a :class:`~bonesim.model.State` but are not part of
+#: it: the haptic loop's per-step ``samples`` (what the device read, what was
+#: stepped and what force went back: the recorder's and the tutor's input) and
+#: the window's ``camera`` and ``ui`` streams (see :mod:`bonesim.record`).
+OTHER_RINGS = {
+    "samples": (1 << 16, {
+        "t_s": (np.float64, ()),            # loop time [s]
+        "pos_mm": (np.float64, (3,)),       # tool centre handed to step [mm]
+        "axis": (np.float64, (3,)),         # unit drill axis handed to step
+        "hand_mm": (np.float64, (3,)),      # what the device read [mm]
+        "drill": (np.uint8, ()),
+        "speed_rpm": (np.float64, ()),
+        "direction": (np.int8, ()),
+        "burr": (np.uint8, ()),             # index into the session's burrs
+        "epoch": (np.int32, ()),            # case resets so far
+        "buttons": (np.uint32, ()),
+        "force_n": (np.float64, (3,)),      # sent to the device, vibration included [N]
+        "tangential_n": (np.float64, (3,)),  # drag part of the bone force [N]
+        "vibration_n": (np.float64, (3,)),  # synthesized vibration [N]
+        "mag_n": (np.float64, ()),          # multi-gain normal magnitude [N]
+        "volume_mm3": (np.float64, ()),     # immersed volume [mm^3]
+    }),
+    "camera": (1 << 12, {"t_s": (np.float64, ()), "eye_mm": (np.float64, (3,)),
+                         "focal_mm": (np.float64, (3,)), "up": (np.float64, (3,))}),
+    "ui": (1 << 10, {"t_s": (np.float64, ()), "name": ("S16", ()), "value": ("S64", ())}),
+}
+
+
+def _ring_spec(name: str) -> tuple:
+    return RINGS[name] if name in RINGS else OTHER_RINGS[name]
+
+
 def ring_arrays_spec(name: str, capacity: int | None = None) -> list:
     """``(array name, shape, dtype)`` of a ring's columns and head, for shared memory."""
-    cap, fields = RINGS[name]
+    cap, fields = _ring_spec(name)
     cap = cap if capacity is None else capacity
     out = [(f"{name}.{f}", (cap,) + tuple(shape), dt) for f, (dt, shape) in fields.items()]
     out.append((f"{name}.head", (1,), np.int64))
@@ -126,7 +158,7 @@ def ring_arrays_spec(name: str, capacity: int | None = None) -> list:
 
 def ring_from_arrays(name: str, arrays: dict) -> Ring:
     """A :class:`Ring` over existing column arrays (e.g. in shared memory)."""
-    fields = {f: arrays[f"{name}.{f}"] for f in RINGS[name][1]}
+    fields = {f: arrays[f"{name}.{f}"] for f in _ring_spec(name)[1]}
     return Ring(fields, arrays[f"{name}.head"])
 
 

@@ -19,7 +19,11 @@ Two small shared float64 arrays connect the sides:
     see the ``ST_*`` indices.
 
 The loop also writes each measured period into the ``periods`` ring, from
-which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99.
+which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99,
+and one record per step into the ``samples`` ring (device reading, stepped
+pose, drill state, forces; see :data:`bonesim.events.OTHER_RINGS`): the
+recorder and the tutoring server drain it from their own processes
+(:func:`attach`), so the loop itself never touches a disk or a socket.
 
 The loop process asks for real-time scheduling (``SCHED_FIFO``) and runs with
 Python's garbage collector frozen; ``status[ST_REALTIME]`` says whether the
@@ -39,7 +43,7 @@ import numpy as np
 from . import events
 from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevice,
                       VirtualCoupling)
-from .haptics import O_MAG, O_N_IMMERSED, O_VOLUME
+from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
 from .shared import SharedArrays
 
@@ -76,9 +80,50 @@ def _ask_realtime() -> bool:
 
 
 def _loop_spec(model: Model) -> list:
-    return state_arrays_spec(model) + [
+    return state_arrays_spec(model) + events.ring_arrays_spec("samples") + [
         ("io", (N_IN,), np.float64), ("status", (N_ST,), np.float64),
         ("periods", (PERIOD_RING,), np.float64), ("periods.head", (1,), np.int64)]
+
+
+def attach(handle) -> tuple:
+    """Open a running loop's shared memory from another process.
+
+    Returns
+    -------
+    shared : SharedArrays
+        Keep it alive while the rings are used; ``close()`` it after.
+    rings : dict of str -> events.Ring
+        ``samples``, ``removed``, ``touched`` and ``injuries``.
+    """
+    sh = SharedArrays.attach(handle)
+    rings = {name: events.ring_from_arrays(name, sh.arrays)
+             for name in ("samples", "removed", "touched", "injuries")}
+    return sh, rings
+
+
+def push_sample(ring: events.Ring, t: float, state, hand_mm, drill: bool,
+                speed: float, direction: int, burr: int, epoch: int, buttons: int,
+                force_n, vib_n) -> None:
+    """Append one step's record to the ``samples`` ring (a few microseconds)."""
+    f = ring.fields
+    q = int(ring.head[0]) & (f["t_s"].shape[0] - 1)
+    out = state.out
+    f["t_s"][q] = t
+    f["pos_mm"][q] = state.pos_mm
+    f["axis"][q] = state.axis
+    f["hand_mm"][q] = hand_mm
+    f["drill"][q] = drill
+    f["speed_rpm"][q] = speed
+    f["direction"][q] = direction
+    f["burr"][q] = burr
+    f["epoch"][q] = epoch
+    f["buttons"][q] = buttons
+    f["force_n"][q] = force_n
+    f["tangential_n"][q] = out[O_TX:O_TZ + 1]
+    f["vibration_n"][q] = vib_n
+    f["mag_n"][q] = out[O_MAG]
+    f["volume_mm3"][q] = out[O_VOLUME]
+    ring.head[0] += 1               # publish after the record is complete
 
 
 def _make_device(spec, io):
@@ -106,6 +151,8 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
     models = [model if b is None else model.with_burr(b) for b in burrs]
     vibs = [Vibration(m.burr, rate_hz) if vibration else None for m in models]
     state = make_state(models[0], arr)
+    samples = events.ring_from_arrays("samples", arr)
+    no_vib = np.zeros(3)
     for m in models:                       # scratch for the largest burr, once
         state.fit_scratch(m)
     device = _make_device(device_spec, io)
@@ -147,7 +194,9 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
             if run_s is not None and t >= run_s:
                 break
             if io[IN_RESET] != epoch:
-                reset_state(models[burr], state)
+                # keep the event counters running across resets, so that
+                # consumers in other processes (recorder, tutor) lose nothing
+                reset_state(models[burr], state, rings=False)
                 if coupling is not None:
                     coupling.pos = None
                 epoch = io[IN_RESET]
@@ -166,6 +215,7 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
             direction = (1 if io[IN_DIR] >= 0 else -1) if r.direction is None \
                 else r.direction
             f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction))
+            fv = no_vib
             if vibs[burr] is not None:
                 # felt, not simulated: added to what the device renders only
                 fv = vibs[burr].sample(t, state.axis, drill, state.out[O_N_IMMERSED] > 0,
@@ -177,6 +227,8 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                     out_f *= m.device.max_force_n / norm
                 f = out_f
             device.write_force(f)
+            push_sample(samples, t, state, r.pos_mm, drill, speed, direction, burr,
+                        int(epoch), r.buttons, f, fv)
             status[ST_T] = t
             status[ST_POS:ST_POS + 3] = state.pos_mm
             status[ST_AXIS:ST_AXIS + 3] = state.axis
@@ -251,6 +303,8 @@ class HapticLoop:
         self.io = self._sh["io"]
         self.status = self._sh["status"]
         self._periods = events.Ring({"period": self._sh["periods"]}, self._sh["periods.head"])
+        #: One record per haptic step (see :func:`push_sample`).
+        self.samples = events.ring_from_arrays("samples", self._sh.arrays)
         self.io[IN_AXIS:IN_AXIS + 3] = (0.0, 0.0, -1.0)
         self.io[IN_SPEED] = model.burr.default_speed_rpm
         self.io[IN_DIR] = 1.0

@@ -355,13 +355,22 @@ def make_state(model: Model, arrays: dict | None = None) -> State:
     return st
 
 
-def reset_state(model: Model, state: State) -> None:
-    """Put the model's initial tissue back and empty the rings, in place."""
+def reset_state(model: Model, state: State, rings: bool = True) -> None:
+    """Put the model's initial tissue back, in place.
+
+    Parameters
+    ----------
+    rings : bool
+        Also empty the event rings. The haptic loop passes False: its rings
+        keep counting across resets so that consumers in other processes
+        never miss the records written just before one.
+    """
     state.grid.density[:] = model.grid.density
     state.touched_flag[:] = 0
     state.removed_by_label[:] = 0
-    for ring in (state.removed, state.touched, state.injuries):
-        ring.reset()
+    if rings:
+        for ring in (state.removed, state.touched, state.injuries):
+            ring.reset()
     state.t_s = math.nan
     state.n_steps = 0
     state.force_n[:] = 0.0
