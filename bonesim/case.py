@@ -28,6 +28,7 @@ Manifest
     label = 1                         # label-map integer (intensity formats)
     color = [230, 220, 200]           # label-stack colour (label-stack: required)
     display_color = [230, 220, 200]   # rendering colour, default from a palette
+    monitor = false                   # nerve monitor watches it (not for kind bone)
 
     [camera]                          # case frame (LPS), mm
     eye_mm = [120, 0, 0]
@@ -90,7 +91,7 @@ _VOLUME_KEYS = {
     "nifti": ("path", "bone_threshold_hu", "labels"),
     "label-stack": ("path", "pattern", "size_mm", "unknown_colors", "origin_mm"),
 }
-_STRUCTURE_KEYS = ("name", "kind", "label", "color", "display_color")
+_STRUCTURE_KEYS = ("name", "kind", "label", "color", "display_color", "monitor")
 _CAMERA_KEYS = ("eye_mm", "focal_mm", "up")
 _TARGET_KEYS = ("description", "structures", "box_mm")
 
@@ -113,6 +114,9 @@ class Structure:
         RGB of this structure in a label stack.
     display_color : (3,) int
         RGB used for rendering, 0-255.
+    monitor : bool
+        The nerve monitor (:mod:`bonesim.monitor`) reports the simulated
+        activity of this structure (nerves such as the facial nerve).
     """
 
     name: str
@@ -120,6 +124,7 @@ class Structure:
     label: int | None
     color: tuple[int, int, int] | None
     display_color: tuple[int, int, int]
+    monitor: bool = False
 
 
 @dataclass(frozen=True)
@@ -381,7 +386,15 @@ def _parse_structures(items, path: Path, fmt: str) -> tuple[Structure, ...]:
                                f"{list(_phantom.PARTS)}", path, where)
         display = (_rgb(tab, "display_color", path, where) if "display_color" in tab
                    else PALETTE[i % len(PALETTE)])
-        out.append(Structure(name, kind, label, color, display))
+        monitor = tab.get("monitor", False)
+        if not isinstance(monitor, bool):
+            raise BonesimError(f"'monitor' must be true or false, got {monitor!r}",
+                               path, where)
+        if monitor and kind == "bone":
+            raise BonesimError("'monitor' = true on a structure of kind 'bone'; the "
+                               "nerve monitor watches nerves (kind 'critical' or "
+                               "'soft')", path, where)
+        out.append(Structure(name, kind, label, color, display, monitor))
     if not any(s.kind == "bone" for s in out):
         raise BonesimError("no structure of kind 'bone'; one is needed (intensity "
                            "volumes threshold into the first one)", path, "structures")
@@ -512,8 +525,8 @@ def case_info(case: Case) -> dict:
     dict
         ``name, description, side, manifest, format, source, grid`` (nx, ny,
         nz), ``voxel_mm, origin_mm, extent_mm, counts`` (voxels per structure
-        name), ``kinds`` (kind per structure name), ``total`` (non-empty
-        voxels).
+        name), ``kinds`` (kind per structure name), ``monitored`` (names the
+        nerve monitor watches), ``total`` (non-empty voxels).
     """
     vol = case.load_volume()
     counts = vol.counts(len(case.structures))
@@ -530,6 +543,7 @@ def case_info(case: Case) -> dict:
         "extent_mm": [float(v) for v in vol.extent_mm],
         "counts": {s.name: int(counts[i]) for i, s in enumerate(case.structures, 1)},
         "kinds": {s.name: s.kind for s in case.structures},
+        "monitored": [s.name for s in case.structures if s.monitor],
         "total": int(counts[1:].sum()),
     }
 
@@ -676,7 +690,8 @@ def export_case(case: Case, fmt: str, out_dir: str | Path,
         parts.append(_toml_table("[[structures]]", {
             "name": s.name, "kind": s.kind,
             "label": None if fmt == "label-stack" else lab,
-            "color": col, "display_color": list(s.display_color)}))
+            "color": col, "display_color": list(s.display_color),
+            "monitor": True if s.monitor else None}))
     cam = case.camera
     parts.append(_toml_table("[camera]", {"eye_mm": cam.eye_mm,
                                           "focal_mm": cam.focal_mm, "up": cam.up}))
