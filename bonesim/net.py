@@ -1,0 +1,460 @@
+"""Authenticated UDP packets for haptic tutoring and the remote nerve monitor.
+
+Every datagram is one packet::
+
+    header   36 bytes, little-endian (see HEADER)
+             magic  b"BSIM"
+             version u8     PROTOCOL_VERSION
+             kind    u8     what the payload is (see KIND_*)
+             flags   u16    kind-specific bits
+             nonce   u64    the *receiver's* session nonce, echoed by the sender
+             seq     u64    per sender, strictly increasing
+             t_s     f64    sender's monotonic clock when sent [s]
+             length  u32    payload bytes
+    payload  length bytes
+    tag      16 bytes: HMAC-SHA256(key, header + payload), truncated
+
+The key is shared by both ends (:func:`load_key`, :func:`write_key`). The tag
+stops forged and altered packets; the nonce binds a packet to one session (a
+receiver draws a fresh random nonce each time it joins, so packets captured in
+an earlier session are rejected); the sequence number stops replays and late
+duplicates inside a session; the send time lets the receiver drop packets that
+were delayed too long (:class:`Inbox`). Packets are not encrypted: a
+simulator's tool poses are not secret, but nobody may steer a trainee's device.
+
+Packets stay below :data:`MAX_DATAGRAM` bytes so that they are never
+fragmented on an Ethernet path. :class:`Codec` encodes and decodes;
+:class:`Inbox` is the receiving end's acceptance policy with its drop counters.
+"""
+from __future__ import annotations
+
+import hmac
+import math
+import os
+import secrets
+import struct
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .errors import BonesimError
+
+#: Wire-format version; a packet of any other version is dropped.
+PROTOCOL_VERSION = 1
+MAGIC = b"BSIM"
+#: magic, version, kind, flags, nonce, seq, t_s, payload length.
+HEADER = struct.Struct("<4sBBHQQdI")
+TAG_BYTES = 16
+#: Largest datagram we send or accept [bytes]: below a 1500-byte Ethernet MTU
+#: minus IPv4/IPv6 and UDP headers, so no IP fragmentation.
+MAX_DATAGRAM = 1400
+MAX_PAYLOAD = MAX_DATAGRAM - HEADER.size - TAG_BYTES
+#: Smallest accepted key [bytes].
+MIN_KEY_BYTES = 16
+#: Environment variable holding the key (hex) when no key file is given.
+KEY_ENV = "BONESIM_KEY"
+#: Clock-rate difference between two machines the staleness check tolerates
+#: (crystal oscillators drift by tens of ppm; 500 ppm is generous).
+CLOCK_DRIFT = 5e-4
+
+# Session packet kinds shared by every service (tutoring, nerve monitor).
+# Services number their own data kinds from 16 upward.
+#: receiver -> sender: "send to me"; nonce = the joiner's own fresh nonce.
+KIND_JOIN = 1
+#: sender -> receiver: join accepted; payload names the sender's nonce.
+KIND_WELCOME = 2
+#: receiver -> sender: keep-alive / acknowledgement (service-defined payload).
+KIND_ACK = 3
+#: either way: the session ends.
+KIND_BYE = 4
+SESSION_KINDS = frozenset((KIND_JOIN, KIND_WELCOME, KIND_ACK, KIND_BYE))
+
+#: Why a datagram could not be decoded (:attr:`PacketError.reason`).
+REASONS = ("short", "magic", "version", "length", "auth", "kind")
+
+
+class PacketError(ValueError):
+    """A datagram that is not a valid packet.
+
+    Attributes
+    ----------
+    reason : str
+        One of :data:`REASONS`: ``short`` (fewer bytes than header + tag),
+        ``magic`` (not a bonesim packet), ``version`` (another protocol
+        version), ``length`` (payload length field disagrees with the
+        datagram), ``auth`` (HMAC tag wrong: forged, altered or other key),
+        ``kind`` (authentic, but a kind this receiver does not handle).
+    """
+
+    def __init__(self, reason: str, message: str):
+        if reason not in REASONS:
+            raise ValueError(f"unknown packet error reason {reason!r}")
+        self.reason = reason
+        super().__init__(f"packet rejected ({reason}): {message}")
+
+
+class Packet(NamedTuple):
+    """A decoded, authenticated packet.
+
+    Attributes
+    ----------
+    kind : int
+    nonce : int
+        Session nonce the sender echoed (u64).
+    seq : int
+        Sender's sequence number (u64).
+    t_s : float
+        Sender's clock when sent [s].
+    payload : bytes
+    flags : int
+    """
+
+    kind: int
+    nonce: int
+    seq: int
+    t_s: float
+    payload: bytes
+    flags: int = 0
+
+
+# --------------------------------------------------------------------- keys
+def _parse_key(raw: bytes) -> bytes:
+    text = raw.strip()
+    if text and len(text) % 2 == 0:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    return raw
+
+
+def load_key(path: str | Path | None = None) -> bytes:
+    """The shared packet key.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Key file: hex text (as :func:`write_key` writes) or raw bytes. Without
+        it the key is taken from the environment variable ``BONESIM_KEY``
+        (hex, or else the text itself).
+
+    Returns
+    -------
+    bytes
+        At least :data:`MIN_KEY_BYTES` bytes.
+
+    Raises
+    ------
+    BonesimError
+        No key, an unreadable file, or a key shorter than 16 bytes.
+    """
+    if path is None:
+        env = os.environ.get(KEY_ENV)
+        if not env:
+            raise BonesimError(f"no key: pass a key file (--key-file) or set {KEY_ENV}; "
+                               "'bonesim tutor keygen FILE' makes one", field=KEY_ENV)
+        key = _parse_key(env.encode())
+        where = {"field": KEY_ENV}
+    else:
+        p = Path(path)
+        try:
+            raw = p.read_bytes()
+        except FileNotFoundError:
+            raise BonesimError("key file not found ('bonesim tutor keygen FILE' makes "
+                               "one)", path=p) from None
+        except OSError as exc:
+            raise BonesimError(f"cannot read key file: {exc.strerror}", path=p) from None
+        key = _parse_key(raw)
+        where = {"path": p}
+    if len(key) < MIN_KEY_BYTES:
+        raise BonesimError(f"key is {len(key)} bytes; at least {MIN_KEY_BYTES} are needed "
+                           "(32 random bytes recommended)", **where)
+    return key
+
+
+def write_key(path: str | Path, n_bytes: int = 32, overwrite: bool = False) -> Path:
+    """Write a new random key as hex text, readable by the owner only.
+
+    Raises
+    ------
+    BonesimError
+        If the file exists (and ``overwrite`` is False) or cannot be written.
+    """
+    p = Path(path)
+    if n_bytes < MIN_KEY_BYTES:
+        raise ValueError(f"keys need at least {MIN_KEY_BYTES} bytes")
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+    try:
+        fd = os.open(p, flags, 0o600)
+    except FileExistsError:
+        raise BonesimError("key file exists; refusing to overwrite it", path=p) from None
+    except OSError as exc:
+        raise BonesimError(f"cannot write key file: {exc.strerror}", path=p) from None
+    with os.fdopen(fd, "w") as fh:
+        fh.write(secrets.token_hex(n_bytes) + "\n")
+    return p
+
+
+def new_nonce() -> int:
+    """A fresh random non-zero session nonce (u64)."""
+    while True:
+        n = secrets.randbits(64)
+        if n:
+            return n
+
+
+# -------------------------------------------------------------------- codec
+class Codec:
+    """Encodes and decodes packets under one key.
+
+    Parameters
+    ----------
+    key : bytes
+        Shared key (>= 16 bytes).
+    kinds : iterable of int, optional
+        Kinds :meth:`decode` accepts (default: any). An authentic packet of
+        another kind raises ``PacketError("kind")``.
+    seq0 : int, optional
+        First sequence number. Default: the wall clock in nanoseconds, so a
+        restarted sender keeps counting upward.
+    clock : callable
+        Sender clock for packets encoded without ``t_s`` [s]
+        (default :func:`time.monotonic`).
+    """
+
+    def __init__(self, key: bytes, kinds=None, seq0: int | None = None,
+                 clock=time.monotonic):
+        key = bytes(key)
+        if len(key) < MIN_KEY_BYTES:
+            raise ValueError(f"key must be at least {MIN_KEY_BYTES} bytes")
+        self._mac = hmac.new(key, digestmod="sha256")
+        self.kinds = None if kinds is None else frozenset(int(k) for k in kinds)
+        self.seq = time.time_ns() if seq0 is None else int(seq0)
+        self.clock = clock
+        self._buf = bytearray(MAX_DATAGRAM)
+        self._view = memoryview(self._buf)
+
+    def _tag(self, data) -> bytes:
+        h = self._mac.copy()
+        h.update(data)
+        return h.digest()[:TAG_BYTES]
+
+    def encode_into(self, kind: int, payload, nonce: int, t_s: float | None = None,
+                    flags: int = 0) -> memoryview:
+        """Encode into the codec's own buffer (no new bytes object).
+
+        Returns
+        -------
+        memoryview
+            The packet; valid until the next ``encode*`` call (hand it to
+            ``socket.sendto`` right away).
+        """
+        n = len(payload)
+        if n > MAX_PAYLOAD:
+            raise ValueError(f"payload of {n} bytes exceeds the {MAX_PAYLOAD}-byte limit")
+        self.seq += 1
+        t = self.clock() if t_s is None else t_s
+        HEADER.pack_into(self._buf, 0, MAGIC, PROTOCOL_VERSION, kind, flags, nonce,
+                         self.seq, t, n)
+        end = HEADER.size + n
+        self._buf[HEADER.size:end] = payload
+        self._buf[end:end + TAG_BYTES] = self._tag(self._view[:end])
+        return self._view[:end + TAG_BYTES]
+
+    def encode(self, kind: int, payload, nonce: int, t_s: float | None = None,
+               flags: int = 0) -> bytes:
+        """One packet as bytes; assigns the next sequence number.
+
+        Parameters
+        ----------
+        kind : int
+            Packet kind (u8).
+        payload : bytes-like
+            At most :data:`MAX_PAYLOAD` bytes.
+        nonce : int
+            The receiver's session nonce (u64).
+        t_s : float, optional
+            Send time [s]; default the codec's clock now.
+        flags : int
+            Kind-specific bits (u16).
+        """
+        return bytes(self.encode_into(kind, payload, nonce, t_s, flags))
+
+    def decode(self, data) -> Packet:
+        """Check and unpack one datagram.
+
+        Raises
+        ------
+        PacketError
+            With ``reason`` saying what is wrong (checked in the order short,
+            magic, version, length, auth, kind).
+        """
+        n = len(data)
+        if n < HEADER.size + TAG_BYTES:
+            raise PacketError("short", f"{n} bytes, a packet has at least "
+                                       f"{HEADER.size + TAG_BYTES}")
+        magic, version, kind, flags, nonce, seq, t_s, length = HEADER.unpack_from(data, 0)
+        if magic != MAGIC:
+            raise PacketError("magic", f"starts with {bytes(magic)!r}, not {MAGIC!r}")
+        if version != PROTOCOL_VERSION:
+            raise PacketError("version", f"protocol version {version}, this end speaks "
+                                         f"{PROTOCOL_VERSION}")
+        end = HEADER.size + length
+        if end + TAG_BYTES != n:
+            raise PacketError("length", f"header says {length} payload bytes, the "
+                                        f"datagram holds {n - HEADER.size - TAG_BYTES}")
+        mv = memoryview(data)
+        if not hmac.compare_digest(self._tag(mv[:end]), mv[end:]):
+            raise PacketError("auth", "HMAC tag does not match (forged, altered, or "
+                                      "another key)")
+        if self.kinds is not None and kind not in self.kinds:
+            raise PacketError("kind", f"kind {kind} is not handled here")
+        return Packet(kind, nonce, seq, t_s, bytes(mv[HEADER.size:end]), flags)
+
+
+# -------------------------------------------------------------------- inbox
+#: Decode failures -> the :class:`Inbox` counter they are counted under.
+_COUNTER_OF = {"short": "malformed", "magic": "malformed", "length": "malformed",
+               "kind": "malformed", "version": "version", "auth": "auth"}
+COUNTERS = ("accepted", "malformed", "version", "auth", "nonce", "duplicate", "stale")
+
+
+class Inbox:
+    """A receiver's acceptance policy for one session.
+
+    A datagram is accepted when it decodes (:meth:`Codec.decode`), carries
+    this session's nonce, has a sequence number above the last accepted one
+    (older, repeated or reordered packets are dropped as ``duplicate``) and is
+    not stale. Staleness works without synchronized clocks: the offset between
+    the sender's and the receiver's clocks is estimated as the smallest
+    ``now - t_s`` seen over accepted packets (the fastest delivery; allowed
+    to creep up by :data:`CLOCK_DRIFT` per second so that a slower sender
+    clock does not eventually make everything stale), and a packet whose
+    ``now - t_s`` exceeds that offset by more than ``stale_s`` is dropped.
+
+    Parameters
+    ----------
+    codec : Codec
+    nonce : int or None
+        This session's nonce; None accepts any (a server waiting for JOINs).
+    stale_s : float
+        Largest extra delay accepted [s].
+
+    Attributes
+    ----------
+    counters : dict of str -> int
+        ``accepted`` and one count per drop reason: ``malformed`` (short,
+        bad magic, bad length, unhandled kind), ``version``, ``auth``,
+        ``nonce``, ``duplicate`` (seq not above the last accepted: replays,
+        repeats, reordering) and ``stale``.
+    last_seq : int
+        Sequence number of the last accepted packet (-1 before any).
+    offset_s : float
+        Current clock-offset estimate, receiver minus sender [s] (NaN before
+        the first packet).
+    last_accept_s : float
+        Receiver time of the last accepted packet [s] (NaN before any).
+    """
+
+    def __init__(self, codec: Codec, nonce: int | None, stale_s: float):
+        if not stale_s > 0:
+            raise ValueError("stale_s must be positive")
+        self.codec = codec
+        self.nonce = nonce
+        self.stale_s = float(stale_s)
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.last_seq = -1
+        self.offset_s = math.nan
+        self._offset_at = math.nan
+        self.last_accept_s = math.nan
+        self.last_error: PacketError | None = None
+
+    def reset(self, nonce: int | None) -> None:
+        """Start a new session (new nonce; sequence and clock forgotten)."""
+        self.nonce = nonce
+        self.last_seq = -1
+        self.offset_s = math.nan
+        self._offset_at = math.nan
+        self.last_accept_s = math.nan
+
+    def age_s(self, t_s: float, now_s: float) -> float:
+        """How much later than the fastest delivery a packet sent at ``t_s``
+        arrives at ``now_s`` [s] (0 before the first packet)."""
+        if self.offset_s != self.offset_s:
+            return 0.0
+        off = self.offset_s + CLOCK_DRIFT * (now_s - self._offset_at)
+        return (now_s - t_s) - off
+
+    def accept(self, data, now_s: float) -> Packet | None:
+        """The packet if ``data`` is acceptable, else None (and counted).
+
+        Parameters
+        ----------
+        data : bytes-like
+            One datagram.
+        now_s : float
+            Receiver's clock [s].
+        """
+        c = self.counters
+        try:
+            p = self.codec.decode(data)
+        except PacketError as exc:
+            c[_COUNTER_OF[exc.reason]] += 1
+            self.last_error = exc
+            return None
+        if self.nonce is not None and p.nonce != self.nonce:
+            c["nonce"] += 1
+            return None
+        if p.seq <= self.last_seq:
+            c["duplicate"] += 1
+            return None
+        delay = now_s - p.t_s
+        if not math.isfinite(delay):
+            c["malformed"] += 1
+            return None
+        off = self.offset_s
+        if off != off:                                   # first packet
+            self.offset_s = delay
+            self._offset_at = now_s
+        else:
+            off += CLOCK_DRIFT * (now_s - self._offset_at)
+            if delay - off > self.stale_s:
+                c["stale"] += 1
+                return None
+            if delay < off:
+                off = delay
+            self.offset_s = off
+            self._offset_at = now_s
+        self.last_seq = p.seq
+        self.last_accept_s = now_s
+        c["accepted"] += 1
+        return p
+
+    @property
+    def dropped(self) -> int:
+        """Datagrams dropped for any reason."""
+        return sum(v for k, v in self.counters.items() if k != "accepted")
+
+
+# ------------------------------------------------------------ record payloads
+def pack_records(records: np.ndarray) -> bytes:
+    """Records of a numpy structured (or plain) array as payload bytes
+    (little-endian dtypes travel as they are)."""
+    return np.ascontiguousarray(records).tobytes()
+
+
+def unpack_records(payload, dtype, what: str = "payload") -> np.ndarray:
+    """The records in ``payload`` (a read-only view; copy to keep changing it).
+
+    Raises
+    ------
+    PacketError
+        ``length`` if the payload is not a whole number of records.
+    """
+    dt = np.dtype(dtype)
+    if len(payload) % dt.itemsize:
+        raise PacketError("length", f"{what}: {len(payload)} bytes is not a whole number "
+                                    f"of {dt.itemsize}-byte records")
+    return np.frombuffer(payload, dtype=dt)
