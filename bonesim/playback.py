@@ -1,0 +1,833 @@
+"""Playback of a recorded session: the tissue, tool and events at any time.
+
+This module holds everything about playback that does not draw: it is used
+by the playback window and the video export (:mod:`bonesim.render.playback`)
+and is tested without VTK.
+
+Time
+----
+Playback time ``t`` [s] runs from 0 (the recording's first haptic sample) to
+:attr:`Timeline.duration` (its last sample). Session times (seconds since the
+haptic loop started, as stored in the file) are ``timeline.t0 + t``.
+
+What is shown at time ``t``
+---------------------------
+* Tool, drill, burr, force: the last haptic sample at or before ``t``.
+* Tissue: the case's initial grid with every recorded removal of the current
+  epoch (the samples' ``epoch`` at ``t``; a case reset starts a new epoch
+  with the initial tissue) made at or before ``t`` set to density 0. The
+  file records removals only, not the partial density loss of voxels that
+  were grazed, so a partly drilled voxel is shown intact (same geometry as
+  the live run; only its shading can differ).
+* Injuries: the injuries recorded at or before ``t`` in the current epoch
+  (listed as structure names, as the live HUD does), and a notice for
+  :data:`INJURY_NOTICE_S` seconds after each one.
+* Camera: the recorded camera stream interpolated linearly at ``t``, if the
+  session has one.
+
+:class:`Player` keeps a grid and its :class:`~bonesim.surface.Surface` at
+the current time: a forward seek zeroes the removals in between and updates
+the surface incrementally (:meth:`Surface.update`); a backward seek, or a
+seek across a reset, starts again from the initial grid and tessellates
+once (:meth:`Surface.build`).
+
+Session objects
+---------------
+Anything with the attributes of :func:`bonesim.record.read_session`'s
+result works: ``header``, ``complete``, ``samples``, ``removals``,
+``injuries``, ``camera``, ``events``, ``load_model()`` and
+``burr_models()``.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BonesimError
+from .grid import sync_replica
+
+#: Playback speeds offered by :meth:`PlaybackClock.faster` / ``slower``.
+SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: How long the HUD names an injury after it happened [s of session time].
+INJURY_NOTICE_S = 2.0
+#: Short and long seek steps of the arrow keys [s].
+SEEK_SHORT_S = 1.0
+SEEK_LONG_S = 10.0
+
+_EMPTY_IJK = np.zeros((0, 3), dtype=np.int32)
+
+
+def _where(session):
+    """The session's file, for error messages (None if unknown)."""
+    p = getattr(session, "path", None)
+    return None if p is None else Path(p)
+
+
+def _column(session, group: str, name: str, n_rows: int | None, shape=(), dtype=None):
+    """One column of a session table, checked for its row count and shape."""
+    table = getattr(session, group, None)
+    if table is None or name not in table:
+        raise BonesimError(f"session has no {group} column {name!r}", _where(session),
+                           f"{group}/{name}")
+    a = np.asarray(table[name])
+    if dtype is not None:
+        a = a.astype(dtype, copy=False)
+    want = ((a.shape[0] if n_rows is None else n_rows),) + tuple(shape)
+    if a.shape != want:
+        raise BonesimError(f"expected shape {want}, got {a.shape}", _where(session),
+                           f"{group}/{name}")
+    return a
+
+
+def format_clock(t_s: float) -> str:
+    """``m:ss.s`` (or ``h:mm:ss`` from an hour on) for a duration [s]."""
+    t = max(0.0, float(t_s))
+    if t >= 3600:
+        h, r = divmod(int(round(t)), 3600)
+        return f"{h}:{r // 60:02d}:{r % 60:02d}"
+    m, s = divmod(t, 60.0)
+    if round(s, 1) >= 60.0:
+        m, s = m + 1, 0.0
+    return f"{int(m)}:{s:04.1f}"
+
+
+# ---------------------------------------------------------------- timeline
+class Timeline:
+    """Time index of a recorded session (read-only lookups by playback time).
+
+    Parameters
+    ----------
+    session : Session
+        See the module docstring.
+
+    Attributes
+    ----------
+    t0, t1 : float
+        Session times of the first and last haptic sample [s].
+    duration : float
+        ``t1 - t0`` [s].
+    samples : dict of ndarray
+        The session's per-step columns (``t_s`` in session time).
+    rem_t, rem_ijk, rem_epoch, rem_label : ndarray
+        Removals sorted by time: session time [s], voxel, epoch, label.
+    inj_t, inj_label, inj_kind, inj_epoch : ndarray
+        Injuries sorted by time (``inj_t`` in playback time [s]) with the
+        epoch in which each happened.
+    reset_t : ndarray
+        Playback times of the case resets [s].
+    cam_t, cam_eye, cam_focal, cam_up : ndarray
+        Camera stream (``cam_t`` in session time [s]); empty if none.
+    """
+
+    def __init__(self, session):
+        self.session = session
+        where = _where(session)
+        t = _column(session, "samples", "t_s", None, dtype=np.float64)
+        n = t.shape[0]
+        if n == 0:
+            raise BonesimError("the session has no haptic samples: nothing to play back",
+                               where, "samples/t_s")
+        if not np.isfinite(t).all() or (np.diff(t) < 0).any():
+            raise BonesimError("sample times must be finite and non-decreasing", where,
+                               "samples/t_s")
+        cols = {"t_s": t}
+        for name, shape, dt in (("pos_mm", (3,), np.float64), ("axis", (3,), np.float64),
+                                ("drill", (), np.uint8), ("speed_rpm", (), np.float64),
+                                ("direction", (), np.int8), ("burr", (), np.int64),
+                                ("epoch", (), np.int64), ("force_n", (3,), np.float64)):
+            cols[name] = _column(session, "samples", name, n, shape, dt)
+        if (np.diff(cols["epoch"]) < 0).any():
+            raise BonesimError("the epoch (case reset count) decreases", where,
+                               "samples/epoch")
+        self.samples = cols
+        self.t0 = float(t[0])
+        self.t1 = float(t[-1])
+        self.duration = self.t1 - self.t0
+
+        rt = _column(session, "removals", "t_s", None, dtype=np.float64)
+        m = rt.shape[0]
+        ijk = _column(session, "removals", "ijk", m, (3,), np.int32)
+        rep = _column(session, "removals", "epoch", m, (), np.int64)
+        lab = _column(session, "removals", "label", m, (), np.uint8)
+        if m and (np.diff(rt) < 0).any():
+            order = np.argsort(rt, kind="stable")
+            rt, ijk, rep, lab = rt[order], ijk[order], rep[order], lab[order]
+        if m and (np.diff(rep) < 0).any():
+            raise BonesimError("removals: the epoch decreases over time", where,
+                               "removals/epoch")
+        self.rem_t = rt
+        self.rem_ijk = np.ascontiguousarray(ijk)
+        self.rem_epoch = rep
+        self.rem_label = lab
+
+        it = _column(session, "injuries", "t_s", None, dtype=np.float64)
+        k = it.shape[0]
+        ilab = _column(session, "injuries", "label", k, (), np.int64)
+        ikind = _column(session, "injuries", "kind", k, (), np.int64)
+        order = np.argsort(it, kind="stable")
+        self.inj_t = it[order] - self.t0
+        self.inj_label = ilab[order]
+        self.inj_kind = ikind[order]
+        self.inj_epoch = self._epoch_of(it[order])
+
+        ep = cols["epoch"]
+        self.reset_t = t[1:][np.diff(ep) > 0] - self.t0
+
+        cam = getattr(session, "camera", None) or {}
+        if len(cam) and "t_s" in cam and len(cam["t_s"]):
+            ct = _column(session, "camera", "t_s", None, dtype=np.float64)
+            c = ct.shape[0]
+            eye = _column(session, "camera", "eye_mm", c, (3,), np.float64)
+            foc = _column(session, "camera", "focal_mm", c, (3,), np.float64)
+            up = _column(session, "camera", "up", c, (3,), np.float64)
+            order = np.argsort(ct, kind="stable")
+            self.cam_t, self.cam_eye = ct[order], eye[order]
+            self.cam_focal, self.cam_up = foc[order], up[order]
+        else:
+            self.cam_t = np.zeros(0)
+            self.cam_eye = self.cam_focal = self.cam_up = np.zeros((0, 3))
+
+    # ------------------------------------------------------------- lookups
+    def clamp(self, t: float) -> float:
+        """``t`` limited to ``[0, duration]`` [s]."""
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"playback time must be finite, got {t}")
+        return min(max(t, 0.0), self.duration)
+
+    def sample_index(self, t: float) -> int:
+        """Index of the last haptic sample at or before playback time ``t``."""
+        T = self.t0 + self.clamp(t)
+        return max(int(np.searchsorted(self.samples["t_s"], T, side="right")) - 1, 0)
+
+    def _epoch_of(self, session_t) -> np.ndarray:
+        idx = np.searchsorted(self.samples["t_s"], session_t, side="right") - 1
+        return self.samples["epoch"][np.clip(idx, 0, None)]
+
+    def epoch_at(self, t: float) -> int:
+        """Case resets made at or before playback time ``t``."""
+        return int(self.samples["epoch"][self.sample_index(t)])
+
+    def removal_range(self, t: float) -> tuple[int, int, int]:
+        """The removals that shape the tissue at playback time ``t``.
+
+        Returns
+        -------
+        epoch, lo, hi : int
+            Removals ``lo .. hi-1`` (of :attr:`rem_ijk`) are those of
+            ``epoch`` made at or before ``t``.
+        """
+        t = self.clamp(t)
+        e = self.epoch_at(t)
+        lo = int(np.searchsorted(self.rem_epoch, e, side="left"))
+        hi_e = int(np.searchsorted(self.rem_epoch, e, side="right"))
+        hi = int(np.searchsorted(self.rem_t, self.t0 + t, side="right"))
+        return e, lo, max(lo, min(hi, hi_e))
+
+    def camera_at(self, t: float):
+        """Recorded camera at playback time ``t``: ``(eye_mm, focal_mm, up)``
+        interpolated linearly between stream samples, or None without a stream."""
+        n = self.cam_t.shape[0]
+        if n == 0:
+            return None
+        T = self.t0 + self.clamp(t)
+        i = int(np.searchsorted(self.cam_t, T, side="right")) - 1
+        if i < 0:
+            i, w = 0, 0.0
+        elif i >= n - 1:
+            i, w = n - 1, 0.0
+        else:
+            span = self.cam_t[i + 1] - self.cam_t[i]
+            w = float((T - self.cam_t[i]) / span) if span > 0 else 0.0
+        j = min(i + 1, n - 1)
+
+        def lerp(a):
+            return (1.0 - w) * a[i] + w * a[j]
+
+        up = lerp(self.cam_up)
+        nu = np.linalg.norm(up)
+        up = up / nu if nu > 0 else self.cam_up[i]
+        return lerp(self.cam_eye), lerp(self.cam_focal), up
+
+    def injuries_until(self, t: float, epoch: int | None = None) -> np.ndarray:
+        """Indices (into ``inj_*``) of the injuries at or before ``t``
+        (of one ``epoch`` only, if given)."""
+        n = int(np.searchsorted(self.inj_t, self.clamp(t), side="right"))
+        idx = np.arange(n)
+        if epoch is not None:
+            idx = idx[self.inj_epoch[:n] == epoch]
+        return idx
+
+
+# -------------------------------------------------------------------- frames
+@dataclass
+class Frame:
+    """What playback shows at one time.
+
+    Attributes
+    ----------
+    t_s, duration_s : float
+        Playback time and recording length [s].
+    index : int
+        Haptic sample shown.
+    pos_mm, axis : (3,) float64
+        Burr centre [mm] and drill axis (handle toward tip).
+    drill : bool
+    speed_rpm : float
+    direction : int
+        +1 forward, -1 reverse.
+    burr_index : int
+        Index into the session's burrs.
+    burr : object
+        That burr (``name``, ``radius_mm``, maybe ``kind``, ``diameter_mm``).
+    force_n : float
+        Magnitude of the force sent to the device [N].
+    epoch : int
+        Case resets so far.
+    voxels_removed : int
+        Voxels removed in this epoch up to ``t``.
+    volume_removed_mm3 : float
+        Their volume [mm^3].
+    injuries : list of str
+        Structures injured in this epoch up to ``t`` (each once, in order).
+    recent : list of str
+        Injuries of the last :data:`INJURY_NOTICE_S` seconds, as
+        ``"<structure> (<kind>) at <time>"``.
+    camera : tuple or None
+        ``(eye_mm, focal_mm, up)`` of the recorded camera.
+    """
+
+    t_s: float
+    duration_s: float
+    index: int
+    pos_mm: np.ndarray
+    axis: np.ndarray
+    drill: bool
+    speed_rpm: float
+    direction: int
+    burr_index: int
+    burr: object
+    force_n: float
+    epoch: int
+    voxels_removed: int
+    volume_removed_mm3: float
+    injuries: list = field(default_factory=list)
+    recent: list = field(default_factory=list)
+    camera: tuple | None = None
+
+
+class Player:
+    """The tissue, its surface and the tool of a session at a movable time.
+
+    Parameters
+    ----------
+    session : Session
+        See the module docstring.
+    model : Model, optional
+        The recorded case (default ``session.load_model()``).
+    burrs : list, optional
+        Burr objects by session burr index (default from
+        ``session.burr_models()``).
+    surface : bool
+        Keep a :class:`~bonesim.surface.Surface` in step with the grid.
+
+    Attributes
+    ----------
+    timeline : Timeline
+    model : Model
+    grid : Grid
+        The tissue at :attr:`t` (a copy sharing the model's brick table).
+    surface : Surface or None
+        Its surface; replaced by a new object when a seek rebuilds.
+    t : float
+        Current playback time [s].
+    stats : dict
+        ``rebuilds``, ``forward`` (incremental seeks), ``applied`` (removals
+        zeroed in all).
+    """
+
+    def __init__(self, session, model=None, burrs=None, *, surface: bool = True):
+        self.session = session
+        self.timeline = Timeline(session)
+        self.model = session.load_model() if model is None else model
+        if burrs is None:
+            burrs = [m.burr for m in session.burr_models()]
+        self.burrs = list(burrs)
+        if not self.burrs:
+            self.burrs = [self.model.burr]
+        used = int(self.timeline.samples["burr"].max())
+        if used >= len(self.burrs) or int(self.timeline.samples["burr"].min()) < 0:
+            raise BonesimError(f"samples use burr index {used} but the session lists "
+                               f"{len(self.burrs)} burr(s)", _where(session), "samples/burr")
+        if self.model.grid.label.size:
+            top = int(self.model.grid.label.max())
+            if self.timeline.rem_label.size and int(self.timeline.rem_label.max()) > top:
+                raise BonesimError("removals name a structure label the case does not have",
+                                   _where(session), "removals/label")
+        self._surface_on = bool(surface)
+        self.stats = {"rebuilds": 0, "forward": 0, "applied": 0}
+        self.grid = None
+        self.surface = None
+        self._epoch = None
+        self._hi = 0
+        self.t = 0.0
+        self._rebuild(*self.timeline.removal_range(0.0))
+
+    # --------------------------------------------------------------- seeking
+    def _zero(self, lo: int, hi: int) -> np.ndarray:
+        ijk = self.timeline.rem_ijk[lo:hi]
+        if len(ijk):
+            sync_replica(self.grid, self.grid, ijk, _EMPTY_IJK)
+            self.stats["applied"] += len(ijk)
+        return ijk
+
+    def _rebuild(self, epoch: int, lo: int, hi: int) -> None:
+        from .surface import Surface
+
+        self.grid = self.model.grid.copy()
+        self._zero(lo, hi)
+        if self._surface_on:
+            self.surface = Surface.build(self.grid, self.model.colors)
+        self._epoch, self._hi = epoch, hi
+        self.stats["rebuilds"] += 1
+
+    def seek(self, t: float) -> dict:
+        """Bring the grid (and surface) to playback time ``t`` (clamped).
+
+        Returns
+        -------
+        dict
+            ``mode``: ``"none"`` (nothing changed), ``"forward"`` (removals
+            applied incrementally) or ``"rebuild"`` (new grid and surface);
+            ``removed``: (n, 3) int32 voxels zeroed by a forward seek (pass
+            them to ``Scene.update_surface``); ``t``.
+        """
+        t = self.timeline.clamp(t)
+        epoch, lo, hi = self.timeline.removal_range(t)
+        self.t = t
+        if epoch == self._epoch and hi == self._hi:
+            return {"mode": "none", "removed": _EMPTY_IJK, "t": t}
+        if epoch == self._epoch and hi > self._hi:
+            ijk = self._zero(self._hi, hi)
+            if self.surface is not None:
+                self.surface.update(self.grid, ijk)
+            self._hi = hi
+            self.stats["forward"] += 1
+            return {"mode": "forward", "removed": ijk, "t": t}
+        self._rebuild(epoch, lo, hi)
+        return {"mode": "rebuild", "removed": _EMPTY_IJK, "t": t}
+
+    # ---------------------------------------------------------------- frames
+    def frame(self, t: float | None = None) -> Frame:
+        """What is shown at ``t`` (default: the current time; does not seek)."""
+        tl = self.timeline
+        t = self.t if t is None else tl.clamp(t)
+        i = tl.sample_index(t)
+        s = tl.samples
+        epoch, lo, hi = tl.removal_range(t)
+        names = []
+        for q in tl.injuries_until(t, epoch):
+            name = self.model.structure_name(int(tl.inj_label[q]))
+            if name not in names:
+                names.append(name)
+        recent = []
+        for q in tl.injuries_until(t):
+            if t - tl.inj_t[q] <= INJURY_NOTICE_S:
+                kind = int(tl.inj_kind[q])
+                recent.append(f"{self.model.structure_name(int(tl.inj_label[q]))} "
+                              f"({'removal' if kind == 1 else 'contact'}) at "
+                              f"{format_clock(tl.inj_t[q])}")
+        b = int(s["burr"][i])
+        return Frame(t_s=t, duration_s=tl.duration, index=i,
+                     pos_mm=s["pos_mm"][i].copy(), axis=s["axis"][i].copy(),
+                     drill=bool(s["drill"][i]), speed_rpm=float(s["speed_rpm"][i]),
+                     direction=-1 if s["direction"][i] < 0 else 1, burr_index=b,
+                     burr=self.burrs[b], force_n=float(np.linalg.norm(s["force_n"][i])),
+                     epoch=epoch, voxels_removed=hi - lo,
+                     volume_removed_mm3=(hi - lo) * self.model.spacing_mm ** 3,
+                     injuries=names, recent=recent, camera=tl.camera_at(t))
+
+
+def hud_info(frame: Frame, model, *, speed: float | None = None,
+             playing: bool | None = None, notices=()) -> dict:
+    """The HUD dictionary (see :mod:`bonesim.render.hud`) of a playback frame.
+
+    Parameters
+    ----------
+    frame : Frame
+    model : Model
+        For the case name.
+    speed : float, optional
+        Playback speed factor, shown with ``playing``.
+    playing : bool, optional
+    notices : sequence of str
+        Extra lines (e.g. an incomplete recording).
+    """
+    b = frame.burr
+    info = {"case": model.name, "burr": getattr(b, "name", "?")}
+    if hasattr(b, "kind"):
+        info["burr_kind"] = b.kind
+    if hasattr(b, "diameter_mm"):
+        info["burr_diameter_mm"] = b.diameter_mm
+    info.update({"drill": frame.drill, "direction": frame.direction,
+                 "speed_rpm": frame.speed_rpm, "force_n": frame.force_n,
+                 "injuries": list(frame.injuries)})
+    info["time"] = f"{format_clock(frame.t_s)} / {format_clock(frame.duration_s)}"
+    if speed is not None:
+        state = "" if playing is None else ("  playing" if playing else "  paused")
+        info["playback"] = f"{speed:g}x{state}"
+    removed = f"{frame.voxels_removed:,} voxels ({frame.volume_removed_mm3:.2f} mm^3)"
+    if frame.epoch:
+        removed += f" since reset {frame.epoch}"
+    info["removed"] = removed
+    lines = [f"INJURY {r}" for r in frame.recent] + [str(n) for n in notices]
+    if lines:
+        info["message"] = "\n".join(lines)
+    return info
+
+
+# --------------------------------------------------------------------- clock
+class PlaybackClock:
+    """Play/pause, speed and seeking over ``[0, duration]``.
+
+    Parameters
+    ----------
+    duration : float
+        Recording length [s].
+    t : float
+        Start time [s].
+    speed : float
+        Start speed factor (one of :data:`SPEEDS` or any positive value).
+    playing : bool
+    """
+
+    def __init__(self, duration: float, t: float = 0.0, speed: float = 1.0,
+                 playing: bool = False):
+        if not duration >= 0:
+            raise ValueError(f"duration must be >= 0, got {duration}")
+        if not speed > 0:
+            raise ValueError(f"speed must be positive, got {speed}")
+        self.duration = float(duration)
+        self.speed = float(speed)
+        self.playing = bool(playing)
+        self.t = 0.0
+        self.seek(t)
+
+    def seek(self, t: float) -> float:
+        """Jump to ``t`` (clamped to the recording) [s]; returns the new time."""
+        self.t = min(max(float(t), 0.0), self.duration)
+        return self.t
+
+    def skip(self, dt: float) -> float:
+        """Jump by ``dt`` seconds (negative: back)."""
+        return self.seek(self.t + dt)
+
+    def toggle(self) -> bool:
+        """Play or pause; playing at the end starts again from 0."""
+        if not self.playing and self.t >= self.duration:
+            self.t = 0.0
+        self.playing = not self.playing
+        return self.playing
+
+    def faster(self) -> float:
+        """Next speed of :data:`SPEEDS` (stays at the fastest)."""
+        up = [s for s in SPEEDS if s > self.speed * (1 + 1e-9)]
+        self.speed = up[0] if up else self.speed
+        return self.speed
+
+    def slower(self) -> float:
+        """Previous speed of :data:`SPEEDS` (stays at the slowest)."""
+        down = [s for s in SPEEDS if s < self.speed * (1 - 1e-9)]
+        self.speed = down[-1] if down else self.speed
+        return self.speed
+
+    def advance(self, wall_dt: float) -> float:
+        """Let ``wall_dt`` seconds of wall time pass; pauses at the end."""
+        if self.playing and wall_dt > 0:
+            self.seek(self.t + self.speed * wall_dt)
+            if self.t >= self.duration:
+                self.playing = False
+        return self.t
+
+
+# --------------------------------------------------------------------- video
+def parse_size(text: str) -> tuple[int, int]:
+    """``"1280x720"`` -> ``(1280, 720)``; both even (H.264 needs even sizes).
+
+    Raises
+    ------
+    BonesimError
+        For anything else.
+    """
+    parts = str(text).lower().replace("*", "x").split("x")
+    try:
+        w, h = (int(p) for p in parts)
+    except ValueError:
+        raise BonesimError(f"video size {text!r} is not WIDTHxHEIGHT (e.g. 1280x720)",
+                           field="--size") from None
+    if w < 16 or h < 16 or w > 8192 or h > 8192:
+        raise BonesimError(f"video size {w}x{h} must be 16..8192 pixels each way",
+                           field="--size")
+    if w % 2 or h % 2:
+        raise BonesimError(f"video size {w}x{h}: width and height must be even for "
+                           "H.264", field="--size")
+    return w, h
+
+
+def video_times(duration: float, fps: float, speed: float = 1.0, start: float | None = None,
+                end: float | None = None) -> np.ndarray:
+    """Playback times [s] of the frames of a video.
+
+    Frame ``k`` shows ``start + k * speed / fps``; the video lasts
+    ``(end - start) / speed`` seconds, i.e. ``round((end - start) * fps /
+    speed)`` frames (at least one).
+
+    Parameters
+    ----------
+    duration : float
+        Recording length [s].
+    fps : float
+        Video frame rate [Hz].
+    speed : float
+        Playback speed factor.
+    start, end : float, optional
+        Part of the recording [s] (default all of it).
+    """
+    if not fps > 0:
+        raise BonesimError(f"frame rate must be positive, got {fps}", field="--fps")
+    if not speed > 0:
+        raise BonesimError(f"speed must be positive, got {speed}", field="--speed")
+    a = 0.0 if start is None else float(start)
+    b = float(duration) if end is None else float(end)
+    if not (0.0 <= a <= duration) or not math.isfinite(a):
+        raise BonesimError(f"start {a:g} s lies outside the recording (0 .. "
+                           f"{duration:.3f} s)", field="--start")
+    if not (0.0 <= b <= duration + 1e-9) or not math.isfinite(b):
+        raise BonesimError(f"end {b:g} s lies outside the recording (0 .. "
+                           f"{duration:.3f} s)", field="--end")
+    if b <= a:
+        raise BonesimError(f"end {b:g} s is not after start {a:g} s", field="--end")
+    n = max(1, int(round((b - a) * fps / speed)))
+    return np.minimum(a + np.arange(n) * (speed / fps), b)
+
+
+class VideoWriter:
+    """H.264 mp4 encoded by the ffmpeg that imageio-ffmpeg bundles.
+
+    Frames are piped raw (RGB) into one ffmpeg process (libx264, yuv420p,
+    ``-crf`` quality, ``+faststart``); its messages are kept and quoted in
+    the error if it fails.
+
+    Parameters
+    ----------
+    path : path
+        Output file (``.mp4``); its folder must exist and be writable.
+    size : (int, int)
+        Frame width and height [px], both even.
+    fps : float
+        Frame rate [Hz].
+    crf : int
+        x264 constant rate factor (0 lossless .. 51 worst; 18-23 look good).
+    preset : str
+        x264 speed preset.
+
+    Raises
+    ------
+    BonesimError
+        Unwritable output, odd size, or ffmpeg failing.
+    """
+
+    def __init__(self, path, size, fps: float = 30.0, crf: int = 20,
+                 preset: str = "veryfast"):
+        import subprocess
+        import tempfile
+
+        import imageio_ffmpeg
+
+        self.path = Path(path)
+        self.size = (int(size[0]), int(size[1]))
+        w, h = self.size
+        if w % 2 or h % 2 or w < 2 or h < 2:
+            raise BonesimError(f"frame size {w}x{h} must be even (and positive) for H.264",
+                               self.path)
+        if not fps > 0:
+            raise BonesimError(f"frame rate must be positive, got {fps}", self.path)
+        if self.path.is_dir():
+            raise BonesimError("is a folder, not a video file name", self.path)
+        if not self.path.parent.is_dir():
+            raise BonesimError("the output folder does not exist", self.path)
+        try:
+            with open(self.path, "wb"):
+                pass
+        except OSError as exc:
+            raise BonesimError(f"cannot write the video: {exc.strerror or exc}",
+                               self.path) from None
+        try:
+            exe = imageio_ffmpeg.get_ffmpeg_exe()
+        except RuntimeError as exc:
+            raise BonesimError(f"no ffmpeg found for the video export: {exc}",
+                               self.path) from None
+        self.cmd = [exe, "-y", "-hide_banner", "-loglevel", "error",
+                    "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
+                    "-r", f"{float(fps):g}", "-i", "-", "-an",
+                    "-c:v", "libx264", "-preset", str(preset), "-crf", str(int(crf)),
+                    "-pix_fmt", "yuv420p", "-movflags", "+faststart", str(self.path)]
+        self.frames = 0
+        self._log = tempfile.TemporaryFile()
+        try:
+            self._proc = subprocess.Popen(self.cmd, stdin=subprocess.PIPE,
+                                          stdout=subprocess.DEVNULL, stderr=self._log)
+        except OSError as exc:
+            self._log.close()
+            raise BonesimError(f"could not start ffmpeg ({exe}): {exc}", self.path) from None
+
+    def _failed(self, what: str) -> BonesimError:
+        proc, self._proc = self._proc, None
+        try:
+            proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            code = proc.wait(timeout=30)
+        except Exception:  # noqa: BLE001 - a hung ffmpeg is killed, the error stands
+            proc.kill()
+            code = proc.wait()
+        self._log.seek(0)
+        said = self._log.read().decode("utf-8", "replace").strip().splitlines()
+        self._log.close()
+        if not said:
+            tail = "no message"
+        elif len(said) <= 3:
+            tail = "; ".join(said)
+        else:                         # the cause comes first, the outcome last
+            tail = "; ".join(said[:2]) + " ... " + said[-1]
+        return BonesimError(f"ffmpeg failed {what} (exit status {code}): {tail}", self.path)
+
+    def write(self, rgb: np.ndarray) -> None:
+        """Append one frame: (height, width, 3) uint8 RGB, first row at the top."""
+        if self._proc is None:
+            raise ValueError("the video is closed")
+        a = np.ascontiguousarray(rgb, dtype=np.uint8)
+        w, h = self.size
+        if a.shape != (h, w, 3):
+            raise ValueError(f"frame of shape {a.shape}, expected {(h, w, 3)}")
+        try:
+            self._proc.stdin.write(a.data)
+        except (BrokenPipeError, OSError):
+            raise self._failed(f"at frame {self.frames}") from None
+        self.frames += 1
+
+    def close(self) -> None:
+        """Finish the file (waits for ffmpeg); raises if ffmpeg failed."""
+        proc = self._proc
+        if proc is None:
+            return
+        try:
+            proc.stdin.close()
+        except OSError:
+            pass
+        code = proc.wait()
+        if code != 0:
+            raise self._failed("finishing the file")
+        self._proc = None
+        self._log.close()
+
+    def abort(self) -> None:
+        """Stop ffmpeg without finishing the file (after an error elsewhere)."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        proc.kill()
+        proc.wait()
+        self._log.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, *_):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class ProgressBar:
+    """A one-line text progress bar with percent and ETA (on stderr).
+
+    On a terminal the line is redrawn in place at most every ``min_interval_s``;
+    elsewhere (a log file) a line is printed every 10 %.
+
+    Parameters
+    ----------
+    total : int
+        Work units (e.g. frames).
+    label : str
+        Shown before the bar.
+    stream : file, optional
+        Default ``sys.stderr``.
+    width : int
+        Bar width [characters].
+    clock : callable
+        Wall-clock source [s] (tests pass a fake).
+    """
+
+    def __init__(self, total: int, label: str = "", stream=None, width: int = 30,
+                 min_interval_s: float = 0.2, clock=time.monotonic):
+        self.total = max(int(total), 1)
+        self.label = label
+        self.stream = sys.stderr if stream is None else stream
+        self.width = int(width)
+        self.min_interval_s = float(min_interval_s)
+        self.clock = clock
+        self.t_start = clock()
+        self.done = 0
+        self._last_draw = -math.inf
+        self._last_decile = -1
+        isatty = getattr(self.stream, "isatty", None)
+        self.tty = bool(isatty and isatty())
+
+    def text(self, done: int | None = None, now: float | None = None) -> str:
+        """The bar for ``done`` units at time ``now``."""
+        done = self.done if done is None else int(done)
+        now = self.clock() if now is None else now
+        frac = min(max(done / self.total, 0.0), 1.0)
+        fill = int(frac * self.width)
+        bar = "#" * fill + "." * (self.width - fill)
+        elapsed = now - self.t_start
+        if done >= self.total:
+            tail = f"done in {format_clock(elapsed)}"
+        elif done > 0:
+            tail = f"ETA {format_clock(elapsed * (self.total - done) / done)}"
+        else:
+            tail = "ETA ?"
+        lead = f"{self.label} " if self.label else ""
+        return f"{lead}[{bar}] {100 * frac:3.0f}%  {done}/{self.total}  {tail}"
+
+    def update(self, done: int) -> None:
+        """Record progress and redraw if due."""
+        self.done = int(done)
+        now = self.clock()
+        if self.tty:
+            if now - self._last_draw >= self.min_interval_s or self.done >= self.total:
+                self.stream.write("\r" + self.text(now=now))
+                self.stream.flush()
+                self._last_draw = now
+        else:
+            dec = int(10 * min(self.done / self.total, 1.0))
+            if dec > self._last_decile:
+                self.stream.write(self.text(now=now) + "\n")
+                self.stream.flush()
+                self._last_decile = dec
+
+    def close(self) -> None:
+        """Draw the final state and end the line."""
+        if self.tty:
+            self.stream.write("\r" + self.text() + "\n")
+            self.stream.flush()
+        elif int(10 * min(self.done / self.total, 1.0)) > self._last_decile:
+            self.update(self.done)
