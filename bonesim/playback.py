@@ -21,7 +21,7 @@ What is shown at time ``t``
   the live run; only its shading can differ).
 * Injuries: the injuries recorded at or before ``t`` in the current epoch
   (listed as structure names, as the live HUD does), and a notice for
-  :data:`INJURY_NOTICE_S` seconds after each one.
+  :data:`INJURY_NOTICE_S` seconds after each one (until a reset).
 * Camera: the recorded camera stream interpolated linearly at ``t``, if the
   session has one.
 
@@ -296,8 +296,8 @@ class Frame:
     injuries : list of str
         Structures injured in this epoch up to ``t`` (each once, in order).
     recent : list of str
-        Injuries of the last :data:`INJURY_NOTICE_S` seconds, as
-        ``"<structure> (<kind>) at <time>"``.
+        Injuries of this epoch in the last :data:`INJURY_NOTICE_S` seconds,
+        as ``"<structure> (<kind>) at <time>"``.
     camera : tuple or None
         ``(eye_mm, focal_mm, up)`` of the recorded camera.
     """
@@ -329,9 +329,10 @@ class Player:
     session : Session
         See the module docstring.
     model : Model, optional
-        The recorded case (default ``session.load_model()``).
+        The recorded case (default: burr 0's model of
+        ``session.burr_models()``, which checks the recorded hashes).
     burrs : list, optional
-        Burr objects by session burr index (default from
+        Burr objects by session burr index (default: those of
         ``session.burr_models()``).
     surface : bool
         Keep a :class:`~bonesim.surface.Surface` in step with the grid.
@@ -354,9 +355,11 @@ class Player:
     def __init__(self, session, model=None, burrs=None, *, surface: bool = True):
         self.session = session
         self.timeline = Timeline(session)
-        self.model = session.load_model() if model is None else model
-        if burrs is None:
-            burrs = [m.burr for m in session.burr_models()]
+        if model is None or burrs is None:
+            models = session.burr_models()          # one load for all burrs
+            model = models[0] if model is None else model
+            burrs = [m.burr for m in models] if burrs is None else burrs
+        self.model = model
         self.burrs = list(burrs)
         if not self.burrs:
             self.burrs = [self.model.burr]
@@ -436,7 +439,7 @@ class Player:
             if name not in names:
                 names.append(name)
         recent = []
-        for q in tl.injuries_until(t):
+        for q in tl.injuries_until(t, epoch):
             if t - tl.inj_t[q] <= INJURY_NOTICE_S:
                 kind = int(tl.inj_kind[q])
                 recent.append(f"{self.model.structure_name(int(tl.inj_label[q]))} "

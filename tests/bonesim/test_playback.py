@@ -222,6 +222,7 @@ def test_frame_and_hud(recorded, monkeypatch):
     assert p.frame(last_inj + 0.39).recent and p.frame(last_inj + 0.41).recent == []
     monkeypatch.undo()
     assert p.frame(1.3).injuries == []          # a reset clears the list, like the app
+    assert p.frame(1.3).recent == []
     info = hud_info(f, p.model, speed=2.0, playing=True, notices=["recording incomplete"])
     assert info["playback"] == "2x  playing" and info["injuries"] == ["nerve"]
     assert info["time"] == f"{format_clock(last_inj + 0.5)} / 0:01.8"
