@@ -60,10 +60,15 @@ class App:
         audio device).
     wav : path, optional
         Record the sound to this WAV file.
+    record : path, optional
+        Record the session to this HDF5 file (:mod:`bonesim.record`).
+    who : dict, optional
+        ``participant``, ``group`` and ``notes`` for the recording's header.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
-                 size=(1024, 768), sound: bool = True, wav=None):
+                 size=(1024, 768), sound: bool = True, wav=None, record=None,
+                 who: dict | None = None):
         from .burrs import list_burrs, load_burr
         from .model import load_model
 
@@ -98,6 +103,9 @@ class App:
         self.t_start = None
         self._rates = {}
         self.scene = self.window = None
+        self.record = None if record is None else Path(record)
+        self.who = dict(who or {})
+        self.recorder = None
 
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
@@ -116,6 +124,15 @@ class App:
         from .render.window import Window
 
         gl.start_probe(offscreen=self.offscreen)      # overlaps with the loop's warm-up
+        if self.record is not None:
+            from .record import Recorder, make_header
+
+            header = make_header(self.model, self.burrs[1:],
+                                 input_device="scripted" if self.scripted else "mouse",
+                                 **self.who)
+            # the writer reads the loop's rings from record 0, so it may start
+            # while the loop warms up
+            self.recorder = Recorder(self.loop, self.record, header).start()
         self.loop.start()
         if self.sound:
             from .audio import AudioProcess
@@ -132,6 +149,9 @@ class App:
         return self
 
     def close(self) -> None:
+        if self.recorder is not None:
+            self.recording = self.recorder.close()
+            self.recorder = None
         if self.audio is not None:
             self.audio.close()
             self.audio = None
@@ -170,6 +190,8 @@ class App:
         scene.set_dust(*self.dust.sprites())
         drill = bool(st[ST_DRILL])
         scene.set_tool(pos, axis, burr.radius_mm, drill)
+        if self.recorder is not None:
+            self.recorder.camera(*scene.camera_pose())
         inj = self.injury_cursor.drain()
         for lab in inj["label"]:
             name = self.model.structure_name(int(lab))
@@ -200,6 +222,8 @@ class App:
                              self.view)
 
     def on_key(self, action: str) -> bool:
+        if self.recorder is not None:
+            self.recorder.event("key", action)
         loop, st = self.loop, self.loop.status
         if action in ("next_burr", "previous_burr"):
             step = 1 if action == "next_burr" else -1
@@ -247,4 +271,6 @@ class App:
         })
         if self.wav is not None:
             out["wav"] = str(Path(self.wav))
+        if self.record is not None:
+            out["record"] = str(self.record)
         return out

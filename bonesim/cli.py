@@ -115,14 +115,25 @@ def cmd_trajectory(args) -> int:
     return 0
 
 
+def _who(args) -> dict:
+    return {"participant": args.participant or "", "group": args.group or "",
+            "notes": args.notes or ""}
+
+
 def _run(case, burr, traj, args) -> dict:
     from .model import load_model, warmup
     from .simulate import run_trajectory
 
     warmup()
     model = load_model(case, burr, oversample=args.oversample)
+    record = getattr(args, "record", None)
+    header = None
+    if record is not None:
+        from .record import make_header
+
+        header = make_header(model, input_device="scripted", **_who(args))
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
-                          mesh_format=args.mesh_format)
+                          mesh_format=args.mesh_format, record=record, header=header)
 
 
 def cmd_simulate(args) -> int:
@@ -156,6 +167,8 @@ def _print_summary(s: dict) -> None:
               f"{s['surface_consistent']}")
     if "mesh" in s:
         print(f"wrote {s['mesh']} and {s['summary']}")
+    if "record" in s:
+        print(f"recorded the session to {s['record']}")
 
 
 def cmd_demo(args) -> int:
@@ -201,8 +214,14 @@ def cmd_run(args) -> int:
             script = traj.at_times(traj.t_s[start:])
         frames = frames or 300
         screenshot = screenshot or "bonesim-run.png"
+    record = None if args.no_record else args.record
+    if record is None and not args.no_record:
+        from .record import default_session_path
+
+        record = default_session_path(load_case(args.case).name, args.participant or "")
     app = App(args.case, args.burr, script=script, offscreen=offscreen,
-              size=tuple(args.size), sound=not args.no_sound, wav=args.wav)
+              size=tuple(args.size), sound=not args.no_sound, wav=args.wav,
+              record=record, who=_who(args))
     try:
         app.start()
         summary = app.run(frames=frames, screenshot=screenshot)
@@ -222,6 +241,57 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['screenshot']}")
         if "wav" in summary:
             print(f"wrote {summary['wav']}")
+        if "record" in summary:
+            print(f"recorded the session to {summary['record']}")
+    return 0
+
+
+# --------------------------------------------------------------- sessions
+def cmd_sessions_info(args) -> int:
+    from .record import read_session, session_info
+
+    info = session_info(read_session(args.file))
+    if args.json:
+        _print_json(info)
+        return 0
+    for k, v in info.items():
+        if k == "injuries":
+            print(f"injuries: {len(v)}")
+            for i in v[:20]:
+                print(f"  {i['t_s']:9.3f} s  {i['kind']:8s} {i['structure']}")
+        elif isinstance(v, dict):
+            print(f"{k}: " + (", ".join(f"{kk} {vv}" for kk, vv in v.items()) or "none"))
+        else:
+            print(f"{k}: {v}")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .model import warmup
+    from .record import read_session, replay, verify
+
+    session = read_session(args.file)
+    warmup()
+    if args.verify:
+        report = verify(session)
+        if args.json:
+            _print_json(report)
+        else:
+            print(f"{report['file']}: replayed {report['samples']} samples; removals "
+                  f"{report['removals_replayed']} replayed vs {report['removals_recorded']} "
+                  f"recorded: {'identical' if report['removals_match'] else 'DIFFERENT'}; "
+                  f"forces {'identical' if report['forces_match'] else 'DIFFERENT'}")
+            if report["first_mismatch"]:
+                print(f"first difference: {report['first_mismatch']}")
+        return 0 if report["ok"] else 1
+    out = replay(session)
+    res = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
+           "voxels_removed": int(len(out["removals"]["t_s"]))}
+    if args.json:
+        _print_json(res)
+    else:
+        print(f"{res['file']}: replayed {res['samples']} samples, "
+              f"{res['voxels_removed']} voxels removed")
     return 0
 
 
@@ -282,7 +352,14 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
                        help="final surface mesh format (default ply)")
 
+    def who_opts(s):
+        s.add_argument("--participant", help="participant id, stored in the recording")
+        s.add_argument("--group", help="participant group (e.g. resident, expert)")
+        s.add_argument("--notes", help="free notes stored in the recording")
+
     s = sub.add_parser("simulate", help="drill a scripted trajectory headless at 1 kHz")
+    s.add_argument("--record", metavar="FILE.h5", help="record the session to this file")
+    who_opts(s)
     run_opts(s, True)
     s.add_argument("--out", help="folder for the final mesh and summary.json")
     s.add_argument("--check", action="store_true",
@@ -318,10 +395,30 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
     s.add_argument("--wav", metavar="FILE.wav", help="record the drill sound")
     s.add_argument("--no-sound", action="store_true", help="no audio process")
+    s.add_argument("--record", metavar="FILE.h5",
+                   help="record the session to this file (default: a new file in "
+                        "$BONESIM_SESSIONS or ~/.local/share/bonesim/sessions)")
+    s.add_argument("--no-record", action="store_true", help="do not record the session")
+    who_opts(s)
     s.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"),
                    help="window size [px]")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("sessions", help="recorded sessions (HDF5 files)")
+    ssub = s.add_subparsers(dest="sessions_cmd", metavar="ACTION", required=True)
+    si = ssub.add_parser("info", help="summarize a session file (schema checked)")
+    si.add_argument("file", help="session file (.h5)")
+    si.add_argument("--json", action="store_true", help="print JSON")
+    si.set_defaults(func=cmd_sessions_info)
+
+    s = sub.add_parser("replay", help="re-run a session's samples through the engine")
+    s.add_argument("file", help="session file (.h5)")
+    s.add_argument("--verify", action="store_true",
+                   help="check that the removals and forces equal the recording bit for "
+                        "bit (exit status 1 if not)")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")
     s.add_argument("--json", action="store_true", help="print one JSON object")

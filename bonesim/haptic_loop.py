@@ -101,16 +101,21 @@ def attach(handle) -> tuple:
     return sh, rings
 
 
-def push_sample(ring: events.Ring, t: float, state, hand_mm, drill: bool,
+def push_sample(ring: events.Ring, t: float, state, hand_mm, axis, drill: bool,
                 speed: float, direction: int, burr: int, epoch: int, buttons: int,
                 force_n, vib_n) -> None:
-    """Append one step's record to the ``samples`` ring (a few microseconds)."""
+    """Append one step's record to the ``samples`` ring (a few microseconds).
+
+    ``axis`` is the axis exactly as handed to :func:`~bonesim.model.step` (not
+    the normalized ``state.axis``), so that re-stepping the records
+    reproduces the run bit for bit.
+    """
     f = ring.fields
     q = int(ring.head[0]) & (f["t_s"].shape[0] - 1)
     out = state.out
     f["t_s"][q] = t
     f["pos_mm"][q] = state.pos_mm
-    f["axis"][q] = state.axis
+    f["axis"][q] = axis
     f["hand_mm"][q] = hand_mm
     f["drill"][q] = drill
     f["speed_rpm"][q] = speed
@@ -227,7 +232,7 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                     out_f *= m.device.max_force_n / norm
                 f = out_f
             device.write_force(f)
-            push_sample(samples, t, state, r.pos_mm, drill, speed, direction, burr,
+            push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
                         int(epoch), r.buttons, f, fv)
             status[ST_T] = t
             status[ST_POS:ST_POS + 3] = state.pos_mm

@@ -67,7 +67,7 @@ class SurfaceConsumer:
 
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
                    mesh_format: str = "ply", surface: bool = True,
-                   progress=None) -> dict:
+                   progress=None, record=None, header: dict | None = None) -> dict:
     """Drill ``traj`` into ``model`` and summarize the run.
 
     Parameters
@@ -86,6 +86,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
         Maintain the surface (False: haptics only, for benchmarks).
     progress : callable, optional
         Called with the fraction done now and then.
+    record : path, optional
+        Record the run to this new session file (:mod:`bonesim.record`).
+    header : dict, optional
+        The recording's header (default :func:`bonesim.record.make_header`).
 
     Returns
     -------
@@ -104,21 +108,31 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     contact = np.zeros(n, dtype=bool)
     perf = time.perf_counter_ns
     pos, axis = samples.pos_mm, samples.axis
-    for q in range(n):
-        smp = Sample(samples.t_s[q], pos[q], axis[q], bool(samples.drill[q]),
-                     float(samples.speed_rpm[q]), int(samples.direction[q]))
-        t0 = perf()
-        f = step(model, state, smp)
-        step_ns[q] = perf() - t0
-        force[q] = np.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
-        contact[q] = state.out[O_N_IMMERSED] > 0
-        if consumer is not None and q % frame_every == frame_every - 1:
-            consumer.drain()
-        if progress is not None and q % 5000 == 0:
-            progress(q / n)
+    rec = _Recording(model, state, record, header) if record is not None else None
+    try:
+        for q in range(n):
+            smp = Sample(samples.t_s[q], pos[q], axis[q], bool(samples.drill[q]),
+                         float(samples.speed_rpm[q]), int(samples.direction[q]))
+            t0 = perf()
+            f = step(model, state, smp)
+            step_ns[q] = perf() - t0
+            if rec is not None:
+                rec.push(smp, f)
+            force[q] = np.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+            contact[q] = state.out[O_N_IMMERSED] > 0
+            if consumer is not None and q % frame_every == frame_every - 1:
+                consumer.drain()
+            if progress is not None and q % 5000 == 0:
+                progress(q / n)
+    except BaseException:
+        if rec is not None:                # keep what was recorded, then fail
+            rec.close()
+        raise
     if consumer is not None:
         consumer.drain()
     summary = _summary(model, state, step_ns, force, contact, consumer)
+    if rec is not None:
+        summary["record"] = rec.close()
     if check and consumer is not None:
         from .surface import Surface
 
@@ -138,6 +152,36 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     if out_dir is not None and consumer is not None:
         Path(summary["summary"]).write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+class _Recording:
+    """Feeds a session file from an in-process run (the haptic loop's
+    ``samples`` ring plus the state's rings, drained every half ring)."""
+
+    def __init__(self, model, state, path, header):
+        from .record import Drainer, SessionWriter, make_header
+
+        self.state = state
+        self.ring = events.Ring.create(1 << 12, **events.OTHER_RINGS["samples"][1])
+        header = make_header(model, input_device="scripted") if header is None else header
+        self.writer = SessionWriter(path, header)
+        self.drainer = Drainer(self.writer, {"samples": self.ring, "removed": state.removed,
+                                             "injuries": state.injuries})
+        self.zero = np.zeros(3)
+
+    def push(self, smp, f) -> None:
+        from .haptic_loop import push_sample
+
+        push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
+                    smp.speed_rpm, smp.direction, 0, 0, 0, f, self.zero)
+        if self.ring.count - self.drainer.cursors["samples"].pos >= self.ring.capacity // 2:
+            self.drainer.drain()
+            self.writer.flush()
+
+    def close(self) -> str:
+        self.drainer.drain()
+        self.writer.close()
+        return str(self.writer.path)
 
 
 def _same_surface(a, b) -> bool:

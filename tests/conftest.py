@@ -10,6 +10,15 @@ from pathlib import Path
 import pytest
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _sessions_folder(tmp_path_factory):
+    """Interactive runs record by default; keep their files out of $HOME."""
+    import os
+
+    os.environ["BONESIM_SESSIONS"] = str(tmp_path_factory.mktemp("sessions"))
+    yield
+
+
 @pytest.fixture(scope="session")
 def xdisplay():
     """A private Xvfb server on a random display number; yields ``":N"``."""

@@ -795,6 +795,12 @@ class Scene:
         """Frame all visible props."""
         self.renderer.ResetCamera()
 
+    def camera_pose(self) -> tuple:
+        """The camera now: eye [mm], focal point [mm], up vector, as (3,) arrays."""
+        c = self.renderer.GetActiveCamera()
+        return (np.array(c.GetPosition()), np.array(c.GetFocalPoint()),
+                np.array(c.GetViewUp()))
+
     def view_direction(self) -> np.ndarray:
         """Unit vector from the eye toward the focal point."""
         return np.array(self.renderer.GetActiveCamera().GetDirectionOfProjection())

@@ -1,0 +1,762 @@
+"""Session recording: one HDF5 file per run, readable while it is written.
+
+A recording holds everything needed to review, replay and score a run: a
+header (who, what case and burrs with content hashes, device limits), the
+device-sample stream at the haptic rate, forces, every voxel removal,
+injuries, the camera stream at the frame rate and user-interface events. The
+layout is documented in ``docs/session_schema.md`` and versioned by
+:data:`SCHEMA_VERSION`; :func:`read_session` checks it.
+
+How the data gets there without slowing the haptic loop
+-------------------------------------------------------
+The loop only appends records to shared-memory rings (``samples``,
+``removed``, ``injuries``; the window adds ``camera`` and ``ui``). A
+:class:`Recorder` runs a writer in its own process that drains the rings
+every :data:`FLUSH_S` and appends the batches to the file, which is open in
+HDF5's single-writer/multiple-reader (SWMR) mode: readers may open it while
+it grows, and a writer killed outright (SIGKILL) leaves a file that reads
+back complete up to its last flush. In-process runs (``bonesim simulate``,
+:func:`bonesim.simulate.run_trajectory`) feed a :class:`Drainer` directly.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import events
+from .errors import BonesimError
+from .shared import SharedArrays
+
+#: Version of the file layout written here (``docs/session_schema.md``).
+SCHEMA_VERSION = 1
+#: Value of the root attribute ``format``.
+FORMAT = "bonesim-session"
+#: How often the writer drains the rings and flushes the file [s].
+FLUSH_S = 0.05
+#: Rows per HDF5 chunk, per group.
+CHUNK_ROWS = {"samples": 4096, "removals": 8192, "injuries": 256, "camera": 1024,
+              "events": 256}
+#: Columns of each group: name -> (dtype, trailing shape). ``samples``,
+#: ``camera`` and ``events`` are the rings of the same names
+#: (:data:`bonesim.events.OTHER_RINGS`); ``removals`` adds ``visible`` to the
+#: ``removed`` ring (1 visible from the eye, 0 hidden, -1 unknown).
+GROUPS = {
+    "samples": events.OTHER_RINGS["samples"][1],
+    "removals": {**events.RINGS["removed"][1], "visible": (np.int8, ())},
+    "injuries": events.RINGS["injuries"][1],
+    "camera": events.OTHER_RINGS["camera"][1],
+    "events": events.OTHER_RINGS["ui"][1],
+}
+#: Header keys every file must carry.
+HEADER_KEYS = ("bonesim_version", "case", "burrs", "oversample", "voxel_mm", "structures",
+               "device", "rate_hz", "start_time", "participant", "group", "notes",
+               "model_sha256", "machine")
+
+
+def _h5py():
+    try:
+        import h5py
+    except ImportError as exc:                                  # pragma: no cover
+        raise BonesimError("session files need h5py (pip install h5py)") from exc
+    return h5py
+
+
+# ---------------------------------------------------------------------------
+# Identities and the header
+# ---------------------------------------------------------------------------
+def _hash_path(h, path: Path) -> None:
+    if path.is_dir():
+        for p in sorted(q for q in path.rglob("*") if q.is_file()):
+            h.update(str(p.relative_to(path)).encode())
+            h.update(p.read_bytes())
+    elif path.is_file():
+        h.update(path.read_bytes())
+
+
+def case_sha256(case) -> str:
+    """Content hash of a case: its manifest and the volume files it names."""
+    h = hashlib.sha256()
+    h.update(Path(case.manifest).read_bytes())
+    for p in (case.volume.path, case.volume.labels):
+        if p is not None:
+            _hash_path(h, Path(p))
+    return h.hexdigest()
+
+
+def burr_sha256(burr) -> str:
+    """Content hash of a burr's resolved values (family values included)."""
+    import dataclasses
+
+    d = {k: v for k, v in dataclasses.asdict(burr).items() if k != "source"}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def model_sha256(model) -> str:
+    """Hash of every array the haptic step reads: equal hashes, equal physics."""
+    h = hashlib.sha256()
+    g = model.grid
+    for a in (g.keys, g.vals, g.density, g.label, np.asarray(g.origin_mm, float),
+              np.float64(g.spacing_mm), model.stiff, model.removal, model.injury,
+              model.stencil.packed, model.params):
+        a = np.ascontiguousarray(a)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _finite(x):
+    return None if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def make_header(model, burrs=(), *, participant: str = "", group: str = "",
+                notes: str = "", rate_hz: float | None = None,
+                input_device: str = "") -> dict:
+    """The header of a session of ``model`` (burr 0) and further ``burrs``.
+
+    Parameters
+    ----------
+    model : Model
+        Must come from a case file (``model.case`` set) to be replayable.
+    burrs : sequence of Burr
+        Burrs 1, 2, ... the user may switch to.
+    participant, group, notes : str
+        Free text from the command line.
+    rate_hz : float, optional
+        Haptic rate [Hz] (default the model's).
+    input_device : str
+        Name of the input backend (``mouse``, ``scripted``, a haptic device).
+
+    The header's ``device`` is ``model.device``, the limits the physics was
+    built with, so that a replay rebuilds the same model.
+    """
+    import platform
+
+    import numba
+
+    from . import __version__
+
+    case = model.case
+    dev = model.device
+    all_burrs = [model.burr] + list(burrs)
+    models = [model] + [model.with_burr(b) for b in burrs]
+    return {
+        "bonesim_version": __version__,
+        "case": {"name": model.name,
+                 "path": str(Path(case.manifest).resolve()) if case is not None else None,
+                 "sha256": case_sha256(case) if case is not None else None},
+        "burrs": [{"name": b.name, "sha256": burr_sha256(b),
+                   "path": str(b.source) if getattr(b, "source", None) else None}
+                  for b in all_burrs],
+        "model_sha256": [model_sha256(m) for m in models],
+        "oversample": int(model.oversample),
+        "voxel_mm": float(model.spacing_mm),
+        "origin_mm": [float(x) for x in model.grid.origin_mm],
+        "shape": [int(x) for x in model.grid.shape],
+        "structures": [{"label": s, "name": st.name, "kind": st.kind}
+                       for s, st in enumerate(model.structures, start=1)],
+        "device": {"name": dev.name, "max_force_n": _finite(float(dev.max_force_n)),
+                   "workspace_mm": [_finite(float(x)) for x in dev.workspace_mm],
+                   "max_stiffness_n_per_mm": _finite(float(dev.max_stiffness_n_per_mm)),
+                   "rate_hz": float(dev.rate_hz)},
+        "input": str(input_device or dev.name),
+        "rate_hz": float(model.haptic_rate_hz if rate_hz is None else rate_hz),
+        "start_time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "participant": str(participant), "group": str(group), "notes": str(notes),
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "numpy": np.__version__, "numba": numba.__version__},
+    }
+
+
+def default_session_path(case: str, participant: str = "") -> Path:
+    """Where interactive runs record by default: ``$BONESIM_SESSIONS`` or
+    ``$XDG_DATA_HOME/bonesim/sessions`` (``~/.local/share/...``)."""
+    root = os.environ.get("BONESIM_SESSIONS")
+    if not root:
+        xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+        root = str(Path(xdg) / "bonesim" / "sessions")
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    who = "".join(c if c.isalnum() or c in "-_" else "_" for c in participant) or "anon"
+    return Path(root) / f"{stamp}-{case}-{who}.h5"
+
+
+# ---------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------
+class SessionWriter:
+    """Appends batches of records to a new session file (SWMR mode).
+
+    Parameters
+    ----------
+    path : path
+        New file; an existing file is an error unless ``overwrite``.
+    header : dict
+        See :func:`make_header`.
+    overwrite : bool
+    """
+
+    def __init__(self, path, header: dict, overwrite: bool = False):
+        h5py = _h5py()
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise BonesimError(f"{self.path}: a file of that name exists; choose another "
+                               "--record path")
+        missing = [k for k in HEADER_KEYS if k not in header]
+        if missing:
+            raise ValueError(f"session header lacks {missing}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            f = h5py.File(self.path, "w", libver="latest")
+        except OSError as exc:
+            raise BonesimError(f"{self.path}: cannot create the session file ({exc})") from exc
+        self.f = f
+        f.attrs["format"] = FORMAT
+        f.attrs["schema"] = SCHEMA_VERSION
+        f.attrs["header"] = json.dumps(header)
+        self.rows = {}
+        for g, cols in GROUPS.items():
+            grp = f.create_group(g)
+            for name, (dt, shape) in cols.items():
+                grp.create_dataset(name, shape=(0,) + tuple(shape),
+                                   maxshape=(None,) + tuple(shape),
+                                   chunks=(CHUNK_ROWS[g],) + tuple(shape), dtype=np.dtype(dt),
+                                   compression="lzf", shuffle=True)
+            self.rows[g] = 0
+        # ``closed`` turns 1 when the writer finishes cleanly; attributes
+        # cannot change under SWMR, datasets can
+        f.create_dataset("closed", data=np.zeros(1, np.uint8))
+        f.swmr_mode = True
+        self.flushes = 0
+
+    def append(self, group: str, cols: dict) -> int:
+        """Append rows (``cols``: column name -> array, equal lengths); returns
+        the number appended. Columns absent from ``cols`` are filled with their
+        defaults (0, or -1 for ``visible``)."""
+        spec = GROUPS[group]
+        n = len(next(iter(cols.values()))) if cols else 0
+        if n == 0:
+            return 0
+        grp = self.f[group]
+        r0 = self.rows[group]
+        for name, (dt, shape) in spec.items():
+            ds = grp[name]
+            ds.resize((r0 + n,) + tuple(shape))
+            if name in cols:
+                ds[r0:r0 + n] = np.asarray(cols[name]).astype(dt, copy=False)
+            elif name == "visible":
+                ds[r0:r0 + n] = -1
+        self.rows[group] = r0 + n
+        return n
+
+    def flush(self) -> None:
+        """Make everything appended so far durable and visible to readers."""
+        for g in GROUPS:
+            for ds in self.f[g].values():
+                ds.flush()
+        self.f.flush()
+        self.flushes += 1
+
+    def close(self) -> None:
+        if self.f is None:
+            return
+        self.flush()
+        self.f["closed"][0] = 1
+        self.f["closed"].flush()
+        self.f.close()
+        self.f = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class Drainer:
+    """Moves new ring records into a :class:`SessionWriter`.
+
+    Parameters
+    ----------
+    writer : SessionWriter
+    rings : dict of str -> events.Ring
+        Any of ``samples``, ``removed``, ``injuries``, ``camera``, ``ui``.
+        Cursors start at record 0: the rings must not have wrapped yet.
+    """
+
+    #: ring name -> file group
+    TARGET = {"samples": "samples", "removed": "removals", "injuries": "injuries",
+              "camera": "camera", "ui": "events"}
+
+    def __init__(self, writer: SessionWriter, rings: dict):
+        self.writer = writer
+        self.cursors = {name: events.Cursor(ring, 0) for name, ring in rings.items()}
+        self.rows = 0
+        self.overflows = 0
+
+    def drain(self) -> int:
+        """Append everything new; returns the rows written."""
+        n = 0
+        for name, cur in self.cursors.items():
+            try:
+                recs = cur.drain()
+            except events.RingOverflow:
+                # the writer fell a whole ring behind (the machine stalled for
+                # a minute): say so in the file and go on from what is left
+                self.overflows += 1
+                cur.pos = cur.ring.count - cur.ring.capacity + 1
+                recs = cur.drain()
+                self.writer.append("events", {"t_s": [math.nan], "name": [b"overflow"],
+                                              "value": [name.encode()]})
+            n += self.writer.append(self.TARGET[name], recs)
+        self.rows += n
+        return n
+
+
+# control array of a Recorder's writer process
+(C_STOP, C_ROWS, C_FLUSHES, C_READY, C_ERROR, C_OVERFLOWS, C_LAST_FLUSH) = range(7)
+
+
+def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite) -> None:
+    from .haptic_loop import attach
+
+    lsh, rings = attach(loop_handle)
+    own = SharedArrays.attach(own_handle)
+    ctl = own.arrays["ctl"]
+    rings = {"samples": rings["samples"], "removed": rings["removed"],
+             "injuries": rings["injuries"],
+             "camera": events.ring_from_arrays("camera", own.arrays),
+             "ui": events.ring_from_arrays("ui", own.arrays)}
+    try:
+        writer = SessionWriter(path, header, overwrite=overwrite)
+    except Exception as exc:
+        ctl[C_ERROR] = 1.0
+        own.arrays["error"][:] = np.frombuffer(str(exc).encode()[:255].ljust(256), np.uint8)
+        raise
+    drainer = Drainer(writer, rings)
+    ctl[C_READY] = 1.0
+    try:
+        while ctl[C_STOP] == 0.0:
+            t0 = time.monotonic()
+            drainer.drain()
+            writer.flush()
+            ctl[C_ROWS] = drainer.rows
+            ctl[C_FLUSHES] = writer.flushes
+            ctl[C_OVERFLOWS] = drainer.overflows
+            ctl[C_LAST_FLUSH] = time.time()
+            time.sleep(max(0.0, flush_s - (time.monotonic() - t0)))
+        drainer.drain()
+        ctl[C_ROWS] = drainer.rows
+    finally:
+        writer.close()
+        ctl[C_FLUSHES] = writer.flushes
+        ctl[C_STOP] = 2.0                      # done
+        own.close()
+        lsh.close()
+
+
+class Recorder:
+    """Records a running :class:`~bonesim.haptic_loop.HapticLoop` to a file.
+
+    The writer runs in its own process. The window side may add the camera
+    pose (:meth:`camera`) and UI events (:meth:`event`); both are stamped with
+    the loop's clock.
+
+    Parameters
+    ----------
+    loop : HapticLoop
+        Started (or about to start) within the last minute: the writer reads
+        its rings from record 0.
+    path : path
+        New session file.
+    header : dict
+        See :func:`make_header`.
+    flush_s : float
+        Drain-and-flush period [s]; at most this much is lost to a crash.
+    """
+
+    def __init__(self, loop, path, header: dict, flush_s: float = FLUSH_S,
+                 overwrite: bool = False):
+        self.loop = loop
+        self.path = Path(path)
+        spec = (events.ring_arrays_spec("camera") + events.ring_arrays_spec("ui")
+                + [("ctl", (8,), np.float64), ("error", (256,), np.uint8)])
+        self._sh = SharedArrays.create(spec)
+        self._camera = events.ring_from_arrays("camera", self._sh.arrays)
+        self._ui = events.ring_from_arrays("ui", self._sh.arrays)
+        self.ctl = self._sh["ctl"]
+        self._args = (loop.handle, self._sh.handle, str(self.path), header, flush_s,
+                      overwrite)
+        self._proc = None
+
+    def start(self, timeout_s: float = 60.0) -> "Recorder":
+        ctx = mp.get_context("spawn")
+        self._proc = ctx.Process(target=_writer_main, args=self._args,
+                                 name="bonesim-recorder", daemon=True)
+        self._proc.start()
+        t_end = time.monotonic() + timeout_s
+        while self.ctl[C_READY] == 0.0:
+            if self.ctl[C_ERROR] or not self._proc.is_alive():
+                msg = bytes(self._sh["error"]).rstrip(b"\0 ").decode(errors="replace")
+                self._proc.join(1.0)
+                raise BonesimError(msg or f"{self.path}: the recorder failed to start")
+            if time.monotonic() > t_end:
+                raise BonesimError(f"{self.path}: the recorder did not start in time")
+            time.sleep(0.01)
+        return self
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def _now(self) -> float:
+        from .haptic_loop import ST_T
+
+        return float(self.loop.status[ST_T])
+
+    def camera(self, eye_mm, focal_mm, up) -> None:
+        """Log the camera pose (call once per frame)."""
+        r = self._camera
+        q = r.count & (r.capacity - 1)
+        r.fields["t_s"][q] = self._now()
+        r.fields["eye_mm"][q] = eye_mm
+        r.fields["focal_mm"][q] = focal_mm
+        r.fields["up"][q] = up
+        r.head[0] += 1
+
+    def event(self, name: str, value="") -> None:
+        """Log a user-interface event (key, burr change, reset, ...)."""
+        r = self._ui
+        q = r.count & (r.capacity - 1)
+        r.fields["t_s"][q] = self._now()
+        r.fields["name"][q] = str(name).encode()[:16]
+        r.fields["value"][q] = str(value).encode()[:64]
+        r.head[0] += 1
+
+    def stats(self) -> dict:
+        """Rows written, flushes and overflows so far."""
+        return {"rows": int(self.ctl[C_ROWS]), "flushes": int(self.ctl[C_FLUSHES]),
+                "overflows": int(self.ctl[C_OVERFLOWS]), "path": str(self.path)}
+
+    def close(self, timeout_s: float = 30.0) -> dict:
+        """Drain what is left, close the file cleanly and stop the writer."""
+        if self._proc is not None:
+            self.ctl[C_STOP] = 1.0
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(5.0)
+            self._proc = None
+        out = self.stats()
+        self._sh.close()
+        return out
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ---------------------------------------------------------------------------
+# Reading
+# ---------------------------------------------------------------------------
+@dataclass
+class Session:
+    """A recorded run, read into memory (see ``docs/session_schema.md``).
+
+    Attributes
+    ----------
+    path : Path
+    schema : int
+    header : dict
+    complete : bool
+        The writer closed the file cleanly (False after a crash: the data is
+        complete up to the writer's last flush).
+    samples, removals, injuries, camera : dict of str -> ndarray
+        Columns of equal length per group. ``removals`` gains ``epoch``
+        (case resets before each removal), derived from the samples.
+    events : list of (t_s, name, value)
+    """
+
+    path: Path
+    schema: int
+    header: dict
+    complete: bool
+    samples: dict
+    removals: dict
+    injuries: dict
+    camera: dict
+    events: list = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        t = self.samples["t_s"]
+        return float(t[-1] - t[0]) if len(t) else 0.0
+
+    def burr_models(self, check: bool = True) -> list:
+        """One :class:`~bonesim.model.Model` per burr index, rebuilt from the
+        recorded case and burrs; with ``check``, their physics must hash to
+        what was recorded."""
+        from .burrs import load_burr
+        from .devices import DeviceCaps
+        from .model import load_model
+
+        h = self.header
+        case = h["case"]
+        src = case.get("path") or case["name"]
+        if case.get("path") and not Path(case["path"]).exists():
+            src = case["name"]
+        dev = h["device"]
+        inf = math.inf
+        caps = DeviceCaps(dev["name"], dev["max_force_n"] or inf,
+                          tuple(x or inf for x in dev["workspace_mm"]),
+                          dev["max_stiffness_n_per_mm"] or inf, dev["rate_hz"])
+        burrs = []
+        for b in h["burrs"]:
+            p = b.get("path")
+            try:
+                burrs.append(load_burr(b["name"]))
+            except Exception:
+                if p is None:
+                    raise
+                burrs.append(load_burr(p))
+        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]))
+        models = [model] + [model.with_burr(b) for b in burrs[1:]]
+        if check:
+            for q, (m, want) in enumerate(zip(models, h["model_sha256"])):
+                if model_sha256(m) != want:
+                    raise BonesimError(
+                        f"{self.path}: burr {q} ({h['burrs'][q]['name']}) on case "
+                        f"{case['name']!r} no longer builds the recorded model (the case, "
+                        "burr or material files changed since the recording)")
+        return models
+
+    def load_model(self, check: bool = True):
+        """The model of burr 0 (see :meth:`burr_models`)."""
+        return self.burr_models(check)[0]
+
+
+def _open(path: Path):
+    h5py = _h5py()
+    if not path.exists():
+        raise BonesimError(f"{path}: no such session file")
+    try:
+        return h5py.File(path, "r", swmr=True, locking=False)
+    except OSError as exc:
+        raise BonesimError(f"{path}: not a readable HDF5 session file ({exc})") from exc
+
+
+def read_session(path) -> Session:
+    """Read and check a session file.
+
+    Raises
+    ------
+    BonesimError
+        Naming the file and the problem: not HDF5, not a bonesim session,
+        written by a newer schema, a missing or malformed header field, group
+        or column.
+    """
+    path = Path(path)
+    with _open(path) as f:
+        fmt = f.attrs.get("format")
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode()
+        if fmt != FORMAT:
+            raise BonesimError(f"{path}: not a bonesim session (format attribute is "
+                               f"{fmt!r}, expected {FORMAT!r})")
+        try:
+            schema = int(f.attrs["schema"])
+        except (KeyError, TypeError, ValueError):
+            raise BonesimError(f"{path}: the schema version attribute is missing or not "
+                               "an integer") from None
+        if schema > SCHEMA_VERSION:
+            raise BonesimError(f"{path}: written with session schema {schema}, newer than "
+                               f"this bonesim reads ({SCHEMA_VERSION}); upgrade bonesim")
+        if schema < 1:
+            raise BonesimError(f"{path}: invalid session schema version {schema}")
+        try:
+            header = json.loads(f.attrs["header"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise BonesimError(f"{path}: the header attribute is missing or not JSON "
+                               f"({exc})") from None
+        if not isinstance(header, dict):
+            raise BonesimError(f"{path}: the header is not a JSON object")
+        missing = [k for k in HEADER_KEYS if k not in header]
+        if missing:
+            raise BonesimError(f"{path}: header lacks {', '.join(missing)}")
+        groups = {}
+        for g, cols in GROUPS.items():
+            if g not in f:
+                raise BonesimError(f"{path}: group /{g} is missing")
+            data = {}
+            for name, (dt, shape) in cols.items():
+                if name not in f[g]:
+                    raise BonesimError(f"{path}: dataset /{g}/{name} is missing")
+                ds = f[g][name]
+                if ds.shape[1:] != tuple(shape) or ds.dtype != np.dtype(dt):
+                    raise BonesimError(
+                        f"{path}: dataset /{g}/{name} has shape {ds.shape} and type "
+                        f"{ds.dtype}; schema {SCHEMA_VERSION} expects (n, "
+                        f"{', '.join(map(str, shape))}) {np.dtype(dt)}".replace("(n, )", "(n,)"))
+                data[name] = ds[()]
+            # a crash between two columns' resizes leaves them uneven: keep
+            # the rows every column has
+            n = min(len(a) for a in data.values())
+            groups[g] = {k: a[:n] for k, a in data.items()}
+        complete = bool("closed" in f and f["closed"][0] == 1)
+    s = groups["samples"]
+    rem = groups["removals"]
+    if len(s["t_s"]):
+        idx = np.clip(np.searchsorted(s["t_s"], rem["t_s"]), 0, len(s["t_s"]) - 1)
+        rem["epoch"] = s["epoch"][idx]
+    else:
+        rem["epoch"] = np.zeros(len(rem["t_s"]), np.int32)
+    ev = groups["events"]
+    evlist = [(float(t), n.decode(errors="replace"), v.decode(errors="replace"))
+              for t, n, v in zip(ev["t_s"], ev["name"], ev["value"])]
+    return Session(path, schema, header, complete, s, rem, groups["injuries"],
+                   groups["camera"], evlist)
+
+
+def session_info(session: Session) -> dict:
+    """JSON-ready summary of a session (``bonesim sessions info``)."""
+    h = session.header
+    s = session.samples
+    t = s["t_s"]
+    names = {st["label"]: st["name"] for st in h["structures"]}
+    labels, counts = np.unique(session.removals["label"], return_counts=True)
+    dt = np.diff(t)
+    inj = session.injuries
+    return {
+        "file": str(session.path),
+        "size_bytes": session.path.stat().st_size,
+        "schema": session.schema,
+        "complete": session.complete,
+        "bonesim_version": h["bonesim_version"],
+        "start_time": h["start_time"],
+        "participant": h["participant"], "group": h["group"], "notes": h["notes"],
+        "case": h["case"]["name"],
+        "burrs": [b["name"] for b in h["burrs"]],
+        "device": h["device"]["name"],
+        "voxel_mm": h["voxel_mm"],
+        "duration_s": round(session.duration_s, 3),
+        "samples": int(len(t)),
+        "sample_rate_hz": round(float(1.0 / np.median(dt)), 1) if len(dt) else 0.0,
+        "resets": int(s["epoch"][-1]) if len(t) else 0,
+        "drill_on_s": round(float(np.sum(dt[s["drill"][:-1] > 0])), 3) if len(dt) else 0.0,
+        "max_force_n": round(float(np.linalg.norm(s["force_n"], axis=1).max()), 3)
+        if len(t) else 0.0,
+        "voxels_removed": int(len(session.removals["t_s"])),
+        "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
+                                 for lab, c in zip(labels, counts)},
+        "injuries": [{"t_s": round(float(ti), 4),
+                      "structure": names.get(int(lab), str(int(lab))),
+                      "kind": events.INJURY_KINDS[int(k)] if int(k) < 2 else str(int(k))}
+                     for ti, lab, k in zip(inj["t_s"], inj["label"], inj["kind"])],
+        "camera_frames": int(len(session.camera["t_s"])),
+        "events": len(session.events),
+    }
+
+
+# ---------------------------------------------------------------------------
+# Replay
+# ---------------------------------------------------------------------------
+def replay(session: Session, models=None, progress=None) -> dict:
+    """Re-run the recorded samples through the engine.
+
+    Parameters
+    ----------
+    session : Session
+    models : list of Model, optional
+        Default :meth:`Session.burr_models` (hash-checked).
+    progress : callable, optional
+        Called with the fraction done now and then.
+
+    Returns
+    -------
+    dict
+        ``removals`` (``t_s``, ``ijk``, ``label``), ``mag_n`` and
+        ``tangential_n`` per sample, and the final ``state``.
+    """
+    from .model import Sample, make_state, reset_state, step
+
+    models = session.burr_models() if models is None else models
+    s = session.samples
+    n = len(s["t_s"])
+    state = make_state(models[0])
+    for m in models:
+        state.fit_scratch(m)
+    from .haptics import O_MAG, O_TX, O_TZ
+
+    mag = np.zeros(n)
+    tang = np.zeros((n, 3))
+    cur = events.Cursor(state.removed, 0)
+    chunks = []
+    epoch = 0
+    t_col, pos, axis = s["t_s"], s["pos_mm"], s["axis"]
+    drill, speed, direc = s["drill"], s["speed_rpm"], s["direction"]
+    burr, ep = s["burr"], s["epoch"]
+    for q in range(n):
+        if int(ep[q]) != epoch:
+            reset_state(models[int(burr[q])], state, rings=False)
+            epoch = int(ep[q])
+        step(models[int(burr[q])], state,
+             Sample(float(t_col[q]), pos[q], axis[q], bool(drill[q]), float(speed[q]),
+                    int(direc[q])))
+        mag[q] = state.out[O_MAG]
+        tang[q] = state.out[O_TX:O_TZ + 1]
+        if state.removed.count - cur.pos > state.removed.capacity // 2:
+            chunks.append(cur.drain())
+        if progress is not None and q % 20000 == 0:
+            progress(q / max(n, 1))
+    chunks.append(cur.drain())
+    rem = {k: np.concatenate([c[k] for c in chunks]) for k in ("t_s", "ijk", "label")}
+    return {"removals": rem, "mag_n": mag, "tangential_n": tang, "state": state}
+
+
+def verify(session: Session, progress=None) -> dict:
+    """Replay ``session`` and compare with the recording bit for bit.
+
+    Returns
+    -------
+    dict
+        ``ok`` and, per stream, whether it matched and the first mismatch.
+    """
+    out = replay(session, progress=progress)
+    rec = session.removals
+    s = session.samples
+    if not session.complete and len(s["t_s"]):
+        # a file cut by a crash may hold removals of steps whose samples had
+        # not been flushed yet: compare what the samples cover
+        keep = rec["t_s"] <= s["t_s"][-1]
+        rec = {k: v[keep] for k, v in rec.items()}
+    got = out["removals"]
+    report = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
+              "removals_recorded": int(len(rec["t_s"])),
+              "removals_replayed": int(len(got["t_s"]))}
+    n = min(len(rec["t_s"]), len(got["t_s"]))
+    first = None
+    for k in ("t_s", "ijk", "label"):
+        a, b = rec[k][:n], got[k][:n]
+        bad = np.flatnonzero((a != b).reshape(n, -1).any(axis=1)) if n else []
+        if len(bad) and (first is None or bad[0] < first["index"]):
+            first = {"index": int(bad[0]), "field": k,
+                     "recorded": np.asarray(a[bad[0]]).tolist(),
+                     "replayed": np.asarray(b[bad[0]]).tolist()}
+    if first is None and len(rec["t_s"]) != len(got["t_s"]):
+        first = {"index": n, "field": "count", "recorded": int(len(rec["t_s"])),
+                 "replayed": int(len(got["t_s"]))}
+    report["removals_match"] = first is None
+    report["first_mismatch"] = first
+    report["forces_match"] = bool(np.array_equal(s["mag_n"], out["mag_n"])
+                                  and np.array_equal(s["tangential_n"], out["tangential_n"]))
+    report["ok"] = report["removals_match"] and report["forces_match"]
+    return report

@@ -1,0 +1,240 @@
+"""Session files: write, read back, replay bit for bit, survive SIGKILL, and
+refuse files they cannot trust with a clear error."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from multiprocessing import shared_memory
+
+import h5py
+import numpy as np
+import pytest
+
+from bonesim.case import load_case
+from bonesim.cli import _demo_trajectory, main
+from bonesim.errors import BonesimError
+from bonesim.haptic_loop import ST_T, HapticLoop
+from bonesim.model import load_model
+from bonesim.record import (GROUPS, SCHEMA_VERSION, Recorder, make_header, read_session,
+                            replay, session_info, verify)
+from bonesim.shared import SharedArrays
+from bonesim.simulate import run_trajectory
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("phantom", "cutting-5mm")
+
+
+@pytest.fixture(scope="module")
+def traj():
+    """The planned demo, from its first drilling sample, 8 s long."""
+    t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(t.drill)[0])
+    return t.at_times(t.t_s[start:start + 800])
+
+
+@pytest.fixture(scope="module")
+def recorded(model, traj, tmp_path_factory):
+    path = tmp_path_factory.mktemp("rec") / "run.h5"
+    header = make_header(model, participant="p07", group="novice", notes="first try")
+    summary = run_trajectory(model, traj, surface=False, record=path, header=header)
+    return path, summary
+
+
+def test_round_trip_header_streams_and_verify(recorded, model):
+    path, summary = recorded
+    s = read_session(path)
+    assert s.complete and s.schema == SCHEMA_VERSION
+    h = s.header
+    assert (h["participant"], h["group"], h["notes"]) == ("p07", "novice", "first try")
+    assert h["case"]["name"] == "phantom" and len(h["case"]["sha256"]) == 64
+    assert h["burrs"][0]["name"] == "cutting-5mm" and h["voxel_mm"] == model.spacing_mm
+    assert [st["name"] for st in h["structures"]] == [st.name for st in model.structures]
+    n = summary["steps"]
+    assert len(s.samples["t_s"]) == n
+    assert np.all(np.diff(s.samples["t_s"]) > 0)
+    # every removal the run made, in order, with its structure
+    assert len(s.removals["t_s"]) == summary["voxels_removed"] > 100
+    assert np.all(s.removals["visible"] == -1) and np.all(s.removals["epoch"] == 0)
+    assert np.all(np.linalg.norm(s.samples["force_n"], axis=1) <= model.max_force_n + 1e-9)
+    report = verify(s)
+    assert report["ok"], report
+    info = session_info(s)
+    assert info["voxels_removed"] == summary["voxels_removed"]
+    assert info["samples"] == n and info["sample_rate_hz"] == 1000.0
+
+
+def test_verify_catches_a_changed_removal(recorded, tmp_path):
+    path, _ = recorded
+    bad = tmp_path / "bad.h5"
+    shutil.copy(path, bad)
+    with h5py.File(bad, "r+") as f:
+        f["removals/ijk"][5, 0] += 1
+    report = verify(read_session(bad))
+    assert not report["ok"] and report["first_mismatch"]["index"] == 5
+    assert report["first_mismatch"]["field"] == "ijk"
+    assert main(["replay", str(bad), "--verify"]) == 1
+    assert main(["replay", str(path), "--verify"]) == 0
+
+
+def test_replay_reproduces_the_final_tissue(recorded, model, traj):
+    path, _ = recorded
+    out = replay(read_session(path))
+    fresh = load_model("phantom", "cutting-5mm")
+    from bonesim.model import Sample, make_state, step
+
+    st = make_state(fresh)
+    r = traj.resample(fresh.haptic_rate_hz)
+    for q in range(len(r.t_s)):
+        step(fresh, st, Sample(r.t_s[q], r.pos_mm[q], r.axis[q], bool(r.drill[q]),
+                               float(r.speed_rpm[q]), int(r.direction[q])))
+    np.testing.assert_array_equal(out["state"].grid.density, st.grid.density)
+
+
+# ------------------------------------------------------------ schema checks
+def _copy_with(path, tmp_path, edit):
+    bad = tmp_path / "edited.h5"
+    shutil.copy(path, bad)
+    with h5py.File(bad, "r+") as f:
+        edit(f)
+    return bad
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda f: f.attrs.__setitem__("schema", SCHEMA_VERSION + 1), "newer"),
+    (lambda f: f.attrs.__setitem__("schema", 0), "invalid session schema"),
+    (lambda f: f.attrs.__setitem__("format", "something-else"), "not a bonesim session"),
+    (lambda f: f.attrs.__setitem__("header", "{not json"), "not JSON"),
+    (lambda f: f.attrs.__setitem__("header", json.dumps({"case": {}})), "header lacks"),
+    (lambda f: f.__delitem__("removals"), "/removals is missing"),
+    (lambda f: f["samples"].__delitem__("force_n"), "/samples/force_n is missing"),
+    (lambda f: (f["samples"].__delitem__("t_s"),
+                f["samples"].create_dataset("t_s", data=np.zeros(3, np.float32))),
+     "/samples/t_s has shape"),
+])
+def test_broken_or_newer_files_get_a_clear_error(recorded, tmp_path, edit, words):
+    bad = _copy_with(recorded[0], tmp_path, edit)
+    with pytest.raises(BonesimError) as e:
+        read_session(bad)
+    assert str(bad) in str(e.value) and words in str(e.value)
+
+
+def test_not_hdf5_and_missing_files(tmp_path, capsys):
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"not an hdf5 file at all")
+    with pytest.raises(BonesimError, match="not a readable HDF5"):
+        read_session(junk)
+    assert main(["sessions", "info", str(tmp_path / "nope.h5")]) == 2
+    assert "no such session file" in capsys.readouterr().err
+
+
+def test_changed_case_is_refused_on_replay(recorded, tmp_path):
+    bad = _copy_with(recorded[0], tmp_path, lambda f: f.attrs.__setitem__(
+        "header", f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0')))
+    with pytest.raises(BonesimError, match="no longer builds the recorded model"):
+        replay(read_session(bad))
+
+
+def test_existing_file_is_not_overwritten(model, traj, recorded):
+    with pytest.raises(BonesimError, match="exists"):
+        run_trajectory(model, traj, surface=False, record=recorded[0])
+    assert read_session(recorded[0]).complete        # untouched
+
+
+def test_sessions_info_cli_json(recorded, capsys):
+    assert main(["sessions", "info", str(recorded[0]), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["participant"] == "p07" and info["complete"] is True
+
+
+# ----------------------------------------------------- live loop recording
+@pytest.mark.slow
+def test_live_loop_recording_replays_bit_for_bit(model, traj, tmp_path):
+    """The recorder drains a 1 kHz loop in another process; the recorded
+    samples re-stepped give the very same removals and forces."""
+    path = tmp_path / "live.h5"
+    loop = HapticLoop(model, device=("scripted", traj), run_s=2.0)
+    rec = Recorder(loop, path, make_header(model, input_device="scripted"))
+    try:
+        rec.start()
+        loop.start()
+        rec.event("key", "drill_toggle")
+        rec.camera((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+        assert loop.wait(30.0)
+        stats = rec.close()
+        n_samples, n_removed = loop.samples.count, loop.state.removed.count
+    finally:
+        loop.close()
+    s = read_session(path)
+    assert s.complete and stats["rows"] > 1500
+    assert len(s.samples["t_s"]) == n_samples
+    assert len(s.removals["t_s"]) == n_removed > 0
+    assert s.events[0][1:] == ("key", "drill_toggle") and len(s.camera["t_s"]) == 1
+    report = verify(s)
+    assert report["ok"], report
+
+
+_CHILD = r"""
+import json, sys, time
+from bonesim.case import load_case
+from bonesim.cli import _demo_trajectory
+from bonesim.haptic_loop import HapticLoop
+from bonesim.model import load_model
+from bonesim.record import Recorder, make_header
+import numpy as np
+m = load_model("phantom", "cutting-5mm")
+t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+s = int(np.flatnonzero(t.drill)[0])
+loop = HapticLoop(m, device=("scripted", t.at_times(t.t_s[s:])))
+rec = Recorder(loop, sys.argv[1], make_header(m)).start()
+loop.start()
+print(json.dumps({"loop": loop.handle, "rec": rec._sh.handle, "writer": rec.pid}), flush=True)
+while True:
+    time.sleep(1)
+"""
+
+
+@pytest.mark.slow
+def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
+    path = tmp_path / "killed.h5"
+    proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(path)],
+                            stdout=subprocess.PIPE, text=True, start_new_session=True)
+    handles = None
+    try:
+        handles = json.loads(proc.stdout.readline())
+        time.sleep(1.5)
+        # readable while being written (SWMR), and growing
+        n1 = len(read_session(path).samples["t_s"])
+        time.sleep(0.5)
+        n2 = len(read_session(path).samples["t_s"])
+        assert 0 < n1 < n2
+        time.sleep(0.3)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)      # the app, the loop and the writer
+        proc.wait(10)
+    try:
+        # the loop's last published time, from its orphaned shared memory
+        sh = SharedArrays.attach(tuple(handles["loop"]))
+        t_last = float(sh.arrays["status"][ST_T])
+        n_loop = int(sh.arrays["samples.head"][0])
+        sh.close()
+    finally:
+        for h in (handles["loop"], handles["rec"]):
+            try:
+                shared_memory.SharedMemory(h[0]).unlink()
+            except FileNotFoundError:
+                pass
+    s = read_session(path)
+    assert not s.complete
+    t = s.samples["t_s"]
+    # what is in the file is exactly what the loop produced, without holes
+    assert np.all(np.diff(t) > 0) and len(t) <= n_loop
+    lost_s = t_last - t[-1]
+    assert lost_s <= 0.15, f"lost {lost_s * 1e3:.0f} ms of samples"
+    assert verify(s)["ok"]
