@@ -327,6 +327,12 @@ def bench_dust(quick=False) -> dict:
     return run(quick=quick)
 
 
+def bench_recording(quick=False) -> dict:
+    from .bench_record import bench_recording as run
+
+    return run(quick=quick)
+
+
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -342,6 +348,8 @@ BENCHMARKS = {
     "first_frame_s": bench_render,
     "audio_rtf_p99": bench_audio,
     "dust_step_64_ms": bench_dust,
+    "recording_overhead_us": bench_recording,
+    "recording_writer_rows_per_s": bench_recording,
 }
 
 
