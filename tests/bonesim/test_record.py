@@ -238,3 +238,52 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     lost_s = t_last - t[-1]
     assert lost_s <= 0.15, f"lost {lost_s * 1e3:.0f} ms of samples"
     assert verify(s)["ok"]
+
+
+@pytest.mark.slow
+def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
+    """Mouse drilling, a burr change, a case reset, more drilling: the file
+    keeps every removal of both epochs and replays bit for bit."""
+    from bonesim.burrs import load_burr
+    from bonesim.haptic_loop import ST_EPOCH
+
+    cam = load_case("phantom").camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm)
+    view /= np.linalg.norm(view)
+    target = np.array([23.0, 3.0, -2.0]) + 3.0 * view
+    burr2 = load_burr("diamond-3mm")
+    path = tmp_path / "reset.h5"
+    loop = HapticLoop(model, burrs=[burr2])
+    rec = Recorder(loop, path, make_header(model, [burr2], input_device="mouse"))
+
+    def wait(cond):
+        end = time.monotonic() + 20.0
+        while not cond() and time.monotonic() < end:
+            time.sleep(0.01)
+        return cond()
+
+    try:
+        rec.start()
+        loop.start()
+        loop.set_target(target, view)
+        loop.set_drill(True, speed_rpm=60000.0)
+        assert wait(lambda: loop.state.removed.count > 20)
+        loop.set_burr(1)
+        n0 = loop.state.removed.count
+        assert wait(lambda: loop.state.removed.count > n0 + 5)
+        epoch = loop.reset()
+        assert wait(lambda: loop.status[ST_EPOCH] == epoch)
+        n1 = loop.state.removed.count
+        assert wait(lambda: loop.state.removed.count > n1 + 20)
+        loop.set_drill(False)
+        time.sleep(0.1)
+        rec.close()
+        n_removed = loop.state.removed.count
+    finally:
+        loop.close()
+    s = read_session(path)
+    assert len(s.removals["t_s"]) == n_removed
+    assert set(np.unique(s.removals["epoch"])) == {0, 1}
+    assert set(np.unique(s.samples["burr"])) == {0, 1}
+    report = verify(s)
+    assert report["ok"], report
