@@ -44,7 +44,7 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
 
     traj, _ = script
     app = App("phantom", "cutting-5mm", script=traj, offscreen=True, size=(320, 240),
-              sound=False)
+              sound=False, record=tmp_path / "app.h5", who={"participant": "t1"})
     try:
         app.start()
         before = app.consumer.surface.canonical()
@@ -68,6 +68,13 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     assert out["haptic_rate_hz"] > 0 and "haptic" in hud and "frame" in hud
     assert dust > 0                                   # removed bone became dust
     assert (tmp_path / "shot.png").stat().st_size > 1000
+    # the session was recorded: samples, every removal, camera per frame, the key
+    from bonesim.record import read_session
+
+    s = read_session(out["record"])
+    assert s.complete and s.header["participant"] == "t1"
+    assert len(s.camera["t_s"]) == 100 and ("key", "reset_case") in [e[1:] for e in s.events]
+    assert s.samples["epoch"][-1] == 1 and len(s.removals["t_s"]) >= out["voxels_removed"]
 
 
 def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
@@ -81,6 +88,11 @@ def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
     assert out["surface_updates"] > 0                 # the mesh followed the drilling
     assert re.search(r"haptic \d+ Hz\s+frame \d+ Hz", out["hud"]), out["hud"]
     assert "no display" not in res.stderr             # it really used the X server
+    from bonesim.record import read_session
+
+    s = read_session(out["record"])                  # recorded by default
+    assert Path(out["record"]).parent == Path(os.environ["BONESIM_SESSIONS"])
+    assert s.complete and len(s.camera["t_s"]) == 60
 
 
 def test_no_display_and_no_audio_fall_back_with_clear_messages(tmp_path):
