@@ -266,6 +266,20 @@ def cmd_sessions_info(args) -> int:
     return 0
 
 
+def cmd_sessions_list(args) -> int:
+    from .record import list_sessions, sessions_folder
+
+    rows = list_sessions(args.folder)
+    if args.json:
+        _print_json(rows)
+    elif not rows:
+        print(f"no sessions in {args.folder or sessions_folder()}")
+    else:
+        _table(rows, ["file", "start_time", "participant", "group", "case", "duration_s",
+                      "voxels_removed", "injuries", "complete", "error"])
+    return 0
+
+
 def cmd_replay(args) -> int:
     from .model import warmup
     from .record import read_session, replay, verify
@@ -411,6 +425,11 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("file", help="session file (.h5)")
     si.add_argument("--json", action="store_true", help="print JSON")
     si.set_defaults(func=cmd_sessions_info)
+    sl = ssub.add_parser("list", help="list the session files in a folder")
+    sl.add_argument("folder", nargs="?",
+                    help="folder (default $BONESIM_SESSIONS or ~/.local/share/bonesim/sessions)")
+    sl.add_argument("--json", action="store_true", help="print JSON")
+    sl.set_defaults(func=cmd_sessions_list)
 
     s = sub.add_parser("replay", help="re-run a session's samples through the engine")
     s.add_argument("file", help="session file (.h5)")

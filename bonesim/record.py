@@ -176,13 +176,19 @@ def make_header(model, burrs=(), *, participant: str = "", group: str = "",
     }
 
 
-def default_session_path(case: str, participant: str = "") -> Path:
+def sessions_folder() -> Path:
     """Where interactive runs record by default: ``$BONESIM_SESSIONS`` or
     ``$XDG_DATA_HOME/bonesim/sessions`` (``~/.local/share/...``)."""
     root = os.environ.get("BONESIM_SESSIONS")
     if not root:
         xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
         root = str(Path(xdg) / "bonesim" / "sessions")
+    return Path(root)
+
+
+def default_session_path(case: str, participant: str = "") -> Path:
+    """A new file name in :func:`sessions_folder`: time, case and participant."""
+    root = sessions_folder()
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     who = "".join(c if c.isalnum() or c in "-_" else "_" for c in participant) or "anon"
     return Path(root) / f"{stamp}-{case}-{who}.h5"
@@ -671,6 +677,25 @@ def session_info(session: Session) -> dict:
         "camera_frames": int(len(session.camera["t_s"])),
         "events": len(session.events),
     }
+
+
+def list_sessions(folder=None) -> list[dict]:
+    """One row per ``*.h5`` file in ``folder`` (default :func:`sessions_folder`),
+    newest first; unreadable files are listed with their error."""
+    folder = sessions_folder() if folder is None else Path(folder)
+    if not folder.is_dir():
+        raise BonesimError(f"{folder}: no such sessions folder")
+    rows = []
+    for p in sorted(folder.glob("*.h5"), key=lambda q: q.stat().st_mtime, reverse=True):
+        try:
+            info = session_info(read_session(p))
+            rows.append({k: info[k] for k in ("file", "start_time", "participant", "group",
+                                               "case", "duration_s", "voxels_removed",
+                                               "complete")}
+                        | {"injuries": len(info["injuries"])})
+        except BonesimError as exc:
+            rows.append({"file": str(p), "error": str(exc)})
+    return rows
 
 
 # ---------------------------------------------------------------------------

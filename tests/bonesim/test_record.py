@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 from multiprocessing import shared_memory
 
 import h5py
@@ -287,3 +288,13 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
     assert set(np.unique(s.samples["burr"])) == {0, 1}
     report = verify(s)
     assert report["ok"], report
+
+
+def test_sessions_list_shows_good_and_broken_files(recorded, tmp_path, capsys):
+    shutil.copy(recorded[0], tmp_path / "a.h5")
+    (tmp_path / "b.h5").write_bytes(b"junk")
+    assert main(["sessions", "list", str(tmp_path), "--json"]) == 0
+    rows = {Path(r["file"]).name: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["a.h5"]["participant"] == "p07" and rows["a.h5"]["complete"]
+    assert "not a readable HDF5" in rows["b.h5"]["error"]
+    assert main(["sessions", "list", str(tmp_path / "none")]) == 2
