@@ -865,6 +865,9 @@ class Scene:
             w2i.SetInput(self.render_window)
             w2i.SetInputBufferTypeToRGB()
             w2i.ReadFrontBufferOff()
+            # callers render just before: a second render per grab would
+            # double the cost of every frame read back (video export)
+            w2i.ShouldRerenderOff()
             self._w2i = w2i
         self._w2i.Modified()
         self._w2i.Update()
