@@ -296,39 +296,71 @@ class SessionWriter:
 class Drainer:
     """Moves new ring records into a :class:`SessionWriter`.
 
+    Removals and injuries are written once the sample of their step has been
+    (the loop publishes them just before that sample): a session ends with
+    its last sample, and every removal in it belongs to a recorded step.
+
     Parameters
     ----------
     writer : SessionWriter
     rings : dict of str -> events.Ring
         Any of ``samples``, ``removed``, ``injuries``, ``camera``, ``ui``.
         Cursors start at record 0: the rings must not have wrapped yet.
+    visibility : bonesim.visibility.VisibilityTracker, optional
+        Fills the removals' ``visible`` column (else -1, unknown).
     """
 
-    #: ring name -> file group
-    TARGET = {"samples": "samples", "removed": "removals", "injuries": "injuries",
-              "camera": "camera", "ui": "events"}
+    #: ring name -> file group, in drain order (samples before what follows them)
+    TARGET = {"samples": "samples", "camera": "camera", "removed": "removals",
+              "injuries": "injuries", "ui": "events"}
+    #: rings held back until the samples of their steps are in
+    HELD = ("removed", "injuries")
 
-    def __init__(self, writer: SessionWriter, rings: dict):
+    def __init__(self, writer: SessionWriter, rings: dict, visibility=None):
         self.writer = writer
-        self.cursors = {name: events.Cursor(ring, 0) for name, ring in rings.items()}
+        self.cursors = {name: events.Cursor(rings[name], 0)
+                        for name in self.TARGET if name in rings}
+        self.visibility = visibility
+        self.held = {name: None for name in self.HELD}
+        self.last_t = -math.inf if "samples" in rings else math.inf
         self.rows = 0
         self.overflows = 0
 
+    def _take(self, name: str, cur) -> dict:
+        try:
+            return cur.drain()
+        except events.RingOverflow:
+            # the writer fell a whole ring behind (the machine stalled for a
+            # minute): say so in the file and go on from what is left
+            self.overflows += 1
+            cur.pos = cur.ring.count - cur.ring.capacity + 1
+            self.writer.append("events", {"t_s": [math.nan], "name": [b"overflow"],
+                                          "value": [name.encode()]})
+            return cur.drain()
+
     def drain(self) -> int:
         """Append everything new; returns the rows written."""
-        n = 0
-        for name, cur in self.cursors.items():
-            try:
-                recs = cur.drain()
-            except events.RingOverflow:
-                # the writer fell a whole ring behind (the machine stalled for
-                # a minute): say so in the file and go on from what is left
-                self.overflows += 1
-                cur.pos = cur.ring.count - cur.ring.capacity + 1
-                recs = cur.drain()
-                self.writer.append("events", {"t_s": [math.nan], "name": [b"overflow"],
-                                              "value": [name.encode()]})
-            n += self.writer.append(self.TARGET[name], recs)
+        recs = {name: self._take(name, cur) for name, cur in self.cursors.items()}
+        s = recs.get("samples")
+        if s is not None and len(s["t_s"]):
+            self.last_t = float(s["t_s"][-1])
+        for name in self.HELD:
+            if name not in recs:
+                continue
+            r = recs[name]
+            if self.held[name] is not None:
+                r = {k: np.concatenate([self.held[name][k], v]) for k, v in r.items()}
+            ready = r["t_s"] <= self.last_t
+            self.held[name] = {k: v[~ready] for k, v in r.items()}
+            recs[name] = {k: v[ready] for k, v in r.items()}
+        if self.visibility is not None:
+            if s is not None:
+                self.visibility.add_samples(s)
+            if "camera" in recs:
+                self.visibility.add_camera(recs["camera"])
+            if "removed" in recs:
+                recs["removed"]["visible"] = self.visibility.judge(recs["removed"])
+        n = sum(self.writer.append(self.TARGET[name], r) for name, r in recs.items())
         self.rows += n
         return n
 
@@ -337,7 +369,8 @@ class Drainer:
 (C_STOP, C_ROWS, C_FLUSHES, C_READY, C_ERROR, C_OVERFLOWS, C_LAST_FLUSH) = range(7)
 
 
-def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite) -> None:
+def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, models,
+                 eye_mm) -> None:
     from .haptic_loop import attach
 
     lsh, rings = attach(loop_handle)
@@ -347,13 +380,19 @@ def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite) -> N
              "injuries": rings["injuries"],
              "camera": events.ring_from_arrays("camera", own.arrays),
              "ui": events.ring_from_arrays("ui", own.arrays)}
+    vis = None
+    if models is not None:
+        from .visibility import VisibilityTracker
+
+        model, burrs = models
+        vis = VisibilityTracker([model] + [model.with_burr(b) for b in burrs], eye_mm)
     try:
         writer = SessionWriter(path, header, overwrite=overwrite, compress=False)
     except Exception as exc:
         ctl[C_ERROR] = 1.0
         own.arrays["error"][:] = np.frombuffer(str(exc).encode()[:255].ljust(256), np.uint8)
         raise
-    drainer = Drainer(writer, rings)
+    drainer = Drainer(writer, rings, vis)
     ctl[C_READY] = 1.0
     try:
         while ctl[C_STOP] == 0.0:
@@ -393,10 +432,14 @@ class Recorder:
         See :func:`make_header`.
     flush_s : float
         Drain-and-flush period [s]; at most this much is lost to a crash.
+    visibility : bool
+        Judge each removal's visibility from the eye
+        (:mod:`bonesim.visibility`) in the writer: from the camera poses
+        logged with :meth:`camera`, else from the case camera.
     """
 
     def __init__(self, loop, path, header: dict, flush_s: float = FLUSH_S,
-                 overwrite: bool = False):
+                 overwrite: bool = False, visibility: bool = True):
         self.loop = loop
         self.path = Path(path)
         spec = (events.ring_arrays_spec("camera") + events.ring_arrays_spec("ui")
@@ -405,8 +448,11 @@ class Recorder:
         self._camera = events.ring_from_arrays("camera", self._sh.arrays)
         self._ui = events.ring_from_arrays("ui", self._sh.arrays)
         self.ctl = self._sh["ctl"]
+        cam = getattr(getattr(loop.model, "case", None), "camera", None)
+        judge = visibility and cam is not None
         self._args = (loop.handle, self._sh.handle, str(self.path), header, flush_s,
-                      overwrite)
+                      overwrite, (loop.model, [b for b in loop.burrs[1:]]) if judge else None,
+                      np.asarray(cam.eye_mm, float) if judge else None)
         self._proc = None
 
     def start(self, timeout_s: float = 60.0) -> "Recorder":

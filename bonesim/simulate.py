@@ -165,8 +165,14 @@ class _Recording:
         self.ring = events.Ring.create(1 << 12, **events.OTHER_RINGS["samples"][1])
         header = make_header(model, input_device="scripted") if header is None else header
         self.writer = SessionWriter(path, header)
+        vis = None
+        cam = getattr(getattr(model, "case", None), "camera", None)
+        if cam is not None:                # judged from the case camera's eye
+            from .visibility import VisibilityTracker
+
+            vis = VisibilityTracker([model], cam.eye_mm)
         self.drainer = Drainer(self.writer, {"samples": self.ring, "removed": state.removed,
-                                             "injuries": state.injuries})
+                                             "injuries": state.injuries}, vis)
         self.zero = np.zeros(3)
 
     def push(self, smp, f) -> None:

@@ -75,6 +75,7 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     assert s.complete and s.header["participant"] == "t1"
     assert len(s.camera["t_s"]) == 100 and ("key", "reset_case") in [e[1:] for e in s.events]
     assert s.samples["epoch"][-1] == 1 and len(s.removals["t_s"]) >= out["voxels_removed"]
+    assert set(np.unique(s.removals["visible"])) <= {0, 1}     # judged from the camera
 
 
 def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):

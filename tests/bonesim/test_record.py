@@ -62,7 +62,10 @@ def test_round_trip_header_streams_and_verify(recorded, model):
     assert np.all(np.diff(s.samples["t_s"]) > 0)
     # every removal the run made, in order, with its structure
     assert len(s.removals["t_s"]) == summary["voxels_removed"] > 100
-    assert np.all(s.removals["visible"] == -1) and np.all(s.removals["epoch"] == 0)
+    assert np.all(s.removals["epoch"] == 0)
+    # judged from the case camera: the planned path drills in plain view
+    vis = s.removals["visible"]
+    assert set(np.unique(vis)) <= {0, 1} and vis.mean() > 0.9
     assert np.all(np.linalg.norm(s.samples["force_n"], axis=1) <= model.max_force_n + 1e-9)
     report = verify(s)
     assert report["ok"], report
