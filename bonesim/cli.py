@@ -309,6 +309,68 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def cmd_playback(args) -> int:
+    import os
+
+    from .playback import Player, parse_size
+    from .record import read_session
+
+    session = read_session(args.file)
+    notices = [] if session.complete else [
+        "recording incomplete: the writer did not close the file (shown up to its last "
+        "flush)"]
+    if args.speed is not None and not args.speed > 0:
+        raise BonesimError(f"speed must be positive, got {args.speed:g}", field="--speed")
+    speed = 1.0 if args.speed is None else args.speed
+    if args.video is not None:
+        from .render.playback import export_video
+
+        size = parse_size(args.size or "1280x720")
+        out = export_video(Player(session), args.video, fps=args.fps, size=size,
+                           speed=speed, start=args.start, end=args.end,
+                           progress=not args.no_progress, notices=notices)
+        out["file"] = str(session.path)
+        if args.json:
+            _print_json(out)
+        else:
+            print(f"wrote {out['video']}: {out['frames']} frames, {size[0]}x{size[1]} at "
+                  f"{args.fps:g} fps ({out['start_s']:.2f}-{out['end_s']:.2f} s of the "
+                  f"recording at {speed:g}x), {out['frames_per_s']} frames/s")
+        return 0
+    offscreen = args.offscreen
+    if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
+            "WAYLAND_DISPLAY"):
+        raise BonesimError("no display found for the playback window; export a video "
+                           "instead (--video OUT.mp4), or render a frame with --offscreen "
+                           "--screenshot FILE.png")
+    from .render.playback import PlaybackApp
+
+    size = parse_size(args.size or "1280x720", even=False)
+    player = Player(session)
+    start = 0.0 if args.start is None else args.start
+    if not 0.0 <= start <= player.timeline.duration:
+        raise BonesimError(f"start {start:g} s lies outside the recording (0 .. "
+                           f"{player.timeline.duration:.3f} s)", field="--start")
+    app = PlaybackApp(player, size=size, offscreen=offscreen, speed=speed, start=start,
+                      play=not args.paused, notices=notices)
+    try:
+        app.start()
+        frames = args.frames if args.frames is not None else (1 if offscreen else None)
+        screenshot = args.screenshot or ("bonesim-playback.png" if offscreen else None)
+        out = app.run(frames=frames, screenshot=screenshot)
+    finally:
+        app.close()
+    out["file"] = str(session.path)
+    if args.json:
+        _print_json(out)
+    else:
+        print(f"{out['file']}: {out['frames']} frames; stopped at {out['t_s']:.2f} of "
+              f"{out['duration_s']:.2f} s")
+        if "screenshot" in out:
+            print(f"wrote {out['screenshot']}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_benchmarks
 
@@ -438,6 +500,35 @@ def build_parser() -> argparse.ArgumentParser:
                         "bit (exit status 1 if not)")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser(
+        "playback", help="play a session back in a window with a timeline, or export it "
+                         "as an H.264 video (--video)",
+        description="Play a recorded session back: the tool at its recorded pose, the "
+                    "bone as drilled up to the current time, HUD and timeline with "
+                    "injuries. Keys: Space play/pause, +/- speed (0.25x..8x), Left/Right "
+                    "-/+1 s, Down/Up -/+10 s, Home/End, click or drag on the timeline to "
+                    "seek, right-drag to orbit, v back to the recorded camera, h help, "
+                    "q quit. With --video it renders offscreen into an mp4 instead.")
+    s.add_argument("file", help="session file (.h5)")
+    s.add_argument("--video", metavar="OUT.mp4", help="export an H.264 video instead of "
+                                                     "opening the window")
+    s.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    s.add_argument("--size", metavar="WxH", help="window or video size in pixels "
+                                                 "(default 1280x720; even for video)")
+    s.add_argument("--speed", type=float, help="playback speed factor (default 1)")
+    s.add_argument("--start", type=float, metavar="S", help="start at S seconds into the "
+                                                            "recording")
+    s.add_argument("--end", type=float, metavar="S", help="video: stop at S seconds "
+                                                          "(default the end)")
+    s.add_argument("--paused", action="store_true", help="window: start paused")
+    s.add_argument("--offscreen", action="store_true",
+                   help="no window: render --frames frames offscreen and save the last")
+    s.add_argument("--frames", type=int, help="stop after this many frames")
+    s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
+    s.add_argument("--no-progress", action="store_true", help="video: no progress bar")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_playback)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")
     s.add_argument("--json", action="store_true", help="print one JSON object")

@@ -559,8 +559,15 @@ class PlaybackClock:
 
 
 # --------------------------------------------------------------------- video
-def parse_size(text: str) -> tuple[int, int]:
-    """``"1280x720"`` -> ``(1280, 720)``; both even (H.264 needs even sizes).
+def parse_size(text: str, even: bool = True) -> tuple[int, int]:
+    """``"1280x720"`` -> ``(1280, 720)``.
+
+    Parameters
+    ----------
+    text : str
+        ``WIDTHxHEIGHT`` [px].
+    even : bool
+        Require both even (H.264 frames).
 
     Raises
     ------
@@ -571,12 +578,12 @@ def parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(p) for p in parts)
     except ValueError:
-        raise BonesimError(f"video size {text!r} is not WIDTHxHEIGHT (e.g. 1280x720)",
+        raise BonesimError(f"size {text!r} is not WIDTHxHEIGHT (e.g. 1280x720)",
                            field="--size") from None
     if w < 16 or h < 16 or w > 8192 or h > 8192:
-        raise BonesimError(f"video size {w}x{h} must be 16..8192 pixels each way",
+        raise BonesimError(f"size {w}x{h} must be 16..8192 pixels each way",
                            field="--size")
-    if w % 2 or h % 2:
+    if even and (w % 2 or h % 2):
         raise BonesimError(f"video size {w}x{h}: width and height must be even for "
                            "H.264", field="--size")
     return w, h

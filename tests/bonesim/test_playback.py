@@ -375,3 +375,139 @@ def test_video_writer_reports_ffmpeg_failing(tmp_path):
         with VideoWriter(tmp_path / "bad.mp4", (64, 48), preset="no-such-preset") as vw:
             for _ in range(200):                 # until the pipe breaks, or at close
                 vw.write(frame)
+
+
+# ------------------------------------------------------- real session files
+@pytest.fixture(scope="module")
+def demo_file(tmp_path_factory):
+    """A recorded scripted run: 8 s of the planned demo from its first drilling
+    sample (bonesim.simulate with record=)."""
+    from bonesim.case import load_case
+    from bonesim.cli import _demo_trajectory
+    from bonesim.model import load_model
+    from bonesim.simulate import run_trajectory
+
+    t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(t.drill)[0])
+    traj = t.at_times(t.t_s[start:start + 800])
+    path = tmp_path_factory.mktemp("pb") / "demo.h5"
+    run_trajectory(load_model("phantom", "cutting-5mm"), traj, surface=False, record=path)
+    return path
+
+
+def _engine_density(model, session, t):
+    """The live engine's density at playback time ``t``: the recorded samples
+    stepped again from the initial tissue (as bonesim.record.replay does)."""
+    from bonesim.model import make_state
+
+    s = session.samples
+    state = make_state(model)
+    n = int(np.searchsorted(s["t_s"], s["t_s"][0] + t, side="right"))
+    for q in range(n):
+        step(model, state, Sample(float(s["t_s"][q]), s["pos_mm"][q], s["axis"][q],
+                                  bool(s["drill"][q]), float(s["speed_rpm"][q]),
+                                  int(s["direction"][q])))
+    return state.grid.density
+
+
+def test_recorded_file_seeks_match_the_engine(demo_file):
+    from bonesim.record import read_session
+
+    s = read_session(demo_file)
+    p = Player(s)
+    assert p.timeline.duration == pytest.approx(s.duration_s) and p.timeline.duration > 7
+    assert len(p.timeline.rem_t) > 500 and p.timeline.cam_t.size == 0   # scripted: no camera
+    for t in (6.0, 2.5, 4.0):                    # forward, backward, forward
+        p.seek(t)
+        live = _engine_density(p.model, s, t)
+        np.testing.assert_array_equal(p.grid.density > 0, live > 0, err_msg=f"t={t}")
+        np.testing.assert_array_equal(p.grid.density,
+                                      fresh_replay(p.model, p.timeline, t).density)
+    f = p.frame()
+    assert f.burr.name == "cutting-5mm" and f.voxels_removed > 0
+    assert hud_info(f, p.model)["time"] == "0:04.0 / " + format_clock(p.timeline.duration)
+
+
+@pytest.mark.slow
+def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
+    """A live haptic-loop recording (mouse device) across a burr change and a
+    case reset: playback at the end equals the engine's replay of the file,
+    and the HUD names the second burr."""
+    from bonesim.burrs import load_burr
+    from bonesim.case import load_case
+    from bonesim.haptic_loop import ST_EPOCH, HapticLoop
+    from bonesim.model import load_model
+    from bonesim.record import Recorder, make_header, read_session, replay
+    import time
+
+    model = load_model("phantom", "cutting-5mm")
+    cam = load_case("phantom").camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm)
+    view /= np.linalg.norm(view)
+    burr2 = load_burr("diamond-3mm")
+    path = tmp_path / "live.h5"
+    loop = HapticLoop(model, burrs=[burr2])
+    rec = Recorder(loop, path, make_header(model, [burr2], input_device="mouse"))
+
+    def wait(cond):
+        end = time.monotonic() + 30.0
+        while not cond() and time.monotonic() < end:
+            time.sleep(0.01)
+        return cond()
+
+    try:
+        rec.start()
+        loop.start()
+        loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
+        loop.set_drill(True, speed_rpm=60000.0)
+        assert wait(lambda: loop.state.removed.count > 30)
+        epoch = loop.reset()
+        assert wait(lambda: loop.status[ST_EPOCH] == epoch)
+        loop.set_burr(1)
+        n1 = loop.state.removed.count
+        assert wait(lambda: loop.state.removed.count > n1 + 20)
+        loop.set_drill(False)
+        time.sleep(0.1)
+        rec.close()
+    finally:
+        loop.close()
+    s = read_session(path)
+    assert set(np.unique(s.removals["epoch"]).tolist()) == {0, 1}
+    p = Player(s)
+    assert len(p.timeline.reset_t) == 1
+    p.seek(p.timeline.duration)
+    final = replay(s)["state"].grid.density
+    np.testing.assert_array_equal(p.grid.density > 0, final > 0)
+    built = Surface.build(p.grid, p.model.colors)
+    assert not p.surface.canonical().differences(built.canonical())
+    f = p.frame()
+    assert f.epoch == 1 and f.burr.name == "diamond-3mm"
+    before = p.timeline.reset_t[0] - 0.01
+    p.seek(before)                               # back into the first epoch
+    r = s.removals
+    n0 = int(((r["epoch"] == 0) & (r["t_s"] <= p.timeline.t0 + before)).sum())
+    assert p.frame().burr.name == "cutting-5mm" and p.frame().voxels_removed == n0 > 20
+    np.testing.assert_array_equal(p.grid.density,
+                                  fresh_replay(p.model, p.timeline, before).density)
+
+
+def test_cli_playback_errors(demo_file, tmp_path, capsys, monkeypatch):
+    from bonesim.cli import main
+
+    assert main(["playback", str(tmp_path / "none.h5")]) == 2
+    assert "none.h5: no such session file" in capsys.readouterr().err
+    assert main(["playback", str(demo_file), "--video", str(tmp_path / "a.mp4"),
+                 "--size", "161x120"]) == 2
+    assert "must be even for H.264" in capsys.readouterr().err
+    assert main(["playback", str(demo_file), "--video", str(tmp_path / "no" / "a.mp4")]) == 2
+    assert "output folder does not exist" in capsys.readouterr().err
+    assert main(["playback", str(demo_file), "--video", str(tmp_path / "a.mp4"),
+                 "--start", "5", "--end", "3"]) == 2
+    assert "end 3 s is not after start 5 s" in capsys.readouterr().err
+    assert main(["playback", str(demo_file), "--video", str(tmp_path / "a.mp4"),
+                 "--speed", "0"]) == 2
+    assert "speed must be positive" in capsys.readouterr().err
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["playback", str(demo_file)]) == 2
+    assert "no display found" in capsys.readouterr().err

@@ -4,6 +4,11 @@ video export read back with imageio-ffmpeg."""
 from __future__ import annotations
 
 import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +17,9 @@ from bonesim.playback import Player
 from bonesim.render.playback import (BAR_RGBA, HEAD_RGBA, PLAYED_RGBA, PLAYBACK_KEYS,
                                      PlaybackApp, PlaybackView, bar_rect, export_video)
 from bonesim.render.scene import Scene
-from tests.bonesim.test_playback import fake_session
+from tests.bonesim.test_playback import demo_file, fake_session  # noqa: F401 (fixture)
+
+ROOT = Path(__file__).resolve().parents[3]
 
 SIZE = (320, 240)
 
@@ -192,3 +199,49 @@ def test_short_video_export_has_the_frames_and_size(gl_info, recorded, tmp_path)
     blue = [int((f[row, x0:x1, 2].astype(int) - f[row, x0:x1, 0] > 60).sum()) for f in frames]
     assert blue == sorted(blue) and blue[-1] > blue[0] + 50
     assert "100%" in err.getvalue() and "done in" in err.getvalue()
+
+
+@pytest.mark.slow
+def test_cli_video_export_of_a_recorded_file(gl_info, demo_file, tmp_path, capsys):
+    import imageio_ffmpeg
+
+    from bonesim.cli import main
+
+    out = tmp_path / "demo.mp4"
+    assert main(["playback", str(demo_file), "--video", str(out), "--size", "192x108",
+                 "--fps", "12", "--start", "2", "--end", "4", "--speed", "2",
+                 "--json"]) == 0
+    cap = capsys.readouterr()
+    info = json.loads(cap.out)
+    assert info["frames"] == 12 and info["size"] == [192, 108]
+    assert "100%" in cap.err and "ETA" in cap.err
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = next(reader)
+    assert meta["size"] == (192, 108) and sum(1 for _ in reader) == 12
+
+
+@pytest.mark.slow
+def test_playback_window_under_xvfb(xdisplay, demo_file, tmp_path):
+    """The real window (GLX on a virtual X server) plays, and its screenshot
+    shows the timeline's played part."""
+    shot = tmp_path / "win.png"
+    env = dict(os.environ, DISPLAY=xdisplay, PYTHONPATH=str(ROOT))
+    env.pop("BONESIM_GL", None)
+    res = subprocess.run([sys.executable, "-m", "bonesim.cli", "playback", str(demo_file),
+                          "--size", "320x240", "--start", "2", "--speed", "2", "--frames",
+                          "30", "--screenshot", str(shot), "--json"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout)
+    assert out["frames"] == 30 and 2.0 < out["t_s"] < 6.0 and out["playing"]
+    assert "playback: 2x  playing" in out["hud"]
+    from bonesim.render.imagecmp import read_png
+
+    img = read_png(shot)
+    x0, y0, x1, y1 = bar_rect(320, 240)
+    row = img.shape[0] - 1 - (y0 + y1) // 2
+    xh = x0 + (x1 - x0) * out["t_s"] / out["duration_s"]
+    played = img[row, x0 + 2:int(xh) - 3, :3].astype(int)
+    assert (played[:, 2] - played[:, 0] > 60).all()        # blue left of the head
+    rest = img[row, int(xh) + 4:x1 - 2, :3].astype(int)
+    assert (np.abs(rest[:, 2] - rest[:, 0]) < 30).all()    # grey right of it
