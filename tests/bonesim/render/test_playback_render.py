@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from bonesim.playback import Player
-from bonesim.render.playback import (BAR_RGBA, HEAD_RGBA, PLAYED_RGBA, PLAYBACK_KEYS,
+from bonesim.render.playback import (BAR_RGBA, CONTACT_RGBA, HEAD_RGBA, PLAYED_RGBA,
+                                     PLAYBACK_KEYS, RESET_RGBA,
                                      PlaybackApp, PlaybackView, bar_rect, export_video)
 from bonesim.render.scene import Scene
 from tests.bonesim.test_playback import demo_file, fake_session  # noqa: F401 (fixture)
@@ -86,6 +87,13 @@ def test_frame_at_a_time_places_tool_hud_surface_camera_and_bar(view, recorded):
 
     assert near(xh - 20, PLAYED_RGBA) and near(xh + 20, BAR_RGBA)
     assert any(near(xh + d, HEAD_RGBA) for d in (-1, 0, 1))
+    # injury (contact: orange) and reset (white) ticks stick out above the bar
+    tl = player.timeline
+    above = SIZE[1] - 1 - (y1 + 1)
+    for t_tick, rgba in ((tl.inj_t[0], CONTACT_RGBA), (tl.reset_t[0], RESET_RGBA)):
+        xt = int(round(x0 + (x1 - x0) * t_tick / tl.duration))
+        assert np.abs(img[above, xt].astype(int) - rgba[:3]).max() < 40, t_tick
+    assert np.abs(img[above, (x0 + x1) // 2 + 7].astype(int) - CONTACT_RGBA[:3]).max() > 100
     # hud sits above the bar
     assert scene.hud_actor.GetPosition()[1] > y1
 
