@@ -323,6 +323,8 @@ class Drainer:
         self.visibility = visibility
         self.held = {name: None for name in self.HELD}
         self.last_t = -math.inf if "samples" in rings else math.inf
+        self._burr = 0
+        self._epoch = 0
         self.rows = 0
         self.overflows = 0
 
@@ -338,12 +340,30 @@ class Drainer:
                                           "value": [name.encode()]})
             return cur.drain()
 
+    def _note_changes(self, s: dict) -> None:
+        """Burr changes and case resets, as events (``burr``: the new index;
+        ``reset``: the new epoch) at the first step that saw them."""
+        t, rows = [], []
+        for col, name, last in (("burr", b"burr", self._burr), ("epoch", b"reset", self._epoch)):
+            v = s[col].astype(np.int64)
+            prev = np.concatenate([[last], v[:-1]])
+            for q in np.flatnonzero(v != prev):
+                t.append(s["t_s"][q])
+                rows.append((name, str(int(v[q])).encode()))
+        self._burr, self._epoch = int(s["burr"][-1]), int(s["epoch"][-1])
+        if t:
+            order = np.argsort(t, kind="stable")
+            self.writer.append("events", {"t_s": np.asarray(t)[order],
+                                          "name": [rows[q][0] for q in order],
+                                          "value": [rows[q][1] for q in order]})
+
     def drain(self) -> int:
         """Append everything new; returns the rows written."""
         recs = {name: self._take(name, cur) for name, cur in self.cursors.items()}
         s = recs.get("samples")
         if s is not None and len(s["t_s"]):
             self.last_t = float(s["t_s"][-1])
+            self._note_changes(s)
         for name in self.HELD:
             if name not in recs:
                 continue

@@ -290,6 +290,11 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
     assert len(s.removals["t_s"]) == n_removed
     assert set(np.unique(s.removals["epoch"])) == {0, 1}
     assert set(np.unique(s.samples["burr"])) == {0, 1}
+    # the writer logged the burr change and the reset at the steps that saw them
+    changes = [(name, value) for _, name, value in s.events]
+    assert ("burr", "1") in changes and ("reset", "1") in changes
+    t_burr = next(t for t, n, _ in s.events if n == "burr")
+    assert s.samples["burr"][np.searchsorted(s.samples["t_s"], t_burr) - 1] == 0
     report = verify(s)
     assert report["ok"], report
 
