@@ -631,7 +631,8 @@ class VideoWriter:
 
     Frames are piped raw (RGB) into one ffmpeg process (libx264, yuv420p,
     ``-crf`` quality, ``+faststart``); its messages are kept and quoted in
-    the error if it fails.
+    the error if it fails. A video that fails or is aborted (an exception
+    inside the ``with`` block) is deleted.
 
     Parameters
     ----------
@@ -710,6 +711,7 @@ class VideoWriter:
         self._log.seek(0)
         said = self._log.read().decode("utf-8", "replace").strip().splitlines()
         self._log.close()
+        self._discard()
         if not said:
             tail = "no message"
         elif len(said) <= 3:
@@ -748,13 +750,21 @@ class VideoWriter:
         self._log.close()
 
     def abort(self) -> None:
-        """Stop ffmpeg without finishing the file (after an error elsewhere)."""
+        """Stop ffmpeg and delete the unfinished file (after an error elsewhere)."""
         proc, self._proc = self._proc, None
         if proc is None:
             return
         proc.kill()
         proc.wait()
         self._log.close()
+        self._discard()
+
+    def _discard(self) -> None:
+        """Remove the unfinished output: a broken mp4 is worse than none."""
+        try:
+            self.path.unlink()
+        except OSError:
+            pass
 
     def __enter__(self):
         return self

@@ -375,6 +375,12 @@ def test_video_writer_reports_ffmpeg_failing(tmp_path):
         with VideoWriter(tmp_path / "bad.mp4", (64, 48), preset="no-such-preset") as vw:
             for _ in range(200):                 # until the pipe breaks, or at close
                 vw.write(frame)
+    assert not (tmp_path / "bad.mp4").exists()   # no broken file left behind
+    with pytest.raises(KeyboardInterrupt):
+        with VideoWriter(tmp_path / "cut.mp4", (64, 48)) as vw:
+            vw.write(frame)
+            raise KeyboardInterrupt
+    assert not (tmp_path / "cut.mp4").exists()
 
 
 # ------------------------------------------------------- real session files
