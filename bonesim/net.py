@@ -316,7 +316,7 @@ class Codec:
 
 # -------------------------------------------------------------------- inbox
 #: Decode failures -> the :class:`Inbox` counter they are counted under.
-_COUNTER_OF = {"short": "malformed", "magic": "malformed", "length": "malformed",
+COUNTER_OF = {"short": "malformed", "magic": "malformed", "length": "malformed",
                "kind": "malformed", "version": "version", "auth": "auth"}
 COUNTERS = ("accepted", "malformed", "version", "auth", "nonce", "duplicate", "stale")
 
@@ -397,13 +397,18 @@ class Inbox:
         now_s : float
             Receiver's clock [s].
         """
-        c = self.counters
         try:
             p = self.codec.decode(data)
         except PacketError as exc:
-            c[_COUNTER_OF[exc.reason]] += 1
+            self.counters[COUNTER_OF[exc.reason]] += 1
             self.last_error = exc
             return None
+        return self.admit(p, now_s)
+
+    def admit(self, p: Packet, now_s: float) -> Packet | None:
+        """The session checks of :meth:`accept` (nonce, sequence, staleness)
+        on an already decoded packet; the packet, or None (and counted)."""
+        c = self.counters
         if self.nonce is not None and p.nonce != self.nonce:
             c["nonce"] += 1
             return None
