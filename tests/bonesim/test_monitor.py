@@ -33,3 +33,282 @@ def test_monitor_flag_default_roundtrip_and_errors(tmp_path):
             C.load_case(path)
         assert fragment in str(e.value) and str(path) in str(e.value)
         assert e.value.field == ("structures[1]" if "yes" in repl[1] else "structures[0]")
+
+
+# ---------------------------------------------------------------- activity law
+import dataclasses
+import math
+
+import numpy as np
+
+from bonesim import monitor as M
+from bonesim.monitor import ActivityParams, NerveMonitor, activity, poisson_spikes
+
+P = M.load_activity_params()
+
+
+def test_shipped_parameters_are_the_documented_defaults():
+    assert P == ActivityParams()
+
+
+def test_activity_is_monotone_in_distance_and_lower_without_force_or_drill():
+    d = np.linspace(-2.0, 15.0, 3401)
+    for force in (0.0, 0.5, 2.0, 5.0):
+        for drill in (True, False):
+            r = activity(d, force, drill, P)
+            assert np.all(np.diff(r) <= 0.0)              # never rises moving away
+            assert r[-1] == pytest.approx(P.baseline_hz, abs=1e-6)
+            assert np.all((r >= P.baseline_hz) & (r <= P.max_hz))
+    for dd in (0.0, 0.5, 1.0, 2.0):
+        assert activity(dd, 0.0, True, P) < activity(dd, 1.0, True, P)
+        assert activity(dd, 1.0, False, P) < activity(dd, 1.0, True, P)
+        # force saturates
+        assert activity(dd, P.force_sat_n, True, P) == activity(dd, 10 * P.force_sat_n,
+                                                                True, P)
+    # the law by hand: at 1 mm, 1 N, drill on
+    h = P.force_floor + (1 - P.force_floor) * 1.0 / P.force_sat_n
+    assert activity(1.0, 1.0, True, P) == pytest.approx(
+        P.baseline_hz + h * P.near_gain_hz * math.exp(-1.0 / P.length_mm))
+    # a steep rise in the last 2 mm, a burst on contact, the ceiling holds
+    assert activity(2.0, 2.0, True, P) < 3 * P.baseline_hz
+    assert activity(0.5, 2.0, True, P) > 10 * P.baseline_hz
+    assert activity(P.contact_mm, 2.0, True, P) \
+        - activity(P.contact_mm + 1e-9, 2.0, True, P) == pytest.approx(P.contact_hz, rel=1e-6)
+    loud = dataclasses.replace(P, contact_hz=1e4)
+    assert activity(0.0, 2.0, True, loud) == loud.max_hz
+    # NaN force counts as none; arrays broadcast
+    assert activity(0.5, math.nan, True, P) == activity(0.5, 0.0, True, P)
+    assert activity(np.zeros((4, 2)), np.ones((4, 1)), True, P).shape == (4, 2)
+
+
+BAD_PARAMS = [
+    ("near_gain_hz = 150.0", "", "missing required key(s) 'near_gain_hz'"),
+    ("max_hz = 400.0", "max_hz = 400.0\nmin_hz = 1.0", "unknown key(s) 'min_hz'"),
+    ("drill_off = 0.1", "drill_off = 1.5", "'drill_off' must be <= 1.0"),
+    ("length_mm = 0.66", "length_mm = 0.0", "'length_mm' must be a finite number > 0"),
+    ("baseline_hz = 4.0", "baseline_hz = 500.0", "'baseline_hz' (500.0) exceeds"),
+    ("contact_hz = 200.0", 'contact_hz = "a lot"', "'contact_hz' must be a number"),
+]
+
+
+@pytest.mark.parametrize("old,new,fragment", BAD_PARAMS)
+def test_bad_parameter_files_name_file_and_key(tmp_path, old, new, fragment):
+    text = M.default_params_path().read_text()
+    assert old in text
+    path = tmp_path / "monitor.toml"
+    path.write_text(text.replace(old, new))
+    with pytest.raises(BonesimError) as e:
+        M.load_activity_params(path)
+    assert fragment in str(e.value) and str(path) in str(e.value)
+    assert e.value.field == "activity"
+
+
+# -------------------------------------------------------------- distance field
+@pytest.fixture(scope="module")
+def phantom_model():
+    from bonesim.model import load_model
+
+    return load_model("phantom", "cutting-5mm")
+
+
+@pytest.fixture(scope="module")
+def phantom_monitor(phantom_model):
+    return NerveMonitor(phantom_model, P, seed=3)
+
+
+def brute_distance(points, voxels_mm):
+    """Reference: smallest distance from each point to any nerve voxel centre."""
+    out = np.empty(len(points))
+    for a in range(0, len(points), 256):
+        diff = points[a:a + 256, None, :] - voxels_mm[None]
+        out[a:a + 256] = np.sqrt((diff ** 2).sum(-1)).min(1)
+    return out
+
+
+def test_phantom_nerves_are_the_monitored_ones(phantom_monitor, phantom_model):
+    nm = phantom_monitor
+    assert nm.names == ["facial_nerve", "chorda_tympani"] and nm.n == 2
+    counts = phantom_model.grid.counts_by_label(len(phantom_model.structures))
+    for f, lab in zip(nm.fields, nm.labels):
+        assert len(f.voxels_mm) == counts[lab]
+        assert f.nbytes < 4e6                    # cropped box, not the whole volume
+    assert nm.colors.tolist() == [[250, 230, 40], [250, 150, 30]]
+
+
+def test_distance_lookup_matches_brute_force(phantom_monitor):
+    rng = np.random.default_rng(11)
+    for f in phantom_monitor.fields:
+        h = f.spacing_mm
+        shape = np.array(f.feat.shape[:3])
+        # exact at voxel centres
+        ijk = rng.integers(0, shape, (1500, 3))
+        p = f.lo_mm + h * ijk
+        np.testing.assert_allclose(f.distance(p), brute_distance(p, f.voxels_mm),
+                                   rtol=0, atol=1e-9)
+        # anywhere in the box: never below the true distance, and almost always it
+        p = f.lo_mm + rng.random((4000, 3)) * (shape - 1) * h
+        err = f.distance(p) - brute_distance(p, f.voxels_mm)
+        assert err.min() >= -1e-9
+        assert err.max() <= math.sqrt(3) * h              # guaranteed bound
+        assert np.percentile(err, 99) < 1e-6 and err.max() < 0.05 * h
+        # beyond the box: a lower bound of at least the margin
+        far = f.bb_hi + P.margin_mm + 1.0 + 30 * rng.random((50, 3))
+        d, ref = f.distance(far), brute_distance(far, f.voxels_mm)
+        assert np.all(d <= ref + 1e-9) and np.all(d >= P.margin_mm)
+
+
+def test_burr_surface_distance_subtracts_the_radius(phantom_monitor):
+    f = phantom_monitor.fields[0]
+    p = f.voxels_mm[len(f.voxels_mm) // 2] + np.array([4.0, 0.0, 0.0])
+    d = phantom_monitor.distances(p)
+    assert d.shape == (1, 2)
+    assert d[0, 0] == pytest.approx(f.distance(p)[0] - 2.5)
+    assert phantom_monitor.distances(p, radius_mm=0.5)[0, 0] == pytest.approx(d[0, 0] + 2.0)
+
+
+# ---------------------------------------------------------------------- spikes
+def test_poisson_spikes_counts_times_and_seed():
+    edges = np.linspace(0.0, 20.0, 4001)                      # 5 ms intervals
+    rates = np.zeros((4000, 3))
+    rates[:, 0] = 5.0
+    rates[:2000, 1] = 100.0                                   # first 10 s only
+    t, which = poisson_spikes(np.random.default_rng(1), edges, rates)
+    assert np.all(np.diff(t) >= 0) and t.min() >= 0.0 and t.max() <= 20.0
+    n0, n1, n2 = (np.count_nonzero(which == c) for c in range(3))
+    assert n2 == 0
+    assert abs(n0 - 100) < 5 * math.sqrt(100) and abs(n1 - 1000) < 5 * math.sqrt(1000)
+    assert t[which == 1].max() <= 10.0
+    # a Poisson process: exponential intervals (coefficient of variation ~ 1)
+    isi = np.diff(t[which == 1])
+    assert 0.85 < isi.std() / isi.mean() < 1.15
+    t2, w2 = poisson_spikes(np.random.default_rng(1), edges, rates)
+    assert np.array_equal(t, t2) and np.array_equal(which, w2)
+    t3, _ = poisson_spikes(np.random.default_rng(2), edges, rates)
+    assert not np.array_equal(t, t3)
+    e, w = poisson_spikes(np.random.default_rng(1), [0.0, 1.0], [[0.0]])
+    assert len(e) == 0 and w.dtype == np.uint8
+
+
+# --------------------------------------------------------------- NerveMonitor
+def approach(nm, field, seconds=4.0, dt=0.005, start_mm=8.0, end_mm=-0.5, force=1.0,
+             drill=True):
+    """Move the burr straight toward a nerve voxel; returns (t, rates, dist)."""
+    target = field.voxels_mm[len(field.voxels_mm) // 2]
+    away = np.array([1.0, 0.0, 0.0])
+    n = int(round(seconds / dt))
+    t = np.arange(n) * dt
+    gap = np.linspace(start_mm, end_mm, n) + nm.radius_mm
+    pos = target + gap[:, None] * away
+    rates, dist = nm.update_many(t, pos, np.full(n, force), np.full(n, drill))
+    return t, rates, dist
+
+
+def test_monitor_update_rates_and_spikes(phantom_model):
+    nm = NerveMonitor(phantom_model, P, seed=5, nerves=["facial_nerve"])
+    assert nm.names == ["facial_nerve"]
+    t, rates, dist = approach(nm, nm.fields[0])
+    far = dist[:, 0] > 6.0
+    assert np.all(rates[far, 0] < P.baseline_hz + 1.0)
+    assert rates[-1, 0] == pytest.approx(activity(dist[-1, 0], 1.0, True, P))
+    assert rates[-1, 0] > 30 * P.baseline_hz
+    # same seed, same samples: same spikes; update() matches update_many()
+    nm2 = NerveMonitor(phantom_model, P, seed=5, nerves=["facial_nerve"])
+    target = nm.fields[0].voxels_mm[len(nm.fields[0].voxels_mm) // 2]
+    for q, tq in enumerate(t):
+        gap = np.linspace(8.0, -0.5, len(t))[q] + nm.radius_mm
+        r = nm2.update(tq, target + [gap, 0.0, 0.0], 1.0, True)
+        assert r[0] == pytest.approx(rates[q, 0])
+    nm3 = NerveMonitor(phantom_model, P, seed=5, nerves=["facial_nerve"])
+    approach(nm3, nm3.fields[0])
+    assert np.array_equal(nm3.spikes[0], nm.spikes[0])
+    # spike counts follow the rate: many near the nerve, few far away
+    nm.reset()
+    approach(nm, nm.fields[0], seconds=60.0, start_mm=9.0, end_mm=9.0)   # rest
+    assert nm.t_s == pytest.approx(60.0 - 0.005)
+    n_rest = len(nm.spikes[0])
+    assert abs(n_rest - P.baseline_hz * 60) < 5 * math.sqrt(P.baseline_hz * 60)
+    nm.reset()
+    _, rates, dist = approach(nm, nm.fields[0], seconds=2.0, start_mm=0.3, end_mm=0.3)
+    assert np.all(dist[:, 0] < 0.3 + 1e-9)                               # near
+    expect = rates[1:, 0].sum() * 0.005
+    assert abs(len(nm.spikes[0]) - expect) < 5 * math.sqrt(expect)
+    # a new clock (time going back) starts over without spikes
+    nm.update(0.0, target + 20.0, 0.0, False)
+    assert len(nm.spikes[0]) == 0 and nm.t_s == 0.0
+
+
+def test_unknown_or_empty_nerves_are_clear_errors(phantom_model):
+    with pytest.raises(ValueError, match="no structure"):
+        NerveMonitor(phantom_model, P, nerves=["vagus"])
+    from tests.bonesim.fakes import BONE, NERVE, block_model
+
+    labels = np.zeros((16, 16, 16), np.uint8)
+    labels[:, :, :8] = 1
+    model, _ = block_model(shape=labels.shape, labels=labels, structures=[BONE, NERVE])
+    with pytest.raises(BonesimError, match="'nerve' has no voxels: it cannot be monitored"):
+        NerveMonitor(model, P, nerves=["nerve"])
+    assert NerveMonitor(model, P).n == 0                  # nothing flagged: nothing to do
+
+
+# ------------------------------------------------------------ monitor process
+def approach_trajectory(field, seconds=3.0, start_mm=10.0, end_mm=0.0, drill=True,
+                        radius_mm=2.5):
+    """A straight lateral approach of the burr surface to a nerve voxel."""
+    from bonesim.trajectory import Trajectory
+
+    target = field.voxels_mm[len(field.voxels_mm) // 2]
+    n = 301
+    t = np.linspace(0.0, seconds, n)
+    gap = np.linspace(start_mm, end_mm, n) + radius_mm
+    pos = target + gap[:, None] * np.array([1.0, 0.0, 0.0])
+    return Trajectory(t_s=t, pos_mm=pos, axis=np.tile([-1.0, 0.0, 0.0], (n, 1)),
+                      drill=np.full(n, drill), speed_rpm=np.full(n, 60000.0))
+
+
+def _wait(cond, timeout=30.0):
+    import time
+
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", ["auto", "status"])
+def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor, source):
+    from bonesim.haptic_loop import ST_T, HapticLoop
+    from bonesim.monitor import MonitorProcess
+
+    traj = approach_trajectory(phantom_monitor.fields[0])
+    with HapticLoop(phantom_model, device=("scripted", traj), vibration=False) as loop:
+        mon = MonitorProcess(loop, P, seed=1, source=source).start()
+        try:
+            assert _wait(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5)
+            assert _wait(lambda: mon.view.t_s > traj.t_s[-1] + 0.5)
+            stats = mon.stats()
+            hist = mon.view.history(10.0)
+            names = mon.view.names
+        finally:
+            mon.close()
+        has_ring = "samples.head" in loop._sh.arrays
+    assert names == ["facial_nerve", "chorda_tympani"]
+    assert stats["source"] == ("samples" if has_ring and source == "auto" else "status")
+    # it measures and reports its own rate and cost
+    assert 50.0 < stats["update_hz"] < 1.5 * M.UPDATE_HZ and stats["cost_p99_us"] > 0
+    t, rate, dist = hist["t_s"], hist["rate"], hist["dist"]
+    assert len(t) > 2 * M.UPDATE_HZ * 0.5 and np.all(np.diff(t) > 0)
+    # the distances are the lookup at the scripted positions (the loop's clock)
+    pos = np.array([traj.sample_at(tq).pos_mm for tq in t])
+    np.testing.assert_allclose(dist, phantom_monitor.distances(pos), atol=0.02)
+    # the rate rose from rest to the burst as the burr came in
+    assert rate[0, 0] < 2 * P.baseline_hz and rate[-1, 0] > 20 * P.baseline_hz
+    lo, hi = (activity(dist[-1, 0], f, True, P) for f in (0.0, P.force_sat_n))
+    assert lo - 1e-3 <= rate[-1, 0] <= hi + 1e-3            # whatever the bone's force
+    # the spikes follow the rates (Poisson count within 5 sigma of the integral)
+    for c in range(2):
+        sel = (hist["spike_nerve"] == c) & (hist["spike_t"] > t[0])
+        expect = float(np.sum(rate[1:, c] * np.diff(t)))
+        assert abs(np.count_nonzero(sel) - expect) < 5 * math.sqrt(expect) + 3

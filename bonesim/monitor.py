@@ -1,0 +1,872 @@
+"""Nerve monitor: simulated activity of the monitored nerves as the burr nears them.
+
+In the operating room a technician watches the facial nerve's activity
+(electromyography) while the surgeon drills: the nerve fires more as the burr
+comes close, and bursts when it is touched. The simulator mimics that for
+every structure a case marks ``monitor = true`` (see :mod:`bonesim.case`).
+
+Activity law
+------------
+Parameters are named and documented in ``bonesim/data/monitor.toml``
+(:class:`ActivityParams`). With ``d`` the distance from the burr's surface to
+the nearest voxel of the nerve [mm], ``F`` the force the burr presses with [N]
+and the drill on or off::
+
+    drive = near_gain_hz * exp(-max(d, 0) / length_mm) + contact_hz * (d <= contact_mm)
+    h     = force_floor + (1 - force_floor) * min(F / force_sat_n, 1)
+    w     = 1 (drill running) or drill_off (stopped)
+    rate  = min(max_hz, baseline_hz + w * h * drive)            [spikes/s]
+
+:func:`activity` evaluates it. Spikes are a Poisson process of that rate,
+piecewise constant between updates (:func:`poisson_spikes`), drawn from a
+seeded generator: the same seed and the same updates give the same spikes.
+
+Distances
+---------
+:class:`NerveField` precomputes, on the nerve's bounding box plus
+``margin_mm``, the nearest nerve voxel of every grid point (a Euclidean
+distance transform with the feature indices, ``scipy.ndimage``). A lookup at
+any point takes the nearest-nerve voxels of the 8 surrounding grid points and
+returns the smallest distance to them: exact at voxel centres and (as the
+tests measure) within a hair of the brute-force minimum between them, never
+below it. Beyond the box the distance to the nerve's bounding box is returned
+(a lower bound, at least ``margin_mm``, where the activity is at baseline).
+
+Where it runs
+-------------
+:class:`NerveMonitor` is the model (no processes, no clocks: feed it
+samples). :class:`MonitorProcess` runs it in a process of its own attached to
+a running :class:`bonesim.haptic_loop.HapticLoop`'s shared memory: it drains
+the loop's per-step ``samples`` ring (or polls its ``status`` array where the
+loop has no ring) at :data:`UPDATE_HZ`, and publishes the current rates and
+distances, a rate history and the spike times in a small shared block
+(:class:`MonitorView` reads it: the window's trace, the audio process's
+clicks) and, when asked, streams them to remote consoles
+(:mod:`bonesim.monitor_net`). The haptic loop never waits for it.
+"""
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from . import events
+from .errors import BonesimError
+from .tomlfile import check_keys, get_number, read_toml
+
+__all__ = ["ActivityParams", "load_activity_params", "default_params_path", "activity",
+           "NerveField", "poisson_spikes", "NerveMonitor", "monitored_structures",
+           "MonitorProcess", "MonitorView", "UPDATE_HZ", "HISTORY_S"]
+
+#: Rate at which the monitor process updates [Hz].
+UPDATE_HZ = 200.0
+#: Rate history kept for the trace [s] (the ring holds a little more).
+HISTORY_S = 5.0
+#: Capacity of the shared rate history [updates] (power of two, > HISTORY_S * UPDATE_HZ).
+HISTORY_CAP = 2048
+#: Capacity of the shared spike ring [spikes] (power of two; max_hz * nerves * history).
+SPIKE_CAP = 1 << 14
+#: Updates between refreshes of the measured rate and cost statistics.
+STATS_EVERY = 100
+#: Most nerves one monitor handles (the spike ring stores the nerve as uint8).
+MAX_NERVES = 255
+
+
+# ------------------------------------------------------------- parameters
+@dataclass(frozen=True)
+class ActivityParams:
+    """Parameters of the activity law (see the module docstring and
+    ``bonesim/data/monitor.toml``).
+
+    Attributes
+    ----------
+    baseline_hz : float
+        Spontaneous firing far from the burr [spikes/s].
+    near_gain_hz : float
+        Extra firing with the burr surface at the nerve, full drive [spikes/s].
+    length_mm : float
+        E-folding distance of the near-field irritation [mm].
+    contact_mm : float
+        Burr surface this close to a nerve voxel centre is contact [mm].
+    contact_hz : float
+        Burst train added on contact, full drive [spikes/s].
+    force_floor : float
+        Share of the drive with no force applied (0 to 1).
+    force_sat_n : float
+        Force at which the drive saturates [N].
+    drill_off : float
+        Share of the drive with the drill stopped (0 to 1).
+    max_hz : float
+        Ceiling of the firing rate [spikes/s].
+    warn_mm : float
+        Warning distance for the console and the trace [mm].
+    margin_mm : float
+        The distance field covers the nerve's bounding box plus this [mm].
+    """
+
+    baseline_hz: float = 4.0
+    near_gain_hz: float = 150.0
+    length_mm: float = 0.66
+    contact_mm: float = 0.25
+    contact_hz: float = 200.0
+    force_floor: float = 0.25
+    force_sat_n: float = 2.0
+    drill_off: float = 0.1
+    max_hz: float = 400.0
+    warn_mm: float = 1.0
+    margin_mm: float = 10.0
+
+
+#: Keys whose value must be strictly positive; the others must be >= 0.
+_POSITIVE = ("length_mm", "force_sat_n", "max_hz", "margin_mm")
+#: Keys that are shares (0 to 1).
+_SHARES = ("force_floor", "drill_off")
+
+
+def default_params_path() -> Path:
+    """Path of the shipped ``monitor.toml``."""
+    return Path(__file__).resolve().parent / "data" / "monitor.toml"
+
+
+def load_activity_params(path: str | Path | None = None) -> ActivityParams:
+    """Read and check the ``[activity]`` table of a monitor file.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Default: the shipped ``bonesim/data/monitor.toml``.
+
+    Raises
+    ------
+    BonesimError
+        Naming the file and the key for a missing, unknown or out-of-range
+        value.
+    """
+    path = default_params_path() if path is None else Path(path)
+    doc = read_toml(path)
+    check_keys(doc, ("activity",), path, "top level", required=("activity",))
+    tab = doc["activity"]
+    names = [f.name for f in fields(ActivityParams)]
+    check_keys(tab, names, path, "activity", required=names)
+    values = {}
+    for name in names:
+        v = float(get_number(tab, name, path, "activity", minimum=0.0,
+                             maximum=1.0 if name in _SHARES else None))
+        if not math.isfinite(v) or (name in _POSITIVE and v <= 0.0):
+            raise BonesimError(f"'{name}' must be a finite number > 0, got {v}",
+                               path, "activity")
+        values[name] = v
+    if values["baseline_hz"] > values["max_hz"]:
+        raise BonesimError(f"'baseline_hz' ({values['baseline_hz']}) exceeds 'max_hz' "
+                           f"({values['max_hz']})", path, "activity")
+    return ActivityParams(**values)
+
+
+# ------------------------------------------------------------ activity law
+def activity(distance_mm, force_n, drill, params: ActivityParams | None = None):
+    """Firing rate of a nerve bundle [spikes/s] (the law in the module docstring).
+
+    Parameters
+    ----------
+    distance_mm : float or array
+        Burr surface to the nearest nerve voxel [mm] (negative: inside).
+    force_n : float or array
+        Force the burr presses with [N] (magnitude; NaN counts as 0).
+    drill : bool or array
+        Drill running.
+    params : ActivityParams, optional
+        Default: :func:`load_activity_params` of the shipped file.
+
+    Returns
+    -------
+    float or ndarray
+        Broadcast over the inputs.
+    """
+    p = _default_params() if params is None else params
+    d = np.asarray(distance_mm, dtype=np.float64)
+    f = np.nan_to_num(np.abs(np.asarray(force_n, dtype=np.float64)), nan=0.0)
+    on = np.asarray(drill, dtype=bool)
+    drive = p.near_gain_hz * np.exp(-np.maximum(d, 0.0) / p.length_mm) \
+        + p.contact_hz * (d <= p.contact_mm)
+    h = p.force_floor + (1.0 - p.force_floor) * np.minimum(f / p.force_sat_n, 1.0)
+    w = np.where(on, 1.0, p.drill_off)
+    rate = np.minimum(p.max_hz, p.baseline_hz + w * h * drive)
+    return float(rate) if rate.ndim == 0 else rate
+
+
+_PARAMS_CACHE: list = []
+
+
+def _default_params() -> ActivityParams:
+    if not _PARAMS_CACHE:
+        _PARAMS_CACHE.append(load_activity_params())
+    return _PARAMS_CACHE[0]
+
+
+# --------------------------------------------------------- distance field
+@njit(cache=True, nogil=True)
+def field_distance_kernel(feat, lo_mm, h, bb_lo, bb_hi, pos, out):
+    """Distance [mm] from each point to the nerve (see :class:`NerveField`).
+
+    Parameters
+    ----------
+    feat : (nx, ny, nz, 3) int16
+        Nearest nerve voxel of every grid point of the box (box indices).
+    lo_mm : (3,) float64
+        Centre of box voxel (0, 0, 0) [mm].
+    h : float
+        Voxel edge [mm].
+    bb_lo, bb_hi : (3,) float64
+        Bounding box of the nerve's voxel centres [mm].
+    pos : (n, 3) float64
+        Query points [mm].
+    out : (n,) float64
+        Receives the distances.
+    """
+    nx, ny, nz = feat.shape[0], feat.shape[1], feat.shape[2]
+    for q in range(pos.shape[0]):
+        u = (pos[q, 0] - lo_mm[0]) / h
+        v = (pos[q, 1] - lo_mm[1]) / h
+        w = (pos[q, 2] - lo_mm[2]) / h
+        if not (0.0 <= u <= nx - 1 and 0.0 <= v <= ny - 1 and 0.0 <= w <= nz - 1):
+            s = 0.0
+            for a in range(3):
+                e = max(bb_lo[a] - pos[q, a], 0.0, pos[q, a] - bb_hi[a])
+                s += e * e
+            out[q] = math.sqrt(s)        # NaN positions land here too
+            continue
+        i0 = min(int(u), max(nx - 2, 0))
+        j0 = min(int(v), max(ny - 2, 0))
+        k0 = min(int(w), max(nz - 2, 0))
+        best = 1e300
+        for di in range(2):
+            i = min(i0 + di, nx - 1)
+            for dj in range(2):
+                j = min(j0 + dj, ny - 1)
+                for dk in range(2):
+                    k = min(k0 + dk, nz - 1)
+                    fx = lo_mm[0] + h * feat[i, j, k, 0] - pos[q, 0]
+                    fy = lo_mm[1] + h * feat[i, j, k, 1] - pos[q, 1]
+                    fz = lo_mm[2] + h * feat[i, j, k, 2] - pos[q, 2]
+                    d2 = fx * fx + fy * fy + fz * fz
+                    if d2 < best:
+                        best = d2
+        out[q] = math.sqrt(best)
+
+
+class NerveField:
+    """Distance from any point to one nerve, by table lookup.
+
+    Parameters
+    ----------
+    mask : (nx, ny, nz) bool
+        The nerve's voxels on the case grid.
+    spacing_mm : float
+        Voxel edge [mm].
+    origin_mm : (3,) float
+        Centre of voxel (0, 0, 0) [mm].
+    margin_mm : float
+        The field covers the nerve's bounding box plus this on every side [mm].
+    name : str
+        For error messages.
+
+    Attributes
+    ----------
+    lo_mm : (3,) float64
+        Centre of the box's first voxel [mm].
+    feat : (bx, by, bz, 3) int16
+        Nearest nerve voxel of every box voxel, in box indices.
+    voxels_mm : (m, 3) float64
+        Centres of the nerve's voxels [mm] (for references and tests).
+    """
+
+    def __init__(self, mask, spacing_mm: float, origin_mm, margin_mm: float,
+                 name: str = "nerve"):
+        from scipy import ndimage
+
+        mask = np.asarray(mask, dtype=bool)
+        idx = np.argwhere(mask)
+        if len(idx) == 0:
+            raise ValueError(f"monitored structure {name!r} has no voxels")
+        h = float(spacing_mm)
+        pad = int(math.ceil(margin_mm / h))
+        lo = idx.min(0) - pad
+        hi = idx.max(0) + pad + 1
+        shape = tuple(int(s) for s in hi - lo)
+        if max(shape) > np.iinfo(np.int16).max:
+            raise ValueError(f"monitored structure {name!r}: field box {shape} too large")
+        box = np.ones(shape, dtype=bool)                # True: not nerve
+        rel = idx - lo
+        box[rel[:, 0], rel[:, 1], rel[:, 2]] = False
+        ind = ndimage.distance_transform_edt(box, sampling=(h, h, h),
+                                             return_distances=False, return_indices=True)
+        self.name = name
+        self.spacing_mm = h
+        origin = np.asarray(origin_mm, dtype=np.float64).reshape(3)
+        self.lo_mm = origin + h * lo
+        self.feat = np.ascontiguousarray(np.moveaxis(ind, 0, -1).astype(np.int16))
+        self.voxels_mm = origin + h * idx
+        self.bb_lo = self.voxels_mm.min(0)
+        self.bb_hi = self.voxels_mm.max(0)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the lookup table [bytes]."""
+        return int(self.feat.nbytes)
+
+    def distance(self, pos_mm) -> np.ndarray:
+        """Distance [mm] from points ``pos_mm`` ((3,) or (n, 3)) to the nerve's
+        nearest voxel centre; shape ``(n,)`` (``(1,)`` for one point)."""
+        p = np.ascontiguousarray(np.asarray(pos_mm, dtype=np.float64).reshape(-1, 3))
+        out = np.empty(p.shape[0])
+        field_distance_kernel(self.feat, self.lo_mm, self.spacing_mm, self.bb_lo,
+                              self.bb_hi, p, out)
+        return out
+
+
+# ------------------------------------------------------------------ spikes
+def poisson_spikes(rng: np.random.Generator, t_edges, rates):
+    """Spikes of Poisson processes with piecewise-constant rates.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Source of randomness (seeded by the caller).
+    t_edges : (n + 1,) float
+        Interval boundaries [s], non-decreasing.
+    rates : (n, k) float
+        Rate of each of ``k`` processes in each interval [spikes/s].
+
+    Returns
+    -------
+    t_s : (m,) float64
+        Spike times, sorted, each inside its interval.
+    which : (m,) uint8
+        Process (nerve) of each spike.
+    """
+    t_edges = np.asarray(t_edges, dtype=np.float64)
+    rates = np.asarray(rates, dtype=np.float64)
+    dt = np.maximum(np.diff(t_edges), 0.0)
+    counts = rng.poisson(np.maximum(rates, 0.0) * dt[:, None])
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0), np.zeros(0, dtype=np.uint8)
+    flat = counts.ravel()
+    cell = np.repeat(np.arange(flat.size), flat)
+    interval, which = np.divmod(cell, rates.shape[1])
+    t = t_edges[interval] + rng.random(total) * dt[interval]
+    order = np.argsort(t, kind="stable")
+    return t[order], which[order].astype(np.uint8)
+
+
+# ------------------------------------------------------------------- model
+def monitored_structures(model) -> list[tuple[int, object]]:
+    """``(label, structure)`` of the model's monitored structures."""
+    return [(s, st) for s, st in enumerate(model.structures, start=1)
+            if getattr(st, "monitor", False)]
+
+
+class NerveMonitor:
+    """Activity of a model's monitored nerves, updated from tool samples.
+
+    Parameters
+    ----------
+    model : Model
+        Its grid gives the nerves' voxels.
+    params : ActivityParams, optional
+        Default: the shipped ``monitor.toml``.
+    seed : int
+        Seed of the spike generator.
+    nerves : sequence of str, optional
+        Structure names to monitor; default those marked ``monitor = true``.
+
+    Attributes
+    ----------
+    names : list of str
+    labels : list of int
+        Grid label of each nerve.
+    colors : (k, 3) uint8
+        Display colour of each nerve.
+    fields : list of NerveField
+    rates_hz, distance_mm : (k,) float64
+        After the last update.
+    t_s : float
+        Time of the last update [s] (NaN before the first).
+    spikes : (t_s, nerve)
+        Spikes generated by the last update.
+    """
+
+    def __init__(self, model, params: ActivityParams | None = None, seed: int = 0,
+                 nerves=None):
+        self.params = _default_params() if params is None else params
+        if nerves is None:
+            chosen = monitored_structures(model)
+        else:
+            names = [st.name for st in model.structures]
+            missing = [n for n in nerves if n not in names]
+            if missing:
+                raise ValueError(f"no structure(s) {missing} in model {model.name!r}; "
+                                 f"structures: {names}")
+            chosen = [(names.index(n) + 1, model.structures[names.index(n)]) for n in nerves]
+        if len(chosen) > MAX_NERVES:
+            raise ValueError(f"at most {MAX_NERVES} monitored structures, got {len(chosen)}")
+        self.names = [st.name for _, st in chosen]
+        self.labels = [lab for lab, _ in chosen]
+        self.colors = np.array([st.display_color for _, st in chosen],
+                               dtype=np.uint8).reshape(-1, 3)
+        self.seed = int(seed)
+        g = model.grid
+        self.fields = []
+        if chosen:
+            _, lab = g.to_dense()
+            for label, st in chosen:
+                try:
+                    self.fields.append(NerveField(lab == label, g.spacing_mm, g.origin_mm,
+                                                  self.params.margin_mm, st.name))
+                except ValueError as exc:
+                    manifest = getattr(getattr(model, "case", None), "manifest", None)
+                    raise BonesimError(f"{exc}: it cannot be monitored", manifest,
+                                       f"structures[{label - 1}]") from None
+        self.radius_mm = float(model.burr.radius_mm)
+        self.reset()
+
+    @property
+    def n(self) -> int:
+        """Number of monitored nerves."""
+        return len(self.names)
+
+    def reset(self) -> None:
+        """Back to the seeded start: no time, resting rates, no spikes."""
+        self.rng = np.random.default_rng(self.seed)
+        self.t_s = math.nan
+        self.rates_hz = np.full(self.n, self.params.baseline_hz)
+        self.distance_mm = np.full(self.n, math.inf)
+        self.spikes = (np.zeros(0), np.zeros(0, dtype=np.uint8))
+
+    def distances(self, pos_mm, radius_mm=None) -> np.ndarray:
+        """Burr surface to each nerve [mm]: centre distance minus the burr radius.
+
+        Parameters
+        ----------
+        pos_mm : (3,) or (n, 3)
+            Burr centres [mm].
+        radius_mm : float or (n,), optional
+            Burr radius [mm]; default the model's burr.
+
+        Returns
+        -------
+        (n, k) float64
+        """
+        p = np.asarray(pos_mm, dtype=np.float64).reshape(-1, 3)
+        r = self.radius_mm if radius_mm is None else np.asarray(radius_mm, np.float64)
+        out = np.empty((p.shape[0], self.n))
+        for c, f in enumerate(self.fields):
+            out[:, c] = f.distance(p)
+        return out - np.reshape(r, (-1, 1))
+
+    def update_many(self, t_s, pos_mm, force_n, drill, radius_mm=None):
+        """Advance through ``n`` tool samples (e.g. the haptic steps since the
+        last update).
+
+        Each sample's rate holds over the interval since the previous sample
+        (the first of a run only sets the clock). Samples at or before the
+        last update's time start a new clock (a new run).
+
+        Parameters
+        ----------
+        t_s : (n,) float
+            Sample times [s], increasing.
+        pos_mm : (n, 3) float
+            Burr centres [mm].
+        force_n : (n,) float
+            Force magnitudes [N].
+        drill : (n,) bool
+            Drill running.
+        radius_mm : float or (n,), optional
+            Burr radius [mm]; default the model's burr.
+
+        Returns
+        -------
+        rates : (n, k) float64
+            Rate of each nerve at each sample [spikes/s].
+        distance : (n, k) float64
+            Burr surface to each nerve [mm].
+        """
+        t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+        if t.size == 0:
+            return np.zeros((0, self.n)), np.zeros((0, self.n))
+        dist = self.distances(pos_mm, radius_mm)
+        rates = activity(dist, np.reshape(force_n, (-1, 1)), np.reshape(drill, (-1, 1)),
+                         self.params)
+        rates = np.broadcast_to(rates, dist.shape)
+        if math.isnan(self.t_s) or t[0] <= self.t_s:
+            edges, r = t, rates[1:]                     # the first sample sets the clock
+        else:
+            edges, r = np.concatenate(([self.t_s], t)), rates
+        self.spikes = poisson_spikes(self.rng, edges, r) if len(r) else \
+            (np.zeros(0), np.zeros(0, dtype=np.uint8))
+        self.t_s = float(t[-1])
+        self.rates_hz = np.array(rates[-1])
+        self.distance_mm = dist[-1].copy()
+        return rates, dist
+
+    def update(self, t_s: float, pos_mm, force_n: float, drill: bool,
+               radius_mm: float | None = None) -> np.ndarray:
+        """Advance to one tool sample; returns the rates [spikes/s], (k,).
+
+        The spikes of the interval since the previous update are in
+        :attr:`spikes`."""
+        self.update_many([t_s], np.reshape(pos_mm, (1, 3)), [force_n], [drill], radius_mm)
+        return self.rates_hz.copy()
+
+
+# ------------------------------------------------------- shared monitor state
+# monitor status slots
+(M_READY, M_DONE, M_QUIT, M_UPDATES, M_RATE_HZ, M_COST_P50_US, M_COST_P99_US, M_T,
+ M_T0, M_SOURCE, M_CLIENTS, M_PACKETS, M_PORT, M_STREAM_HZ) = range(14)
+N_MS = 16
+#: Where the monitor read the loop: its status array, or its samples ring.
+SOURCE_STATUS, SOURCE_SAMPLES = 1.0, 2.0
+
+
+def _monitor_spec(k: int) -> list:
+    k = max(k, 1)
+    return [("mon.status", (N_MS,), np.float64), ("mon.rates", (k,), np.float64),
+            ("mon.dist", (k,), np.float64),
+            ("hist.t_s", (HISTORY_CAP,), np.float64),
+            ("hist.rate", (HISTORY_CAP, k), np.float32),
+            ("hist.dist", (HISTORY_CAP, k), np.float32), ("hist.head", (1,), np.int64),
+            ("spikes.t_s", (SPIKE_CAP,), np.float64),
+            ("spikes.nerve", (SPIKE_CAP,), np.uint8), ("spikes.head", (1,), np.int64)]
+
+
+def _rings(arrays) -> tuple:
+    hist = events.Ring({"t_s": arrays["hist.t_s"], "rate": arrays["hist.rate"],
+                        "dist": arrays["hist.dist"]}, arrays["hist.head"])
+    spikes = events.Ring({"t_s": arrays["spikes.t_s"], "nerve": arrays["spikes.nerve"]},
+                         arrays["spikes.head"])
+    return hist, spikes
+
+
+def _push(ring: events.Ring, **cols) -> None:
+    """Append records (first axis) to a ring; the head moves after the data."""
+    n = len(next(iter(cols.values())))
+    if n == 0:
+        return
+    cap = ring.capacity
+    idx = (ring.count + np.arange(n)) & (cap - 1)
+    for name, v in cols.items():
+        ring.fields[name][idx] = v
+    ring.head[0] += n
+
+
+class MonitorView:
+    """Reads a monitor's shared block (window, audio, tests).
+
+    Parameters
+    ----------
+    arrays : dict
+        The block's arrays (from :class:`bonesim.shared.SharedArrays`).
+    names : list of str
+    colors : (k, 3) uint8
+    params : ActivityParams
+    """
+
+    def __init__(self, arrays, names, colors, params: ActivityParams):
+        self.arrays = arrays
+        self.names = list(names)
+        self.colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+        self.params = params
+        self.status = arrays["mon.status"]
+        self.hist, self.spike_ring = _rings(arrays)
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def rates_hz(self) -> np.ndarray:
+        return self.arrays["mon.rates"][:self.n].copy()
+
+    @property
+    def distance_mm(self) -> np.ndarray:
+        return self.arrays["mon.dist"][:self.n].copy()
+
+    @property
+    def t_s(self) -> float:
+        """Loop time of the last update [s]."""
+        return float(self.status[M_T])
+
+    @property
+    def update_hz(self) -> float:
+        """Measured update rate [Hz] (0 until measured)."""
+        return float(self.status[M_RATE_HZ])
+
+    def stats(self) -> dict:
+        """Measured figures: update rate [Hz], per-update cost p50/p99 [us],
+        updates, source, remote consoles and packets sent."""
+        s = self.status
+        return {"update_hz": round(float(s[M_RATE_HZ]), 1),
+                "cost_p50_us": round(float(s[M_COST_P50_US]), 1),
+                "cost_p99_us": round(float(s[M_COST_P99_US]), 1),
+                "updates": int(s[M_UPDATES]),
+                "source": {SOURCE_STATUS: "status", SOURCE_SAMPLES: "samples"}.get(
+                    float(s[M_SOURCE]), "none"),
+                "consoles": int(s[M_CLIENTS]), "packets_sent": int(s[M_PACKETS])}
+
+    def history(self, window_s: float = HISTORY_S) -> dict:
+        """The last ``window_s`` seconds: ``t_s`` (m,), ``rate`` (m, k),
+        ``dist`` (m, k), ``spike_t`` (s,), ``spike_nerve`` (s,), ``now``."""
+        now = self.t_s
+        out = {"now": now}
+        for ring, keys in ((self.hist, ("t_s", "rate", "dist")),
+                           (self.spike_ring, ("t_s", "nerve"))):
+            stop = ring.count
+            start = max(0, stop - ring.capacity // 2)
+            try:
+                rec = ring.read(start, stop)
+            except events.RingOverflow:                 # raced by the writer
+                rec = ring.read(stop - 1, stop) if stop else ring.read(0, 0)
+            keep = rec["t_s"] >= now - window_s
+            for key in keys:
+                v = rec[key][keep]
+                if ring is self.spike_ring:
+                    out["spike_" + ("t" if key == "t_s" else key)] = v
+                else:
+                    out[key] = v[:, :self.n] if v.ndim == 2 else v
+        return out
+
+
+def _percentile_us(costs) -> tuple[float, float]:
+    a = np.asarray(costs) * 1e6
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz,
+                  server, source) -> None:
+    """Body of the monitor process."""
+    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
+    from .shared import SharedArrays
+
+    parent = os.getppid()
+    sh = SharedArrays.attach(loop_handle)
+    msh = SharedArrays.attach(mon_handle)
+    arr = msh.arrays
+    mstat = arr["mon.status"]
+    nm = NerveMonitor(model, params, seed)
+    field_distance_kernel(nm.fields[0].feat, nm.fields[0].lo_mm, 1.0, nm.fields[0].bb_lo,
+                          nm.fields[0].bb_hi, np.zeros((1, 3)), np.zeros(1))   # compile
+    k = nm.n
+    hist, spikes = _rings(arr)
+    status = sh["status"]
+    radii = np.asarray(radii, dtype=np.float64)
+    samples = None
+    if "samples.head" in sh.arrays and source != "status":
+        samples = events.ring_from_arrays("samples", sh.arrays)
+        cursor = samples.count
+        mstat[M_SOURCE] = SOURCE_SAMPLES
+    else:
+        mstat[M_SOURCE] = SOURCE_STATUS
+    srv = None
+    if server is not None:
+        from .monitor_net import MonitorServer
+
+        srv = MonitorServer(nm.names, nm.colors, params, **server)
+        mstat[M_PORT] = srv.port
+        mstat[M_STREAM_HZ] = srv.stream_hz
+    period = 1.0 / update_hz
+    clock = time.perf_counter
+    t_last = -math.inf
+    t0 = math.inf
+    costs: list = []
+    stamps: list = []
+    mstat[M_READY] = 1.0
+    deadline = clock()
+    try:
+        while mstat[M_QUIT] == 0.0 and os.getppid() == parent:
+            begin = clock()
+            if samples is not None:
+                head = samples.count
+                if head - cursor > samples.capacity // 2:     # fell behind: newest only
+                    cursor = head - samples.capacity // 2
+                rec = None
+                if head > cursor:
+                    rec = np.arange(cursor, head) & (samples.capacity - 1)
+                    sf = samples.fields                 # only the columns used
+                    t, pos, force = sf["t_s"][rec], sf["pos_mm"][rec], sf["mag_n"][rec]
+                    drill = sf["drill"][rec] != 0
+                    r = radii[np.minimum(sf["burr"][rec], len(radii) - 1)]
+                cursor = head
+            else:
+                rec = None
+                tl = float(status[ST_T])
+                if tl != t_last and status[ST_STEPS] > 0:
+                    rec = True
+                    t = np.array([tl])
+                    pos = status[ST_POS:ST_POS + 3].reshape(1, 3).copy()
+                    force = np.array([status[ST_MAG]])
+                    drill = np.array([status[ST_DRILL] != 0.0])
+                    b = int(status[ST_BURR])
+                    r = radii[min(max(b, 0), len(radii) - 1)]
+            if rec is not None and len(t):
+                if t[-1] < t_last:                          # a new loop clock
+                    nm.reset()
+                rates, dist = nm.update_many(t, pos, force, drill, r)
+                t_last = float(t[-1])
+                t0 = min(t0, clock() - float(status[ST_T]))
+                st_t, st_n = nm.spikes
+                _push(spikes, t_s=st_t, nerve=st_n)
+                _push(hist, t_s=np.array([t_last]), rate=nm.rates_hz.reshape(1, k).astype(
+                    np.float32), dist=nm.distance_mm.reshape(1, k).astype(np.float32))
+                arr["mon.rates"][:k] = nm.rates_hz
+                arr["mon.dist"][:k] = nm.distance_mm
+                mstat[M_T] = t_last
+                mstat[M_T0] = t0
+                mstat[M_UPDATES] += 1
+                if srv is not None:
+                    srv.add(t_last, nm.rates_hz, nm.distance_mm, st_t, st_n)
+            if srv is not None:
+                srv.poll(clock())
+                mstat[M_CLIENTS] = srv.n_clients
+                mstat[M_PACKETS] = srv.packets_sent
+            end = clock()
+            costs.append(end - begin)
+            stamps.append(begin)
+            if len(stamps) >= STATS_EVERY:
+                mstat[M_RATE_HZ] = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+                mstat[M_COST_P50_US], mstat[M_COST_P99_US] = _percentile_us(costs)
+                costs.clear()
+                stamps.clear()
+            deadline += period
+            rest = deadline - clock()
+            if rest > 0:
+                time.sleep(rest)
+            elif rest < -period:                  # fell behind: do not burst
+                deadline = clock()
+    finally:
+        if srv is not None:
+            srv.close()
+        mstat[M_DONE] = 1.0
+        msh.close()
+        sh.close()
+
+
+class MonitorProcess:
+    """Runs a :class:`NerveMonitor` beside a running haptic loop.
+
+    Parameters
+    ----------
+    loop : HapticLoop
+        Its shared memory is read (samples ring or status), never written.
+    params : ActivityParams, optional
+    seed : int
+        Spike generator seed.
+    update_hz : float
+        Update rate [Hz].
+    serve : dict, optional
+        Stream to remote consoles: keyword arguments of
+        :class:`bonesim.monitor_net.MonitorServer` (``key``, ``host``,
+        ``port``, ...). None: no network.
+    source : {"auto", "status"}
+        ``auto`` drains the loop's per-step ``samples`` ring where it has
+        one (no step is missed), else polls its ``status`` array (the
+        latest step only); ``status`` always polls.
+
+    Attributes
+    ----------
+    view : MonitorView
+        The shared block, readable in this process.
+    names : list of str
+    """
+
+    def __init__(self, loop, params: ActivityParams | None = None, seed: int = 0,
+                 update_hz: float = UPDATE_HZ, serve: dict | None = None,
+                 source: str = "auto"):
+        from .shared import SharedArrays
+
+        if not update_hz > 0:
+            raise ValueError(f"update_hz must be positive, got {update_hz}")
+        if source not in ("auto", "status"):
+            raise ValueError(f"source must be 'auto' or 'status', got {source!r}")
+        self.source = source
+        self.loop = loop
+        self.params = _default_params() if params is None else params
+        self.seed = int(seed)
+        self.update_hz = float(update_hz)
+        self.serve = serve
+        chosen = monitored_structures(loop.model)
+        self.names = [st.name for _, st in chosen]
+        colors = [st.display_color for _, st in chosen]
+        if not self.names:
+            raise ValueError(f"case {loop.model.name!r} monitors no structure "
+                             "(set monitor = true on a nerve in its case.toml)")
+        self._sh = SharedArrays.create(_monitor_spec(len(self.names)))
+        self.view = MonitorView(self._sh.arrays, self.names, colors, self.params)
+        self.status = self._sh["mon.status"]
+        burrs = [loop.model.burr] + [b for b in loop.burrs[1:]]
+        self._radii = [float(b.radius_mm) for b in burrs]
+        self._proc = None
+
+    @property
+    def handle(self) -> tuple:
+        """Shared-memory handle (the audio process attaches for the clicks)."""
+        return self._sh.handle
+
+    def start(self, timeout_s: float = 60.0) -> "MonitorProcess":
+        """Start the process; wait until it updates (or raise)."""
+        ctx = mp.get_context("spawn")
+        self._proc = ctx.Process(
+            target=_monitor_main, name="bonesim-monitor", daemon=True,
+            args=(self.loop.handle, self._sh.handle, self.loop.model, self._radii,
+                  self.params, self.seed, self.update_hz, self.serve, self.source))
+        self._proc.start()
+        end = time.monotonic() + timeout_s
+        while self.status[M_READY] == 0.0:
+            if not self._proc.is_alive():
+                raise RuntimeError("the monitor process exited during start-up "
+                                   f"(exit code {self._proc.exitcode})")
+            if time.monotonic() > end:
+                self.close()
+                raise RuntimeError("the monitor process did not start in time")
+            time.sleep(0.01)
+        return self
+
+    @property
+    def port(self) -> int | None:
+        """UDP port the console server listens on (None without one)."""
+        return int(self.status[M_PORT]) if self.serve is not None else None
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def stats(self) -> dict:
+        return self.view.stats()
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the process and free the shared block; idempotent."""
+        if self._sh is None:
+            return
+        self.status[M_QUIT] = 1.0
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(timeout_s)
+            self._proc = None
+        self.view = None
+        self.status = None
+        self._sh.close()
+        self._sh = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
