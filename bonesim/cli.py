@@ -371,6 +371,81 @@ def cmd_playback(args) -> int:
     return 0
 
 
+def _tutor(name: str):
+    """A ``bonesim tutor`` handler, imported only when run (keeps the CLI light)."""
+    def run(args) -> int:
+        from . import tutor
+
+        return getattr(tutor, name)(args)
+    return run
+
+
+def _tutor_parser(sub) -> None:
+    from .net import DEFAULT_KEY_HELP, DEFAULT_PORT
+
+    s = sub.add_parser(
+        "tutor", help="networked haptic tutoring and haptic playback",
+        description="Haptic tutoring: the instructor drills (serve) and the trainee's "
+                    "device follows with F = K_p (P_instructor - P_trainee) + F_instructor "
+                    "(join), or follows a recorded session (playback). Packets are "
+                    "authenticated with a shared key (keygen).")
+    t = s.add_subparsers(dest="tutor_cmd", metavar="ACTION", required=True)
+    k = t.add_parser("keygen", help="write a new random shared key file")
+    k.add_argument("file", help="key file to create (hex text, owner-only)")
+    k.add_argument("--force", action="store_true", help="overwrite an existing file")
+    k.set_defaults(func=_tutor("cmd_keygen"))
+
+    v = t.add_parser("serve", help="run the instructor's simulator and stream it to trainees",
+                     description="Run the haptic loop (window with the mouse, or a scripted "
+                                 "trajectory) and stream tool pose, force, drill state and "
+                                 "voxel removals over UDP to every trainee that joins.")
+    v.add_argument("--case", default=DEFAULT_CASE, help="case name or case.toml path")
+    v.add_argument("--burr", default=DEFAULT_BURR, help="burr name or file")
+    v.add_argument("--trajectory", metavar="FILE.csv",
+                   help="scripted instructor (headless default: the demo mastoidectomy)")
+    v.add_argument("--headless", action="store_true", help="no window (default without a "
+                                                           "display)")
+    v.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (headless default: the trajectory's length)")
+    v.add_argument("--host", default="0.0.0.0", help="address to listen on (default all)")
+    v.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"UDP port (default {DEFAULT_PORT})")
+    v.add_argument("--no-sound", action="store_true", help="window: no audio process")
+    v.add_argument("--key-file", metavar="FILE", help=DEFAULT_KEY_HELP)
+    v.add_argument("--json", action="store_true", help="print the summary as JSON")
+    v.set_defaults(func=_tutor("cmd_serve"))
+
+    j = t.add_parser("join", help="follow an instructor with this trainee's device",
+                     description="Join an instructor and run the trainee's 1 kHz servo on a "
+                                 "simulated hand (no hardware backend yet); prints packets, "
+                                 "drops by reason, latency and tracking error.")
+    j.add_argument("host", help="instructor's address")
+    j.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"UDP port (default {DEFAULT_PORT})")
+    j.add_argument("--case", help="load this case instead of the one the instructor names")
+    j.add_argument("--headless", action="store_true", help="no window (the only mode yet)")
+    j.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (default: when the instructor stops)")
+    j.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="give up if the instructor does not answer within S seconds")
+    j.add_argument("--key-file", metavar="FILE", help=DEFAULT_KEY_HELP)
+    j.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    j.set_defaults(func=_tutor("cmd_join"))
+
+    b = t.add_parser("playback", help="drive the trainee's device from a recorded session",
+                     description="Feed a recorded session through the tutoring controller "
+                                 "to a simulated hand in real time; the force ramps out "
+                                 "when the recording ends.")
+    b.add_argument("file", help="session file (.h5)")
+    b.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
+    b.add_argument("--start", type=float, default=0.0, metavar="S",
+                   help="start S seconds into the recording")
+    b.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    b.add_argument("--headless", action="store_true", help="no window (the only mode yet)")
+    b.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    b.set_defaults(func=_tutor("cmd_playback"))
+
+
 def cmd_bench(args) -> int:
     from .bench import run_benchmarks
 
@@ -529,6 +604,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-progress", action="store_true", help="video: no progress bar")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     s.set_defaults(func=cmd_playback)
+
+    _tutor_parser(sub)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")
     s.add_argument("--json", action="store_true", help="print one JSON object")

@@ -37,8 +37,6 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
-
 from .errors import BonesimError
 
 #: Wire-format version; a packet of any other version is dropped.
@@ -55,6 +53,9 @@ MAX_PAYLOAD = MAX_DATAGRAM - HEADER.size - TAG_BYTES
 MIN_KEY_BYTES = 16
 #: Environment variable holding the key (hex) when no key file is given.
 KEY_ENV = "BONESIM_KEY"
+DEFAULT_KEY_HELP = f"shared key file (default: ${KEY_ENV}, hex)"
+#: Default UDP port of ``bonesim tutor serve``.
+DEFAULT_PORT = 47810
 #: Clock-rate difference between two machines the staleness check tolerates
 #: (crystal oscillators drift by tens of ppm; 500 ppm is generous).
 CLOCK_DRIFT = 5e-4
@@ -447,6 +448,8 @@ class Inbox:
 def pack_records(records: np.ndarray) -> bytes:
     """Records of a numpy structured (or plain) array as payload bytes
     (little-endian dtypes travel as they are)."""
+    import numpy as np
+
     return np.ascontiguousarray(records).tobytes()
 
 
@@ -458,6 +461,8 @@ def unpack_records(payload, dtype, what: str = "payload") -> np.ndarray:
     PacketError
         ``length`` if the payload is not a whole number of records.
     """
+    import numpy as np
+
     dt = np.dtype(dtype)
     if len(payload) % dt.itemsize:
         raise PacketError("length", f"{what}: {len(payload)} bytes is not a whole number "

@@ -91,7 +91,7 @@ RECOVER_S = 0.2
 #: Trainee servo rate [Hz].
 SERVO_HZ = 1000.0
 #: Default UDP port of ``bonesim tutor serve``.
-DEFAULT_PORT = 47810
+DEFAULT_PORT = net.DEFAULT_PORT
 #: Packets delayed more than this beyond the fastest delivery are dropped [s].
 STALE_S = 0.1
 #: A not-yet-welcomed trainee repeats its JOIN this often [s].
@@ -842,8 +842,10 @@ class NetworkSource(Source):
         self._nack_have = -1
         self._nack_at = -math.inf
         self._empty = np.zeros((0, 3), np.int32)
+        #: ``now - t_s`` of every STATE packet [s]: the one-way latency on one
+        #: machine (shared monotonic clock); across machines it also holds the
+        #: clocks' offset, and only its spread (``delay_over_fastest_ms``) means much.
         self.latency = _LatencyLog()
-        self.jitter = _LatencyLog()
         self.counters = dict.fromkeys(("joins_sent", "acks_sent", "nacks_sent",
                                        "removals_applied", "removals_skipped", "resets",
                                        "byes", "states"), 0)
@@ -918,7 +920,6 @@ class NetworkSource(Source):
         self.counters["states"] += 1
         self.last_valid_s = now
         self.latency.add(now - p.t_s)
-        self.jitter.add(self.inbox.age_s(p.t_s, now))
         if self.state.epoch != self.epoch:
             self._reset_replica(self.state.epoch)
         k = len(ijk)
@@ -958,6 +959,7 @@ class NetworkSource(Source):
                         self._state(p, now_s)
                 elif p.kind == net.KIND_WELCOME:
                     self._welcome(p, now_s)
+                    break       # loading the case took time: read on with a fresh clock
                 elif p.kind == net.KIND_BYE:
                     self.counters["byes"] += 1
                     self.last_valid_s = -math.inf     # link lost now
@@ -991,10 +993,11 @@ class NetworkSource(Source):
             time.sleep(0.002)
 
     def stats(self) -> dict:
+        lat = self.latency.values()
         return {"packets": dict(self.inbox.counters), **self.counters,
                 "have_removals": self.have, "epoch": self.epoch,
-                "latency_ms": _pcts_ms(self.latency.values()),
-                "jitter_ms": _pcts_ms(self.jitter.values())}
+                "latency_ms": _pcts_ms(lat),
+                "delay_over_fastest_ms": _pcts_ms(lat - lat.min() if len(lat) else lat)}
 
     def close(self) -> None:
         if self.welcomed:
@@ -1223,3 +1226,188 @@ def warmup() -> None:
     """Compile the controller (cached on disk after the first run)."""
     z = np.zeros(3)
     tutor_force(z, z, z, KP_N_PER_MM, 1.0, 1.0, np.zeros(3))
+
+
+# ----------------------------------------------------------------------- CLI
+def _print(obj, as_json: bool, lines) -> None:
+    if as_json:
+        print(json.dumps(obj, indent=2))
+    else:
+        for line in lines:
+            print(line)
+
+
+def _has_display() -> bool:
+    import os
+
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def cmd_keygen(args) -> int:
+    """``bonesim tutor keygen FILE``."""
+    p = net.write_key(args.file, overwrite=args.force)
+    print(f"wrote a new 32-byte key to {p} (owner-only); copy it to the other machine "
+          "over a trusted channel and pass it with --key-file")
+    return 0
+
+
+def cmd_serve(args) -> int:
+    """``bonesim tutor serve``: run the instructor's haptic loop and stream it."""
+    import sys
+
+    from .case import load_case
+    from .trajectory import read_trajectory
+
+    key = net.load_key(args.key_file)
+    traj = read_trajectory(args.trajectory) if args.trajectory else None
+    headless = args.headless
+    if not headless and not _has_display():
+        print("bonesim: no display found; serving headless (use --headless to ask for it "
+              "explicitly)", file=sys.stderr)
+        headless = True
+    if headless and traj is None:                 # nothing to drive the tool: the demo
+        from .cli import _demo_trajectory
+
+        traj = _demo_trajectory(load_case(args.case), args.burr)
+        start = int(np.flatnonzero(traj.drill)[0])
+        traj = traj.at_times(traj.t_s[start:])
+    if headless:
+        return _serve_headless(args, key, traj)
+    from .app import App
+
+    app = App(args.case, args.burr, script=traj, offscreen=False, sound=not args.no_sound,
+              record=None)
+    try:
+        app.start()
+        server = TutorServer(app.loop, key, host=args.host, port=args.port).start()
+        print(f"bonesim: tutoring on {args.host}:{server.port} (case {app.model.name})",
+              file=sys.stderr)
+        try:
+            frames = None if args.duration is None else max(1, int(args.duration * 60))
+            summary = app.run(frames=frames)
+        finally:
+            final = server.stop()
+    finally:
+        app.close()
+    out = {"case": summary["case"], "port": server.port, "server": final,
+           "voxels_removed": summary["voxels_removed"]}
+    _print(out, args.json, [f"served {final.get('sent', 0)} packets to "
+                            f"{final.get('joins', 0)} trainee join(s); "
+                            f"{summary['voxels_removed']} voxels removed"])
+    return 0
+
+
+def _serve_headless(args, key: bytes, traj) -> int:
+    import sys
+
+    from .haptic_loop import HapticLoop
+    from .model import load_model, warmup as model_warmup
+
+    model_warmup()
+    model = load_model(args.case, args.burr)
+    duration = args.duration
+    if duration is None:
+        duration = float(traj.t_s[-1] - traj.t_s[0])
+    loop = HapticLoop(model, device=("scripted", traj), run_s=duration)
+    t0 = time.monotonic()
+    try:
+        loop.start()
+        server = TutorServer(loop, key, host=args.host, port=args.port).start()
+        print(f"bonesim: tutoring on {args.host}:{server.port} (case {model.name}, "
+              f"scripted instructor for {duration:.1f} s)", file=sys.stderr)
+        try:
+            loop.wait(duration + 30.0)
+        finally:
+            final = server.stop()
+        rates = loop.rate_stats(5000)
+        removed = int(loop.state.removed_by_label.sum())
+    finally:
+        loop.close()
+    out = {"case": model.name, "host": args.host, "port": server.port,
+           "duration_s": round(time.monotonic() - t0, 3),
+           "haptic_rate_hz": round(rates["rate_hz"], 1), "voxels_removed": removed,
+           "server": final}
+    rx = final.get("received", {})
+    _print(out, args.json, [
+        f"served case {model.name} on {args.host}:{server.port} for {out['duration_s']} s: "
+        f"{final.get('sent', 0)} packets, {final.get('removals_sent', 0)} removals sent, "
+        f"{final.get('go_backs', 0)} go-backs, {final.get('joins', 0)} join(s)",
+        "dropped: " + (", ".join(f"{k} {v}" for k, v in rx.items()
+                                  if k != "accepted" and v) or "none"),
+        f"haptic loop {out['haptic_rate_hz']} Hz, {removed} voxels removed"])
+    return 0
+
+
+def _trainee_lines(s: dict) -> list:
+    lat = s.get("latency_ms", {})
+    err = s.get("tracking_error_mm", {})
+    pk = s.get("packets", {})
+    return [
+        f"{s['ticks']} servo ticks; packets accepted {pk.get('accepted', 0)}, dropped: "
+        + (", ".join(f"{k} {v}" for k, v in pk.items() if k != "accepted" and v) or "none"),
+        f"latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms; tracking error p50 "
+        f"{err.get('p50')} mm, p99 {err.get('p99')} mm",
+        f"removals applied {s.get('removals_applied', 0)}; link lost "
+        f"{s['link_lost_events']} time(s); {s['hud']}"]
+
+
+def cmd_join(args) -> int:
+    """``bonesim tutor join HOST``: follow an instructor with the simulated hand."""
+    import sys
+
+    from .devices import SimulatedHandDevice
+
+    key = net.load_key(args.key_file)             # (no trainee window yet: headless)
+    warmup()
+    src = NetworkSource(args.host, args.port, key, case=args.case)
+    trainee = None
+    try:
+        src.connect(args.timeout)
+        trainee = Trainee(src, SimulatedHandDevice())
+        print(f"bonesim: following the instructor at {args.host}:{args.port} (case "
+              f"{src.info.get('case')})", file=sys.stderr)
+        duration = math.inf if args.duration is None else args.duration
+        byes = src.counters["byes"]
+        try:
+            trainee.run(duration, until=lambda: src.counters["byes"] > byes)
+            trainee.run(LOSS_S + RAMP_S + 0.01)       # let the force ramp out
+        except KeyboardInterrupt:
+            pass
+        s = trainee.stats()
+        s["hud"] = trainee.hud_text
+    finally:
+        if trainee is not None:
+            trainee.close()
+        else:
+            src.close()
+    _print(s, args.json, _trainee_lines(s))
+    return 0
+
+
+def cmd_playback(args) -> int:
+    """``bonesim tutor playback FILE.h5``: drive the trainee's device from a recording."""
+    from .devices import SimulatedHandDevice
+    from .record import read_session
+
+    session = read_session(args.file)
+    warmup()
+    src = RecordingSource(session, speed=args.speed, start_s=args.start)
+    trainee = Trainee(src, SimulatedHandDevice())
+    try:
+        duration = math.inf if args.duration is None else args.duration
+        try:
+            trainee.run(duration, until=lambda: src.done)
+            trainee.run(LOSS_S + RAMP_S + 0.01)
+        except KeyboardInterrupt:
+            pass
+        s = trainee.stats()
+        s["hud"] = trainee.hud_text
+        s["file"] = str(args.file)
+    finally:
+        trainee.close()
+    _print(s, args.json, [f"played back {s['playback_s']} s of {s['duration_s']} s from "
+                          f"{args.file}; tracking error p50 "
+                          f"{s.get('tracking_error_mm', {}).get('p50')} mm, force max "
+                          f"{s.get('force_n', {}).get('max')} N; {s['hud']}"])
+    return 0
+

@@ -642,3 +642,102 @@ def test_udp_socket_reports_a_taken_port():
             tutor.udp_socket("127.0.0.1", s.getsockname()[1])
     finally:
         s.close()
+
+
+# -------------------------------------------------------------------- CLI
+def _cli(argv, capsys):
+    from bonesim.cli import main
+
+    rc = main(argv)
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_cli_keygen_and_key_errors(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv(net.KEY_ENV, raising=False)
+    key = tmp_path / "tutor.key"
+    rc, out, _ = _cli(["tutor", "keygen", str(key)], capsys)
+    assert rc == 0 and "wrote" in out and len(net.load_key(key)) == 32
+    rc, _, err = _cli(["tutor", "keygen", str(key)], capsys)
+    assert rc == 2 and "exists" in err and err.count("\n") == 1
+    rc, _, err = _cli(["tutor", "join", "127.0.0.1", "--duration", "0.1"], capsys)
+    assert rc == 2 and net.KEY_ENV in err and err.count("\n") == 1
+    short = tmp_path / "short.key"
+    short.write_text("abcdef")
+    rc, _, err = _cli(["tutor", "join", "127.0.0.1", "--key-file", str(short)], capsys)
+    assert rc == 2 and str(short) in err and "at least 16" in err
+
+
+def test_cli_join_reports_a_silent_instructor(tmp_path, capsys):
+    key = net.write_key(tmp_path / "k")
+    quiet = tutor.udp_socket("127.0.0.1", 0)                # bound, never answers
+    try:
+        rc, _, err = _cli(["tutor", "join", "127.0.0.1", "--port",
+                           str(quiet.getsockname()[1]), "--key-file", str(key),
+                           "--timeout", "0.3", "--headless"], capsys)
+    finally:
+        quiet.close()
+    assert rc == 2 and "no answer from the instructor" in err
+
+
+def test_cli_playback_headless_json(tmp_path, capsys):
+    """A real session of the phantom recorded by ``bonesim simulate --record``,
+    played back through the tutoring controller."""
+    import json
+
+    from bonesim.case import load_case
+    from bonesim.cli import _demo_trajectory
+    from bonesim.trajectory import write_trajectory
+
+    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(traj.drill)[0])
+    traj = traj.at_times(traj.t_s[start:start + 60])
+    csv = tmp_path / "short.csv"
+    write_trajectory(csv, traj)
+    h5 = tmp_path / "run.h5"
+    rc, _, err = _cli(["simulate", "--trajectory", str(csv), "--record", str(h5)], capsys)
+    if rc == 2 and "record" in err:
+        pytest.skip("this bonesim simulate cannot record")
+    assert rc == 0, err
+    rc, out, err = _cli(["tutor", "playback", str(h5), "--headless", "--json"], capsys)
+    assert rc == 0, err
+    s = json.loads(out)
+    assert s["done"] and s["link_lost"] and s["hud"] == "PLAYBACK ENDED"
+    assert s["ticks"] > 0.5 * s["duration_s"] * 1000
+    assert s["force_n"]["max"] > 0 and s["tracking_error_mm"]["n"] > 0
+
+
+@pytest.mark.slow
+def test_cli_serve_and_join_headless(tmp_path, capsys):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    key = net.write_key(tmp_path / "k")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(__import__("pathlib").Path(
+        tutor.__file__).parents[1])] + [env.get("PYTHONPATH", "")])
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "bonesim.cli", "tutor", "serve", "--headless", "--duration",
+         "5", "--host", "127.0.0.1", "--port", str(port), "--key-file", str(key), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    try:
+        rc, out, err = _cli(["tutor", "join", "127.0.0.1", "--port", str(port), "--key-file",
+                             str(key), "--headless", "--timeout", "60", "--json"], capsys)
+        s_out, s_err = serve.communicate(timeout=120)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+    assert rc == 0, err
+    trainee = json.loads(out)
+    server = json.loads(s_out)
+    assert serve.returncode == 0, s_err
+    assert trainee["byes"] == 1 and trainee["hud"] == "LINK LOST"
+    assert trainee["packets"]["accepted"] > 500
+    assert trainee["have_removals"] == server["server"]["log_removals"]
+    assert server["server"]["joins"] == 1 and server["server"]["sent"] > 500
