@@ -333,6 +333,12 @@ def bench_recording(quick=False) -> dict:
     return run(quick=quick)
 
 
+def bench_tutor(quick=False) -> dict:
+    from .bench_tutor import bench_tutor as run
+
+    return run(quick=quick)
+
+
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -350,6 +356,9 @@ BENCHMARKS = {
     "dust_step_64_ms": bench_dust,
     "recording_overhead_us": bench_recording,
     "recording_writer_rows_per_s": bench_recording,
+    "tutor_loopback_latency_p99_ms": bench_tutor,
+    "tutor_loopback_latency_p50_ms": bench_tutor,
+    "tutor_loopback_loss_fraction": bench_tutor,
 }
 
 

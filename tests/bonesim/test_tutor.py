@@ -741,3 +741,16 @@ def test_cli_serve_and_join_headless(tmp_path, capsys):
     assert trainee["packets"]["accepted"] > 500
     assert trainee["have_removals"] == server["server"]["log_removals"]
     assert server["server"]["joins"] == 1 and server["server"]["sent"] > 500
+
+
+def test_bench_tutor_quick_smoke():
+    from bonesim.bench import BENCHMARKS
+    from bonesim.bench_tutor import bench_tutor
+
+    out = bench_tutor(quick=True)
+    r = out["tutor_loopback_latency_p99_ms"]
+    assert BENCHMARKS["tutor_loopback_latency_p99_ms"].__name__ == "bench_tutor"
+    assert r["unit"] == "ms" and r["packets_sent"] == 1000
+    assert r["packets_accepted"] + round(r["loss_fraction"] * 1000) == 1000
+    assert 0 < r["p50_ms"] <= r["value"] <= r["max_ms"]
+    assert out["tutor_loopback_latency_p50_ms"]["value"] == r["p50_ms"]
