@@ -9,6 +9,10 @@ thickness under the burr by ray casting (:mod:`bonesim.thickness`) on the
 shared tissue, and hands the four numbers to the synthesizer, whose output
 stream (or silent sink, without a sound device) renders blocks in its own
 callback. ``wav`` records exactly what is rendered.
+
+With a nerve monitor (:class:`bonesim.monitor.MonitorProcess`) the same
+process also drains the monitor's spikes and mixes a click per spike into the
+same stream (:mod:`bonesim.clicks`), ``clicks.DELAY_S`` after the spike.
 """
 from __future__ import annotations
 
@@ -23,9 +27,9 @@ THICKNESS_MAX_MM = 6.0
 A_READY, A_SILENT, A_DONE, A_QUIT = range(4)
 
 
-def _audio_main(handle, model, burrs, wav, status_handle) -> None:
+def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
     from .grid import Grid
-    from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED)
+    from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T)
     from .shared import SharedArrays
     from .sound import SoundSynth, WavRecorder, open_output
     from .sound import warmup as sound_warmup
@@ -44,7 +48,20 @@ def _audio_main(handle, model, burrs, wav, status_handle) -> None:
     thickness_warmup()
     synth = SoundSynth(all_burrs[0])
     recorder = WavRecorder(wav, synth.sample_rate) if wav else None
-    out = open_output(synth, recorder=recorder)
+    clicks = None
+    if monitor is not None:                 # (handle, nerves): clicks for its spikes
+        from .clicks import ClickSynth, MixedSynth
+        from .clicks import warmup as clicks_warmup
+        from .monitor import shared_rings
+
+        clicks_warmup()
+        msh = SharedArrays.attach(monitor[0])
+        spikes = shared_rings(msh.arrays)[1]
+        spike_pos = spikes.count
+        clicks = ClickSynth(synth.sample_rate, monitor[1])
+        clicks.sync(float(status[ST_T]))
+    out = open_output(synth if clicks is None else MixedSynth(synth, clicks),
+                      recorder=recorder)
     astat[A_SILENT] = 0.0 if out.notice is None else 1.0
     astat[A_READY] = 1.0
     burr = 0
@@ -61,6 +78,13 @@ def _audio_main(handle, model, burrs, wav, status_handle) -> None:
                 thick = bone_thickness_mm(grid, status[ST_POS:ST_POS + 3].copy(),
                                           all_burrs[burr].radius_mm, THICKNESS_MAX_MM)
             synth.set_params(drill, float(status[ST_SPEED]), force, thick)
+            if clicks is not None:
+                clicks.sync(float(status[ST_T]))
+                head = spikes.count
+                if head > spike_pos:
+                    rec = spikes.read(max(spike_pos, head - spikes.capacity // 2), head)
+                    clicks.schedule(rec["t_s"], rec["nerve"])
+                    spike_pos = head
             time.sleep(1.0 / CONTROL_HZ)
     finally:
         out.close()
@@ -80,15 +104,18 @@ class AudioProcess:
         The loop whose status steers the sound.
     wav : path, optional
         Also write everything rendered to this WAV file.
+    monitor : MonitorProcess, optional
+        Mix a click per spike of this nerve monitor into the sound.
     """
 
-    def __init__(self, loop, wav=None):
+    def __init__(self, loop, wav=None, monitor=None):
         import numpy as np
 
         from .shared import SharedArrays
 
         self.loop = loop
         self.wav = None if wav is None else str(wav)
+        self.monitor = None if monitor is None else (monitor.handle, len(monitor.names))
         self._ash = SharedArrays.create([("audio", (4,), np.float64)])
         self.status = self._ash["audio"]
         self._proc = None
@@ -97,7 +124,8 @@ class AudioProcess:
         ctx = mp.get_context("spawn")
         self._proc = ctx.Process(target=_audio_main, name="bonesim-audio", daemon=True,
                                  args=(self.loop.handle, self.loop.model,
-                                       self.loop.burrs[1:], self.wav, self._ash.handle))
+                                       self.loop.burrs[1:], self.wav, self._ash.handle,
+                                       self.monitor))
         self._proc.start()
         end = time.monotonic() + timeout_s
         while self.status[A_READY] == 0.0:

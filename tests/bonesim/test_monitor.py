@@ -283,17 +283,21 @@ def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor,
     from bonesim.monitor import MonitorProcess
 
     traj = approach_trajectory(phantom_monitor.fields[0])
-    with HapticLoop(phantom_model, device=("scripted", traj), vibration=False) as loop:
+    loop = HapticLoop(phantom_model, device=("scripted", traj), vibration=False)
+    mon = None
+    try:            # the monitor first: it sees the approach from its start
         mon = MonitorProcess(loop, P, seed=1, source=source).start()
-        try:
-            assert _wait(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5)
-            assert _wait(lambda: mon.view.t_s > traj.t_s[-1] + 0.5)
-            stats = mon.stats()
-            hist = mon.view.history(10.0)
-            names = mon.view.names
-        finally:
-            mon.close()
+        loop.start()
+        assert _wait(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5)
+        assert _wait(lambda: mon.view.t_s > traj.t_s[-1] + 0.5)
+        stats = mon.stats()
+        hist = mon.view.history(10.0)
+        names = mon.view.names
         has_ring = "samples.head" in loop._sh.arrays
+    finally:
+        if mon is not None:
+            mon.close()
+        loop.close()
     assert names == ["facial_nerve", "chorda_tympani"]
     assert stats["source"] == ("samples" if has_ring and source == "auto" else "status")
     # it measures and reports its own rate and cost
@@ -312,3 +316,155 @@ def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor,
         sel = (hist["spike_nerve"] == c) & (hist["spike_t"] > t[0])
         expect = float(np.sum(rate[1:, c] * np.diff(t)))
         assert abs(np.count_nonzero(sel) - expect) < 5 * math.sqrt(expect) + 3
+
+
+# ---------------------------------------------------------------------- clicks
+from bonesim import clicks as K  # noqa: E402
+
+FS = 48000
+
+
+def click_reference(n, starts, which, fs=FS, k=2):
+    """Slow reference of the click mix: every template added at its start."""
+    out = np.zeros(n, np.float64)
+    for s, w in zip(starts, which):
+        x = K.click_template(fs, w)
+        a, b = max(s, 0), min(s + len(x), n)
+        if b > a:
+            out[a:b] += x[a - s:b - s]
+    return np.clip(out, -1, 1).astype(np.float32)
+
+
+def render_blocks(synth, seconds, block):
+    n = int(round(seconds * synth.sample_rate))
+    out = np.zeros(n, np.float32)
+    for q in range(0, n, block):
+        synth.render(out[q:q + block])
+    return out
+
+
+def test_clicks_sound_at_spike_times_plus_the_delay():
+    spikes = np.array([0.1, 0.25, 0.2512, 0.4]), np.array([0, 1, 0, 1])
+    outs = []
+    for block in (1, 97, 256, 48000):
+        c = K.ClickSynth(FS, 2)
+        c.sync(0.0)
+        assert c.schedule(*spikes) == 4
+        outs.append(render_blocks(c, 0.6, block))
+        assert c.late == 0 and c.dropped == 0
+    for o in outs[1:]:
+        np.testing.assert_array_equal(o, outs[0])        # block size does not matter
+    out = outs[0]
+    starts = np.rint((spikes[0] + K.DELAY_S) * FS).astype(int)
+    np.testing.assert_allclose(out, click_reference(len(out), starts, spikes[1]), atol=1e-6)
+    # silence outside the clicks, sound inside each
+    L = len(K.click_template(FS))
+    inside = np.zeros(len(out), bool)
+    for s in starts:
+        inside[s:s + L] = True
+        assert np.abs(out[s:s + L]).max() > 0.2
+    assert np.all(out[~inside] == 0.0) and out[starts[0]] == 0.0       # zero phase start
+    # each nerve its own pitch
+    for s, w in zip(starts[[0, 3]], (0, 1)):
+        seg = np.zeros(4096)
+        seg[:L] = out[s:s + L]
+        f = np.fft.rfftfreq(4096, 1 / FS)[np.argmax(np.abs(np.fft.rfft(seg)))]
+        assert f == pytest.approx(K.CLICK_HZ * K.NERVE_PITCH_STEP ** w, rel=0.1)
+
+
+def test_late_spikes_sound_at_once_and_a_full_ring_drops():
+    c = K.ClickSynth(FS, 1)
+    c.sync(10.0)                               # the caller's clock reads 10 s now
+    render_blocks(c, 0.5, 256)                 # ... and 10.5 s after this
+    c.schedule([10.2], [0])                    # 0.3 s late (with the delay)
+    out = np.zeros(256, np.float32)
+    c.render(out)
+    assert c.late == 1 and np.abs(out[:200]).max() > 0.2
+    assert not c.sync(10.0 + c.rendered / FS + 0.005)       # within tolerance: kept
+    assert c.sync(10.0 + c.rendered / FS + 0.05)            # drifted: re-anchored
+    with pytest.raises(ValueError, match="nerve index out of range"):
+        c.schedule([11.0], [1])
+    c.render(out)                              # the finished click frees its slot
+    n = c.schedule(np.full(K.RING + 10, 20.0), np.zeros(K.RING + 10, int))
+    assert n == K.RING and c.dropped == 10
+    with pytest.raises(RuntimeError, match="before sync"):
+        K.ClickSynth(FS, 1).schedule([0.0], [0])
+
+
+def test_clicks_mix_into_the_drill_sound_and_record_to_wav(tmp_path):
+    import wave
+
+    from bonesim.burrs import load_burr
+    from bonesim.sound import SoundSynth, WavRecorder
+
+    burr = load_burr("cutting-5mm")
+    drill = SoundSynth(burr, FS, seed=4)
+    drill.set_params(True, burr.default_speed_rpm, 0.5)
+    alone = render_blocks(drill, 0.5, 256)
+    drill = SoundSynth(burr, FS, seed=4)
+    drill.set_params(True, burr.default_speed_rpm, 0.5)
+    c = K.ClickSynth(FS, 1)
+    c.sync(0.0)
+    c.schedule([0.2], [0])
+    mix = K.MixedSynth(drill, c)
+    n = int(0.5 * FS)
+    out = np.zeros(n, np.float32)
+    with WavRecorder(tmp_path / "clicks.wav", FS) as rec:
+        for q in range(0, n, 256):
+            mix.render(out[q:q + 256])
+            rec.write(out[q:q + 256])
+    s = int(round((0.2 + K.DELAY_S) * FS))
+    ref = alone + click_reference(n, [s], [0])
+    np.testing.assert_allclose(out, np.clip(ref, -1, 1), atol=1e-6)
+    with wave.open(str(tmp_path / "clicks.wav")) as w:
+        pcm = np.frombuffer(w.readframes(w.getnframes()), np.int16) / 32767.0
+    np.testing.assert_allclose(pcm, out, atol=1.0 / 32767)
+    with pytest.raises(ValueError, match="sample rates differ"):
+        K.MixedSynth(drill, K.ClickSynth(44100, 1))
+
+
+@pytest.mark.slow
+def test_audio_process_clicks_at_the_monitor_spikes(phantom_model, phantom_monitor, tmp_path):
+    import time
+    import wave
+
+    from bonesim.audio import AudioProcess
+    from bonesim.haptic_loop import HapticLoop
+    from bonesim.monitor import MonitorProcess
+
+    # drill off (no drill sound), the burr resting at the nerve: clicks only
+    traj = approach_trajectory(phantom_monitor.fields[0], seconds=0.5, start_mm=0.5,
+                               end_mm=0.0, drill=False)
+    wav = tmp_path / "clicks.wav"
+    with HapticLoop(phantom_model, device=("scripted", traj), vibration=False) as loop:
+        mon = MonitorProcess(loop, P, seed=2).start()
+        try:
+            audio = AudioProcess(loop, wav=wav, monitor=mon).start()
+            time.sleep(3.0)
+            audio.close()
+            h = mon.view.history(10.0)
+        finally:
+            mon.close()
+    with wave.open(str(wav)) as w:
+        fs = w.getframerate()
+        x = np.frombuffer(w.readframes(w.getnframes()), np.int16) / 32767.0
+    assert len(x) > 2 * fs and len(h["spike_t"]) > 50
+    # the clicks of all spikes, on the loop's clock; find the one offset that
+    # maps it onto the recording, then they must coincide sample for sample
+    starts = np.rint((h["spike_t"] + K.DELAY_S) * fs).astype(np.int64)
+    n_ref = int(starts.max()) + fs
+    ref = click_reference(n_ref, starts, h["spike_nerve"], fs)
+    env = lambda a: np.abs(a) > 1e-3                                    # noqa: E731
+    corr = np.fft.irfft(np.fft.rfft(env(ref), 2 * n_ref).conj()
+                        * np.fft.rfft(env(x), 2 * n_ref))
+    lag = int(np.argmax(corr))
+    lag = lag - 2 * n_ref if lag > n_ref else lag
+    aligned = np.zeros_like(x)
+    src = np.arange(len(x)) - lag
+    ok = (src >= 0) & (src < n_ref)
+    aligned[ok] = ref[src[ok]]
+    skip = int(0.05 * fs)                          # spikes just before the audio started
+    diff = np.abs(aligned - x)[skip:]
+    assert np.mean(diff > 2e-3) < 0.02            # late or re-anchored clicks are rare
+    sounding = np.abs(x[skip:]) > 1e-3
+    assert sounding.mean() > 0.05                 # ~40 clicks/s of 4 ms each
