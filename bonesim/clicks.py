@@ -32,7 +32,7 @@ from numba import njit
 from .sound import SAMPLE_RATE
 
 __all__ = ["CLICK_HZ", "CLICK_DECAY_S", "CLICK_S", "CLICK_GAIN", "NERVE_PITCH_STEP",
-           "DELAY_S", "SYNC_TOLERANCE_S", "click_template", "ClickSynth", "MixedSynth"]
+           "DELAY_S", "SYNC_TOLERANCE_S", "SYNC_HOLD_S", "SYNC_JUMP_S", "click_template", "ClickSynth", "MixedSynth"]
 
 #: Ring frequency of the first nerve's click [Hz].
 CLICK_HZ = 2200.0
@@ -46,8 +46,12 @@ CLICK_S = 0.004
 CLICK_GAIN = 0.5
 #: A click sounds this long after its spike [s].
 DELAY_S = 0.03
-#: :meth:`ClickSynth.sync` re-anchors the clock only beyond this drift [s].
+#: :meth:`ClickSynth.sync` re-anchors the clock only beyond this drift [s] ...
 SYNC_TOLERANCE_S = 0.01
+#: ... held this long [s] ...
+SYNC_HOLD_S = 0.5
+#: ... or at once beyond this jump [s].
+SYNC_JUMP_S = 0.5
 #: Scheduled clicks the ring holds (power of two).
 RING = 1 << 12
 
@@ -156,6 +160,7 @@ class ClickSynth:
         self._cursor = np.zeros(3, dtype=np.int64)
         self.rendered = 0
         self.origin_s = None
+        self._off_since = None
         self.dropped = 0
 
     @property
@@ -172,16 +177,37 @@ class ClickSynth:
         """Clicks that sounded later than their delay (their spike came too late)."""
         return int(self._cursor[2])
 
-    def sync(self, now_s: float, tolerance_s: float = SYNC_TOLERANCE_S) -> bool:
+    def sync(self, now_s: float, tolerance_s: float = SYNC_TOLERANCE_S,
+             hold_s: float = SYNC_HOLD_S) -> bool:
         """Tie the caller's clock to the render position: the caller's clock
-        reads ``now_s`` at the next sample to render. Re-anchors only when the
-        two have drifted apart by more than ``tolerance_s``; returns True if it
-        did."""
+        reads ``now_s`` at the next sample to render. Returns True if the
+        anchor moved.
+
+        Until the first block is rendered every call re-anchors (the output
+        has not started). After that the anchor moves only when the clocks
+        disagree by more than ``tolerance_s`` on every call for ``hold_s``
+        (a real drift, e.g. a sound card's crystal against the system clock),
+        or at once by more than :data:`SYNC_JUMP_S` (a new caller clock). A
+        render thread that stalls and catches up, or a caller that reads its
+        clock late, moves nothing: clicks keep their spacing.
+        """
         origin = float(now_s) - self.rendered / self.sample_rate
-        if self.origin_s is None or abs(origin - self.origin_s) > tolerance_s:
+        if self.origin_s is None or self.rendered == 0 or \
+                abs(origin - self.origin_s) > SYNC_JUMP_S:
+            moved = origin != self.origin_s
             self.origin_s = origin
-            return True
-        return False
+            self._off_since = None
+            return moved
+        if abs(origin - self.origin_s) <= tolerance_s:
+            self._off_since = None
+            return False
+        if self._off_since is None:
+            self._off_since = float(now_s)
+        if float(now_s) - self._off_since < hold_s:
+            return False
+        self.origin_s = origin
+        self._off_since = None
+        return True
 
     def schedule(self, t_s, nerve) -> int:
         """Schedule clicks for spikes at times ``t_s`` [s, the caller's clock] of

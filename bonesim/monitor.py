@@ -62,7 +62,7 @@ from .tomlfile import check_keys, get_number, read_toml
 
 __all__ = ["ActivityParams", "load_activity_params", "default_params_path", "activity",
            "NerveField", "poisson_spikes", "NerveMonitor", "monitored_structures",
-           "MonitorProcess", "MonitorView", "UPDATE_HZ", "HISTORY_S"]
+           "MonitorProcess", "MonitorView", "shared_rings", "UPDATE_HZ", "HISTORY_S"]
 
 #: Rate at which the monitor process updates [Hz].
 UPDATE_HZ = 200.0
@@ -546,7 +546,10 @@ def _monitor_spec(k: int) -> list:
             ("spikes.nerve", (SPIKE_CAP,), np.uint8), ("spikes.head", (1,), np.int64)]
 
 
-def _rings(arrays) -> tuple:
+def shared_rings(arrays) -> tuple:
+    """``(history, spikes)`` rings over a monitor block's arrays: the rate
+    history (``t_s``, ``rate`` (k), ``dist`` (k)) and the spikes (``t_s``,
+    ``nerve``)."""
     hist = events.Ring({"t_s": arrays["hist.t_s"], "rate": arrays["hist.rate"],
                         "dist": arrays["hist.dist"]}, arrays["hist.head"])
     spikes = events.Ring({"t_s": arrays["spikes.t_s"], "nerve": arrays["spikes.nerve"]},
@@ -584,7 +587,7 @@ class MonitorView:
         self.colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
         self.params = params
         self.status = arrays["mon.status"]
-        self.hist, self.spike_ring = _rings(arrays)
+        self.hist, self.spike_ring = shared_rings(arrays)
 
     @property
     def n(self) -> int:
@@ -663,7 +666,7 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     field_distance_kernel(nm.fields[0].feat, nm.fields[0].lo_mm, 1.0, nm.fields[0].bb_lo,
                           nm.fields[0].bb_hi, np.zeros((1, 3)), np.zeros(1))   # compile
     k = nm.n
-    hist, spikes = _rings(arr)
+    hist, spikes = shared_rings(arr)
     status = sh["status"]
     radii = np.asarray(radii, dtype=np.float64)
     samples = None
@@ -677,7 +680,7 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     if server is not None:
         from .monitor_net import MonitorServer
 
-        srv = MonitorServer(nm.names, nm.colors, params, **server)
+        srv = MonitorServer(nm.names, nm.colors, params, update_hz=update_hz, **server)
         mstat[M_PORT] = srv.port
         mstat[M_STREAM_HZ] = srv.stream_hz
     period = 1.0 / update_hz
@@ -732,7 +735,7 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
                 if srv is not None:
                     srv.add(t_last, nm.rates_hz, nm.distance_mm, st_t, st_n)
             if srv is not None:
-                srv.poll(clock())
+                srv.poll(time.monotonic())         # the clock packets are stamped with
                 mstat[M_CLIENTS] = srv.n_clients
                 mstat[M_PACKETS] = srv.packets_sent
             end = clock()

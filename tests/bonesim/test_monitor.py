@@ -381,7 +381,18 @@ def test_late_spikes_sound_at_once_and_a_full_ring_drops():
     c.render(out)
     assert c.late == 1 and np.abs(out[:200]).max() > 0.2
     assert not c.sync(10.0 + c.rendered / FS + 0.005)       # within tolerance: kept
-    assert c.sync(10.0 + c.rendered / FS + 0.05)            # drifted: re-anchored
+    origin = c.origin_s
+    assert not c.sync(10.0 + c.rendered / FS + 0.05)        # a transient: kept
+    render_blocks(c, 0.2, 256)
+    assert not c.sync(10.0 + c.rendered / FS)               # back in tolerance: kept
+    render_blocks(c, 0.2, 256)
+    for _ in range(3):                                      # a drift held 0.6 s: moves
+        assert c.origin_s == origin
+        moved = c.sync(10.0 + c.rendered / FS + 0.05)
+        render_blocks(c, 0.3, 256)
+    assert moved and c.origin_s == pytest.approx(origin + 0.05, abs=1e-9)
+    assert c.sync(100.0 + c.rendered / FS)                  # a new clock: at once
+    assert c.origin_s == pytest.approx(100.0)
     with pytest.raises(ValueError, match="nerve index out of range"):
         c.schedule([11.0], [1])
     c.render(out)                              # the finished click frees its slot
