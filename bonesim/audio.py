@@ -24,7 +24,10 @@ CONTROL_HZ = 100.0
 #: Longest ray cast for the thickness estimate [mm].
 THICKNESS_MAX_MM = 6.0
 # audio status slots (written by the audio process)
-A_READY, A_SILENT, A_DONE, A_QUIT = range(4)
+# audio status slots: ready, no device, done, quit; with a monitor the clicks
+# scheduled, sounded late, dropped (ring full) and clock re-anchors
+A_READY, A_SILENT, A_DONE, A_QUIT, A_CLICKS, A_LATE, A_DROPPED, A_ANCHORS = range(8)
+N_AS = 8
 
 
 def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
@@ -59,7 +62,7 @@ def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
         spikes = shared_rings(msh.arrays)[1]
         spike_pos = spikes.count
         clicks = ClickSynth(synth.sample_rate, monitor[1])
-        clicks.sync(float(status[ST_T]))
+        clicks.sync(float(status[ST_T]))        # provisional: re-anchored once it renders
     out = open_output(synth if clicks is None else MixedSynth(synth, clicks),
                       recorder=recorder)
     astat[A_SILENT] = 0.0 if out.notice is None else 1.0
@@ -79,12 +82,15 @@ def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
                                           all_burrs[burr].radius_mm, THICKNESS_MAX_MM)
             synth.set_params(drill, float(status[ST_SPEED]), force, thick)
             if clicks is not None:
-                clicks.sync(float(status[ST_T]))
+                astat[A_ANCHORS] += clicks.sync(float(status[ST_T]))
                 head = spikes.count
                 if head > spike_pos:
                     rec = spikes.read(max(spike_pos, head - spikes.capacity // 2), head)
                     clicks.schedule(rec["t_s"], rec["nerve"])
                     spike_pos = head
+                astat[A_CLICKS] = clicks.scheduled
+                astat[A_LATE] = clicks.late
+                astat[A_DROPPED] = clicks.dropped
             time.sleep(1.0 / CONTROL_HZ)
     finally:
         out.close()
@@ -116,7 +122,7 @@ class AudioProcess:
         self.loop = loop
         self.wav = None if wav is None else str(wav)
         self.monitor = None if monitor is None else (monitor.handle, len(monitor.names))
-        self._ash = SharedArrays.create([("audio", (4,), np.float64)])
+        self._ash = SharedArrays.create([("audio", (N_AS,), np.float64)])
         self.status = self._ash["audio"]
         self._proc = None
 
@@ -141,7 +147,17 @@ class AudioProcess:
         """True when no sound device was found (a silent sink renders instead)."""
         return bool(self.status[A_SILENT])
 
+    def click_stats(self) -> dict:
+        """The nerve monitor's clicks so far: scheduled, sounded late (their
+        spike came after the click delay), dropped (ring full) and clock
+        re-anchors (the first one included)."""
+        s = self.status
+        return {"clicks": int(s[A_CLICKS]), "late": int(s[A_LATE]),
+                "dropped": int(s[A_DROPPED]), "anchors": int(s[A_ANCHORS])}
+
     def close(self, timeout_s: float = 5.0) -> None:
+        if self._ash is None:
+            return
         self.status[A_QUIT] = 1.0
         if self._proc is not None:
             self._proc.join(timeout_s)
@@ -149,3 +165,4 @@ class AudioProcess:
                 self._proc.terminate()
             self._proc = None
         self._ash.close()
+        self._ash = None

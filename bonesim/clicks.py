@@ -160,6 +160,7 @@ class ClickSynth:
         self._cursor = np.zeros(3, dtype=np.int64)
         self.rendered = 0
         self.origin_s = None
+        self._provisional = True
         self._off_since = None
         self.dropped = 0
 
@@ -183,8 +184,8 @@ class ClickSynth:
         reads ``now_s`` at the next sample to render. Returns True if the
         anchor moved.
 
-        Until the first block is rendered every call re-anchors (the output
-        has not started). After that the anchor moves only when the clocks
+        Until the first block is rendered, and once more at the first call
+        after it, every call re-anchors (the output had not started). After that the anchor moves only when the clocks
         disagree by more than ``tolerance_s`` on every call for ``hold_s``
         (a real drift, e.g. a sound card's crystal against the system clock),
         or at once by more than :data:`SYNC_JUMP_S` (a new caller clock). A
@@ -192,10 +193,11 @@ class ClickSynth:
         clock late, moves nothing: clicks keep their spacing.
         """
         origin = float(now_s) - self.rendered / self.sample_rate
-        if self.origin_s is None or self.rendered == 0 or \
+        if self.origin_s is None or self._provisional or \
                 abs(origin - self.origin_s) > SYNC_JUMP_S:
             moved = origin != self.origin_s
             self.origin_s = origin
+            self._provisional = self.rendered == 0
             self._off_since = None
             return moved
         if abs(origin - self.origin_s) <= tolerance_s:

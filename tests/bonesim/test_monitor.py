@@ -380,6 +380,8 @@ def test_late_spikes_sound_at_once_and_a_full_ring_drops():
     out = np.zeros(256, np.float32)
     c.render(out)
     assert c.late == 1 and np.abs(out[:200]).max() > 0.2
+    c.sync(10.0 + c.rendered / FS + 0.002)     # first after rendering began: settles
+    assert c.origin_s == pytest.approx(10.002, abs=1e-9)
     assert not c.sync(10.0 + c.rendered / FS + 0.005)       # within tolerance: kept
     origin = c.origin_s
     assert not c.sync(10.0 + c.rendered / FS + 0.05)        # a transient: kept
@@ -390,7 +392,7 @@ def test_late_spikes_sound_at_once_and_a_full_ring_drops():
         assert c.origin_s == origin
         moved = c.sync(10.0 + c.rendered / FS + 0.05)
         render_blocks(c, 0.3, 256)
-    assert moved and c.origin_s == pytest.approx(origin + 0.05, abs=1e-9)
+    assert moved and c.origin_s == pytest.approx(10.05, abs=1e-9)
     assert c.sync(100.0 + c.rendered / FS)                  # a new clock: at once
     assert c.origin_s == pytest.approx(100.0)
     with pytest.raises(ValueError, match="nerve index out of range"):
@@ -452,6 +454,7 @@ def test_audio_process_clicks_at_the_monitor_spikes(phantom_model, phantom_monit
         try:
             audio = AudioProcess(loop, wav=wav, monitor=mon).start()
             time.sleep(3.0)
+            cs = audio.click_stats()
             audio.close()
             h = mon.view.history(10.0)
         finally:
@@ -461,21 +464,23 @@ def test_audio_process_clicks_at_the_monitor_spikes(phantom_model, phantom_monit
         x = np.frombuffer(w.readframes(w.getnframes()), np.int16) / 32767.0
     assert len(x) > 2 * fs and len(h["spike_t"]) > 50
     # the clicks of all spikes, on the loop's clock; find the one offset that
-    # maps it onto the recording, then they must coincide sample for sample
-    starts = np.rint((h["spike_t"] + K.DELAY_S) * fs).astype(np.int64)
+    # maps it onto the recording (whole samples by cross-correlation, then the
+    # fraction the synth rounded with), then they must coincide sample for sample
+    base = (h["spike_t"] + K.DELAY_S) * fs
+    starts = np.rint(base).astype(np.int64)
     n_ref = int(starts.max()) + fs
     ref = click_reference(n_ref, starts, h["spike_nerve"], fs)
-    env = lambda a: np.abs(a) > 1e-3                                    # noqa: E731
-    corr = np.fft.irfft(np.fft.rfft(env(ref), 2 * n_ref).conj()
-                        * np.fft.rfft(env(x), 2 * n_ref))
+    corr = np.fft.irfft(np.fft.rfft(ref, 2 * n_ref).conj() * np.fft.rfft(x, 2 * n_ref))
     lag = int(np.argmax(corr))
     lag = lag - 2 * n_ref if lag > n_ref else lag
-    aligned = np.zeros_like(x)
-    src = np.arange(len(x)) - lag
-    ok = (src >= 0) & (src < n_ref)
-    aligned[ok] = ref[src[ok]]
     skip = int(0.05 * fs)                          # spikes just before the audio started
-    diff = np.abs(aligned - x)[skip:]
-    assert np.mean(diff > 2e-3) < 0.02            # late or re-anchored clicks are rare
+    best = 1.0
+    for shift in (lag - 1, lag, lag + 1):
+        for frac in np.arange(-0.5, 0.5, 0.05):
+            st = np.rint(base + frac).astype(np.int64) + shift
+            ok = (st >= 0) & (st < len(x))
+            aligned = click_reference(len(x), st[ok], h["spike_nerve"][ok], fs)
+            best = min(best, float(np.mean(np.abs(aligned - x)[skip:] > 2e-3)))
+    assert best < 0.02, cs                        # late or re-anchored clicks are rare
     sounding = np.abs(x[skip:]) > 1e-3
     assert sounding.mean() > 0.05                 # ~40 clicks/s of 4 ms each
