@@ -822,7 +822,21 @@ class MonitorProcess:
         return self._sh.handle
 
     def start(self, timeout_s: float = 60.0) -> "MonitorProcess":
-        """Start the process; wait until it updates (or raise)."""
+        """Start the process; wait until it is ready (or raise).
+
+        Raises
+        ------
+        BonesimError
+            If the console server's address cannot be bound (checked here,
+            so the message names it rather than a dead child process).
+        """
+        if self.serve is not None:
+            from .monitor_net import DEFAULT_PORT
+            from .net import udp_socket
+
+            port = int(self.serve.get("port", DEFAULT_PORT))
+            if port != 0:
+                udp_socket(self.serve.get("host", "0.0.0.0"), port).close()
         ctx = mp.get_context("spawn")
         self._proc = ctx.Process(
             target=_monitor_main, name="bonesim-monitor", daemon=True,

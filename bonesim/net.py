@@ -32,6 +32,7 @@ import hmac
 import math
 import os
 import secrets
+import socket
 import struct
 import time
 from pathlib import Path
@@ -56,6 +57,8 @@ KEY_ENV = "BONESIM_KEY"
 DEFAULT_KEY_HELP = f"shared key file (default: ${KEY_ENV}, hex)"
 #: Default UDP port of ``bonesim tutor serve``.
 DEFAULT_PORT = 47810
+#: Default UDP port of the nerve monitor's console server (``bonesim monitor``).
+MONITOR_PORT = DEFAULT_PORT + 1
 #: Clock-rate difference between two machines the staleness check tolerates
 #: (crystal oscillators drift by tens of ppm; 500 ppm is generous).
 CLOCK_DRIFT = 5e-4
@@ -313,6 +316,31 @@ class Codec:
         if self.kinds is not None and kind not in self.kinds:
             raise PacketError("kind", f"kind {kind} is not handled here")
         return Packet(kind, nonce, seq, t_s, bytes(mv[HEADER.size:end]), flags)
+
+
+# ------------------------------------------------------------------- socket
+def udp_socket(host: str = "0.0.0.0", port: int = 0) -> socket.socket:
+    """A bound non-blocking UDP socket with roomy buffers.
+
+    Raises
+    ------
+    BonesimError
+        If the address cannot be bound (in use, not local, no permission).
+    """
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind((host, port))
+    except OSError as exc:
+        s.close()
+        raise BonesimError(f"cannot bind UDP {host}:{port}: {exc.strerror}",
+                           field="--port") from None
+    for opt in (socket.SO_SNDBUF, socket.SO_RCVBUF):
+        try:
+            s.setsockopt(socket.SOL_SOCKET, opt, 1 << 20)
+        except OSError:
+            pass
+    s.setblocking(False)
+    return s
 
 
 # -------------------------------------------------------------------- inbox

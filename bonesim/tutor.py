@@ -66,6 +66,7 @@ import numpy as np
 from numba import njit
 
 from . import events, net
+from .net import udp_socket
 from .errors import BonesimError
 
 # ----------------------------------------------------------------- constants
@@ -549,30 +550,6 @@ class Streamer:
         return {**self.counters, "received": dict(self.rx), "clients": len(self.clients),
                 "streaming": sum(c.streaming for c in self.clients.values()),
                 "log_removals": self.log.n, "epoch": self.epoch}
-
-
-def udp_socket(host: str = "0.0.0.0", port: int = 0) -> socket.socket:
-    """A bound non-blocking UDP socket with roomy buffers.
-
-    Raises
-    ------
-    BonesimError
-        If the address cannot be bound (in use, not local, no permission).
-    """
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        s.bind((host, port))
-    except OSError as exc:
-        s.close()
-        raise BonesimError(f"cannot bind UDP {host}:{port}: {exc.strerror}",
-                           field="--port") from None
-    for opt in (socket.SO_SNDBUF, socket.SO_RCVBUF):
-        try:
-            s.setsockopt(socket.SOL_SOCKET, opt, 1 << 20)
-        except OSError:
-            pass
-    s.setblocking(False)
-    return s
 
 
 # server process ------------------------------------------------------------
