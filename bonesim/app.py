@@ -12,6 +12,12 @@
   hybrid surface and the bone dust, moves the tool, and fills the HUD. It
   never blocks the loop: it only reads what the loop has published.
 
+* The nerve monitor (:mod:`bonesim.monitor`), when the case monitors a
+  nerve, runs in a fourth process on the loop's samples: its scrolling trace
+  is drawn over the window (``m`` shows or hides it), its clicks are mixed
+  into the sound, and with ``monitor_serve`` it streams to remote consoles
+  (``bonesim monitor HOST``, :mod:`bonesim.monitor_net`).
+
 Mouse and keys: the mouse moves the tool in the view plane; the wheel (or
 Up/Down) sets how hard the hand presses along the view, in millimetres of
 coupling-spring stretch (1 mm = 1 N with the default coupling): at 0 the burr
@@ -64,11 +70,17 @@ class App:
         Record the session to this HDF5 file (:mod:`bonesim.record`).
     who : dict, optional
         ``participant``, ``group`` and ``notes`` for the recording's header.
+    monitor : bool
+        Run the nerve monitor when the case monitors a nerve.
+    monitor_serve : dict, optional
+        Stream the monitor to remote consoles: ``key`` (bytes), ``host``,
+        ``port`` (see :class:`bonesim.monitor_net.MonitorServer`).
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
-                 who: dict | None = None):
+                 who: dict | None = None, monitor: bool = True,
+                 monitor_serve: dict | None = None):
         from .burrs import list_burrs, load_burr
         from .model import load_model
 
@@ -106,6 +118,15 @@ class App:
         self.record = None if record is None else Path(record)
         self.who = dict(who or {})
         self.recorder = None
+        from .monitor import monitored_structures
+
+        self.monitor = None
+        self.trace = None
+        self.want_monitor = monitor and bool(monitored_structures(self.model))
+        if monitor_serve is not None and not self.want_monitor:
+            raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
+                             "serve (set monitor = true on a nerve in its case.toml)")
+        self.monitor_serve = monitor_serve
 
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
@@ -133,17 +154,27 @@ class App:
             # the writer reads the loop's rings from record 0, so it may start
             # while the loop warms up
             self.recorder = Recorder(self.loop, self.record, header).start()
+        if self.want_monitor:           # before the loop: it reads the samples from 0
+            from .monitor import MonitorProcess
+
+            self.monitor = MonitorProcess(self.loop, serve=self.monitor_serve).start()
         self.loop.start()
         if self.sound:
             from .audio import AudioProcess
 
-            self.audio = AudioProcess(self.loop, wav=self.wav).start()
+            self.audio = AudioProcess(self.loop, wav=self.wav, monitor=self.monitor).start()
             if self.audio.silent:
                 self.notices.append("no audio device: sound muted"
                                     + (f", recorded to {self.wav}" if self.wav else ""))
         self._fresh_consumers()
         self.scene = Scene.from_model(self.model, self.consumer.surface,
                                       offscreen=self.offscreen, size=self.size)
+        if self.monitor is not None:
+            from .render.trace import MonitorTrace
+
+            v, p = self.monitor.view, self.monitor.params
+            self.trace = MonitorTrace(self.scene, v.names, v.colors, max_hz=p.max_hz,
+                                      warn_mm=p.warn_mm, baseline_hz=p.baseline_hz)
         self.window = Window(self.scene, self.on_frame, self.on_key, self.on_mouse)
         self.t_start = time.perf_counter()
         return self
@@ -155,6 +186,9 @@ class App:
         if self.audio is not None:
             self.audio.close()
             self.audio = None
+        if self.monitor is not None:
+            self.monitor.close()
+            self.monitor = None
         self.loop.close()
         if self.scene is not None:
             self.scene.close()
@@ -210,6 +244,8 @@ class App:
             "injuries": list(self.injuries),
             "message": "; ".join(self.notices) if self.notices else None,
         })
+        if self.trace is not None:          # after the HUD: the panel keeps clear of it
+            self.trace.update(self.monitor.view.history(self.trace.window_s))
         self.frames += 1
 
     def on_mouse(self, world_mm, buttons) -> None:
@@ -241,6 +277,9 @@ class App:
             self.suction = not self.suction
         elif action == "reset_case":
             loop.reset()
+        elif action == "nerve_monitor":
+            if self.trace is not None:
+                self.trace.set_visible(not self.trace.visible)
         elif action in ("depth_in", "depth_out"):
             self.press_mm += PRESS_STEP_MM if action == "depth_in" else -PRESS_STEP_MM
         else:
@@ -269,6 +308,13 @@ class App:
             "injuries": list(self.injuries),
             "notices": list(self.notices),
         })
+        if self.monitor is not None:
+            out["monitor"] = self.monitor.stats()
+            out["monitor"]["nerves"] = list(self.monitor.names)
+            if self.monitor_serve is not None:
+                out["monitor"]["port"] = self.monitor.port
+            if self.audio is not None:
+                out["monitor"]["clicks"] = self.audio.click_stats()
         if self.wav is not None:
             out["wav"] = str(Path(self.wav))
         if self.record is not None:

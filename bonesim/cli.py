@@ -219,11 +219,24 @@ def cmd_run(args) -> int:
         from .record import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
+    serve = None
+    if args.monitor_port is not None:
+        if args.no_monitor:
+            raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
+                               "--no-monitor", field="--monitor-port")
+        from .net import load_key
+
+        serve = {"key": load_key(args.key_file), "host": args.monitor_host,
+                 "port": args.monitor_port}
     app = App(args.case, args.burr, script=script, offscreen=offscreen,
               size=tuple(args.size), sound=not args.no_sound, wav=args.wav,
-              record=record, who=_who(args))
+              record=record, who=_who(args), monitor=not args.no_monitor,
+              monitor_serve=serve)
     try:
         app.start()
+        if serve is not None:
+            print(f"bonesim: nerve monitor on {args.monitor_host}:{app.monitor.port} "
+                  f"({', '.join(app.monitor.names)})", file=sys.stderr, flush=True)
         summary = app.run(frames=frames, screenshot=screenshot)
     finally:
         app.close()
@@ -380,6 +393,12 @@ def _tutor(name: str):
     return run
 
 
+def _monitor_console(args) -> int:
+    from .monitor_net import cmd_monitor
+
+    return cmd_monitor(args)
+
+
 def _tutor_parser(sub) -> None:
     from .net import DEFAULT_KEY_HELP, DEFAULT_PORT
 
@@ -465,6 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Temporal-bone drilling simulator: cases, burrs, headless runs, "
                     "benchmarks.")
     from . import __version__
+    from .net import DEFAULT_KEY_HELP as KEY_HELP
+    from .net import MONITOR_PORT
     p.add_argument("--version", action="version", version=f"bonesim {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -553,8 +574,40 @@ def build_parser() -> argparse.ArgumentParser:
     who_opts(s)
     s.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"),
                    help="window size [px]")
+    s.add_argument("--no-monitor", action="store_true",
+                   help="no nerve monitor (default: on when the case monitors a nerve)")
+    s.add_argument("--monitor-port", type=int, metavar="PORT",
+                   help=f"stream the nerve monitor to remote consoles ('bonesim monitor "
+                        f"HOST') on this UDP port ({MONITOR_PORT} is the consoles' default; "
+                        "0: any free port)")
+    s.add_argument("--monitor-host", default="0.0.0.0",
+                   help="address the monitor server listens on (default all)")
+    s.add_argument("--key-file", metavar="FILE", help="with --monitor-port: " + KEY_HELP)
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser(
+        "monitor", help="remote nerve-monitor console (the monitoring technician's)",
+        description="Join a simulator that serves its nerve monitor (bonesim run "
+                    "--monitor-port) and show, for every monitored nerve, the burr's "
+                    "distance, the firing rate and a warning below the warning distance, "
+                    "with a click per spike on the sound device. Packets are authenticated "
+                    "with the shared key ('bonesim tutor keygen FILE').")
+    s.add_argument("host", help="the simulator's address")
+    s.add_argument("--port", type=int, default=MONITOR_PORT,
+                   help=f"UDP port (default {MONITOR_PORT})")
+    s.add_argument("--key-file", metavar="FILE", help=KEY_HELP)
+    s.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (default: when the simulator stops)")
+    s.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="give up if the simulator does not answer within S seconds")
+    s.add_argument("--no-sound", action="store_true", help="no clicks")
+    s.add_argument("--wav", metavar="FILE.wav", help="record the clicks")
+    s.add_argument("--every", type=float, default=1.0, metavar="S",
+                   help="without a terminal: print the readings every S seconds "
+                        "(0: only the summary)")
+    s.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    s.set_defaults(func=_monitor_console)
 
     s = sub.add_parser("sessions", help="recorded sessions (HDF5 files)")
     ssub = s.add_subparsers(dest="sessions_cmd", metavar="ACTION", required=True)
