@@ -339,6 +339,12 @@ def bench_tutor(quick=False) -> dict:
     return run(quick=quick)
 
 
+def bench_monitor(quick=False) -> dict:
+    from .bench_monitor import bench_monitor as run
+
+    return run(quick=quick)
+
+
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -359,6 +365,9 @@ BENCHMARKS = {
     "tutor_loopback_latency_p99_ms": bench_tutor,
     "tutor_loopback_latency_p50_ms": bench_tutor,
     "tutor_loopback_loss_fraction": bench_tutor,
+    "monitor_update_us": bench_monitor,
+    "monitor_loopback_latency_p99_ms": bench_monitor,
+    "monitor_loopback_loss_fraction": bench_monitor,
 }
 
 

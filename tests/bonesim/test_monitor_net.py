@@ -453,3 +453,19 @@ def test_cli_errors_are_clear(tmp_path, capsys, monkeypatch):
                                             "port": s.getsockname()[1]}).start()
         finally:
             loop.close()
+
+
+def test_bench_monitor_quick_smoke():
+    from bonesim.bench import BENCHMARKS
+    from bonesim.bench_monitor import bench_monitor
+
+    out = bench_monitor(quick=True)
+    assert BENCHMARKS["monitor_loopback_latency_p99_ms"].__name__ == "bench_monitor"
+    u = out["monitor_update_us"]
+    assert u["unit"] == "us" and 0 < u["value"] <= u["p99_us"] and u["updates"] == 500
+    assert u["lookup_max_excess_mm"] <= 0.05 and u["lookup_speedup_vs_brute_force"] > 1
+    r = out["monitor_loopback_latency_p99_ms"]
+    assert r["unit"] == "ms" and 0 < r["p50_ms"] <= r["value"] <= r["max_ms"]
+    assert r["packets_received"] + r["lost"] <= r["packets_sent"]
+    assert r["spikes_received"] <= r["spikes_sent"] and r["spikes_sent"] > 0
+    assert out["monitor_loopback_loss_fraction"]["value"] == r["loss_fraction"]
