@@ -73,9 +73,6 @@ HISTORY_CAP = 1 << 14
 
 #: Data packet kind (service kinds start at 16; the monitor has its own port).
 KIND_DATA = 32
-CONSOLE_KINDS = (net.KIND_WELCOME, KIND_DATA, net.KIND_BYE)
-SERVER_KINDS = (net.KIND_JOIN, net.KIND_ACK, net.KIND_BYE)
-WELCOME_NONCE = struct.Struct("<Q")
 #: t_s [s], updates, packet number for this console, nerves k, spikes n.
 DATA = struct.Struct("<dIIHH")
 #: Bytes per nerve (rate, distance as float32) and per spike (time f64, nerve u8).
@@ -146,22 +143,6 @@ def unpack_data(payload) -> dict:
 
 
 # -------------------------------------------------------------------- server
-class _Console:
-    __slots__ = ("addr", "console_nonce", "server_nonce", "inbox", "streaming",
-                 "last_heard", "spike_pos", "number", "join_seq")
-
-    def __init__(self, addr, console_nonce, server_nonce, inbox, join_seq, now):
-        self.addr = addr
-        self.console_nonce = console_nonce
-        self.server_nonce = server_nonce
-        self.inbox = inbox
-        self.streaming = False
-        self.last_heard = now
-        self.spike_pos = 0
-        self.number = 0
-        self.join_seq = join_seq
-
-
 class MonitorServer:
     """Streams a nerve monitor's rates, distances and spikes to remote consoles.
 
@@ -193,9 +174,10 @@ class MonitorServer:
     Attributes
     ----------
     counters : dict
-        ``joins``, ``welcomes``, ``sent``, ``spikes_sent``, ``spikes_skipped``,
-        ``send_errors``, ``consoles_dropped``; ``received`` holds the drops of
-        incoming datagrams by reason (:data:`bonesim.net.COUNTERS`).
+        ``sent``, ``spikes_sent``, ``spikes_skipped`` and the session's
+        ``joins``, ``welcomes``, ``send_errors``, ``peers_dropped``
+        (:class:`bonesim.net.SessionServer`); :attr:`rx` holds the received
+        datagrams by outcome.
     """
 
     def __init__(self, names, colors, params, key: bytes, host: str = "0.0.0.0",
@@ -207,19 +189,17 @@ class MonitorServer:
         self.k = len(self.names)
         if self.k == 0 or max_spikes(self.k) < 1:
             raise ValueError(f"cannot stream {self.k} nerves")
-        self.sock = sock if sock is not None else net.udp_socket(host, port)
-        self.port = int(self.sock.getsockname()[1]) if sock is None else int(port)
-        self.codec = net.Codec(key, kinds=SERVER_KINDS)
+        sock = sock if sock is not None else net.udp_socket(host, port)
+        self.port = int(sock.getsockname()[1]) if hasattr(sock, "getsockname") else int(port)
         self.stream_hz = float(stream_hz)
-        self.info = {"service": "nerve-monitor", "names": self.names,
-                     "colors": np.asarray(colors, dtype=int).reshape(-1, 3).tolist(),
-                     "params": asdict(params), "stream_hz": self.stream_hz,
-                     "update_hz": update_hz}
-        self.clients: dict = {}
-        self.counters = dict.fromkeys(("joins", "welcomes", "sent", "spikes_sent",
-                                       "spikes_skipped", "send_errors",
-                                       "consoles_dropped"), 0)
-        self.rx = dict.fromkeys(net.COUNTERS, 0)
+        info = {"service": "nerve-monitor", "names": self.names,
+                "colors": np.asarray(colors, dtype=int).reshape(-1, 3).tolist(),
+                "params": asdict(params), "stream_hz": self.stream_hz,
+                "update_hz": update_hz}
+        self.counters = dict.fromkeys(("sent", "spikes_sent", "spikes_skipped"), 0)
+        self.session = net.SessionServer(sock, key, info, stale_s=STALE_S,
+                                         timeout_s=CLIENT_TIMEOUT_S, counters=self.counters,
+                                         make_peer=self._new_console)
         self.t_s = math.nan
         self.updates = 0
         self.rates = np.zeros(self.k, np.float32)
@@ -228,10 +208,23 @@ class MonitorServer:
         self._spike_n = np.zeros(SPIKE_LOG, np.uint8)
         self._spikes = 0
         self._next_send = -math.inf
-        self._now = 0.0
-        self._rbuf = bytearray(net.MAX_DATAGRAM + 1)
         self._pbuf = bytearray(net.MAX_PAYLOAD)
         self._max = max_spikes(self.k)
+
+    @staticmethod
+    def _new_console(peer) -> None:
+        peer.spike_pos = 0                     # next spike to send it
+        peer.number = 0                        # its next DATA packet's number
+
+    @property
+    def rx(self) -> dict:
+        """Received datagrams by outcome (:data:`bonesim.net.COUNTERS`)."""
+        return self.session.rx
+
+    @property
+    def clients(self) -> dict:
+        """Joined consoles by address."""
+        return self.session.peers
 
     @property
     def n_clients(self) -> int:
@@ -256,73 +249,19 @@ class MonitorServer:
             self._spike_n[idx] = spike_n
             self._spikes += n
 
-    # ------------------------------------------------------------ receive
-    def _handle(self, data, addr, now: float) -> None:
-        try:
-            p = self.codec.decode(data)
-        except net.PacketError as exc:
-            self.rx[net.COUNTER_OF[exc.reason]] += 1
-            return
-        c = self.clients.get(addr)
-        if p.kind == net.KIND_JOIN:
-            if c is not None and p.seq <= c.join_seq:
-                self.rx["duplicate"] += 1                 # a replayed or repeated JOIN
-                return
-            if c is None or c.console_nonce != p.nonce:
-                self.counters["joins"] += 1
-                c = _Console(addr, p.nonce, net.new_nonce(),
-                             net.Inbox(self.codec, None, STALE_S), p.seq, now)
-                c.inbox.nonce = c.server_nonce
-                c.inbox.counters = self.rx                # one tally for all consoles
-                self.clients[addr] = c
-            c.join_seq = p.seq
-            self.rx["accepted"] += 1
-            body = WELCOME_NONCE.pack(c.server_nonce) + json.dumps(self.info).encode()
-            self._send(c, net.KIND_WELCOME, body)
-            self.counters["welcomes"] += 1
-            return
-        if c is None:
-            self.rx["nonce"] += 1                         # no session with that sender
-            return
-        if c.inbox.admit(p, now) is None:
-            return
-        c.last_heard = now
-        if p.kind == net.KIND_BYE:
-            del self.clients[addr]
-        elif not c.streaming:                             # the first ACK
-            c.streaming = True
-            c.spike_pos = self._spikes
-
-    def _send(self, c: _Console, kind: int, payload) -> None:
-        try:
-            self.sock.sendto(self.codec.encode_into(kind, payload, c.console_nonce,
-                                                    t_s=self._now), c.addr)
-        except OSError:                                   # buffer full, unreachable
-            self.counters["send_errors"] += 1
-
     # --------------------------------------------------------------- poll
     def poll(self, now: float) -> int:
         """Receive, and send if a stream period has passed, at time ``now``
         [s]; returns the DATA packets sent."""
-        self._now = now
-        while True:
-            try:
-                n, addr = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-            self._handle(memoryview(self._rbuf)[:n], addr, now)
+        for c, _ in self.session.receive(now):
+            if not c.streaming:                           # its first ACK
+                c.streaming = True
+                c.spike_pos = self._spikes
         if now + 1e-6 < self._next_send or self.updates == 0:   # (float sums of periods)
             return 0
         self._next_send = max(self._next_send + 1.0 / self.stream_hz, now)
         sent = 0
-        for addr in list(self.clients):
-            c = self.clients[addr]
-            if now - c.last_heard > CLIENT_TIMEOUT_S:
-                del self.clients[addr]
-                self.counters["consoles_dropped"] += 1
-                continue
+        for c in self.session.expire(now):
             if not c.streaming:
                 continue
             if self._spikes - c.spike_pos > SPIKE_LOG:
@@ -333,7 +272,7 @@ class MonitorServer:
                 idx = (c.spike_pos + np.arange(n)) & (SPIKE_LOG - 1)
                 size = pack_data(self._pbuf, self.t_s, self.updates, c.number, self.rates,
                                  self.dist, self._spike_t[idx], self._spike_n[idx])
-                self._send(c, KIND_DATA, memoryview(self._pbuf)[:size])
+                self.session.send(c, KIND_DATA, memoryview(self._pbuf)[:size])
                 c.number += 1
                 c.spike_pos += n
                 self.counters["sent"] += 1
@@ -350,10 +289,8 @@ class MonitorServer:
 
     def close(self) -> None:
         """Say BYE to every console and close the socket."""
-        for c in list(self.clients.values()):
-            self._send(c, net.KIND_BYE, b"")
-        self.clients.clear()
-        self.sock.close()
+        self.session.bye()
+        self.session.sock.close()
 
 
 # ------------------------------------------------------------------- console
@@ -382,38 +319,27 @@ class MonitorConsole:
     t_s : float
         Monitor time of the latest data [s] (NaN before any).
     counters : dict
-        ``joins_sent``, ``acks_sent``, ``data``, ``lost`` (DATA packets
-        missing from the numbering), ``spikes``, ``byes``, ``link_lost``
-        (times the link was lost), ``welcomes``.
+        ``acks_sent``, ``data``, ``lost`` (DATA packets missing from the
+        numbering), ``spikes``, ``link_lost`` (times the link was lost) and
+        the session's ``joins_sent``, ``welcomes``, ``byes``.
+    link : bonesim.net.SessionClient
+        The session with the server (socket, inbox, WELCOME description).
     """
 
     def __init__(self, host: str, port: int, key: bytes, sock=None, clock=time.monotonic):
-        import socket
-
-        try:
-            self.addr = (socket.gethostbyname(host), int(port))
-        except OSError as exc:
-            raise BonesimError(f"cannot resolve monitor host {host!r}: {exc}",
-                               field="HOST") from None
-        self.sock = sock if sock is not None else net.udp_socket("0.0.0.0", 0)
+        self.counters = dict.fromkeys(("acks_sent", "data", "lost", "spikes", "link_lost"), 0)
+        self.link = net.SessionClient(host, port, key, (KIND_DATA,), stale_s=STALE_S,
+                                      join_retry_s=JOIN_RETRY_S, rejoin_s=REJOIN_S,
+                                      sock=sock, what="nerve monitor",
+                                      counters=self.counters)
         self.clock = clock
-        self.codec = net.Codec(key, kinds=CONSOLE_KINDS)
-        self.nonce = net.new_nonce()
-        self.inbox = net.Inbox(self.codec, self.nonce, STALE_S)
-        self.info: dict = {}
-        self.server_nonce = 0
-        self.welcomed = False
         self.t_s = math.nan
         self.updates = 0
         self.rates_hz = np.zeros(0)
         self.distance_mm = np.zeros(0)
-        self.last_data_s = math.nan
         self.link_ok = False
         self._number = -1
-        self._now = 0.0
-        self._last_join = -math.inf
         self._last_ack = -math.inf
-        self._rbuf = bytearray(net.MAX_DATAGRAM + 1)
         self._latency: list = []
         self._hist_t = self._hist_rate = self._hist_dist = None
         self._hist_n = 0
@@ -422,8 +348,22 @@ class MonitorConsole:
         self._spk = 0
         #: Called with (spike_t, spike_nerve, t_s) for each DATA packet (clicks).
         self.on_spikes = None
-        self.counters = dict.fromkeys(("joins_sent", "acks_sent", "welcomes", "data",
-                                       "lost", "spikes", "byes", "link_lost"), 0)
+
+    @property
+    def info(self) -> dict:
+        return self.link.info
+
+    @property
+    def sock(self):
+        return self.link.sock
+
+    @property
+    def inbox(self) -> net.Inbox:
+        return self.link.inbox
+
+    @property
+    def nonce(self) -> int:
+        return self.link.nonce
 
     @property
     def names(self) -> list:
@@ -433,34 +373,19 @@ class MonitorConsole:
     def n(self) -> int:
         return len(self.names)
 
-    # --------------------------------------------------------------- send
-    def _send(self, kind: int, payload, nonce: int) -> None:
-        try:
-            self.sock.sendto(self.codec.encode_into(kind, payload, nonce, t_s=self._now),
-                             self.addr)
-        except OSError:
-            pass                                          # like a lost packet
-
     def _ack(self, now: float) -> None:
-        self._send(net.KIND_ACK, b"", self.server_nonce)
+        self.link.send(net.KIND_ACK, b"")
         self._last_ack = now
         self.counters["acks_sent"] += 1
 
     # ------------------------------------------------------------ receive
-    def _welcome(self, p, now: float) -> None:
-        if len(p.payload) < WELCOME_NONCE.size:
-            raise net.PacketError("length", "WELCOME without the server's nonce")
-        (server_nonce,) = WELCOME_NONCE.unpack_from(p.payload, 0)
-        try:
-            info = json.loads(bytes(p.payload[WELCOME_NONCE.size:]))
-            names = [str(x) for x in info["names"]]
-        except (ValueError, KeyError, TypeError):
-            raise net.PacketError("length", "WELCOME description is not the monitor's "
-                                            "JSON") from None
-        if server_nonce != self.server_nonce:             # a new server session
-            self.server_nonce = server_nonce
-            self.info = info
-            k = len(names)
+    def _welcome(self, new: bool, now: float) -> None:
+        if new:                                           # a new server session
+            try:
+                k = len([str(x) for x in self.info["names"]])
+            except (KeyError, TypeError):
+                raise net.PacketError("length", "WELCOME description is not the "
+                                                "monitor's JSON") from None
             self.rates_hz = np.zeros(k)
             self.distance_mm = np.full(k, np.inf)
             self._hist_t = np.zeros(HISTORY_CAP)
@@ -469,9 +394,6 @@ class MonitorConsole:
             self._hist_n = 0
             self._spk = 0
             self._number = -1
-        self.welcomed = True
-        self.counters["welcomes"] += 1
-        self.last_data_s = now                            # the link is up
         self._ack(now)
 
     def _data(self, p, now: float) -> None:
@@ -486,7 +408,7 @@ class MonitorConsole:
         self._latency.append(now - p.t_s)
         if len(self._latency) > 1 << 16:
             del self._latency[:1 << 15]
-        self.last_data_s = now
+        self.link.last_valid_s = now
         if d["t_s"] != self.t_s:                          # a new update: one history row
             q = self._hist_n & (HISTORY_CAP - 1)
             self._hist_t[q] = d["t_s"]
@@ -510,38 +432,17 @@ class MonitorConsole:
     def poll(self, now_s: float | None = None) -> None:
         """Join, receive and keep the link alive at time ``now_s`` [s]."""
         now = self.clock() if now_s is None else now_s
-        self._now = now
-        if not self.welcomed or now - self.last_data_s > REJOIN_S:
-            if now - self._last_join >= JOIN_RETRY_S:
-                self._send(net.KIND_JOIN, b"", self.nonce)
-                self._last_join = now
-                self.counters["joins_sent"] += 1
-        while True:
+        for item in self.link.receive(now):
             try:
-                n, _ = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-            p = self.inbox.accept(memoryview(self._rbuf)[:n], now)
-            if p is None:
-                continue
-            try:
-                if p.kind == KIND_DATA:
-                    if self.welcomed:
-                        self._data(p, now)
-                elif p.kind == net.KIND_WELCOME:
-                    self._welcome(p, now)
-                elif p.kind == net.KIND_BYE:
-                    self.counters["byes"] += 1
-                    self.welcomed = False
-                    self.last_data_s = -math.inf
+                if isinstance(item, net.Welcome):
+                    self._welcome(item.new, now)
+                elif self.link.welcomed:
+                    self._data(item, now)
             except net.PacketError:
-                self.inbox.counters["malformed"] += 1
-                self.inbox.counters["accepted"] -= 1
-        if self.welcomed and now - self._last_ack >= KEEPALIVE_S:
+                self.link.reject()
+        if self.link.welcomed and now - self._last_ack >= KEEPALIVE_S:
             self._ack(now)
-        ok = self.welcomed and now - self.last_data_s <= LINK_LOSS_S
+        ok = self.link.welcomed and now - self.link.last_valid_s <= LINK_LOSS_S
         if self.link_ok and not ok:
             self.counters["link_lost"] += 1
         self.link_ok = ok
@@ -556,11 +457,12 @@ class MonitorConsole:
             If the server does not answer in time (wrong address, port or key).
         """
         end = self.clock() + timeout_s
-        while not self.welcomed:
+        while not self.link.welcomed:
             now = self.clock()
             if now > end:
-                raise BonesimError(f"no answer from the nerve monitor at {self.addr[0]}:"
-                                   f"{self.addr[1]} within {timeout_s:g} s (check the "
+                addr = self.link.addr
+                raise BonesimError(f"no answer from the nerve monitor at {addr[0]}:"
+                                   f"{addr[1]} within {timeout_s:g} s (check the "
                                    "address, the port, the key file (a server ignores "
                                    "joins under another key) and the firewall, and that "
                                    "the simulator serves the monitor: bonesim run "
@@ -629,9 +531,8 @@ class MonitorConsole:
                 "link_ok": self.link_ok}
 
     def close(self) -> None:
-        if self.welcomed:
-            self._send(net.KIND_BYE, b"", self.server_nonce)
-        self.sock.close()
+        """Say BYE (if in a session) and close the socket."""
+        self.link.close()
 
 
 # ----------------------------------------------------------------------- CLI

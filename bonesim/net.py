@@ -29,6 +29,7 @@ fragmented on an Ethernet path. :class:`Codec` encodes and decodes;
 from __future__ import annotations
 
 import hmac
+import json
 import math
 import os
 import secrets
@@ -470,6 +471,319 @@ class Inbox:
     def dropped(self) -> int:
         """Datagrams dropped for any reason."""
         return sum(v for k, v in self.counters.items() if k != "accepted")
+
+
+# ----------------------------------------------------------------- sessions
+#: WELCOME payload head: the server's nonce for this receiver (then JSON).
+WELCOME_NONCE = struct.Struct("<Q")
+
+
+class Peer:
+    """A receiver joined to a :class:`SessionServer`.
+
+    Attributes
+    ----------
+    addr : tuple
+        Its UDP address.
+    nonce : int
+        Its session nonce (packets to it carry this).
+    server_nonce : int
+        The nonce the server gave it (its packets must carry this).
+    inbox : Inbox
+        Checks its packets (counted in the server's ``rx``).
+    streaming : bool
+        Set by the service at the peer's first ACK.
+    last_heard : float
+        Server time of its last accepted packet [s].
+
+    Services keep their own per-peer fields on it (``make_peer``).
+    """
+
+    def __init__(self, addr, nonce: int, server_nonce: int, inbox: "Inbox", join_seq: int,
+                 now: float):
+        self.addr = addr
+        self.nonce = nonce
+        self.server_nonce = server_nonce
+        self.inbox = inbox
+        self.join_seq = join_seq
+        self.streaming = False
+        self.last_heard = now
+
+
+class SessionServer:
+    """The sending side of a service's sessions (tutoring, the nerve monitor).
+
+    Handles the handshake every service shares: a receiver's ``JOIN``
+    (carrying its fresh nonce) earns a ``WELCOME`` with the server's nonce for
+    it and the JSON description ``info``; everything it sends afterwards must
+    carry that nonce and pass an :class:`Inbox` (sequence, staleness); ``BYE``
+    ends its session and a peer silent for ``timeout_s`` is forgotten. A
+    replayed JOIN earns at most a small WELCOME: a service starts streaming
+    only at the peer's first ACK.
+
+    Parameters
+    ----------
+    sock : socket
+        Bound, non-blocking UDP socket (anything with ``sendto`` and
+        ``recvfrom_into``).
+    key : bytes
+    info : dict
+        Sent (as JSON) in every WELCOME.
+    stale_s : float
+        Staleness bound of the peers' inboxes [s].
+    timeout_s : float
+        Forget a peer silent this long [s].
+    counters : dict, optional
+        The service's counters; ``joins``, ``welcomes``, ``send_errors`` and
+        ``peers_dropped`` are added to it.
+    make_peer : callable, optional
+        Called with each new :class:`Peer` (to add the service's fields).
+
+    Attributes
+    ----------
+    peers : dict
+        Address -> :class:`Peer`.
+    rx : dict
+        Received datagrams: ``accepted`` and the drops by reason
+        (:data:`COUNTERS`), over all peers.
+    """
+
+    def __init__(self, sock, key: bytes, info: dict, *, stale_s: float, timeout_s: float,
+                 counters: dict | None = None, make_peer=None):
+        self.sock = sock
+        self.codec = Codec(key, kinds=(KIND_JOIN, KIND_ACK, KIND_BYE))
+        self.info = dict(info)
+        self.stale_s = float(stale_s)
+        self.timeout_s = float(timeout_s)
+        self.counters = {} if counters is None else counters
+        for k in ("joins", "welcomes", "send_errors", "peers_dropped"):
+            self.counters.setdefault(k, 0)
+        self.make_peer = make_peer
+        self.peers: dict = {}
+        self.rx = dict.fromkeys(COUNTERS, 0)
+        self.now = 0.0
+        self._rbuf = bytearray(MAX_DATAGRAM + 1)
+
+    def receive(self, now: float) -> list:
+        """Read every waiting datagram at server time ``now`` [s]; answer
+        JOINs, honour BYEs; returns ``(peer, packet)`` for each accepted ACK."""
+        self.now = now
+        acks = []
+        while True:
+            try:
+                n, addr = self.sock.recvfrom_into(self._rbuf)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break                                 # e.g. ICMP unreachable echoes
+            try:
+                p = self.codec.decode(memoryview(self._rbuf)[:n])
+            except PacketError as exc:
+                self.rx[COUNTER_OF[exc.reason]] += 1
+                continue
+            peer = self.peers.get(addr)
+            if p.kind == KIND_JOIN:
+                self._join(peer, addr, p, now)
+                continue
+            if peer is None:
+                self.rx["nonce"] += 1                 # no session with that sender
+                continue
+            if peer.inbox.admit(p, now) is None:     # counted in self.rx
+                continue
+            peer.last_heard = now
+            if p.kind == KIND_BYE:
+                del self.peers[addr]
+            else:
+                acks.append((peer, p))
+        return acks
+
+    def _join(self, peer, addr, p, now: float) -> None:
+        if peer is not None and p.seq <= peer.join_seq:
+            self.rx["duplicate"] += 1                 # a replayed or repeated JOIN
+            return
+        if peer is None or peer.nonce != p.nonce:    # a new receiver session
+            self.counters["joins"] += 1
+            peer = Peer(addr, p.nonce, new_nonce(), Inbox(self.codec, None, self.stale_s),
+                        p.seq, now)
+            peer.inbox.nonce = peer.server_nonce
+            peer.inbox.counters = self.rx             # one tally for all peers
+            if self.make_peer is not None:
+                self.make_peer(peer)
+            self.peers[addr] = peer
+        peer.join_seq = p.seq
+        self.rx["accepted"] += 1
+        body = WELCOME_NONCE.pack(peer.server_nonce) + json.dumps(self.info).encode()
+        self.send(peer, KIND_WELCOME, body)
+        self.counters["welcomes"] += 1
+
+    def send(self, peer: Peer, kind: int, payload, flags: int = 0) -> None:
+        """Send one packet to a peer, stamped with the time of the last
+        :meth:`receive` (a full socket buffer counts as a loss)."""
+        try:
+            self.sock.sendto(self.codec.encode_into(kind, payload, peer.nonce, t_s=self.now,
+                                                    flags=flags), peer.addr)
+        except OSError:
+            self.counters["send_errors"] += 1
+
+    def expire(self, now: float) -> list:
+        """Forget peers silent for ``timeout_s``; returns the peers left."""
+        for addr in [a for a, c in self.peers.items() if now - c.last_heard > self.timeout_s]:
+            del self.peers[addr]
+            self.counters["peers_dropped"] += 1
+        return list(self.peers.values())
+
+    def bye(self) -> None:
+        """Tell every peer the session ends, and forget them."""
+        for c in list(self.peers.values()):
+            self.send(c, KIND_BYE, b"")
+        self.peers.clear()
+
+
+class Welcome:
+    """A WELCOME that :meth:`SessionClient.receive` accepted.
+
+    Attributes
+    ----------
+    packet : Packet
+    new : bool
+        It began a new server session (the service resets what it keeps).
+    """
+
+    __slots__ = ("packet", "new")
+
+    def __init__(self, packet: Packet, new: bool):
+        self.packet = packet
+        self.new = new
+
+
+class SessionClient:
+    """The receiving side of a service's session (a trainee, a console).
+
+    :meth:`receive` sends JOIN every ``join_retry_s`` until welcomed (and
+    again after ``rejoin_s`` without data), reads the WELCOME (the server's
+    nonce and JSON description) and a BYE, and hands the service its own
+    packets; the service sends ACKs through :meth:`send`.
+
+    Parameters
+    ----------
+    host : str
+    port : int
+    key : bytes
+    kinds : iterable of int
+        The service's data kinds.
+    stale_s, join_retry_s, rejoin_s : float
+        [s]
+    sock : socket, optional
+        Bound non-blocking UDP socket (default: any local port).
+    what : str
+        The server's role, for error messages ("instructor", "nerve monitor").
+    counters : dict, optional
+        The service's counters; ``joins_sent``, ``welcomes`` and ``byes`` are
+        added to it.
+
+    Attributes
+    ----------
+    welcomed : bool
+    info : dict
+        The server's description (from its WELCOME).
+    server_nonce : int
+    last_valid_s : float
+        Time of the last WELCOME or data the service accepted [s] (the
+        service sets it for data).
+    """
+
+    def __init__(self, host: str, port: int, key: bytes, kinds, *, stale_s: float,
+                 join_retry_s: float, rejoin_s: float, sock=None, what: str = "server",
+                 counters: dict | None = None):
+        try:
+            self.addr = (socket.gethostbyname(host), int(port))
+        except OSError as exc:
+            raise BonesimError(f"cannot resolve {what} host {host!r}: {exc}",
+                               field="HOST") from None
+        self.sock = sock if sock is not None else udp_socket("0.0.0.0", 0)
+        self.codec = Codec(key, kinds=(KIND_WELCOME, KIND_BYE, *kinds))
+        self.nonce = new_nonce()
+        self.inbox = Inbox(self.codec, self.nonce, stale_s)
+        self.join_retry_s = float(join_retry_s)
+        self.rejoin_s = float(rejoin_s)
+        self.what = what
+        self.welcomed = False
+        self.server_nonce = 0
+        self.info: dict = {}
+        self.last_valid_s = math.nan
+        self.now = 0.0
+        self.counters = {} if counters is None else counters
+        for k in ("joins_sent", "welcomes", "byes"):
+            self.counters.setdefault(k, 0)
+        self._last_join = -math.inf
+        self._rbuf = bytearray(MAX_DATAGRAM + 1)
+
+    def send(self, kind: int, payload, flags: int = 0) -> None:
+        """Send to the server (a failure is like a lost packet)."""
+        nonce = self.nonce if kind == KIND_JOIN else self.server_nonce
+        try:
+            self.sock.sendto(self.codec.encode_into(kind, payload, nonce, t_s=self.now,
+                                                    flags=flags), self.addr)
+        except OSError:
+            pass
+
+    def receive(self, now: float) -> list:
+        """Join if needed, then read every waiting datagram at time ``now``
+        [s]. Returns what the service must handle, in order: its data
+        packets and a :class:`Welcome` for each WELCOME."""
+        self.now = now
+        if not self.welcomed or now - self.last_valid_s > self.rejoin_s:
+            if now - self._last_join >= self.join_retry_s:
+                self.send(KIND_JOIN, b"")
+                self._last_join = now
+                self.counters["joins_sent"] += 1
+        out = []
+        while True:
+            try:
+                n, _ = self.sock.recvfrom_into(self._rbuf)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break
+            p = self.inbox.accept(memoryview(self._rbuf)[:n], now)
+            if p is None:
+                continue
+            if p.kind == KIND_WELCOME:
+                try:
+                    (server_nonce,) = WELCOME_NONCE.unpack_from(p.payload, 0)
+                    info = json.loads(bytes(p.payload[WELCOME_NONCE.size:]))
+                    if not isinstance(info, dict):
+                        raise ValueError
+                except (struct.error, ValueError):
+                    self.reject()
+                    continue
+                new = server_nonce != self.server_nonce
+                if new:
+                    self.server_nonce = server_nonce
+                    self.info = info
+                self.welcomed = True
+                self.last_valid_s = now
+                self.counters["welcomes"] += 1
+                out.append(Welcome(p, new))
+            elif p.kind == KIND_BYE:
+                self.counters["byes"] += 1
+                self.welcomed = False
+                self.last_valid_s = -math.inf         # link lost now
+            else:
+                out.append(p)
+        return out
+
+    def reject(self) -> None:
+        """Count the last accepted packet as malformed after all (the service
+        found its payload broken)."""
+        self.inbox.counters["malformed"] += 1
+        self.inbox.counters["accepted"] -= 1
+
+    def close(self) -> None:
+        """Say BYE (if in a session) and close the socket."""
+        if self.welcomed:
+            self.send(KIND_BYE, b"")
+        self.sock.close()
 
 
 # ------------------------------------------------------------ record payloads

@@ -108,8 +108,6 @@ CLIENT_TIMEOUT_S = 2.0
 
 #: Tutoring's data packet kind (services number their kinds from 16).
 KIND_STATE = 16
-TRAINEE_KINDS = (net.KIND_WELCOME, KIND_STATE, net.KIND_BYE)
-SERVER_KINDS = (net.KIND_JOIN, net.KIND_ACK, net.KIND_BYE)
 #: ACK flag: the trainee found a gap in the removals (go back).
 FLAG_NACK = 1
 
@@ -124,7 +122,6 @@ REMOVAL_BYTES = 12
 MAX_REMOVALS = (net.MAX_PAYLOAD - STATE.size) // REMOVAL_BYTES
 #: ACK payload: removals held (u64), epoch (i32).
 ACK = struct.Struct("<Qi")
-WELCOME_NONCE = struct.Struct("<Q")
 
 
 # ----------------------------------------------------------------- controller
@@ -330,23 +327,6 @@ def session_info(model, burrs=()) -> dict:
 
 
 # -------------------------------------------------------------------- server
-class _Client:
-    __slots__ = ("addr", "trainee_nonce", "server_nonce", "inbox", "streaming",
-                 "last_heard", "send_from", "acked", "join_seq", "last_sent_sample")
-
-    def __init__(self, addr, trainee_nonce, server_nonce, inbox, join_seq, now):
-        self.addr = addr
-        self.trainee_nonce = trainee_nonce
-        self.server_nonce = server_nonce
-        self.inbox = inbox
-        self.streaming = False
-        self.last_heard = now
-        self.send_from = 0
-        self.acked = 0
-        self.join_seq = join_seq
-        self.last_sent_sample = -1
-
-
 class Streamer:
     """The instructor side of tutoring, one :meth:`tick` at a time.
 
@@ -372,26 +352,22 @@ class Streamer:
     Attributes
     ----------
     counters : dict
-        ``joins``, ``welcomes``, ``sent``, ``removals_sent``, ``nacks``,
-        ``go_backs``, ``send_errors``, ``clients_dropped`` and the drops of
-        received datagrams by reason (:data:`bonesim.net.COUNTERS`).
+        ``sent``, ``removals_sent``, ``nacks``, ``go_backs`` and the
+        session's ``joins``, ``welcomes``, ``send_errors``, ``peers_dropped``
+        (:class:`bonesim.net.SessionServer`); :attr:`rx` holds the received
+        datagrams by outcome.
     """
 
     def __init__(self, sock, key: bytes, samples: events.Ring, removed: events.Ring,
                  info: dict, density=None, initial_density=None, bricks=None):
-        self.sock = sock
-        self.codec = net.Codec(key, kinds=SERVER_KINDS)
         self.samples = samples
         self.removed = removed
-        self.info = dict(info)
-        self.clients: dict = {}
         self.log = RemovalLog()
-        self.counters = dict.fromkeys(("joins", "welcomes", "sent", "removals_sent", "nacks",
-                                       "go_backs", "send_errors", "clients_dropped"), 0)
-        self.rx = dict.fromkeys(net.COUNTERS, 0)
-        self._rbuf = bytearray(net.MAX_DATAGRAM + 1)
+        self.counters = dict.fromkeys(("sent", "removals_sent", "nacks", "go_backs"), 0)
+        self.session = net.SessionServer(sock, key, info, stale_s=STALE_S,
+                                         timeout_s=CLIENT_TIMEOUT_S, counters=self.counters,
+                                         make_peer=self._new_trainee)
         self._pbuf = bytearray(net.MAX_PAYLOAD)
-        self._now = 0.0
         self._sf = samples.fields
         self._smask = samples.capacity - 1
         n = samples.count
@@ -402,6 +378,22 @@ class Streamer:
         self.r_pos = removed.count
         if density is not None:
             self.log.extend(removed_voxels(initial_density, density, bricks))
+
+    @staticmethod
+    def _new_trainee(peer) -> None:
+        peer.send_from = 0                     # next log index to send it
+        peer.acked = 0                         # removals it holds
+        peer.last_sent_sample = -1
+
+    @property
+    def clients(self) -> dict:
+        """Joined trainees by address (:class:`bonesim.net.Peer`)."""
+        return self.session.peers
+
+    @property
+    def rx(self) -> dict:
+        """Received datagrams by outcome (:data:`bonesim.net.COUNTERS`)."""
+        return self.session.rx
 
     # ------------------------------------------------------------- inputs
     def _pump(self) -> None:
@@ -437,41 +429,10 @@ class Streamer:
         self.s_pos = n
         self.t_done = t_last
 
-    def _handle(self, data, addr, now: float) -> None:
-        try:
-            p = self.codec.decode(data)
-        except net.PacketError as exc:
-            self.rx[net.COUNTER_OF[exc.reason]] += 1
-            return
-        c = self.clients.get(addr)
-        if p.kind == net.KIND_JOIN:
-            if c is not None and p.seq <= c.join_seq:
-                self.rx["duplicate"] += 1             # a replayed or repeated JOIN
-                return
-            if c is None or c.trainee_nonce != p.nonce:
-                self.counters["joins"] += 1
-                c = _Client(addr, p.nonce, net.new_nonce(),
-                            net.Inbox(self.codec, None, STALE_S), p.seq, now)
-                c.inbox.nonce = c.server_nonce
-                c.inbox.counters = self.rx            # one tally for all trainees
-                self.clients[addr] = c
-            c.join_seq = p.seq
-            self.rx["accepted"] += 1
-            body = WELCOME_NONCE.pack(c.server_nonce) + json.dumps(self.info).encode()
-            self._send(c, net.KIND_WELCOME, body)
-            self.counters["welcomes"] += 1
-            return
-        if c is None:
-            self.rx["nonce"] += 1                     # no session with that sender
-            return
-        if c.inbox.admit(p, now) is None:            # counted in self.rx
-            return
-        c.last_heard = now
-        if p.kind == net.KIND_BYE:
-            del self.clients[addr]
-            return
+    def _ack(self, c, p) -> None:
         if len(p.payload) != ACK.size:
             self.rx["malformed"] += 1
+            self.rx["accepted"] -= 1
             return
         have, epoch = ACK.unpack(p.payload)
         if not c.streaming:
@@ -486,28 +447,12 @@ class Streamer:
                 c.send_from = have
                 self.counters["go_backs"] += 1
 
-    def _send(self, c: _Client, kind: int, payload) -> None:
-        try:
-            self.sock.sendto(self.codec.encode_into(kind, payload, c.trainee_nonce,
-                                                    t_s=self._now), c.addr)
-        except (BlockingIOError, InterruptedError):
-            self.counters["send_errors"] += 1         # socket buffer full: like a loss
-        except OSError:
-            self.counters["send_errors"] += 1
-
     # --------------------------------------------------------------- tick
     def tick(self, now: float) -> int:
         """Receive, take new data, send at time ``now`` [s] (the clock the
         packets are stamped with). Returns the STATE packets sent."""
-        self._now = now
-        while True:
-            try:
-                n, addr = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break                                 # e.g. ICMP unreachable echoes
-            self._handle(memoryview(self._rbuf)[:n], addr, now)
+        for c, p in self.session.receive(now):
+            self._ack(c, p)
         self._pump()
         head = self.s_pos
         if head == 0:
@@ -515,12 +460,7 @@ class Streamer:
         q = (head - 1) & self._smask
         f = self._sf
         sent = 0
-        for addr in list(self.clients):
-            c = self.clients[addr]
-            if now - c.last_heard > CLIENT_TIMEOUT_S:
-                del self.clients[addr]
-                self.counters["clients_dropped"] += 1
-                continue
+        for c in self.session.expire(now):
             if not c.streaming:
                 continue
             pending = self.log.n - c.send_from
@@ -533,7 +473,7 @@ class Streamer:
                            int(f["drill"][q]), int(f["direction"][q]), int(f["burr"][q]),
                            self.log.n, c.send_from,
                            self.log.ijk[c.send_from:c.send_from + k])
-            self._send(c, KIND_STATE, memoryview(self._pbuf)[:n])
+            self.session.send(c, KIND_STATE, memoryview(self._pbuf)[:n])
             c.send_from += k
             c.last_sent_sample = head
             self.counters["sent"] += 1
@@ -543,8 +483,7 @@ class Streamer:
 
     def bye(self) -> None:
         """Tell every trainee the session ends."""
-        for c in list(self.clients.values()):
-            self._send(c, net.KIND_BYE, b"")
+        self.session.bye()
 
     def stats(self) -> dict:
         return {**self.counters, "received": dict(self.rx), "clients": len(self.clients),
@@ -793,28 +732,17 @@ class NetworkSource(Source):
 
     def __init__(self, host: str, port: int, key: bytes, model=None, sock=None,
                  case: str | None = None):
-        try:
-            self.addr = (socket.gethostbyname(host), int(port))
-        except OSError as exc:
-            raise BonesimError(f"cannot resolve instructor host {host!r}: {exc}",
-                               field="HOST") from None
-        self.sock = sock if sock is not None else udp_socket("0.0.0.0", 0)
-        self.codec = net.Codec(key, kinds=TRAINEE_KINDS)
-        self.nonce = net.new_nonce()
-        self.inbox = net.Inbox(self.codec, self.nonce, STALE_S)
+        self.counters = dict.fromkeys(("acks_sent", "nacks_sent", "removals_applied",
+                                       "removals_skipped", "resets", "states"), 0)
+        self.link = net.SessionClient(host, port, key, (KIND_STATE,), stale_s=STALE_S,
+                                      join_retry_s=JOIN_RETRY_S, rejoin_s=REJOIN_S,
+                                      sock=sock, what="instructor", counters=self.counters)
         self.model = model
         self.case = case
         self.grid = None if model is None else model.grid.copy()
         self.state = InstructorState()
-        self.last_valid_s = math.nan
-        self.welcomed = False
-        self.server_nonce = 0
-        self.info: dict = {}
         self.have = 0
         self.epoch = None
-        self._rbuf = bytearray(net.MAX_DATAGRAM + 1)
-        self._now = 0.0
-        self._last_join = -math.inf
         self._last_ack = -math.inf
         self._nack_have = -1
         self._nack_at = -math.inf
@@ -823,39 +751,40 @@ class NetworkSource(Source):
         #: machine (shared monotonic clock); across machines it also holds the
         #: clocks' offset, and only its spread (``delay_over_fastest_ms``) means much.
         self.latency = _LatencyLog()
-        self.counters = dict.fromkeys(("joins_sent", "acks_sent", "nacks_sent",
-                                       "removals_applied", "removals_skipped", "resets",
-                                       "byes", "states"), 0)
+
+    # session state, kept by the link
+    @property
+    def welcomed(self) -> bool:
+        return self.link.welcomed
+
+    @property
+    def info(self) -> dict:
+        return self.link.info
+
+    @property
+    def nonce(self) -> int:
+        return self.link.nonce
+
+    @property
+    def inbox(self) -> net.Inbox:
+        return self.link.inbox
+
+    @property
+    def last_valid_s(self) -> float:
+        """Time of the last WELCOME or STATE accepted [s]."""
+        return self.link.last_valid_s
 
     # --------------------------------------------------------------- send
-    def _send(self, kind: int, payload, nonce: int, flags: int = 0) -> None:
-        try:
-            self.sock.sendto(self.codec.encode_into(kind, payload, nonce, t_s=self._now,
-                                                    flags=flags), self.addr)
-        except OSError:
-            pass                                      # like a lost packet
-
     def _ack(self, now: float, nack: bool) -> None:
         ep = -1 if self.epoch is None else self.epoch
-        self._send(net.KIND_ACK, ACK.pack(self.have, ep), self.server_nonce,
-                   FLAG_NACK if nack else 0)
+        self.link.send(net.KIND_ACK, ACK.pack(self.have, ep), FLAG_NACK if nack else 0)
         self._last_ack = now
         self.counters["nacks_sent" if nack else "acks_sent"] += 1
 
     # ------------------------------------------------------------ receive
-    def _welcome(self, p, now: float) -> None:
-        if len(p.payload) < WELCOME_NONCE.size:
-            self.inbox.counters["malformed"] += 1
-            return
-        (server_nonce,) = WELCOME_NONCE.unpack_from(p.payload, 0)
-        try:
-            info = json.loads(bytes(p.payload[WELCOME_NONCE.size:]))
-        except ValueError:
-            self.inbox.counters["malformed"] += 1
-            return
-        if server_nonce != self.server_nonce:         # a new server session
-            self.server_nonce = server_nonce
-            self.info = info
+    def _welcome(self, new: bool, now: float) -> None:
+        if new:                                       # a new server session
+            info = self.info
             if self.model is None:
                 self.model = self._load_model(info)
             if int(info.get("n_bricks", -1)) != self.model.grid.n_bricks:
@@ -865,8 +794,6 @@ class NetworkSource(Source):
                     f"{self.model.name!r} has {self.model.grid.n_bricks}: not the same case",
                     field="--case")
             self._reset_replica(None)
-        self.welcomed = True
-        self.last_valid_s = now
         self._ack(now, False)
 
     def _load_model(self, info: dict):
@@ -895,7 +822,7 @@ class NetworkSource(Source):
 
         log_len, first, ijk = unpack_state(p.payload, self.state)
         self.counters["states"] += 1
-        self.last_valid_s = now
+        self.link.last_valid_s = now
         self.latency.add(now - p.t_s)
         if self.state.epoch != self.epoch:
             self._reset_replica(self.state.epoch)
@@ -914,36 +841,14 @@ class NetworkSource(Source):
             self.counters["removals_applied"] += k - skip
 
     def poll(self, now_s: float) -> None:
-        self._now = now_s
-        if not self.welcomed or (now_s - self.last_valid_s > REJOIN_S):
-            if now_s - self._last_join >= JOIN_RETRY_S:
-                self._send(net.KIND_JOIN, b"", self.nonce)
-                self._last_join = now_s
-                self.counters["joins_sent"] += 1
-        while True:
+        for item in self.link.receive(now_s):
             try:
-                n, addr = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-            p = self.inbox.accept(memoryview(self._rbuf)[:n], now_s)
-            if p is None:
-                continue
-            try:
-                if p.kind == KIND_STATE:
-                    if self.welcomed:
-                        self._state(p, now_s)
-                elif p.kind == net.KIND_WELCOME:
-                    self._welcome(p, now_s)
-                    break       # loading the case took time: read on with a fresh clock
-                elif p.kind == net.KIND_BYE:
-                    self.counters["byes"] += 1
-                    self.last_valid_s = -math.inf     # link lost now
-                    self.welcomed = False
+                if isinstance(item, net.Welcome):
+                    self._welcome(item.new, now_s)
+                elif self.welcomed:
+                    self._state(item, now_s)
             except net.PacketError:
-                self.inbox.counters["malformed"] += 1
-                self.inbox.counters["accepted"] -= 1
+                self.link.reject()
         if self.welcomed and now_s - self._last_ack >= KEEPALIVE_S:
             self._ack(now_s, False)
 
@@ -962,9 +867,12 @@ class NetworkSource(Source):
             if now > end:
                 bad = self.inbox.counters["auth"]
                 why = (f"{bad} packets failed authentication: the key files differ"
-                       if bad else "check the address, port and firewall")
-                raise BonesimError(f"no answer from the instructor at {self.addr[0]}:"
-                                   f"{self.addr[1]} within {timeout_s:g} s ({why})",
+                       if bad else "check the address, the port, the key file (the "
+                                   "instructor ignores joins under another key) and the "
+                                   "firewall")
+                addr = self.link.addr
+                raise BonesimError(f"no answer from the instructor at {addr[0]}:"
+                                   f"{addr[1]} within {timeout_s:g} s ({why})",
                                    field="HOST")
             self.poll(now)
             time.sleep(0.002)
@@ -977,9 +885,7 @@ class NetworkSource(Source):
                 "delay_over_fastest_ms": _pcts_ms(lat - lat.min() if len(lat) else lat)}
 
     def close(self) -> None:
-        if self.welcomed:
-            self._send(net.KIND_BYE, b"", self.server_nonce)
-        self.sock.close()
+        self.link.close()
 
 
 class RecordingSource(Source):

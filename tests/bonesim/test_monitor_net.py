@@ -183,7 +183,7 @@ def test_forged_replayed_and_malformed_packets_change_nothing():
             q_.append((bytes(flipped), SERVER))                      # altered
         # authentic (the server's own codec), but a DATA payload that lies
         # about its sizes
-        q_.append((srv.codec.encode(MN.KIND_DATA, bytes(buf[:n - 1]), con.nonce, t_s=t),
+        q_.append((srv.session.codec.encode(MN.KIND_DATA, bytes(buf[:n - 1]), con.nonce, t_s=t),
                    SERVER))
 
     netw, srv, con = _pair()
@@ -233,7 +233,7 @@ def test_server_bye_and_silent_consoles_are_forgotten():
     for q in range(int(MN.CLIENT_TIMEOUT_S / DT) + 10):   # the console goes quiet
         srv.add(0.5 + q * DT, *mon.update(0.5 + q * DT))
         srv.poll(0.5 + q * DT)
-    assert srv.n_clients == 0 and srv.counters["consoles_dropped"] == 1
+    assert srv.n_clients == 0 and srv.counters["peers_dropped"] == 1
     netw, srv, con = _pair()
     _run(srv, con, mon, 0.0, 0.5)
     srv.close()                                         # server says BYE
