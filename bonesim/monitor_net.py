@@ -189,11 +189,15 @@ class MonitorServer:
         self.k = len(self.names)
         if self.k == 0 or max_spikes(self.k) < 1:
             raise ValueError(f"cannot stream {self.k} nerves")
+        colors = np.asarray(colors, dtype=int)
+        if colors.shape != (self.k, 3):
+            raise ValueError(f"colors must be ({self.k}, 3) for {self.k} nerves, got shape "
+                             f"{colors.shape}")
         sock = sock if sock is not None else net.udp_socket(host, port)
         self.port = int(sock.getsockname()[1]) if hasattr(sock, "getsockname") else int(port)
         self.stream_hz = float(stream_hz)
         info = {"service": "nerve-monitor", "names": self.names,
-                "colors": np.asarray(colors, dtype=int).reshape(-1, 3).tolist(),
+                "colors": colors.tolist(),
                 "params": asdict(params), "stream_hz": self.stream_hz,
                 "update_hz": update_hz}
         self.counters = dict.fromkeys(("sent", "spikes_sent", "spikes_skipped"), 0)

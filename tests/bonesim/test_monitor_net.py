@@ -255,6 +255,8 @@ def test_unauthenticated_joins_get_no_answer():
 def test_server_rejects_bad_arguments_and_a_taken_port():
     with pytest.raises(ValueError, match="stream_hz"):
         MN.MonitorServer(NAMES, COLORS, P, KEY, port=0, stream_hz=0)
+    with pytest.raises(ValueError, match=r"colors must be \(2, 3\)"):
+        MN.MonitorServer(NAMES, COLORS[:1], P, KEY, port=0)
     with pytest.raises(ValueError, match="cannot stream 0 nerves"):
         MN.MonitorServer([], [], P, KEY, port=0)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -349,10 +351,14 @@ def test_monitor_process_streams_to_a_console_over_loopback(phantom_model):
         if mon is not None:
             mon.close()
         if con is not None:
-            con.poll()
-            assert con.counters["byes"] == 1          # the server said goodbye
+            end = time.monotonic() + 5.0
+            while con.counters["byes"] == 0 and time.monotonic() < end:
+                con.poll()
+                time.sleep(0.01)
+            byes = con.counters["byes"]
             con.close()
         loop.close()
+    assert byes == 1                                  # the server said goodbye
     assert s["names"] == NAMES and stats["consoles"] == 1
     assert s["packets"]["accepted"] > 100 and s["lost"] == 0, s
     assert sum(v for k, v in s["packets"].items() if k != "accepted") == 0, s
