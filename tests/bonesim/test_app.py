@@ -54,6 +54,9 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         bone = app.consumer.grid.density.sum(dtype=np.float64)
         updates = len(app.consumer.update_s)
         changed = app.consumer.surface.canonical().differences(before)
+        trace_text = app.trace.text()                 # the nerve monitor's trace
+        app.window.press("nerve_monitor")             # m hides it
+        trace_hidden = not app.trace.visible and app.trace.text() == ""
         # reset the case: the loop restores the bone, the app rebuilds its side
         epoch = app.epoch
         app.window.press("reset_case")
@@ -67,6 +70,11 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     assert updates > 0 and changed
     assert out["haptic_rate_hz"] > 0 and "haptic" in hud and "frame" in hud
     assert dust > 0                                   # removed bone became dust
+    # the nerve monitor ran on the loop's samples and its trace was drawn
+    m = out["monitor"]
+    assert m["nerves"] == ["facial_nerve", "chorda_tympani"] and m["source"] == "samples"
+    assert m["updates"] > 100 and m["update_hz"] > 50
+    assert "facial_nerve" in trace_text and "chorda_tympani" in trace_text and trace_hidden
     assert (tmp_path / "shot.png").stat().st_size > 1000
     # the session was recorded: samples, every removal, camera per frame, the key
     from bonesim.record import read_session
