@@ -31,6 +31,9 @@ N_AS = 8
 
 
 def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
+    from .shared import die_with_parent
+
+    die_with_parent()
     from .grid import Grid
     from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T)
     from .shared import SharedArrays

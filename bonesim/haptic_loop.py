@@ -145,6 +145,9 @@ def _make_device(spec, io):
 def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                run_s: float | None, vibration: bool) -> None:
     """Body of the haptic process."""
+    from .shared import die_with_parent
+
+    die_with_parent()
     from .model import warmup
 
     sh = SharedArrays.attach(handle)

@@ -654,6 +654,9 @@ def _percentile_us(costs) -> tuple[float, float]:
 def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz,
                   server, source) -> None:
     """Body of the monitor process."""
+    from .shared import die_with_parent
+
+    die_with_parent()
     from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
     from .shared import SharedArrays
 

@@ -391,6 +391,9 @@ class Drainer:
 
 def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, models,
                  eye_mm) -> None:
+    from .shared import die_with_parent
+
+    die_with_parent()
     from .haptic_loop import attach
 
     lsh, rings = attach(loop_handle)
@@ -426,6 +429,10 @@ def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, mode
             time.sleep(max(0.0, flush_s - (time.monotonic() - t0)))
         drainer.drain()
         ctl[C_ROWS] = drainer.rows
+    except SystemExit:                         # SIGTERM (the parent died): keep it all
+        drainer.drain()
+        ctl[C_ROWS] = drainer.rows
+        raise
     finally:
         writer.close()
         ctl[C_FLUSHES] = writer.flushes

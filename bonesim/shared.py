@@ -86,3 +86,32 @@ class SharedArrays:
                 self._shm.unlink()
             except FileNotFoundError:
                 pass
+
+
+def die_with_parent() -> None:
+    """End this child process when its parent dies.
+
+    Call first thing in a child process's main function. On Linux the kernel
+    then sends it SIGTERM when the parent goes, however it goes (a crash, a
+    SIGKILL), so that no haptic loop keeps spinning at real-time priority and
+    no server keeps its port after the program is gone. SIGTERM (also what
+    ``Process.terminate`` sends) raises :class:`SystemExit`, so the child's
+    ``finally`` blocks run: the recorder's writer finishes its file. Elsewhere
+    it only installs the SIGTERM handler.
+    """
+    import ctypes
+    import os
+    import signal
+
+    def _term(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _term)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)          # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() == 1:                      # the parent died before prctl
+        raise SystemExit(0)
+
