@@ -154,11 +154,13 @@ class App:
             # the writer reads the loop's rings from record 0, so it may start
             # while the loop warms up
             self.recorder = Recorder(self.loop, self.record, header).start()
-        if self.want_monitor:           # before the loop: it reads the samples from 0
+        if self.want_monitor:           # warms up beside the loop; reads its samples from 0
             from .monitor import MonitorProcess
 
-            self.monitor = MonitorProcess(self.loop, serve=self.monitor_serve).start()
+            self.monitor = MonitorProcess(self.loop, serve=self.monitor_serve).start(wait=False)
         self.loop.start()
+        if self.monitor is not None:
+            self.monitor.wait_ready()
         if self.sound:
             from .audio import AudioProcess
 

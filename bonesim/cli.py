@@ -465,6 +465,23 @@ def _tutor_parser(sub) -> None:
     b.set_defaults(func=_tutor("cmd_playback"))
 
 
+def cmd_warmup(args) -> int:
+    import time
+
+    from .warmup import warmup_all
+
+    t0 = time.perf_counter()
+    report = None if args.json else (lambda name, sec: print(f"  {name:14s} {sec:7.2f} s",
+                                                              flush=True))
+    parts = warmup_all(report)
+    total = round(time.perf_counter() - t0, 2)
+    if args.json:
+        _print_json({"seconds": parts, "total_s": total})
+    else:
+        print(f"compiled the kernels in {total} s (cached for the next runs)")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_benchmarks
 
@@ -659,6 +676,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_playback)
 
     _tutor_parser(sub)
+
+    s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
+                                      "that the first run starts at once")
+    s.add_argument("--json", action="store_true", help="print seconds per part as JSON")
+    s.set_defaults(func=cmd_warmup)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")
     s.add_argument("--json", action="store_true", help="print one JSON object")

@@ -675,7 +675,7 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     samples = None
     if "samples.head" in sh.arrays and source != "status":
         samples = events.ring_from_arrays("samples", sh.arrays)
-        cursor = samples.count
+        cursor = max(0, samples.count - samples.capacity // 2)   # steps taken so far
         mstat[M_SOURCE] = SOURCE_SAMPLES
     else:
         mstat[M_SOURCE] = SOURCE_STATUS
@@ -824,8 +824,13 @@ class MonitorProcess:
         """Shared-memory handle (the audio process attaches for the clicks)."""
         return self._sh.handle
 
-    def start(self, timeout_s: float = 60.0) -> "MonitorProcess":
+    def start(self, timeout_s: float = 60.0, wait: bool = True) -> "MonitorProcess":
         """Start the process; wait until it is ready (or raise).
+
+        With ``wait`` False it returns at once (the caller starts the haptic
+        loop meanwhile, then calls :meth:`wait_ready`): the monitor reads the
+        loop's samples ring from its oldest kept record, so it misses no
+        step the loop takes while it warms up.
 
         Raises
         ------
@@ -846,6 +851,10 @@ class MonitorProcess:
             args=(self.loop.handle, self._sh.handle, self.loop.model, self._radii,
                   self.params, self.seed, self.update_hz, self.serve, self.source))
         self._proc.start()
+        return self.wait_ready(timeout_s) if wait else self
+
+    def wait_ready(self, timeout_s: float = 60.0) -> "MonitorProcess":
+        """Wait until the started process runs (or raise RuntimeError)."""
         end = time.monotonic() + timeout_s
         while self.status[M_READY] == 0.0:
             if not self._proc.is_alive():

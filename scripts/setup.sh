@@ -23,4 +23,12 @@ fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q ".${extras}"
+# Compile the numba kernels once (about a minute), so that the first run does
+# not compile them in its four processes at once: the installed package for
+# the runtime set-up, the source tree (what the tests import) with --test.
+if [ -n "${extras}" ]; then
+  .venv/bin/python -m bonesim.cli warmup
+else
+  .venv/bin/bonesim warmup
+fi
 echo "bonesim installed in $(pwd)/.venv"
