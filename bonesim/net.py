@@ -357,7 +357,8 @@ class Inbox:
     A datagram is accepted when it decodes (:meth:`Codec.decode`), carries
     this session's nonce, has a sequence number above the last accepted one
     (older, repeated or reordered packets are dropped as ``duplicate``) and is
-    not stale. Staleness works without synchronized clocks: the offset between
+    not stale (a ``BYE`` never is: it only ends the session). Staleness works
+    without synchronized clocks: the offset between
     the sender's and the receiver's clocks is estimated as the smallest
     ``now - t_s`` seen over accepted packets (the fastest delivery; allowed
     to creep up by :data:`CLOCK_DRIFT` per second so that a slower sender
@@ -450,6 +451,11 @@ class Inbox:
             c["malformed"] += 1
             return None
         off = self.offset_s
+        if p.kind == KIND_BYE:               # never stale: it only ends the session, and
+            self.last_seq = p.seq            # a receiver may read it late (a peer that
+            self.last_accept_s = now_s       # just quit, a busy machine)
+            c["accepted"] += 1
+            return p
         if off != off:                                   # first packet
             self.offset_s = delay
             self._offset_at = now_s

@@ -88,7 +88,7 @@ class SharedArrays:
                 pass
 
 
-def die_with_parent() -> None:
+def die_with_parent(on_term=None) -> None:
     """End this child process when its parent dies.
 
     Call first thing in a child process's main function. On Linux the kernel
@@ -96,15 +96,25 @@ def die_with_parent() -> None:
     SIGKILL), so that no haptic loop keeps spinning at real-time priority and
     no server keeps its port after the program is gone. SIGTERM (also what
     ``Process.terminate`` sends) raises :class:`SystemExit`, so the child's
-    ``finally`` blocks run: the recorder's writer finishes its file. Elsewhere
+    ``finally`` blocks run. Elsewhere
     it only installs the SIGTERM handler.
+
+    Parameters
+    ----------
+    on_term : callable, optional
+        Called (in the signal handler) instead of raising SystemExit: a
+        process with a main loop sets its quit flag, so it ends the way it
+        ends when asked (the recorder's writer drains the rings and closes
+        its file). Calling again replaces the handler.
     """
     import ctypes
     import os
     import signal
 
     def _term(signum, frame):
-        raise SystemExit(128 + signum)
+        if on_term is None:
+            raise SystemExit(128 + signum)
+        on_term()
 
     signal.signal(signal.SIGTERM, _term)
     try:

@@ -150,6 +150,10 @@ def test_inbox_staleness_uses_the_estimated_clock_offset():
     assert box.accept(tx.encode(16, b"", NONCE, t_s=1.030), 1001.0305) is not None
     assert box.offset_s == pytest.approx(1000.0005, abs=1e-6)
     assert box.age_s(1.040, 1001.0405) == pytest.approx(0.0, abs=1e-5)   # drift allowance
+    # a BYE read 5 s late still ends the session (once: a replay is a duplicate)
+    bye = tx.encode(net.KIND_BYE, b"", NONCE, t_s=1.05)
+    assert box.accept(bye, 1006.05) is not None and box.counters["stale"] == 1
+    assert box.accept(bye, 1006.06) is None and box.counters["duplicate"] == 1
 
 
 def test_inbox_tolerates_slow_clock_drift():
