@@ -6,24 +6,23 @@ and a reference picture (``images/trace.png``; regenerate with
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 from vtkmodules.util import numpy_support
 
-from bonesim.render.imagecmp import compare_images, diff_image, read_png, write_png
+from bonesim.render.imagecmp import compare_images, read_png
 from bonesim.render.scene import Scene
 from bonesim.render.trace import (BASELINE, LANE_RGBA, TICK, TRACE, WARN_RGBA, MonitorTrace,
                                   format_label)
 from tests.bonesim.render import scenes
+from tests.bonesim.render.test_images import check
 
 SIZE = (320, 240)
 NAMES = ["facial_nerve", "chorda_tympani"]
 COLORS = [(250, 230, 40), (250, 150, 30)]
 IMAGES = Path(__file__).parent / "images"
-UPDATE = os.environ.get("BONESIM_UPDATE_IMAGES") == "1"
 
 
 @pytest.fixture
@@ -377,14 +376,6 @@ def test_matches_reference_picture(phantom, tmp_path):
     tr.set_visible(True)
     sc.close()
     assert tr.text().splitlines()[0].split()[:4] == ["WARNING", "facial_nerve", "d", "0.6"]
-    ref_path = IMAGES / "trace.png"
-    if UPDATE:
-        write_png(ref_path, img)
-        pytest.skip(f"wrote {ref_path}")
-    ref = read_png(ref_path)
-    res = compare_images(img, ref)
-    if not res:
-        write_png(tmp_path / "trace-actual.png", img)
-        write_png(tmp_path / "trace-diff.png", diff_image(img, ref))
-    assert res, f"trace: {res.reason} (actual and diff images in {tmp_path})"
-    assert not compare_images(bare, ref)                # the trace is what the picture shows
+    check("trace", img, tmp_path)                      # (skips after writing, if asked)
+    assert not compare_images(bare, read_png(IMAGES / "trace.png"))   # the trace is what
+                                                                      # the picture shows
