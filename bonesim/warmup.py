@@ -24,13 +24,34 @@ def _monitor() -> None:
     NerveField(mask, 0.5, (0.0, 0.0, 0.0), 1.0).distance([[0.5, 0.5, 0.5], [9.0, 9.0, 9.0]])
 
 
+def _visibility() -> None:
+    """The recorder's writer judges each removal's visibility (its kernels)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from .burrs import load_burr
+    from .model import make_model
+    from .visibility import VisibilityTracker
+
+    labels = np.zeros((12, 12, 12), dtype=np.uint8)
+    labels[:, :, :6] = 1
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
+    m = make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
+    vt = VisibilityTracker([m], (3.0, 3.0, 20.0))
+    vt.add_samples({"t_s": np.array([0.0]), "pos_mm": np.array([[3.0, 3.0, 2.9]]),
+                    "burr": np.zeros(1, np.int64), "epoch": np.zeros(1, np.int64)})
+    vt.judge({"t_s": np.array([0.0]), "ijk": np.array([[6, 6, 5]], np.int32)})
+
+
 def _parts():
     from . import clicks, dust, model, sound, surface, thickness, tutor, vibration
 
     return [("haptic step", model.warmup), ("surface", surface.warmup), ("dust", dust.warmup),
             ("vibration", vibration.warmup), ("sound", sound.warmup),
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
-            ("nerve monitor", _monitor), ("tutoring", tutor.warmup)]
+            ("nerve monitor", _monitor), ("recording", _visibility),
+            ("tutoring", tutor.warmup)]
 
 
 def warmup_all(report=None) -> dict:
