@@ -44,6 +44,32 @@ def _visibility() -> None:
     vt.judge({"t_s": np.array([0.0]), "ijk": np.array([[6, 6, 5]], np.int32)})
 
 
+def _loop() -> None:
+    """The haptic loop's process on the default case for half a second: its
+    kernels compile there for the types of a real run (its state lives in
+    shared memory), which the tiny models above do not all reach."""
+    import numpy as np
+
+    from .haptic_loop import HapticLoop
+    from .model import load_model
+    from .trajectory import Trajectory
+
+    model = load_model("phantom", "cutting-5mm")
+    cam = model.case.camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+    view /= np.linalg.norm(view)
+    t = np.linspace(0.0, 0.5, 51)
+    pos = np.asarray(cam.focal_mm, float) + (8.0 - 16.0 * t)[:, None] * view * -1.0
+    traj = Trajectory(t_s=t, pos_mm=pos, axis=np.tile(view, (len(t), 1)),
+                      drill=np.ones(len(t), bool), speed_rpm=np.full(len(t), 60000.0))
+    loop = HapticLoop(model, device=("scripted", traj), run_s=0.6)
+    try:
+        loop.start()
+        loop.wait(60.0)
+    finally:
+        loop.close()
+
+
 def _parts():
     from . import clicks, dust, model, sound, surface, thickness, tutor, vibration
 
@@ -51,7 +77,7 @@ def _parts():
             ("vibration", vibration.warmup), ("sound", sound.warmup),
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
             ("nerve monitor", _monitor), ("recording", _visibility),
-            ("tutoring", tutor.warmup)]
+            ("tutoring", tutor.warmup), ("haptic loop", _loop)]
 
 
 def warmup_all(report=None) -> dict:
