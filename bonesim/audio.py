@@ -23,9 +23,9 @@ import time
 CONTROL_HZ = 100.0
 #: Longest ray cast for the thickness estimate [mm].
 THICKNESS_MAX_MM = 6.0
-# audio status slots (written by the audio process)
-# audio status slots: ready, no device, done, quit; with a monitor the clicks
-# scheduled, sounded late, dropped (ring full) and clock re-anchors
+# audio status slots (written by the audio process): ready, no device, done,
+# quit; with a monitor the clicks scheduled, sounded late, dropped (ring full)
+# and clock re-anchors
 A_READY, A_SILENT, A_DONE, A_QUIT, A_CLICKS, A_LATE, A_DROPPED, A_ANCHORS = range(8)
 N_AS = 8
 

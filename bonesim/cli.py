@@ -384,19 +384,19 @@ def cmd_playback(args) -> int:
     return 0
 
 
-def _tutor(name: str):
-    """A ``bonesim tutor`` handler, imported only when run (keeps the CLI light)."""
+def _lazy(module: str, name: str):
+    """A command handler ``bonesim.<module>.<name>``, imported only when run
+    (keeps the CLI light)."""
     def run(args) -> int:
-        from . import tutor
+        import importlib
 
-        return getattr(tutor, name)(args)
+        return getattr(importlib.import_module(f".{module}", __package__), name)(args)
     return run
 
 
-def _monitor_console(args) -> int:
-    from .monitor_net import cmd_monitor
-
-    return cmd_monitor(args)
+def _tutor(name: str):
+    """A ``bonesim tutor`` handler (:func:`_lazy`)."""
+    return _lazy("tutor", name)
 
 
 def _tutor_parser(sub) -> None:
@@ -624,7 +624,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="without a terminal: print the readings every S seconds "
                         "(0: only the summary)")
     s.add_argument("--json", action="store_true", help="print the statistics as JSON")
-    s.set_defaults(func=_monitor_console)
+    s.set_defaults(func=_lazy("monitor_net", "cmd_monitor"))
 
     s = sub.add_parser("sessions", help="recorded sessions (HDF5 files)")
     ssub = s.add_subparsers(dest="sessions_cmd", metavar="ACTION", required=True)

@@ -85,6 +85,18 @@ class Ring:
         idx = np.arange(start, stop) & (cap - 1)
         return {name: arr[idx] for name, arr in self.fields.items()}
 
+    def append(self, **cols) -> None:
+        """Write records (first axis of each column) from Python; the head
+        moves after the data, so a reader in another process never sees a
+        half-written record."""
+        n = len(next(iter(cols.values())))
+        if n == 0:
+            return
+        idx = (self.count + np.arange(n)) & (self.capacity - 1)
+        for name, v in cols.items():
+            self.fields[name][idx] = v
+        self.head[0] += n
+
     def reset(self) -> None:
         self.head[0] = 0
 

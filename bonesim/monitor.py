@@ -62,7 +62,8 @@ from .tomlfile import check_keys, get_number, read_toml
 
 __all__ = ["ActivityParams", "load_activity_params", "default_params_path", "activity",
            "NerveField", "poisson_spikes", "NerveMonitor", "monitored_structures",
-           "MonitorProcess", "MonitorView", "shared_rings", "UPDATE_HZ", "HISTORY_S"]
+           "MonitorProcess", "MonitorView", "shared_rings", "read_history", "UPDATE_HZ",
+           "HISTORY_S"]
 
 #: Rate at which the monitor process updates [Hz].
 UPDATE_HZ = 200.0
@@ -557,16 +558,29 @@ def shared_rings(arrays) -> tuple:
     return hist, spikes
 
 
-def _push(ring: events.Ring, **cols) -> None:
-    """Append records (first axis) to a ring; the head moves after the data."""
-    n = len(next(iter(cols.values())))
-    if n == 0:
-        return
-    cap = ring.capacity
-    idx = (ring.count + np.arange(n)) & (cap - 1)
-    for name, v in cols.items():
-        ring.fields[name][idx] = v
-    ring.head[0] += n
+def read_history(hist: events.Ring, spikes: events.Ring, now: float, k: int,
+                 window_s: float = HISTORY_S) -> dict:
+    """The last ``window_s`` seconds before ``now`` of a monitor's rate
+    history and spikes (rings as :func:`shared_rings` makes them): ``now``,
+    ``t_s`` (m,), ``rate`` (m, k), ``dist`` (m, k), ``spike_t`` (s,),
+    ``spike_nerve`` (s,). Reads at most half of each ring, so a writer in
+    another process may go on meanwhile."""
+    out = {"now": now}
+    for ring, keys in ((hist, ("t_s", "rate", "dist")), (spikes, ("t_s", "nerve"))):
+        stop = ring.count
+        start = max(0, stop - ring.capacity // 2)
+        try:
+            rec = ring.read(start, stop)
+        except events.RingOverflow:                     # raced by the writer
+            rec = ring.read(stop - 1, stop) if stop else ring.read(0, 0)
+        keep = rec["t_s"] >= now - window_s
+        for key in keys:
+            v = rec[key][keep]
+            if ring is spikes:
+                out["spike_" + ("t" if key == "t_s" else key)] = v
+            else:
+                out[key] = v[:, :k] if v.ndim == 2 else v
+    return out
 
 
 class MonitorView:
@@ -624,26 +638,8 @@ class MonitorView:
                 "consoles": int(s[M_CLIENTS]), "packets_sent": int(s[M_PACKETS])}
 
     def history(self, window_s: float = HISTORY_S) -> dict:
-        """The last ``window_s`` seconds: ``t_s`` (m,), ``rate`` (m, k),
-        ``dist`` (m, k), ``spike_t`` (s,), ``spike_nerve`` (s,), ``now``."""
-        now = self.t_s
-        out = {"now": now}
-        for ring, keys in ((self.hist, ("t_s", "rate", "dist")),
-                           (self.spike_ring, ("t_s", "nerve"))):
-            stop = ring.count
-            start = max(0, stop - ring.capacity // 2)
-            try:
-                rec = ring.read(start, stop)
-            except events.RingOverflow:                 # raced by the writer
-                rec = ring.read(stop - 1, stop) if stop else ring.read(0, 0)
-            keep = rec["t_s"] >= now - window_s
-            for key in keys:
-                v = rec[key][keep]
-                if ring is self.spike_ring:
-                    out["spike_" + ("t" if key == "t_s" else key)] = v
-                else:
-                    out[key] = v[:, :self.n] if v.ndim == 2 else v
-        return out
+        """The last ``window_s`` seconds (:func:`read_history`)."""
+        return read_history(self.hist, self.spike_ring, self.t_s, self.n, window_s)
 
 
 def _percentile_us(costs) -> tuple[float, float]:
@@ -727,8 +723,8 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
                 t_last = float(t[-1])
                 t0 = min(t0, clock() - float(status[ST_T]))
                 st_t, st_n = nm.spikes
-                _push(spikes, t_s=st_t, nerve=st_n)
-                _push(hist, t_s=np.array([t_last]), rate=nm.rates_hz.reshape(1, k).astype(
+                spikes.append(t_s=st_t, nerve=st_n)
+                hist.append(t_s=np.array([t_last]), rate=nm.rates_hz.reshape(1, k).astype(
                     np.float32), dist=nm.distance_mm.reshape(1, k).astype(np.float32))
                 arr["mon.rates"][:k] = nm.rates_hz
                 arr["mon.dist"][:k] = nm.distance_mm

@@ -42,7 +42,7 @@ from dataclasses import asdict
 
 import numpy as np
 
-from . import net
+from . import events, net
 from .errors import BonesimError
 
 __all__ = ["DEFAULT_PORT", "STREAM_HZ", "MonitorServer", "MonitorConsole",
@@ -77,6 +77,15 @@ KIND_DATA = 32
 DATA = struct.Struct("<dIIHH")
 #: Bytes per nerve (rate, distance as float32) and per spike (time f64, nerve u8).
 NERVE_BYTES, SPIKE_BYTES = 8, 9
+
+
+def _spike_ring(capacity: int) -> events.Ring:
+    return events.Ring.create(capacity, t_s=(np.float64, ()), nerve=(np.uint8, ()))
+
+
+def _history_ring(capacity: int, k: int) -> events.Ring:
+    return events.Ring.create(capacity, t_s=(np.float64, ()), rate=(np.float32, (k,)),
+                              dist=(np.float32, (k,)))
 
 
 def max_spikes(k: int) -> int:
@@ -208,9 +217,7 @@ class MonitorServer:
         self.updates = 0
         self.rates = np.zeros(self.k, np.float32)
         self.dist = np.full(self.k, np.inf, np.float32)
-        self._spike_t = np.zeros(SPIKE_LOG)
-        self._spike_n = np.zeros(SPIKE_LOG, np.uint8)
-        self._spikes = 0
+        self._spikes = _spike_ring(SPIKE_LOG)
         self._next_send = -math.inf
         self._pbuf = bytearray(net.MAX_PAYLOAD)
         self._max = max_spikes(self.k)
@@ -246,12 +253,7 @@ class MonitorServer:
         self.updates += 1
         self.rates[:] = rates
         self.dist[:] = dist
-        n = len(spike_t)
-        if n:
-            idx = (self._spikes + np.arange(n)) & (SPIKE_LOG - 1)
-            self._spike_t[idx] = spike_t
-            self._spike_n[idx] = spike_n
-            self._spikes += n
+        self._spikes.append(t_s=spike_t, nerve=spike_n)
 
     # --------------------------------------------------------------- poll
     def poll(self, now: float) -> int:
@@ -260,7 +262,7 @@ class MonitorServer:
         for c, _ in self.session.receive(now):
             if not c.streaming:                           # its first ACK
                 c.streaming = True
-                c.spike_pos = self._spikes
+                c.spike_pos = self._spikes.count
         if now + 1e-6 < self._next_send or self.updates == 0:   # (float sums of periods)
             return 0
         self._next_send = max(self._next_send + 1.0 / self.stream_hz, now)
@@ -268,21 +270,22 @@ class MonitorServer:
         for c in self.session.expire(now):
             if not c.streaming:
                 continue
-            if self._spikes - c.spike_pos > SPIKE_LOG:
-                self.counters["spikes_skipped"] += self._spikes - SPIKE_LOG - c.spike_pos
-                c.spike_pos = self._spikes - SPIKE_LOG
+            head = self._spikes.count
+            if head - c.spike_pos > SPIKE_LOG:
+                self.counters["spikes_skipped"] += head - SPIKE_LOG - c.spike_pos
+                c.spike_pos = head - SPIKE_LOG
             while True:
-                n = min(self._spikes - c.spike_pos, self._max)
-                idx = (c.spike_pos + np.arange(n)) & (SPIKE_LOG - 1)
+                n = min(head - c.spike_pos, self._max)
+                sp = self._spikes.read(c.spike_pos, c.spike_pos + n)
                 size = pack_data(self._pbuf, self.t_s, self.updates, c.number, self.rates,
-                                 self.dist, self._spike_t[idx], self._spike_n[idx])
+                                 self.dist, sp["t_s"], sp["nerve"])
                 self.session.send(c, KIND_DATA, memoryview(self._pbuf)[:size])
                 c.number += 1
                 c.spike_pos += n
                 self.counters["sent"] += 1
                 self.counters["spikes_sent"] += n
                 sent += 1
-                if c.spike_pos >= self._spikes:
+                if c.spike_pos >= head:
                     break
         return sent
 
@@ -345,11 +348,8 @@ class MonitorConsole:
         self._number = -1
         self._last_ack = -math.inf
         self._latency: list = []
-        self._hist_t = self._hist_rate = self._hist_dist = None
-        self._hist_n = 0
-        self._spk_t = np.zeros(HISTORY_CAP)
-        self._spk_n = np.zeros(HISTORY_CAP, np.uint8)
-        self._spk = 0
+        self._hist = _history_ring(HISTORY_CAP, 0)
+        self._spikes = _spike_ring(HISTORY_CAP)
         #: Called with (spike_t, spike_nerve, t_s) for each DATA packet (clicks).
         self.on_spikes = None
 
@@ -392,11 +392,8 @@ class MonitorConsole:
                                                 "monitor's JSON") from None
             self.rates_hz = np.zeros(k)
             self.distance_mm = np.full(k, np.inf)
-            self._hist_t = np.zeros(HISTORY_CAP)
-            self._hist_rate = np.zeros((HISTORY_CAP, k), np.float32)
-            self._hist_dist = np.zeros((HISTORY_CAP, k), np.float32)
-            self._hist_n = 0
-            self._spk = 0
+            self._hist = _history_ring(HISTORY_CAP, k)
+            self._spikes = _spike_ring(HISTORY_CAP)
             self._number = -1
         self._ack(now)
 
@@ -414,22 +411,13 @@ class MonitorConsole:
             del self._latency[:1 << 15]
         self.link.last_valid_s = now
         if d["t_s"] != self.t_s:                          # a new update: one history row
-            q = self._hist_n & (HISTORY_CAP - 1)
-            self._hist_t[q] = d["t_s"]
-            self._hist_rate[q] = d["rate"]
-            self._hist_dist[q] = d["dist"]
-            self._hist_n += 1
+            self._hist.append(t_s=[d["t_s"]], rate=d["rate"][None], dist=d["dist"][None])
         self.t_s = d["t_s"]
         self.updates = d["updates"]
         self.rates_hz = d["rate"].astype(np.float64)
         self.distance_mm = d["dist"].astype(np.float64)
-        n = len(d["spike_t"])
-        if n:
-            idx = (self._spk + np.arange(n)) & (HISTORY_CAP - 1)
-            self._spk_t[idx] = d["spike_t"]
-            self._spk_n[idx] = d["spike_nerve"]
-            self._spk += n
-            self.counters["spikes"] += n
+        self._spikes.append(t_s=d["spike_t"], nerve=d["spike_nerve"])
+        self.counters["spikes"] += len(d["spike_t"])
         if self.on_spikes is not None:
             self.on_spikes(d["spike_t"], d["spike_nerve"], d["t_s"])
 
@@ -478,25 +466,11 @@ class MonitorConsole:
     # ------------------------------------------------------------- output
     def history(self, window_s: float = 5.0) -> dict:
         """The last ``window_s`` seconds, as :meth:`bonesim.monitor.MonitorView.history`
-        returns them: ``now``, ``t_s`` (m,), ``rate`` (m, k), ``dist`` (m, k),
-        ``spike_t``, ``spike_nerve``."""
-        k = self.n
+        returns them (:func:`bonesim.monitor.read_history`)."""
+        from .monitor import read_history
+
         now = 0.0 if math.isnan(self.t_s) else self.t_s
-        out = {"now": now}
-        m = min(self._hist_n, HISTORY_CAP)
-        if m == 0:
-            out.update(t_s=np.zeros(0), rate=np.zeros((0, k), np.float32),
-                       dist=np.zeros((0, k), np.float32))
-        else:
-            idx = np.arange(self._hist_n - m, self._hist_n) & (HISTORY_CAP - 1)
-            keep = idx[self._hist_t[idx] >= now - window_s]
-            out.update(t_s=self._hist_t[keep], rate=self._hist_rate[keep],
-                       dist=self._hist_dist[keep])
-        s = min(self._spk, HISTORY_CAP)
-        idx = np.arange(self._spk - s, self._spk) & (HISTORY_CAP - 1)
-        keep = idx[self._spk_t[idx] >= now - window_s]
-        out.update(spike_t=self._spk_t[keep], spike_nerve=self._spk_n[keep])
-        return out
+        return read_history(self._hist, self._spikes, now, self.n, window_s)
 
     def lines(self, width: int = 24) -> list:
         """The console's text: one line per nerve (distance, rate, a bar on a

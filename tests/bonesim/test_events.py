@@ -51,3 +51,15 @@ def test_overflow_is_reported_not_garbage():
 def test_capacity_must_be_power_of_two():
     with pytest.raises(ValueError, match="power of two"):
         Ring.create(12, x=(np.int32, ()))
+
+
+def test_append_writes_records_across_the_wrap():
+    r = Ring.create(8, t_s=(np.float64, ()), v=(np.float32, (2,)))
+    r.append(t_s=[], v=np.zeros((0, 2)))                 # nothing: head stays
+    assert r.count == 0
+    for a in range(0, 12, 3):                             # 12 records through 8 slots
+        r.append(t_s=np.arange(a, a + 3), v=np.arange(2 * a, 2 * a + 6).reshape(3, 2))
+    assert r.count == 12
+    out = r.read(4, 12)
+    np.testing.assert_array_equal(out["t_s"], np.arange(4, 12))
+    np.testing.assert_array_equal(out["v"], np.arange(8, 24).reshape(8, 2))
