@@ -484,6 +484,19 @@ class Inbox:
 WELCOME_NONCE = struct.Struct("<Q")
 
 
+def datagrams(sock, buf: bytearray):
+    """Yield ``(data, addr)`` for every datagram waiting on a non-blocking
+    socket; ``data`` is a view of ``buf``, valid until the next one."""
+    while True:
+        try:
+            n, addr = sock.recvfrom_into(buf)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:                               # e.g. ICMP unreachable echoes
+            return
+        yield memoryview(buf)[:n], addr
+
+
 class Peer:
     """A receiver joined to a :class:`SessionServer`.
 
@@ -575,15 +588,9 @@ class SessionServer:
         JOINs, honour BYEs; returns ``(peer, packet)`` for each accepted ACK."""
         self.now = now
         acks = []
-        while True:
+        for data, addr in datagrams(self.sock, self._rbuf):
             try:
-                n, addr = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break                                 # e.g. ICMP unreachable echoes
-            try:
-                p = self.codec.decode(memoryview(self._rbuf)[:n])
+                p = self.codec.decode(data)
             except PacketError as exc:
                 self.rx[COUNTER_OF[exc.reason]] += 1
                 continue
@@ -744,14 +751,8 @@ class SessionClient:
                 self._last_join = now
                 self.counters["joins_sent"] += 1
         out = []
-        while True:
-            try:
-                n, _ = self.sock.recvfrom_into(self._rbuf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-            p = self.inbox.accept(memoryview(self._rbuf)[:n], now)
+        for data, _ in datagrams(self.sock, self._rbuf):
+            p = self.inbox.accept(data, now)
             if p is None:
                 continue
             if p.kind == KIND_WELCOME:

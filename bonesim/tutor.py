@@ -58,7 +58,6 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing as mp
-import socket
 import struct
 import time
 
