@@ -31,17 +31,15 @@ N_AS = 8
 
 
 def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
-    from .shared import die_with_parent
-
-    die_with_parent()
     from .grid import Grid
     from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T)
-    from .shared import SharedArrays
+    from .shared import SharedArrays, die_with_parent
     from .sound import SoundSynth, WavRecorder, open_output
     from .sound import warmup as sound_warmup
     from .thickness import bone_thickness_mm
     from .thickness import warmup as thickness_warmup
 
+    die_with_parent()
     sh = SharedArrays.attach(handle)
     ash = SharedArrays.attach(status_handle)
     astat = ash["audio"]

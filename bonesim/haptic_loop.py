@@ -45,7 +45,7 @@ from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevi
                       VirtualCoupling)
 from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
-from .shared import SharedArrays
+from .shared import SharedArrays, die_with_parent
 
 # io: window -> loop
 IN_POS, IN_AXIS = 0, 3
@@ -145,11 +145,9 @@ def _make_device(spec, io):
 def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                run_s: float | None, vibration: bool) -> None:
     """Body of the haptic process."""
-    from .shared import die_with_parent
-
-    die_with_parent()
     from .model import warmup
 
+    die_with_parent()
     sh = SharedArrays.attach(handle)
     arr = sh.arrays
     io, status = arr["io"], arr["status"]

@@ -650,12 +650,10 @@ def _percentile_us(costs) -> tuple[float, float]:
 def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz,
                   server, source) -> None:
     """Body of the monitor process."""
-    from .shared import die_with_parent
+    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
+    from .shared import SharedArrays, die_with_parent
 
     die_with_parent()
-    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
-    from .shared import SharedArrays
-
     parent = os.getppid()
     sh = SharedArrays.attach(loop_handle)
     msh = SharedArrays.attach(mon_handle)

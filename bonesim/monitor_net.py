@@ -386,7 +386,7 @@ class MonitorConsole:
     def _welcome(self, new: bool, now: float) -> None:
         if new:                                           # a new server session
             try:
-                k = len([str(x) for x in self.info["names"]])
+                k = len(self.info["names"])
             except (KeyError, TypeError):
                 raise net.PacketError("length", "WELCOME description is not the "
                                                 "monitor's JSON") from None
@@ -529,11 +529,10 @@ def _console_clicks(con: MonitorConsole, wav=None):
     stream_hz = float(con.info.get("stream_hz") or STREAM_HZ)
     synth = ClickSynth(SAMPLE_RATE, max(con.n, 1), delay_s=DELAY_S + 2.0 / stream_hz)
     recorder = WavRecorder(wav, SAMPLE_RATE) if wav else None
-    synth.sync(con.t_s)
     out = open_output(synth, recorder=recorder)
 
     def on_spikes(t, nerve, now_t):
-        synth.sync(now_t)
+        synth.sync(now_t)                      # anchors the clock before any schedule
         if len(t):
             synth.schedule(t, nerve)
 

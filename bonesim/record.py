@@ -34,7 +34,7 @@ import numpy as np
 
 from . import events
 from .errors import BonesimError
-from .shared import SharedArrays
+from .shared import SharedArrays, die_with_parent
 
 #: Version of the file layout written here (``docs/session_schema.md``).
 SCHEMA_VERSION = 1
@@ -395,11 +395,9 @@ class Drainer:
 
 def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, models,
                  eye_mm) -> None:
-    from .shared import die_with_parent
-
-    die_with_parent()
     from .haptic_loop import attach
 
+    die_with_parent()
     lsh, rings = attach(loop_handle)
     own = SharedArrays.attach(own_handle)
     ctl = own.arrays["ctl"]

@@ -96,8 +96,7 @@ def die_with_parent(on_term=None) -> None:
     SIGKILL), so that no haptic loop keeps spinning at real-time priority and
     no server keeps its port after the program is gone. SIGTERM (also what
     ``Process.terminate`` sends) raises :class:`SystemExit`, so the child's
-    ``finally`` blocks run. Elsewhere
-    it only installs the SIGTERM handler.
+    ``finally`` blocks run. Elsewhere it only installs the SIGTERM handler.
 
     Parameters
     ----------

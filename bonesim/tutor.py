@@ -499,11 +499,10 @@ N_SV = 16
 def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks, status,
                 conn) -> None:
     """Body of the server process: attach to the loop, stream until told to quit."""
+    from .haptic_loop import attach
     from .shared import die_with_parent
 
     die_with_parent()
-    from .haptic_loop import attach
-
     sh, rings = attach(handle)
     sock = None
     stats = {}
