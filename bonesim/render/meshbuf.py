@@ -16,7 +16,11 @@ Visible subset (SPEC, "Hybrid voxel / surface data structure")
 A vertex *faces the camera* when its normal points toward the eye:
 ``dot(n, eye - p) > 0`` for a perspective camera, ``dot(n, -d) > 0`` for a
 parallel one looking along ``d``. A triangle is *visible* when at least one
-of its vertices faces the camera. When the camera comes to rest,
+of its vertices faces the camera (SPEC), or when its own face does (normal
+``(b - a) x (c - a)``, wound like the vertex normals). The second test is
+ours: at a drilled rim the smoothed vertex normals of a triangle seen edge-on
+can all point away although the face shows, and without it the resting
+picture lost those pixels. When the camera comes to rest,
 :meth:`SurfaceBuffers.start_visible` copies the surface's arrays (a
 snapshot) and a background thread computes the visible flag of every
 triangle slot of the snapshot (numba, ``nogil``; it touches no VTK object
@@ -150,7 +154,8 @@ def _mark_near(keys, vals, vmap, ijk, marked):
 
 @njit(cache=True, nogil=True)
 def _visible_flags(pos, nrm, tri, key, eye, dirn, parallel, vflag, tvis):
-    """Facing flag per vertex slot, visible flag per triangle slot."""
+    """Facing flag per vertex slot, visible flag per triangle slot (a
+    facing corner, or a facing face)."""
     for v in range(pos.shape[0]):
         if parallel:
             d = -(nrm[v, 0] * dirn[0] + nrm[v, 1] * dirn[1] + nrm[v, 2] * dirn[2])
@@ -160,7 +165,23 @@ def _visible_flags(pos, nrm, tri, key, eye, dirn, parallel, vflag, tvis):
         vflag[v] = 1 if d > 0.0 else 0
     n = 0
     for t in range(key.shape[0]):
-        if key[t] >= 0 and (vflag[tri[t, 0]] | vflag[tri[t, 1]] | vflag[tri[t, 2]]):
+        if key[t] < 0:
+            tvis[t] = 0
+            continue
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        vis = (vflag[a] | vflag[b] | vflag[c]) != 0
+        if not vis:
+            # face normal (b - a) x (c - a), wound like the vertex normals
+            ux, uy, uz = pos[b, 0] - pos[a, 0], pos[b, 1] - pos[a, 1], pos[b, 2] - pos[a, 2]
+            wx, wy, wz = pos[c, 0] - pos[a, 0], pos[c, 1] - pos[a, 1], pos[c, 2] - pos[a, 2]
+            fx, fy, fz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+            if parallel:
+                d = -(fx * dirn[0] + fy * dirn[1] + fz * dirn[2])
+            else:
+                d = (fx * (eye[0] - pos[a, 0]) + fy * (eye[1] - pos[a, 1])
+                     + fz * (eye[2] - pos[a, 2]))
+            vis = d > 0.0
+        if vis:
             tvis[t] = 1
             n += 1
         else:

@@ -244,6 +244,7 @@ class Scene:
         self._job = None
         self._bound = (None, None, None)
         self._cell_refs = None
+        self._full_bounds = None      # surface bounds while the full list was drawn
         self.stats = {"visible_jobs": 0, "visible_job_s": 0.0, "n_full": 0, "n_vis": 0}
         # frame clock
         self._frame_times = collections.deque(maxlen=61)
@@ -441,7 +442,34 @@ class Scene:
                 self._push_cells()
         if self._hud_info and now - self._hud_drawn_at > 0.25:
             self._draw_hud(now)
-        self.renderer.ResetCameraClippingRange()
+        self._reset_clipping_range()
+
+    def _reset_clipping_range(self):
+        """Near and far planes from the bounds of everything drawn, taking
+        the bone surface's bounds from its full triangle list even while the
+        visible subset is drawn: VTK measures a mesh by the points its cells
+        use, so the subset alone would move the planes, and with them the
+        depth resolution, and change the picture."""
+        ren, sa = self.renderer, self.surface_actor
+        if self._drawn != "visible" or self._full_bounds is None:
+            ren.ResetCameraClippingRange()
+            if sa.GetVisibility() and self._buffers.n_full:
+                self._full_bounds = sa.GetBounds()
+            return
+        lo = np.array(self._full_bounds[0::2], dtype=float)
+        hi = np.array(self._full_bounds[1::2], dtype=float)
+        props = ren.GetViewProps()
+        props.InitTraversal()
+        for _ in range(props.GetNumberOfItems()):
+            p = props.GetNextProp()
+            if p is sa or not p.GetVisibility() or not p.GetUseBounds():
+                continue
+            b = p.GetBounds()
+            if b is None or b[0] > b[1]:
+                continue
+            lo = np.minimum(lo, b[0::2])
+            hi = np.maximum(hi, b[1::2])
+        ren.ResetCameraClippingRange(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
 
     def _start_job(self):
         c = self.renderer.GetActiveCamera()

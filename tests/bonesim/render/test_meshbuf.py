@@ -31,11 +31,19 @@ def live(surf):
     return surf.tri[surf.triangle_slots]
 
 
-def facing_tris(surf, eye):
-    p, n = surf.pos, surf.nrm
-    face = ((n * (eye - p)).sum(axis=1) > 0)
+def facing_tris(surf, eye=None, direction=None):
+    """Live triangles with a corner whose normal faces the camera, or whose
+    face does (perspective from ``eye``, or parallel along ``direction``)."""
+    p, n = surf.pos.astype(float), surf.nrm.astype(float)
     t = live(surf)
-    return t[face[t].any(axis=1)]
+    fn = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    if direction is None:
+        corner = (n * (eye - p)).sum(axis=1) > 0
+        face = (fn * (eye - p[t[:, 0]])).sum(axis=1) > 0
+    else:
+        corner = n @ -direction > 0
+        face = fn @ -direction > 0
+    return t[corner[t].any(axis=1) | face]
 
 
 def adopt(buf, surf, eye=EYE, direction=DOWN, parallel=False):
@@ -55,7 +63,7 @@ def test_full_list_is_every_live_triangle(block):
     assert np.array_equal(buf.offsets[:nf + 1], np.arange(0, 3 * nf + 1, 3))
 
 
-def test_visible_subset_is_the_triangles_with_a_facing_vertex(block):
+def test_visible_subset_is_the_triangles_with_a_facing_vertex_or_face(block):
     model, state = block
     surf = Surface.build(state.grid, model.colors)
     buf = SurfaceBuffers()
@@ -67,14 +75,30 @@ def test_visible_subset_is_the_triangles_with_a_facing_vertex(block):
     assert job.n_visible == buf.n_vis < 0.6 * buf.n_full       # the far side is dropped
 
 
+def test_a_face_seen_edge_on_with_averted_normals_is_kept():
+    """One triangle facing +z whose three vertex normals point away from an
+    eye above it: the face keeps it; turned over (winding flipped), it goes."""
+    from bonesim.render.meshbuf import _visible_flags
+
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    nrm = np.tile(np.array([0.0, 0.0, -1.0], np.float32), (3, 1))
+    key = np.array([7, 7], np.int32)
+    tri = np.array([[0, 1, 2], [0, 2, 1]], np.int32)
+    vflag, tvis = np.zeros(3, np.uint8), np.zeros(2, np.uint8)
+    eye = np.array([0.2, 0.2, 5.0])
+    assert _visible_flags(pos, nrm, tri, key, eye, -eye, False, vflag, tvis) == 1
+    assert list(tvis) == [1, 0] and not vflag.any()
+    assert _visible_flags(pos, nrm, tri, key, eye, np.array([0.0, 0.0, -1.0]), True,
+                          vflag, tvis) == 1
+    assert list(tvis) == [1, 0]
+
+
 def test_parallel_projection_uses_the_view_direction(block):
     model, state = block
     surf = Surface.build(state.grid, model.colors)
     buf = SurfaceBuffers()
     adopt(buf, surf, eye=(0.0, 0.0, 0.0), direction=DOWN, parallel=True)
-    face = (surf.nrm @ -DOWN) > 0
-    t = live(surf)
-    assert triples(buf.vis[:3 * buf.n_vis]) == triples(t[face[t].any(axis=1)])
+    assert triples(buf.vis[:3 * buf.n_vis]) == triples(facing_tris(surf, direction=DOWN))
 
 
 def test_subset_keeps_all_geometry_changed_since_the_snapshot(block):
