@@ -417,6 +417,7 @@ def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, mode
 
         model, burrs = models
         vis = VisibilityTracker([model] + [model.with_burr(b) for b in burrs], eye_mm)
+        vis.warm()                     # before READY, not at the first removal
     try:
         writer = SessionWriter(path, header, overwrite=overwrite, compress=False)
     except Exception as exc:

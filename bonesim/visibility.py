@@ -168,6 +168,15 @@ class VisibilityTracker:
         self._cam_t = np.zeros(0)
         self._cam_eye = np.zeros((0, 3))
 
+    def warm(self) -> None:
+        """Load the kernels into this process now: numba's first call in a
+        process also sets up its compiler target (about a second of imports,
+        more under load), and a recorder's writer must not spend that at the
+        run's first removal with its flushes held up. Judges no removal."""
+        n = np.zeros((0, 3))
+        judge_removals(self.grid, self.occluder, np.zeros((0, 3), np.int64), n, n,
+                       np.zeros(0))
+
     def add_samples(self, s: dict) -> None:
         """Samples drained since the last call (``t_s``, ``pos_mm``, ``burr``, ``epoch``)."""
         if len(s["t_s"]) == 0:

@@ -118,6 +118,9 @@ def test_tracker_uses_step_tool_camera_and_resets_per_epoch():
     model = SimpleNamespace(grid=Grid.from_dense(labels, None, 1.0), structures=[BONE, SOFT],
                             burr=SimpleNamespace(radius_mm=0.4))
     tr = VisibilityTracker([model], eye_mm=[4.0, 4.0, 30.0])
+    before = tr.grid.density.copy()
+    tr.warm()                                        # loads the kernels, judges nothing
+    assert np.array_equal(tr.grid.density, before) and tr.epoch == 0
     tr.add_samples({"t_s": np.array([0.0, 1.0]), "pos_mm": np.full((2, 3), 50.0),
                     "burr": np.zeros(2, np.uint8), "epoch": np.zeros(2, np.int32)})
     rem = {"t_s": np.array([0.0, 0.0, 1.0]), "ijk": np.array([[4, 4, 1], [4, 4, 2],
