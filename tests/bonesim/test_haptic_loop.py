@@ -69,11 +69,15 @@ def test_mouse_device_drills_reset_restores_and_burr_switches(model):
         n_before = loop.state.removed.count
         epoch = loop.reset()
         assert _wait(lambda: loop.status[ST_EPOCH] == epoch)
+        # the loop announces the epoch before it steps in it: every sample
+        # published from here on belongs to the new epoch
+        first_new = loop.samples.count
         assert _wait(lambda: loop.state.removed_by_label.sum() == 0)
         np.testing.assert_array_equal(loop.state.grid.density, model.grid.density)
         # the event counters keep running, so other processes miss nothing
         assert loop.state.removed.count >= n_before
-        smp = loop.samples.read(loop.samples.count - 10)
+        assert _wait(lambda: loop.samples.count >= first_new + 10)
+        smp = loop.samples.read(first_new, first_new + 10)
         assert (smp["epoch"] == epoch).all() and (smp["burr"] == 1).all()
         with pytest.raises(IndexError):
             loop.set_burr(5)
