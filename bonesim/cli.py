@@ -471,7 +471,7 @@ def cmd_warmup(args) -> int:
     from .warmup import warmup_all
 
     t0 = time.perf_counter()
-    report = None if args.json else (lambda name, sec: print(f"  {name:14s} {sec:7.2f} s",
+    report = None if args.json else (lambda name, sec: print(f"  {name:16s} {sec:7.2f} s",
                                                               flush=True))
     parts = warmup_all(report)
     total = round(time.perf_counter() - t0, 2)

@@ -125,6 +125,19 @@ class Model:
     def structure_name(self, label: int) -> str:
         return "none" if label == 0 else self.structures[label - 1].name
 
+    def __setstate__(self, state: dict) -> None:
+        # numpy's pickle drops the read-only flag. A model sent to another
+        # process (the haptic loop, the recorder) stays immutable there, and
+        # its arrays keep the types the warmed-up kernels were compiled for: a
+        # writable copy made the loop compile a second haptic kernel at its
+        # first step (1.8 s with a cold cache).
+        self.__dict__.update(state)
+        st = self.stencil
+        for a in (self.grid.density, self.grid.label, self.stiff, self.removal,
+                  self.injury, self.colors, self.params,
+                  st.offsets, st.inv_r, st.lat, st.packed):
+            a.flags.writeable = False
+
     def with_burr(self, burr) -> "Model":
         """The same model holding another burr (new stencil and gains)."""
         stencil, params = _burr_arrays(burr, self.grid.spacing_mm, self.oversample,
@@ -446,8 +459,9 @@ def clear_touched(state: State, ijk: np.ndarray) -> None:
                  np.ascontiguousarray(ijk, dtype=np.int32))
 
 
-def warmup() -> None:
-    """Compile every kernel :func:`step` uses (cached on disk after the first run)."""
+def warmup_model() -> Model:
+    """A 12³ slab of bone (0.5 mm voxels, the 1 mm cutting burr) on which the
+    warm-ups compile kernels for a real model's array types."""
     from types import SimpleNamespace
 
     from .burrs import load_burr
@@ -455,10 +469,20 @@ def warmup() -> None:
     labels = np.zeros((12, 12, 12), dtype=np.uint8)
     labels[:, :, :6] = 1
     bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
-    m = make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
+    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
+
+
+def warmup_sample(model: Model, t_s: float = 0.0) -> Sample:
+    """A sample of the running drill just under the warm-up slab's top."""
+    return Sample(t_s, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
+                  True, model.burr.default_speed_rpm, 1)
+
+
+def warmup() -> None:
+    """Compile every kernel :func:`step` uses (cached on disk after the first run)."""
+    m = warmup_model()
     s = make_state(m)
-    step(m, s, Sample(0.0, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
-                      True, m.burr.default_speed_rpm, 1))
+    step(m, s, warmup_sample(m))
     clear_touched(s, s.touched.read(0)["ijk"])
 
 

@@ -65,6 +65,22 @@ class SurfaceConsumer:
         return rem, tch
 
 
+def warmup() -> None:
+    """Compile the consumer's kernels for the array types of a real run: its
+    replica shares the model's read-only labels, which the surface's own
+    warm-up grid does not have (the first ``bonesim run`` after set-up
+    compiled them at start, about 2 s)."""
+    from .model import warmup_model, warmup_sample
+
+    m = warmup_model()
+    s = make_state(m)
+    consumer = SurfaceConsumer(m, s)
+    step(m, s, warmup_sample(m))
+    rem, tch = consumer.drain()
+    if len(rem) + len(tch) == 0:
+        raise RuntimeError("surface consumer warm-up: the step published nothing to drain")
+
+
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
                    mesh_format: str = "ply", surface: bool = True,
                    progress=None, record=None, header: dict | None = None) -> dict:

@@ -15,29 +15,27 @@ __all__ = ["warmup_all"]
 
 
 def _monitor() -> None:
+    """The nerve monitor's distance lookup, and the dense copy of a model's
+    read-only labels that it and the window's structure meshes start from."""
     import numpy as np
 
+    from .model import warmup_model
     from .monitor import NerveField
 
     mask = np.zeros((6, 6, 6), bool)
     mask[3, 3, 1:5] = True
     NerveField(mask, 0.5, (0.0, 0.0, 0.0), 1.0).distance([[0.5, 0.5, 0.5], [9.0, 9.0, 9.0]])
+    warmup_model().grid.to_dense()
 
 
 def _visibility() -> None:
     """The recorder's writer judges each removal's visibility (its kernels)."""
-    from types import SimpleNamespace
-
     import numpy as np
 
-    from .burrs import load_burr
-    from .model import make_model
+    from .model import warmup_model
     from .visibility import VisibilityTracker
 
-    labels = np.zeros((12, 12, 12), dtype=np.uint8)
-    labels[:, :, :6] = 1
-    bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
-    m = make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
+    m = warmup_model()
     vt = VisibilityTracker([m], (3.0, 3.0, 20.0))
     vt.add_samples({"t_s": np.array([0.0]), "pos_mm": np.array([[3.0, 3.0, 2.9]]),
                     "burr": np.zeros(1, np.int64), "epoch": np.zeros(1, np.int64)})
@@ -71,9 +69,12 @@ def _loop() -> None:
 
 
 def _parts():
-    from . import clicks, dust, model, sound, surface, thickness, tutor, vibration
+    from . import clicks, dust, model, simulate, sound, surface, thickness, tutor, vibration
+    from .render import meshbuf
 
-    return [("haptic step", model.warmup), ("surface", surface.warmup), ("dust", dust.warmup),
+    return [("haptic step", model.warmup), ("surface", surface.warmup),
+            ("surface consumer", simulate.warmup), ("mesh buffers", meshbuf.warmup),
+            ("dust", dust.warmup),
             ("vibration", vibration.warmup), ("sound", sound.warmup),
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
             ("nerve monitor", _monitor), ("recording", _visibility),

@@ -395,3 +395,25 @@ def _surface_table(surface):
     """The brick hash table ``(keys, vals)`` of the grid a surface was built
     from (the surface keeps it to address its voxel -> vertex map)."""
     return surface._keys, surface._vals
+
+
+def warmup() -> None:
+    """Compile (or load from the cache) this module's kernels: both
+    compactions, the change marks and the visible flags, on a tiny surface."""
+    from ..grid import Grid
+    from ..surface import Surface
+
+    lab = np.zeros((6, 6, 6), dtype=np.uint8)
+    lab[1:5, 1:5, 1:5] = 1
+    grid = Grid.from_dense(lab)
+    surface = Surface.build(grid, np.array([[0, 0, 0], [200, 200, 180]], dtype=np.uint8))
+    buf = SurfaceBuffers()
+    buf.sync(surface)                                   # no subset yet
+    eye = np.array([2.0, 2.0, 20.0])
+    job = buf.start_visible(surface, eye, np.array([0.0, 0.0, -1.0]))
+    job.wait()
+    if not buf.adopt(job, surface):
+        raise RuntimeError(f"meshbuf warm-up: the visible subset failed ({job.error!r})")
+    none = np.zeros((0, 3), dtype=np.int32)
+    buf.sync(surface, np.array([[2, 2, 4]], dtype=np.int32), none)   # by change marks
+    buf.sync(surface)                                   # by comparison

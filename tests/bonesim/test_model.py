@@ -61,3 +61,25 @@ def test_burr_change_keeps_the_bone(model, samples):
         step(other, state, s)
     assert other.grid is model.grid and other.stencil.n < model.stencil.n
     assert state.removed.count >= removed
+
+
+def test_model_sent_to_another_process_stays_read_only(model):
+    # the haptic loop and the recorder get the model pickled; its arrays must
+    # keep their read-only numba types there, or the loop's first step
+    # compiles a second kernel that warmup() never built
+    import pickle
+
+    import numba
+
+    copy = pickle.loads(pickle.dumps(model))
+    pairs = [(model.grid.density, copy.grid.density), (model.grid.label, copy.grid.label)]
+    pairs += [(getattr(model, k), getattr(copy, k))
+              for k in ("stiff", "removal", "injury", "colors", "params")]
+    pairs += [(getattr(model.stencil, k), getattr(copy.stencil, k))
+              for k in ("offsets", "inv_r", "lat", "packed")]
+    for a, b in pairs:
+        assert not b.flags.writeable
+        assert numba.typeof(b) == numba.typeof(a)
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError):
+        copy.grid.label[0, 0] = 2
