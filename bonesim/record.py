@@ -726,6 +726,8 @@ def session_info(session: Session) -> dict:
     labels, counts = np.unique(session.removals["label"], return_counts=True)
     dt = np.diff(t)
     inj = session.injuries
+    vis = session.removals["visible"]
+    n_vis, n_hid = int(np.sum(vis == 1)), int(np.sum(vis == 0))
     return {
         "file": str(session.path),
         "size_bytes": session.path.stat().st_size,
@@ -748,6 +750,10 @@ def session_info(session: Session) -> dict:
         "voxels_removed": int(len(session.removals["t_s"])),
         "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
                                  for lab, c in zip(labels, counts)},
+        # removals seen from the eye, of those judged (SPEC: voxel visibility)
+        "removals_visible": n_vis, "removals_hidden": n_hid,
+        "removals_visibility_unknown": int(len(vis)) - n_vis - n_hid,
+        "visible_fraction": round(n_vis / (n_vis + n_hid), 4) if n_vis + n_hid else None,
         "injuries": [{"t_s": round(float(ti), 4),
                       "structure": names.get(int(lab), str(int(lab))),
                       "kind": events.INJURY_KINDS[int(k)] if int(k) < 2 else str(int(k))}

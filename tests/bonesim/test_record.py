@@ -72,6 +72,10 @@ def test_round_trip_header_streams_and_verify(recorded, model):
     info = session_info(s)
     assert info["voxels_removed"] == summary["voxels_removed"]
     assert info["samples"] == n and info["sample_rate_hz"] == 1000.0
+    assert info["removals_visible"] == int(np.sum(vis == 1))
+    assert info["removals_visible"] + info["removals_hidden"] == len(vis)
+    assert info["removals_visibility_unknown"] == 0
+    assert info["visible_fraction"] == round(float(np.mean(vis == 1)), 4)
 
 
 def test_verify_catches_a_changed_removal(recorded, tmp_path):
