@@ -16,7 +16,6 @@ same stream (:mod:`bonesim.clicks`), ``clicks.DELAY_S`` after the spike.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import time
 
 #: Rate at which sound parameters follow the haptic loop [Hz].
@@ -128,19 +127,16 @@ class AudioProcess:
         self._proc = None
 
     def start(self, timeout_s: float = 60.0) -> "AudioProcess":
-        ctx = mp.get_context("spawn")
-        self._proc = ctx.Process(target=_audio_main, name="bonesim-audio", daemon=True,
-                                 args=(self.loop.handle, self.loop.model,
-                                       self.loop.burrs[1:], self.wav, self._ash.handle,
-                                       self.monitor))
-        self._proc.start()
-        end = time.monotonic() + timeout_s
-        while self.status[A_READY] == 0.0:
-            if not self._proc.is_alive():
-                raise RuntimeError("the audio process exited during start-up")
-            if time.monotonic() > end:
-                break
-            time.sleep(0.01)
+        from .shared import start_process, wait_ready
+
+        self._proc = start_process(
+            _audio_main, "bonesim-audio",
+            (self.loop.handle, self.loop.model, self.loop.burrs[1:], self.wav,
+             self._ash.handle, self.monitor))
+        # a slow start is not fatal: the drill is silent until it is ready
+        if wait_ready(self._proc, lambda: self.status[A_READY] != 0.0, timeout_s) == "exited":
+            raise RuntimeError("the audio process exited during start-up "
+                               f"(exit code {self._proc.exitcode})")
         return self
 
     @property

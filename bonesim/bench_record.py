@@ -6,8 +6,9 @@
     timed per call while the phantom demo is drilled, next to the step
     itself for scale.
 ``recording_writer_rows_per_s``
-    Throughput of the writer: ring records drained into an HDF5 file (LZF,
-    SWMR) in the batches the writer process sees at 1 kHz (one flush per
+    Throughput of the writer: ring records drained into an HDF5 file
+    (uncompressed, as live recordings are) in the batches the writer
+    process sees at 1 kHz (one flush per
     :data:`~bonesim.record.FLUSH_S`), samples plus removals, including the
     flush. It must stay far above the 1 kHz the loop produces.
 """

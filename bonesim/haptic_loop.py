@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import gc
 import math
-import multiprocessing as mp
 import os
 import time
 
@@ -45,7 +44,7 @@ from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevi
                       VirtualCoupling)
 from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
-from .shared import SharedArrays, die_with_parent
+from .shared import SharedArrays, die_with_parent, start_process, wait_ready
 
 # io: window -> loop
 IN_POS, IN_AXIS = 0, 3
@@ -319,21 +318,17 @@ class HapticLoop:
     # ----------------------------------------------------------- lifecycle
     def start(self, timeout_s: float = START_TIMEOUT_S) -> "HapticLoop":
         """Start the process and wait until it is warm and stepping."""
-        ctx = mp.get_context("spawn")
-        self._proc = ctx.Process(
-            target=_loop_main, name="bonesim-haptic", daemon=True,
-            args=(self._sh.handle, self.model, [b for b in self.burrs], self.device,
-                  self.rate_hz, self.run_s, self.vibration))
-        self._proc.start()
-        t_end = time.monotonic() + timeout_s
-        while self.status[ST_READY] == 0.0:
-            if not self._proc.is_alive():
-                raise RuntimeError("the haptic loop process exited during start-up "
-                                   f"(exit code {self._proc.exitcode})")
-            if time.monotonic() > t_end:
-                self.stop()
-                raise RuntimeError("the haptic loop did not start in time")
-            time.sleep(0.01)
+        self._proc = start_process(
+            _loop_main, "bonesim-haptic",
+            (self._sh.handle, self.model, [b for b in self.burrs], self.device,
+             self.rate_hz, self.run_s, self.vibration))
+        got = wait_ready(self._proc, lambda: self.status[ST_READY] != 0.0, timeout_s)
+        if got == "exited":
+            raise RuntimeError("the haptic loop process exited during start-up "
+                               f"(exit code {self._proc.exitcode})")
+        if got == "timeout":
+            self.stop()
+            raise RuntimeError("the haptic loop did not start in time")
         return self
 
     def stop(self, timeout_s: float = 5.0) -> None:

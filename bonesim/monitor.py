@@ -47,7 +47,6 @@ clicks) and, when asked, streams them to remote consoles
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 import os
 import time
 from dataclasses import dataclass, fields
@@ -839,25 +838,25 @@ class MonitorProcess:
             port = int(self.serve.get("port", DEFAULT_PORT))
             if port != 0:
                 udp_socket(self.serve.get("host", "0.0.0.0"), port).close()
-        ctx = mp.get_context("spawn")
-        self._proc = ctx.Process(
-            target=_monitor_main, name="bonesim-monitor", daemon=True,
-            args=(self.loop.handle, self._sh.handle, self.loop.model, self._radii,
-                  self.params, self.seed, self.update_hz, self.serve, self.source))
-        self._proc.start()
+        from .shared import start_process
+
+        self._proc = start_process(
+            _monitor_main, "bonesim-monitor",
+            (self.loop.handle, self._sh.handle, self.loop.model, self._radii,
+             self.params, self.seed, self.update_hz, self.serve, self.source))
         return self.wait_ready(timeout_s) if wait else self
 
     def wait_ready(self, timeout_s: float = 60.0) -> "MonitorProcess":
         """Wait until the started process runs (or raise RuntimeError)."""
-        end = time.monotonic() + timeout_s
-        while self.status[M_READY] == 0.0:
-            if not self._proc.is_alive():
-                raise RuntimeError("the monitor process exited during start-up "
-                                   f"(exit code {self._proc.exitcode})")
-            if time.monotonic() > end:
-                self.close()
-                raise RuntimeError("the monitor process did not start in time")
-            time.sleep(0.01)
+        from .shared import wait_ready
+
+        got = wait_ready(self._proc, lambda: self.status[M_READY] != 0.0, timeout_s)
+        if got == "exited":
+            raise RuntimeError("the monitor process exited during start-up "
+                               f"(exit code {self._proc.exitcode})")
+        if got == "timeout":
+            self.close()
+            raise RuntimeError("the monitor process did not start in time")
         return self
 
     @property

@@ -24,7 +24,6 @@ import datetime as _dt
 import hashlib
 import json
 import math
-import multiprocessing as mp
 import os
 import time
 from dataclasses import dataclass, field
@@ -34,7 +33,7 @@ import numpy as np
 
 from . import events
 from .errors import BonesimError
-from .shared import SharedArrays, die_with_parent
+from .shared import SharedArrays, die_with_parent, start_process, wait_ready
 
 #: Version of the file layout written here (``docs/session_schema.md``).
 SCHEMA_VERSION = 1
@@ -488,19 +487,15 @@ class Recorder:
         self._proc = None
 
     def start(self, timeout_s: float = 60.0) -> "Recorder":
-        ctx = mp.get_context("spawn")
-        self._proc = ctx.Process(target=_writer_main, args=self._args,
-                                 name="bonesim-recorder", daemon=True)
-        self._proc.start()
-        t_end = time.monotonic() + timeout_s
-        while self.ctl[C_READY] == 0.0:
-            if self.ctl[C_ERROR] or not self._proc.is_alive():
-                msg = bytes(self._sh["error"]).rstrip(b"\0 ").decode(errors="replace")
-                self._proc.join(1.0)
-                raise BonesimError(msg or f"{self.path}: the recorder failed to start")
-            if time.monotonic() > t_end:
-                raise BonesimError(f"{self.path}: the recorder did not start in time")
-            time.sleep(0.01)
+        self._proc = start_process(_writer_main, "bonesim-recorder", self._args)
+        got = wait_ready(self._proc, lambda: self.ctl[C_READY] != 0.0, timeout_s,
+                         failed=lambda: self.ctl[C_ERROR] != 0.0)
+        if got == "exited":
+            msg = bytes(self._sh["error"]).rstrip(b"\0 ").decode(errors="replace")
+            self._proc.join(1.0)
+            raise BonesimError(msg or f"{self.path}: the recorder failed to start")
+        if got == "timeout":
+            raise BonesimError(f"{self.path}: the recorder did not start in time")
         return self
 
     @property

@@ -11,6 +11,8 @@ the records they publish (see :mod:`bonesim.events`).
 """
 from __future__ import annotations
 
+import multiprocessing as mp
+import time
 from multiprocessing import shared_memory
 
 import numpy as np
@@ -86,6 +88,47 @@ class SharedArrays:
                 self._shm.unlink()
             except FileNotFoundError:
                 pass
+
+
+def start_process(target, name: str, args: tuple):
+    """Run ``target(*args)`` in a new spawned daemon process (started).
+
+    Spawned, not forked: the child starts with no copy of the parent's
+    threads, VTK or sound objects, and its arguments travel pickled.
+    """
+    proc = mp.get_context("spawn").Process(target=target, name=name, daemon=True,
+                                           args=args)
+    proc.start()
+    return proc
+
+
+def wait_ready(proc, ready, timeout_s: float, failed=None) -> str:
+    """Poll until a started child process says it is ready.
+
+    Parameters
+    ----------
+    proc : multiprocessing.Process
+    ready : callable
+        True once the child is ready (it reads a flag the child sets).
+    timeout_s : float
+        How long to wait [s].
+    failed : callable, optional
+        True when the child reported an error of its own.
+
+    Returns
+    -------
+    str
+        ``"ready"``, ``"exited"`` (the child died or reported an error) or
+        ``"timeout"``. The caller decides what each means for it.
+    """
+    end = time.monotonic() + timeout_s
+    while not ready():
+        if (failed is not None and failed()) or not proc.is_alive():
+            return "exited"
+        if time.monotonic() > end:
+            return "timeout"
+        time.sleep(0.01)
+    return "ready"
 
 
 def die_with_parent(on_term=None) -> None:

@@ -587,30 +587,30 @@ class TutorServer:
         self.final: dict = {}
 
     def start(self, timeout_s: float = 30.0) -> "TutorServer":
+        from .shared import start_process, wait_ready
+
         ctx = mp.get_context("spawn")
         self._status = ctx.RawArray("d", N_SV)
         mine, theirs = ctx.Pipe(duplex=False)
         model = self.loop.model
         burrs = [b for b in self.loop.burrs if b is not None]
-        self._proc = ctx.Process(
-            target=_serve_main, name="bonesim-tutor-server", daemon=True,
-            args=(self.loop.handle, self.host, self.port, self.key, self.rate_hz,
-                  session_info(model, burrs), np.asarray(model.grid.density),
-                  np.asarray(model.grid.bricks), self._status, theirs))
-        self._proc.start()
+        self._proc = start_process(
+            _serve_main, "bonesim-tutor-server",
+            (self.loop.handle, self.host, self.port, self.key, self.rate_hz,
+             session_info(model, burrs), np.asarray(model.grid.density),
+             np.asarray(model.grid.bricks), self._status, theirs))
         theirs.close()
         self._conn = mine
-        end = time.monotonic() + timeout_s
-        while self._status[SV_READY] == 0.0:
-            if self._status[SV_ERROR] or not self._proc.is_alive():
-                msg = self._conn.recv() if self._conn.poll(1.0) else {}
-                self.stop()
-                raise BonesimError(msg.get("error", "the tutoring server process exited "
-                                                    "during start-up"))
-            if time.monotonic() > end:
-                self.stop()
-                raise BonesimError("the tutoring server did not start in time")
-            time.sleep(0.01)
+        got = wait_ready(self._proc, lambda: self._status[SV_READY] != 0.0, timeout_s,
+                         failed=lambda: self._status[SV_ERROR] != 0.0)
+        if got == "exited":
+            msg = self._conn.recv() if self._conn.poll(1.0) else {}
+            self.stop()
+            raise BonesimError(msg.get("error", "the tutoring server process exited "
+                                                "during start-up"))
+        if got == "timeout":
+            self.stop()
+            raise BonesimError("the tutoring server did not start in time")
         self.port = int(self._status[SV_PORT])
         return self
 

@@ -21,7 +21,7 @@ from bonesim.cli import _demo_trajectory, main
 from bonesim.errors import BonesimError
 from bonesim.haptic_loop import ST_T, HapticLoop
 from bonesim.model import load_model
-from bonesim.record import (GROUPS, SCHEMA_VERSION, Recorder, make_header, read_session,
+from bonesim.record import (SCHEMA_VERSION, Recorder, make_header, read_session,
                             replay, session_info, verify)
 from bonesim.shared import SharedArrays
 from bonesim.simulate import run_trajectory

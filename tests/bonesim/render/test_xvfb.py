@@ -11,10 +11,8 @@ import os
 import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
 
