@@ -399,6 +399,19 @@ def _tutor(name: str):
     return _lazy("tutor", name)
 
 
+def _trainee_window_args(p) -> None:
+    """The trainee's window options (``tutor join`` and ``tutor playback``)."""
+    p.add_argument("--headless", action="store_true",
+                   help="no window (default without a display)")
+    p.add_argument("--offscreen", action="store_true",
+                   help="render the window offscreen (--frames frames, or until the "
+                        "session ends) and save the last frame")
+    p.add_argument("--frames", type=int, help="window: stop after this many frames")
+    p.add_argument("--screenshot", metavar="FILE.png", help="window: save the last frame")
+    p.add_argument("--size", type=int, nargs=2, default=[1280, 720], metavar=("W", "H"),
+                   help="window size in pixels (default 1280 720)")
+
+
 def _tutor_parser(sub) -> None:
     from .net import DEFAULT_KEY_HELP, DEFAULT_PORT
 
@@ -436,13 +449,16 @@ def _tutor_parser(sub) -> None:
 
     j = t.add_parser("join", help="follow an instructor with this trainee's device",
                      description="Join an instructor and run the trainee's 1 kHz servo on a "
-                                 "simulated hand (no hardware backend yet); prints packets, "
-                                 "drops by reason, latency and tracking error.")
+                                 "simulated hand (no hardware backend yet). A window shows "
+                                 "the bone as the instructor drills it, the instructor's "
+                                 "tool and your hand (headless without a display); at the "
+                                 "end it prints packets, drops by reason, latency and "
+                                 "tracking error.")
     j.add_argument("host", help="instructor's address")
     j.add_argument("--port", type=int, default=DEFAULT_PORT,
                    help=f"UDP port (default {DEFAULT_PORT})")
     j.add_argument("--case", help="load this case instead of the one the instructor names")
-    j.add_argument("--headless", action="store_true", help="no window (the only mode yet)")
+    _trainee_window_args(j)
     j.add_argument("--duration", type=float, metavar="S",
                    help="stop after S seconds (default: when the instructor stops)")
     j.add_argument("--timeout", type=float, default=10.0, metavar="S",
@@ -453,14 +469,15 @@ def _tutor_parser(sub) -> None:
 
     b = t.add_parser("playback", help="drive the trainee's device from a recorded session",
                      description="Feed a recorded session through the tutoring controller "
-                                 "to a simulated hand in real time; the force ramps out "
-                                 "when the recording ends.")
+                                 "to a simulated hand in real time, in a window as for "
+                                 "'tutor join' (headless without a display); the force "
+                                 "ramps out when the recording ends.")
     b.add_argument("file", help="session file (.h5)")
     b.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
     b.add_argument("--start", type=float, default=0.0, metavar="S",
                    help="start S seconds into the recording")
     b.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
-    b.add_argument("--headless", action="store_true", help="no window (the only mode yet)")
+    _trainee_window_args(b)
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
     b.set_defaults(func=_tutor("cmd_playback"))
 

@@ -121,6 +121,8 @@ REMOVAL_BYTES = 12
 MAX_REMOVALS = (net.MAX_PAYLOAD - STATE.size) // REMOVAL_BYTES
 #: ACK payload: removals held (u64), epoch (i32).
 ACK = struct.Struct("<Qi")
+#: A :attr:`Source.changes` row saying "back to the initial tissue".
+RESET_IJK = np.full((1, 3), -1, dtype=np.int32)
 
 
 # ----------------------------------------------------------------- controller
@@ -665,13 +667,33 @@ class Source:
         Trainee clock of the last valid data [s] (NaN before any).
     lost_text : str
         HUD text while the source is silent.
+    changes : events.Ring or None
+        Set it to a ring with an ``ijk`` (int32 (3,)) column to have every
+        change to :attr:`grid` published in order, for a display in another
+        process (:mod:`bonesim.trainee`): the voxels each applied removal
+        emptied, and a row of :data:`RESET_IJK` whenever the replica went
+        back to the initial tissue (a case reset, a new session).
     """
 
     lost_text = "LINK LOST"
+    changes = None
 
     def poll(self, now_s: float) -> None:
         """Take whatever arrived by ``now_s`` (trainee clock [s])."""
         raise NotImplementedError
+
+    @property
+    def ended(self) -> bool:
+        """No more data will come (the instructor said BYE, the recording ended)."""
+        return False
+
+    def _publish(self, ijk) -> None:
+        if self.changes is not None and len(ijk):
+            self.changes.append(ijk=ijk)
+
+    def _publish_reset(self) -> None:
+        if self.changes is not None:
+            self.changes.append(ijk=RESET_IJK)
 
     def stats(self) -> dict:
         return {}
@@ -817,6 +839,7 @@ class NetworkSource(Source):
         self.have = 0
         self.epoch = epoch
         self.counters["resets"] += 1
+        self._publish_reset()
 
     def _state(self, p, now: float) -> None:
         from .grid import sync_replica
@@ -838,8 +861,14 @@ class NetworkSource(Source):
         skip = self.have - first
         if skip < k:
             sync_replica(self.grid, self.grid, ijk[skip:], self._empty)
+            self._publish(ijk[skip:])
             self.have = first + k
             self.counters["removals_applied"] += k - skip
+
+    @property
+    def ended(self) -> bool:
+        """The instructor said BYE."""
+        return self.counters["byes"] > 0
 
     def poll(self, now_s: float) -> None:
         for item in self.link.receive(now_s):
@@ -963,9 +992,15 @@ class RecordingSource(Source):
             self.grid = self.model.grid.copy()
             self.epoch = epoch
             self.applied = lo
+            self._publish_reset()
         if hi > self.applied:
             sync_replica(self.grid, self.grid, tl.rem_ijk[self.applied:hi], self._empty)
+            self._publish(tl.rem_ijk[self.applied:hi])
             self.applied = hi
+
+    @property
+    def ended(self) -> bool:
+        return self.done
 
     def stats(self) -> dict:
         return {"playback_s": round(self.t, 4), "duration_s": round(self.timeline.duration, 4),
@@ -996,6 +1031,8 @@ class Trainee:
         Link gain (1 with fresh data, 0 after a loss).
     link_lost : bool
         No valid data for :data:`LOSS_S`.
+    released : bool
+        :meth:`release` was called: the force ramps out whatever comes.
     """
 
     def __init__(self, source: Source, device, kp_n_per_mm: float = KP_N_PER_MM,
@@ -1014,6 +1051,7 @@ class Trainee:
         self.gain = 0.0
         self.link_lost = True
         self.placed = not hasattr(device, "place")
+        self._released_at = math.nan
         self.ticks = 0
         self.lost_events = 0
         self._t0 = math.nan
@@ -1023,10 +1061,23 @@ class Trainee:
         self.device_pos = np.zeros(3)
 
     @property
+    def released(self) -> bool:
+        return self._released_at == self._released_at
+
+    def release(self, now_s: float) -> None:
+        """Let go of the trainee's device: from ``now_s`` [s] the force ramps
+        to zero over :data:`RAMP_S`, as after a link loss, while the source
+        still sends (the trainee quit mid-session)."""
+        if not self.released:
+            self._released_at = float(now_s)
+
+    @property
     def hud_text(self) -> str:
         """One line for the trainee's display."""
         if self.link_lost:
             return self.source.lost_text
+        if self.released:
+            return "RELEASED"
         st = self.source.state
         return (f"following instructor  |F| {math.sqrt(self.force_n @ self.force_n):4.2f} N"
                 f"  drill {'on' if st.drill else 'off'}")
@@ -1045,7 +1096,9 @@ class Trainee:
         r = self.device.read(now_s - self._t0)
         last = src.last_valid_s
         age = now_s - last if last == last else math.inf
-        self.gain = link_gain(age, self.gain, now_s - self._last)
+        rel = self._released_at
+        gain_age = age if rel != rel else max(age, LOSS_S + now_s - rel)
+        self.gain = link_gain(gain_age, self.gain, now_s - self._last)
         lost = age > LOSS_S
         if lost and not self.link_lost:
             self.lost_events += 1
@@ -1063,8 +1116,9 @@ class Trainee:
         return self.force_n
 
     def run(self, duration_s: float, rate_hz: float = SERVO_HZ, clock=time.monotonic,
-            until=None) -> dict:
-        """Tick at ``rate_hz`` for ``duration_s`` [s] (or until ``until()`` is true)."""
+            until=None, on_tick=None) -> dict:
+        """Tick at ``rate_hz`` for ``duration_s`` [s] (or until ``until()`` is
+        true), calling ``on_tick(self)`` after each tick."""
         period = 1.0 / rate_hz
         t_end = clock() + duration_s
         deadline = clock()
@@ -1073,6 +1127,8 @@ class Trainee:
             if now >= t_end or (until is not None and until()):
                 break
             self.tick(now)
+            if on_tick is not None:
+                on_tick(self)
             deadline += period
             rest = deadline - clock()
             if rest > 0:
@@ -1097,6 +1153,27 @@ class Trainee:
                               "max": round(float(f.max()), 4)}
         out.update(self.source.stats())
         return out
+
+    def follow(self, duration_s: float = math.inf, stop=None, on_tick=None) -> dict:
+        """Run until the source ends, ``duration_s`` [s] passes or ``stop()``
+        is true (or Ctrl+C), then let the force ramp out (:meth:`release`
+        if the source still sends); returns
+        :meth:`stats` with the final HUD line under ``"hud"``."""
+        src = self.source
+        try:
+            try:
+                self.run(duration_s, on_tick=on_tick,
+                         until=lambda: src.ended or (stop is not None and stop()))
+            except KeyboardInterrupt:
+                pass
+            if not src.ended:
+                self.release(time.monotonic())
+            self.run(LOSS_S + RAMP_S + 0.01, on_tick=on_tick)
+        except KeyboardInterrupt:
+            pass
+        s = self.stats()
+        s["hud"] = self.hud_text
+        return s
 
     def close(self) -> None:
         self.force_n[:] = 0.0
@@ -1235,13 +1312,64 @@ def _trainee_lines(s: dict) -> list:
         f"{s['link_lost_events']} time(s); {s['hud']}"]
 
 
+def _window_mode(args) -> bool:
+    """Whether ``tutor join`` / ``tutor playback`` open the trainee's window."""
+    import sys
+
+    if args.headless:
+        return False
+    if args.offscreen or _has_display():
+        return True
+    print("bonesim: no display found; following headless (use --headless to ask for it "
+          "explicitly, or --offscreen --screenshot FILE.png for a picture)", file=sys.stderr)
+    return False
+
+
+def _trainee_window(args, source: tuple) -> dict:
+    """Run the trainee's servo in its process and its window here; returns
+    the servo's statistics with the window's summary under ``"window"``."""
+    import sys
+
+    from .render.trainee import TraineeApp
+    from .trainee import TraineeProcess
+
+    duration = math.inf if args.duration is None else args.duration
+    with TraineeProcess(source, duration_s=duration) as proc:
+        print(f"bonesim: following the {proc.what} (case {proc.model.name})", file=sys.stderr)
+        with TraineeApp(proc, size=args.size, offscreen=args.offscreen) as app:
+            shot = args.screenshot or ("bonesim-trainee.png" if args.offscreen else None)
+            try:
+                win = app.run(frames=args.frames, screenshot=shot)
+            except KeyboardInterrupt:
+                win = {}
+        s = proc.stop()
+    if not s:
+        raise BonesimError("the trainee process ended without its statistics")
+    s["window"] = win
+    return s
+
+
+def _window_lines(s: dict) -> list:
+    w = s.get("window") or {}
+    if not w:
+        return []
+    return [f"window: {w.get('frames', 0)} frames at {w.get('frame_hz', 0)} Hz, "
+            f"{w.get('removed', 0)} removals drawn"
+            + (f"; wrote {w['screenshot']}" if w.get("screenshot") else "")]
+
+
 def cmd_join(args) -> int:
     """``bonesim tutor join HOST``: follow an instructor with the simulated hand."""
     import sys
 
     from .devices import SimulatedHandDevice
 
-    key = net.load_key(args.key_file)             # (no trainee window yet: headless)
+    key = net.load_key(args.key_file)
+    if _window_mode(args):
+        s = _trainee_window(args, ("network", args.host, args.port, key, args.case,
+                                   args.timeout))
+        _print(s, args.json, _trainee_lines(s) + _window_lines(s))
+        return 0
     warmup()
     src = NetworkSource(args.host, args.port, key, case=args.case)
     trainee = None
@@ -1250,15 +1378,7 @@ def cmd_join(args) -> int:
         trainee = Trainee(src, SimulatedHandDevice())
         print(f"bonesim: following the instructor at {args.host}:{args.port} (case "
               f"{src.info.get('case')})", file=sys.stderr)
-        duration = math.inf if args.duration is None else args.duration
-        byes = src.counters["byes"]
-        try:
-            trainee.run(duration, until=lambda: src.counters["byes"] > byes)
-            trainee.run(LOSS_S + RAMP_S + 0.01)       # let the force ramp out
-        except KeyboardInterrupt:
-            pass
-        s = trainee.stats()
-        s["hud"] = trainee.hud_text
+        s = trainee.follow(math.inf if args.duration is None else args.duration)
     finally:
         if trainee is not None:
             trainee.close()
@@ -1274,24 +1394,25 @@ def cmd_playback(args) -> int:
     from .record import read_session
 
     session = read_session(args.file)
+    if _window_mode(args):
+        s = _trainee_window(args, ("recording", str(args.file), args.speed, args.start))
+        s["file"] = str(args.file)
+        _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s))
+        return 0
     warmup()
     src = RecordingSource(session, speed=args.speed, start_s=args.start)
     trainee = Trainee(src, SimulatedHandDevice())
     try:
-        duration = math.inf if args.duration is None else args.duration
-        try:
-            trainee.run(duration, until=lambda: src.done)
-            trainee.run(LOSS_S + RAMP_S + 0.01)
-        except KeyboardInterrupt:
-            pass
-        s = trainee.stats()
-        s["hud"] = trainee.hud_text
+        s = trainee.follow(math.inf if args.duration is None else args.duration)
         s["file"] = str(args.file)
     finally:
         trainee.close()
-    _print(s, args.json, [f"played back {s['playback_s']} s of {s['duration_s']} s from "
-                          f"{args.file}; tracking error p50 "
-                          f"{s.get('tracking_error_mm', {}).get('p50')} mm, force max "
-                          f"{s.get('force_n', {}).get('max')} N; {s['hud']}"])
+    _print(s, args.json, _playback_lines(s, args.file))
     return 0
+
+
+def _playback_lines(s: dict, path) -> list:
+    return [f"played back {s['playback_s']} s of {s['duration_s']} s from {path}; tracking "
+            f"error p50 {s.get('tracking_error_mm', {}).get('p50')} mm, force max "
+            f"{s.get('force_n', {}).get('max')} N; {s['hud']}"]
 

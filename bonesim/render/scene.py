@@ -65,6 +65,9 @@ SUCTION_RGB = (0.35, 0.55, 0.75)
 #: Shaft length drawn behind the burr [mm] and its largest radius [mm].
 SHAFT_LENGTH_MM = 40.0
 SHAFT_MAX_RADIUS_MM = 0.8
+#: Colour (RGB 0-1) and opacity of :meth:`Scene.set_marker`'s sphere.
+MARKER_RGB = (0.3, 0.85, 0.55)
+MARKER_OPACITY = 0.45
 #: Bone-dust colour (RGB 0-1).
 DUST_RGB = (0.93, 0.9, 0.8)
 #: Camera view angle [deg]: a microscope's narrow field.
@@ -592,6 +595,8 @@ class Scene:
         self._tool_radii = (None, None)
         self.tool_pos_mm = None
         self.tool_axis = np.array([0.0, 0.0, -1.0])
+        self._marker = None                            # set_marker builds it
+        self.marker_pos_mm = None
 
     @staticmethod
     def _static_actor(src, rgb, specular=0.3):
@@ -661,6 +666,47 @@ class Scene:
     def hide_tool(self) -> None:
         self._burr.SetVisibility(False)
         self._shaft.SetVisibility(False)
+
+    def set_marker(self, pos_mm, radius_mm: float, rgb=MARKER_RGB,
+                   opacity: float = MARKER_OPACITY) -> None:
+        """Show a translucent sphere: a second point of interest beside the
+        tool (the trainee's hand while the tool shows the instructor's).
+
+        Parameters
+        ----------
+        pos_mm : (3,) float
+            Centre, case frame [mm].
+        radius_mm : float
+            Radius [mm].
+        rgb : (3,) float
+            Colour, RGB in [0, 1].
+        opacity : float
+            In (0, 1].
+        """
+        pos = np.asarray(pos_mm, dtype=float).reshape(3)
+        r = float(radius_mm)
+        if not (r > 0 and np.all(np.isfinite(pos)) and 0 < opacity <= 1):
+            raise ValueError("set_marker needs a finite centre, a positive radius and an "
+                             "opacity in (0, 1]")
+        if self._marker is None:
+            self._marker_src = vtkSphereSource()
+            self._marker_src.SetThetaResolution(24)
+            self._marker_src.SetPhiResolution(16)
+            self._marker = self._static_actor(self._marker_src, rgb, specular=0.2)
+            self._marker.PickableOff()
+            self.renderer.AddActor(self._marker)
+        self._marker_src.SetRadius(r)
+        self._marker.SetPosition(*pos)
+        p = self._marker.GetProperty()
+        p.SetColor(*rgb)
+        p.SetOpacity(float(opacity))
+        self._marker.SetVisibility(True)
+        self.marker_pos_mm = pos.copy()
+
+    def hide_marker(self) -> None:
+        if self._marker is not None:
+            self._marker.SetVisibility(False)
+        self.marker_pos_mm = None
 
     # ------------------------------------------------------------------ dust
     def _build_dust(self):

@@ -427,6 +427,23 @@ def test_link_loss_ramps_force_to_zero_within_50_ms_and_recovers():
     assert back[-1][5] == 1.0 and back[5][5] < 0.1
 
 
+def test_release_ramps_the_force_out_while_data_still_comes():
+    model, inst, netw, srv, src, trainee = _session()
+    log = []
+    _run(model, inst, srv, trainee, 0.0, 1.5, log)
+    assert trainee.gain == 1.0 and np.linalg.norm(log[-1][1]) > 0
+    trainee.release(1.5)
+    log = []
+    _run(model, inst, srv, trainee, 1.5, 1.6, log)
+    t = np.array([r[0] for r in log])
+    gain = np.array([r[5] for r in log])
+    f = np.array([np.linalg.norm(r[1]) for r in log])
+    assert np.all(np.diff(gain) <= 0) and gain[0] > 0.9      # a ramp, not a step
+    assert (f[t >= 1.5 + tutor.RAMP_S + DT] == 0.0).all()
+    assert not trainee.link_lost and trainee.hud_text == "RELEASED"
+    assert src.counters["states"] > 1500                     # the data kept coming
+
+
 def test_bye_drops_the_link_at_once():
     model, inst, netw, srv, src, trainee = _session()
     _run(model, inst, srv, trainee, 0.0, 0.3)
@@ -450,6 +467,46 @@ def test_case_reset_restarts_the_replica():
     _run(model, inst, srv, trainee, 2.2, 2.3)
     assert src.epoch == 1 and srv.epoch == 1
     np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(inst.state.grid))
+
+
+def _replay_changes(model, ring):
+    """Reference: the initial tissue with a ``changes`` ring applied row by
+    row (a row of -1 goes back to the initial tissue)."""
+    g = model.grid.copy()
+    resets = 0
+    for v in ring.read(0)["ijk"]:
+        if v[0] < 0:
+            g = model.grid.copy()
+            resets += 1
+        else:
+            b = g.brick_index(*v)
+            g.density[b, (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0.0
+    return g, resets
+
+
+def test_changes_ring_replays_to_the_replica_under_loss_and_a_reset():
+    from bonesim.model import reset_state
+
+    model, inst, netw, srv, src, trainee = _session(drop=0.10, seed=5)
+    src.changes = events.Ring.create(1 << 14, ijk=(np.int32, (3,)))
+    _run(model, inst, srv, trainee, 0.0, 2.2)
+    q = 2200
+    while src.have < srv.log.n and q < 6000:     # the go-backs finish
+        _run(model, inst, srv, trainee, q * DT, (q + 1) * DT)
+        q += 1
+    assert netw.dropped > 100 and src.counters["nacks_sent"] > 0
+    g, resets = _replay_changes(model, src.changes)
+    assert resets == src.counters["resets"] >= 1             # WELCOME, first STATE
+    assert src.changes.count == src.have + resets > 100      # each removal once
+    np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
+    reset_state(model, inst.state, rings=False)              # the instructor resets
+    inst.epoch = 1
+    _run(model, inst, srv, trainee, q * DT, q * DT + 0.1)
+    before = resets
+    g, resets = _replay_changes(model, src.changes)
+    assert resets == before + 1 and src.epoch == 1
+    np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
+    np.testing.assert_array_equal(_occupancy(g), _occupancy(inst.state.grid))
 
 
 def test_server_started_mid_session_sends_what_was_already_drilled():
@@ -536,6 +593,23 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
     assert (fm[t >= end + 0.050] == 0.0).all() and fm[(t > 100.5) & (t < end)].max() > 0
     err = np.array([np.linalg.norm(r[3] - r[4]) for r in log])
     assert err[(t > 100.5) & (t < 101.0)].max() < 3.0
+
+
+def test_recording_source_publishes_its_changes(tmp_path):
+    from tests.bonesim.test_playback import fake_session
+
+    session, _ = fake_session()                  # a reset at 1.2 s
+    model = session.load_model()
+    src = tutor.RecordingSource(session, model=model)
+    src.changes = events.Ring.create(1 << 14, ijk=(np.int32, (3,)))
+    for q in range(0, 1900, 7):
+        src.poll(q * DT)
+        if q in (1106, 1800):                   # before and after the reset
+            g, resets = _replay_changes(model, src.changes)
+            np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
+            assert resets == (1 if q < 1200 else 2)
+    assert src.ended and src.done
+    assert src.changes.count == len(session.removals["t_s"]) + 2
 
 
 # ------------------------------------------------------- real processes

@@ -1,0 +1,216 @@
+"""The trainee's window (``bonesim tutor join`` / ``bonesim tutor playback``).
+
+The trainee's servo runs in its own process (:class:`bonesim.trainee.TraineeProcess`);
+this window only reads what it publishes, at its own frame rate:
+
+- the tissue: a replica kept from the servo's ``changes`` ring (removals as
+  the instructor makes them, and resets), drawn with the incremental surface
+  update, as the simulator's window draws its own drilling;
+- the instructor's tool at its latest pose (the burr turns warm while the
+  instructor's drill runs);
+- the trainee's hand: a translucent green sphere of the burr's size where
+  the trainee's device is;
+- the HUD: whom the trainee follows, the instructor's drill, the force on the
+  trainee's device, tracking error, latency, servo rate, and ``LINK LOST`` /
+  ``PLAYBACK ENDED`` when the source falls silent.
+
+Keys: :data:`TRAINEE_KEYS` (camera gestures as in the simulator's window).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import trainee as T
+from ..events import Cursor
+from ..grid import sync_replica
+from .hud import format_help
+
+#: Key symbol -> action in the trainee's window.
+TRAINEE_KEYS = {
+    "v": "reset_view", "Home": "reset_view",
+    "F12": "screenshot", "c": "screenshot",
+    "h": "help", "F1": "help",
+    "q": "quit", "Escape": "quit",
+}
+
+TRAINEE_MOUSE_HELP = (
+    "the tool is the instructor's; the green sphere is your hand",
+    "right drag         orbit camera     Ctrl+left drag: orbit",
+    "Shift+right, mid   pan              Ctrl+Shift+left: pan",
+    "Ctrl+right, Ctrl+wheel  zoom        v: back to the case camera",
+)
+
+_EMPTY_IJK = np.zeros((0, 3), dtype=np.int32)
+
+
+class TraineeView:
+    """Draws a started :class:`~bonesim.trainee.TraineeProcess` on a scene.
+
+    Parameters
+    ----------
+    scene : Scene
+        Made from ``proc.model``.
+    proc : TraineeProcess
+
+    Attributes
+    ----------
+    grid : Grid
+        The window's replica of the tissue.
+    surface : Surface
+        Its surface (rebuilt at a reset, updated incrementally otherwise).
+    applied : int
+        Removals applied since the last reset.
+    resets : int
+        Resets seen.
+    """
+
+    def __init__(self, scene, proc):
+        self.scene = scene
+        self.proc = proc
+        self.model = proc.model
+        self.cursor = Cursor(proc.changes, start=0)    # from the servo's first change
+        self.resets = 0
+        self.applied = 0
+        self.grid = self.surface = None
+        self._reset()
+
+    def _reset(self) -> None:
+        from ..surface import Surface
+
+        self.grid = self.model.grid.copy()
+        self.grid.density.flags.writeable = True
+        self.surface = Surface.build(self.grid, self.model.colors)
+        self.scene.update_surface(self.surface)
+        self.applied = 0
+
+    def drain(self) -> int:
+        """Apply the servo's changes since the last call; returns the
+        removals applied."""
+        ijk = self.cursor.drain()["ijk"]
+        if len(ijk) == 0:
+            return 0
+        marks = np.flatnonzero(ijk[:, 0] < 0)
+        if len(marks):                       # back to the initial tissue: what
+            self._reset()                    # came before the last reset is moot
+            self.resets += len(marks)
+            ijk = ijk[marks[-1] + 1:]
+        if len(ijk):
+            ijk = np.ascontiguousarray(ijk)
+            sync_replica(self.grid, self.grid, ijk, _EMPTY_IJK)
+            self.surface.update(self.grid, ijk)
+            self.scene.update_surface(self.surface, ijk, None)
+            self.applied += len(ijk)
+        return len(ijk)
+
+    def hud_info(self) -> dict:
+        """What the HUD shows, from the servo's status."""
+        s = self.proc.status
+        p = self.proc
+        burr = int(s[T.TS_BURR])
+        names = p.burrs
+        info = {"case": self.model.name, "following": p.what}
+        if 0 <= burr < len(names):
+            info["burr"] = names[burr]
+        info["drill"] = bool(s[T.TS_DRILL])
+        info["direction"] = s[T.TS_DIR]
+        info["speed_rpm"] = s[T.TS_SPEED]
+        info["force_n"] = float(np.linalg.norm(s[T.TS_FORCE:T.TS_FORCE + 3]))
+        t = s[T.TS_T]
+        info["haptic_hz"] = s[T.TS_TICKS] / t if t > 0 else 0.0
+        err = s[T.TS_ERR_MM]
+        info["tracking error"] = "-" if math.isnan(err) else f"{err:.1f} mm"
+        if p.source[0] == "network":
+            info["latency"] = f"{s[T.TS_LATENCY_MS]:.2f} ms"
+        else:
+            info["playback"] = (f"{s[T.TS_PLAYBACK_S]:.1f} / "
+                                f"{p.duration_of_source_s:.1f} s")
+        info["removed"] = self.applied
+        if s[T.TS_DONE]:
+            info["message"] = f"{p.lost_text}: the session is over (q quits)"
+        elif s[T.TS_LOST]:
+            info["message"] = p.lost_text
+        return info
+
+    def show(self) -> dict:
+        """Bring the view up to the servo's latest state (the caller renders);
+        returns the HUD info."""
+        self.drain()
+        s = self.proc.status
+        sc = self.scene
+        r = self.proc.radius_mm(int(s[T.TS_BURR]))
+        if s[T.TS_VALID]:
+            sc.set_tool(s[T.TS_INSTR_POS:T.TS_INSTR_POS + 3],
+                        s[T.TS_INSTR_AXIS:T.TS_INSTR_AXIS + 3], r, bool(s[T.TS_DRILL]))
+            sc.set_marker(s[T.TS_HAND_POS:T.TS_HAND_POS + 3], r)
+        info = self.hud_info()
+        sc.set_hud(info)
+        return info
+
+
+class TraineeApp:
+    """The trainee's window around a started :class:`~bonesim.trainee.TraineeProcess`.
+
+    Parameters
+    ----------
+    proc : TraineeProcess
+    size : (int, int)
+        Window size [px].
+    offscreen : bool
+        Render without a display (tests, screenshots).
+    """
+
+    def __init__(self, proc, *, size=(1280, 720), offscreen: bool = False):
+        self.proc = proc
+        self.size = tuple(size)
+        self.offscreen = bool(offscreen)
+        self.scene = self.window = self.view = None
+
+    def start(self) -> "TraineeApp":
+        from .scene import Scene
+        from .window import Window
+
+        self.scene = Scene.from_model(self.proc.model, offscreen=self.offscreen,
+                                      size=self.size, title="bonesim trainee")
+        self.view = TraineeView(self.scene, self.proc)
+        self.window = Window(self.scene, self.on_frame, keys=TRAINEE_KEYS)
+        self.scene.set_help(format_help(TRAINEE_KEYS, TRAINEE_MOUSE_HELP))
+        self.view.show()
+        return self
+
+    def on_frame(self, scene) -> None:
+        self.view.show()
+
+    def run(self, frames: int | None = None, screenshot=None) -> dict:
+        """Run the window until quit (or ``frames`` frames); offscreen runs
+        ``frames`` frames in real time (default: until the servo ends).
+        Returns a summary."""
+        if self.offscreen:
+            n = frames if frames is not None else 10 ** 9
+            self.window.on_frame = self._until_done
+            out = self.window.run_offscreen(n, screenshot=screenshot, realtime=True)
+        else:
+            out = self.window.run(max_frames=frames)
+            if screenshot is not None:
+                out["screenshot"] = str(self.scene.screenshot(screenshot))
+        out.update({"removed": self.view.applied, "resets": self.view.resets,
+                    "hud": self.scene.hud_text})
+        return out
+
+    def _until_done(self, scene) -> None:
+        done = self.proc.done            # read before the last drain: nothing after it
+        self.view.show()
+        if done:
+            self.window.quit()
+
+    def close(self) -> None:
+        if self.scene is not None:
+            self.scene.close()
+            self.scene = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()

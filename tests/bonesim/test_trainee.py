@@ -1,0 +1,131 @@
+"""The trainee's servo in its own process: what it publishes for the window
+(status and the replica's changes), how it ends, and its errors. Real
+processes, real time: a recorded run, and a live instructor over loopback."""
+from __future__ import annotations
+
+import math
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from bonesim import trainee as T
+from bonesim.errors import BonesimError
+from bonesim.trainee import TraineeProcess
+from tests.bonesim.test_playback import demo_file  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.slow
+
+KEY = bytes(range(7, 39))
+
+
+def _replay(model, ring):
+    """(occupancy, resets): the initial tissue with the ring applied row by row."""
+    g = model.grid.copy()
+    resets = 0
+    for v in ring.read(0)["ijk"]:
+        if v[0] < 0:
+            g = model.grid.copy()
+            resets += 1
+        else:
+            g.density[g.brick_index(*v), (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0
+    return g.density > 0, resets
+
+
+def _wait(cond, timeout_s):
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
+    from bonesim.record import read_session
+
+    session = read_session(demo_file)
+    with TraineeProcess(("recording", str(demo_file), 4.0, 0.0)) as proc:
+        assert proc.model.name == "phantom" and proc.burrs == ["cutting-5mm"]
+        assert proc.radius_mm(0) == 2.5 and proc.radius_mm(7) == 2.5
+        assert proc.lost_text == "PLAYBACK ENDED" and str(demo_file) in proc.what
+        assert proc.duration_of_source_s == pytest.approx(session.duration_s)
+        assert _wait(lambda: proc.done, 30.0)
+        s = proc.status
+        assert s[T.TS_ENDED] and s[T.TS_LOST] and s[T.TS_VALID]
+        assert s[T.TS_PLAYBACK_S] == pytest.approx(session.duration_s)
+        assert np.all(s[T.TS_FORCE:T.TS_FORCE + 3] == 0.0)     # ramped out
+        # the tool stays where the recording's last polled sample put it
+        late = session.samples["pos_mm"][-200:]
+        assert np.all(late == s[T.TS_INSTR_POS:T.TS_INSTR_POS + 3], axis=1).any()
+        occ, resets = _replay(proc.model, proc.changes)
+        assert resets == 1 and proc.changes.count == len(session.removals["t_s"]) + 1
+        ref = proc.model.grid.copy()
+        for v in session.removals["ijk"]:
+            ref.density[ref.brick_index(*v), (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0
+        np.testing.assert_array_equal(occ, ref.density > 0)
+        stats = proc.stop()
+    assert stats["done"] and stats["hud"] == "PLAYBACK ENDED" and stats["ticks"] > 1000
+
+
+def test_stop_ends_the_servo_with_its_force_ramped_out(demo_file):
+    with TraineeProcess(("recording", str(demo_file), 1.0, 0.0)) as proc:
+        assert _wait(lambda: proc.status[T.TS_TICKS] > 300, 20.0)
+        assert not proc.done and proc.running
+        t0 = time.monotonic()
+        stats = proc.stop()
+        assert time.monotonic() - t0 < 5.0 and proc.done and not proc.running
+        assert np.all(proc.status[T.TS_FORCE:T.TS_FORCE + 3] == 0.0)
+        assert proc.status[T.TS_GAIN] == 0.0 and not proc.status[T.TS_LOST]
+    assert 300 < stats["ticks"] and stats["playback_s"] < stats["duration_s"]
+    assert stats["hud"] == "RELEASED" and stats["link_lost_events"] == 0
+
+
+def test_bad_sources_are_reported_by_start(tmp_path):
+    bad = tmp_path / "not-a-session.h5"
+    bad.write_bytes(b"no hdf5 here")
+    with pytest.raises(BonesimError, match="not-a-session.h5"):
+        TraineeProcess(("recording", str(bad), 1.0, 0.0)).start()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]          # bound, silent: nobody answers
+        t0 = time.monotonic()
+        with pytest.raises(BonesimError, match="no answer from the instructor"):
+            TraineeProcess(("network", "127.0.0.1", port, KEY, None, 0.5)).start()
+        assert time.monotonic() - t0 < 30.0
+
+
+def test_live_instructor_over_loopback_window_replica_matches():
+    from bonesim.case import load_case
+    from bonesim.cli import _demo_trajectory
+    from bonesim.haptic_loop import HapticLoop
+    from bonesim.model import load_model
+    from bonesim.tutor import TutorServer
+
+    model = load_model("phantom", "cutting-5mm")
+    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(traj.drill)[0])
+    traj = traj.at_times(traj.t_s[start:start + 3000])
+    with HapticLoop(model, device=("scripted", traj)) as loop:
+        server = TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        try:
+            with TraineeProcess(("network", "127.0.0.1", server.port, KEY, None,
+                                 20.0)) as proc:
+                assert "127.0.0.1" in proc.what and proc.model.name == "phantom"
+                assert _wait(lambda: proc.status[T.TS_TICKS] > 2000, 30.0)
+                assert not proc.status[T.TS_LOST]
+                assert 0.0 <= proc.status[T.TS_LATENCY_MS] < 50.0
+                loop.stop()                    # the instructor's loop ends, then the server
+                final = server.stop()          # says BYE: the trainee's servo ends
+                assert _wait(lambda: proc.done, 10.0)
+                assert proc.status[T.TS_ENDED] and proc.status[T.TS_LOST]
+                occ, resets = _replay(proc.model, proc.changes)
+                stats = proc.stop()
+        finally:
+            server.stop()
+        instructor = loop.state.grid.density > 0
+    assert resets >= 1 and final["log_removals"] > 0
+    assert stats["have_removals"] == final["log_removals"]
+    np.testing.assert_array_equal(occ, instructor)
+    assert math.isfinite(stats["latency_ms"]["p50"])
