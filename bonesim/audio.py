@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import time
 
+from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
+
 #: Rate at which sound parameters follow the haptic loop [Hz].
 CONTROL_HZ = 100.0
 #: Longest ray cast for the thickness estimate [mm].
@@ -31,8 +33,7 @@ N_AS = 8
 
 def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
     from .grid import Grid
-    from .haptic_loop import (ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T)
-    from .shared import SharedArrays, die_with_parent
+    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T
     from .sound import SoundSynth, WavRecorder, open_output
     from .sound import warmup as sound_warmup
     from .thickness import bone_thickness_mm
@@ -117,8 +118,6 @@ class AudioProcess:
     def __init__(self, loop, wav=None, monitor=None):
         import numpy as np
 
-        from .shared import SharedArrays
-
         self.loop = loop
         self.wav = None if wav is None else str(wav)
         self.monitor = None if monitor is None else (monitor.handle, len(monitor.names))
@@ -127,8 +126,6 @@ class AudioProcess:
         self._proc = None
 
     def start(self, timeout_s: float = 60.0) -> "AudioProcess":
-        from .shared import start_process, wait_ready
-
         self._proc = start_process(
             _audio_main, "bonesim-audio",
             (self.loop.handle, self.loop.model, self.loop.burrs[1:], self.wav,
@@ -157,9 +154,7 @@ class AudioProcess:
             return
         self.status[A_QUIT] = 1.0
         if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
+            end_process(self._proc, timeout_s)
             self._proc = None
         self._ash.close()
         self._ash = None

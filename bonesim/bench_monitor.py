@@ -22,6 +22,8 @@ import time
 
 import numpy as np
 
+from .shared import end_process
+
 _KEY = bytes(range(64, 96))
 #: Samples per monitor update (1 kHz loop, 200 Hz monitor).
 SAMPLES_PER_UPDATE = 5
@@ -35,7 +37,7 @@ def _pcts(a, scale):
 
 def bench_update(quick: bool = False) -> dict:
     from .model import load_model
-    from .monitor import NerveMonitor, UPDATE_HZ
+    from .monitor import UPDATE_HZ, NerveMonitor
 
     model = load_model("phantom", "cutting-5mm")
     nm = NerveMonitor(model, seed=0)
@@ -140,9 +142,7 @@ def bench_loopback(quick: bool = False) -> dict:
         srv = mine.recv() if mine.poll(10.0) else {}
         s = con.stats()
     finally:
-        proc.join(10.0)
-        if proc.is_alive():
-            proc.terminate()
+        end_process(proc, 10.0)
         if con is not None:
             con.close()
     lat = s["latency_ms"]

@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from .shared import end_process
+
 #: Send rate [Hz].
 RATE_HZ = 1000.0
 #: Payload bytes (a STATE packet with a few removals).
@@ -85,9 +87,7 @@ def bench_tutor(quick: bool = False) -> dict:
                 got += 1
         sent = mine.recv() if mine.poll(10.0) else int(seconds * RATE_HZ)
     finally:
-        proc.join(10.0)
-        if proc.is_alive():
-            proc.terminate()
+        end_process(proc, 10.0)
         rx.close()
     ms = lat[:got] * 1e3
     loss = 1.0 - got / sent if sent else 1.0

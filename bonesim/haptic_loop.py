@@ -44,7 +44,7 @@ from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevi
                       VirtualCoupling)
 from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
-from .shared import SharedArrays, die_with_parent, start_process, wait_ready
+from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
 # io: window -> loop
 IN_POS, IN_AXIS = 0, 3
@@ -335,10 +335,7 @@ class HapticLoop:
         """Ask the loop to quit and wait for it."""
         self.io[IN_QUIT] = 1.0
         if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(timeout_s)
+            end_process(self._proc, timeout_s)
             self._proc = None
 
     def wait(self, timeout_s: float | None = None) -> bool:

@@ -57,6 +57,7 @@ from numba import njit
 
 from . import events
 from .errors import BonesimError
+from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 from .tomlfile import check_keys, get_number, read_toml
 
 __all__ = ["ActivityParams", "load_activity_params", "default_params_path", "activity",
@@ -650,7 +651,6 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
                   server, source) -> None:
     """Body of the monitor process."""
     from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
-    from .shared import SharedArrays, die_with_parent
 
     die_with_parent()
     parent = os.getppid()
@@ -787,8 +787,6 @@ class MonitorProcess:
     def __init__(self, loop, params: ActivityParams | None = None, seed: int = 0,
                  update_hz: float = UPDATE_HZ, serve: dict | None = None,
                  source: str = "auto"):
-        from .shared import SharedArrays
-
         if not update_hz > 0:
             raise ValueError(f"update_hz must be positive, got {update_hz}")
         if source not in ("auto", "status"):
@@ -838,8 +836,6 @@ class MonitorProcess:
             port = int(self.serve.get("port", DEFAULT_PORT))
             if port != 0:
                 udp_socket(self.serve.get("host", "0.0.0.0"), port).close()
-        from .shared import start_process
-
         self._proc = start_process(
             _monitor_main, "bonesim-monitor",
             (self.loop.handle, self._sh.handle, self.loop.model, self._radii,
@@ -848,8 +844,6 @@ class MonitorProcess:
 
     def wait_ready(self, timeout_s: float = 60.0) -> "MonitorProcess":
         """Wait until the started process runs (or raise RuntimeError)."""
-        from .shared import wait_ready
-
         got = wait_ready(self._proc, lambda: self.status[M_READY] != 0.0, timeout_s)
         if got == "exited":
             raise RuntimeError("the monitor process exited during start-up "
@@ -877,10 +871,7 @@ class MonitorProcess:
             return
         self.status[M_QUIT] = 1.0
         if self._proc is not None:
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(timeout_s)
+            end_process(self._proc, timeout_s)
             self._proc = None
         self.view = None
         self.status = None

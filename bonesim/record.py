@@ -33,7 +33,7 @@ import numpy as np
 
 from . import events
 from .errors import BonesimError
-from .shared import SharedArrays, die_with_parent, start_process, wait_ready
+from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
 #: Version of the file layout written here (``docs/session_schema.md``).
 SCHEMA_VERSION = 1
@@ -535,10 +535,7 @@ class Recorder:
         """Drain what is left, close the file cleanly and stop the writer."""
         if self._proc is not None:
             self.ctl[C_STOP] = 1.0
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(5.0)
+            end_process(self._proc, timeout_s)
             self._proc = None
         out = self.stats()
         self._sh.close()

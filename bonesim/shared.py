@@ -131,6 +131,16 @@ def wait_ready(proc, ready, timeout_s: float, failed=None) -> str:
     return "ready"
 
 
+def end_process(proc, timeout_s: float = 5.0) -> None:
+    """Wait up to ``timeout_s`` [s] for a child that was asked to quit; if
+    it is still alive then, terminate it (SIGTERM: its ``finally`` blocks
+    run, see :func:`die_with_parent`) and wait again."""
+    proc.join(timeout_s)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(timeout_s)
+
+
 def die_with_parent(on_term=None) -> None:
     """End this child process when its parent dies.
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from . import events
 from .errors import BonesimError
+from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
 #: Status vector layout (float64).
 (TS_READY, TS_DONE, TS_ERROR, TS_T, TS_TICKS, TS_GAIN, TS_LOST, TS_VALID,
@@ -123,7 +124,6 @@ def _publisher(status: np.ndarray):
 def _trainee_main(spec, handle, conn, duration_s: float) -> None:
     """Body of the trainee's process."""
     from .devices import SimulatedHandDevice
-    from .shared import SharedArrays, die_with_parent
     from .tutor import Trainee, warmup
 
     die_with_parent()
@@ -204,8 +204,6 @@ class TraineeProcess:
 
     def __init__(self, source: tuple, duration_s: float = math.inf,
                  capacity: int = CHANGES_CAPACITY):
-        from .shared import SharedArrays
-
         self.source = tuple(source)
         self.duration_s = float(duration_s)
         self._sh = SharedArrays.create(_spec(capacity))
@@ -232,8 +230,6 @@ class TraineeProcess:
             the child's own message.
         """
         import multiprocessing as mp
-
-        from .shared import start_process, wait_ready
 
         mine, theirs = mp.get_context("spawn").Pipe(duplex=False)
         self._proc = start_process(_trainee_main, "bonesim-trainee",
@@ -294,10 +290,7 @@ class TraineeProcess:
         self.ctl[C_QUIT] = 1.0
         if self._proc is not None:
             self._collect(timeout_s)
-            self._proc.join(timeout_s)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(timeout_s)
+            end_process(self._proc, timeout_s)
         return self.stats
 
     def close(self) -> None:

@@ -65,8 +65,9 @@ import numpy as np
 from numba import njit
 
 from . import events, net
-from .net import udp_socket
 from .errors import BonesimError
+from .net import udp_socket
+from .shared import die_with_parent, end_process, start_process, wait_ready
 
 # ----------------------------------------------------------------- constants
 #: Controller spring K_p [N/mm]. Half the stable stiffness of a 3D Systems
@@ -502,7 +503,6 @@ def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks,
                 conn) -> None:
     """Body of the server process: attach to the loop, stream until told to quit."""
     from .haptic_loop import attach
-    from .shared import die_with_parent
 
     die_with_parent()
     sh, rings = attach(handle)
@@ -589,8 +589,6 @@ class TutorServer:
         self.final: dict = {}
 
     def start(self, timeout_s: float = 30.0) -> "TutorServer":
-        from .shared import start_process, wait_ready
-
         ctx = mp.get_context("spawn")
         self._status = ctx.RawArray("d", N_SV)
         mine, theirs = ctx.Pipe(duplex=False)
@@ -634,10 +632,7 @@ class TutorServer:
                 self.final = self._conn.recv()
             except EOFError:
                 pass
-        self._proc.join(timeout_s)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout_s)
+        end_process(self._proc, timeout_s)
         self._proc = None
         self._conn.close()
         return self.final
@@ -1262,7 +1257,8 @@ def _serve_headless(args, key: bytes, traj) -> int:
     import sys
 
     from .haptic_loop import HapticLoop
-    from .model import load_model, warmup as model_warmup
+    from .model import load_model
+    from .model import warmup as model_warmup
 
     model_warmup()
     model = load_model(args.case, args.burr)

@@ -56,3 +56,16 @@ def block_model(shape=(40, 40, 40), fill_z=20, burr=None, spacing=0.5, structure
     structures = [BONE] if structures is None else structures
     m = make_model(labels, spacing, structures, burr or FakeBurr(), materials=MATERIALS, **kw)
     return m, make_state(m)
+
+
+def wait_for(cond, timeout_s: float = 20.0) -> bool:
+    """Poll ``cond()`` every 10 ms until it is true (True) or ``timeout_s``
+    passes (False): for state another process changes."""
+    import time
+
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True

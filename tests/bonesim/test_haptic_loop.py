@@ -14,6 +14,7 @@ from bonesim.haptic_loop import (ST_BURR, ST_EPOCH, ST_STEPS, HapticLoop)
 from bonesim.model import load_model
 from bonesim.simulate import SurfaceConsumer
 from bonesim.surface import Surface
+from tests.bonesim.fakes import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -21,15 +22,6 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def model():
     return load_model("phantom", "cutting-5mm")
-
-
-def _wait(cond, timeout=20.0):
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def test_scripted_loop_publishes_and_consumer_stays_exact(model):
@@ -62,21 +54,21 @@ def test_mouse_device_drills_reset_restores_and_burr_switches(model):
         # the cortex is near x = 20 on the focal line; ask for 3 mm into it
         loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert _wait(lambda: loop.state.removed.count > 20), "mouse drilling removed nothing"
+        assert wait_for(lambda: loop.state.removed.count > 20), "mouse drilling removed nothing"
         loop.set_drill(False)
         loop.set_burr(1)
-        assert _wait(lambda: loop.status[ST_BURR] == 1)
+        assert wait_for(lambda: loop.status[ST_BURR] == 1)
         n_before = loop.state.removed.count
         epoch = loop.reset()
-        assert _wait(lambda: loop.status[ST_EPOCH] == epoch)
+        assert wait_for(lambda: loop.status[ST_EPOCH] == epoch)
         # the loop announces the epoch before it steps in it: every sample
         # published from here on belongs to the new epoch
         first_new = loop.samples.count
-        assert _wait(lambda: loop.state.removed_by_label.sum() == 0)
+        assert wait_for(lambda: loop.state.removed_by_label.sum() == 0)
         np.testing.assert_array_equal(loop.state.grid.density, model.grid.density)
         # the event counters keep running, so other processes miss nothing
         assert loop.state.removed.count >= n_before
-        assert _wait(lambda: loop.samples.count >= first_new + 10)
+        assert wait_for(lambda: loop.samples.count >= first_new + 10)
         smp = loop.samples.read(first_new, first_new + 10)
         assert (smp["epoch"] == epoch).all() and (smp["burr"] == 1).all()
         with pytest.raises(IndexError):

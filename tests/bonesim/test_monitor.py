@@ -43,6 +43,7 @@ import numpy as np
 
 from bonesim import monitor as M
 from bonesim.monitor import ActivityParams, NerveMonitor, activity, poisson_spikes
+from tests.bonesim.fakes import wait_for
 
 P = M.load_activity_params()
 
@@ -265,17 +266,6 @@ def approach_trajectory(field, seconds=3.0, start_mm=10.0, end_mm=0.0, drill=Tru
                       drill=np.full(n, drill), speed_rpm=np.full(n, 60000.0))
 
 
-def _wait(cond, timeout=30.0):
-    import time
-
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.01)
-    return True
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("source", ["auto", "status"])
 def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor, source):
@@ -288,8 +278,8 @@ def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor,
     try:            # the monitor first: it sees the approach from its start
         mon = MonitorProcess(loop, P, seed=1, source=source).start()
         loop.start()
-        assert _wait(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5)
-        assert _wait(lambda: mon.view.t_s > traj.t_s[-1] + 0.5)
+        assert wait_for(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5, 30.0)
+        assert wait_for(lambda: mon.view.t_s > traj.t_s[-1] + 0.5, 30.0)
         stats = mon.stats()
         hist = mon.view.history(10.0)
         names = mon.view.names

@@ -13,33 +13,13 @@ import pytest
 from bonesim import trainee as T
 from bonesim.errors import BonesimError
 from bonesim.trainee import TraineeProcess
+from tests.bonesim.fakes import wait_for
 from tests.bonesim.test_playback import demo_file  # noqa: F401 (fixture)
+from tests.bonesim.test_tutor import _replay_changes
 
 pytestmark = pytest.mark.slow
 
 KEY = bytes(range(7, 39))
-
-
-def _replay(model, ring):
-    """(occupancy, resets): the initial tissue with the ring applied row by row."""
-    g = model.grid.copy()
-    resets = 0
-    for v in ring.read(0)["ijk"]:
-        if v[0] < 0:
-            g = model.grid.copy()
-            resets += 1
-        else:
-            g.density[g.brick_index(*v), (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0
-    return g.density > 0, resets
-
-
-def _wait(cond, timeout_s):
-    end = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
@@ -51,7 +31,7 @@ def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
         assert proc.radius_mm(0) == 2.5 and proc.radius_mm(7) == 2.5
         assert proc.lost_text == "PLAYBACK ENDED" and str(demo_file) in proc.what
         assert proc.duration_of_source_s == pytest.approx(session.duration_s)
-        assert _wait(lambda: proc.done, 30.0)
+        assert wait_for(lambda: proc.done, 30.0)
         s = proc.status
         assert s[T.TS_ENDED] and s[T.TS_LOST] and s[T.TS_VALID]
         assert s[T.TS_PLAYBACK_S] == pytest.approx(session.duration_s)
@@ -59,7 +39,8 @@ def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
         # the tool stays where the recording's last polled sample put it
         late = session.samples["pos_mm"][-200:]
         assert np.all(late == s[T.TS_INSTR_POS:T.TS_INSTR_POS + 3], axis=1).any()
-        occ, resets = _replay(proc.model, proc.changes)
+        g, resets = _replay_changes(proc.model, proc.changes)
+        occ = g.density > 0
         assert resets == 1 and proc.changes.count == len(session.removals["t_s"]) + 1
         ref = proc.model.grid.copy()
         for v in session.removals["ijk"]:
@@ -71,7 +52,7 @@ def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
 
 def test_stop_ends_the_servo_with_its_force_ramped_out(demo_file):
     with TraineeProcess(("recording", str(demo_file), 1.0, 0.0)) as proc:
-        assert _wait(lambda: proc.status[T.TS_TICKS] > 300, 20.0)
+        assert wait_for(lambda: proc.status[T.TS_TICKS] > 300, 20.0)
         assert not proc.done and proc.running
         t0 = time.monotonic()
         stats = proc.stop()
@@ -113,14 +94,15 @@ def test_live_instructor_over_loopback_window_replica_matches():
             with TraineeProcess(("network", "127.0.0.1", server.port, KEY, None,
                                  20.0)) as proc:
                 assert "127.0.0.1" in proc.what and proc.model.name == "phantom"
-                assert _wait(lambda: proc.status[T.TS_TICKS] > 2000, 30.0)
+                assert wait_for(lambda: proc.status[T.TS_TICKS] > 2000, 30.0)
                 assert not proc.status[T.TS_LOST]
                 assert 0.0 <= proc.status[T.TS_LATENCY_MS] < 50.0
                 loop.stop()                    # the instructor's loop ends, then the server
                 final = server.stop()          # says BYE: the trainee's servo ends
-                assert _wait(lambda: proc.done, 10.0)
+                assert wait_for(lambda: proc.done, 10.0)
                 assert proc.status[T.TS_ENDED] and proc.status[T.TS_LOST]
-                occ, resets = _replay(proc.model, proc.changes)
+                g, resets = _replay_changes(proc.model, proc.changes)
+                occ = g.density > 0
                 stats = proc.stop()
         finally:
             server.stop()
