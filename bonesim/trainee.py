@@ -113,8 +113,7 @@ def _publisher(status: np.ndarray):
         d = st.pos_mm - trainee.device_pos
         status[TS_ERR_MM] = math.sqrt(d @ d) if st.valid else math.nan
         lat = getattr(src, "latency", None)
-        if lat is not None and lat.count:
-            status[TS_LATENCY_MS] = lat.v[(lat.count - 1) & (len(lat.v) - 1)] * 1e3
+        status[TS_LATENCY_MS] = math.nan if lat is None else lat.last() * 1e3
         status[TS_PLAYBACK_S] = getattr(src, "t", math.nan)
         status[TS_ENDED] = src.ended
 

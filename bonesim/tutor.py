@@ -711,6 +711,10 @@ class _LatencyLog:
     def values(self) -> np.ndarray:
         return self.v[:min(self.count, len(self.v))]
 
+    def last(self) -> float:
+        """The latest value (NaN before any)."""
+        return float(self.v[(self.count - 1) & (len(self.v) - 1)]) if self.count else math.nan
+
 
 def _pcts_ms(v) -> dict:
     if len(v) == 0:

@@ -122,7 +122,8 @@ class TraineeView:
         err = s[T.TS_ERR_MM]
         info["tracking error"] = "-" if math.isnan(err) else f"{err:.1f} mm"
         if p.source[0] == "network":
-            info["latency"] = f"{s[T.TS_LATENCY_MS]:.2f} ms"
+            lat = s[T.TS_LATENCY_MS]
+            info["latency"] = "-" if math.isnan(lat) else f"{lat:.2f} ms"
         else:
             info["playback"] = (f"{s[T.TS_PLAYBACK_S]:.1f} / "
                                 f"{p.duration_of_source_s:.1f} s")
