@@ -967,11 +967,14 @@ class RecordingSource(Source):
         if self._t0 != self._t0:
             self._t0 = now_s
         tl = self.timeline
-        t = self.start_s + (now_s - self._t0) * self.speed
-        if t > tl.duration:
-            self.done = True
-            self.t = tl.duration
+        if self.done:
             return                                    # no new data: the force ramps out
+        t = self.start_s + (now_s - self._t0) * self.speed
+        if t >= tl.duration:
+            # this poll shows the end of the recording (the removals since the
+            # last poll included); silence after it
+            t = tl.duration
+            self.done = True
         self.t = t
         i = tl.sample_index(t)
         s, st = tl.samples, self.state

@@ -612,6 +612,30 @@ def test_recording_source_publishes_its_changes(tmp_path):
     assert src.changes.count == len(session.removals["t_s"]) + 2
 
 
+def test_recording_source_ends_on_the_recordings_last_state():
+    from tests.bonesim.test_playback import fake_session
+
+    session, _ = fake_session()
+    model = session.load_model()
+    src = tutor.RecordingSource(session, model=model)
+    for t in (0.0, 0.5, 1.0, 1.5):               # coarse polls: the end falls between
+        src.poll(t)
+        assert not src.done
+    src.poll(2.5)
+    tl = src.timeline
+    assert src.done and src.t == tl.duration and src.last_valid_s == 2.5
+    np.testing.assert_array_equal(src.state.pos_mm, session.samples["pos_mm"][-1])
+    epoch, lo, hi = tl.removal_range(tl.duration)
+    assert hi == len(tl.rem_t) and src.applied == hi      # the last removals too
+    ref = model.grid.copy()
+    from bonesim.grid import sync_replica
+
+    sync_replica(ref, ref, tl.rem_ijk[lo:hi], np.zeros((0, 3), np.int32))
+    np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(ref))
+    src.poll(3.0)                                # silence after the end
+    assert src.last_valid_s == 2.5
+
+
 # ------------------------------------------------------- real processes
 pytestmark_slow = pytest.mark.slow
 
