@@ -472,9 +472,9 @@ def warmup_model() -> Model:
     return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
 
 
-def warmup_sample(model: Model, t_s: float = 0.0) -> Sample:
+def warmup_sample(model: Model) -> Sample:
     """A sample of the running drill just under the warm-up slab's top."""
-    return Sample(t_s, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
+    return Sample(0.0, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
                   True, model.burr.default_speed_rpm, 1)
 
 

@@ -34,11 +34,10 @@ from .errors import BonesimError
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
 #: Status vector layout (float64).
-(TS_READY, TS_DONE, TS_ERROR, TS_T, TS_TICKS, TS_GAIN, TS_LOST, TS_VALID,
- TS_DRILL, TS_SPEED, TS_DIR, TS_BURR, TS_EPOCH, TS_ERR_MM, TS_LATENCY_MS,
- TS_PLAYBACK_S, TS_ENDED) = range(17)
-TS_INSTR_POS, TS_INSTR_AXIS, TS_INSTR_FORCE, TS_HAND_POS, TS_FORCE = 17, 20, 23, 26, 29
-N_TS = 32
+(TS_DONE, TS_T, TS_TICKS, TS_GAIN, TS_LOST, TS_VALID, TS_DRILL, TS_SPEED, TS_DIR,
+ TS_BURR, TS_EPOCH, TS_ERR_MM, TS_LATENCY_MS, TS_PLAYBACK_S, TS_ENDED) = range(15)
+TS_INSTR_POS, TS_INSTR_AXIS, TS_INSTR_FORCE, TS_HAND_POS, TS_FORCE = 15, 18, 21, 24, 27
+N_TS = 30
 #: Control flags written by the parent.
 C_QUIT = 0
 #: Capacity of the changes ring (records; 12 MB). A window drains it every
@@ -140,7 +139,6 @@ def _trainee_main(spec, handle, conn, duration_s: float) -> None:
             trainee = Trainee(src, SimulatedHandDevice())
         except BonesimError as exc:
             conn.send({"error": str(exc)})
-            status[TS_ERROR] = 1.0
             if src is not None:
                 src.close()
             return
@@ -154,7 +152,6 @@ def _trainee_main(spec, handle, conn, duration_s: float) -> None:
                                          math.nan)})
         publish = _publisher(status)
         publish(trainee)
-        status[TS_READY] = 1.0                 # (after the parent took the model)
         stats = trainee.follow(duration_s, stop=lambda: ctl[C_QUIT] != 0.0,
                                on_tick=publish)
         conn.send({"stats": stats})

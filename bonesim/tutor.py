@@ -1396,14 +1396,13 @@ def cmd_playback(args) -> int:
     from .devices import SimulatedHandDevice
     from .record import read_session
 
-    session = read_session(args.file)
-    if _window_mode(args):
+    if _window_mode(args):                        # the servo's process reads the file
         s = _trainee_window(args, ("recording", str(args.file), args.speed, args.start))
         s["file"] = str(args.file)
         _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s))
         return 0
     warmup()
-    src = RecordingSource(session, speed=args.speed, start_s=args.start)
+    src = RecordingSource(read_session(args.file), speed=args.speed, start_s=args.start)
     trainee = Trainee(src, SimulatedHandDevice())
     try:
         s = trainee.follow(math.inf if args.duration is None else args.duration)
@@ -1418,4 +1417,3 @@ def _playback_lines(s: dict, path) -> list:
     return [f"played back {s['playback_s']} s of {s['duration_s']} s from {path}; tracking "
             f"error p50 {s.get('tracking_error_mm', {}).get('p50')} mm, force max "
             f"{s.get('force_n', {}).get('max')} N; {s['hud']}"]
-

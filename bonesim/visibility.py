@@ -14,7 +14,6 @@ session's removals.
 """
 from __future__ import annotations
 
-
 import numpy as np
 from numba import njit
 

@@ -703,11 +703,6 @@ class Scene:
         self._marker.SetVisibility(True)
         self.marker_pos_mm = pos.copy()
 
-    def hide_marker(self) -> None:
-        if self._marker is not None:
-            self._marker.SetVisibility(False)
-        self.marker_pos_mm = None
-
     # ------------------------------------------------------------------ dust
     def _build_dust(self):
         self._dust_pd = vtkPolyData()

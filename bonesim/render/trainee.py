@@ -80,7 +80,6 @@ class TraineeView:
         from ..surface import Surface
 
         self.grid = self.model.grid.copy()
-        self.grid.density.flags.writeable = True
         self.surface = Surface.build(self.grid, self.model.colors)
         self.scene.update_surface(self.surface)
         self.applied = 0
@@ -97,7 +96,6 @@ class TraineeView:
             self.resets += len(marks)
             ijk = ijk[marks[-1] + 1:]
         if len(ijk):
-            ijk = np.ascontiguousarray(ijk)
             sync_replica(self.grid, self.grid, ijk, _EMPTY_IJK)
             self.surface.update(self.grid, ijk)
             self.scene.update_surface(self.surface, ijk, None)

@@ -26,7 +26,6 @@ SIZE = (320, 240)
 def _fake_proc(model):
     """What TraineeView reads of a TraineeProcess, with no process."""
     status = np.zeros(T.N_TS)
-    status[T.TS_READY] = 1.0
     changes = Ring.create(1 << 12, ijk=(np.int32, (3,)))
     return SimpleNamespace(model=model, status=status, changes=changes, burrs=["fake"],
                            radii=[1.5], radius_mm=lambda b: 1.5, what="instructor at test",
