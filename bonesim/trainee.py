@@ -243,11 +243,11 @@ class TraineeProcess:
             except EOFError:
                 pass
         if "model" not in msg:
+            code = self._proc.exitcode             # (close() forgets the process)
             self.close()
             raise BonesimError(msg.get("error") or (
                 "the trainee process did not start in time" if got == "timeout" else
-                f"the trainee process exited during start-up (exit code "
-                f"{self._proc.exitcode})"))
+                f"the trainee process exited during start-up (exit code {code})"))
         self.model = msg["model"]
         self.burrs = list(msg["burrs"])
         self.lost_text = msg["lost_text"]

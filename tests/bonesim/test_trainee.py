@@ -77,6 +77,21 @@ def test_bad_sources_are_reported_by_start(tmp_path):
         assert time.monotonic() - t0 < 30.0
 
 
+def test_a_child_that_dies_silently_is_reported_with_its_exit_code(monkeypatch):
+    import bonesim.trainee as mod
+
+    # a child that exits before it says anything (not even an error)
+    monkeypatch.setattr(mod, "_trainee_main", _exit_at_once)
+    with pytest.raises(BonesimError, match=r"exited during start-up \(exit code 3\)"):
+        TraineeProcess(("recording", "unused.h5", 1.0, 0.0)).start(timeout_s=30.0)
+
+
+def _exit_at_once(*args) -> None:
+    import os
+
+    os._exit(3)
+
+
 def test_live_instructor_over_loopback_window_replica_matches():
     from bonesim.case import load_case
     from bonesim.cli import _demo_trajectory
