@@ -97,6 +97,39 @@ class ObliqueWarning(UserWarning):
 
 # ----------------------------------------------------------------- containers
 @dataclass
+class NativeLabels:
+    """The label map at the source's own resolution, already in the case frame.
+
+    Distances that must hold at every resampling (planning margins, guidance,
+    the nerve monitor) are measured on this map, not on the engine's grid.
+
+    Attributes
+    ----------
+    labels : (n0, n1, n2) uint8
+        Structure index per source voxel (same indices as
+        :attr:`CaseVolume.labels`), axes along ``+x, +y, +z`` (LPS).
+    spacing_mm : (3,) float64
+        Source voxel edge along x, y, z [mm] (may be anisotropic).
+    origin_mm : (3,) float64
+        Case-frame centre of source voxel ``(0, 0, 0)`` [mm].
+    """
+
+    labels: np.ndarray
+    spacing_mm: np.ndarray
+    origin_mm: np.ndarray
+
+    def __post_init__(self):
+        self.labels = np.asarray(self.labels)
+        if self.labels.ndim != 3 or self.labels.dtype != np.uint8:
+            raise ValueError("labels must be a 3-D uint8 array, got "
+                             f"{self.labels.dtype} {self.labels.shape}")
+        self.spacing_mm = np.asarray(self.spacing_mm, dtype=np.float64).reshape(3)
+        if not np.all(self.spacing_mm > 0):
+            raise ValueError(f"spacing_mm must be positive, got {self.spacing_mm}")
+        self.origin_mm = np.asarray(self.origin_mm, dtype=np.float64).reshape(3)
+
+
+@dataclass
 class CaseVolume:
     """A case's volume on an isotropic grid in the case frame.
 
@@ -113,6 +146,9 @@ class CaseVolume:
         What was read (file or folder, format), for messages and reports.
     hu : (nx, ny, nz) float32 or None
         Intensities [HU] where the format has them.
+    native : NativeLabels or None
+        The labels at the source's resolution (None: the source is this grid;
+        see :attr:`native_labels`).
     """
 
     labels: np.ndarray
@@ -120,6 +156,7 @@ class CaseVolume:
     origin_mm: np.ndarray
     source: str
     hu: np.ndarray | None = None
+    native: NativeLabels | None = None
 
     def __post_init__(self):
         self.labels = np.asarray(self.labels)
@@ -144,6 +181,13 @@ class CaseVolume:
     def extent_mm(self) -> np.ndarray:
         """Physical size of the grid, voxel edge to voxel edge, (3,) [mm]."""
         return np.asarray(self.shape, dtype=np.float64) * self.spacing_mm
+
+    @property
+    def native_labels(self) -> NativeLabels:
+        """The source-resolution label map (this grid when none was kept)."""
+        if self.native is not None:
+            return self.native
+        return NativeLabels(self.labels, np.full(3, self.spacing_mm), self.origin_mm)
 
     def counts(self, n_structures: int) -> np.ndarray:
         """Voxel count per index ``0 .. n_structures`` (index 0 = empty)."""
@@ -853,13 +897,14 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
     if fmt == "label-stack":
         raw = read_label_stack(path, pattern, size_mm, colors, unknown_colors,
                                origin_mm)
+        native = NativeLabels(raw.data, raw.spacing_mm, raw.origin_mm)
         labels, origin = resample_isotropic(raw.data, raw.spacing_mm, raw.origin_mm,
                                             voxel_mm, order=0)
         bone_idx = [s for s, k in enumerate(kinds, start=1) if k == "bone"]
         if not np.isin(labels, bone_idx).any():
             raise BonesimError("no bone: no pixel has the colour of a bone structure",
                                path)
-        return CaseVolume(labels, voxel_mm, origin, raw.source)
+        return CaseVolume(labels, voxel_mm, origin, raw.source, native=native)
 
     readers = {"dicom": read_dicom_series, "nrrd": read_nrrd, "nifti": read_nifti}
     if fmt not in readers:
@@ -888,6 +933,7 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                                    label_values, bone_threshold_hu,
                                    Path(path if path is not None else labels_path),
                                    labels_path)
+    native = NativeLabels(labels, grid.spacing_mm, grid.origin_mm)
     labels, origin = resample_isotropic(labels, grid.spacing_mm, grid.origin_mm,
                                         voxel_mm, order=0)
     if hu is not None:
@@ -895,4 +941,4 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                                    order=1)
     source = grid.source if lmap is None or raw is None else \
         f"{raw.source} + labels {lmap.source}"
-    return CaseVolume(labels, voxel_mm, origin, source, hu)
+    return CaseVolume(labels, voxel_mm, origin, source, hu, native=native)
