@@ -49,6 +49,8 @@ from typing import Sequence
 import numpy as np
 
 from .errors import BonesimError
+from .orientation import (PATIENT_FRAME, from_lps, lps_geometry, parse_orientation,
+                          to_lps)
 
 FORMATS = ("phantom", "dicom", "nrrd", "nifti", "label-stack")
 """Volume formats a case manifest may name."""
@@ -614,7 +616,8 @@ def _unpack_rgb(code: int) -> tuple[int, int, int]:
 
 
 def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
-                     unknown_colors: str = "error", origin_mm=None) -> RawVolume:
+                     unknown_colors: str = "error", origin_mm=None,
+                     orientation: str = PATIENT_FRAME) -> RawVolume:
     """Read a folder of RGB(A) slices where each colour marks one structure.
 
     Parameters
@@ -625,8 +628,8 @@ def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
         Glob selecting the slices (e.g. ``"*.png"``); matches are sorted
         naturally (``plane2`` before ``plane10``). Slice ``k`` is ``z`` index k.
     size_mm : (3,) float
-        Physical extent ``(x, y, z)`` of the stack [mm]: ``x`` along image
-        columns, ``y`` along image rows (top row first), ``z`` across slices.
+        Physical extent of the stack along image columns, image rows (top row
+        first) and slices, in that order [mm].
     colors : sequence of (3,) int or None
         RGB of structure ``s`` at position ``s - 1``; ``None`` for a structure
         not drawn in the stack.
@@ -635,12 +638,17 @@ def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
         count), map to the nearest structure colour (RGB distance), or drop.
         Black and fully transparent pixels are always background.
     origin_mm : (3,) float, optional
-        Centre of voxel ``(0, 0, 0)`` [mm]; default centres the stack on 0.
+        Case-frame (LPS) centre of the first slice's top-left pixel [mm];
+        default centres the stack on 0.
+    orientation : str
+        The stack's axis code (:mod:`bonesim.orientation`): the directions
+        in which image columns, rows and slices increase. ``"LPS"`` (the
+        default) reads columns as ``+x``, rows as ``+y``, slices as ``+z``.
 
     Returns
     -------
     RawVolume
-        ``data`` uint8 structure indices, axes along +x, +y, +z.
+        ``data`` uint8 structure indices, axes along +x, +y, +z (LPS).
     """
     from PIL import Image, UnidentifiedImageError
 
@@ -704,20 +712,23 @@ def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
             lut_idx = np.array([known[int(ref_codes[n])] for n in near], dtype=np.uint8)
             pos = np.searchsorted(values, code[stray])
             labels[stray] = lut_idx[pos]
-    shape = np.array(labels.shape, dtype=float)
+    shape_img = np.array(labels.shape, dtype=float)
     size = np.asarray(size_mm, dtype=float).reshape(3)
     if np.any(~np.isfinite(size)) or np.any(size <= 0):
         raise BonesimError(f"missing spacing: size_mm must be three positive "
                            f"numbers, got {size.tolist()}", folder)
-    spacing = size / shape
-    origin = (-(shape - 1) * spacing / 2 if origin_mm is None
-              else np.asarray(origin_mm, dtype=float).reshape(3))
-    src = f"{folder} (label stack, {len(files)} slices '{pattern}')"
+    code = parse_orientation(orientation, folder, "orientation")
+    labels = np.ascontiguousarray(to_lps(labels, code))
+    spacing, origin = lps_geometry(code, shape_img, size / shape_img,
+                                   np.zeros(3) if origin_mm is None else origin_mm)
+    if origin_mm is None:                   # centred on the frame's origin
+        origin = -(np.array(labels.shape) - 1) * spacing / 2
+    src = f"{folder} (label stack '{pattern}', {len(files)} slices, {code})"
     return RawVolume(labels, spacing, origin, src)
 
 
 def write_label_stack(folder: str | Path, labels: np.ndarray, colors,
-                      stem: str = "plane") -> list[Path]:
+                      stem: str = "plane", orientation: str = PATIENT_FRAME) -> list[Path]:
     """Write structure indices as RGB PNG slices ``plane1.png, plane2.png, ...``.
 
     Parameters
@@ -725,20 +736,27 @@ def write_label_stack(folder: str | Path, labels: np.ndarray, colors,
     folder : str or Path
         Created if needed.
     labels : (nx, ny, nz) uint8
-        Structure index per voxel, axis order ``(x, y, z)``; slice ``k`` is
-        ``labels[:, :, k]`` with columns along x and rows along y.
+        Structure index per voxel, axis order ``(x, y, z)`` of the LPS frame.
     colors : sequence of (3,) int
         RGB of structure ``s`` at position ``s - 1``; must be unique and not
         black (black is background).
+    stem : str
+        File-name stem.
+    orientation : str
+        Axis code of the written stack (:mod:`bonesim.orientation`): with
+        ``"LPS"`` slice ``k`` is ``labels[:, :, k]``, columns along x and
+        rows along y. Reading the files back with the same code gives
+        ``labels`` exactly.
     """
     from PIL import Image
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    code = parse_orientation(orientation)
     lut = np.zeros((MAX_STRUCTURES + 1, 3), dtype=np.uint8)
     for s, rgb in enumerate(colors, start=1):
         lut[s] = rgb
-    rgb = lut[np.asarray(labels)]                         # (nx, ny, nz, 3)
+    rgb = lut[from_lps(np.asarray(labels), code)]        # image order, + RGB
     paths = []
     for k in range(rgb.shape[2]):
         path = folder / f"{stem}{k + 1}.png"
@@ -866,7 +884,7 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                 colors: Sequence = (), voxel_mm: float = 0.5,
                 bone_threshold_hu: float = 300.0, labels_path: Path | None = None,
                 pattern: str = "*.png", size_mm=None, unknown_colors: str = "error",
-                origin_mm=None) -> CaseVolume:
+                origin_mm=None, orientation: str = PATIENT_FRAME) -> CaseVolume:
     """Read a CT / label volume of any file format into a :class:`CaseVolume`.
 
     Parameters
@@ -889,14 +907,14 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
         Bone threshold for intensity formats [HU].
     labels_path : Path, optional
         Label map (NRRD or NIfTI, chosen by file name) on the volume's grid.
-    pattern, size_mm, unknown_colors, origin_mm
+    pattern, size_mm, unknown_colors, origin_mm, orientation
         Label-stack options, see :func:`read_label_stack`.
     """
     if len(kinds) > MAX_STRUCTURES:
         raise ValueError(f"at most {MAX_STRUCTURES} structures")
     if fmt == "label-stack":
         raw = read_label_stack(path, pattern, size_mm, colors, unknown_colors,
-                               origin_mm)
+                               origin_mm, orientation)
         native = NativeLabels(raw.data, raw.spacing_mm, raw.origin_mm)
         labels, origin = resample_isotropic(raw.data, raw.spacing_mm, raw.origin_mm,
                                             voxel_mm, order=0)
