@@ -80,7 +80,7 @@ def test_geometry_maps_every_voxel_centre(code):
     assert np.allclose(back_sp, sp_img) and np.allclose(back_first, first)
 
 
-@pytest.mark.parametrize("code", ["LPS", "PLS", "RAI", "SIL"])
+@pytest.mark.parametrize("code", ["LPS", "PLS", "RAI", "SAL"])
 def test_label_stack_round_trip_in_any_orientation(tmp_path, code):
     from bonesim.volumes import read_label_stack, write_label_stack
 
