@@ -66,7 +66,7 @@ def bench_recording(quick=False) -> dict:
     batch = max(int(round(FLUSH_S * model.haptic_rate_hz)), 1)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.h5"
-        writer = SessionWriter(path, make_header(model), compress=False)
+        writer = SessionWriter(path, make_header(model), compact=False)
         sub = events.Ring({k: v for k, v in ring.fields.items()}, np.zeros(1, np.int64))
         rem = state.removed
         sub_rem = events.Ring(rem.fields, np.zeros(1, np.int64))

@@ -214,8 +214,8 @@ def cmd_run(args) -> int:
             script = traj.at_times(traj.t_s[start:])
         frames = frames or 300
         screenshot = screenshot or "bonesim-run.png"
-    record = None if args.no_record else args.record
-    if record is None and not args.no_record:
+    record = None if args.no_record else args.record   # --no-record: the old opt-out
+    if record == "":
         from .record import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
@@ -601,10 +601,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
     s.add_argument("--wav", metavar="FILE.wav", help="record the drill sound")
     s.add_argument("--no-sound", action="store_true", help="no audio process")
-    s.add_argument("--record", metavar="FILE.h5",
-                   help="record the session to this file (default: a new file in "
-                        "$BONESIM_SESSIONS or ~/.local/share/bonesim/sessions)")
-    s.add_argument("--no-record", action="store_true", help="do not record the session")
+    s.add_argument("--record", metavar="FILE.h5", nargs="?", const="",
+                   help="record the session (nothing is recorded unless asked): to "
+                        "FILE.h5, or with no FILE to a new file in $BONESIM_SESSIONS "
+                        "or ~/.local/share/bonesim/sessions")
+    s.add_argument("--no-record", action="store_true", help=argparse.SUPPRESS)
     who_opts(s)
     s.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"),
                    help="window size [px]")

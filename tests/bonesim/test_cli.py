@@ -126,3 +126,10 @@ def test_simulate_rejects_bad_trajectory_rows(capsys, tmp_path):
                    "0,0,0,0,0,0,-1,0,0\n0.01,0,0,abc,0,0,-1,0,0\n")
     code, _, err = run_cli(capsys, "simulate", "--trajectory", str(bad))
     assert code == 2 and "bad.csv" in err and "z_mm" in err
+
+
+def test_run_records_only_when_asked():
+    p = build_parser()
+    assert p.parse_args(["run"]).record is None
+    assert p.parse_args(["run", "--record"]).record == ""
+    assert p.parse_args(["run", "--record", "x.h5"]).record == "x.h5"

@@ -311,3 +311,64 @@ def test_sessions_list_shows_good_and_broken_files(recorded, tmp_path, capsys):
     assert rows["a.h5"]["participant"] == "p07" and rows["a.h5"]["complete"]
     assert "not a readable HDF5" in rows["b.h5"]["error"]
     assert main(["sessions", "list", str(tmp_path / "none")]) == 2
+
+
+def _contents(path):
+    """Every attribute and column of a session file, as plain values."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v)
+                        for k, v in f.attrs.items()}
+
+        def visit(name, item):
+            if isinstance(item, h5py.Dataset):
+                out[name] = item[()]
+        f.visititems(visit)
+    return out
+
+
+def _same(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        if k == "attrs":
+            assert {q: str(v) for q, v in a[k].items()} == {q: str(v) for q, v in b[k].items()}
+        else:
+            assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+
+
+def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_path,
+                                                            monkeypatch):
+    from bonesim import record
+
+    raw = tmp_path / "raw.h5"
+    run_trajectory(model, traj, surface=False, record=raw, header=make_header(model))
+    # the same run written raw (as a live writer leaves it before closing)
+    live = tmp_path / "live.h5"
+    monkeypatch.setattr(record.SessionWriter.__init__, "__defaults__", (False, False))
+    run_trajectory(model, traj, surface=False, record=live, header=make_header(model))
+    monkeypatch.undo()
+    with h5py.File(live, "r") as f:
+        assert f["samples/pos_mm"].compression is None
+    before = _contents(live)
+    raw_size = live.stat().st_size
+    size = record.compact_session(live)
+    assert size == live.stat().st_size < raw_size / 2
+    with h5py.File(live, "r") as f:
+        assert f["samples/pos_mm"].compression == "gzip"
+    _same(before, _contents(live))
+    assert verify(read_session(live))["ok"]
+    with h5py.File(raw, "r") as f:                       # closing compacted it
+        assert f["samples/pos_mm"].compression == "gzip"
+    # a failure half-way leaves the original file untouched and no debris
+    keep = tmp_path / "keep.h5"
+    shutil.copy(live, keep)
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(record.os, "replace", boom)
+    with pytest.raises(OSError, match="disk full"):
+        record.compact_session(keep)
+    monkeypatch.undo()
+    _same(before, _contents(keep))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.h5", "live.h5", "raw.h5"]
