@@ -40,7 +40,8 @@ landmarks read in the loaded volume (structures are recognised by name, see
    tegmen when those are known. The focal point lies on the cortex: the
    median height over a disc of ``surface_radius_mm``.
 5. **Direction**: along the cortex's outward normal there (a plane fitted over
-   ``normal_radius_mm``), tilted at most ``max_tilt_deg`` from lateral; the
+   ``normal_radius_mm``), tilted at most ``max_tilt_deg`` from lateral and
+   straight lateral when the normal is within ``snap_tilt_deg`` of it; the
    eye sits ``eye_distance_mm`` out along it, superior up.
 
 :func:`side_warnings` compares the structures' positions with the declared
@@ -403,7 +404,9 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
         normal /= np.linalg.norm(normal)
     tilt = math.degrees(math.acos(float(np.clip(normal @ lateral, -1.0, 1.0))))
     limit = p["max_tilt_deg"]
-    if tilt > limit:
+    if tilt < p["snap_tilt_deg"]:
+        normal, tilt = lateral, 0.0                   # a dome's slope, not a face
+    elif tilt > limit:
         perp = normal - (normal @ lateral) * lateral
         perp /= np.linalg.norm(perp)
         normal = math.cos(math.radians(limit)) * lateral + \

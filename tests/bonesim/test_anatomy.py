@@ -348,3 +348,23 @@ def test_side_warnings(phantom):
     assert len(w) == 1 and "sinus" in w[0] and "anterior" in w[0] and "P/A" in w[0]
     w = warn(np.ascontiguousarray(vol.labels[:, :, ::-1]), vol.origin_mm, "left")
     assert len(w) == 1 and "below the labyrinth" in w[0] and "S/I" in w[0]
+
+
+@pytest.mark.parametrize("face_deg, view_deg", [(5.0, 0.0), (20.0, 20.0), (50.0, 30.0)])
+def test_view_follows_a_turned_cortex_within_limits(face_deg, view_deg):
+    """A block whose lateral face is turned posteriorly by ``face_deg``: the view
+    follows its normal, straight lateral under snap_tilt_deg (10), at most
+    max_tilt_deg (30) from lateral."""
+    n = np.array([math.cos(math.radians(face_deg)), math.sin(math.radians(face_deg)), 0])
+    g = (np.arange(64) - 31.5) * 0.5
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    bone = (x * n[0] + y * n[1] <= 4.0) & (np.abs(y) < 12) & (np.abs(z) < 12) & (x > -14)
+    labels = bone.astype(np.uint8)
+    view = V.surgical_view(labels, 0.5, (g[0],) * 3, ["bone"], ["bone"], "left")
+    d = np.subtract(view.focal_mm, view.eye_mm)
+    d /= np.linalg.norm(d)
+    assert math.degrees(math.acos(-d[0])) == pytest.approx(view_deg, abs=1.0)
+    assert d[1] <= 1e-12 and abs(d[2]) < 1e-9          # turned toward posterior only
+    assert np.linalg.norm(np.subtract(view.eye_mm, view.focal_mm)) == pytest.approx(100)
+    focal = np.array(view.focal_mm)
+    assert focal @ n == pytest.approx(4.0, abs=0.5)     # on the face
