@@ -76,8 +76,10 @@ class SurgicalView:
         the mastoid cortex.
     up : (3,) float
         Unit up vector, perpendicular to the view (superior up).
-    landmarks : dict of str -> (3,) float
-        Landmarks used (``canal``, ``sinus_front``, ``tegmen``, ``focal``) [mm].
+    landmarks : dict of str -> tuple of float
+        Landmarks used [mm]: ``canal`` (the canal's axis), ``sinus_front``
+        (the sinus's anterior edge) and ``tegmen`` (its lowest point) as
+        ``(y, z)``; ``focal`` as ``(x, y, z)``.
     notes : tuple of str
         One line per decision, for ``bonesim case-info``.
     """
@@ -257,8 +259,6 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
     ValueError
         No bone in the volume, or inconsistent inputs.
     """
-    from scipy import ndimage
-
     labels, h, origin, lat = _check(labels, spacing_mm, origin_mm, side)
     n = len(kinds)
     if len(roles) != n:
@@ -322,7 +322,7 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
     if canal is not None:
         y_c, z_c, r_c, how = canal
         notes.append(f"{how}; axis at y {y_c:.1f}, z {z_c:.1f} mm, radius {r_c:.1f} mm")
-        marks["canal"] = (np.nan, float(y_c), float(z_c))
+        marks["canal"] = (float(y_c), float(z_c))
 
     # -- sinus front and tegmen near the canal's height
     y_s = z_t = None
@@ -340,7 +340,7 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
         else:
             notes.append(f"sigmoid sinus: {_names(names, roles, 'sinus')}, anterior edge "
                          f"at y {y_s:.1f} mm")
-            marks["sinus_front"] = (np.nan, y_s, float(np.median(pts[:, 2])))
+            marks["sinus_front"] = (y_s, float(np.median(pts[:, 2])))
     v = _role_voxels(labels, roles, "tegmen")
     if v is not None:
         pts = to_mm(v)
@@ -355,7 +355,7 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
         else:
             notes.append(f"tegmen: {_names(names, roles, 'tegmen')}, lowest at "
                          f"z {z_t:.1f} mm")
-            marks["tegmen"] = (np.nan, float(np.median(pts[:, 1])), z_t)
+            marks["tegmen"] = (float(np.median(pts[:, 1])), z_t)
 
     # -- focal point in (y, z)
     if canal is not None:
@@ -421,13 +421,6 @@ def surgical_view(labels: np.ndarray, spacing_mm: float, origin_mm,
     notes.append(f"focal point on the mastoid cortex at {np.round(focal, 1).tolist()} mm,"
                  f" view {tilt:.0f} deg from lateral, superior up")
     marks["focal"] = tuple(float(c) for c in focal)
-    for key in ("canal", "sinus_front", "tegmen"):
-        if key in marks:                       # the cortex height at that point
-            m = marks[key]
-            jk = (int(np.clip(round((m[1] - ys[0]) / h), 0, len(ys) - 1)),
-                  int(np.clip(round((m[2] - zs[0]) / h), 0, len(zs) - 1)))
-            s = height[jk] if has[jk] else s_f
-            marks[key] = (float(lat * s), m[1], m[2])
     return SurgicalView(tuple(float(c) for c in eye), tuple(float(c) for c in focal),
                         tuple(float(c) for c in up), marks, tuple(notes))
 

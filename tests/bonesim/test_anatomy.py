@@ -278,6 +278,8 @@ def test_view_looks_at_the_mastoid_for_both_sides(phantom, side):
     view = _view(c, labels, origin, side)
     assert_looks_at_mastoid(view, labels, origin, side)
     assert any("air channel" in n for n in view.notes)
+    np.testing.assert_allclose(view.landmarks["canal"], P.EAC_AXIS_MM[0][1:], atol=0.5)
+    assert view.landmarks["tegmen"][1] == pytest.approx(P.TEGMEN_Z_MM, abs=0.5)
     if side == "right":                      # the mirror image of the left view
         left = _view(c, vol.labels, vol.origin_mm, "left")
         np.testing.assert_allclose(view.focal_mm, np.array(left.focal_mm) * [-1, 1, 1],
