@@ -264,7 +264,10 @@ class Case:
     structures: tuple[Structure, ...]
     declared_camera: Camera | None = None
     target: Target | None = None
-    _derived: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
+    # what was derived from the volume (the surgical view); not part of the
+    # manifest's identity, never passed in
+    _derived: dict = field(default_factory=dict, init=False, compare=False, repr=False,
+                           hash=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -398,9 +401,10 @@ class Case:
                        for s, c in zip(structs, colors)]
         out = dataclasses.replace(self, structures=tuple(structs))
         out._derived.update(self._derived)
-        if out.declared_camera is None and "view" not in out._derived:
-            out._derive_view(vol)
-        self._derived.setdefault("view", out._derived.get("view"))
+        if out.declared_camera is None:
+            if "view" not in out._derived:
+                out._derive_view(vol)
+            self._derived.setdefault("view", out._derived["view"])
         return out
 
 
