@@ -44,26 +44,33 @@ def cmd_cases(args) -> int:
 
 def cmd_case_info(args) -> int:
     from .case import case_info, load_case
+    from .case_report import LoadProgress, print_case_info
 
-    info = case_info(load_case(args.case))
+    case = load_case(args.case)
+    bar = LoadProgress()
+    try:
+        info = case_info(case, progress=bar)
+    finally:
+        bar.close()
     if args.json:
         _print_json(info)
-        return 0
-    for k, v in info.items():
-        if isinstance(v, dict):
-            print(f"{k}:")
-            for kk, vv in v.items():
-                print(f"  {kk}: {vv}")
-        else:
-            print(f"{k}: {v}")
+    else:
+        print_case_info(info)
     return 0
 
 
 def cmd_case_export(args) -> int:
     from .case import export_case, load_case
+    from .case_report import LoadProgress
 
-    manifest = export_case(load_case(args.case), args.format, Path(args.dir))
-    print(f"wrote {args.format} export of case '{args.case}' to {args.dir} "
+    bar = LoadProgress()
+    try:
+        manifest = export_case(load_case(args.case), args.format, Path(args.dir),
+                               orientation=args.orientation, progress=bar)
+    finally:
+        bar.close()
+    what = args.format + (f" ({args.orientation})" if args.orientation else "")
+    print(f"wrote {what} export of case '{args.case}' to {args.dir} "
           f"(manifest {manifest})")
     return 0
 
@@ -527,16 +534,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=cmd_cases)
 
-    s = sub.add_parser("case-info", help="grid size, voxel size and voxels per structure")
+    s = sub.add_parser("case-info", help="frame, orientation, grid, camera, colours, "
+                                         "monitored structures and voxels per structure; "
+                                         "warns where the layout contradicts the side")
     s.add_argument("case", help="bundled case name or path of a case.toml")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=cmd_case_info)
 
     s = sub.add_parser("case-export", help="write a case's volume as DICOM/NRRD/NIfTI/"
-                                           "label stack with a case.toml")
+                                           "label stack/Slicer segmentation with a "
+                                           "case.toml")
     s.add_argument("case", help="bundled case name or path of a case.toml")
     s.add_argument("--format", required=True,
-                   choices=["dicom", "nrrd", "nifti", "label-stack"])
+                   choices=["dicom", "nrrd", "nifti", "label-stack", "seg-nrrd"])
+    s.add_argument("--orientation", metavar="CODE",
+                   help="label stacks: axis code of the written slices (columns, rows, "
+                        "slices, e.g. PLS; default LPS)")
     s.add_argument("dir", help="output folder")
     s.set_defaults(func=cmd_case_export)
 

@@ -255,6 +255,9 @@ def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
     c = load_case(case)
     b = load_burr(burr) if isinstance(burr, str) else burr
     vol = c.load_volume()
+    # display colours settled on this volume (neighbours apart); the case keeps
+    # the view derived from it, so nothing reads the volume twice
+    c = c.resolved(vol)
     return make_model(vol.labels, vol.spacing_mm, c.structures, b,
                       origin_mm=vol.origin_mm, materials=materials, device=device,
                       oversample=oversample, name=c.name, case=c)

@@ -19,7 +19,9 @@ def test_phantom_monitors_facial_nerve_and_chorda():
 def test_monitor_flag_default_roundtrip_and_errors(tmp_path):
     tiny_volume(tmp_path)
     c = C.load_case(write_case(tmp_path))
-    assert not any(s.monitor for s in c.structures)          # default: not monitored
+    assert [s.name for s in c.structures if s.monitor] == ["nerve"]   # name says nerve
+    c = C.load_case(write_case(tmp_path, replace=[("label = 2", "label = 2\nmonitor = false")]))
+    assert not any(s.monitor for s in c.structures)
     c = C.load_case(write_case(tmp_path, replace=[("label = 2", "label = 2\nmonitor = true")]))
     assert [s.name for s in c.structures if s.monitor] == ["nerve"]
     back = C.load_case(C.export_case(c, "nrrd", tmp_path / "out"))
