@@ -427,7 +427,8 @@ def demo_mastoidectomy(labels, spacing_mm, origin_mm, structures, eye_mm, focal_
 
     path = _Path(at(0.0, 0.0, lift))
     lines = np.unique(ca)
-    prev = np.full(len(ca), -np.inf)     # depth reached by the previous pass
+    prev = np.full(len(ca), -np.inf)     # depth free after the previous pass
+    reached = np.full(len(ca), -np.inf)  # deepest burr centre in the column so far
     drilled_at_rinse = 0.0
     for layer in range(plan.n_layers):
         d_layer = top - r + plan.bite_mm + layer * plan.layer_mm
@@ -458,13 +459,14 @@ def demo_mastoidectomy(labels, spacing_mm, origin_mm, structures, eye_mm, focal_
             path.go(at(a, cb[on[-1]], lift), plan.travel_mm_s, drill=True)
             surface.carve(a, cb[on], depth_now[on])
         visited = np.isin(ca, [a for a in lines if cuts[ca == a].any()])
-        prev = np.where(visited, depth_now, prev)
+        reached = np.where(visited, depth_now, reached)
+        prev = depth_now        # lines not drilled: nothing to cut down to it either
         if path.drill_s - drilled_at_rinse >= plan.rinse_every_s:
-            _rinse(path, surface, ca, cb, prev, floor, lift, at, view, dist, clear, plan,
-                   across)
+            _rinse(path, surface, ca, cb, reached, floor, lift, at, view, dist, clear,
+                   plan, across)
             drilled_at_rinse = path.drill_s
     if path.drill_s > drilled_at_rinse:
-        _rinse(path, surface, ca, cb, prev, floor, lift, at, view, dist, clear, plan,
+        _rinse(path, surface, ca, cb, reached, floor, lift, at, view, dist, clear, plan,
                across)
 
     t, pos, state = path.sampled(plan.sample_hz)
