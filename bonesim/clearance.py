@@ -285,7 +285,8 @@ def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, o
                             d2 = 0.0
                             for a in range(3):
                                 pa = px if a == 0 else (py if a == 1 else pz)
-                                e = abs(pa - geom[0, a] - geom[1, a] * ijk[p, a]) - geom[2, a]
+                                e = abs(pa - geom[0, a] - geom[1, a] * ijk[p, a]) \
+                                    - geom[2, a]
                                 if e > 0.0:
                                     d2 += e * e
                             if d2 < best:

@@ -208,7 +208,8 @@ def load_demo_plan(path: str | Path | None = None) -> DemoPlan:
                        minimum=1 if integer else 0.0,
                        maximum=0.99 if name == "line_overlap" else None)
         if not integer and (not math.isfinite(v) or (name in _POSITIVE_KEYS and v <= 0)):
-            raise BonesimError(f"'{name}' must be a finite number > 0, got {v}", path, "plan")
+            raise BonesimError(f"'{name}' must be a finite number > 0, got {v}", path,
+                               "plan")
         values[name] = int(v) if integer else float(v)
     return DemoPlan(**values)
 
@@ -251,7 +252,9 @@ def _trace_floors(dist, base, view, clear, t_max):
         ta = t[active]
         gap = dist(base[active] + ta[:, None] * view) - clear
         stop = gap < TRACE_TOL_MM
-        floor[active[stop]] = np.where(gap[stop] < 0.0, -np.inf, ta[stop])
+        # (only the start can be too close: every later depth was stepped to)
+        floor[active[stop]] = np.where((gap[stop] < 0.0) & (ta[stop] == 0.0), -np.inf,
+                                       ta[stop])
         beyond = ~stop & (ta + gap >= t_max)
         floor[active[beyond]] = t_max
         go = ~stop & ~beyond
@@ -572,23 +575,21 @@ def _rinse(path, surface, ca, cb, reached, floor, lift, at, view, dist, clear, p
         sweeps.append(on[::-1] if n_line % 2 else on)
     irrigate = sweeps[::plan.irrigation_every]
     suction = [s[::-1] for s in sweeps[::-1]]           # back, still boustrophedon
-    lifted = np.maximum(height - plan.irrigation_lift_mm, lift)
-    for cols, h, speed, flag in ((irrigate, np.minimum(lifted, height), plan.irrigation_mm_s,
-                                  "irrigation"),
+    higher = np.minimum(np.maximum(height - plan.irrigation_lift_mm, lift), height)
+    up = at(0.0, 0.0, lift)                              # a point of the travel plane
+    for cols, h, speed, flag in ((irrigate, higher, plan.irrigation_mm_s, "irrigation"),
                                  (suction, height, plan.suction_mm_s, "suction")):
         for k, on in enumerate(cols):
             a = ca[on[0]]
             if k == 0 or not _hop(path, surface, at(a, cb[on[0]], 0.0), view, h[on[0]],
                                   dist, clear, speed, flag):
-                path.go(path.last - np.dot(path.last - at(0.0, 0.0, lift), view) * view,
-                        plan.travel_mm_s)
+                path.go(path.last - np.dot(path.last - up, view) * view, plan.travel_mm_s)
                 path.go(at(a, cb[on[0]], lift), plan.travel_mm_s)
                 path.go(at(a, cb[on[0]], h[on[0]]), speed, **{flag: True})   # in, on
             for q0, q1 in zip(on[:-1], on[1:]):
                 _stair(path, at(a, cb[q0], 0.0), at(a, cb[q1], 0.0), view, h[q0], h[q1],
                        speed, across, **{flag: True})
-    path.go(path.last - np.dot(path.last - at(0.0, 0.0, lift), view) * view,
-            plan.travel_mm_s)
+    path.go(path.last - np.dot(path.last - up, view) * view, plan.travel_mm_s)
 
 
 def _hop(path, surface, base1, view, d1, dist, clear, speed, flag) -> bool:

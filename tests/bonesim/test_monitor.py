@@ -156,8 +156,8 @@ def test_distance_matches_brute_force(phantom_monitor, phantom_model):
                             lo - 40 * rng.random((50, 3))])               # far away
         ref = brute_distance(p, vox, h)
         np.testing.assert_allclose(f.distance(p), ref, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(phantom_monitor.distances(p, 0.0)[:, phantom_monitor.labels
-                                                                   .index(lab)], ref,
+        column = phantom_monitor.labels.index(lab)
+        np.testing.assert_allclose(phantom_monitor.distances(p, 0.0)[:, column], ref,
                                    rtol=0, atol=1e-9)
 
 

@@ -13,8 +13,8 @@ from bonesim.case import load_case
 from bonesim.clearance import Clearance
 from bonesim.errors import BonesimError
 from bonesim.model import load_model, make_model, make_state, step
-from bonesim.toolpath import (DemoPlan, default_plan_path, demo_mastoidectomy,
-                              demo_trajectory, load_demo_plan)
+from bonesim.toolpath import (DemoPlan, _segment_clear, _trace_floors, default_plan_path,
+                              demo_mastoidectomy, demo_trajectory, load_demo_plan)
 from bonesim.trajectory import Trajectory
 
 from .fakes import BONE, NERVE
@@ -73,6 +73,47 @@ def test_demo_trajectory_is_the_cli_one(phantom):
     np.testing.assert_array_equal(again.pos_mm, traj.pos_mm)
     np.testing.assert_array_equal(again.suction, traj.suction)
     assert np.all(traj.speed_rpm == 60000.0) and np.all(traj.direction == 1)
+
+
+def test_floors_and_segment_checks_against_dense_sampling():
+    """The planner's two proofs on a clearance field: every depth above a
+    traced floor is clear and the floor is where it stops being so; a move
+    found clear is clear at every point, one clear by a margin is found so."""
+    rng = np.random.default_rng(5)
+    lab = np.zeros((40, 40, 40), np.uint8)
+    for _ in range(12):
+        lo = rng.integers(0, 36, 3)
+        hi = lo + rng.integers(1, 6, 3)
+        lab[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = 1
+    cl = Clearance(lab, (0.3, 0.4, 0.5), (0, 0, 0), [1])
+    clear = 2.0
+
+    def dist(p):
+        return cl.distance(p)
+
+    base = np.column_stack([rng.uniform(0, 12, 200), rng.uniform(0, 16, 200),
+                            np.full(200, -8.0)])
+    view = np.array([0.0, 0.0, 1.0])
+    floor = _trace_floors(dist, base, view, clear, 40.0)
+    for b, f in zip(base, floor):
+        if not np.isfinite(f):
+            assert dist(b)[0] < clear                       # starts too close
+            continue
+        t = np.linspace(0.0, f, 400)
+        assert dist(b + t[:, None] * view).min() >= clear - 1e-9
+        if f < 40.0:
+            assert dist(b + f * view)[0] < clear + 2e-3
+    found = 0
+    for _ in range(300):
+        p, q = rng.uniform(-3, 20, (2, 3))
+        dense = dist(p + np.linspace(0, 1, 3000)[:, None] * (q - p)).min()
+        ok = _segment_clear(dist, p, q, clear)
+        if ok:
+            found += 1
+            assert dense >= clear - 1e-9
+        elif dense >= clear + 0.05:
+            raise AssertionError(f"a move clear by {dense - clear:.3f} mm was refused")
+    assert 30 < found < 270
 
 
 # ------------------------------------------------------------------ rinses
