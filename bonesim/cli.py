@@ -91,23 +91,9 @@ def cmd_burrs(args) -> int:
 
 # ------------------------------------------------------ trajectories / runs
 def _demo_trajectory(case, burr_name: str):
-    import numpy as np
+    from .toolpath import demo_trajectory
 
-    from .burrs import load_burr
-    from .toolpath import DemoPlan, demo_mastoidectomy
-    from .trajectory import Trajectory
-
-    burr = load_burr(burr_name)
-    vol = case.load_volume()
-    cam = case.camera
-    plan = DemoPlan(burr_radius_mm=burr.radius_mm, speed_rpm=burr.default_speed_rpm)
-    t, pos, axis, drill = demo_mastoidectomy(vol.labels, vol.spacing_mm, vol.origin_mm,
-                                             case.structures, cam.eye_mm, cam.focal_mm,
-                                             plan)
-    n = len(t)
-    return Trajectory(t_s=t, pos_mm=pos, axis=axis, drill=drill,
-                      speed_rpm=np.full(n, plan.speed_rpm),
-                      direction=np.ones(n, dtype=np.int8))
+    return demo_trajectory(case, burr_name)
 
 
 def cmd_trajectory(args) -> int:

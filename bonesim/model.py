@@ -96,6 +96,10 @@ class Model:
         Nominal step rate [Hz].
     case : object
         The loaded case manifest, or None for models built from arrays.
+    clearance : bonesim.clearance.Clearance or None
+        Distances to every structure that is not bone, measured on the case's
+        label map at its source resolution (:func:`load_model` fills it; None
+        for models built from arrays, whose grid is their only label map).
     """
 
     name: str
@@ -112,6 +116,7 @@ class Model:
     params: np.ndarray
     haptic_rate_hz: float = HAPTIC_RATE_HZ
     case: object = None
+    clearance: object = None
 
     @property
     def spacing_mm(self) -> float:
@@ -258,9 +263,13 @@ def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
     # display colours settled on this volume (neighbours apart); the case keeps
     # the view derived from it, so nothing reads the volume twice
     c = c.resolved(vol)
-    return make_model(vol.labels, vol.spacing_mm, c.structures, b,
-                      origin_mm=vol.origin_mm, materials=materials, device=device,
-                      oversample=oversample, name=c.name, case=c)
+    model = make_model(vol.labels, vol.spacing_mm, c.structures, b,
+                       origin_mm=vol.origin_mm, materials=materials, device=device,
+                       oversample=oversample, name=c.name, case=c)
+    from .clearance import Clearance
+
+    danger = [s for s, st in enumerate(c.structures, start=1) if st.kind != "bone"]
+    return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
 
 
 @dataclass

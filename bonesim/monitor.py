@@ -23,14 +23,13 @@ seeded generator: the same seed and the same updates give the same spikes.
 
 Distances
 ---------
-:class:`NerveField` precomputes, on the nerve's bounding box plus
-``margin_mm``, the nearest nerve voxel of every grid point (a Euclidean
-distance transform with the feature indices, ``scipy.ndimage``). A lookup at
-any point takes the nearest-nerve voxels of the 8 surrounding grid points and
-returns the smallest distance to them: exact at voxel centres and (as the
-tests measure) within a hair of the brute-force minimum between them, never
-below it. Beyond the box the distance to the nerve's bounding box is returned
-(a lower bound, at least ``margin_mm``, where the activity is at baseline).
+Distances are measured on the case's label map at its source resolution
+(:mod:`bonesim.clearance`, held by the model as ``model.clearance``), not on
+the engine's grid: from the burr's centre to the nearest point of the nerve's
+voxels, each voxel the box of its (possibly anisotropic) spacing, exact and
+sub-voxel, 0 inside; minus the burr radius for the burr's surface. One kernel
+call answers every monitored nerve for all the samples of an update. Models
+built from arrays (no ``clearance``) measure on their grid, the same way.
 
 Where it runs
 -------------
@@ -53,9 +52,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from numba import njit
-
 from . import events
+from .clearance import Clearance
 from .errors import BonesimError
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 from .tomlfile import check_keys, get_number, read_toml
@@ -94,7 +92,7 @@ class ActivityParams:
     length_mm : float
         E-folding distance of the near-field irritation [mm].
     contact_mm : float
-        Burr surface this close to a nerve voxel centre is contact [mm].
+        Burr surface this close to the nerve (its voxels' boxes) is contact [mm].
     contact_hz : float
         Burst train added on contact, full drive [spikes/s].
     force_floor : float
@@ -108,7 +106,8 @@ class ActivityParams:
     warn_mm : float
         Warning distance for the console and the trace [mm].
     margin_mm : float
-        The distance field covers the nerve's bounding box plus this [mm].
+        Reach of the former cropped distance table [mm]; no longer used (the
+        distances are exact everywhere), kept so that monitor files load.
     """
 
     baseline_hz: float = 4.0
@@ -211,124 +210,69 @@ def _default_params() -> ActivityParams:
 
 
 # --------------------------------------------------------- distance field
-@njit(cache=True, nogil=True)
-def field_distance_kernel(feat, lo_mm, h, bb_lo, bb_hi, pos, out):
-    """Distance [mm] from each point to the nerve (see :class:`NerveField`).
-
-    Parameters
-    ----------
-    feat : (nx, ny, nz, 3) int16
-        Nearest nerve voxel of every grid point of the box (box indices).
-    lo_mm : (3,) float64
-        Centre of box voxel (0, 0, 0) [mm].
-    h : float
-        Voxel edge [mm].
-    bb_lo, bb_hi : (3,) float64
-        Bounding box of the nerve's voxel centres [mm].
-    pos : (n, 3) float64
-        Query points [mm].
-    out : (n,) float64
-        Receives the distances.
-    """
-    nx, ny, nz = feat.shape[0], feat.shape[1], feat.shape[2]
-    for q in range(pos.shape[0]):
-        u = (pos[q, 0] - lo_mm[0]) / h
-        v = (pos[q, 1] - lo_mm[1]) / h
-        w = (pos[q, 2] - lo_mm[2]) / h
-        if not (0.0 <= u <= nx - 1 and 0.0 <= v <= ny - 1 and 0.0 <= w <= nz - 1):
-            s = 0.0
-            for a in range(3):
-                e = max(bb_lo[a] - pos[q, a], 0.0, pos[q, a] - bb_hi[a])
-                s += e * e
-            out[q] = math.sqrt(s)        # NaN positions land here too
-            continue
-        i0 = min(int(u), max(nx - 2, 0))
-        j0 = min(int(v), max(ny - 2, 0))
-        k0 = min(int(w), max(nz - 2, 0))
-        best = 1e300
-        for di in range(2):
-            i = min(i0 + di, nx - 1)
-            for dj in range(2):
-                j = min(j0 + dj, ny - 1)
-                for dk in range(2):
-                    k = min(k0 + dk, nz - 1)
-                    fx = lo_mm[0] + h * feat[i, j, k, 0] - pos[q, 0]
-                    fy = lo_mm[1] + h * feat[i, j, k, 1] - pos[q, 1]
-                    fz = lo_mm[2] + h * feat[i, j, k, 2] - pos[q, 2]
-                    d2 = fx * fx + fy * fy + fz * fz
-                    if d2 < best:
-                        best = d2
-        out[q] = math.sqrt(best)
-
-
 class NerveField:
-    """Distance from any point to one nerve, by table lookup.
+    """Distance from any point to one nerve (a view of a :class:`Clearance`).
 
     Parameters
     ----------
     mask : (nx, ny, nz) bool
-        The nerve's voxels on the case grid.
-    spacing_mm : float
-        Voxel edge [mm].
+        The nerve's voxels.
+    spacing_mm : float or (3,) float
+        Voxel edge(s) along x, y, z [mm].
     origin_mm : (3,) float
         Centre of voxel (0, 0, 0) [mm].
     margin_mm : float
-        The field covers the nerve's bounding box plus this on every side [mm].
+        Unused (the distances are exact everywhere); kept for callers.
     name : str
         For error messages.
 
     Attributes
     ----------
-    lo_mm : (3,) float64
-        Centre of the box's first voxel [mm].
-    feat : (bx, by, bz, 3) int16
-        Nearest nerve voxel of every box voxel, in box indices.
+    clearance : Clearance
+        The field answering the distances (:meth:`of` shares a model's).
+    label : int
+        The nerve's structure index in ``clearance``.
     voxels_mm : (m, 3) float64
-        Centres of the nerve's voxels [mm] (for references and tests).
+        Centres of the nerve's surface voxels [mm] (targets for tests and
+        benchmarks; the distance to the nerve is the distance to their boxes).
+
+    Raises
+    ------
+    ValueError
+        If the nerve has no voxels.
     """
 
-    def __init__(self, mask, spacing_mm: float, origin_mm, margin_mm: float,
+    def __init__(self, mask, spacing_mm, origin_mm, margin_mm: float = 0.0,
                  name: str = "nerve"):
-        from scipy import ndimage
+        labels = np.asarray(mask, dtype=bool).astype(np.uint8)
+        self._attach(Clearance(labels, spacing_mm, origin_mm, [1]), 1, name)
 
-        mask = np.asarray(mask, dtype=bool)
-        idx = np.argwhere(mask)
-        if len(idx) == 0:
-            raise ValueError(f"monitored structure {name!r} has no voxels")
-        h = float(spacing_mm)
-        pad = int(math.ceil(margin_mm / h))
-        lo = idx.min(0) - pad
-        hi = idx.max(0) + pad + 1
-        shape = tuple(int(s) for s in hi - lo)
-        if max(shape) > np.iinfo(np.int16).max:
-            raise ValueError(f"monitored structure {name!r}: field box {shape} too large")
-        box = np.ones(shape, dtype=bool)                # True: not nerve
-        rel = idx - lo
-        box[rel[:, 0], rel[:, 1], rel[:, 2]] = False
-        ind = ndimage.distance_transform_edt(box, sampling=(h, h, h),
-                                             return_distances=False, return_indices=True)
+    @classmethod
+    def of(cls, clearance: Clearance, label: int, name: str = "nerve") -> "NerveField":
+        """The field of structure ``label`` of an existing clearance field."""
+        self = cls.__new__(cls)
+        self._attach(clearance, label, name)
+        return self
+
+    def _attach(self, clearance: Clearance, label: int, name: str) -> None:
         self.name = name
-        self.spacing_mm = h
-        origin = np.asarray(origin_mm, dtype=np.float64).reshape(3)
-        self.lo_mm = origin + h * lo
-        self.feat = np.ascontiguousarray(np.moveaxis(ind, 0, -1).astype(np.int16))
-        self.voxels_mm = origin + h * idx
-        self.bb_lo = self.voxels_mm.min(0)
-        self.bb_hi = self.voxels_mm.max(0)
+        self.clearance = clearance
+        self.label = int(label)
+        self.spacing_mm = clearance.spacing_mm
+        self.voxels_mm = clearance.surface_mm(self.label)
+        if len(self.voxels_mm) == 0:
+            raise ValueError(f"monitored structure {name!r} has no voxels")
+        self._mask = clearance.group_mask([[self.label]])
 
     @property
     def nbytes(self) -> int:
-        """Memory of the lookup table [bytes]."""
-        return int(self.feat.nbytes)
+        """Memory of the clearance field answering for it [bytes]."""
+        return self.clearance.nbytes
 
     def distance(self, pos_mm) -> np.ndarray:
         """Distance [mm] from points ``pos_mm`` ((3,) or (n, 3)) to the nerve's
-        nearest voxel centre; shape ``(n,)`` (``(1,)`` for one point)."""
-        p = np.ascontiguousarray(np.asarray(pos_mm, dtype=np.float64).reshape(-1, 3))
-        out = np.empty(p.shape[0])
-        field_distance_kernel(self.feat, self.lo_mm, self.spacing_mm, self.bb_lo,
-                              self.bb_hi, p, out)
-        return out
+        voxels (their boxes; 0 inside); shape ``(n,)``."""
+        return self.clearance.distances(pos_mm, self._mask)[:, 0]
 
 
 # ------------------------------------------------------------------ spikes
@@ -379,7 +323,9 @@ class NerveMonitor:
     Parameters
     ----------
     model : Model
-        Its grid gives the nerves' voxels.
+        Its ``clearance`` (the case's label map at source resolution) gives
+        the distances to the nerves; a model without one (built from arrays)
+        measures on its grid.
     params : ActivityParams, optional
         Default: the shipped ``monitor.toml``.
     seed : int
@@ -394,7 +340,10 @@ class NerveMonitor:
         Grid label of each nerve.
     colors : (k, 3) uint8
         Display colour of each nerve.
+    clearance : Clearance
+        The field answering the distances.
     fields : list of NerveField
+        One view of it per nerve.
     rates_hz, distance_mm : (k,) float64
         After the last update.
     t_s : float
@@ -422,18 +371,21 @@ class NerveMonitor:
         self.colors = np.array([st.display_color for _, st in chosen],
                                dtype=np.uint8).reshape(-1, 3)
         self.seed = int(seed)
-        g = model.grid
-        self.fields = []
-        if chosen:
+        cl = getattr(model, "clearance", None)
+        if chosen and (cl is None or not set(self.labels) <= set(cl.structures)):
+            g = model.grid
             _, lab = g.to_dense()
-            for label, st in chosen:
-                try:
-                    self.fields.append(NerveField(lab == label, g.spacing_mm, g.origin_mm,
-                                                  self.params.margin_mm, st.name))
-                except ValueError as exc:
-                    manifest = getattr(getattr(model, "case", None), "manifest", None)
-                    raise BonesimError(f"{exc}: it cannot be monitored", manifest,
-                                       f"structures[{label - 1}]") from None
+            cl = Clearance(lab, g.spacing_mm, g.origin_mm, self.labels)
+        self.clearance = cl
+        self.fields = []
+        for label, st in chosen:
+            try:
+                self.fields.append(NerveField.of(cl, label, st.name))
+            except ValueError as exc:
+                manifest = getattr(getattr(model, "case", None), "manifest", None)
+                raise BonesimError(f"{exc}: it cannot be monitored", manifest,
+                                   f"structures[{label - 1}]") from None
+        self._groups = None if cl is None else cl.group_mask([[s] for s in self.labels])
         self.radius_mm = float(model.burr.radius_mm)
         self.reset()
 
@@ -466,10 +418,11 @@ class NerveMonitor:
         """
         p = np.asarray(pos_mm, dtype=np.float64).reshape(-1, 3)
         r = self.radius_mm if radius_mm is None else np.asarray(radius_mm, np.float64)
-        out = np.empty((p.shape[0], self.n))
-        for c, f in enumerate(self.fields):
-            out[:, c] = f.distance(p)
-        return out - np.reshape(r, (-1, 1))
+        if self.n == 0:
+            return np.empty((p.shape[0], 0))
+        out = self.clearance.distances(p, self._groups)
+        out -= np.reshape(r, (-1, 1))
+        return out
 
     def update_many(self, t_s, pos_mm, force_n, drill, radius_mm=None):
         """Advance through ``n`` tool samples (e.g. the haptic steps since the
@@ -659,8 +612,7 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     arr = msh.arrays
     mstat = arr["mon.status"]
     nm = NerveMonitor(model, params, seed)
-    field_distance_kernel(nm.fields[0].feat, nm.fields[0].lo_mm, 1.0, nm.fields[0].bb_lo,
-                          nm.fields[0].bb_hi, np.zeros((1, 3)), np.zeros(1))   # compile
+    nm.distances(np.zeros((1, 3)))                    # compile (or load) the kernel
     k = nm.n
     hist, spikes = shared_rings(arr)
     status = sh["status"]

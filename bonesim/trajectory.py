@@ -6,7 +6,7 @@ ignored)::
 
     t_s, x_mm, y_mm, z_mm, axis_x, axis_y, axis_z, drill, speed_rpm
 
-plus, optionally, ``direction``:
+plus, optionally, ``direction``, ``suction`` and ``irrigation``:
 
 ``t_s``
     Time [s], strictly increasing (it may start anywhere).
@@ -21,6 +21,18 @@ plus, optionally, ``direction``:
     Spindle speed [rpm], >= 0.
 ``direction``
     ``1`` (or ``+1``) forward, ``-1`` reverse; ``1`` when the column is absent.
+``suction``
+    ``1`` while the suction is on, else ``0``; ``0`` when the column is absent.
+``irrigation``
+    ``1`` while the irrigation runs, else ``0``; ``0`` when the column is absent.
+
+Suction and irrigation: on a sample with either set, the tool position
+stands for the tip of the suction (irrigation) cannula, and the drill must be
+off (``drill`` 0): a scripted surgeon rinses between passes, the drill
+resting (the demo plan, :mod:`bonesim.toolpath`, sweeps the tip over the
+cavity just above the cut surface, never touching bone). Both may be on at
+once (a suction-irrigator). Consumers (the dust model, the headless run) read
+the suction / irrigation tip from the tool position of those samples.
 
 Blank lines are skipped. Every problem is raised as a
 :class:`~bonesim.errors.BonesimError` naming the file, the line (1-based, as
@@ -28,7 +40,7 @@ an editor shows it) and the column.
 
 Between samples, :meth:`Trajectory.sample_at` interpolates the position
 linearly and the axis by normalized linear interpolation, and holds the
-previous sample's drill state, speed and direction.
+previous sample's drill state, speed, direction, suction and irrigation.
 """
 from __future__ import annotations
 
@@ -37,7 +49,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import numpy as np
 
@@ -51,21 +63,59 @@ __all__ = ["COLUMNS", "OPTIONAL_COLUMNS", "Trajectory", "TrajectorySample",
 COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "axis_x", "axis_y", "axis_z", "drill",
            "speed_rpm")
 #: Columns a trajectory file may add.
-OPTIONAL_COLUMNS = ("direction",)
+OPTIONAL_COLUMNS = ("direction", "suction", "irrigation")
 _ALL_COLUMNS = COLUMNS + OPTIONAL_COLUMNS
 _AXIS_COLUMNS = ("axis_x", "axis_y", "axis_z")
 _POS_COLUMNS = ("x_mm", "y_mm", "z_mm")
 _DELIMITER = ","
 _FORWARD, _REVERSE = 1, -1
 _DRILL_VALUES = (0.0, 1.0)
+#: Columns holding 0/1 states.
+_FLAG_COLUMNS = ("drill", "suction", "irrigation")
 
 # Relative slack when counting fixed-rate steps in a time span, so that a
 # span that is an exact multiple of the step (up to rounding) keeps its end.
 _STEP_SLACK = 1e-9
 
 
-#: A trajectory's samples are the engine's own device samples.
-TrajectorySample = Sample
+class TrajectorySample(NamedTuple):
+    """One sample of a trajectory: a device :class:`~bonesim.model.Sample`
+    (the same leading fields, so :func:`bonesim.model.step` takes it) plus
+    the rinse states.
+
+    Attributes
+    ----------
+    t_s : float
+        Time [s].
+    pos_mm : (3,) float64
+        Burr centre, or the suction / irrigation tip while either is on,
+        case frame [mm].
+    axis : (3,) float64
+        Drill axis (unit vector, from the handle toward the burr tip).
+    drill : bool
+        Drill running.
+    speed_rpm : float
+        Spindle speed [rpm].
+    direction : int
+        +1 forward, -1 reverse.
+    suction : bool
+        Suction on (the position is the suction tip).
+    irrigation : bool
+        Irrigation running (the position is the irrigation tip).
+    """
+
+    t_s: float
+    pos_mm: np.ndarray
+    axis: np.ndarray
+    drill: bool
+    speed_rpm: float
+    direction: int = 1
+    suction: bool = False
+    irrigation: bool = False
+
+    def device_sample(self) -> Sample:
+        """The device sample alone (without the rinse states)."""
+        return Sample(*self[:6])
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -91,6 +141,9 @@ class Trajectory:
         Spindle speeds [rpm], >= 0.
     direction : (n,) array_like of int, optional
         +1 forward / -1 reverse; all forward by default.
+    suction, irrigation : (n,) array_like of bool, optional
+        Suction on / irrigation running (the position is then that tip and
+        the drill must be off); all off by default.
 
     Raises
     ------
@@ -109,6 +162,8 @@ class Trajectory:
     drill: np.ndarray
     speed_rpm: np.ndarray
     direction: np.ndarray = field(default=None)
+    suction: np.ndarray = field(default=None)
+    irrigation: np.ndarray = field(default=None)
 
     def __post_init__(self):
         t = np.array(self.t_s, dtype=np.float64).reshape(-1)
@@ -123,9 +178,13 @@ class Trajectory:
             direction = np.full(n, _FORWARD, dtype=np.int8)
         else:
             direction = np.array(self.direction)
+        suction, irrigation = (np.zeros(n, dtype=bool) if v is None else np.array(v)
+                               for v in (self.suction, self.irrigation))
         for label, arr, shape in (("pos_mm", pos, (n, 3)), ("axis", axis, (n, 3)),
                                   ("drill", drill, (n,)), ("speed_rpm", speed, (n,)),
-                                  ("direction", direction, (n,))):
+                                  ("direction", direction, (n,)),
+                                  ("suction", suction, (n,)),
+                                  ("irrigation", irrigation, (n,))):
             if arr.shape != shape:
                 raise ValueError(f"{label} has shape {arr.shape}, expected {shape}")
         for label, arr in (("t_s", t), ("pos_mm", pos), ("axis", axis),
@@ -136,8 +195,13 @@ class Trajectory:
             raise ValueError("t_s must increase strictly")
         if np.any(speed < 0):
             raise ValueError("speed_rpm must be >= 0")
-        if not np.all(np.isin(drill, (False, True))):
-            raise ValueError("drill must hold only 0/1 or False/True")
+        for label, arr in (("drill", drill), ("suction", suction),
+                           ("irrigation", irrigation)):
+            if not np.all(np.isin(arr, (False, True))):
+                raise ValueError(f"{label} must hold only 0/1 or False/True")
+        if np.any(drill.astype(bool) & (suction.astype(bool) | irrigation.astype(bool))):
+            raise ValueError("suction and irrigation need the drill off (the tool "
+                             "position is then their tip)")
         if not np.all(np.isin(direction, (_FORWARD, _REVERSE))):
             raise ValueError("direction must hold only +1 or -1")
         norm = np.linalg.norm(axis, axis=1)
@@ -150,6 +214,8 @@ class Trajectory:
         set_(self, "drill", _frozen(drill.astype(bool)))
         set_(self, "speed_rpm", _frozen(speed))
         set_(self, "direction", _frozen(direction.astype(np.int8)))
+        set_(self, "suction", _frozen(suction.astype(bool)))
+        set_(self, "irrigation", _frozen(irrigation.astype(bool)))
 
     def __len__(self) -> int:
         return self.t_s.shape[0]
@@ -173,7 +239,8 @@ class Trajectory:
         """The ``i``-th stored sample as a :class:`TrajectorySample`."""
         return TrajectorySample(float(self.t_s[i]), self.pos_mm[i].copy(),
                                 self.axis[i].copy(), bool(self.drill[i]),
-                                float(self.speed_rpm[i]), int(self.direction[i]))
+                                float(self.speed_rpm[i]), int(self.direction[i]),
+                                bool(self.suction[i]), bool(self.irrigation[i]))
 
     def samples(self) -> Iterator[TrajectorySample]:
         """Iterate over the stored samples, in time order."""
@@ -195,7 +262,8 @@ class Trajectory:
         degenerate = norm == 0
         axis = np.where(degenerate[:, None], self.axis[i],
                         blend / np.where(degenerate, 1.0, norm)[:, None])
-        return (tq, pos, axis, self.drill[i], self.speed_rpm[i], self.direction[i])
+        return (tq, pos, axis, self.drill[i], self.speed_rpm[i], self.direction[i],
+                self.suction[i], self.irrigation[i])
 
     def sample_at(self, t_s: float) -> TrajectorySample:
         """The tool state at time ``t_s``.
@@ -210,13 +278,15 @@ class Trajectory:
         -------
         TrajectorySample
             Position linearly interpolated, axis normalized-lerped, drill,
-            speed and direction held from the last sample at or before
-            ``t_s``. The returned ``t_s`` is the clamped time.
+            speed, direction, suction and irrigation held from the last
+            sample at or before ``t_s``. The returned ``t_s`` is the clamped
+            time.
         """
-        tq, pos, axis, drill, speed, direction = self._interpolate(
+        tq, pos, axis, drill, speed, direction, suction, irrigation = self._interpolate(
             np.array([t_s], dtype=np.float64))
         return TrajectorySample(float(tq[0]), pos[0], axis[0], bool(drill[0]),
-                                float(speed[0]), int(direction[0]))
+                                float(speed[0]), int(direction[0]), bool(suction[0]),
+                                bool(irrigation[0]))
 
     def at_times(self, times_s) -> "Trajectory":
         """The trajectory sampled at given times.
@@ -233,8 +303,7 @@ class Trajectory:
             As :meth:`sample_at`, for every time.
         """
         times = np.asarray(times_s, dtype=np.float64).reshape(-1)
-        tq, pos, axis, drill, speed, direction = self._interpolate(times)
-        return Trajectory(tq, pos, axis, drill, speed, direction)
+        return Trajectory(*self._interpolate(times))
 
     def resample(self, rate_hz: float, start_s: float | None = None,
                  end_s: float | None = None) -> "Trajectory":
@@ -368,7 +437,8 @@ def read_trajectory(path: str | Path) -> Trajectory:
         Naming the file, line and column: missing or unreadable file, empty
         file, missing, unknown or repeated columns, a row with the wrong
         number of cells, a non-numeric or non-finite cell, time not strictly
-        increasing, a zero axis, drill not 0/1, a negative speed, a direction
+        increasing, a zero axis, drill, suction or irrigation not 0/1, suction
+        or irrigation with the drill running, a negative speed, a direction
         not +1/-1, or a header without samples.
     """
     path = Path(path)
@@ -403,8 +473,16 @@ def read_trajectory(path: str | Path) -> Trajectory:
     axis = np.column_stack([col[c] for c in _AXIS_COLUMNS])
     checks.append((np.all(axis == 0, axis=1), "axis_x",
                    "the axis (axis_x, axis_y, axis_z) is the zero vector"))
-    checks.append((~np.isin(col["drill"], _DRILL_VALUES), "drill",
-                   "drill must be 0 or 1, got {cell}"))
+    for name in _FLAG_COLUMNS:
+        if name in col:
+            checks.append((~np.isin(col[name], _DRILL_VALUES), name,
+                           name + " must be 0 or 1, got {cell}"))
+    running = col["drill"] == _DRILL_VALUES[1]
+    for name in ("suction", "irrigation"):
+        if name in col:
+            checks.append((running & (col[name] == _DRILL_VALUES[1]), name,
+                           name + " needs the drill off (the tool position is then "
+                           "its tip), got 1 with drill 1"))
     checks.append((col["speed_rpm"] < 0, "speed_rpm", "speed_rpm must be >= 0, got {cell}"))
     if "direction" in col:
         checks.append((~np.isin(col["direction"], (_FORWARD, _REVERSE)), "direction",
@@ -413,9 +491,10 @@ def read_trajectory(path: str | Path) -> Trajectory:
 
     pos = np.column_stack([col[c] for c in _POS_COLUMNS])
     direction = col["direction"] if "direction" in col else None
+    flags = [col[name] == _DRILL_VALUES[1] if name in col else None
+             for name in ("suction", "irrigation")]
     try:
-        return Trajectory(t, pos, axis, col["drill"] == _DRILL_VALUES[1],
-                          col["speed_rpm"], direction)
+        return Trajectory(t, pos, axis, running, col["speed_rpm"], direction, *flags)
     except ValueError as exc:  # e.g. an axis too small to normalize
         raise BonesimError(str(exc), path) from None
 
@@ -425,7 +504,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
 # --------------------------------------------------------------------------
 
 def write_trajectory(path: str | Path, traj: Trajectory) -> None:
-    """Write a trajectory as CSV, with every column including ``direction``.
+    """Write a trajectory as CSV, with every column including the optional ones.
 
     Numbers are written in their shortest exact form, so reading the file
     back gives the same values (axes are re-normalized, which may move them
@@ -451,7 +530,9 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> None:
                  *(repr(float(v)) for v in traj.axis[i]),
                  "1" if traj.drill[i] else "0",
                  repr(float(traj.speed_rpm[i])),
-                 str(int(traj.direction[i]))]
+                 str(int(traj.direction[i])),
+                 "1" if traj.suction[i] else "0",
+                 "1" if traj.irrigation[i] else "0"]
         out.write(_DELIMITER.join(cells) + "\n")
     try:
         path.write_text(out.getvalue(), encoding="utf-8")

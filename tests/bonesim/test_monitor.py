@@ -119,45 +119,72 @@ def phantom_monitor(phantom_model):
     return NerveMonitor(phantom_model, P, seed=3)
 
 
-def brute_distance(points, voxels_mm):
-    """Reference: smallest distance from each point to any nerve voxel centre."""
+def brute_distance(points, voxels_mm, spacing_mm):
+    """Reference: smallest distance from each point to the box of any nerve
+    voxel (centres ``voxels_mm``, edges ``spacing_mm``)."""
+    half = np.broadcast_to(np.asarray(spacing_mm, float), (3,)) / 2
     out = np.empty(len(points))
     for a in range(0, len(points), 256):
-        diff = points[a:a + 256, None, :] - voxels_mm[None]
-        out[a:a + 256] = np.sqrt((diff ** 2).sum(-1)).min(1)
+        gap = np.abs(points[a:a + 256, None, :] - voxels_mm[None]) - half
+        out[a:a + 256] = np.sqrt((np.maximum(gap, 0.0) ** 2).sum(-1)).min(1)
     return out
+
+
+def nerve_voxels_mm(vol, label):
+    """Centres of every voxel of a structure in a volume's native map."""
+    nat = vol.native_labels
+    return nat.origin_mm + nat.spacing_mm * np.argwhere(nat.labels == label), nat.spacing_mm
 
 
 def test_phantom_nerves_are_the_monitored_ones(phantom_monitor, phantom_model):
     nm = phantom_monitor
     assert nm.names == ["facial_nerve", "chorda_tympani"] and nm.n == 2
+    assert nm.clearance is phantom_model.clearance         # the model's, not rebuilt
     counts = phantom_model.grid.counts_by_label(len(phantom_model.structures))
     for f, lab in zip(nm.fields, nm.labels):
-        assert len(f.voxels_mm) == counts[lab]
-        assert f.nbytes < 4e6                    # cropped box, not the whole volume
+        assert 0 < len(f.voxels_mm) <= counts[lab]          # the nerve's surface voxels
+        assert f.nbytes < 4e6                    # surface voxels, not the whole volume
     assert nm.colors.tolist() == [[250, 230, 40], [250, 150, 30]]
 
 
-def test_distance_lookup_matches_brute_force(phantom_monitor):
+def test_distance_matches_brute_force(phantom_monitor, phantom_model):
     rng = np.random.default_rng(11)
-    for f in phantom_monitor.fields:
-        h = f.spacing_mm
-        shape = np.array(f.feat.shape[:3])
-        # exact at voxel centres
-        ijk = rng.integers(0, shape, (1500, 3))
-        p = f.lo_mm + h * ijk
-        np.testing.assert_allclose(f.distance(p), brute_distance(p, f.voxels_mm),
+    vol = phantom_model.case.load_volume()
+    for f, lab in zip(phantom_monitor.fields, phantom_monitor.labels):
+        vox, h = nerve_voxels_mm(vol, lab)
+        lo, hi = vox.min(0) - 12.0, vox.max(0) + 12.0
+        p = np.concatenate([lo + rng.random((3000, 3)) * (hi - lo),      # around
+                            vox[rng.integers(0, len(vox), 300)],          # inside
+                            lo - 40 * rng.random((50, 3))])               # far away
+        ref = brute_distance(p, vox, h)
+        np.testing.assert_allclose(f.distance(p), ref, rtol=0, atol=1e-9)
+        column = phantom_monitor.labels.index(lab)
+        np.testing.assert_allclose(phantom_monitor.distances(p, 0.0)[:, column], ref,
                                    rtol=0, atol=1e-9)
-        # anywhere in the box: never below the true distance, and almost always it
-        p = f.lo_mm + rng.random((4000, 3)) * (shape - 1) * h
-        err = f.distance(p) - brute_distance(p, f.voxels_mm)
-        assert err.min() >= -1e-9
-        assert err.max() <= math.sqrt(3) * h              # guaranteed bound
-        assert np.percentile(err, 99) < 1e-6 and err.max() < 0.05 * h
-        # beyond the box: a lower bound of at least the margin
-        far = f.bb_hi + P.margin_mm + 1.0 + 30 * rng.random((50, 3))
-        d, ref = f.distance(far), brute_distance(far, f.voxels_mm)
-        assert np.all(d <= ref + 1e-9) and np.all(d >= P.margin_mm)
+
+
+def test_distances_come_from_the_native_map_not_the_grid(phantom_model):
+    """A case whose source is finer than the engine's grid: the monitor
+    measures on the source."""
+    import dataclasses as dc
+
+    from bonesim.clearance import Clearance
+    from bonesim.phantom import phantom_volume
+
+    fine = phantom_volume(7, 0.25, (52.0, 52.0, 52.0))
+    nerves = [5, 6]
+    model = dc.replace(phantom_model, clearance=Clearance.from_native(fine.native_labels,
+                                                                     nerves))
+    nm = NerveMonitor(model, P)
+    grid_nm = NerveMonitor(dc.replace(phantom_model, clearance=None), P)
+    rng = np.random.default_rng(2)
+    for c, lab in enumerate(nm.labels):
+        vox, h = nerve_voxels_mm(fine, lab)
+        p = vox.mean(0) + rng.normal(scale=4.0, size=(2000, 3))
+        ref = brute_distance(p, vox, h)
+        np.testing.assert_allclose(nm.distances(p, 0.0)[:, c], ref, rtol=0, atol=1e-9)
+        # the grid (0.5 mm) answers otherwise
+        assert np.abs(grid_nm.distances(p, 0.0)[:, c] - ref).max() > 0.05
 
 
 def test_burr_surface_distance_subtracts_the_radius(phantom_monitor):
@@ -167,6 +194,9 @@ def test_burr_surface_distance_subtracts_the_radius(phantom_monitor):
     assert d.shape == (1, 2)
     assert d[0, 0] == pytest.approx(f.distance(p)[0] - 2.5)
     assert phantom_monitor.distances(p, radius_mm=0.5)[0, 0] == pytest.approx(d[0, 0] + 2.0)
+    r = np.array([0.5, 1.0, 2.5])
+    many = phantom_monitor.distances(np.tile(p, (3, 1)), radius_mm=r)
+    np.testing.assert_allclose(many[:, 0], f.distance(p)[0] - r)
 
 
 # ---------------------------------------------------------------------- spikes

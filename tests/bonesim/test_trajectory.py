@@ -9,8 +9,9 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from hypothesis.extra import numpy as hnp
 
 from bonesim.errors import BonesimError
-from bonesim.trajectory import (COLUMNS, Trajectory, TrajectorySample, read_trajectory,
-                                write_trajectory)
+from bonesim.model import Sample
+from bonesim.trajectory import (COLUMNS, OPTIONAL_COLUMNS, Trajectory, TrajectorySample,
+                                read_trajectory, write_trajectory)
 
 HEADER = "t_s, x_mm, y_mm, z_mm, axis_x, axis_y, axis_z, drill, speed_rpm"
 GOOD_ROWS = [
@@ -60,7 +61,51 @@ def test_read_good_file(tmp_path):
     np.testing.assert_array_equal(traj.drill, [False, True, False])
     np.testing.assert_array_equal(traj.speed_rpm, [0, 60000, 0])
     np.testing.assert_array_equal(traj.direction, [1, 1, 1])
+    assert traj.suction.dtype == bool and traj.irrigation.dtype == bool
+    assert not traj.suction.any() and not traj.irrigation.any()     # absent: off
     assert (traj.start_s, traj.end_s, traj.duration_s) == (0.0, 1.0, 1.0)
+
+
+RINSE_HEADER = HEADER + ", suction, irrigation"
+RINSE_ROWS = [
+    "0.0, 0, 0, 0, 0, 0, 1, 1, 60000, 0, 0",
+    "1.0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1",       # irrigating
+    "2.0, 2, 0, 0, 0, 0, 1, 0, 0, 1, 1",       # suction-irrigator
+    "3.0, 3, 0, 0, 0, 0, 1, 0, 0, 1, 0",       # suction
+    "4.0, 4, 0, 0, 0, 0, 1, 1, 60000, 0, 0",
+]
+
+
+def test_suction_and_irrigation_columns(tmp_path):
+    traj = read_trajectory(write(tmp_path, [RINSE_HEADER, *RINSE_ROWS]))
+    np.testing.assert_array_equal(traj.drill, [1, 0, 0, 0, 1])
+    np.testing.assert_array_equal(traj.suction, [0, 0, 1, 1, 0])
+    np.testing.assert_array_equal(traj.irrigation, [0, 1, 1, 0, 0])
+    # one column alone is fine too
+    only = read_trajectory(write(tmp_path, [HEADER + ", suction",
+                                            "0, 0, 0, 0, 0, 0, 1, 0, 0, 1"], "s.csv"))
+    assert only.suction.tolist() == [True] and only.irrigation.tolist() == [False]
+    # held between samples like the drill
+    s = traj.sample_at(2.5)
+    assert isinstance(s, TrajectorySample)
+    assert (s.drill, s.suction, s.irrigation) == (False, True, True)
+    np.testing.assert_allclose(s.pos_mm, [2.5, 0, 0])
+    assert traj.sample(1).irrigation and not traj.sample(1).suction
+    r = traj.resample(2.0)
+    np.testing.assert_array_equal(r.suction, [0, 0, 0, 0, 1, 1, 1, 1, 0])
+    np.testing.assert_array_equal(r.irrigation, [0, 0, 1, 1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(r.drill, [1, 1, 0, 0, 0, 0, 0, 0, 1])
+    a = traj.at_times([0.5, 3.25])
+    assert a.suction.tolist() == [False, True] and a.irrigation.tolist() == [False, False]
+
+
+def test_trajectory_samples_are_device_samples():
+    traj = Trajectory([0.0, 1.0], np.zeros((2, 3)), np.tile([0, 0, 1.0], (2, 1)),
+                      [False, False], [0.0, 0.0], suction=[True, False])
+    s = traj.sample_at(0.5)
+    d = s.device_sample()
+    assert isinstance(d, Sample) and tuple(d) == tuple(s)[:6]
+    assert s._fields[:6] == Sample._fields
 
 
 def test_columns_in_any_order_with_direction(tmp_path):
@@ -198,7 +243,9 @@ def trajectories(draw):
     drill = draw(hnp.arrays(bool, n))
     speed = draw(hnp.arrays(np.float64, n, elements=st.floats(0, 1e5)))
     direction = draw(hnp.arrays(np.int8, n, elements=st.sampled_from([1, -1])))
-    return Trajectory(t, pos, axis, drill, speed, direction)
+    suction = draw(hnp.arrays(bool, n)) & ~drill
+    irrigation = draw(hnp.arrays(bool, n)) & ~drill
+    return Trajectory(t, pos, axis, drill, speed, direction, suction, irrigation)
 
 
 @settings(max_examples=60, deadline=None,
@@ -214,6 +261,8 @@ def test_round_trip(tmp_path, traj):
     np.testing.assert_array_equal(back.drill, traj.drill)
     np.testing.assert_array_equal(back.speed_rpm, traj.speed_rpm)
     np.testing.assert_array_equal(back.direction, traj.direction)
+    np.testing.assert_array_equal(back.suction, traj.suction)
+    np.testing.assert_array_equal(back.irrigation, traj.irrigation)
 
 
 @settings(max_examples=40, deadline=None)
@@ -229,12 +278,14 @@ def test_interpolation_stays_between_neighbours(traj, frac):
     assert np.all(s.pos_mm >= lo - tol) and np.all(s.pos_mm <= hi + tol)
     assert abs(np.linalg.norm(s.axis) - 1) < 1e-12
     assert s.drill == traj.drill[i] and s.direction == traj.direction[i]
+    assert s.suction == traj.suction[i] and s.irrigation == traj.irrigation[i]
 
 
 def test_written_header_is_exact(tmp_path):
     path = tmp_path / "w.csv"
     write_trajectory(path, simple())
-    assert path.read_text().splitlines()[0] == ",".join(COLUMNS) + ",direction"
+    assert path.read_text().splitlines()[0] == ",".join(COLUMNS + OPTIONAL_COLUMNS)
+    assert OPTIONAL_COLUMNS == ("direction", "suction", "irrigation")
 
 
 def test_write_to_missing_folder(tmp_path):
@@ -339,6 +390,26 @@ def test_bad_direction(tmp_path):
     assert err.field == "line 2, column 'direction'"
 
 
+@pytest.mark.parametrize("column", ["suction", "irrigation"])
+@pytest.mark.parametrize("cell", ["2", "0.5", "-1"])
+def test_rinse_flags_not_boolean(tmp_path, column, cell):
+    err = error_of(write(tmp_path, [HEADER + f", {column}", GOOD_ROWS[0] + ", 0",
+                                    f"0.5, 0, 0, 0, 0, 0, 1, 0, 0, {cell}"]))
+    assert f"{column} must be 0 or 1, got '{cell}'" in str(err)
+    assert err.field == f"line 3, column '{column}'"
+
+
+@pytest.mark.parametrize("column", ["suction", "irrigation"])
+def test_rinse_needs_the_drill_off(tmp_path, column):
+    err = error_of(write(tmp_path, [HEADER + f", {column}", GOOD_ROWS[0] + ", 1",
+                                    "0.5, 0, 0, 0, 0, 0, 1, 1, 60000, 1"]))
+    assert f"{column} needs the drill off" in str(err)
+    assert err.field == f"line 3, column '{column}'"
+    with pytest.raises(ValueError, match="need the drill off"):
+        Trajectory([0.0], np.zeros((1, 3)), [[0, 0, 1]], [True], [0.0],
+                   **{column: [True]})
+
+
 def test_earliest_problem_is_reported(tmp_path):
     # line 3 has a bad drill, line 4 a bad time: line 3 is reported.
     err = error_of(write(tmp_path, [HEADER, GOOD_ROWS[0], "0.5, 1, 2, 3, 0, 1, 0, 7, 6",
@@ -358,3 +429,8 @@ def test_constructor_checks_shapes():
         Trajectory([1.0, 1.0], np.zeros((2, 3)), np.ones((2, 3)), [1, 1], [0, 0])
     with pytest.raises(ValueError, match="zero"):
         Trajectory([0.0], np.zeros((1, 3)), np.zeros((1, 3)), [1], [0])
+    with pytest.raises(ValueError, match="suction has shape"):
+        Trajectory([0.0, 1.0], np.zeros((2, 3)), np.ones((2, 3)), [0, 0], [0, 0],
+                   suction=[0, 0, 0])
+    with pytest.raises(ValueError, match="irrigation must hold only 0/1"):
+        Trajectory([0.0], np.zeros((1, 3)), np.ones((1, 3)), [0], [0], irrigation=[2])
