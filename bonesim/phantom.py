@@ -62,6 +62,9 @@ from scipy import ndimage
 
 from .volumes import CaseVolume
 
+__all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
+           "PhantomParts", "build_phantom", "phantom_volume", "lateral_surface_x_mm"]
+
 PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
          "facial_nerve", "chorda_tympani", "labyrinth", "ossicles")
 """Structure names the phantom can paint (the default manifest order)."""
@@ -79,8 +82,8 @@ DEFAULT_SIZE_MM = (52.0, 52.0, 52.0)
 # 1.5-2 cm below the canal; spine of Henle 1-2 mm; squama a few mm thick.
 CORE_CENTER_MM = (0.0, 2.0, -1.0)      # petromastoid core (medial, mostly hidden;
 CORE_SEMI_MM = (17.0, 22.0, 19.0)      # the fossae carve its top and back)
-TEGMEN_CENTER_MM = (1.0, 2.0, 11.0)    # roof of the core: the middle fossa's
-TEGMEN_SEMI_MM = (16.0, 20.0, 3.0)     # floor (the fossa carves all above it)
+TEGMEN_CENTER_MM = (1.5, 0.0, 10.0)    # roof of the core: the middle fossa's
+TEGMEN_SEMI_MM = (16.5, 22.5, 4.5)     # floor (the fossa carves all above it)
 PETROUS_AXIS_MM = ((-3.0, -5.0, 0.0), (-20.0, -16.5, 2.0))   # pyramid, to the apex
 PETROUS_RADII_MM = (8.0, 4.5)
 MASTOID_CENTER_MM = (9.5, 5.0, -1.0)   # mastoid part: a lens whose convex
@@ -184,7 +187,6 @@ HU_TEXTURE_MM = 4.0          # correlation length of that texture
 HU_BY_PART = {"sigmoid_sinus": 50.0, "posterior_fossa_dura": 40.0,
               "middle_fossa_dura": 40.0, "facial_nerve": 40.0,
               "chorda_tympani": 40.0, "labyrinth": 10.0, "ossicles": 1200.0}
-
 
 
 def _point_on_path(path, z):
@@ -417,11 +419,16 @@ def _roughness(x, y, z):
     return (ROUGH_MM * np.sqrt(2.0 / ROUGH_WAVES)) * w * s      # unit-variance sum
 
 
-def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM) -> np.ndarray:
-    """Signed distance [mm] to the outer shape on the grid (float32)."""
+def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True) -> np.ndarray:
+    """Signed distance [mm] to the outer shape on the grid (float32), the
+    squama ``inner_mm`` thick, with the mastoid's relief or without.
+
+    Each part is evaluated in its bounding box grown by more than any fillet,
+    so the zero level is the one :func:`_eval_points` gives everywhere.
+    """
     f = np.full(cv.shape, 1e3, dtype=np.float32)
+    pad = 2 * max(BLEND_MM, ROOT_BLEND_MM, FEATURE_BLEND_MM) + cv.h
     for fn, lo, hi, k in _base_parts(inner_mm) + _feature_parts():
-        pad = abs(k) + 2 * FEATURE_BLEND_MM + cv.h
         b = cv.box(np.asarray(lo) - pad, np.asarray(hi) + pad)
         if b is None:
             continue
@@ -429,7 +436,7 @@ def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM) -> np.ndarray:
         f[sl] = _smin(f[sl], fn(x, y, z), k)
     x0, y0, z0 = ROUGH_REGION_MM
     far = 1e3
-    b = cv.box((x0, y0, -far), (far, far, z0))
+    b = cv.box((x0, y0, -far), (far, far, z0)) if relief else None
     if b is not None:                  # the relief can only move the surface
         sl, x, y, z = b                # where |f| is below its largest value
         sub = f[sl]
@@ -441,17 +448,26 @@ def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM) -> np.ndarray:
 
 
 def lateral_surface_x_mm(y_mm: float, z_mm: float) -> float:
-    """x [mm] of the outer cortex's most lateral point in the column (y, z) [mm].
+    """The outer cortex's most lateral point in a (y, z) column.
 
-    The smooth shape: without the cortex's relief (within ``ROUGH_MM``) and
-    before the ear canal, the fossae and the air spaces are carved; NaN where
-    the column misses the bone.
+    Parameters
+    ----------
+    y_mm, z_mm : float
+        Position of the column in the case frame [mm].
+
+    Returns
+    -------
+    float
+        x [mm] of the smooth outer shape there: without the mastoid's relief
+        (``ROUGH_MM`` RMS) and before the ear canal, the fossae and the air
+        spaces are carved; NaN where the column misses the bone.
     """
     return float(_surface_x(_base_parts() + _feature_parts(), y_mm, z_mm)[0])
 
 
-def _on_cortex(y, z, out=0.0):
-    return (lateral_surface_x_mm(y, z) + out, float(y), float(z))
+def _on_cortex(y, z):
+    """The point of the smooth lateral face in the column (y, z) [mm]."""
+    return (lateral_surface_x_mm(y, z), float(y), float(z))
 
 
 LANDMARKS_MM = {

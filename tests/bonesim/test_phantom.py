@@ -199,12 +199,15 @@ def test_inside_is_as_before_the_outer_cortex_changed():
     for name in ("sigmoid_sinus", "facial_nerve", "chorda_tympani", "labyrinth", "ossicles"):
         assert np.array_equal(m[name], ref[name]), name
     # the dura of the tegmen over the middle ear, antrum and mastoid, and of
-    # the posterior fossa along the sinus
+    # the posterior fossa along the sinus: none lost, hardly any added (where
+    # the new, rounder body reaches a little further)
     tegmen = _box(parts, (-5.0, -12.0, P.TEGMEN_Z_MM), (11.0, 14.0, P.TEGMEN_Z_MM + P.DURA_MM))
     along_sinus = _box(parts, (-10.0, 0.0, -12.0), (12.0, 18.0, 10.0))
     for name, region in (("middle_fossa_dura", tegmen), ("posterior_fossa_dura", along_sinus)):
-        assert ref[name][region].sum() > 1000, name
-        assert np.array_equal(m[name] & region, ref[name] & region), name
+        before = ref[name] & region
+        assert before.sum() > 1000, name
+        assert not (before & ~m[name]).any(), name
+        assert (m[name] & region & ~before).sum() < 0.01 * before.sum(), name
     # the air of the ear: middle ear, antrum, aditus and the canal's medial
     # part (outside the air cells, which move with the outer shape)
     painted = np.zeros(parts.hu.shape, bool)
@@ -404,3 +407,16 @@ def test_smooth_union(a, b, k):
     if abs(a - b) >= k:
         assert m == pytest.approx(min(a, b))
     assert P._smax(np.float64(a), np.float64(b), k) == pytest.approx(-P._smin(-a, -b, k))
+
+
+def test_bounding_boxes_leave_the_shape_as_the_full_field():
+    """The grid field evaluates each part in its box only; its zero level is
+    the full smooth union's at every voxel centre. (Values away from the
+    surface may differ: the ellipsoid distance is an approximation.)"""
+    cv = P._Canvas(np.full(3, 64), 0.8)
+    grid = P._cortex_field(cv, relief=False)
+    x, y, z = (a.astype(float) for a in cv.full()[1:])
+    full = P._eval_points(P._base_parts() + P._feature_parts(), x, y, z)
+    sure = np.abs(full) > 1e-3                    # beyond float32 rounding
+    assert sure.mean() > 0.99
+    assert np.array_equal((grid <= 0)[sure], (full <= 0)[sure])
