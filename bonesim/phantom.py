@@ -10,9 +10,21 @@ Positions are in the case frame (LPS, [mm]): ``+x`` toward the patient's left
 
 Anatomy (all constants below, in mm)
 ------------------------------------
-* **Bone**: a rounded block (super-ellipsoid) with a mastoid tip below and
-  behind, and the petrous ridge running medially and anteriorly. Its lateral
-  surface (the mastoid cortex) lies near ``x = +19``.
+* **Bone**, its outer cortex as a surgeon sees it from lateral: the *squama*,
+  a thin (``SQUAMA_MM``), slightly convex plate with a rounded upper border
+  rising above the ear canal; the root of the *zygomatic process* above and
+  in front of the canal, its stump cut off in front (``ANTERIOR_CUT_Y_MM``,
+  the specimen's saw cut); the *temporal line* (supramastoid crest), a ridge
+  running back from the zygomatic root above the antrum; the bony *external
+  acoustic meatus*, an oval opening (about 7 mm wide, 9 mm high) with a rim,
+  and the *spine of Henle* at its posterior-superior margin; the *mastoid*,
+  whose convex, rough lateral face (the mastoid cortex, near ``x = +20``)
+  narrows down and forward into the mastoid process, its tip about 2 cm below
+  and 1.3 cm behind the canal. Medially, a core and the petrous pyramid
+  (running medially and anteriorly) hold the ear. The shape is a smooth union
+  of ellipsoids, round cones and a spherical plate (signed distance fields
+  with fillets), so it has no edges but the saw cut;
+  :func:`lateral_surface_x_mm` gives its lateral face.
 * **Cranial fossae**: above the tegmen plane (``z > TEGMEN_Z_MM``) and medial
   to a squamous plate lies the middle fossa; behind a posteromedial plane lies
   the posterior fossa. Each is lined by a dura layer ``DURA_MM`` thick (soft);
@@ -37,8 +49,9 @@ Anatomy (all constants below, in mm)
   mutually perpendicular planes, medial to the antrum.
 * **Ossicles** (critical): malleus, incus and stapes in the middle ear.
 
-Only the air cells and the bone's HU texture depend on the seed; the named
-structures are fixed, so trajectories can rely on :data:`LANDMARKS_MM`.
+Only the air cells and the bone's HU texture depend on the seed; the outer
+shape (its relief included) and the named structures are fixed, so
+trajectories can rely on :data:`LANDMARKS_MM`.
 """
 from __future__ import annotations
 
@@ -49,6 +62,9 @@ from scipy import ndimage
 
 from .volumes import CaseVolume
 
+__all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
+           "PhantomParts", "build_phantom", "phantom_volume", "lateral_surface_x_mm"]
+
 PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
          "facial_nerve", "chorda_tympani", "labyrinth", "ossicles")
 """Structure names the phantom can paint (the default manifest order)."""
@@ -57,14 +73,55 @@ DEFAULT_SEED = 0
 DEFAULT_VOXEL_MM = 0.5
 DEFAULT_SIZE_MM = (52.0, 52.0, 52.0)
 
-# ------------------------------------------------------------ bone envelope
-BLOCK_CENTER_MM = (2.0, 2.0, -2.0)
-BLOCK_SEMI_MM = (18.0, 22.0, 18.0)
-BLOCK_EXPONENT = 3.0           # super-ellipsoid exponent: a rounded box
-TIP_CENTER_MM = (12.0, 8.0, -16.0)
-TIP_SEMI_MM = (7.0, 8.0, 9.0)
-PETROUS_AXIS_MM = ((-5.0, -5.0, 0.0), (-21.0, -17.0, 2.0))
-PETROUS_RADII_MM = (8.0, 5.0)  # at the base and at the apex
+# ------------------------------------------------------------ outer cortex
+# The bone's outer shape is the zero level of a smooth signed distance field
+# [mm] (negative in bone): a smooth union of the parts below, then the saw
+# cut. Solids are (centre, semi-axes) ellipsoids or (base, apex) round cones
+# with radii (base, apex); positions in the case frame [mm]. Proportions
+# from adult anatomy: bony meatus 8-10 mm high, 6-8 mm wide; mastoid tip
+# 1.5-2 cm below the canal; spine of Henle 1-2 mm; squama a few mm thick.
+CORE_CENTER_MM = (0.0, 2.0, -1.0)      # petromastoid core (medial, mostly hidden;
+CORE_SEMI_MM = (17.0, 22.0, 19.0)      # the fossae carve its top and back)
+TEGMEN_CENTER_MM = (1.5, 0.0, 10.0)    # roof of the core: the middle fossa's
+TEGMEN_SEMI_MM = (16.5, 22.5, 4.5)     # floor (the fossa carves all above it)
+PETROUS_AXIS_MM = ((-3.0, -5.0, 0.0), (-20.0, -16.5, 2.0))   # pyramid, to the apex
+PETROUS_RADII_MM = (8.0, 4.5)
+MASTOID_CENTER_MM = (9.5, 5.0, -1.0)   # mastoid part: a lens whose convex
+MASTOID_SEMI_MM = (10.65, 19.5, 12.5)   # lateral face is the mastoid cortex
+MASTOID_TIP_AXIS_MM = ((9.5, 2.0, -9.0), (13.5, -1.0, -21.0))  # process: down, forward
+MASTOID_TIP_RADII_MM = (9.5, 3.4)      # tip 1.5-2 cm below the ear canal
+TYMPANIC_CENTER_MM = (8.0, -12.0, -3.0)  # tympanic part around canal and middle ear
+TYMPANIC_SEMI_MM = (11.0, 7.5, 7.5)
+SQUAMA_POINT_MM = (18.0, -6.0, 8.0)    # a point of the squama's lateral face
+SQUAMA_RADIUS_MM = 90.0                # curvature of that face (slightly convex)
+SQUAMA_OUTLINE_MM = ((-4.0, 3.0), (20.5, 21.0))  # (y, z) centre and semi-axes
+SQUAMA_BASE_Z_MM = 3.0                 # its lower border (at the zygomatic root)
+ZYGOMA_ROOT_CENTER_MM = (18.0, -16.5, 3.8)  # root of the zygomatic process:
+ZYGOMA_ROOT_SEMI_MM = (2.6, 6.0, 3.8)       # broad, above the canal
+ZYGOMA_CENTER_MM = (19.5, -28.0, 3.5)  # the process, running forward;
+ZYGOMA_SEMI_MM = (2.0, 15.0, 3.8)      # cut off at ANTERIOR_CUT_Y_MM
+ANTERIOR_CUT_Y_MM = -24.5              # the specimen's anterior saw cut
+TEMPORAL_LINE_YZ_MM = ((-9.5, 4.5), (-4.0, 6.5), (3.0, 8.0), (10.0, 9.0),
+                       (16.0, 9.5))        # supramastoid crest on the cortex
+TEMPORAL_LINE_RADII_MM = (1.6, 1.0)    # ridge half-width, from front to back
+TEMPORAL_LINE_HEIGHT_MM = 2.0          # how far the crest stands out
+EAC_OPENING_SEMI_MM = (3.3, 4.6)       # bony meatus: half-width (y), half-height (z)
+EAC_OVAL_FROM_X_MM = 13.0              # the canal is oval lateral to this x
+EAC_RIM_X_MM = 19.0                    # lateral rim of the bony meatus
+EAC_WALL_MM = 1.8                      # its wall (tympanic ring) around the opening
+EAC_COLLAR_MM = 4.0                    # depth of that collar below the rim
+HENLE_ANGLE_DEG = 50.0                 # spine's place on the rim, up from posterior
+HENLE_SPINE_MM = (2.5, 1.0)            # spine of Henle: length, base radius
+HENLE_DIRECTION = (1.0, -0.3, -0.3)    # it points out, a little forward and down
+ROUGH_MM = 0.2                         # relief of the mastoid cortex (amplitude)
+ROUGH_WAVELENGTHS_MM = (3.0, 7.0)      # range of its bumps
+ROUGH_WAVES = 24                       # plane waves summed for the relief
+ROUGH_SEED = 1010                      # fixed: the shape does not depend on the seed
+ROUGH_REGION_MM = (12.0, -8.0, 8.0)    # relief lateral of x, behind y, below z,
+ROUGH_FADE_MM = 3.0                    # fading in over this distance
+BLEND_MM = 3.0                         # fillet between the large parts
+ROOT_BLEND_MM = 2.0                    # fillet of the zygoma, meatus, squama's base
+FEATURE_BLEND_MM = 1.0                 # fillet of the crest and rims
 
 # ----------------------------------------------------------- cranial fossae
 TEGMEN_Z_MM = 11.0             # floor of the middle fossa
@@ -132,7 +189,6 @@ HU_BY_PART = {"sigmoid_sinus": 50.0, "posterior_fossa_dura": 40.0,
               "chorda_tympani": 40.0, "labyrinth": 10.0, "ossicles": 1200.0}
 
 
-
 def _point_on_path(path, z):
     """Point of a polyline (descending in z) at height ``z`` [mm]."""
     p = np.asarray(path, float)
@@ -143,19 +199,279 @@ def _point_on_path(path, z):
     raise ValueError(f"path does not reach z = {z}")
 
 
-def lateral_surface_x_mm(y_mm: float, z_mm: float) -> float:
-    """x [mm] of the bone block's lateral surface (mastoid cortex) at (y, z).
+# ------------------------------------------------------- distance primitives
+# Signed distances [mm], negative inside; x, y, z broadcastable float arrays.
 
-    Valid on the block itself (not on the mastoid tip below ``z = -18``);
-    returns the block centre's x where (y, z) misses the block.
+def _sd_ellipsoid(x, y, z, c, r):
+    """Ellipsoid of centre ``c`` and semi-axes ``r`` (close to a true
+    distance near the surface)."""
+    px, py, pz = (x - c[0]) / r[0], (y - c[1]) / r[1], (z - c[2]) / r[2]
+    k0 = np.sqrt(px * px + py * py + pz * pz)
+    k1 = np.sqrt((px / r[0]) ** 2 + (py / r[1]) ** 2 + (pz / r[2]) ** 2)
+    return np.where(k1 > 0, k0 * (k0 - 1.0) / np.where(k1 > 0, k1, 1.0), -min(r))
+
+
+def _sd_ellipse(u, v, c, r):
+    """Infinite elliptic cylinder: the ellipse of centre ``c`` and semi-axes
+    ``r`` in the (u, v) plane."""
+    pu, pv = (u - c[0]) / r[0], (v - c[1]) / r[1]
+    k0 = np.sqrt(pu * pu + pv * pv)
+    k1 = np.sqrt((pu / r[0]) ** 2 + (pv / r[1]) ** 2)
+    return np.where(k1 > 0, k0 * (k0 - 1.0) / np.where(k1 > 0, k1, 1.0), -min(r))
+
+
+def _sd_round_cone(x, y, z, a, b, ra, rb):
+    """Exact distance to the hull of the spheres (``a``, ``ra``) and (``b``, ``rb``)."""
+    bax, bay, baz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    l2 = bax * bax + bay * bay + baz * baz
+    rr = ra - rb
+    a2 = l2 - rr * rr
+    il2 = 1.0 / l2
+    px, py, pz = x - a[0], y - a[1], z - a[2]
+    t = px * bax + py * bay + pz * baz
+    u = t - l2
+    qx, qy, qz = px * l2 - bax * t, py * l2 - bay * t, pz * l2 - baz * t
+    x2 = qx * qx + qy * qy + qz * qz
+    y2 = t * t * l2
+    z2 = u * u * l2
+    k = np.sign(rr) * rr * rr * x2
+    side = np.sqrt(np.maximum(x2 * a2 * il2, 0.0)) + t * rr
+    return np.where(np.sign(u) * a2 * z2 > k, np.sqrt(x2 + z2) * il2 - rb,
+                    np.where(np.sign(t) * a2 * y2 < k, np.sqrt(x2 + y2) * il2 - ra,
+                             side * il2 - ra))
+
+
+def _smin(a, b, k):
+    """Smooth union: the minimum with a fillet of radius ``k`` [mm]."""
+    if k <= 1e-9:
+        return np.minimum(a, b)
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b + (a - b) * h - k * h * (1.0 - h)
+
+
+def _smax(a, b, k):
+    """Smooth intersection (maximum with a fillet of radius ``k`` [mm])."""
+    return -_smin(-a, -b, k)
+
+
+# ------------------------------------------------------------- outer cortex
+
+_SQUAMA_CENTRE = (SQUAMA_POINT_MM[0] - SQUAMA_RADIUS_MM, *SQUAMA_POINT_MM[1:])
+
+
+def _squama_depth(x, y, z):
+    """Depth [mm] medial to the squama's lateral face (a sphere, convex outward)."""
+    c = _SQUAMA_CENTRE
+    return SQUAMA_RADIUS_MM - np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+
+
+def _sd_squama(x, y, z, inner_mm):
+    """The squama: a plate from its lateral face to ``inner_mm`` medial of it,
+    within its outline in the (y, z) plane."""
+    d = _squama_depth(x, y, z)
+    plate = np.abs(d - 0.5 * inner_mm) - 0.5 * inner_mm
+    (cy, cz), (sy, sz) = SQUAMA_OUTLINE_MM
+    outline = _smax(_sd_ellipse(y, z, (cy, cz), (sy, sz)), SQUAMA_BASE_Z_MM - z,
+                    ROOT_BLEND_MM)
+    return _smax(plate, outline, FEATURE_BLEND_MM)
+
+
+def _sd_zygoma(x, y, z):
+    """The zygomatic process: its broad root and the process running forward."""
+    return _smin(_sd_ellipsoid(x, y, z, ZYGOMA_ROOT_CENTER_MM, ZYGOMA_ROOT_SEMI_MM),
+                 _sd_ellipsoid(x, y, z, ZYGOMA_CENTER_MM, ZYGOMA_SEMI_MM), ROOT_BLEND_MM)
+
+
+def _bbox_ellipsoid(c, r):
+    """(lo, hi) corners [mm] of an ellipsoid's bounding box."""
+    return np.subtract(c, r), np.add(c, r)
+
+
+def _bbox_cone(a, b, ra, rb):
+    """(lo, hi) corners [mm] of a round cone's bounding box."""
+    rmax = max(ra, rb)
+    return np.minimum(a, b) - rmax, np.maximum(a, b) + rmax
+
+
+def _base_parts(inner_mm=SQUAMA_MM):
+    """The large parts, each (distance function of x, y, z, bounding box lo,
+    hi [mm], fillet [mm] with the parts before it); the squama is
+    ``inner_mm`` thick."""
+    (cy, cz), (sy, sz) = SQUAMA_OUTLINE_MM
+    sq_x = SQUAMA_POINT_MM[0]
+    zr_lo, zr_hi = _bbox_ellipsoid(ZYGOMA_ROOT_CENTER_MM, ZYGOMA_ROOT_SEMI_MM)
+    zp_lo, zp_hi = _bbox_ellipsoid(ZYGOMA_CENTER_MM, ZYGOMA_SEMI_MM)
+    return [
+        (lambda x, y, z: _sd_ellipsoid(x, y, z, CORE_CENTER_MM, CORE_SEMI_MM),
+         *_bbox_ellipsoid(CORE_CENTER_MM, CORE_SEMI_MM), 0.0),
+        (lambda x, y, z: _sd_ellipsoid(x, y, z, TEGMEN_CENTER_MM, TEGMEN_SEMI_MM),
+         *_bbox_ellipsoid(TEGMEN_CENTER_MM, TEGMEN_SEMI_MM), BLEND_MM),
+        (lambda x, y, z: _sd_round_cone(x, y, z, *PETROUS_AXIS_MM, *PETROUS_RADII_MM),
+         *_bbox_cone(*PETROUS_AXIS_MM, *PETROUS_RADII_MM), BLEND_MM),
+        (lambda x, y, z: _sd_ellipsoid(x, y, z, MASTOID_CENTER_MM, MASTOID_SEMI_MM),
+         *_bbox_ellipsoid(MASTOID_CENTER_MM, MASTOID_SEMI_MM), BLEND_MM),
+        (lambda x, y, z: _sd_ellipsoid(x, y, z, TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM),
+         *_bbox_ellipsoid(TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM), BLEND_MM),
+        (lambda x, y, z: _sd_round_cone(x, y, z, *MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM),
+         *_bbox_cone(*MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM), BLEND_MM),
+        (lambda x, y, z: _sd_squama(x, y, z, inner_mm),
+         np.array([sq_x - inner_mm - (sy * sy + sz * sz) / SQUAMA_RADIUS_MM, cy - sy, cz - sz]),
+         np.array([sq_x, cy + sy, cz + sz]), BLEND_MM),
+        (_sd_zygoma, np.minimum(zr_lo, zp_lo), np.maximum(zr_hi, zp_hi), BLEND_MM),
+    ]
+
+
+def _eval_points(parts, x, y, z):
+    """Smooth union of ``parts`` at points (broadcastable arrays)."""
+    f = np.full(np.broadcast(x, y, z).shape, 1e3)
+    for fn, _, _, k in parts:
+        f = _smin(f, fn(x, y, z), k)
+    return np.maximum(f, ANTERIOR_CUT_Y_MM - y)
+
+
+def _surface_x(parts, y, z, x_lo=-26.0, x_hi=26.0):
+    """x [mm] of the most lateral zero of the field of ``parts`` in the
+    columns (y, z) [mm] (arrays); NaN where a column misses the shape."""
+    y = np.atleast_1d(np.asarray(y, float))[:, None]
+    z = np.atleast_1d(np.asarray(z, float))[:, None]
+    xs = np.arange(x_hi, x_lo, -0.25)[None, :]
+    f = _eval_points(parts, xs, y, z)
+    inside = f <= 0
+    hit = inside.any(axis=1)
+    i = np.argmax(inside, axis=1)
+    lo = xs[0, i]                               # inside
+    hi = xs[0, np.maximum(i - 1, 0)]            # outside
+    for _ in range(30):                         # bisection to ~1e-8 mm
+        mid = 0.5 * (lo + hi)
+        f = _eval_points(parts, mid[:, None], y, z)[:, 0]
+        lo, hi = np.where(f <= 0, mid, lo), np.where(f <= 0, hi, mid)
+    return np.where(hit, 0.5 * (lo + hi), np.nan)
+
+
+def _polyline_on_cortex(yz, radii, height):
+    """3-D path of a ridge that stands ``height`` [mm] out of the cortex along
+    the (y, z) points ``yz``: tube centres ``radius - height`` below it."""
+    yz = np.asarray(yz, float)
+    r = np.interp(np.arange(len(yz)), [0, len(yz) - 1], radii)
+    x = _surface_x(_base_parts(), yz[:, 0], yz[:, 1]) + height - r
+    return np.column_stack([x, yz]), r
+
+
+_RIDGE_PTS, _RIDGE_R = _polyline_on_cortex(TEMPORAL_LINE_YZ_MM, TEMPORAL_LINE_RADII_MM,
+                                           TEMPORAL_LINE_HEIGHT_MM)
+_EAC_C = EAC_AXIS_MM[0][1:]                        # (y, z) of the canal's axis
+_HENLE_BASE = np.array([
+    EAC_RIM_X_MM - 0.5 * HENLE_SPINE_MM[1],
+    _EAC_C[0] + (EAC_OPENING_SEMI_MM[0] + 0.5 * EAC_WALL_MM) * np.cos(np.radians(HENLE_ANGLE_DEG)),
+    _EAC_C[1] + (EAC_OPENING_SEMI_MM[1] + 0.5 * EAC_WALL_MM) * np.sin(np.radians(HENLE_ANGLE_DEG))])
+_HENLE_TIP = _HENLE_BASE + HENLE_SPINE_MM[0] * (np.asarray(HENLE_DIRECTION)
+                                               / np.linalg.norm(HENLE_DIRECTION))
+
+
+def _sd_meatus(x, y, z):
+    """The bony meatus: a collar of wall ``EAC_WALL_MM`` around the canal's
+    lateral end, its rounded rim in the plane x = ``EAC_RIM_X_MM``."""
+    sy, sz = EAC_OPENING_SEMI_MM
+    w = EAC_WALL_MM
+    ring = _sd_ellipse(y, z, _EAC_C, (sy + w, sz + w))
+    half = 0.5 * EAC_COLLAR_MM
+    return _smax(ring, np.abs(x - (EAC_RIM_X_MM - half)) - half, FEATURE_BLEND_MM)
+
+
+def _feature_parts():
+    """Small parts on the cortex, as :func:`_base_parts`: the temporal line,
+    the bony meatus and the spine of Henle."""
+    parts = []
+    for i in range(len(_RIDGE_PTS) - 1):
+        a, b = tuple(_RIDGE_PTS[i]), tuple(_RIDGE_PTS[i + 1])
+        ra, rb = float(_RIDGE_R[i]), float(_RIDGE_R[i + 1])
+        parts.append((lambda x, y, z, a=a, b=b, ra=ra, rb=rb:
+                      _sd_round_cone(x, y, z, a, b, ra, rb),
+                      *_bbox_cone(a, b, ra, rb), FEATURE_BLEND_MM))
+    sy, sz = EAC_OPENING_SEMI_MM
+    w = EAC_WALL_MM
+    parts.append((_sd_meatus,
+                  np.array([EAC_RIM_X_MM - EAC_COLLAR_MM, _EAC_C[0] - sy - w, _EAC_C[1] - sz - w]),
+                  np.array([EAC_RIM_X_MM, _EAC_C[0] + sy + w, _EAC_C[1] + sz + w]),
+                  ROOT_BLEND_MM))
+    a, b = tuple(_HENLE_BASE), tuple(_HENLE_TIP)
+    r0 = HENLE_SPINE_MM[1]
+    parts.append((lambda x, y, z: _sd_round_cone(x, y, z, a, b, r0, 0.25 * r0),
+                  *_bbox_cone(a, b, r0, r0), 0.5 * FEATURE_BLEND_MM))
+    return parts
+
+
+def _roughness(x, y, z):
+    """Relief of the mastoid cortex [mm]: a fixed sum of plane waves, faded
+    out away from the mastoid's lateral face (behind the canal, below the
+    temporal line)."""
+    rng = np.random.default_rng(ROUGH_SEED)
+    d = rng.normal(size=(ROUGH_WAVES, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lam = rng.uniform(*ROUGH_WAVELENGTHS_MM, size=ROUGH_WAVES)
+    phase = rng.uniform(0, 2 * np.pi, size=ROUGH_WAVES)
+    s = 0.0
+    for (dx, dy, dz), l, p in zip(d, lam, phase):
+        s = s + np.cos((2 * np.pi / l) * (dx * x + dy * y + dz * z) + p)
+    x0, y0, z0 = ROUGH_REGION_MM
+    w = (np.clip((x - x0) / ROUGH_FADE_MM, 0, 1) * np.clip((y - y0) / ROUGH_FADE_MM, 0, 1)
+         * np.clip((z0 - z) / ROUGH_FADE_MM, 0, 1))
+    return (ROUGH_MM * np.sqrt(2.0 / ROUGH_WAVES)) * w * s      # unit-variance sum
+
+
+def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True) -> np.ndarray:
+    """Signed distance [mm] to the outer shape on the grid (float32), the
+    squama ``inner_mm`` thick, with the mastoid's relief or without.
+
+    Each part is evaluated in its bounding box grown by more than any fillet,
+    so the zero level is the one :func:`_eval_points` gives everywhere.
     """
-    c, s, p = BLOCK_CENTER_MM, BLOCK_SEMI_MM, BLOCK_EXPONENT
-    f = abs((y_mm - c[1]) / s[1]) ** p + abs((z_mm - c[2]) / s[2]) ** p
-    return float(c[0] + s[0] * max(1.0 - f, 0.0) ** (1.0 / p))
+    f = np.full(cv.shape, 1e3, dtype=np.float32)
+    pad = 2 * max(BLEND_MM, ROOT_BLEND_MM, FEATURE_BLEND_MM) + cv.h
+    for fn, lo, hi, k in _base_parts(inner_mm) + _feature_parts():
+        b = cv.box(np.asarray(lo) - pad, np.asarray(hi) + pad)
+        if b is None:
+            continue
+        sl, x, y, z = b
+        f[sl] = _smin(f[sl], fn(x, y, z), k)
+    x0, y0, z0 = ROUGH_REGION_MM
+    far = 1e3
+    b = cv.box((x0, y0, -far), (far, far, z0)) if relief else None
+    if b is not None:                  # the relief can only move the surface
+        sl, x, y, z = b                # where |f| is below its largest value
+        sub = f[sl]
+        near = np.abs(sub) <= ROUGH_MM * np.sqrt(2.0 * ROUGH_WAVES)
+        xs, ys, zs = (np.broadcast_to(v, sub.shape)[near] for v in (x, y, z))
+        sub[near] += _roughness(xs, ys, zs).astype(np.float32)
+    sl, x, y, z = cv.full()
+    return np.maximum(f, ANTERIOR_CUT_Y_MM - y)
+
+
+def lateral_surface_x_mm(y_mm: float, z_mm: float) -> float:
+    """The outer cortex's most lateral point in a (y, z) column.
+
+    Parameters
+    ----------
+    y_mm, z_mm : float
+        Position of the column in the case frame [mm].
+
+    Returns
+    -------
+    float
+        x [mm] of the smooth outer shape there: without the mastoid's relief
+        (``ROUGH_MM`` RMS) and before the ear canal, the fossae and the air
+        spaces are carved; NaN where the column misses the bone.
+    """
+    return float(_surface_x(_base_parts() + _feature_parts(), y_mm, z_mm)[0])
+
+
+def _on_cortex(y, z):
+    """The point of the smooth lateral face in the column (y, z) [mm]."""
+    return (lateral_surface_x_mm(y, z), float(y), float(z))
 
 
 LANDMARKS_MM = {
-    "mastoid_cortex": (lateral_surface_x_mm(4.0, -3.0), 4.0, -3.0),
+    "mastoid_cortex": _on_cortex(4.0, -3.0),
     "antrum": ANTRUM_CENTER_MM,
     "facial_second_genu": FACIAL_PATH_MM[1],
     "facial_mastoid_mid": tuple(float(v) for v in _point_on_path(FACIAL_PATH_MM, -8.0)),
@@ -163,6 +479,15 @@ LANDMARKS_MM = {
                               *SINUS_PATH_MM[2][1:]),   # lateral wall of the sinus
     "lateral_canal": SCC_MM["lateral"][0],
     "eac_medial_end": EAC_AXIS_MM[1],
+    # the outer cortex, as a surgeon sees it from lateral
+    "eac_opening": (EAC_RIM_X_MM, *_EAC_C),        # centre of the meatus, rim plane
+    "henle_spine": tuple(float(v) for v in _HENLE_TIP),            # its tip
+    "mastoid_tip": (MASTOID_TIP_AXIS_MM[1][0], MASTOID_TIP_AXIS_MM[1][1],
+                    MASTOID_TIP_AXIS_MM[1][2] - MASTOID_TIP_RADII_MM[1]),  # lowest point
+    "temporal_line": _on_cortex(-1.0, float(np.interp(     # crest top above the antrum
+        -1.0, *np.transpose(TEMPORAL_LINE_YZ_MM)))),
+    "zygomatic_root": ZYGOMA_ROOT_CENTER_MM,                       # inside it
+    "squama": _on_cortex(SQUAMA_POINT_MM[1], TEGMEN_Z_MM + 8.0),   # its lateral face
 }
 """Named points for trajectory generators (case frame, mm)."""
 
@@ -275,17 +600,11 @@ class _Canvas:
 
 def _envelope(cv: _Canvas):
     """Bone shape, middle-fossa and posterior-fossa masks and dura layers."""
+    # the squama counts DURA_MM thicker so that its inner face carries dura
+    shape = _cortex_field(cv, SQUAMA_MM + DURA_MM) <= 0
     sl, x, y, z = cv.full()
-    c, s, p = np.asarray(BLOCK_CENTER_MM), np.asarray(BLOCK_SEMI_MM), BLOCK_EXPONENT
-    fx = np.abs((x - c[0]) / s[0]) ** p
-    fyz = np.abs((y - c[1]) / s[1]) ** p + np.abs((z - c[2]) / s[2]) ** p
-    shape = (fx + fyz) <= 1.0
-    cv.ellipsoid(shape, TIP_CENTER_MM, TIP_SEMI_MM)
-    cv.capsule(shape, *PETROUS_AXIS_MM, *PETROUS_RADII_MM)
-    # lateral surface of the block at (y, z): x where the super-ellipsoid ends
-    x_surf = c[0] + s[0] * np.maximum(1.0 - fyz, 0.0) ** (1.0 / p)
     above = z - TEGMEN_Z_MM                                 # > 0 above the tegmen
-    medial = (x_surf - SQUAMA_MM) - x                       # > 0 medial to squama
+    medial = _squama_depth(x, y, z) - SQUAMA_MM             # > 0 medial to squama
     mid = (above > 0) & (medial > 0)
     mid_depth = np.minimum(above, medial)                   # depth into the fossa
     n = np.asarray(PF_NORMAL, float)
@@ -297,6 +616,23 @@ def _envelope(cv: _Canvas):
     post_dura = shape & post & (pf_depth <= DURA_MM) & ~mid
     envelope = shape & ~mid & ~post
     return envelope, mid_dura, post_dura
+
+
+def _ear_canal(cv: _Canvas, mask):
+    """The external auditory canal: round medially, widening to the oval
+    bony meatus laterally (semi-axes ``EAC_OPENING_SEMI_MM`` from the rim)."""
+    (x0, y0, z0), (x1, _, _) = EAC_AXIS_MM
+    cv.capsule(mask, (EAC_OVAL_FROM_X_MM, y0, z0), EAC_AXIS_MM[1], EAC_RADIUS_MM)
+    sy, sz = EAC_OPENING_SEMI_MM
+    b = cv.box((EAC_OVAL_FROM_X_MM, y0 - max(sy, EAC_RADIUS_MM), z0 - sz),
+               (x0, y0 + max(sy, EAC_RADIUS_MM), z0 + sz))
+    if b is None:
+        return
+    sl, x, y, z = b
+    t = np.clip((x - EAC_OVAL_FROM_X_MM) / (EAC_RIM_X_MM - EAC_OVAL_FROM_X_MM), 0.0, 1.0)
+    ry = EAC_RADIUS_MM + (sy - EAC_RADIUS_MM) * t
+    rz = EAC_RADIUS_MM + (sz - EAC_RADIUS_MM) * t
+    mask[sl] |= ((y - y0) / ry) ** 2 + ((z - z0) / rz) ** 2 <= 1.0
 
 
 def _air_cells(cv: _Canvas, rng, envelope, protected):
@@ -376,7 +712,7 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     for a, b, r in OSSICLE_RODS_MM:
         cv.capsule(ossicles, a, b, r)
     ear = cv.empty()                     # air spaces of the ear proper
-    cv.capsule(ear, *EAC_AXIS_MM, EAC_RADIUS_MM)
+    _ear_canal(cv, ear)
     cv.ellipsoid(ear, MIDDLE_EAR_CENTER_MM, MIDDLE_EAR_SEMI_MM)
     cv.ellipsoid(ear, EPITYMPANUM_CENTER_MM, EPITYMPANUM_SEMI_MM)
     antrum = cv.empty()
