@@ -97,7 +97,7 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
-from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from .errors import BonesimError
 from .grid import BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
@@ -127,8 +127,8 @@ _HALO = NORMAL_RADIUS
 _LB = BRICK + 2 * _HALO          # edge of the per-brick box of the full shading
 _CHUNK = 16                      # bricks per parallel work item
 # bit-row sets of the refresh window
-_R_ALL, _R_REM, _R_NRM, _R_TINT, _R_T0 = range(5)
-_N_ROWSETS = 5
+_R_ALL, _R_REM, _R_NRM, _R_TINT, _R_REM1, _R_T0 = range(6)
+_N_ROWSETS = 6
 #: A refresh window holds at most max(_WIN_MIN_VOXELS, _WIN_VOXELS_PER_INPUT *
 #: inputs) voxels; inputs spread further are split into several windows.
 _WIN_MIN_VOXELS = 32768
@@ -307,8 +307,8 @@ def tint_weight(t_mm, params: ShadingParams | None = None):
 
 
 @njit(cache=True, nogil=True)
-def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz):
-    """The passes along k and j of the gradient over a dense box.
+def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj, ri):
+    """The gradient over a dense box, separably: passes along k, j and i.
 
     ``d`` holds the float32 densities of an ``(X, Y, Z)`` box (flat, z
     fastest); ``W`` the float32 weights ``S0, S1, S2, S3, D1, D2, D3``
@@ -321,9 +321,17 @@ def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz):
     with ``vc = d[x, y, z + 3 + c]`` (``rs`` is ``(X, Y, Zo)``); then the
     same along j: ``tx`` = S-pass of ``rs``, ``ty`` = D-pass of ``rs``,
     ``tz`` = S-pass of ``rd`` (``(X, Yo, Zo)``, ``vc = rs[x, y + 3 + c,
-    z]``). Each output depends only on its own inputs, so every box that
-    holds them gives the same value bit for bit. Written out for
-    ``NORMAL_RADIUS = 3`` (loops over whole rows, so that they vectorise).
+    z]``); then along i: ``gx`` = D-pass of ``tx``, ``gy`` and ``gz`` the
+    S-passes of ``ty`` and ``tz`` (``(X - 6, Yo, Zo)``: the gradient at box
+    voxel ``(x + 3, y + 3, z + 3)``). Each output depends only on its own
+    inputs, so every box that holds them gives the same value bit for bit.
+
+    Only part of each row is computed: ``z`` in ``[r[row, 0], r[row, 1])``
+    with ``rk`` for the rows of ``rs``/``rd`` (``x Y + y``), ``rj`` for
+    those of ``tx..tz`` (``x Yo + y``) and ``ri`` for those of ``gx..gz``
+    (``x Yo + y``); the caller makes each range cover what the next pass
+    reads. Written out for ``NORMAL_RADIUS = 3`` (loops over rows, so that
+    they vectorise).
     """
     Yo = Y - 6
     Zo = Z - 6
@@ -335,61 +343,124 @@ def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz):
     d2 = W[5]
     d3 = W[6]
     for xy in range(X * Y):
-        v = d[xy * Z:xy * Z + Z]
-        o1 = rs[xy * Zo:xy * Zo + Zo]
-        o2 = rd[xy * Zo:xy * Zo + Zo]
-        for z in range(Zo):
+        lo = rk[xy, 0]
+        hi = rk[xy, 1]
+        if lo >= hi:
+            continue
+        v = d[xy * Z + lo:xy * Z + hi + 6]
+        o1 = rs[xy * Zo + lo:xy * Zo + hi]
+        o2 = rd[xy * Zo + lo:xy * Zo + hi]
+        for z in range(hi - lo):
             o1[z] = (s0 * v[z + 3] + s1 * (v[z + 2] + v[z + 4]) + s2 * (v[z + 1] + v[z + 5])
                      + s3 * (v[z] + v[z + 6]))
-        for z in range(Zo):
+        for z in range(hi - lo):
             o2[z] = d1 * (v[z + 4] - v[z + 2]) + d2 * (v[z + 5] - v[z + 1]) + d3 * (v[z + 6] - v[z])
     for x in range(X):
         for y in range(Yo):
-            ob = (x * Yo + y) * Zo
-            ib = (x * Y + y) * Zo
-            a = rs[ib:ib + 7 * Zo]
-            o = tx[ob:ob + Zo]
-            for z in range(Zo):
+            lo = rj[x * Yo + y, 0]
+            hi = rj[x * Yo + y, 1]
+            if lo >= hi:
+                continue
+            n = hi - lo
+            ob = (x * Yo + y) * Zo + lo
+            ib = (x * Y + y) * Zo + lo
+            a = rs[ib:ib + 6 * Zo + n]
+            o = tx[ob:ob + n]
+            for z in range(n):
                 o[z] = (s0 * a[z + 3 * Zo] + s1 * (a[z + 2 * Zo] + a[z + 4 * Zo])
                         + s2 * (a[z + Zo] + a[z + 5 * Zo]) + s3 * (a[z] + a[z + 6 * Zo]))
-            o = ty[ob:ob + Zo]
-            for z in range(Zo):
+            o = ty[ob:ob + n]
+            for z in range(n):
                 o[z] = (d1 * (a[z + 4 * Zo] - a[z + 2 * Zo]) + d2 * (a[z + 5 * Zo] - a[z + Zo])
                         + d3 * (a[z + 6 * Zo] - a[z]))
-            e = rd[ib:ib + 7 * Zo]
-            o = tz[ob:ob + Zo]
-            for z in range(Zo):
+            e = rd[ib:ib + 6 * Zo + n]
+            o = tz[ob:ob + n]
+            for z in range(n):
                 o[z] = (s0 * e[z + 3 * Zo] + s1 * (e[z + 2 * Zo] + e[z + 4 * Zo])
                         + s2 * (e[z + Zo] + e[z + 5 * Zo]) + s3 * (e[z] + e[z + 6 * Zo]))
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _normal_at(d, tx, ty, tz, Y, Z, W, x, y, z):
-    """Unit outward normal of box voxel ``(x, y, z)`` (at least 3 voxels from
-    the box's sides) from the passes of :func:`_smooth_box`: the pass along
-    i in float32 (``g_x`` the D-pass of ``tx``, ``g_y`` and ``g_z`` the
-    S-passes of ``ty`` and ``tz``), then in float64 the norm, the division
-    and the fallback of the definition."""
-    Yo = Y - 6
-    Zo = Z - 6
     p = Yo * Zo
-    q = ((x - 3) * Yo + y - 3) * Zo + z - 3
-    gx = W[4] * (tx[q + 4 * p] - tx[q + 2 * p]) + W[5] * (tx[q + 5 * p] - tx[q + p]) \
-        + W[6] * (tx[q + 6 * p] - tx[q])
-    gy = W[0] * ty[q + 3 * p] + W[1] * (ty[q + 2 * p] + ty[q + 4 * p]) \
-        + W[2] * (ty[q + p] + ty[q + 5 * p]) + W[3] * (ty[q] + ty[q + 6 * p])
-    gz = W[0] * tz[q + 3 * p] + W[1] * (tz[q + 2 * p] + tz[q + 4 * p]) \
-        + W[2] * (tz[q + p] + tz[q + 5 * p]) + W[3] * (tz[q] + tz[q + 6 * p])
+    for x in range(X - 6):
+        for y in range(Yo):
+            lo = ri[x * Yo + y, 0]
+            hi = ri[x * Yo + y, 1]
+            if lo >= hi:
+                continue
+            n = hi - lo
+            ob = (x * Yo + y) * Zo + lo
+            a = tx[ob:ob + 6 * p + n]
+            o = gx[ob:ob + n]
+            for q in range(n):
+                o[q] = d1 * (a[q + 4 * p] - a[q + 2 * p]) + d2 * (a[q + 5 * p] - a[q + p]) \
+                    + d3 * (a[q + 6 * p] - a[q])
+            a = ty[ob:ob + 6 * p + n]
+            o = gy[ob:ob + n]
+            for q in range(n):
+                o[q] = (s0 * a[q + 3 * p] + s1 * (a[q + 2 * p] + a[q + 4 * p])
+                        + s2 * (a[q + p] + a[q + 5 * p]) + s3 * (a[q] + a[q + 6 * p]))
+            a = tz[ob:ob + 6 * p + n]
+            o = gz[ob:ob + n]
+            for q in range(n):
+                o[q] = (s0 * a[q + 3 * p] + s1 * (a[q + 2 * p] + a[q + 4 * p])
+                        + s2 * (a[q + p] + a[q + 5 * p]) + s3 * (a[q] + a[q + 6 * p]))
+
+
+@njit(cache=True, nogil=True)
+def _pass_ranges(ri, X, Y, rj, rk):
+    """From the z-ranges ``ri`` of the gradient rows needed, those of the
+    earlier passes: row ``(x, y)`` of ``tx..tz`` feeds gradient rows ``(x -
+    6 .. x, y)``, row ``(x, y)`` of ``rs``/``rd`` feeds ``tx..tz`` rows ``(x,
+    y - 6 .. y)``; each range is the hull of the ranges it feeds."""
+    Yo = Y - 6
+    for x in range(X):
+        for y in range(Yo):
+            lo = 1 << 30
+            hi = -1
+            for xx in range(max(0, x - 6), min(X - 6, x + 1)):
+                a = ri[xx * Yo + y, 0]
+                b = ri[xx * Yo + y, 1]
+                if a < b:
+                    lo = min(lo, a)
+                    hi = max(hi, b)
+            rj[x * Yo + y, 0] = lo
+            rj[x * Yo + y, 1] = hi
+    for x in range(X):
+        for y in range(Y):
+            lo = 1 << 30
+            hi = -1
+            for yy in range(max(0, y - 6), min(Yo, y + 1)):
+                a = rj[x * Yo + yy, 0]
+                b = rj[x * Yo + yy, 1]
+                if a < b:
+                    lo = min(lo, a)
+                    hi = max(hi, b)
+            rk[x * Y + y, 0] = lo
+            rk[x * Y + y, 1] = hi
+
+
+# The hot loops below call only helpers on scalars: a numba helper taking
+# arrays, inlined or not, costs reference counting on every call (some 30 ns
+# per vertex); helpers with arrays are called in rare branches only.
+@njit(cache=True, nogil=True, inline="always")
+def _unit(gx, gy, gz):
+    """``(-g / |g|, True)`` in float64, or ``(+z, False)`` when ``|g| <=
+    GRAD_EPS`` (then :func:`_fallback_normal` decides)."""
     gx = np.float64(gx)
     gy = np.float64(gy)
     gz = np.float64(gz)
     g = math.sqrt(gx * gx + gy * gy + gz * gz)
     if g > GRAD_EPS:
-        return -gx / g, -gy / g, -gz / g
+        return -gx / g, -gy / g, -gz / g, True
+    return 0.0, 0.0, 1.0, False
+
+
+@njit(cache=True, nogil=True)
+def _fallback_normal(d, c0, Y, Z):
+    """Normal of the box voxel ``d[c0]`` (box ``(., Y, Z)``) without a
+    gradient: the normalised sum of the offsets toward its empty
+    26-neighbours, or ``+z``."""
     sxx = 0
     syy = 0
     szz = 0
-    c0 = (x * Y + y) * Z + z
     for a in range(-1, 2):
         for b in range(-1, 2):
             for c in range(-1, 2):
@@ -404,6 +475,18 @@ def _normal_at(d, tx, ty, tz, Y, Z, W, x, y, z):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _shade(r0, g0, b0, r1, g1, b1, w, dens):
+    """RGB (uint8) of the colour ``(r0, g0, b0)`` blended with weight ``w``
+    toward ``(r1, g1, b1)`` and shaded by the density (module docstring)."""
+    d = min(max(np.float64(dens), 0.0), 1.0)
+    shade = SHADE_MIN + (1.0 - SHADE_MIN) * d
+    r = np.floor((np.float64(r0) * (1.0 - w) + np.float64(r1) * w) * shade + 0.5)
+    g = np.floor((np.float64(g0) * (1.0 - w) + np.float64(g1) * w) * shade + 0.5)
+    b = np.floor((np.float64(b0) * (1.0 - w) + np.float64(b1) * w) * shade + 0.5)
+    return np.uint8(min(r, 255.0)), np.uint8(min(g, 255.0)), np.uint8(min(b, 255.0))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _beneath_at(keys, vals, density, label, bone, origin, spacing, step, max_mm,
                 i, j, k, nx, ny, nz):
     """(thickness [mm], structure label) beneath the bone voxel ``(i, j, k)``
@@ -413,7 +496,7 @@ def _beneath_at(keys, vals, density, label, bone, origin, spacing, step, max_mm,
     py = origin[1] + spacing * j
     pz = origin[2] + spacing * k
     s_in, met = exit_ray(keys, vals, density, label, bone, True, origin, inv_h,
-                         px, py, pz, -nx, -ny, -nz, step, max_mm)
+                         px, py, pz, -nx, -ny, -nz, step, max_mm, True)
     if met == 0:
         return max_mm, 0
     s_back, _ = exit_ray(keys, vals, density, label, bone, True, origin, inv_h,
@@ -421,32 +504,16 @@ def _beneath_at(keys, vals, density, label, bone, origin, spacing, step, max_mm,
     return min(s_in + s_back, max_mm), met
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _colour(keys, vals, density, label, bone, tint_on, tint_b, colors, origin, spacing,
-            tp, b, o, i, j, k, nrm, col, v):
-    """Write the colour of vertex ``v`` (voxel ``(i, j, k)`` at offset ``o``
-    of brick ``b``) from its stored normal. ``tp``: step, start, full,
-    max weight."""
-    lab = np.int64(label[b, o])
-    if lab >= colors.shape[0]:
-        lab = 0
-    met = 0
-    w = 0.0
-    if tint_on and tint_b[b] != 0 and bone[lab] != 0:
-        t, met = _beneath_at(keys, vals, density, label, bone, origin, spacing, tp[0], tp[1],
-                             i, j, k, np.float64(nrm[v, 0]), np.float64(nrm[v, 1]),
-                             np.float64(nrm[v, 2]))
-        if met != 0:
-            w = _tint_weight(t, tp[1], tp[2], tp[3])
-    if met >= colors.shape[0]:
-        met = 0
-    dens = min(max(np.float64(density[b, o]), 0.0), 1.0)
-    shade = SHADE_MIN + (1.0 - SHADE_MIN) * dens
-    for ch in range(3):
-        base = np.float64(colors[lab, ch]) * (1.0 - w) + np.float64(colors[met, ch]) * w
-        val = np.floor(base * shade + 0.5)
-        col[v, ch] = np.uint8(min(val, 255.0))
-    col[v, 3] = ALPHA
+@njit(cache=True, nogil=True)
+def _tint(keys, vals, density, label, bone, origin, spacing, tp, i, j, k, nx, ny, nz):
+    """(structure label, weight) of the bone vertex at voxel ``(i, j, k)``
+    with the (float32) normal ``n``; ``tp``: ray step, start_mm, full_mm,
+    max_weight. Structure 0 and weight 0 when none is met."""
+    t, met = _beneath_at(keys, vals, density, label, bone, origin, spacing, tp[0], tp[1],
+                         i, j, k, np.float64(nx), np.float64(ny), np.float64(nz))
+    if met == 0:
+        return 0, 0.0
+    return met, _tint_weight(t, tp[1], tp[2], tp[3])
 
 
 @njit(cache=True, nogil=True)
@@ -473,11 +540,13 @@ def _gather_halo(density, nbr, b, box):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, tint_b,
+def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, near,
                       colors, W, origin, spacing, tp, nrm, col, counts):
     """Normal and colour of every vertex, brick by brick."""
     nb_tot = bricks.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    ncol = colors.shape[0]
+    one = np.uint64(1)
     for ch in prange(n_chunks):
         box = np.empty(_LB * _LB * _LB, dtype=np.float32)
         rs = np.empty(_LB * _LB * BRICK, dtype=np.float32)
@@ -485,6 +554,18 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
         tx = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
         ty = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
         tz = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
+        gx = np.empty(BRICK_VOXELS, dtype=np.float32)
+        gy = np.empty(BRICK_VOXELS, dtype=np.float32)
+        gz = np.empty(BRICK_VOXELS, dtype=np.float32)
+        rk = np.empty((_LB * _LB, 2), dtype=np.int32)
+        rj = np.empty((_LB * BRICK, 2), dtype=np.int32)
+        ri = np.empty((BRICK * BRICK, 2), dtype=np.int32)
+        rk[:, 0] = 0
+        rk[:, 1] = BRICK
+        rj[:, 0] = 0
+        rj[:, 1] = BRICK
+        ri[:, 0] = 0
+        ri[:, 1] = BRICK
         n = 0
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
             gathered = False
@@ -497,18 +578,39 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                     continue
                 if not gathered:
                     _gather_halo(density, nbr, b, box)
-                    _smooth_box(box, _LB, _LB, _LB, W, rs, rd, tx, ty, tz)
+                    _smooth_box(box, _LB, _LB, _LB, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj,
+                                ri)
                     gathered = True
                 x = o >> 6
                 y = (o >> 3) & BRICK_MASK
                 z = o & BRICK_MASK
-                nx, ny, nz = _normal_at(box, tx, ty, tz, _LB, _LB, W, x + _HALO, y + _HALO,
-                                        z + _HALO)
+                nx, ny, nz, ok = _unit(gx[o], gy[o], gz[o])      # gradient box = brick
+                if not ok:
+                    nx, ny, nz = _fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
+                                                  + z + _HALO, _LB, _LB)
                 nrm[v, 0] = nx
                 nrm[v, 1] = ny
                 nrm[v, 2] = nz
-                _colour(keys, vals, density, label, bone, tint_on, tint_b, colors, origin,
-                        spacing, tp, b, o, bi + x, bj + y, bk + z, nrm, col, v)
+                lab = np.int64(label[b, o])
+                if lab >= ncol:
+                    lab = 0
+                met = 0
+                w = 0.0
+                if tint_on:
+                    if bone[lab] != 0:
+                        if (near[b, x] >> np.uint64(o & 63)) & one:
+                            met, w = _tint(keys, vals, density, label, bone, origin, spacing,
+                                           tp, bi + x, bj + y, bk + z, nrm[v, 0], nrm[v, 1],
+                                           nrm[v, 2])
+                            if met >= ncol:
+                                met = 0
+                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
+                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
+                                    density[b, o])
+                col[v, 0] = cr
+                col[v, 1] = cg
+                col[v, 2] = cb
+                col[v, 3] = ALPHA
                 n += 1
         counts[ch] = n
 
@@ -545,13 +647,13 @@ def _dilate_rows(rows, src, dst, tmp, wd0, wd1, r, zmask):
 # layout of the float64 constants and int64 slots passed to _refresh
 _F_ORIGIN, _F_SPACING, _F_TP, _F_W = 0, 3, 4, 8          # origin (3), spacing, tp (4), W (7)
 _N_F = 15
-_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, float32 (3)
-_N_I = 6
+_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, f32, ranges
+_N_I = 7
 
 
 @njit(cache=True, nogil=True)
-def _refresh(keys, vals, density, label, vmap, bone, tint_b, colors, fp, ip, removed, touched,
-             rows, wbr, f32, nrm, col):
+def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, removed, touched,
+             rows, wbr, f32, rr, nrm, col):
     """Refresh the vertices near the inputs (see the module docstring) on one
     window: their bounding box plus ``m = ip[_I_MARGIN]`` voxels. The normals
     are computed on the box of the inputs' bounding box plus ``2
@@ -612,19 +714,25 @@ def _refresh(keys, vals, density, label, vmap, bone, tint_b, colors, fp, ip, rem
     n_box = X * Y * Z
     n_k = X * Y * (Z - 6)
     n_kj = X * (Y - 6) * (Z - 6)
-    need_f = n_box + 2 * n_k + 3 * n_kj
+    n_g = (X - 6) * (Y - 6) * (Z - 6)
+    need_f = n_box + 2 * n_k + 3 * n_kj + 3 * n_g
     if rows.shape[0] < _N_ROWSETS * nrow or wbr.shape[0] < bd0 * bd1 * bd2 \
-            or f32.shape[0] < need_f:
+            or f32.shape[0] < need_f or rr.shape[0] < 3 * X * Y:
         ip[_I_NEED] = _N_ROWSETS * nrow
         ip[_I_NEED + 1] = bd0 * bd1 * bd2
         ip[_I_NEED + 2] = need_f
+        ip[_I_NEED + 3] = 3 * X * Y
         return -2
     ld = f32[:n_box]
     rs = f32[n_box:n_box + n_k]
     rd = f32[n_box + n_k:n_box + 2 * n_k]
     tx = f32[n_box + 2 * n_k:n_box + 2 * n_k + n_kj]
     ty = f32[n_box + 2 * n_k + n_kj:n_box + 2 * n_k + 2 * n_kj]
-    tz = f32[n_box + 2 * n_k + 2 * n_kj:need_f]
+    tz = f32[n_box + 2 * n_k + 2 * n_kj:n_box + 2 * n_k + 3 * n_kj]
+    g0 = n_box + 2 * n_k + 3 * n_kj
+    gx = f32[g0:g0 + n_g]
+    gy = f32[g0 + n_g:g0 + 2 * n_g]
+    gz = f32[g0 + 2 * n_g:need_f]
     W = np.empty(7, dtype=np.float32)
     for c in range(7):
         W[c] = np.float32(fp[_F_W + c])
@@ -648,9 +756,11 @@ def _refresh(keys, vals, density, label, vmap, bone, tint_b, colors, fp, ip, rem
     for q in range(nt):
         r = (touched[q, 0] - wlo[0]) * wd1 + touched[q, 1] - wlo[1]
         rows[A + r] |= one << np.uint64(touched[q, 2] - wlo[2])
+    R1 = _R_REM1 * nrow
     _dilate_rows(rows, A, NR, T0, wd0, wd1, NORMAL_RADIUS, zmask)
     if tint_on and nr > 0:
         _dilate_rows(rows, RM, TI, T0, wd0, wd1, rt, zmask)
+        _dilate_rows(rows, RM, R1, T0, wd0, wd1, 1, zmask)
     else:
         for q in range(nrow):
             rows[TI + q] = np.uint64(0)
@@ -682,8 +792,24 @@ def _refresh(keys, vals, density, label, vmap, bone, tint_b, colors, fp, ip, rem
                     for u in range(n):
                         ld[li + z + u] = np.float32(0.0)
                 z += n
-    _smooth_box(ld, X, Y, Z, W, rs, rd, tx, ty, tz)
+    # the rows and z-ranges of the gradient the N-set needs, and before them
+    rk = rr[:X * Y]
+    rj = rr[X * Y:X * Y + X * (Y - 6)]
+    ri = rr[X * Y + X * (Y - 6):X * Y + X * (Y - 6) + (X - 6) * (Y - 6)]
+    sh = off + 3                        # window coordinate of gradient coordinate 0
+    for x in range(X - 6):
+        for y in range(Y - 6):
+            bits = rows[NR + (x + sh) * wd1 + y + sh]
+            if bits == 0:
+                ri[x * (Y - 6) + y, 0] = 0
+                ri[x * (Y - 6) + y, 1] = 0
+            else:
+                ri[x * (Y - 6) + y, 0] = np.int64(trailing_zeros(bits)) - sh
+                ri[x * (Y - 6) + y, 1] = 64 - np.int64(leading_zeros(bits)) - sh
+    _pass_ranges(ri, X, Y, rj, rk)
+    _smooth_box(ld, X, Y, Z, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj, ri)
     # refresh
+    ncol = colors.shape[0]
     count = 0
     for x in range(wd0):
         i = wlo[0] + x
@@ -706,41 +832,151 @@ def _refresh(keys, vals, density, label, vmap, bone, tint_b, colors, fp, ip, rem
                 v = vmap[b, o]
                 if v < 0:
                     continue
+                lab = np.int64(label[b, o])
+                if lab >= ncol:
+                    lab = 0
+                is_near = (near[b, o >> 6] >> np.uint64(o & 63)) & one
                 if (nbits >> np.uint64(z)) & one:
-                    nx, ny, nz = _normal_at(ld, tx, ty, tz, Y, Z, W, x - off, y - off,
-                                            z - off)
+                    bx = x - off
+                    by = y - off
+                    bz = z - off
+                    q = ((bx - 3) * (Y - 6) + by - 3) * (Z - 6) + bz - 3
+                    nx, ny, nz, ok = _unit(gx[q], gy[q], gz[q])
+                    if not ok:
+                        nx, ny, nz = _fallback_normal(ld, (bx * Y + by) * Z + bz, Y, Z)
                     nrm[v, 0] = nx
                     nrm[v, 1] = ny
                     nrm[v, 2] = nz
-                _colour(keys, vals, density, label, bone, tint_on, tint_b, colors, origin,
-                        spacing, tp, b, o, i, j, k, nrm, col, v)
+                elif bone[lab] == 0 or is_near == 0 or not _ray_meets(
+                        rows, R1, wlo, wd0, wd1, wd2, i, j, k, nrm[v, 0], nrm[v, 1],
+                        nrm[v, 2], tp[1] / spacing):
+                    continue            # neither its normal nor its rays can have changed
+                met = 0
+                w = 0.0
+                if tint_on:
+                    if bone[lab] != 0:
+                        if is_near:
+                            met, w = _tint(keys, vals, density, label, bone, origin, spacing,
+                                           tp, i, j, k, nrm[v, 0], nrm[v, 1], nrm[v, 2])
+                            if met >= ncol:
+                                met = 0
+                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
+                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
+                                    density[b, o])
+                col[v, 0] = cr
+                col[v, 1] = cg
+                col[v, 2] = cb
+                col[v, 3] = ALPHA
                 count += 1
     return count
 
 
 @njit(cache=True, nogil=True)
-def _tint_bricks(keys, vals, label, bone, bricks, reach, out):
-    """``out[b] = 1`` for the bricks within ``reach`` bricks (each axis) of a
-    brick holding a label that is not bone (and not 0)."""
+def _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, nx, ny, nz, reach):
+    """Whether the segment from voxel ``(i, j, k)`` along ``+-n`` up to
+    ``reach`` voxels passes near the set ``R1`` (the removed voxels dilated
+    by one voxel) of the window. Points every half voxel are tested: every
+    sample of the rays lies within a quarter voxel of one, so its voxel is
+    within one voxel of that point's, and the test never misses a removed
+    voxel a ray reads."""
+    one = np.uint64(1)
+    n_pts = int(math.ceil(2.0 * reach)) + 1
+    for sgn in (-1.0, 1.0):
+        for q in range(n_pts + 1):
+            t = sgn * min(0.5 * q, reach)
+            x = int(math.floor(i + t * nx + 0.5)) - wlo[0]
+            y = int(math.floor(j + t * ny + 0.5)) - wlo[1]
+            z = int(math.floor(k + t * nz + 0.5)) - wlo[2]
+            if 0 <= x < wd0 and 0 <= y < wd1 and 0 <= z < wd2:
+                if (rows[R1 + x * wd1 + y] >> np.uint64(z)) & one:
+                    return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _structure_bits(label, bone, bits):
+    """``bits[b]``: 512-bit mask of the voxels of brick ``b`` whose label is
+    neither 0 nor bone (bit ``o & 63`` of word ``o >> 6``, so word ``x``
+    holds the ``(y, z)`` plane ``x`` of the brick, bit ``8 y + z``).
+    Returns whether any is set."""
+    anything = False
+    for b in range(label.shape[0]):
+        for w in range(BRICK):
+            acc = np.uint64(0)
+            for u in range(64):
+                lab = label[b, w * 64 + u]
+                if lab != 0 and (lab >= bone.shape[0] or bone[lab] == 0):
+                    acc |= np.uint64(1) << np.uint64(u)
+            bits[b, w] = acc
+            if acc != 0:
+                anything = True
+    return anything
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _near_structure(keys, vals, bricks, bits, reach, near):
+    """``near[b]``: 512-bit mask (as in :func:`_structure_bits`) of the
+    voxels within ``reach`` voxels (Chebyshev) of a structure voxel of
+    ``bits``. Labels never change, so this holds for the grid's whole
+    life."""
     n = bricks.shape[0]
-    for b in range(n):
-        out[b] = 0
-    for b in range(n):
-        has = False
-        for o in range(BRICK_VOXELS):
-            lab = label[b, o]
-            if lab != 0 and (lab >= bone.shape[0] or bone[lab] == 0):
-                has = True
-                break
-        if not has:
-            continue
-        for di in range(-reach, reach + 1):
-            for dj in range(-reach, reach + 1):
-                for dk in range(-reach, reach + 1):
+    L = BRICK + 2 * reach                 # at most 8 + 2 * 24 = 56 <= 64 bits
+    full = (np.uint64(1) << np.uint64(L)) - np.uint64(1)
+    one = np.uint64(1)
+    byte = np.uint64(0xFF)
+    nbb = (reach + BRICK - 1) // BRICK    # bricks the box reaches on each side
+    for b in prange(n):
+        for w in range(BRICK):
+            near[b, w] = np.uint64(0)
+        rows = np.zeros(L * L, dtype=np.uint64)
+        anything = False
+        for di in range(-nbb, nbb + 1):
+            for dj in range(-nbb, nbb + 1):
+                for dk in range(-nbb, nbb + 1):
                     nb = find_brick(keys, vals, bricks[b, 0] + di, bricks[b, 1] + dj,
                                     bricks[b, 2] + dk)
-                    if nb >= 0:
-                        out[nb] = 1
+                    if nb < 0:
+                        continue
+                    # box row (x, y), bit z  <->  voxel (x - reach, ...) of brick b
+                    zs = dk * BRICK + reach
+                    for x in range(BRICK):
+                        w = bits[nb, x]
+                        if w == 0:
+                            continue
+                        bx = di * BRICK + x + reach
+                        if bx < 0 or bx >= L:
+                            continue
+                        for y in range(BRICK):
+                            by = dj * BRICK + y + reach
+                            r = (w >> np.uint64(8 * y)) & byte
+                            if r == 0 or by < 0 or by >= L:
+                                continue
+                            if zs >= 0:
+                                r = r << np.uint64(zs)
+                            else:
+                                r = r >> np.uint64(-zs)
+                            rows[bx * L + by] |= r & full
+                            anything = True
+        if not anything:
+            continue
+        tmp = np.zeros(L * L, dtype=np.uint64)
+        for q in range(L * L):                  # along k
+            v = rows[q]
+            for _ in range(reach):
+                v = v | (v << one) | (v >> one)
+            rows[q] = v & full
+        for x in range(L):                      # along j
+            for y in range(reach, reach + BRICK):
+                acc = np.uint64(0)
+                for yy in range(y - reach, y + reach + 1):
+                    acc |= rows[x * L + yy]
+                tmp[x * L + y] = acc
+        for x in range(reach, reach + BRICK):   # along i, and out
+            for y in range(reach, reach + BRICK):
+                acc = np.uint64(0)
+                for xx in range(x - reach, x + reach + 1):
+                    acc |= tmp[xx * L + y]
+                near[b, x - reach] |= ((acc >> np.uint64(reach)) & byte) << np.uint64(8 * (y - reach))
 
 
 @njit(cache=True, nogil=True)
@@ -854,10 +1090,12 @@ class Shader:
         self.margin = max(self.reach, 2 * NORMAL_RADIUS)
         self._tp = np.array([STEP_FRACTION * self.spacing, self.params.start_mm,
                              self.params.full_mm, self.params.max_weight])
-        self._tint_b = np.zeros(grid.n_bricks, dtype=np.uint8)
+        self._near = np.zeros((grid.n_bricks, BRICK), dtype=np.uint64)
         if self.tint_on:
-            _tint_bricks(grid.keys, grid.vals, grid.label, self.bone, grid.bricks,
-                         (self.reach + BRICK - 1) // BRICK, self._tint_b)
+            bits = np.empty((grid.n_bricks, BRICK), dtype=np.uint64)
+            if _structure_bits(grid.label, self.bone, bits):
+                _near_structure(grid.keys, grid.vals, grid.bricks, bits, self.reach,
+                                self._near)
         self._fp = np.zeros(_N_F)
         self._fp[_F_ORIGIN:_F_ORIGIN + 3] = self._origin
         self._fp[_F_SPACING] = self.spacing
@@ -870,6 +1108,7 @@ class Shader:
         self._rows = np.zeros(_N_ROWSETS * 1024, dtype=np.uint64)
         self._wbr = np.zeros(64, dtype=np.int32)
         self._f32 = np.zeros(1 << 16, dtype=np.float32)
+        self._rr = np.zeros((3 * 1024, 2), dtype=np.int32)
 
     @property
     def normal_reach(self) -> int:
@@ -881,7 +1120,7 @@ class Shader:
         n_chunks = max(1, (grid.n_bricks + _CHUNK - 1) // _CHUNK)
         counts = np.zeros(n_chunks, dtype=np.int64)
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
-                          grid.bricks, vmap, self.bone, self.tint_on, self._tint_b,
+                          grid.bricks, vmap, self.bone, self.tint_on, self._near,
                           self.colors, self._W, self._origin, self.spacing,
                           self._tp, nrm, col, counts)
         return int(counts.sum())
@@ -899,16 +1138,16 @@ class Shader:
             rem, tch = stack.pop()
             while True:
                 got = _refresh(grid.keys, grid.vals, grid.density, grid.label, vmap, self.bone,
-                               self._tint_b, self.colors, self._fp, self._ip, rem, tch,
-                               self._rows, self._wbr, self._f32, nrm, col)
+                               self._near, self.colors, self._fp, self._ip, rem, tch,
+                               self._rows, self._wbr, self._f32, self._rr, nrm, col)
                 if got != -2:
                     break
-                need = self._ip[_I_NEED:_I_NEED + 3].tolist()
-                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2)):
+                need = self._ip[_I_NEED:_I_NEED + 4].tolist()
+                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2), ("_rr", 3)):
                     cur = getattr(self, name)
                     if cur.shape[0] < need[k]:
-                        setattr(self, name, np.zeros(max(need[k], 2 * cur.shape[0]),
-                                                     dtype=cur.dtype))
+                        n_new = max(need[k], 2 * cur.shape[0])
+                        setattr(self, name, np.zeros((n_new,) + cur.shape[1:], dtype=cur.dtype))
             if got >= 0:
                 n += got
             else:

@@ -70,7 +70,7 @@ _NO_BRICK = -2
 
 @njit(cache=True, nogil=True)
 def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, pz,
-             nx, ny, nz, step, max_mm):
+             nx, ny, nz, step, max_mm, structures_only=False):
     """March from ``p`` along ``n`` until the ray leaves the bone.
 
     Samples are taken every ``step`` [mm]; a sample is *in bone* when its
@@ -99,6 +99,9 @@ def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, 
         Unit direction.
     step, max_mm : float
         Marching step and longest distance [mm].
+    structures_only : bool
+        If the ray leaves the bone into empty space, return ``(max_mm, 0)``
+        at once (for a caller that only cares about structures beneath).
 
     Returns
     -------
@@ -144,6 +147,8 @@ def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, 
                 if hi >= max_mm:
                     return max_mm, 0
             else:
+                if structures_only and lab == 0:
+                    return max_mm, 0
                 marching = False
                 met = lab
         else:
