@@ -28,7 +28,7 @@ Vertex normal
     linear density ramp of slope 1 per voxel gives ``|g| = 1``. The sums
     are evaluated separably in float32, innermost along k, then j, then i,
     folding the symmetric terms (``S[0] v0 + S[1] (v-1 + v1) + ...`` and
-    ``D[1] (v1 - v-1) + ...``; see :func:`_smooth_box`), so a configuration
+    ``D[1] (v1 - v-1) + ...``; see :func:`_kj_plane`), so a configuration
     symmetric about the vertex gives an exactly zero component. If ``|g| <=``
     :data:`GRAD_EPS` the normal is the normalised sum of the offsets
     ``(di, dj, dk)`` toward the empty 26-neighbours, and if that sum is zero
@@ -97,7 +97,7 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
-from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from .errors import BonesimError
 from .grid import BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
@@ -307,34 +307,27 @@ def tint_weight(t_mm, params: ShadingParams | None = None):
 
 
 @njit(cache=True, nogil=True)
-def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj, ri):
-    """The gradient over a dense box, separably: passes along k, j and i.
+def _kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
+    """Passes along k and j of the gradient for plane ``x`` of a dense box.
 
     ``d`` holds the float32 densities of an ``(X, Y, Z)`` box (flat, z
     fastest); ``W`` the float32 weights ``S0, S1, S2, S3, D1, D2, D3``
     (``Sc = S[R + c]``, ``Dc = D[R + c]``, see :func:`stencil_weights`).
     With ``Yo = Y - 6``, ``Zo = Z - 6``, in float32, left to right::
 
-        rs[x, y, z] = S0 v0 + S1 (v-1 + v1) + S2 (v-2 + v2) + S3 (v-3 + v3)
-        rd[x, y, z] = D1 (v1 - v-1) + D2 (v2 - v-2) + D3 (v3 - v-3)
+        rs[y, z] = S0 v0 + S1 (v-1 + v1) + S2 (v-2 + v2) + S3 (v-3 + v3)
+        rd[y, z] = D1 (v1 - v-1) + D2 (v2 - v-2) + D3 (v3 - v-3)
 
-    with ``vc = d[x, y, z + 3 + c]`` (``rs`` is ``(X, Y, Zo)``); then the
-    same along j: ``tx`` = S-pass of ``rs``, ``ty`` = D-pass of ``rs``,
-    ``tz`` = S-pass of ``rd`` (``(X, Yo, Zo)``, ``vc = rs[x, y + 3 + c,
-    z]``); then along i: ``gx`` = D-pass of ``tx``, ``gy`` and ``gz`` the
-    S-passes of ``ty`` and ``tz`` (``(X - 6, Yo, Zo)``: the gradient at box
-    voxel ``(x + 3, y + 3, z + 3)``). Each output depends only on its own
-    inputs, so every box that holds them gives the same value bit for bit.
-
-    Only part of each row is computed: ``z`` in ``[r[row, 0], r[row, 1])``
-    with ``rk`` for the rows of ``rs``/``rd`` (``x Y + y``), ``rj`` for
-    those of ``tx..tz`` (``x Yo + y``) and ``ri`` for those of ``gx..gz``
-    (``x Yo + y``); the caller makes each range cover what the next pass
-    reads. Written out for ``NORMAL_RADIUS = 3`` (loops over rows, so that
-    they vectorise).
+    with ``vc = d[x, y, z + 3 + c]`` (``(Y, Zo)`` scratch); then the same
+    along j, ``vc = rs[y + 3 + c, z]``: ``tx`` = S-pass of ``rs``, ``ty`` =
+    D-pass of ``rs``, ``tz`` = S-pass of ``rd``, each ``(Yo, Zo)``, written
+    to slot ``slot`` of ``ring`` (component ``c`` at ``(3 slot + c) Yo
+    Zo``). Written out for ``NORMAL_RADIUS = 3``, looping over whole rows so
+    that they vectorise.
     """
     Yo = Y - 6
     Zo = Z - 6
+    n_pl = Yo * Zo
     s0 = W[0]
     s1 = W[1]
     s2 = W[2]
@@ -342,99 +335,65 @@ def _smooth_box(d, X, Y, Z, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj, ri):
     d1 = W[4]
     d2 = W[5]
     d3 = W[6]
-    for xy in range(X * Y):
-        lo = rk[xy, 0]
-        hi = rk[xy, 1]
-        if lo >= hi:
-            continue
-        v = d[xy * Z + lo:xy * Z + hi + 6]
-        o1 = rs[xy * Zo + lo:xy * Zo + hi]
-        o2 = rd[xy * Zo + lo:xy * Zo + hi]
-        for z in range(hi - lo):
+    base = x * Y * Z
+    for y in range(Y):
+        v = d[base + y * Z:base + y * Z + Z]
+        o1 = rs[y * Zo:y * Zo + Zo]
+        o2 = rd[y * Zo:y * Zo + Zo]
+        for z in range(Zo):
             o1[z] = (s0 * v[z + 3] + s1 * (v[z + 2] + v[z + 4]) + s2 * (v[z + 1] + v[z + 5])
                      + s3 * (v[z] + v[z + 6]))
-        for z in range(hi - lo):
+        for z in range(Zo):
             o2[z] = d1 * (v[z + 4] - v[z + 2]) + d2 * (v[z + 5] - v[z + 1]) + d3 * (v[z + 6] - v[z])
-    for x in range(X):
-        for y in range(Yo):
-            lo = rj[x * Yo + y, 0]
-            hi = rj[x * Yo + y, 1]
-            if lo >= hi:
-                continue
-            n = hi - lo
-            ob = (x * Yo + y) * Zo + lo
-            ib = (x * Y + y) * Zo + lo
-            a = rs[ib:ib + 6 * Zo + n]
-            o = tx[ob:ob + n]
-            for z in range(n):
-                o[z] = (s0 * a[z + 3 * Zo] + s1 * (a[z + 2 * Zo] + a[z + 4 * Zo])
-                        + s2 * (a[z + Zo] + a[z + 5 * Zo]) + s3 * (a[z] + a[z + 6 * Zo]))
-            o = ty[ob:ob + n]
-            for z in range(n):
-                o[z] = (d1 * (a[z + 4 * Zo] - a[z + 2 * Zo]) + d2 * (a[z + 5 * Zo] - a[z + Zo])
-                        + d3 * (a[z + 6 * Zo] - a[z]))
-            e = rd[ib:ib + 6 * Zo + n]
-            o = tz[ob:ob + n]
-            for z in range(n):
-                o[z] = (s0 * e[z + 3 * Zo] + s1 * (e[z + 2 * Zo] + e[z + 4 * Zo])
-                        + s2 * (e[z + Zo] + e[z + 5 * Zo]) + s3 * (e[z] + e[z + 6 * Zo]))
-    p = Yo * Zo
-    for x in range(X - 6):
-        for y in range(Yo):
-            lo = ri[x * Yo + y, 0]
-            hi = ri[x * Yo + y, 1]
-            if lo >= hi:
-                continue
-            n = hi - lo
-            ob = (x * Yo + y) * Zo + lo
-            a = tx[ob:ob + 6 * p + n]
-            o = gx[ob:ob + n]
-            for q in range(n):
-                o[q] = d1 * (a[q + 4 * p] - a[q + 2 * p]) + d2 * (a[q + 5 * p] - a[q + p]) \
-                    + d3 * (a[q + 6 * p] - a[q])
-            a = ty[ob:ob + 6 * p + n]
-            o = gy[ob:ob + n]
-            for q in range(n):
-                o[q] = (s0 * a[q + 3 * p] + s1 * (a[q + 2 * p] + a[q + 4 * p])
-                        + s2 * (a[q + p] + a[q + 5 * p]) + s3 * (a[q] + a[q + 6 * p]))
-            a = tz[ob:ob + 6 * p + n]
-            o = gz[ob:ob + n]
-            for q in range(n):
-                o[q] = (s0 * a[q + 3 * p] + s1 * (a[q + 2 * p] + a[q + 4 * p])
-                        + s2 * (a[q + p] + a[q + 5 * p]) + s3 * (a[q] + a[q + 6 * p]))
+    tb = 3 * slot * n_pl
+    for y in range(Yo):
+        ob = y * Zo
+        a = rs[ob:ob + 7 * Zo]
+        o = ring[tb + ob:tb + ob + Zo]
+        for z in range(Zo):
+            o[z] = (s0 * a[z + 3 * Zo] + s1 * (a[z + 2 * Zo] + a[z + 4 * Zo])
+                    + s2 * (a[z + Zo] + a[z + 5 * Zo]) + s3 * (a[z] + a[z + 6 * Zo]))
+        o = ring[tb + n_pl + ob:tb + n_pl + ob + Zo]
+        for z in range(Zo):
+            o[z] = (d1 * (a[z + 4 * Zo] - a[z + 2 * Zo]) + d2 * (a[z + 5 * Zo] - a[z + Zo])
+                    + d3 * (a[z + 6 * Zo] - a[z]))
+        e = rd[ob:ob + 7 * Zo]
+        o = ring[tb + 2 * n_pl + ob:tb + 2 * n_pl + ob + Zo]
+        for z in range(Zo):
+            o[z] = (s0 * e[z + 3 * Zo] + s1 * (e[z + 2 * Zo] + e[z + 4 * Zo])
+                    + s2 * (e[z + Zo] + e[z + 5 * Zo]) + s3 * (e[z] + e[z + 6 * Zo]))
 
 
 @njit(cache=True, nogil=True)
-def _pass_ranges(ri, X, Y, rj, rk):
-    """From the z-ranges ``ri`` of the gradient rows needed, those of the
-    earlier passes: row ``(x, y)`` of ``tx..tz`` feeds gradient rows ``(x -
-    6 .. x, y)``, row ``(x, y)`` of ``rs``/``rd`` feeds ``tx..tz`` rows ``(x,
-    y - 6 .. y)``; each range is the hull of the ranges it feeds."""
-    Yo = Y - 6
-    for x in range(X):
-        for y in range(Yo):
-            lo = 1 << 30
-            hi = -1
-            for xx in range(max(0, x - 6), min(X - 6, x + 1)):
-                a = ri[xx * Yo + y, 0]
-                b = ri[xx * Yo + y, 1]
-                if a < b:
-                    lo = min(lo, a)
-                    hi = max(hi, b)
-            rj[x * Yo + y, 0] = lo
-            rj[x * Yo + y, 1] = hi
-    for x in range(X):
-        for y in range(Y):
-            lo = 1 << 30
-            hi = -1
-            for yy in range(max(0, y - 6), min(Yo, y + 1)):
-                a = rj[x * Yo + yy, 0]
-                b = rj[x * Yo + yy, 1]
-                if a < b:
-                    lo = min(lo, a)
-                    hi = max(hi, b)
-            rk[x * Y + y, 0] = lo
-            rk[x * Y + y, 1] = hi
+def _i_plane(ring, first, n_pl, W, g):
+    """Pass along i: the gradient of the plane between the ring's planes
+    ``first .. first + 6`` (slot ``p % 7`` holds plane ``p``, see
+    :func:`_kj_plane`): ``g[0:n]`` = D-pass of ``tx``, ``g[n:2n]`` and
+    ``g[2n:3n]`` the S-passes of ``ty`` and ``tz`` (``n = Yo Zo``, float32,
+    left to right as in :func:`_kj_plane`)."""
+    s0 = W[0]
+    s1 = W[1]
+    s2 = W[2]
+    s3 = W[3]
+    d1 = W[4]
+    d2 = W[5]
+    d3 = W[6]
+    for c in range(3):
+        a0 = ring[(3 * ((first + 0) % 7) + c) * n_pl:(3 * ((first + 0) % 7) + c + 1) * n_pl]
+        a1 = ring[(3 * ((first + 1) % 7) + c) * n_pl:(3 * ((first + 1) % 7) + c + 1) * n_pl]
+        a2 = ring[(3 * ((first + 2) % 7) + c) * n_pl:(3 * ((first + 2) % 7) + c + 1) * n_pl]
+        a3 = ring[(3 * ((first + 3) % 7) + c) * n_pl:(3 * ((first + 3) % 7) + c + 1) * n_pl]
+        a4 = ring[(3 * ((first + 4) % 7) + c) * n_pl:(3 * ((first + 4) % 7) + c + 1) * n_pl]
+        a5 = ring[(3 * ((first + 5) % 7) + c) * n_pl:(3 * ((first + 5) % 7) + c + 1) * n_pl]
+        a6 = ring[(3 * ((first + 6) % 7) + c) * n_pl:(3 * ((first + 6) % 7) + c + 1) * n_pl]
+        o = g[c * n_pl:(c + 1) * n_pl]
+        if c == 0:
+            for q in range(n_pl):
+                o[q] = d1 * (a4[q] - a2[q]) + d2 * (a5[q] - a1[q]) + d3 * (a6[q] - a0[q])
+        else:
+            for q in range(n_pl):
+                o[q] = (s0 * a3[q] + s1 * (a2[q] + a4[q]) + s2 * (a1[q] + a5[q])
+                        + s3 * (a0[q] + a6[q]))
 
 
 # The hot loops below call only helpers on scalars: a numba helper taking
@@ -542,76 +501,76 @@ def _gather_halo(density, nbr, b, box):
 @njit(cache=True, nogil=True, parallel=True)
 def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, near,
                       colors, W, origin, spacing, tp, nrm, col, counts):
-    """Normal and colour of every vertex, brick by brick."""
+    """Normal and colour of every vertex, brick by brick (the brick plus a
+    3-voxel halo is the box of the gradient passes, plane by plane)."""
     nb_tot = bricks.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     ncol = colors.shape[0]
     one = np.uint64(1)
+    n_pl = BRICK * BRICK
     for ch in prange(n_chunks):
         box = np.empty(_LB * _LB * _LB, dtype=np.float32)
-        rs = np.empty(_LB * _LB * BRICK, dtype=np.float32)
-        rd = np.empty(_LB * _LB * BRICK, dtype=np.float32)
-        tx = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
-        ty = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
-        tz = np.empty(_LB * BRICK * BRICK, dtype=np.float32)
-        gx = np.empty(BRICK_VOXELS, dtype=np.float32)
-        gy = np.empty(BRICK_VOXELS, dtype=np.float32)
-        gz = np.empty(BRICK_VOXELS, dtype=np.float32)
-        rk = np.empty((_LB * _LB, 2), dtype=np.int32)
-        rj = np.empty((_LB * BRICK, 2), dtype=np.int32)
-        ri = np.empty((BRICK * BRICK, 2), dtype=np.int32)
-        rk[:, 0] = 0
-        rk[:, 1] = BRICK
-        rj[:, 0] = 0
-        rj[:, 1] = BRICK
-        ri[:, 0] = 0
-        ri[:, 1] = BRICK
+        rs = np.empty(_LB * BRICK, dtype=np.float32)
+        rd = np.empty(_LB * BRICK, dtype=np.float32)
+        ring = np.empty(21 * n_pl, dtype=np.float32)
+        g = np.empty(3 * n_pl, dtype=np.float32)
         n = 0
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
             gathered = False
+            have = 0
             bi = bricks[b, 0] << BRICK_SHIFT
             bj = bricks[b, 1] << BRICK_SHIFT
             bk = bricks[b, 2] << BRICK_SHIFT
-            for o in range(BRICK_VOXELS):
-                v = vmap[b, o]
-                if v < 0:
+            for x in range(BRICK):
+                any_v = False
+                for o in range(x * n_pl, (x + 1) * n_pl):
+                    if vmap[b, o] >= 0:
+                        any_v = True
+                        break
+                if not any_v:
                     continue
                 if not gathered:
                     _gather_halo(density, nbr, b, box)
-                    _smooth_box(box, _LB, _LB, _LB, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj,
-                                ri)
                     gathered = True
-                x = o >> 6
-                y = (o >> 3) & BRICK_MASK
-                z = o & BRICK_MASK
-                nx, ny, nz, ok = _unit(gx[o], gy[o], gz[o])      # gradient box = brick
-                if not ok:
-                    nx, ny, nz = _fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
-                                                  + z + _HALO, _LB, _LB)
-                nrm[v, 0] = nx
-                nrm[v, 1] = ny
-                nrm[v, 2] = nz
-                lab = np.int64(label[b, o])
-                if lab >= ncol:
-                    lab = 0
-                met = 0
-                w = 0.0
-                if tint_on:
-                    if bone[lab] != 0:
-                        if (near[b, x] >> np.uint64(o & 63)) & one:
-                            met, w = _tint(keys, vals, density, label, bone, origin, spacing,
-                                           tp, bi + x, bj + y, bk + z, nrm[v, 0], nrm[v, 1],
-                                           nrm[v, 2])
-                            if met >= ncol:
-                                met = 0
-                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
-                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
-                                    density[b, o])
-                col[v, 0] = cr
-                col[v, 1] = cg
-                col[v, 2] = cb
-                col[v, 3] = ALPHA
-                n += 1
+                for pl in range(max(have, x), x + 7):
+                    _kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
+                have = x + 7
+                _i_plane(ring, x, n_pl, W, g)
+                for q in range(n_pl):
+                    o = x * n_pl + q
+                    v = vmap[b, o]
+                    if v < 0:
+                        continue
+                    y = q >> 3
+                    z = q & BRICK_MASK
+                    nx, ny, nz, ok = _unit(g[q], g[n_pl + q], g[2 * n_pl + q])
+                    if not ok:
+                        nx, ny, nz = _fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
+                                                      + z + _HALO, _LB, _LB)
+                    nrm[v, 0] = nx
+                    nrm[v, 1] = ny
+                    nrm[v, 2] = nz
+                    lab = np.int64(label[b, o])
+                    if lab >= ncol:
+                        lab = 0
+                    met = 0
+                    w = 0.0
+                    if tint_on:
+                        if bone[lab] != 0:
+                            if (near[b, x] >> np.uint64(q)) & one:
+                                met, w = _tint(keys, vals, density, label, bone, origin,
+                                               spacing, tp, bi + x, bj + y, bk + z, nrm[v, 0],
+                                               nrm[v, 1], nrm[v, 2])
+                                if met >= ncol:
+                                    met = 0
+                    cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
+                                        colors[met, 0], colors[met, 1], colors[met, 2], w,
+                                        density[b, o])
+                    col[v, 0] = cr
+                    col[v, 1] = cg
+                    col[v, 2] = cb
+                    col[v, 3] = ALPHA
+                    n += 1
         counts[ch] = n
 
 
@@ -647,13 +606,13 @@ def _dilate_rows(rows, src, dst, tmp, wd0, wd1, r, zmask):
 # layout of the float64 constants and int64 slots passed to _refresh
 _F_ORIGIN, _F_SPACING, _F_TP, _F_W = 0, 3, 4, 8          # origin (3), spacing, tp (4), W (7)
 _N_F = 15
-_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, f32, ranges
-_N_I = 7
+_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, f32
+_N_I = 6
 
 
 @njit(cache=True, nogil=True)
 def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, removed, touched,
-             rows, wbr, f32, rr, nrm, col):
+             rows, wbr, f32, nrm, col):
     """Refresh the vertices near the inputs (see the module docstring) on one
     window: their bounding box plus ``m = ip[_I_MARGIN]`` voxels. The normals
     are computed on the box of the inputs' bounding box plus ``2
@@ -712,27 +671,20 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
     Y = wd1 - 2 * off
     Z = wd2 - 2 * off
     n_box = X * Y * Z
-    n_k = X * Y * (Z - 6)
-    n_kj = X * (Y - 6) * (Z - 6)
-    n_g = (X - 6) * (Y - 6) * (Z - 6)
-    need_f = n_box + 2 * n_k + 3 * n_kj + 3 * n_g
+    n_k = Y * (Z - 6)
+    n_pl = (Y - 6) * (Z - 6)
+    need_f = n_box + 2 * n_k + 24 * n_pl
     if rows.shape[0] < _N_ROWSETS * nrow or wbr.shape[0] < bd0 * bd1 * bd2 \
-            or f32.shape[0] < need_f or rr.shape[0] < 3 * X * Y:
+            or f32.shape[0] < need_f:
         ip[_I_NEED] = _N_ROWSETS * nrow
         ip[_I_NEED + 1] = bd0 * bd1 * bd2
         ip[_I_NEED + 2] = need_f
-        ip[_I_NEED + 3] = 3 * X * Y
         return -2
     ld = f32[:n_box]
     rs = f32[n_box:n_box + n_k]
     rd = f32[n_box + n_k:n_box + 2 * n_k]
-    tx = f32[n_box + 2 * n_k:n_box + 2 * n_k + n_kj]
-    ty = f32[n_box + 2 * n_k + n_kj:n_box + 2 * n_k + 2 * n_kj]
-    tz = f32[n_box + 2 * n_k + 2 * n_kj:n_box + 2 * n_k + 3 * n_kj]
-    g0 = n_box + 2 * n_k + 3 * n_kj
-    gx = f32[g0:g0 + n_g]
-    gy = f32[g0 + n_g:g0 + 2 * n_g]
-    gz = f32[g0 + 2 * n_g:need_f]
+    ring = f32[n_box + 2 * n_k:n_box + 2 * n_k + 21 * n_pl]
+    g = f32[n_box + 2 * n_k + 21 * n_pl:need_f]
     W = np.empty(7, dtype=np.float32)
     for c in range(7):
         W[c] = np.float32(fp[_F_W + c])
@@ -792,31 +744,28 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
                     for u in range(n):
                         ld[li + z + u] = np.float32(0.0)
                 z += n
-    # the rows and z-ranges of the gradient the N-set needs, and before them
-    rk = rr[:X * Y]
-    rj = rr[X * Y:X * Y + X * (Y - 6)]
-    ri = rr[X * Y + X * (Y - 6):X * Y + X * (Y - 6) + (X - 6) * (Y - 6)]
-    sh = off + 3                        # window coordinate of gradient coordinate 0
-    for x in range(X - 6):
-        for y in range(Y - 6):
-            bits = rows[NR + (x + sh) * wd1 + y + sh]
-            if bits == 0:
-                ri[x * (Y - 6) + y, 0] = 0
-                ri[x * (Y - 6) + y, 1] = 0
-            else:
-                ri[x * (Y - 6) + y, 0] = np.int64(trailing_zeros(bits)) - sh
-                ri[x * (Y - 6) + y, 1] = 64 - np.int64(leading_zeros(bits)) - sh
-    _pass_ranges(ri, X, Y, rj, rk)
-    _smooth_box(ld, X, Y, Z, W, rs, rd, tx, ty, tz, gx, gy, gz, rk, rj, ri)
-    # refresh
     ncol = colors.shape[0]
     count = 0
-    for x in range(wd0):
+    Zo = Z - 6
+    sh = off + 3            # window coordinate of the gradient planes' coordinate 0
+    # vertices with a new normal (N), plane by plane of the normals' box
+    have = 0
+    for xo in range(X - 6):
+        x = xo + sh
+        any_n = False
+        for y in range(wd1):
+            if rows[NR + x * wd1 + y] != 0:
+                any_n = True
+                break
+        if not any_n:
+            continue
+        for pl in range(max(have, xo), xo + 7):
+            _kj_plane(ld, pl, Y, Z, W, rs, rd, ring, pl % 7)
+        have = xo + 7
+        _i_plane(ring, xo, n_pl, W, g)
         i = wlo[0] + x
         for y in range(wd1):
-            r = x * wd1 + y
-            nbits = rows[NR + r]
-            bits = nbits | rows[TI + r]
+            bits = rows[NR + x * wd1 + y]
             if bits == 0:
                 continue
             j = wlo[1] + y
@@ -832,34 +781,67 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
                 v = vmap[b, o]
                 if v < 0:
                     continue
+                q = (y - sh) * Zo + z - sh
+                nx, ny, nz, ok = _unit(g[q], g[n_pl + q], g[2 * n_pl + q])
+                if not ok:
+                    nx, ny, nz = _fallback_normal(ld, ((x - off) * Y + y - off) * Z + z - off, Y, Z)
+                nrm[v, 0] = nx
+                nrm[v, 1] = ny
+                nrm[v, 2] = nz
                 lab = np.int64(label[b, o])
                 if lab >= ncol:
                     lab = 0
-                is_near = (near[b, o >> 6] >> np.uint64(o & 63)) & one
-                if (nbits >> np.uint64(z)) & one:
-                    bx = x - off
-                    by = y - off
-                    bz = z - off
-                    q = ((bx - 3) * (Y - 6) + by - 3) * (Z - 6) + bz - 3
-                    nx, ny, nz, ok = _unit(gx[q], gy[q], gz[q])
-                    if not ok:
-                        nx, ny, nz = _fallback_normal(ld, (bx * Y + by) * Z + bz, Y, Z)
-                    nrm[v, 0] = nx
-                    nrm[v, 1] = ny
-                    nrm[v, 2] = nz
-                elif bone[lab] == 0 or is_near == 0 or not _ray_meets(
-                        rows, R1, wlo, wd0, wd1, wd2, i, j, k, nrm[v, 0], nrm[v, 1],
-                        nrm[v, 2], tp[1] / spacing):
-                    continue            # neither its normal nor its rays can have changed
                 met = 0
                 w = 0.0
                 if tint_on:
                     if bone[lab] != 0:
-                        if is_near:
+                        if (near[b, o >> 6] >> np.uint64(o & 63)) & one:
                             met, w = _tint(keys, vals, density, label, bone, origin, spacing,
                                            tp, i, j, k, nrm[v, 0], nrm[v, 1], nrm[v, 2])
                             if met >= ncol:
                                 met = 0
+                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
+                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
+                                    density[b, o])
+                col[v, 0] = cr
+                col[v, 1] = cg
+                col[v, 2] = cb
+                col[v, 3] = ALPHA
+                count += 1
+    if not tint_on or nr == 0:
+        return count
+    # vertices whose normal stays but whose rays may pass a removed voxel
+    reach = tp[1] / spacing
+    for x in range(wd0):
+        i = wlo[0] + x
+        for y in range(wd1):
+            r = x * wd1 + y
+            bits = rows[TI + r] & ~rows[NR + r]
+            if bits == 0:
+                continue
+            j = wlo[1] + y
+            bbase = ((i >> BRICK_SHIFT) - blo0) * bd1 + (j >> BRICK_SHIFT) - blo1
+            while bits != 0:
+                z = np.int64(trailing_zeros(bits))
+                bits &= bits - one
+                k = wlo[2] + z
+                b = wbr[bbase * bd2 + (k >> BRICK_SHIFT) - blo2]
+                if b < 0:
+                    continue
+                o = voxel_offset(i, j, k)
+                v = vmap[b, o]
+                if v < 0 or not (near[b, o >> 6] >> np.uint64(o & 63)) & one:
+                    continue
+                lab = np.int64(label[b, o])
+                if lab >= ncol or bone[lab] == 0:
+                    continue
+                if not _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, nrm[v, 0], nrm[v, 1],
+                                  nrm[v, 2], reach):
+                    continue
+                met, w = _tint(keys, vals, density, label, bone, origin, spacing, tp, i, j, k,
+                               nrm[v, 0], nrm[v, 1], nrm[v, 2])
+                if met >= ncol:
+                    met = 0
                 cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
                                     colors[met, 0], colors[met, 1], colors[met, 2], w,
                                     density[b, o])
@@ -1108,7 +1090,6 @@ class Shader:
         self._rows = np.zeros(_N_ROWSETS * 1024, dtype=np.uint64)
         self._wbr = np.zeros(64, dtype=np.int32)
         self._f32 = np.zeros(1 << 16, dtype=np.float32)
-        self._rr = np.zeros((3 * 1024, 2), dtype=np.int32)
 
     @property
     def normal_reach(self) -> int:
@@ -1139,11 +1120,11 @@ class Shader:
             while True:
                 got = _refresh(grid.keys, grid.vals, grid.density, grid.label, vmap, self.bone,
                                self._near, self.colors, self._fp, self._ip, rem, tch,
-                               self._rows, self._wbr, self._f32, self._rr, nrm, col)
+                               self._rows, self._wbr, self._f32, nrm, col)
                 if got != -2:
                     break
-                need = self._ip[_I_NEED:_I_NEED + 4].tolist()
-                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2), ("_rr", 3)):
+                need = self._ip[_I_NEED:_I_NEED + 3].tolist()
+                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2)):
                     cur = getattr(self, name)
                     if cur.shape[0] < need[k]:
                         n_new = max(need[k], 2 * cur.shape[0])
