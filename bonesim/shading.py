@@ -120,7 +120,7 @@ GRAD_EPS = 1e-6
 ALPHA = 255
 #: Largest reach [voxels] of the refresh: ``tint_reach`` must not exceed it
 #: (a window is at most 64 voxels deep along k).
-MAX_REACH_VOXELS = 24
+MAX_REACH_VOXELS = 28
 
 _NW = 2 * NORMAL_RADIUS + 1
 _HALO = NORMAL_RADIUS
@@ -156,9 +156,9 @@ class ShadingParams:
     """
 
     sigma_voxels: float = 2.0
-    start_mm: float = 2.0
-    full_mm: float = 0.6
-    max_weight: float = 0.75
+    start_mm: float = 3.0
+    full_mm: float = 0.5
+    max_weight: float = 0.6
 
     def __post_init__(self):
         for name in ("sigma_voxels", "start_mm", "full_mm", "max_weight"):
@@ -902,9 +902,9 @@ def _near_structure(keys, vals, bricks, bits, reach, near):
     ``bits``. Labels never change, so this holds for the grid's whole
     life."""
     n = bricks.shape[0]
-    L = BRICK + 2 * reach                 # at most 8 + 2 * 24 = 56 <= 64 bits
-    full = (np.uint64(1) << np.uint64(L)) - np.uint64(1)
+    L = BRICK + 2 * reach                 # at most 8 + 2 * 28 = 64 bits
     one = np.uint64(1)
+    full = np.uint64(0xFFFFFFFFFFFFFFFF) if L == 64 else (one << np.uint64(L)) - one
     byte = np.uint64(0xFF)
     nbb = (reach + BRICK - 1) // BRICK    # bricks the box reaches on each side
     for b in prange(n):

@@ -485,6 +485,32 @@ def test_bone_labels_and_of_model():
     assert Surface.of_model(model, grid).canonical() == b
 
 
+def test_finest_voxels_at_the_largest_reach():
+    """Voxels so fine that the rays reach MAX_REACH_VOXELS: the 64-bit masks
+    are full, and drilling still equals a rebuild."""
+    from bonesim.shading import MAX_REACH_VOXELS
+
+    h = P.start_mm / (MAX_REACH_VOXELS - 0.8)
+    assert tint_reach(P, h) == MAX_REACH_VOXELS
+    grid, top = slab(8, 2, h, n_struct=30, above=4, width=14)
+    surf = Surface.build(grid, COLORS, bone=BONE)
+    v = surf.vertex_at(7, 7, top)
+    t, s = beneath(grid, [[7, 7, top]], surf.nrm[v:v + 1], BONE)
+    step = STEP_FRACTION * h
+    assert s[0] == 2 and t[0] == pytest.approx(8 * h, abs=2 * step / 2 ** BISECT_ITERS)
+    assert surf.col[v].tolist() == ref_colour(1, 2, ref_weight(t[0]))
+    far = surf.vertex_at(0, 0, 0)                    # 29 voxels under the bone: no tint
+    assert surf.col[far].tolist() == list(SINUS_RGB) + [255]
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        d, _ = grid.to_dense()
+        occ = np.argwhere(d > 0)
+        removed = occ[rng.choice(len(occ), size=25, replace=False)]
+        _set_density(grid, removed, 0.0)
+        surf.update(grid, removed)
+        _assert_same_as_rebuild(surf, grid)
+
+
 def test_bad_bone_masks_and_reach():
     grid, _ = slab(2, 2)
     with pytest.raises(ValueError):
