@@ -561,8 +561,9 @@ class Shader:
         if self.tint_on:
             bits = np.empty((grid.n_bricks, BRICK), dtype=np.uint64)
             if _structure_bits(grid.label, self.bone, bits):
-                _near_structure(grid.keys, grid.vals, grid.bricks, bits, self.reach,
-                                self._near)
+                # (C order: the warm-up's one-brick grid compiles this layout)
+                _near_structure(grid.keys, grid.vals, np.ascontiguousarray(grid.bricks), bits,
+                                self.reach, self._near)
         self._fp = np.zeros(_N_F)
         self._fp[_F_ORIGIN:_F_ORIGIN + 3] = self._origin
         self._fp[_F_SPACING] = self.spacing
