@@ -87,7 +87,7 @@ def bench_surface(quick=False) -> dict:
     full = []
     for _ in range(reps):
         t0 = time.perf_counter()
-        surf = Surface.build(grid, model.colors)
+        surf = Surface.of_model(model, grid)
         full.append(time.perf_counter() - t0)
     t_full = float(np.median(full))
     # incremental: remove burr-shaped blobs of ~1000 voxels at surface vertices

@@ -395,7 +395,7 @@ class Player:
         self.grid = self.model.grid.copy()
         self._zero(lo, hi)
         if self._surface_on:
-            self.surface = Surface.build(self.grid, self.model.colors)
+            self.surface = Surface.of_model(self.model, self.grid)
         self._epoch, self._hi = epoch, hi
         self.stats["rebuilds"] += 1
 

@@ -40,7 +40,7 @@ class SurfaceConsumer:
         #: The consumer's replica of the tissue: it changes only through the
         #: events drained, so it always matches what the surface was told.
         self.grid = state.grid.copy()
-        self.surface = Surface.build(self.grid, model.colors)
+        self.surface = Surface.of_model(model, self.grid)   # thin bone shows the tint
         self.update_s: list[float] = []
 
     def drain(self):
@@ -152,7 +152,7 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     if check and consumer is not None:
         from .surface import Surface
 
-        fresh = Surface.build(state.grid, model.colors)
+        fresh = Surface.of_model(model, state.grid)
         summary["surface_consistent"] = bool(_same_surface(fresh, consumer.surface))
     if out_dir is not None and consumer is not None:
         from .meshio import write_mesh

@@ -15,18 +15,12 @@ Occupied voxel
 Surface voxel
     an occupied voxel with at least one empty voxel among its 26 neighbours.
     Each surface voxel carries exactly one vertex, at its centre.
-Vertex normal
-    the unit vector along minus the density gradient, the gradient taken with
-    the 3x3x3 Sobel stencil (derivative ``[-1, 0, 1]`` along the axis,
-    smoothing ``[1, 2, 1]`` along the two others) of the current density. If
-    the gradient's norm is at most :data:`GRAD_EPS`, the normal is the
-    normalised sum of the integer offsets ``(di, dj, dk)`` towards the empty
-    26-neighbours, and if that sum is zero too, ``+z``.
-Vertex colour
-    RGBA uint8: the display colour of the voxel's structure (row ``label`` of
-    the ``(n_labels + 1, 3)`` colour table) times
-    ``SHADE_MIN + (1 - SHADE_MIN) * clip(density, 0, 1)``, rounded half up;
-    alpha is 255.
+Vertex normal, vertex colour
+    defined in :mod:`bonesim.shading`: the normal from a Gaussian-derivative
+    density gradient over the 7x7x7 voxels around the vertex, the colour the
+    structure's display colour shaded by the voxel's density and, where the
+    bone over a non-bone structure is thin, blended toward that structure's
+    colour (the bone labels are given to :meth:`Surface.build`).
 Cell
     the 2x2x2 block of voxels ``m + {0, 1}^3`` named by its minimum corner
     ``m``. Corner ``c`` (0..7) of a cell is the voxel ``m + (c >> 2 & 1,
@@ -92,8 +86,9 @@ occupied neighbour of an empty voxel is a surface voxel). For each affected
 cell the kernel compares the triangles it owns now (found through the owner
 lists below) with those it should own, drops the difference, drops the
 vertices of emptied voxels, creates the vertices of voxels that became
-surface, adds the new triangles, and re-shades every vertex within one
-voxel of a removed or touched voxel. The old triangles come from the mesh
+surface and adds the new triangles; then
+:meth:`bonesim.shading.Shader.refresh` recomputes the normal and colour of
+every vertex the removed and touched voxels can have changed. The old triangles come from the mesh
 itself, not from a guess of the old occupancy, so extra entries (voxels
 listed twice, still bone, already empty before the batch, or never bone)
 are harmless; what must hold is that every voxel whose density changed
@@ -141,18 +136,19 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from bonesim.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                           find_brick, voxel_offset)
+from bonesim.shading import (GRAD_EPS, NORMAL_RADIUS, SHADE_MIN, Shader, ShadingParams,
+                             bone_labels)
 
-__all__ = ["Surface", "CanonicalSurface", "SHADE_MIN", "GRAD_EPS", "warmup",
+__all__ = ["Surface", "CanonicalSurface", "SHADE_MIN", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
 
-#: Darkest shade factor, applied to a voxel of density 0 (density 1 is full colour).
-SHADE_MIN = 0.35
-#: Gradients with a norm at most this are treated as zero (fallback normal).
-GRAD_EPS = 1e-6
-#: Alpha of every vertex colour.
-ALPHA = 255
 #: Most triples that qualify in one cell (checked when the table is built).
 MAX_PER_CELL = 4
+#: Chebyshev distance [voxels] from a removed or touched voxel within which
+#: :meth:`Surface.update` may change vertex normals (colours can change
+#: further, up to the thin-bone tint's reach); for a renderer tracking
+#: which vertices changed.
+RESHADE_REACH = NORMAL_RADIUS
 
 # ----------------------------------------------------------------------------
 # Geometry tables, built from the definition at import.
@@ -267,21 +263,6 @@ TRIPLE_FACE, QUAL_N, QUAL_KEY, QUAL_NMIN = _build_tables()
 # the minimum face along a.
 
 
-def _sobel():
-    w = {-1: 1.0, 0: 2.0, 1: 1.0}
-    k = np.zeros((3, 27), dtype=np.float64)
-    d = np.zeros((27, 3), dtype=np.int64)
-    for idx, (a, b, c) in enumerate(itertools.product((-1, 0, 1), repeat=3)):
-        k[0, idx] = a * w[b] * w[c]
-        k[1, idx] = b * w[a] * w[c]
-        k[2, idx] = c * w[a] * w[b]
-        d[idx] = (a, b, c)
-    return k, d
-
-
-#: (3, 27) Sobel weights of the 3x3x3 neighbourhood in (di, dj, dk) lexicographic order.
-SOBEL, NB27 = _sobel()
-
 # Offsets (from a removed voxel p) of every cell whose owned triangles may
 # change: cells containing p (p - {0,1}^3) and their 6 face neighbours.
 _AFFECTED = sorted({tuple(int(x) for x in (-np.array(d) + e))
@@ -338,140 +319,6 @@ def _nb_slot(qi, qj, qk, i, j, k):
     return (((i >> BRICK_SHIFT) - (qi >> BRICK_SHIFT) + 1) * 9
             + ((j >> BRICK_SHIFT) - (qj >> BRICK_SHIFT) + 1) * 3
             + ((k >> BRICK_SHIFT) - (qk >> BRICK_SHIFT) + 1))
-
-
-#: Densities ``d`` with ``d == 0`` or ``SOBEL_EXACT_MIN <= |d| < SOBEL_EXACT_MAX``
-#: are multiples of 2**-46 (float32: 24-bit significands) and a Sobel sum of
-#: them never exceeds 32 * 4 = 128 in magnitude, so every partial sum is
-#: exact in float64 and the sums do not depend on the order of the terms.
-SOBEL_EXACT_MIN = 2.0 ** -23
-SOBEL_EXACT_MAX = 4.0
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _sobel_seq(d, c0, sx, sy):
-    """Sobel gradient of the densities ``d[c0 + di * sx + dj * sy + dk]``,
-    the reference order: terms in ``(di, dj, dk)`` lexicographic order,
-    those of weight 0 skipped (adding ``0 * d``, a zero, to a partial sum
-    that is never ``-0`` leaves it unchanged: this is the plain 27-term sum
-    bit for bit)."""
-    gx = 0.0
-    gy = 0.0
-    gz = 0.0
-    for a in range(3):
-        wa = 2.0 if a == 1 else 1.0
-        for b in range(3):
-            wb = 2.0 if b == 1 else 1.0
-            for c in range(3):
-                wc = 2.0 if c == 1 else 1.0
-                val = np.float64(d[c0 + (a - 1) * sx + (b - 1) * sy + (c - 1)])
-                if a != 1:
-                    gx += (np.float64(a - 1) * wb * wc) * val
-                if b != 1:
-                    gy += (wa * np.float64(b - 1) * wc) * val
-                if c != 1:
-                    gz += (wa * wb * np.float64(c - 1)) * val
-    return gx, gy, gz
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _sobel_sep(d, c0, sx, sy):
-    """The same gradient, separably (few operations, short dependency
-    chains). Equal to :func:`_sobel_seq` bit for bit when every density of
-    the neighbourhood is 0 or within ``[SOBEL_EXACT_MIN, SOBEL_EXACT_MAX)``
-    in magnitude (then all sums are exact); otherwise it may differ."""
-    sm0 = 0.0      # per di: smoothing (1, 2, 1) over dj of the dk-smoothed row
-    sm2 = 0.0
-    gy = 0.0
-    gz = 0.0
-    # unsigned indices (all in range): no negative-index fix-ups
-    one = np.uint64(1)
-    usy = np.uint64(sy)
-    for a in range(3):
-        wa = 2.0 if a == 1 else 1.0
-        bm = np.uint64(c0 + (a - 1) * sx - sy)     # row dj = -1
-        b0 = bm + usy
-        bp = b0 + usy
-        dm0 = np.float64(d[bm - one])
-        dm1 = np.float64(d[bm])
-        dm2 = np.float64(d[bm + one])
-        d00 = np.float64(d[b0 - one])
-        d01 = np.float64(d[b0])
-        d02 = np.float64(d[b0 + one])
-        dp0 = np.float64(d[bp - one])
-        dp1 = np.float64(d[bp])
-        dp2 = np.float64(d[bp + one])
-        p0 = dm0 + 2.0 * dm1 + dm2
-        p1 = d00 + 2.0 * d01 + d02
-        p2 = dp0 + 2.0 * dp1 + dp2
-        q0 = dm2 - dm0
-        q1 = d02 - d00
-        q2 = dp2 - dp0
-        if a == 0:
-            sm0 = p0 + 2.0 * p1 + p2
-        elif a == 2:
-            sm2 = p0 + 2.0 * p1 + p2
-        gy += wa * (p2 - p0)
-        gz += wa * (q0 + 2.0 * q1 + q2)
-    return sm2 - sm0, gy, gz
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _vertex_attrs_at(d, c0, sx, sy, exact, lab, colors, nrm, col, v):
-    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
-    ``d[c0 + di * sx + dj * sy + dk]``, ``di, dj, dk`` in ``{-1, 0, 1}``.
-    ``exact``: the caller knows the densities allow :func:`_sobel_sep`.
-    Both the full and the incremental tessellation use this, so they agree
-    bit for bit.
-    """
-    if exact:
-        gx, gy, gz = _sobel_sep(d, c0, sx, sy)
-    else:
-        gx, gy, gz = _sobel_seq(d, c0, sx, sy)
-    g = np.sqrt(gx * gx + gy * gy + gz * gz)
-    if g > GRAD_EPS:
-        nx = -gx / g
-        ny = -gy / g
-        nz = -gz / g
-    else:
-        sxx = 0
-        syy = 0
-        szz = 0
-        for a in range(3):
-            for b in range(3):
-                for c in range(3):
-                    if (a != 1 or b != 1 or c != 1) and \
-                            not d[c0 + (a - 1) * sx + (b - 1) * sy + (c - 1)] > 0:
-                        sxx += a - 1
-                        syy += b - 1
-                        szz += c - 1
-        sn = np.sqrt(np.float64(sxx * sxx + syy * syy + szz * szz))
-        if sn > 0:
-            nx = sxx / sn
-            ny = syy / sn
-            nz = szz / sn
-        else:
-            nx = 0.0
-            ny = 0.0
-            nz = 1.0
-    nrm[v, 0] = nx
-    nrm[v, 1] = ny
-    nrm[v, 2] = nz
-    dens = min(max(np.float64(d[c0]), 0.0), 1.0)
-    shade = SHADE_MIN + (1.0 - SHADE_MIN) * dens
-    if lab >= colors.shape[0]:
-        lab = 0
-    for ch in range(3):
-        val = np.floor(np.float64(colors[lab, ch]) * shade + 0.5)
-        col[v, ch] = np.uint8(min(val, 255.0))
-    col[v, 3] = ALPHA
-
-
-@njit(cache=True, nogil=True)
-def _vertex_attrs(d27, lab, colors, nrm, col, v):
-    """Write normal and colour of vertex ``v`` from its 3x3x3 densities
-    ``d27`` in ``(di, dj, dk)`` lexicographic order (centre at 13)."""
-    _vertex_attrs_at(d27, 13, 9, 3, False, lab, colors, nrm, col, v)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -618,13 +465,11 @@ def _build_count(density, nbr, nv, nt):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _build_vertices(density, label, nbr, bricks, colors, origin, spacing, voff,
-                    vmap, pos, nrm, col, vijk):
+def _build_vertices(density, nbr, bricks, origin, spacing, voff, vmap, pos, vijk):
     nb_tot = nbr.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     for ch in prange(n_chunks):
         loc = np.empty((_L, _L, _L), dtype=np.float32)
-        d27 = np.empty(27, dtype=np.float32)
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
             for o in range(BRICK_VOXELS):
                 vmap[b, o] = -1
@@ -640,12 +485,6 @@ def _build_vertices(density, label, nbr, bricks, colors, origin, spacing, voff,
                     for z in range(1, _L - 1):
                         if not _is_surface_local(loc, x, y, z):
                             continue
-                        s = 0
-                        for a in range(-1, 2):
-                            for bb in range(-1, 2):
-                                for c in range(-1, 2):
-                                    d27[s] = loc[x + a, y + bb, z + c]
-                                    s += 1
                         o = ((x - 1) << 6) | ((y - 1) << 3) | (z - 1)
                         i = bi + x - 1
                         j = bj + y - 1
@@ -657,7 +496,6 @@ def _build_vertices(density, label, nbr, bricks, colors, origin, spacing, voff,
                         pos[v, 0] = origin[0] + spacing * i
                         pos[v, 1] = origin[1] + spacing * j
                         pos[v, 2] = origin[2] + spacing * k
-                        _vertex_attrs(d27, label[b, o], colors, nrm, col, v)
                         v += 1
 
 
@@ -1141,40 +979,11 @@ def _add_triangles(cells, cbrick, newk, nnew, nc, nbr, vmap, vhead, tri, tnext, 
 
 
 @njit(cache=True, nogil=True)
-def _reshade(density, label, nbr, colors, vmap, cand, qbrick, ncand, nrm, col, stats):
-    """Recompute normal and colour of every vertex among the candidates."""
-    d27 = np.empty(27, dtype=np.float32)
-    for q in range(ncand):
-        b = qbrick[q]
-        if b < 0:
-            continue
-        qi = cand[q, 0]
-        qj = cand[q, 1]
-        qk = cand[q, 2]
-        o = voxel_offset(qi, qj, qk)
-        v = vmap[b, o]
-        if v < 0:
-            continue
-        s = 0
-        for a in range(-1, 2):
-            for bb in range(-1, 2):
-                for cc in range(-1, 2):
-                    nb = nbr[b, _nb_slot(qi, qj, qk, qi + a, qj + bb, qk + cc)]
-                    if nb >= 0:
-                        d27[s] = density[nb, voxel_offset(qi + a, qj + bb, qk + cc)]
-                    else:
-                        d27[s] = np.float32(0.0)
-                    s += 1
-        _vertex_attrs(d27, label[b, o], colors, nrm, col, v)
-        stats[_S_RESHADE] += 1
-
-
-@njit(cache=True, nogil=True)
-def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
+def _update_kernel(keys, vals, density, nbr, origin, spacing,
                    removed, touched, win_per_input,
-                   vmap, pos, nrm, col, vijk, valive, vhead, vfree,
+                   vmap, pos, vijk, valive, vhead, vfree,
                    tri, tnext, ttid, tfree, cnt, stats, ohead, onext):
-    """Re-tessellate around ``removed`` and re-shade around ``touched``.
+    """Re-tessellate around ``removed`` (normals and colours are the shading's).
 
     A read-only plan (owner cells whose triangles may change, with their old
     and new triangles; vertices to create or drop) is followed, if the
@@ -1260,7 +1069,6 @@ def _update_kernel(keys, vals, density, label, nbr, colors, origin, spacing,
                    vhead, ohead, vfree, cnt, stats)
     _add_triangles(cells, cbrick, newk, nnew, nc, nbr, vmap, vhead, tri, tnext, ttid,
                    tfree, cnt, stats, ohead, onext)
-    _reshade(density, label, nbr, colors, vmap, cand, qbrick, ncand, nrm, col, stats)
 
 
 # ----------------------------------------------------------------------------
@@ -1306,9 +1114,9 @@ _COORD_LIMIT = (1 << 20) - 2 * BRICK
 FAST_MIN_VOXELS = 32768
 FAST_VOXELS_PER_INPUT = 64
 # bit-row sets (_R_T0.. are temporaries of the dilations)
-(_R_REM, _R_SEED, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_RESH, _R_OCC, _R_HASV, _R_NEED,
- _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4, _R_T5, _R_T6) = range(19)
-_N_ROWSETS = 19
+(_R_REM, _R_SEED, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_OCC, _R_HASV, _R_NEED,
+ _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4) = range(16)
+_N_ROWSETS = 16
 # per-slot bit masks of the qualifying triples lying in the minimum face along a
 _QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
 for _code in range(256):
@@ -1367,37 +1175,30 @@ def _fw_need(rows, nr_p, w0, w1):
 
 @njit(cache=True, nogil=True)
 def _fw_dilate(rows, nr_p, w0, w1):
-    """SRC = REM minus OCC; from it and SEED: AFF (cells to re-evaluate),
-    CELL (cells containing a source), TOPO (3x3x3 of the sources) and RESH
-    (3x3x3 of all inputs). See the comment above."""
+    """SRC = REM minus OCC; from it: AFF (cells to re-evaluate), CELL (cells
+    containing a source) and TOPO (3x3x3 of the sources). See the comment
+    above."""
     one = np.uint64(1)
     M = _R_REM * nr_p
     O = _R_OCC * nr_p
     S = _R_SRC * nr_p
-    E = _R_SEED * nr_p
     A = _R_AFF * nr_p
     C = _R_CELL * nr_p
     T = _R_TOPO * nr_p
-    R = _R_RESH * nr_p
     K1 = _R_T0 * nr_p           # cells along k containing a source: k in {p - 1, p}
     K3S = _R_T1 * nr_p          # sources dilated by 1 along k
-    K3E = _R_T2 * nr_p          # inputs dilated by 1 along k
-    CJ = _R_T3 * nr_p           # K1 dilated to cells along j
-    J3S = _R_T4 * nr_p          # K3S dilated by 1 along j
-    J3E = _R_T5 * nr_p          # K3E dilated by 1 along j
-    SJ = _R_T6 * nr_p           # sources dilated to cells along j
+    CJ = _R_T2 * nr_p           # K1 dilated to cells along j
+    J3S = _R_T3 * nr_p          # K3S dilated by 1 along j
+    SJ = _R_T4 * nr_p           # sources dilated to cells along j
     for r in range(nr_p):
         s = rows[M + r] & ~rows[O + r]      # (OCC is stale where REM is 0)
-        e = rows[E + r]
         rows[S + r] = s
         rows[K1 + r] = s | (s >> one)
         rows[K3S + r] = s | (s >> one) | (s << one)
-        rows[K3E + r] = e | (e >> one) | (e << one)
     for x in range(w0):
         for r in range(x * w1 + 2, x * w1 + w1 - 2):
             rows[CJ + r] = rows[K1 + r] | rows[K1 + r + 1]
             rows[J3S + r] = rows[K3S + r - 1] | rows[K3S + r] | rows[K3S + r + 1]
-            rows[J3E + r] = rows[K3E + r - 1] | rows[K3E + r] | rows[K3E + r + 1]
             rows[SJ + r] = rows[S + r] | rows[S + r + 1]
     for x in range(2, w0 - 2):
         for r in range(x * w1 + 2, x * w1 + w1 - 2):
@@ -1407,15 +1208,13 @@ def _fw_dilate(rows, nr_p, w0, w1):
                            | rows[K1 + r - 1] | rows[K1 + r + w1 - 1]   # + face along j
                            | ((rows[SJ + r] | rows[SJ + r + w1]) << one))  # along k
             rows[T + r] = rows[J3S + r - w1] | rows[J3S + r] | rows[J3S + r + w1]
-            rows[R + r] = rows[J3E + r - w1] | rows[J3E + r] | rows[J3E + r + w1]
 
 
 @njit(cache=True, nogil=True)
 def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
     """Densities and vertex slots of the voxels in NEED (elsewhere ``ld``
     and ``lv`` are left stale), occupancy and has-vertex bit rows of the
-    window. Returns whether every density copied allows the separable
-    Sobel."""
+    window."""
     wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
@@ -1423,7 +1222,6 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
     occ0 = _R_OCC * nr_p
     hv0 = _R_HASV * nr_p
     need0 = _R_NEED * nr_p
-    inexact = False
     for x in range(wd0):
         i = wlo[0] + x
         for y in range(wd1):
@@ -1458,9 +1256,6 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
                         lv[lz + uu] = vv
                         occ |= np.uint64(d > 0) << np.uint64(z + u)
                         hv |= np.uint64(vv >= 0) << np.uint64(z + u)
-                        ad = abs(d)
-                        inexact |= d != 0 and not (ad >= SOBEL_EXACT_MIN
-                                                   and ad < SOBEL_EXACT_MAX)
                 else:
                     for u in range(n):
                         ld[li + z + u] = np.float32(0.0)
@@ -1468,7 +1263,6 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
                 z += n
             rows[occ0 + r] = occ
             rows[hv0 + r] = hv
-    return not inexact
 
 
 @njit(cache=True, nogil=True)
@@ -1818,43 +1612,9 @@ def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
 
 
 @njit(cache=True, nogil=True)
-def _fw_reshade(rows, nr_p, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
-                stats):
-    """Normal and colour of every vertex in RESH."""
-    one = np.uint64(1)
-    wd0 = wd[0]
-    wd1 = wd[1]
-    wd2 = wd[2]
-    w1 = wd1 + 2 * _GUARD
-    sy = wd2
-    sx = w1 * wd2
-    R = _R_RESH * nr_p
-    H = _R_HASV * nr_p
-    for x in range(wd0):
-        i = wlo[0] + x
-        for y in range(wd1):
-            r = (x + _GUARD) * w1 + y + _GUARD
-            bits = rows[R + r] & rows[H + r]
-            if bits == 0:
-                continue
-            j = wlo[1] + y
-            bbase = (((i >> BRICK_SHIFT) - blo[0]) * bd[1] + ((j >> BRICK_SHIFT) - blo[1])) * bd[2]
-            while bits != 0:
-                z = trailing_zeros(bits)
-                bits &= bits - one
-                li = r * wd2 + z
-                v = lv[li]
-                k = wlo[2] + z
-                b = wbr[bbase + (k >> BRICK_SHIFT) - blo[2]]
-                _vertex_attrs_at(ld, li, sx, sy, exact, label[b, voxel_offset(i, j, k)], colors,
-                                 nrm, col, v)
-                stats[_S_RESHADE] += 1
-
-
-@njit(cache=True, nogil=True)
-def _update_window(keys, vals, density, label, colors, origin, spacing,
+def _update_window(keys, vals, density, origin, spacing,
                    removed, touched, win_per_input,
-                   vmap, pos, nrm, col, vijk, valive, vrec, vfree,
+                   vmap, pos, vijk, valive, vrec, vfree,
                    trec, tfree, cnt, stats, sf32, si32, su8, su64):
     """The update on dense copies of the inputs' window (see above).
 
@@ -1939,7 +1699,7 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
     # ---- plan (read-only) ----------------------------------------------------
     _fw_mark(removed, touched, wlo, w1, su64, nr_p)
     _fw_need(su64, nr_p, w0, w1)
-    exact = _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nr_p)
+    _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nr_p)
     _fw_dilate(su64, nr_p, w0, w1)
     nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nr_p, wd, lcode, lact, clist, stats)
 
@@ -1960,8 +1720,6 @@ def _update_window(keys, vals, density, label, colors, origin, spacing,
     _fw_vertices(su64, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats)
     _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats)
-    _fw_reshade(su64, nr_p, wd, wlo, wbr, blo, bd, ld, lv, exact, label, colors, nrm, col,
-                stats)
 
 
 # ----------------------------------------------------------------------------
@@ -2117,10 +1875,13 @@ class Surface:
         :meth:`triangles_of`.
     colors : (n_labels + 1, 3) uint8
         The structure colour table given to :meth:`build`.
+    shader : bonesim.shading.Shader
+        Computes the normals and colours (its ``bone`` mask, ``tint_on`` and
+        ``params`` say how).
     """
 
     def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec, vfree,
-                 trec, tfree, cnt, origin_mm, spacing_mm):
+                 trec, tfree, cnt, origin_mm, spacing_mm, shader):
         self._keys = keys
         self._vals = vals
         self.colors = colors
@@ -2142,11 +1903,13 @@ class Surface:
         self._win_per_input = WINDOW_VOXELS_PER_INPUT   # tests set 0 to force hash sets
         self._stats = np.zeros(_N_STATS, dtype=np.int64)
         self._grow_scratch(4096, 256)
+        self.shader = shader
 
     # ------------------------------------------------------------------ build
     @classmethod
-    def build(cls, grid: Grid, colors) -> "Surface":
-        """Tessellate ``grid`` from scratch.
+    def build(cls, grid: Grid, colors, *, bone=None,
+              shading: ShadingParams | None = None) -> "Surface":
+        """Tessellate and shade ``grid`` from scratch.
 
         Parameters
         ----------
@@ -2155,6 +1918,13 @@ class Surface:
         colors : (n_labels + 1, 3) uint8 array_like
             Display RGB of each structure index (row 0 for label 0); must
             cover every label present in the grid.
+        bone : (n_labels + 1,) bool or 0/1 array_like, optional
+            Which labels are bone (:func:`bonesim.shading.bone_labels` of the
+            model's structures); thin bone over the other structures takes
+            on their colour. None (default): no tint.
+        shading : ShadingParams, optional
+            Normal smoothing and tint thresholds; default: the shipped
+            ``bonesim/data/shading.toml``.
 
         Returns
         -------
@@ -2168,6 +1938,7 @@ class Surface:
                              f"label {int(grid.label.max())}")
         n_b = grid.n_bricks
         nbr = _brick_neighbours(grid.keys, grid.vals, grid.bricks)
+        shader = Shader(grid, nbr, colors, bone, shading)
         nv = np.zeros(n_b, dtype=np.int64)
         nt = np.zeros(n_b, dtype=np.int64)
         _build_count(grid.density, nbr, nv, nt)
@@ -2184,8 +1955,8 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        _build_vertices(grid.density, grid.label, nbr, grid.bricks, colors, grid.origin_mm,
-                        grid.spacing_mm, voff, vmap, pos, nrm, col, ijk)
+        _build_vertices(grid.density, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
+                        vmap, pos, ijk)
         trec = np.empty((tcap, _TR_WIDTH), dtype=np.int32)
         trec[:] = _TR_FILL
         err = np.zeros(max(1, (n_b + _CHUNK - 1) // _CHUNK), dtype=np.int64)
@@ -2197,9 +1968,28 @@ class Surface:
         vrec = np.full((vcap, 2), -1, dtype=np.int32)
         _link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
+        shader.shade_all(grid, vmap, nrm, col)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec,
                    np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), cnt,
-                   grid.origin_mm, grid.spacing_mm)
+                   grid.origin_mm, grid.spacing_mm, shader)
+
+    @classmethod
+    def of_model(cls, model, grid: Grid | None = None,
+                 shading: ShadingParams | None = None) -> "Surface":
+        """:meth:`build` with a model's colours and bone labels (structures of
+        kind ``"bone"``), so thin bone shows the structures beneath.
+
+        Parameters
+        ----------
+        model : bonesim.model.Model
+        grid : Grid, optional
+            The tissue to tessellate (a state's or a replica); default the
+            model's initial grid.
+        shading : ShadingParams, optional
+            As for :meth:`build`.
+        """
+        return cls.build(model.grid if grid is None else grid, model.colors,
+                         bone=bone_labels(model.structures), shading=shading)
 
     # ----------------------------------------------------------------- update
     def update(self, grid: Grid, removed, touched=None) -> dict:
@@ -2208,7 +1998,8 @@ class Surface:
         Work is proportional to the number of voxels given, not to the
         surface: cells around removed voxels are re-evaluated, vertices
         created for voxels that became surface and dropped for removed ones,
-        and vertices whose 3x3x3 density neighbourhood changed are re-shaded.
+        and the normals and colours the changes can reach are recomputed
+        (:meth:`bonesim.shading.Shader.refresh`).
 
         Parameters
         ----------
@@ -2238,17 +2029,17 @@ class Surface:
         window = True
         while True:
             if window:
-                _update_window(grid.keys, grid.vals, grid.density, grid.label, self.colors,
+                _update_window(grid.keys, grid.vals, grid.density,
                                self._origin, self._spacing, removed, touched,
                                self._win_per_input,
-                               self.vmap, self.pos, self.nrm, self.col, self.ijk, self.alive,
+                               self.vmap, self.pos, self.ijk, self.alive,
                                self._vrec, self._vfree, self._trec, self._tfree, self._cnt,
                                stats, self._sf32, self._si32, self._su8, self._su64)
             else:
-                _update_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
-                               self.colors, self._origin, self._spacing, removed, touched,
+                _update_kernel(grid.keys, grid.vals, grid.density, self._nbr,
+                               self._origin, self._spacing, removed, touched,
                                self._win_per_input,
-                               self.vmap, self.pos, self.nrm, self.col, self.ijk,
+                               self.vmap, self.pos, self.ijk,
                                self.alive, self.vhead, self._vfree, self.tri, self.tnext,
                                self.tri_key, self._tfree, self._cnt, stats, self._ohead,
                                self._onext)
@@ -2267,9 +2058,10 @@ class Surface:
                 raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
         if st[_S_ERR]:
             raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
+        n_shaded = self.shader.refresh(grid, self.vmap, self.nrm, self.col, removed, touched)
         return {"vertices_added": st[_S_V_ADD], "vertices_removed": st[_S_V_DEL],
                 "triangles_added": st[_S_T_ADD], "triangles_removed": st[_S_T_DEL],
-                "vertices_reshaded": st[_S_RESHADE], "cells_visited": st[_S_CELLS]}
+                "vertices_reshaded": n_shaded, "cells_visited": st[_S_CELLS]}
 
     def _grow_scratch(self, vol, nrows):
         """Scratch of the window path for windows of ``vol`` voxels, ``nrows`` rows."""
@@ -2402,11 +2194,14 @@ class Surface:
 
 
 def warmup() -> None:
-    """Compile (or load from the cache) every kernel of this module on a tiny grid."""
+    """Compile (or load from the cache) every kernel of this module and of
+    :mod:`bonesim.shading` on a tiny grid (bone over another structure)."""
     lab = np.zeros((6, 6, 6), dtype=np.uint8)
     lab[1:5, 1:5, 1:5] = 1
+    lab[1:5, 1:5, 1] = 2
     grid = Grid.from_dense(lab)
-    surf = Surface.build(grid, np.array([[0, 0, 0], [200, 200, 180]], dtype=np.uint8))
+    surf = Surface.build(grid, np.array([[0, 0, 0], [200, 200, 180], [60, 80, 220]],
+                                        dtype=np.uint8), bone=[0, 1, 0])
     b = grid.brick_index(2, 2, 1)
     grid.density[b, voxel_offset(2, 2, 1)] = 0.0
     b = grid.brick_index(2, 2, 2)

@@ -22,6 +22,11 @@ The drill sound rises in pitch as the bone under the burr gets thin (see
    gives ``N * voxel`` exactly.
 4. **Average** over the contacted surface voxels.
 
+The march of step 3 is :func:`exit_ray`; with a mask of bone labels it also
+says which structure the ray meets where it leaves the bone, which is how
+:mod:`bonesim.shading` lets thin bone over the sinus, the dura or a nerve
+take on that structure's colour.
+
 Cost: the box around the burr is copied once into a dense scratch array
 (one hash lookup per brick) for the surface test and the normals; each ray
 takes ``thickness / (STEP_FRACTION * voxel)`` samples plus the bisection,
@@ -45,7 +50,7 @@ from .grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["STEP_FRACTION", "BISECT_ITERS", "MIN_GRADIENT", "NO_CONTACT",
            "ThicknessBuffers", "bone_thickness_mm", "contact_thickness", "thickness_kernel",
-           "box_half_width", "warmup"]
+           "box_half_width", "exit_ray", "warmup"]
 
 #: Ray-marching step as a fraction of the voxel edge.
 STEP_FRACTION = 0.25
@@ -64,22 +69,58 @@ _NO_BRICK = -2
 
 
 @njit(cache=True, nogil=True)
-def _exit_distance(keys, vals, density, origin, inv_h, px, py, pz, nx, ny, nz, step,
-                   max_mm):
-    """Distance [mm] along ``n`` from ``p`` (inside bone) to where the ray
-    leaves the bone, or ``max_mm`` if it does not within that distance.
+def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, pz,
+             nx, ny, nz, step, max_mm, structures_only=False):
+    """March from ``p`` along ``n`` until the ray leaves the bone.
 
-    Marches in steps of ``step`` until a sample's voxel (nearest voxel
-    centre) is empty, then bisects the last step ``BISECT_ITERS`` times. The
-    brick of the last sample is cached: consecutive samples mostly share it.
+    Samples are taken every ``step`` [mm]; a sample is *in bone* when its
+    voxel (nearest voxel centre) has density > 0 and, if ``use_bone``, a
+    label ``l`` with ``bone[l] != 0``. At the first sample not in bone the
+    last step is bisected ``BISECT_ITERS`` times. Every sample lies at a
+    distance below ``max_mm`` from ``p``. The brick of the last sample is
+    cached: consecutive samples mostly share it.
+
+    Parameters
+    ----------
+    keys, vals, density, label
+        The grid's hash table and per-brick arrays (``label`` is read only
+        if ``use_bone``).
+    bone : (n_labels + 1,) uint8
+        1 for the labels that count as bone (read only if ``use_bone``).
+    use_bone : bool
+        False: any tissue (density > 0) counts, as for the drill sound.
+    origin : (3,) float64
+        Centre of voxel (0, 0, 0) [mm].
+    inv_h : float
+        1 / voxel edge [1/mm].
+    px, py, pz : float
+        Start [mm] (inside bone).
+    nx, ny, nz : float
+        Unit direction.
+    step, max_mm : float
+        Marching step and longest distance [mm].
+    structures_only : bool
+        If the ray leaves the bone into empty space, return ``(max_mm, 0)``
+        at once (for a caller that only cares about structures beneath).
+
+    Returns
+    -------
+    distance : float
+        Where the ray leaves the bone [mm], or ``max_mm`` if it does not
+        before.
+    met : int
+        Label of the voxel of the first sample not in bone if that voxel is
+        occupied (density > 0), else 0 (empty space, or no exit before
+        ``max_mm``).
     """
     if step >= max_mm:
-        return max_mm
+        return max_mm, 0
     cbi = cbj = cbk = np.int64(0)
     cb = np.int64(_NO_BRICK)
     lo = 0.0
     hi = step
     marching = True
+    met = 0
     iters = 0
     while True:
         t = hi if marching else 0.5 * (lo + hi)
@@ -90,15 +131,26 @@ def _exit_distance(keys, vals, density, origin, inv_h, px, py, pz, nx, ny, nz, s
         if bi != cbi or bj != cbj or bk != cbk or cb == _NO_BRICK:
             cbi, cbj, cbk = bi, bj, bk
             cb = np.int64(find_brick(keys, vals, bi, bj, bk))
-        inside = cb >= 0 and density[cb, voxel_offset(i, j, k)] > 0.0
+        inside = False
+        lab = 0
+        if cb >= 0:
+            o = voxel_offset(i, j, k)
+            if density[cb, o] > 0.0:
+                inside = True
+                if use_bone:
+                    lab = np.int64(label[cb, o])
+                    inside = bone[lab] != 0
         if marching:
             if inside:
                 lo = hi
                 hi += step
                 if hi >= max_mm:
-                    return max_mm
+                    return max_mm, 0
             else:
+                if structures_only and lab == 0:
+                    return max_mm, 0
                 marching = False
+                met = lab
         else:
             if inside:
                 lo = t
@@ -106,7 +158,22 @@ def _exit_distance(keys, vals, density, origin, inv_h, px, py, pz, nx, ny, nz, s
                 hi = t
             iters += 1
             if iters == BISECT_ITERS:
-                return 0.5 * (lo + hi)
+                return 0.5 * (lo + hi), met
+
+
+_NO_LABELS = np.zeros((1, 1), dtype=np.uint8)    # label / bone arrays of the tissue-only ray
+_ALL_BONE = np.ones(1, dtype=np.uint8)
+
+
+@njit(cache=True, nogil=True)
+def _exit_distance(keys, vals, density, origin, inv_h, px, py, pz, nx, ny, nz, step,
+                   max_mm):
+    """Distance [mm] along ``n`` from ``p`` (inside tissue) to where the ray
+    leaves the tissue (density > 0), or ``max_mm`` if it does not within
+    that distance (:func:`exit_ray` without labels)."""
+    d, _ = exit_ray(keys, vals, density, _NO_LABELS, _ALL_BONE, False, origin, inv_h,
+                    px, py, pz, nx, ny, nz, step, max_mm)
+    return d
 
 
 @njit(cache=True, nogil=True)

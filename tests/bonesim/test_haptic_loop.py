@@ -42,7 +42,7 @@ def test_scripted_loop_publishes_and_consumer_stays_exact(model):
         assert loop.state.removed.count > 0
         # the replica saw every published change, and the surface matches it
         np.testing.assert_array_equal(consumer.grid.density, loop.state.grid.density)
-        fresh = Surface.build(consumer.grid, model.colors)
+        fresh = Surface.of_model(model, consumer.grid)
         assert not fresh.canonical().differences(consumer.surface.canonical())
 
 

@@ -168,7 +168,7 @@ def test_seeks_give_the_fresh_replay_grid_and_the_built_surface(recorded):
         modes.append(p.seek(t)["mode"])
         ref = fresh_replay(model, tl, t)
         np.testing.assert_array_equal(p.grid.density, ref.density, err_msg=f"t={t}")
-        built = Surface.build(ref, model.colors)
+        built = Surface.of_model(model, ref)
         diff = p.surface.canonical().differences(built.canonical())
         assert not diff, (t, diff)
     # forward seeks were incremental (none removed between 0.5 and 0.501 s);
@@ -484,7 +484,7 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     p.seek(p.timeline.duration)
     final = replay(s)["state"].grid.density
     np.testing.assert_array_equal(p.grid.density > 0, final > 0)
-    built = Surface.build(p.grid, p.model.colors)
+    built = Surface.of_model(p.model, p.grid)
     assert not p.surface.canonical().differences(built.canonical())
     f = p.frame()
     assert f.epoch == 1 and f.burr.name == "diamond-3mm"

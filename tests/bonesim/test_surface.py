@@ -2,9 +2,11 @@
 
 The centre piece is a slow, deliberately plain numpy reference of the whole
 definition (dense arrays, explicit loops over cells and the 56 corner
-triples, plane/side tests with cross and dot products): the kernels' full
-tessellation must equal it, and the incremental update must equal a full
-tessellation after any removal sequence.
+triples, plane/side tests with cross and dot products, normals by an einsum
+over the 7x7x7 Gaussian-derivative stencil written out from the formula of
+bonesim.shading): the kernels' full tessellation must equal it, and the
+incremental update must equal a full tessellation after any removal
+sequence. The thin-bone tint has its own tests (test_shading.py).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from bonesim.grid import Grid, voxel_offset
+from bonesim.shading import NORMAL_RADIUS, load_shading
 from bonesim.surface import SHADE_MIN, GRAD_EPS, CanonicalSurface, Surface
 
 COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dtype=np.uint8)
@@ -28,12 +31,26 @@ _EXAMPLES = int(os.environ.get("BONESIM_SURFACE_EXAMPLES", "30"))
 # ---------------------------------------------------------------------------
 # numpy reference
 # ---------------------------------------------------------------------------
+R = NORMAL_RADIUS
+
+
+def _ref_weights():
+    """Gaussian smoothing S and derivative D over offsets -R..R, from the
+    formula (sum S = 1, sum c D = 1)."""
+    sigma = load_shading().sigma_voxels
+    c = np.arange(-R, R + 1, dtype=np.float64)
+    smooth = np.exp(-c ** 2 / (2 * sigma ** 2))
+    smooth /= smooth.sum()
+    deriv = c * smooth
+    deriv /= (c * deriv).sum()
+    return smooth, deriv
+
+
 def _ref_vertex(D, lab, p):
     """Normal and colour of the vertex at padded index p (a tuple)."""
     x, y, z = p
-    nb = D[x - 1:x + 2, y - 1:y + 2, z - 1:z + 2].astype(np.float64)
-    smooth = np.array([1.0, 2.0, 1.0])
-    deriv = np.array([-1.0, 0.0, 1.0])
+    nb = D[x - R:x + R + 1, y - R:y + R + 1, z - R:z + R + 1].astype(np.float64)
+    smooth, deriv = _ref_weights()
     gx = np.einsum("abc,a,b,c->", nb, deriv, smooth, smooth)
     gy = np.einsum("abc,a,b,c->", nb, smooth, deriv, smooth)
     gz = np.einsum("abc,a,b,c->", nb, smooth, smooth, deriv)
@@ -43,7 +60,7 @@ def _ref_vertex(D, lab, p):
     else:
         s = np.zeros(3)
         for d in itertools.product((-1, 0, 1), repeat=3):
-            if d != (0, 0, 0) and not nb[d[0] + 1, d[1] + 1, d[2] + 1] > 0:
+            if d != (0, 0, 0) and not D[x + d[0], y + d[1], z + d[2]] > 0:
                 s += d
         n = s / np.linalg.norm(s) if np.linalg.norm(s) > 0 else np.array([0.0, 0.0, 1.0])
     shade = SHADE_MIN + (1 - SHADE_MIN) * min(max(float(D[p]), 0.0), 1.0)
@@ -82,7 +99,7 @@ def _ref_qualifies(occ_cell, tri_idx):
 
 def reference(dens, label):
     """CanonicalSurface of the definition for dense volumes at voxel (0, 0, 0)."""
-    P = 2
+    P = R + 1
     D = np.pad(np.where(label > 0, dens, 0).astype(np.float32), P)
     lab = np.pad(label, P)
     occ = D > 0

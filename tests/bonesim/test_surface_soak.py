@@ -1,6 +1,7 @@
 """Soak: many cumulative burr-ball removals on the phantom keep the
-incremental surface identical to a from-scratch tessellation (both update
-paths: the dense-window path and the hash-set fallback)."""
+incremental surface identical to a from-scratch tessellation, normals and
+thin-bone tint included (both update paths: the dense-window path and the
+hash-set fallback)."""
 from __future__ import annotations
 
 import numpy as np
@@ -17,7 +18,7 @@ pytestmark = pytest.mark.slow
 def test_cumulative_balls_match_rebuild(window):
     model = load_model("phantom", "cutting-5mm")
     grid = model.grid.copy()
-    surf = Surface.build(grid, model.colors)
+    surf = Surface.of_model(model, grid)
     if not window:
         surf._win_per_input = 0                   # force the hash-set path
     rng = np.random.default_rng(11)
@@ -33,5 +34,5 @@ def test_cumulative_balls_match_rebuild(window):
             continue
         done += 1
         if done % 10 == 0:
-            fresh = Surface.build(grid, model.colors)
+            fresh = Surface.of_model(model, grid)
             assert not fresh.canonical().differences(surf.canonical()), f"after {done} balls"

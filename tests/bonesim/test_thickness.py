@@ -209,3 +209,29 @@ def test_matches_numpy_reference(seed, radius, spacing, max_mm):
         assert mean == pytest.approx(np.mean([c for _, c in ref.values()]))
     else:
         assert mean == NO_CONTACT
+
+
+def test_exit_ray_with_bone_labels():
+    """The labelled ray stops where the bone ends and says what it meets: a
+    structure (its label), empty space (0) or nothing within reach (0)."""
+    from bonesim.thickness import exit_ray
+
+    lab = np.zeros((8, 8, 16), np.uint8)
+    lab[:, :, :4] = 2                          # a structure under
+    lab[:, :, 4:9] = 1                         # 5 voxels of bone
+    g = Grid.from_dense(lab, spacing_mm=0.5)
+    bone = np.array([0, 1, 0], np.uint8)
+    step = STEP_FRACTION * 0.5
+    p = g.origin_mm + 0.5 * np.array([4, 4, 8])          # top bone voxel
+    args = (g.keys, g.vals, g.density, g.label, bone)
+    d, met = exit_ray(*args, True, g.origin_mm, 2.0, *p, 0.0, 0.0, -1.0, step, 10.0)
+    assert met == 2 and d == pytest.approx(4.5 * 0.5, abs=step / 2 ** BISECT_ITERS)
+    d, met = exit_ray(*args, True, g.origin_mm, 2.0, *p, 0.0, 0.0, 1.0, step, 10.0)
+    assert met == 0 and d == pytest.approx(0.25, abs=step / 2 ** BISECT_ITERS)
+    d, met = exit_ray(*args, True, g.origin_mm, 2.0, *p, 0.0, 0.0, 1.0, step, 10.0, True)
+    assert (d, met) == (10.0, 0)                  # into empty space: no distance needed
+    d, met = exit_ray(*args, True, g.origin_mm, 2.0, *p, 0.0, 0.0, -1.0, step, 1.0)
+    assert (d, met) == (1.0, 0)                   # the structure is out of reach
+    # without labels the structure is tissue too: the ray runs to the bottom
+    d, met = exit_ray(*args, False, g.origin_mm, 2.0, *p, 0.0, 0.0, -1.0, step, 10.0)
+    assert met == 0 and d == pytest.approx(8.5 * 0.5, abs=step / 2 ** BISECT_ITERS)

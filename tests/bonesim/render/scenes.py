@@ -76,7 +76,7 @@ def build(model, which: str, **scene_kw):
     from bonesim.surface import Surface
 
     state = make_state(model)
-    surf = Surface.build(state.grid, model.colors)
+    surf = Surface.of_model(model, state.grid)     # as the app: thin bone tinted
     scene_kw.setdefault("size", SIZE)
     scene = Scene.from_model(model, surf, **scene_kw)
     scene.set_hud({})
