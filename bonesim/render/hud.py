@@ -23,7 +23,8 @@ keys (all optional; units in the names):
 ``frame_hz``         frame rate [Hz] (default: measured by the scene)
 ``elapsed_s``        run time [s]
 ``injuries``         count, list of structure names, or text
-``message``          free text (status, warnings), wrapped
+``message``          free text (status, warnings), one paragraph a line,
+                     wrapped (continuations indented by two spaces)
 ===================  ====================================================
 
 Any other key is shown as ``key: value``.
@@ -37,8 +38,9 @@ KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "drill", "dire
          "injuries", "message")
 #: Width of the label column [characters].
 LABEL_W = 7
-#: Messages wrap at this many characters.
+#: Messages wrap at this many characters; continuation lines are indented.
 WRAP_CHARS = 28
+WRAP_INDENT = "  "
 
 
 def _num(v, fmt):
@@ -146,7 +148,8 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
         if k not in KNOWN:
             lines.append(f"{k}: {v}")
     if info.get("message"):
-        lines += textwrap.wrap(str(info["message"]), WRAP_CHARS) or [str(info["message"])]
+        for para in str(info["message"]).splitlines():
+            lines += textwrap.wrap(para, WRAP_CHARS, subsequent_indent=WRAP_INDENT) or [para]
     return "\n".join(lines)
 
 
