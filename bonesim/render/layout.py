@@ -263,7 +263,8 @@ class LayoutMixin:
         if eye_separation_mm is not None:
             eye_angle_deg(eye_separation_mm, 1.0)               # validates
             self.eye_separation_mm = float(eye_separation_mm)
-        apply_stereo(self.render_window, mode, offscreen=self.offscreen)
+        apply_stereo(self.render_window, mode, offscreen=self.offscreen,
+                     asked_capable=self.stereo_capable)
         self.stereo_mode = mode
         self._update_stereo()
 

@@ -144,7 +144,8 @@ class Scene(LayoutMixin):
         self.render_window, self.gl = make_render_window(offscreen, size)
         rw = self.render_window
         rw.SetWindowName(title)
-        if stereo_capable and not offscreen:
+        self.stereo_capable = bool(stereo_capable and not offscreen)
+        if self.stereo_capable:
             rw.StereoCapableWindowOn()
         self.offscreen = bool(offscreen)
         rw.SetNumberOfLayers(2)

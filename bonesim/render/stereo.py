@@ -71,7 +71,8 @@ def eye_angle_deg(separation_mm: float, distance_mm: float) -> float:
     return math.degrees(2.0 * math.asin(min(s / (2.0 * d), 1.0)))
 
 
-def apply_stereo(render_window, mode: str | None, *, offscreen: bool) -> None:
+def apply_stereo(render_window, mode: str | None, *, offscreen: bool,
+                 asked_capable: bool = False) -> None:
     """Switch ``render_window`` to stereo ``mode`` (None: mono).
 
     Raises
@@ -93,6 +94,11 @@ def apply_stereo(render_window, mode: str | None, *, offscreen: bool) -> None:
                 "offscreen window has none (use side-by-side, anaglyph, interlaced or "
                 "checkerboard)", field="stereo")
         if not render_window.GetStereoCapableWindow():
+            if asked_capable:          # VTK asked the display, which had none to give
+                raise StereoUnavailable(
+                    "the display offers no quad-buffered stereo OpenGL context (asked "
+                    "for one; most desktops and virtual X servers have none)",
+                    field="stereo")
             raise StereoUnavailable(
                 "this window has no stereo OpenGL context: make the scene with "
                 "stereo_capable=True on a display whose driver offers quad-buffered "
