@@ -151,7 +151,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import NamedTuple
 
 import numpy as np
 
@@ -164,7 +163,7 @@ from .dust_bricks import (_MAX_RATE_Q, _MIN_GRAVITY_COMPONENT, _N_CTR, _N_FP, _N
                           STAGE_DONE, STAGE_GRAVITY, _ensure_bricks, _recycle,
                           _refresh_bone_bricks, _rehash)
 from .dust_rules import _SC_SIZE, _add, _recount, _step_kernel, _wet_out
-from .dust_sprites import _fill, _stamp
+from .dust_sprites import DustSprites, _fill, _stamp
 from .grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
 
 __all__ = ["DustGrid", "DustParams", "DustSprites", "Q", "Q_SHIFT", "FULL",
@@ -274,32 +273,6 @@ def _nonneg(v, name) -> float:
 
 def _to_q(x: float) -> int:
     return int(min(round(x * Q), _MAX_RATE_Q))
-
-
-class DustSprites(NamedTuple):
-    """What the window draws of the dust (:meth:`DustGrid.sprites`); unpacks
-    into :meth:`bonesim.render.scene.Scene.set_dust`'s arguments.
-
-    Attributes
-    ----------
-    positions : (n, 3) float32
-        Sprite centres, case frame [mm] (cell centres plus a fixed jitter).
-    density : (n,) float32
-        Dust in the sprite's cell [cells] (1 full; briefly more where dust was
-        just added or pushed).
-    cell_mm : float
-        Cell edge [mm].
-    age_s : (n,) float32
-        Time since dust arrived in the cell [s].
-    wet : (n,) uint8
-        1 for wet dust (paste), 0 for dry.
-    """
-
-    positions: np.ndarray
-    density: np.ndarray
-    cell_mm: float
-    age_s: np.ndarray
-    wet: np.ndarray
 
 
 class DustGrid:

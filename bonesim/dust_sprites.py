@@ -20,13 +20,15 @@ point of its cell, with the age of the dust in it:
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
 from .dust_bricks import _FULL_Q
 from .grid import BRICK_SHIFT, BRICK_VOXELS, pack_brick_key
 
-__all__ = ["cell_jitter"]
+__all__ = ["DustSprites", "cell_jitter"]
 
 # splitmix64 constants (a well-mixed integer hash)
 _M1 = np.uint64(0x9E3779B97F4A7C15)
@@ -51,6 +53,32 @@ def _jitter3(i, j, k, salt):
     b = np.float64((h >> np.uint64(22)) & np.uint64(0xFFFFF)) * scale
     c = np.float64((h >> np.uint64(42)) & np.uint64(0xFFFFF)) * scale
     return 2.0 * a - 1.0, 2.0 * b - 1.0, 2.0 * c - 1.0
+
+
+class DustSprites(NamedTuple):
+    """What the window draws of the dust (:meth:`DustGrid.sprites`); unpacks
+    into :meth:`bonesim.render.scene.Scene.set_dust`'s arguments.
+
+    Attributes
+    ----------
+    positions : (n, 3) float32
+        Sprite centres, case frame [mm] (cell centres plus a fixed jitter).
+    density : (n,) float32
+        Dust in the sprite's cell [cells] (1 full; briefly more where dust was
+        just added or pushed).
+    cell_mm : float
+        Cell edge [mm].
+    age_s : (n,) float32
+        Time since dust arrived in the cell [s].
+    wet : (n,) uint8
+        1 for wet dust (paste), 0 for dry.
+    """
+
+    positions: np.ndarray
+    density: np.ndarray
+    cell_mm: float
+    age_s: np.ndarray
+    wet: np.ndarray
 
 
 def cell_jitter(ijk, salt: int = 0) -> np.ndarray:

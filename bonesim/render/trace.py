@@ -37,9 +37,10 @@ its top. Over the view: :data:`MARGIN_PX` from the top and right edges,
 height (36 to 110 px). The panel ends above the bottom
 :data:`BOTTOM_CLEAR_PX` pixels of the view (where the playback timeline
 lives; :data:`MARGIN_PX` in a side column) and, when the scene's HUD text
-reaches under the panel, above the HUD; lanes shrink to fit. Where keeping clear of the HUD would make lanes lower than
-:data:`MIN_LANE_PX` (tiny windows) the panel overlaps it; it never enters
-the bottom rows (it is not drawn when it cannot fit at all).
+reaches under the panel, above the HUD; lanes shrink to fit. Where keeping
+clear of the HUD would make lanes lower than :data:`MIN_LANE_PX` (tiny
+windows) the panel overlaps it; it never enters the bottom rows (it is not
+drawn when it cannot fit at all).
 
 The overlay is built like :class:`bonesim.render.playback.TimelineBar`:
 2-D actors in pixel coordinates, fed from numpy arrays in one go, direct
