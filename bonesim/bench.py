@@ -358,6 +358,8 @@ BENCHMARKS = {
     "haptic_loop_period_p99_ms_rendering": bench_haptic_loop_rendering,
     "render_update_1000_ms": bench_render,
     "first_frame_s": bench_render,
+    "render_fps_1024x768": lambda quick=False: __import__(
+        "bonesim.render.bench", fromlist=["bench_fps"]).bench_fps(quick=quick),
     "audio_rtf_p99": bench_audio,
     "dust_step_64_ms": bench_dust,
     "recording_overhead_us": bench_recording,

@@ -114,52 +114,60 @@ neighbours); rules 3-4 visit the bricks under the tool and the suction tip.
 Within a brick, each direction is one branch-free loop over the cells whose
 neighbour lies in the same brick (it vectorizes) plus the 64 cells of the face
 toward the neighbour brick.
+
+Wet dust (irrigation)
+---------------------
+Irrigation makes dust *wet*: it becomes a paste that is mobile. A
+:class:`DustGrid` holds two species on the same lattice, dry and wet, each
+a density field stepped by the rules above with its own constants: the wet
+one with the ``wet_*`` fields of :class:`DustParams` (faster settling and
+spilling, no angle of repose), so it drains downhill along gravity, spreads
+flat and gathers in the low points, where suction takes it. The two species
+do not limit each other's room (water fills the pores of dry dust).
+
+5. **Wetting** (``wetting_rate`` [cells/s]). With an irrigation tip given to
+   :meth:`DustGrid.step`, every dry cell whose centre lies within the
+   irrigation radius of the tip loses ``min(d, wetting_rate * dt)`` to the
+   wet species in the same cell (run after rules 1-4 of the dry species and
+   before the wet species' step). Wet dust never dries in this model.
+
+The tool pushes (rule 3) and suction takes (rule 4) both species.
+Conservation holds for the pair: ``total == added - suctioned`` with
+``total`` and ``suctioned`` summed over both (:meth:`DustGrid.totals_q`),
+as an exact integer identity.
+
+Sprites
+-------
+:meth:`DustGrid.sprites` lists what the window draws: one sprite per dusty
+cell of the top layer, jittered inside its cell, with its density, the age
+of its dust and whether it is wet (see :mod:`bonesim.dust_sprites`); how a
+sprite looks is the renderer's business (:meth:`bonesim.render.scene.Scene.set_dust`).
+
+Modules: this one holds the model and its Python API; the kernels live in
+:mod:`bonesim.dust_bricks` (storage), :mod:`bonesim.dust_rules` (rules 1-5)
+and :mod:`bonesim.dust_sprites` (rendering output).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-from numba import njit
 
-from .grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, _hash_slot, find_brick, gather_box,
-                   pack_brick_key, voxel_offset)
+from .dust_bricks import (_MAX_RATE_Q, _MIN_GRAVITY_COMPONENT, _N_CTR, _N_FP, _N_IP, _W_ONE,
+                          C_ADDED, C_CUR, C_HW, C_NALIVE, C_NEED, C_NFREE, C_PUSHED, C_SUCKED,
+                          C_SUCKED_STEP, C_WETTED, F_H, F_OX, F_OZ, F_SR, F_SX, F_SZ, F_TR,
+                          F_TX, F_TZ, F_UX, F_UZ, F_WR, F_WX, F_WZ, FULL, I_DOM, I_DSGN, I_GAX,
+                          I_GSG, I_GWQ, I_KQ, I_LAT0, I_LAT1, I_NG, I_RATE, I_REPOSE, I_SEARCH,
+                          I_SRATE, I_SUCTION, I_TOOL, I_WRATE, MAX_SPILL_FRACTION, Q, Q_SHIFT,
+                          STAGE_DONE, STAGE_GRAVITY, _ensure_bricks, _recycle,
+                          _refresh_bone_bricks, _rehash)
+from .dust_rules import _SC_SIZE, _add, _recount, _step_kernel, _wet_out
+from .dust_sprites import DustSprites, _fill, _stamp
+from .grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
 
-#: Fixed-point units per full cell of dust.
-Q_SHIFT = 20
-Q = 1 << Q_SHIFT
-#: A full cell [cells].
-FULL = 1.0
-_FULL_Q = Q
-#: Fixed-point shift of the rule weights (gravity shares, spill fraction).
-_W_SHIFT = 16
-_W_ONE = 1 << _W_SHIFT
-#: A fifth in fixed point (rounded down): the share of a cell's room that
-#: each of its (at most five) spill sources may fill.
-_ROOM_SHARE = _W_ONE // 5
-#: Largest spill fraction per step (explicit-diffusion stability bound 1/5).
-MAX_SPILL_FRACTION = 0.2
-#: Largest fixed-point rate per step, to keep products inside int64.
-_MAX_RATE_Q = 1 << 40
-#: Gravity components smaller than this do not move dust.
-_MIN_GRAVITY_COMPONENT = 1e-6
-
-# counters (int64 array ``ctr``)
-(C_NFREE, C_HW, C_CUR, C_ADDED, C_SUCKED, C_NEED, C_NALIVE, C_PUSHED,
- C_SUCKED_STEP) = range(9)
-_N_CTR = 9
-# integer step parameters (int64 array ``ip``)
-(I_RATE, I_KQ, I_REPOSE, I_NG, I_DOM, I_DSGN, I_LAT0, I_LAT1, I_SEARCH,
- I_SRATE, I_TOOL, I_SUCTION, I_GAX, I_GSG, I_GWQ) = (0, 1, 2, 3, 4, 5, 6, 7, 8,
-                                                      9, 10, 11, 12, 15, 18)
-_N_IP = 21
-# float step parameters (float64 array ``fp``)
-(F_TX, F_TY, F_TZ, F_TR, F_SX, F_SY, F_SZ, F_SR, F_OX, F_OY, F_OZ, F_H,
- F_UX, F_UY, F_UZ) = range(15)
-_N_FP = 15
-# step stages (a kernel that runs out of bricks returns the stage to resume)
-STAGE_GRAVITY, STAGE_SPILL, STAGE_TOOL, STAGE_SUCTION, STAGE_DONE = range(5)
+__all__ = ["DustGrid", "DustParams", "DustSprites", "Q", "Q_SHIFT", "FULL",
+           "MAX_SPILL_FRACTION", "warmup"]
 
 
 @dataclass(frozen=True)
@@ -192,6 +200,21 @@ class DustParams:
         move dust along the dominant axis only (False).
     sprite_threshold : float
         Cells with more dust than this are rendered [cells].
+    sprite_cover : float
+        A cell whose neighbour above holds at least this much dust is
+        covered and not rendered (:meth:`DustGrid.sprites` ``top_only``)
+        [cells].
+    sprite_jitter : float
+        Largest offset of a sprite from its cell centre along each axis
+        [cell edges], in ``[0, 0.5]``.
+    wet_settle_rate, wet_spill_rate : float
+        ``settle_rate`` and ``spill_rate`` of wet dust [cells/s], [1/s]:
+        a paste runs faster than dry chips.
+    wet_repose : float
+        ``repose`` of wet dust [cells]: 0, it spreads flat.
+    wetting_rate : float
+        Dry dust turned wet per second in each cell within the irrigation
+        radius [cells/s].
     initial_bricks : int
         Size of the brick pool at construction (it grows as needed).
     """
@@ -204,796 +227,33 @@ class DustParams:
     push_search: int = 3
     split_gravity: bool = True
     sprite_threshold: float = 0.02
+    sprite_cover: float = 0.5
+    sprite_jitter: float = 0.4
+    wet_settle_rate: float = 120.0
+    wet_spill_rate: float = 200.0
+    wet_repose: float = 0.0
+    wetting_rate: float = 50.0
     initial_bricks: int = 64
 
     def __post_init__(self):
         for name in ("bulking", "settle_rate", "spill_rate", "suction_rate",
-                     "sprite_threshold"):
+                     "sprite_threshold", "sprite_cover", "wet_settle_rate",
+                     "wet_spill_rate", "wetting_rate"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"DustParams.{name} must be finite and >= 0, got {v}")
-        if not (0.0 <= self.repose < 1.0):
-            raise ValueError(f"DustParams.repose must lie in [0, 1), got {self.repose}")
+        for name in ("repose", "wet_repose"):
+            v = getattr(self, name)
+            if not (0.0 <= v < 1.0):
+                raise ValueError(f"DustParams.{name} must lie in [0, 1), got {v}")
+        if not (0.0 <= self.sprite_jitter <= 0.5):
+            raise ValueError(f"DustParams.sprite_jitter must lie in [0, 0.5], "
+                             f"got {self.sprite_jitter}")
         if int(self.push_search) != self.push_search or self.push_search < 1:
             raise ValueError(f"DustParams.push_search must be a positive integer, "
                              f"got {self.push_search}")
         if int(self.initial_bricks) != self.initial_bricks or self.initial_bricks < 1:
             raise ValueError("DustParams.initial_bricks must be a positive integer")
-
-
-# ====================================================================== table
-@njit(cache=True, nogil=True)
-def _table_insert(keys, vals, key, b):
-    mask = keys.shape[0] - 1
-    s = _hash_slot(key, mask)
-    while keys[s] != -1:
-        s = (s + 1) & mask
-    keys[s] = key
-    vals[s] = b
-
-
-@njit(cache=True, nogil=True)
-def _table_remove(keys, vals, key):
-    """Delete ``key`` (which must be present) by backward-shift deletion."""
-    mask = keys.shape[0] - 1
-    s = _hash_slot(key, mask)
-    while keys[s] != key:
-        s = (s + 1) & mask
-    j = s
-    while True:
-        j = (j + 1) & mask
-        kj = keys[j]
-        if kj == -1:
-            break
-        h = _hash_slot(kj, mask)
-        # keep keys[j] where it is if its home slot lies cyclically in (s, j]
-        if s <= j:
-            stay = s < h <= j
-        else:
-            stay = h > s or h <= j
-        if not stay:
-            keys[s] = kj
-            vals[s] = vals[j]
-            s = j
-    keys[s] = -1
-    vals[s] = -1
-
-
-@njit(cache=True, nogil=True)
-def _rehash(keys, vals, bcoord, alive, hw):
-    for b in range(hw):
-        if alive[b]:
-            _table_insert(keys, vals,
-                          pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2]), b)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _brick_in_domain(bi, bj, bk, bounds):
-    return ((bi << BRICK_SHIFT) < bounds[3] and (bi << BRICK_SHIFT) + BRICK > bounds[0]
-            and (bj << BRICK_SHIFT) < bounds[4] and (bj << BRICK_SHIFT) + BRICK > bounds[1]
-            and (bk << BRICK_SHIFT) < bounds[5] and (bk << BRICK_SHIFT) + BRICK > bounds[2])
-
-
-@njit(cache=True, nogil=True)
-def _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                  bkeys, bvals, bi, bj, bk):
-    """Take a brick from the pool for ``(bi, bj, bk)`` (absent; pool not empty),
-    zero it in both buffers, link its face neighbours and its bone brick."""
-    n = ctr[C_NFREE] - 1
-    b = free[n]
-    ctr[C_NFREE] = n
-    if b + 1 > ctr[C_HW]:
-        ctr[C_HW] = b + 1
-    ctr[C_NALIVE] += 1
-    _table_insert(keys, vals, pack_brick_key(bi, bj, bk), b)
-    bcoord[b, 0] = bi
-    bcoord[b, 1] = bj
-    bcoord[b, 2] = bk
-    alive[b] = 1
-    bmass[b] = 0
-    for o in range(BRICK_VOXELS):
-        dens[0, b, o] = 0
-        dens[1, b, o] = 0
-    for d in range(6):
-        a = d >> 1
-        s = 1 if d & 1 else -1
-        ni = bi + s if a == 0 else bi
-        nj = bj + s if a == 1 else bj
-        nk = bk + s if a == 2 else bk
-        m = find_brick(keys, vals, ni, nj, nk)
-        nbr[b, d] = m
-        if m >= 0:
-            nbr[m, d ^ 1] = b
-    bone_b[b] = find_brick(bkeys, bvals, bi, bj, bk)
-    return b
-
-
-@njit(cache=True, nogil=True)
-def _ensure_bricks(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                   bkeys, bvals, coords):
-    """Allocate the bricks ``coords`` (n, 3) that are missing.
-
-    Returns 0, or (allocating nothing) an upper bound on the bricks needed
-    when the pool holds fewer."""
-    need = 0
-    for q in range(coords.shape[0]):
-        if find_brick(keys, vals, coords[q, 0], coords[q, 1], coords[q, 2]) < 0:
-            need += 1
-    if need > ctr[C_NFREE]:
-        return need
-    for q in range(coords.shape[0]):
-        if find_brick(keys, vals, coords[q, 0], coords[q, 1], coords[q, 2]) < 0:
-            _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                          bkeys, bvals, coords[q, 0], coords[q, 1], coords[q, 2])
-    return 0
-
-
-@njit(cache=True, nogil=True)
-def _recycle(keys, vals, bcoord, nbr, alive, bmass, free, ctr):
-    """Return dead bricks (no dust, no face neighbour with dust) to the pool."""
-    hw = ctr[C_HW]
-    freed = 0
-    for b in range(hw):
-        if not alive[b] or bmass[b] != 0:
-            continue
-        keep = False
-        for d in range(6):
-            m = nbr[b, d]
-            if m >= 0 and bmass[m] != 0:
-                keep = True
-        if keep:
-            continue
-        _table_remove(keys, vals, pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2]))
-        for d in range(6):
-            m = nbr[b, d]
-            if m >= 0:
-                nbr[m, d ^ 1] = -1
-            nbr[b, d] = -1
-        alive[b] = 0
-        free[ctr[C_NFREE]] = b
-        ctr[C_NFREE] += 1
-        ctr[C_NALIVE] -= 1
-        freed += 1
-    return freed
-
-
-@njit(cache=True, nogil=True)
-def _refresh_bone_bricks(bcoord, alive, hw, bkeys, bvals, bone_b):
-    for b in range(hw):
-        if alive[b]:
-            bone_b[b] = find_brick(bkeys, bvals, bcoord[b, 0], bcoord[b, 1], bcoord[b, 2])
-
-
-# ================================================================ step rules
-@njit(cache=True, nogil=True)
-def _collect_active(alive, bmass, hw, active):
-    n = 0
-    for b in range(hw):
-        if alive[b] and bmass[b] != 0:
-            active[n] = b
-            n += 1
-    return n
-
-
-@njit(cache=True, nogil=True)
-def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys, bvals,
-          active, n_active, bounds):
-    """Allocate the missing in-domain face neighbours of the active bricks.
-
-    Returns 0, or (allocating nothing) an upper bound on the bricks needed."""
-    need = 0
-    for t in range(n_active):
-        b = active[t]
-        for d in range(6):
-            if nbr[b, d] >= 0:
-                continue
-            a = d >> 1
-            s = 1 if d & 1 else -1
-            ni = bcoord[b, 0] + (s if a == 0 else 0)
-            nj = bcoord[b, 1] + (s if a == 1 else 0)
-            nk = bcoord[b, 2] + (s if a == 2 else 0)
-            if _brick_in_domain(ni, nj, nk, bounds):
-                need += 1
-    if need == 0:
-        return 0
-    if need > ctr[C_NFREE]:
-        return need
-    for t in range(n_active):
-        b = active[t]
-        for d in range(6):
-            if nbr[b, d] >= 0:
-                continue
-            a = d >> 1
-            s = 1 if d & 1 else -1
-            ni = bcoord[b, 0] + (s if a == 0 else 0)
-            nj = bcoord[b, 1] + (s if a == 1 else 0)
-            nk = bcoord[b, 2] + (s if a == 2 else 0)
-            if _brick_in_domain(ni, nj, nk, bounds):
-                _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
-                              ctr, bkeys, bvals, ni, nj, nk)
-    return 0
-
-
-# Per-brick neighbourhood scratch ``sc`` (int64): for face direction ``dd``
-# (-x, +x, -y, +y, -z, +z): ``sc[dd]`` the neighbour brick, ``sc[6 + dd]`` its
-# bone brick, ``sc[12 + dd]`` 1 if the cells across that face may take dust
-# (brick allocated, face inside the domain); ``sc[18]`` the brick's own bone
-# brick, ``sc[19]`` 1 if the whole brick lies in the domain, ``sc[20 + a]`` its
-# first cell along axis ``a``.
-#
-# The rules work brick by brick: a wall mask of the brick (outside the domain
-# or bone), then for each direction the fluxes between cells of the brick in
-# branch-free loops over the 512 cells (so that they vectorize), and the 64
-# cells of the face toward the neighbour brick one by one. The hot loops take
-# no array argument of an inlined helper (that costs reference counting per
-# call).
-_SC_SIZE = 24
-
-
-@njit(cache=True, nogil=True)
-def _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall):
-    """Fill ``sc`` for brick ``b`` and its wall mask (1 = outside the domain or
-    bone)."""
-    inside = 1
-    for a in range(3):
-        base = np.int64(bcoord[b, a]) << BRICK_SHIFT
-        sc[20 + a] = base
-        if base < bounds[a] or base + BRICK > bounds[3 + a]:
-            inside = 0
-    sc[19] = inside
-    bb = np.int64(bone_b[b])
-    sc[18] = bb
-    for dd in range(6):
-        a = dd >> 1
-        m = np.int64(nbr[b, dd])
-        sc[dd] = m
-        sc[6 + dd] = bone_b[m] if m >= 0 else -1
-        c = sc[20 + a] + (BRICK if dd & 1 else -1)
-        sc[12 + dd] = 1 if (m >= 0 and bounds[a] <= c < bounds[3 + a]) else 0
-    if bb >= 0:
-        bd = bone_dens[bb]
-        for off in range(BRICK_VOXELS):
-            wall[off] = bd[off] > 0.0
-    else:
-        for off in range(BRICK_VOXELS):
-            wall[off] = 0
-    if inside == 0:
-        x0, y0, z0 = sc[20], sc[21], sc[22]
-        for off in range(BRICK_VOXELS):
-            if not (bounds[0] <= x0 + (off >> 6) < bounds[3]
-                    and bounds[1] <= y0 + ((off >> 3) & 7) < bounds[4]
-                    and bounds[2] <= z0 + (off & 7) < bounds[5]):
-                wall[off] = 1
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _dir_geometry(a, s):
-    """For moves along axis ``a``, direction ``s``: offset step, the local
-    coordinate of the cells on the far face, shift of that coordinate, and the
-    range ``[o0, o1)`` of offsets whose in-brick neighbour stays in [0, 512)."""
-    sh = 6 - 3 * a
-    st = np.int64(1) << sh
-    if s > 0:
-        return st, np.int64(7), sh, np.int64(0), BRICK_VOXELS - st
-    return -st, np.int64(0), sh, st, np.int64(BRICK_VOXELS)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _face_off(a, edge, u, v):
-    """Offset of cell ``(u, v)`` of the brick face ``loc_a == edge``."""
-    if a == 0:
-        return (edge << 6) | (u << 3) | v
-    if a == 1:
-        return (u << 6) | (edge << 3) | v
-    return (u << 6) | (v << 3) | edge
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _gravity_flux(d, dn, rate, w):
-    room = _FULL_Q - dn
-    m = d if d < rate else rate
-    if room < m:
-        m = room
-    return (w * m) >> _W_SHIFT
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _spill_flux(excess, dn, kq):
-    r5 = ((_FULL_Q - dn) * _ROOM_SHARE) >> _W_SHIFT
-    f = (excess * kq) >> _W_SHIFT
-    return f if f < r5 else r5
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _apply_inside(drow, flux, o0, o1, delta):
-    """Apply the in-brick fluxes ``flux[o0:o1]`` of one direction to ``drow``."""
-    fl = flux[o0:o1]
-    ds = drow[o0:o1]
-    for q in range(fl.shape[0]):
-        ds[q] -= fl[q]
-    dn = drow[o0 + delta:o1 + delta]
-    for q in range(fl.shape[0]):
-        dn[q] += fl[q]
-
-
-@njit(cache=True, nogil=True)
-def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-             bmass, sc, wall, flux):
-    """Rule 1 (Jacobi, ``src`` -> ``dst``; ``dst`` holds a copy of ``src``)."""
-    rate = ip[I_RATE]
-    ng = ip[I_NG]
-    if rate <= 0:
-        return
-    for t in range(n_active):
-        b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall)
-        srow = src[b]
-        drow = dst[b]
-        lo_d = np.int64(_FULL_Q)
-        for off in range(BRICK_VOXELS):
-            lo_d = min(lo_d, np.int64(srow[off]))
-        inner = lo_d < _FULL_Q            # else no cell of the brick has room
-        for q in range(ng):
-            a = ip[I_GAX + q]
-            s = ip[I_GSG + q]
-            w = ip[I_GWQ + q]
-            delta, edge, sh, o0, o1 = _dir_geometry(a, s)
-            if inner:
-                # inside the brick: 1-D views indexed from 0, so that the loop
-                # has no negative-index handling and vectorizes
-                ss = srow[o0:o1]
-                sn = srow[o0 + delta:o1 + delta]
-                ws = wall[o0:o1]
-                wn = wall[o0 + delta:o1 + delta]
-                fl = flux[o0:o1]
-                for i in range(fl.shape[0]):
-                    f = _gravity_flux(np.int64(ss[i]), np.int64(sn[i]), rate, w)
-                    ok = (f > 0) & ((((o0 + i) >> sh) & 7) != edge) & (ws[i] == 0) & \
-                        (wn[i] == 0)
-                    fl[i] = f if ok else 0
-                _apply_inside(drow, flux, o0, o1, delta)
-            # across the face
-            dd = 2 * a + (1 if s > 0 else 0)
-            if sc[12 + dd] == 0:
-                continue
-            nb = sc[dd]
-            bbn = sc[6 + dd]
-            moved = np.int64(0)
-            for u in range(BRICK):
-                for v in range(BRICK):
-                    off = _face_off(a, edge, u, v)
-                    noff = off - 7 * delta
-                    if wall[off] or (bbn >= 0 and bone_dens[bbn, noff] > 0.0):
-                        continue
-                    f = _gravity_flux(np.int64(srow[off]), np.int64(src[nb, noff]),
-                                      rate, w)
-                    if f > 0:
-                        drow[off] -= f
-                        dst[nb, noff] += f
-                        moved += f
-            bmass[b] -= moved
-            bmass[nb] += moved
-
-
-@njit(cache=True, nogil=True)
-def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip, bmass,
-           sc, wall, elig, flux):
-    """Rule 2 (Jacobi, ``src`` -> ``dst``; ``dst`` holds a copy of ``src``)."""
-    kq = ip[I_KQ]
-    repose = ip[I_REPOSE]
-    dom = ip[I_DOM]
-    dsgn = ip[I_DSGN]
-    if kq <= 0:
-        return
-    for t in range(n_active):
-        b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall)
-        srow = src[b]
-        drow = dst[b]
-        # eligible sources: above the repose, not in a wall, and overfull or
-        # supported (the cell below is a wall or full)
-        lo_d = np.int64(_FULL_Q)
-        hi_d = np.int64(0)
-        for off in range(BRICK_VOXELS):
-            v = np.int64(srow[off])
-            elig[off] = (v > _FULL_Q) & (wall[off] == 0)
-            lo_d = min(lo_d, v)
-            hi_d = max(hi_d, v)
-        delta, edge, sh, o0, o1 = _dir_geometry(dom, dsgn)
-        ss = srow[o0:o1]
-        sn = srow[o0 + delta:o1 + delta]
-        ws = wall[o0:o1]
-        wn = wall[o0 + delta:o1 + delta]
-        el = elig[o0:o1]
-        for i in range(el.shape[0]):
-            sup = (wn[i] != 0) | (sn[i] >= _FULL_Q)
-            e = sup & (ss[i] > repose) & (ws[i] == 0) & ((((o0 + i) >> sh) & 7) != edge)
-            el[i] = el[i] | e
-        dd = 2 * dom + (1 if dsgn > 0 else 0)
-        nb = sc[dd]
-        bbn = sc[6 + dd]
-        okx = sc[12 + dd]
-        for u in range(BRICK):
-            for v in range(BRICK):
-                off = _face_off(dom, edge, u, v)
-                noff = off - 7 * delta
-                if wall[off] or srow[off] <= repose:
-                    continue
-                if okx == 0 or (bbn >= 0 and bone_dens[bbn, noff] > 0.0) \
-                        or src[nb, noff] >= _FULL_Q:
-                    elig[off] = 1
-        n_elig = 0
-        for off in range(BRICK_VOXELS):
-            n_elig += elig[off]
-        if n_elig == 0:
-            continue
-        # nothing overfull and no difference above the repose: no flux between
-        # cells of this brick (only across its faces)
-        inner = hi_d > _FULL_Q or hi_d - lo_d > repose
-        # four lateral directions, then up (overfull cells only)
-        for q in range(5):
-            lateral = q < 4
-            if lateral:
-                a = ip[I_LAT0] if q < 2 else ip[I_LAT1]
-                s = np.int64(1) if q & 1 else np.int64(-1)
-            else:
-                a = dom
-                s = -dsgn
-            delta, edge, sh, o0, o1 = _dir_geometry(a, s)
-            if inner:
-                ss = srow[o0:o1]
-                sn = srow[o0 + delta:o1 + delta]
-                wn = wall[o0 + delta:o1 + delta]
-                el = elig[o0:o1]
-                fl = flux[o0:o1]
-                for i in range(fl.shape[0]):
-                    d = np.int64(ss[i])
-                    dn = np.int64(sn[i])
-                    excess = d - dn - repose if lateral else d - _FULL_Q
-                    f = _spill_flux(excess, dn, kq)
-                    ok = (f > 0) & (el[i] != 0) & ((((o0 + i) >> sh) & 7) != edge) & \
-                        (wn[i] == 0)
-                    fl[i] = f if ok else 0
-                _apply_inside(drow, flux, o0, o1, delta)
-            dd = 2 * a + (1 if s > 0 else 0)
-            if sc[12 + dd] == 0:
-                continue
-            nb = sc[dd]
-            bbn = sc[6 + dd]
-            moved = np.int64(0)
-            for u in range(BRICK):
-                for v in range(BRICK):
-                    off = _face_off(a, edge, u, v)
-                    if elig[off] == 0:
-                        continue
-                    noff = off - 7 * delta
-                    if bbn >= 0 and bone_dens[bbn, noff] > 0.0:
-                        continue
-                    d = np.int64(srow[off])
-                    dn = np.int64(src[nb, noff])
-                    excess = d - dn - repose if lateral else d - _FULL_Q
-                    f = _spill_flux(excess, dn, kq)
-                    if f > 0:
-                        drow[off] -= f
-                        dst[nb, noff] += f
-                        moved += f
-            bmass[b] -= moved
-            bmass[nb] += moved
-
-
-@njit(cache=True, nogil=True)
-def _jacobi(rule, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-            bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig, flux):
-    """Run rule 1 (``rule == 0``) or 2 as a Jacobi update of the current buffer.
-
-    Returns 0, or (changing nothing) the bricks the halo needs."""
-    n_active = _collect_active(alive, bmass, ctr[C_HW], active)
-    need = _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
-                 bvals, active, n_active, bounds)
-    if need:
-        return need
-    cur = ctr[C_CUR]
-    src = dens[cur]
-    dst = dens[1 - cur]
-    # dst holds stale values only in bricks with dust (bricks without dust are
-    # zero in both buffers): copy the active bricks
-    for t in range(n_active):
-        b = active[t]
-        for o in range(BRICK_VOXELS):
-            dst[b, o] = src[b, o]
-    if rule == 0:
-        _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-                 bmass, sc, wall, flux)
-    else:
-        _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-               bmass, sc, wall, elig, flux)
-    # keep "no dust => zero in both buffers": bricks emptied by the rule
-    for t in range(n_active):
-        b = active[t]
-        if bmass[b] == 0:
-            for o in range(BRICK_VOXELS):
-                src[b, o] = 0
-    ctr[C_CUR] = 1 - cur
-    return 0
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _cell_range(c, r, o, h):
-    """Cells whose centres may lie within ``r`` of ``c`` along one axis."""
-    return (int(math.floor((c - r - o) / h)) - 1, int(math.floor((c + r - o) / h)) + 2)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _cell_ok(ci, cj, ck, lo0, lo1, lo2, hi0, hi1, hi2):
-    return lo0 <= ci < hi0 and lo1 <= cj < hi1 and lo2 <= ck < hi2
-
-
-@njit(cache=True, nogil=True)
-def _bone_at(bkeys, bvals, bone_dens, i, j, k):
-    bb = find_brick(bkeys, bvals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
-    return bb >= 0 and bone_dens[bb, voxel_offset(i, j, k)] > 0.0
-
-
-@njit(cache=True, nogil=True)
-def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens):
-    """Cell that the tool pushes the dust of cell ``(ci, cj, ck)`` into (rule
-    3); ``ok`` False when no free cell lies within ``search`` cells."""
-    px, py, pz, rad = fp[F_TX], fp[F_TY], fp[F_TZ], fp[F_TR]
-    ox, oy, oz, h = fp[F_OX], fp[F_OY], fp[F_OZ], fp[F_H]
-    dx = (ox + h * ci) - px
-    dy = (oy + h * cj) - py
-    dz = (oz + h * ck) - pz
-    r = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if r > 0.0:
-        ux, uy, uz = dx / r, dy / r, dz / r
-    else:
-        ux, uy, uz = fp[F_UX], fp[F_UY], fp[F_UZ]
-    r2 = rad * rad
-    for t in range(search):
-        dist = rad + (t + 0.5) * h
-        ti = int(math.floor((px + ux * dist - ox) / h + 0.5))
-        tj = int(math.floor((py + uy * dist - oy) / h + 0.5))
-        tk = int(math.floor((pz + uz * dist - oz) / h + 0.5))
-        ex = (ox + h * ti) - px
-        ey = (oy + h * tj) - py
-        ez = (oz + h * tk) - pz
-        if ex * ex + ey * ey + ez * ez < r2:
-            continue
-        if not _cell_ok(ti, tj, tk, bounds[0], bounds[1], bounds[2], bounds[3], bounds[4],
-                        bounds[5]):
-            continue
-        if _bone_at(bkeys, bvals, bone_dens, ti, tj, tk):
-            continue
-        return True, ti, tj, tk
-    return False, 0, 0, 0
-
-
-@njit(cache=True, nogil=True)
-def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-               bkeys, bvals, bone_dens, bounds, ip, fp):
-    """Rule 3, in place on the current buffer.
-
-    Returns 0, or (changing nothing) an upper bound on the bricks needed for
-    push targets."""
-    rad = fp[F_TR]
-    ctr[C_PUSHED] = 0
-    if ip[I_TOOL] == 0 or rad <= 0.0:
-        return 0
-    h = fp[F_H]
-    r2 = rad * rad
-    search = ip[I_SEARCH]
-    i0, i1 = _cell_range(fp[F_TX], rad, fp[F_OX], h)
-    j0, j1 = _cell_range(fp[F_TY], rad, fp[F_OY], h)
-    k0, k1 = _cell_range(fp[F_TZ], rad, fp[F_OZ], h)
-    cur = ctr[C_CUR]
-    den = dens[cur]
-    oth = dens[1 - cur]
-    # pass 0: count missing target bricks, pass 1: allocate them, pass 2: move
-    need = 0
-    for mode in range(3):
-        if mode == 1 and need == 0:
-            continue                      # every target brick exists
-        need = 0
-        for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
-            for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
-                for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
-                    b = find_brick(keys, vals, bi, bj, bk)
-                    if b < 0 or bmass[b] == 0:
-                        continue
-                    for x in range(BRICK):
-                        ci = (bi << BRICK_SHIFT) + x
-                        if ci < i0 or ci >= i1:
-                            continue
-                        dx = (fp[F_OX] + h * ci) - fp[F_TX]
-                        for y in range(BRICK):
-                            cj = (bj << BRICK_SHIFT) + y
-                            if cj < j0 or cj >= j1:
-                                continue
-                            dy = (fp[F_OY] + h * cj) - fp[F_TY]
-                            for z in range(BRICK):
-                                ck = (bk << BRICK_SHIFT) + z
-                                if ck < k0 or ck >= k1:
-                                    continue
-                                off = (x << 6) | (y << 3) | z
-                                d = np.int64(den[b, off])
-                                if d <= 0:
-                                    continue
-                                dz = (fp[F_OZ] + h * ck) - fp[F_TZ]
-                                if dx * dx + dy * dy + dz * dz >= r2:
-                                    continue
-                                ok, ti, tj, tk = _push_target(ci, cj, ck, fp, search,
-                                                              bounds, bkeys, bvals,
-                                                              bone_dens)
-                                if not ok:
-                                    continue
-                                tb = find_brick(keys, vals, ti >> BRICK_SHIFT,
-                                                tj >> BRICK_SHIFT, tk >> BRICK_SHIFT)
-                                if mode == 0:
-                                    if tb < 0:
-                                        need += 1
-                                elif mode == 1:
-                                    if tb < 0:
-                                        _insert_brick(keys, vals, bcoord, nbr, alive, dens,
-                                                      bmass, bone_b, free, ctr, bkeys,
-                                                      bvals, ti >> BRICK_SHIFT,
-                                                      tj >> BRICK_SHIFT, tk >> BRICK_SHIFT)
-                                else:
-                                    toff = voxel_offset(ti, tj, tk)
-                                    den[b, off] = 0
-                                    den[tb, toff] += d
-                                    ctr[C_PUSHED] += d
-                                    if tb != b:
-                                        bmass[b] -= d
-                                        bmass[tb] += d
-                                        if bmass[b] == 0:
-                                            for o in range(BRICK_VOXELS):
-                                                oth[b, o] = 0
-        if mode == 0 and need > ctr[C_NFREE]:
-            return need
-    return 0
-
-
-@njit(cache=True, nogil=True)
-def _suction(keys, vals, dens, bmass, ctr, ip, fp):
-    """Rule 4, in place on the current buffer."""
-    ctr[C_SUCKED_STEP] = 0
-    rad = fp[F_SR]
-    rate = ip[I_SRATE]
-    if ip[I_SUCTION] == 0 or rad <= 0.0 or rate <= 0:
-        return
-    h = fp[F_H]
-    r2 = rad * rad
-    i0, i1 = _cell_range(fp[F_SX], rad, fp[F_OX], h)
-    j0, j1 = _cell_range(fp[F_SY], rad, fp[F_OY], h)
-    k0, k1 = _cell_range(fp[F_SZ], rad, fp[F_OZ], h)
-    cur = ctr[C_CUR]
-    den = dens[cur]
-    oth = dens[1 - cur]
-    total = np.int64(0)
-    for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
-        for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
-            for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
-                b = find_brick(keys, vals, bi, bj, bk)
-                if b < 0 or bmass[b] == 0:
-                    continue
-                for x in range(BRICK):
-                    ci = (bi << BRICK_SHIFT) + x
-                    if ci < i0 or ci >= i1:
-                        continue
-                    dx = (fp[F_OX] + h * ci) - fp[F_SX]
-                    for y in range(BRICK):
-                        cj = (bj << BRICK_SHIFT) + y
-                        if cj < j0 or cj >= j1:
-                            continue
-                        dy = (fp[F_OY] + h * cj) - fp[F_SY]
-                        for z in range(BRICK):
-                            ck = (bk << BRICK_SHIFT) + z
-                            if ck < k0 or ck >= k1:
-                                continue
-                            off = (x << 6) | (y << 3) | z
-                            d = np.int64(den[b, off])
-                            if d <= 0:
-                                continue
-                            dz = (fp[F_OZ] + h * ck) - fp[F_SZ]
-                            if dx * dx + dy * dy + dz * dz > r2:
-                                continue
-                            f = d if d < rate else rate
-                            den[b, off] = d - f
-                            bmass[b] -= f
-                            total += f
-                if bmass[b] == 0:
-                    for o in range(BRICK_VOXELS):
-                        oth[b, o] = 0
-    ctr[C_SUCKED] += total
-    ctr[C_SUCKED_STEP] = total
-
-
-@njit(cache=True, nogil=True)
-def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                 bkeys, bvals, bone_dens, active, bounds, ip, fp, sc, wall, elig, flux):
-    """Rules 1-4 from ``stage`` on. Returns :data:`STAGE_DONE`, or the stage to
-    resume at after the wrapper has made ``ctr[C_NEED]`` bricks available."""
-    ctr[C_NEED] = 0
-    if stage <= STAGE_GRAVITY:
-        need = _jacobi(0, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                       bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig,
-                       flux)
-        if need:
-            ctr[C_NEED] = need
-            return STAGE_GRAVITY
-    if stage <= STAGE_SPILL:
-        need = _jacobi(1, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                       bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig,
-                       flux)
-        if need:
-            ctr[C_NEED] = need
-            return STAGE_SPILL
-    if stage <= STAGE_TOOL:
-        need = _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                          bkeys, bvals, bone_dens, bounds, ip, fp)
-        if need:
-            ctr[C_NEED] = need
-            return STAGE_TOOL
-    _suction(keys, vals, dens, bmass, ctr, ip, fp)
-    return STAGE_DONE
-
-
-# ============================================================ add and output
-@njit(cache=True, nogil=True)
-def _add(keys, vals, dens, bmass, ctr, ijk, amount_q):
-    """Add ``amount_q[q]`` units to cell ``ijk[q]`` (bricks allocated)."""
-    cur = ctr[C_CUR]
-    den = dens[cur]
-    for q in range(ijk.shape[0]):
-        i, j, k = ijk[q, 0], ijk[q, 1], ijk[q, 2]
-        b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
-        a = amount_q[q]
-        den[b, voxel_offset(i, j, k)] += a
-        bmass[b] += a
-        ctr[C_ADDED] += a
-
-
-@njit(cache=True, nogil=True)
-def _count_above(alive, bmass, hw, den, thr):
-    n = 0
-    for b in range(hw):
-        if not alive[b] or bmass[b] == 0:
-            continue
-        for o in range(BRICK_VOXELS):
-            if den[b, o] > thr:
-                n += 1
-    return n
-
-
-@njit(cache=True, nogil=True)
-def _fill_sprites(alive, bmass, hw, den, thr, bcoord, origin, h, pos, val):
-    n = 0
-    inv_q = 1.0 / _FULL_Q
-    for b in range(hw):
-        if not alive[b] or bmass[b] == 0:
-            continue
-        x0 = bcoord[b, 0] << BRICK_SHIFT
-        y0 = bcoord[b, 1] << BRICK_SHIFT
-        z0 = bcoord[b, 2] << BRICK_SHIFT
-        for o in range(BRICK_VOXELS):
-            v = den[b, o]
-            if v > thr:
-                pos[n, 0] = origin[0] + h * (x0 + (o >> 6))
-                pos[n, 1] = origin[1] + h * (y0 + ((o >> 3) & 7))
-                pos[n, 2] = origin[2] + h * (z0 + (o & 7))
-                val[n] = v * inv_q
-                n += 1
-    return n
-
-
-@njit(cache=True, nogil=True)
-def _recount(alive, hw, den):
-    t = np.int64(0)
-    for b in range(hw):
-        if alive[b]:
-            for o in range(BRICK_VOXELS):
-                t += den[b, o]
-    return t
 
 
 # ================================================================ python API
@@ -1054,10 +314,16 @@ class DustGrid:
         ``dens[ctr[C_CUR]]`` is current.
     bmass : (pool,) int64
         Dust per brick [1/Q cells]; 0 means the brick is zero in both buffers.
+    time_s : float
+        Simulated time, the sum of the steps' ``dt`` [s].
+    wet : DustGrid or None
+        The wet species (same lattice, the ``wet_*`` constants), made by the
+        first irrigated step. The storage attributes above are the dry
+        species'; the totals, :meth:`to_dense` and :meth:`sprites` cover both.
     """
 
     def __init__(self, spacing_mm, origin_mm, gravity, params: DustParams | None = None,
-                 *, bounds_vox=None):
+                 *, bounds_vox=None, _wet_species: bool = False):
         self.spacing_mm = _nonneg(spacing_mm, "spacing_mm")
         if not self.spacing_mm > 0:
             raise ValueError("spacing_mm must be positive")
@@ -1067,6 +333,7 @@ class DustGrid:
             raise TypeError("params must be a DustParams")
         self.bounds = np.zeros(6, dtype=np.int64)
         self._bounds_set = False
+        self.wet = None
         if bounds_vox is not None:
             self.set_bounds(*bounds_vox)
         self._ip = np.zeros(_N_IP, dtype=np.int64)
@@ -1082,6 +349,9 @@ class DustGrid:
         self._bkeys, self._bvals = self._no_bone
         self._bone_src = None
         self._no_bone_dens = np.zeros((1, BRICK_VOXELS), np.float32)
+        self.time_s = 0.0
+        self._is_wet = bool(_wet_species)
+        self._wet_out = (np.zeros((0, 3), np.int64), np.zeros(0, np.int64))
 
     @classmethod
     def for_grid(cls, grid, gravity, params: DustParams | None = None) -> "DustGrid":
@@ -1099,6 +369,8 @@ class DustGrid:
         self.bounds[:3] = lo
         self.bounds[3:] = hi
         self._bounds_set = True
+        if self.wet is not None:
+            self.wet.set_bounds(lo, hi)
 
     def set_gravity(self, gravity) -> None:
         """Set the gravity direction (case frame; any non-zero length)."""
@@ -1126,6 +398,8 @@ class DustGrid:
             ip[I_GWQ + q] = int(math.floor(abs(g[a]) / tot * _W_ONE)) if len(axes) > 1 \
                 else _W_ONE
         self._fp[F_UX:F_UZ + 1] = -g
+        if self.wet is not None:
+            self.wet.set_gravity(g)
 
     # ------------------------------------------------------------ storage
     def _alloc(self, n: int) -> None:
@@ -1142,6 +416,8 @@ class DustGrid:
         self.bone_b = np.full(n, -1, dtype=np.int32)
         self.free = np.arange(n - 1, -1, -1, dtype=np.int32)      # pops 0, 1, 2, ...
         self._active = np.zeros(n, dtype=np.int32)
+        self._seen = np.zeros((n, BRICK_VOXELS), dtype=np.float64)
+        self._seen_key = np.full(n, -1, dtype=np.int64)
         self._ctr[C_NFREE] = n
 
     def _grow(self, need: int) -> None:
@@ -1172,6 +448,8 @@ class DustGrid:
         self.dens = grown(self.dens, 0, axis=1)
         self.bmass = grown(self.bmass, 0)
         self.bone_b = grown(self.bone_b, -1)
+        self._seen = grown(self._seen, 0.0)
+        self._seen_key = grown(self._seen_key, -1)
         nf = int(self._ctr[C_NFREE])
         free = np.zeros(n, dtype=np.int32)
         free[:n - old] = np.arange(n - 1, old - 1, -1, dtype=np.int32)
@@ -1192,8 +470,8 @@ class DustGrid:
     def recycle(self) -> int:
         """Return bricks without dust (and without dusty neighbours) to the pool;
         returns how many."""
-        return int(_recycle(self.keys, self.vals, self.bcoord, self.nbr, self.alive,
-                            self.bmass, self.free, self._ctr))
+        return sum(int(_recycle(g.keys, g.vals, g.bcoord, g.nbr, g.alive, g.bmass, g.free,
+                                g._ctr)) for g in self._species())
 
     def _use_bone(self, grid) -> None:
         """Point the per-brick bone-brick cache at ``grid`` (None: no bone)."""
@@ -1218,36 +496,55 @@ class DustGrid:
         """Bricks allocated in memory (alive or free)."""
         return int(self.bcoord.shape[0])
 
+    def _species(self):
+        return (self,) if self.wet is None else (self, self.wet)
+
     @property
     def n_bricks(self) -> int:
-        """Bricks in the table."""
-        return int(self._ctr[C_NALIVE])
+        """Bricks in the table (both species)."""
+        return sum(int(g._ctr[C_NALIVE]) for g in self._species())
 
     @property
     def n_active_bricks(self) -> int:
-        """Bricks holding dust."""
-        return int(np.count_nonzero(self.bmass[:int(self._ctr[C_HW])]))
+        """Bricks holding dust (both species)."""
+        return sum(int(np.count_nonzero(g.bmass[:int(g._ctr[C_HW])]))
+                   for g in self._species())
 
     @property
     def density_q(self) -> np.ndarray:
-        """The current buffer (pool, 512) int32 [1/Q cells] (a view)."""
+        """The current buffer (pool, 512) int32 [1/Q cells] of the dry
+        species (a view)."""
         return self.dens[int(self._ctr[C_CUR])]
 
+    def _own_mass_q(self) -> int:
+        return int(self.bmass[:int(self._ctr[C_HW])].sum())
+
     def totals_q(self) -> tuple[int, int, int]:
-        """``(total, added, suctioned)`` dust [1/Q cells], exact integers;
-        ``total == added - suctioned`` always."""
-        hw = int(self._ctr[C_HW])
-        return (int(self.bmass[:hw].sum()), int(self._ctr[C_ADDED]),
-                int(self._ctr[C_SUCKED]))
+        """``(total, added, suctioned)`` dust [1/Q cells], exact integers over
+        both species; ``total == added - suctioned`` always."""
+        total = sum(g._own_mass_q() for g in self._species())
+        sucked = sum(int(g._ctr[C_SUCKED]) for g in self._species())
+        return total, int(self._ctr[C_ADDED]), sucked
 
     def recount_q(self) -> int:
         """Total dust summed cell by cell [1/Q cells] (checks the per-brick totals)."""
-        return int(_recount(self.alive, int(self._ctr[C_HW]), self.density_q))
+        return sum(int(_recount(g.alive, int(g._ctr[C_HW]), g.density_q))
+                   for g in self._species())
 
     @property
     def total_cells(self) -> float:
-        """Dust present [cells] (times ``spacing_mm**3`` for mm^3)."""
+        """Dust present, both species [cells] (times ``spacing_mm**3`` for mm^3)."""
         return self.totals_q()[0] / Q
+
+    @property
+    def wet_cells(self) -> float:
+        """Wet dust present [cells]."""
+        return 0.0 if self.wet is None else self.wet._own_mass_q() / Q
+
+    @property
+    def wetted_cells(self) -> float:
+        """Dry dust turned wet by irrigation so far [cells]."""
+        return int(self._ctr[C_WETTED]) / Q
 
     @property
     def added_cells(self) -> float:
@@ -1256,15 +553,15 @@ class DustGrid:
 
     @property
     def suctioned_cells(self) -> float:
-        """Dust removed by suction so far [cells]."""
-        return int(self._ctr[C_SUCKED]) / Q
+        """Dust removed by suction so far, both species [cells]."""
+        return self.totals_q()[2] / Q
 
     @property
     def last_pushed_cells(self) -> float:
         """Dust the tool pushed out of its sphere in the last step [cells]."""
-        return int(self._ctr[C_PUSHED]) / Q
+        return sum(int(g._ctr[C_PUSHED]) for g in self._species()) / Q
 
-    def to_dense(self, lo=None, shape=None) -> np.ndarray:
+    def to_dense(self, lo=None, shape=None, species: str = "all") -> np.ndarray:
         """Dense copy of a box of densities [cells] (float64, exact).
 
         Parameters
@@ -1273,44 +570,80 @@ class DustGrid:
             First cell of the box (default the domain's ``lo``).
         shape : (3,) int, optional
             Box extent [cells] (default the domain's extent).
+        species : {"all", "dry", "wet"}
+            Which dust: both species summed, or one.
         """
+        if species not in ("all", "dry", "wet"):
+            raise ValueError(f"species must be 'all', 'dry' or 'wet', got {species!r}")
         if lo is None or shape is None:
             if not self._bounds_set:
                 raise ValueError("give lo and shape: the domain is not set yet")
         lo = self.bounds[:3] if lo is None else np.asarray(lo, dtype=np.int64).reshape(3)
         shape = tuple(self.bounds[3:] - self.bounds[:3]) if shape is None else shape
-        out = np.zeros(tuple(int(s) for s in shape), dtype=np.int32)
-        gather_box(self.keys, self.vals, self.density_q, out, *map(int, lo))
-        return out.astype(np.float64) / Q
+        total = np.zeros(tuple(int(s) for s in shape), dtype=np.int64)
+        grids = {"all": self._species(), "dry": (self,),
+                 "wet": () if self.wet is None else (self.wet,)}[species]
+        for g in grids:
+            out = np.zeros(total.shape, dtype=np.int32)
+            gather_box(g.keys, g.vals, g.density_q, out, *map(int, lo))
+            total += out
+        return total.astype(np.float64) / Q
 
-    def sprites(self, threshold: float | None = None):
-        """Dusty cells for rendering as alpha-blended sprites.
+    def sprites(self, threshold: float | None = None, *, top_only: bool = True,
+                jitter: float | None = None) -> DustSprites:
+        """Dusty cells for rendering as soft translucent sprites (both species).
 
         Parameters
         ----------
         threshold : float, optional
             Cells holding more than this are returned [cells] (default
             ``params.sprite_threshold``).
+        top_only : bool
+            Only cells whose neighbour above (against gravity's dominant
+            axis) holds less than ``params.sprite_cover``: the top layer.
+        jitter : float, optional
+            Largest offset from the cell centre along each axis [cell
+            edges] (default ``params.sprite_jitter``; 0: cell centres).
 
         Returns
         -------
-        positions : (n, 3) float32
-            Cell centres, case frame [mm].
-        density : (n,) float32
-            Dust per cell [cells] (1 full; may exceed 1 briefly where dust was
-            just added or pushed): size/opacity of the sprite.
+        DustSprites
+            ``positions, density, cell_mm, age_s, wet`` (dry sprites first).
+            Calling this also updates the cells' arrival times (see
+            :mod:`bonesim.dust_sprites`), at the simulated time
+            :attr:`time_s`.
         """
-        thr = self.params.sprite_threshold if threshold is None else \
-            _nonneg(threshold, "threshold")
+        p = self.params
+        thr = p.sprite_threshold if threshold is None else _nonneg(threshold, "threshold")
+        jit = p.sprite_jitter if jitter is None else _nonneg(jitter, "jitter")
+        if jit > 0.5:
+            raise ValueError(f"jitter must lie in [0, 0.5] cell edges, got {jit}")
         tq = int(math.floor(thr * Q))
-        hw = int(self._ctr[C_HW])
-        den = self.density_q
-        n = _count_above(self.alive, self.bmass, hw, den, tq)
+        cover = int(math.floor(p.sprite_cover * Q))
+        top = bool(top_only)
+        ip = self._ip
+        dom, dsgn = int(ip[I_DOM]), int(ip[I_DSGN])
+        up = -dsgn
+        up_dd = 2 * dom + (1 if up > 0 else 0)
+        now = float(self.time_s)
+        counts = []
+        for g in self._species():
+            counts.append(int(_stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, tq,
+                                     g.bcoord, g.nbr, g._seen, g._seen_key, now, dom, up,
+                                     up_dd, top, cover)))
+        n = sum(counts)
         pos = np.empty((n, 3), dtype=np.float32)
         val = np.empty(n, dtype=np.float32)
-        _fill_sprites(self.alive, self.bmass, hw, den, tq, self.bcoord, self.origin_mm,
-                      self.spacing_mm, pos, val)
-        return pos, val
+        age = np.empty(n, dtype=np.float32)
+        wet = np.zeros(n, dtype=np.uint8)
+        start = 0
+        for salt, (g, c) in enumerate(zip(self._species(), counts)):
+            end = _fill(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, tq, g.bcoord,
+                        g.nbr, g._seen, now, dom, up, up_dd, top, cover, self.origin_mm,
+                        self.spacing_mm, jit, salt, pos, val, age, start)
+            wet[start:end] = salt
+            start = end
+        return DustSprites(pos, val, self.spacing_mm, age, wet)
 
     # ------------------------------------------------------------ updates
     def add_removed(self, ijk, amount=None) -> None:
@@ -1342,15 +675,7 @@ class DustGrid:
         if not np.isfinite(amt).all() or (amt < 0).any() or (amt > 64).any():
             raise ValueError("amount must lie in [0, 64] cells per voxel")
         amount_q = np.round(amt * Q).astype(np.int64)
-        coords = np.unique(ijk >> BRICK_SHIFT, axis=0)
-        while True:
-            need = _ensure_bricks(self.keys, self.vals, self.bcoord, self.nbr, self.alive,
-                                  self.dens, self.bmass, self.bone_b, self.free, self._ctr,
-                                  self._bkeys, self._bvals, coords)
-            if not need:
-                break
-            self._reserve(int(need))
-        _add(self.keys, self.vals, self.dens, self.bmass, self._ctr, ijk, amount_q)
+        self._add_q(ijk, amount_q)
 
     def drain(self, cursor, amount=None) -> int:
         """Add the dust of every removal a cursor on a ``removed`` ring has not
@@ -1360,8 +685,10 @@ class DustGrid:
         return int(len(rec["ijk"]))
 
     def step(self, bone_grid, dt, tool_pos_mm=None, tool_radius_mm=0.0,
-             suction_pos_mm=None, suction_radius_mm=0.0, suction_rate=None) -> float:
-        """Advance the dust by ``dt``: gravity, spilling, tool push, suction.
+             suction_pos_mm=None, suction_radius_mm=0.0, suction_rate=None,
+             irrigation_pos_mm=None, irrigation_radius_mm=0.0) -> float:
+        """Advance the dust by ``dt``: gravity, spilling, tool push, suction,
+        wetting (both species).
 
         Parameters
         ----------
@@ -1381,13 +708,79 @@ class DustGrid:
         suction_rate : float, optional
             Dust removed per second from each cell in reach [cells/s]
             (default ``params.suction_rate``).
+        irrigation_pos_mm : (3,) float, optional
+            Where the irrigation water lands [mm]; no wetting if None.
+        irrigation_radius_mm : float
+            Radius of the irrigated region [mm].
 
         Returns
         -------
         float
-            Dust removed by suction in this step [cells].
+            Dust removed by suction in this step, both species [cells].
         """
         dt = _nonneg(dt, "dt")
+        irrigate = irrigation_pos_mm is not None
+        if irrigate:
+            wpos = _vec3(irrigation_pos_mm, "irrigation_pos_mm")
+            wrad = _nonneg(irrigation_radius_mm, "irrigation_radius_mm")
+            if self._is_wet:
+                raise ValueError("the wet species is not irrigated")
+        sucked = self._step_own(bone_grid, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
+                                suction_radius_mm, suction_rate)
+        if irrigate and wrad > 0:
+            self._wet_grid()
+            self._irrigate(wpos, wrad, dt)
+        if self.wet is not None:
+            sucked += self.wet._step_own(bone_grid, dt, tool_pos_mm, tool_radius_mm,
+                                         suction_pos_mm, suction_radius_mm, suction_rate)
+            self.wet.time_s = self.time_s
+        return sucked
+
+    def _wet_grid(self) -> "DustGrid":
+        """The wet species, made on first use."""
+        if self.wet is None:
+            p = self.params
+            wp = replace(p, settle_rate=p.wet_settle_rate, spill_rate=p.wet_spill_rate,
+                         repose=p.wet_repose)
+            w = DustGrid(self.spacing_mm, self.origin_mm, self.gravity, wp,
+                         _wet_species=True)
+            if self._bounds_set:
+                w.set_bounds(self.bounds[:3], self.bounds[3:])
+            w.time_s = self.time_s
+            self.wet = w
+        return self.wet
+
+    def _irrigate(self, pos, rad, dt) -> None:
+        """Rule 5: move dry dust within ``rad`` of ``pos`` to the wet species."""
+        h = self.spacing_mm
+        n_box = int(math.ceil(2 * rad / h) + 4) ** 3
+        if self._wet_out[1].shape[0] < n_box:
+            self._wet_out = (np.zeros((n_box, 3), np.int64), np.zeros(n_box, np.int64))
+        ip, fp = self._ip, self._fp
+        ip[I_WRATE] = _to_q(self.params.wetting_rate * dt)
+        fp[F_WX:F_WZ + 1] = pos
+        fp[F_WR] = rad
+        out_ijk, out_q = self._wet_out
+        n = int(_wet_out(self.keys, self.vals, self.dens, self.bmass, self._ctr, ip, fp,
+                         out_ijk, out_q))
+        if n:
+            self.wet._add_q(out_ijk[:n], out_q[:n])
+
+    def _add_q(self, ijk, amount_q) -> None:
+        """Add ``amount_q`` [1/Q cells] to cells ``ijk`` (n, 3) int64 (valid)."""
+        coords = np.unique(ijk >> BRICK_SHIFT, axis=0)
+        while True:
+            need = _ensure_bricks(self.keys, self.vals, self.bcoord, self.nbr, self.alive,
+                                  self.dens, self.bmass, self.bone_b, self.free, self._ctr,
+                                  self._bkeys, self._bvals, coords)
+            if not need:
+                break
+            self._reserve(int(need))
+        _add(self.keys, self.vals, self.dens, self.bmass, self._ctr, ijk, amount_q)
+
+    def _step_own(self, bone_grid, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
+                  suction_radius_mm, suction_rate) -> float:
+        """Rules 1-4 on this species alone."""
         if not self._bounds_set:
             if bone_grid is None:
                 raise ValueError("no domain: pass bounds_vox or a bone grid")
@@ -1423,6 +816,7 @@ class DustGrid:
             if stage == STAGE_DONE:
                 break
             self._reserve(int(self._ctr[C_NEED]))
+        self.time_s += dt
         return int(self._ctr[C_SUCKED_STEP]) / Q
 
 
@@ -1443,7 +837,8 @@ def warmup() -> None:
                         DustParams(initial_bricks=1), bounds_vox=((0, 0, 0), (20, 20, 20)))
         dust.add_removed(np.array([[5, 5, 9], [9, 9, 9]], dtype=np.int32))
         for _ in range(3):
-            dust.step(grid, 0.01, (2.5, 2.5, 4.5), 1.0, (4.5, 4.5, 4.5), 1.0)
+            dust.step(grid, 0.01, (2.5, 2.5, 4.5), 1.0, (4.5, 4.5, 4.5), 1.0,
+                      irrigation_pos_mm=(3.0, 3.0, 4.5), irrigation_radius_mm=2.0)
         dust.sprites()
         dust.to_dense()
         dust.recount_q()

@@ -6,8 +6,16 @@ imports it). The submodules:
 :mod:`~bonesim.render.gl`
     Chooses a working OpenGL path (X11, EGL or OSMesa) without a display.
 :mod:`~bonesim.render.scene`
-    :class:`Scene`: bone surface, critical structures, tool, dust, HUD,
-    microscope camera, visible subset, screenshots.
+    :class:`Scene`: bone surface, critical structures, tool (and its
+    silhouette when bone hides it), dust, HUD, microscope camera and lights,
+    stereo, visible subset, screenshots.
+:mod:`~bonesim.render.layout`
+    The side panel beside the 3D view (HUD, hint, monitor trace), lights,
+    stereo switching (part of :class:`Scene`).
+:mod:`~bonesim.render.dustview`, :mod:`~bonesim.render.stereo`,
+:mod:`~bonesim.render.geometry`, :mod:`~bonesim.render.style`
+    Dust sprites, stereo modes, tool and structure geometry, and the look
+    read from ``bonesim/data/render.toml``.
 :mod:`~bonesim.render.window`
     :class:`Window`: the interactive (or offscreen) frame loop, keys and mouse.
 :mod:`~bonesim.render.bench`
@@ -27,19 +35,26 @@ Driving it from the app (sketch; the haptic loop and devices are the app's)::
     def on_frame(scene):                       # main thread, once per frame
         consumer.drain()                       # rings -> Surface.update
         scene.update_surface(consumer.surface)
-        scene.set_tool(pos_mm, axis, model.burr.radius_mm, drill_on)
-        scene.set_dust(dust_pos, dust_density)
+        depth = depth_below_surface_mm(grid, pos_mm, scene.camera_pose()[0],
+                                       model.burr.radius_mm)     # bonesim.sightline
+        scene.set_tool(pos_mm, axis, model.burr.radius_mm, drill_on, depth_mm=depth)
+        scene.set_dust(*dust.sprites())            # bonesim.dust.DustGrid
         scene.set_hud({"case": model.name, "burr": model.burr.name,
                        "burr_kind": model.burr.kind,
                        "burr_diameter_mm": model.burr.diameter_mm,
                        "drill": drill_on, "direction": direction,
-                       "speed_rpm": rpm, "force_n": f, "haptic_hz": rate,
+                       "speed_rpm": rpm, "force_n": f, "depth_mm": depth,
+                       "haptic_hz": rate,
                        "elapsed_s": t, "injuries": names})
 
     def on_key(action): ...                    # "next_burr", "drill_toggle", ...
     def on_mouse(world_mm, buttons): ...       # target point on the tool's view plane
 
     Window(scene, on_frame, on_key, on_mouse, frame_hz=60).run()
+
+Stereo: ``scene.set_stereo("side-by-side")`` (or ``"anaglyph"``,
+``"interlaced"``, ``"checkerboard"``, ``"quad-buffer"`` on a display with a
+stereo context, made with ``Scene(..., stereo_capable=True)``).
 
 For headless runs make the scene with ``offscreen=True`` and call
 ``Window(...).run_offscreen(n_frames, screenshot="last.png")``.
@@ -56,6 +71,7 @@ _LAZY = {
     "select_backend": "gl", "start_probe": "gl", "GLInfo": "gl",
     "RenderUnavailable": "gl", "bench_render": "bench",
     "compare_images": "imagecmp", "read_png": "imagecmp", "write_png": "imagecmp",
+    "STEREO_MODES": "stereo", "StereoUnavailable": "stereo", "bench_fps": "bench",
 }
 
 __all__ = sorted(_LAZY)

@@ -15,6 +15,20 @@
     visible subset installed (the heavier path: each update also maintains
     the subset), the removed voxels passed to :meth:`Scene.update_surface`
     as the app does.
+``render_fps_1024x768``
+    Frames per second of the window at 1024 x 768 on the drilled phantom
+    with dust, on whatever OpenGL the machine offers offscreen (software GL
+    here: llvmpipe). The phantom's mastoid is drilled from the case camera
+    (a ball of bone voxels, r = 8 mm, 4 mm under the first bone on the
+    camera's axis, non-bone structures kept), the removed bone turned into
+    dust and settled; the camera rests, so the visible subset is drawn, as
+    in the app. Each frame does what the app's frame does besides reading
+    the haptic loop: a dust step, :meth:`Scene.set_dust` with the sprites,
+    :meth:`Scene.set_tool` (burr in the cavity, its depth below the surface),
+    :meth:`Scene.set_hud`, render. ``value`` is frames over wall time for
+    ``seconds`` (3 s; 1.5 s quick) after two warm-up frames; the detail
+    gives the median frame time, the dust sprites drawn, the triangles and
+    the OpenGL renderer.
 ``first_frame_s``
     A new Python process, with warm caches (numba's on disk and files in
     the OS cache, filled by doing the same work untimed first), from its
@@ -183,6 +197,109 @@ def bench_first_frame(quick: bool = False) -> dict:
         "runs": runs, "min_s": round(min(walls), 3),
         **{k: round(v, 3) for k, v in d.items() if isinstance(v, float)},
         "gl": d["gl"], "size": list(SIZE)}}
+
+
+#: Window size of ``render_fps_1024x768`` [px].
+FPS_SIZE = (1024, 768)
+#: Radius of the drilled ball and its depth under the first bone on the
+#: camera's axis [mm].
+FPS_CAVITY_R_MM = 8.0
+FPS_CAVITY_DEPTH_MM = 4.0
+
+
+def _drill_from_camera(model, state) -> np.ndarray:
+    """Remove the bone of a ball under the case camera's axis (see the
+    module docstring); returns the removed voxels (n, 3) int32, the ball's
+    centre [mm] and the camera's unit view direction."""
+    grid = state.grid
+    cam = model.case.camera
+    eye, focal = np.asarray(cam.eye_mm, float), np.asarray(cam.focal_mm, float)
+    u = (focal - eye) / np.linalg.norm(focal - eye)
+    h = grid.spacing_mm
+    first = None
+    for t in np.arange(0.0, 2.0 * np.linalg.norm(focal - eye), 0.25 * h):
+        ijk = np.floor((eye + t * u - grid.origin_mm) / h + 0.5).astype(int)
+        if np.all(ijk >= 0) and np.all(ijk < grid.shape) and grid.density_at(*ijk) > 0:
+            first = eye + t * u
+            break
+    if first is None:
+        raise RuntimeError("the case camera's axis meets no bone")
+    centre = first + FPS_CAVITY_DEPTH_MM * u
+    c = np.floor((centre - grid.origin_mm) / h + 0.5).astype(np.int64)
+    ijk = c + ball_offsets(FPS_CAVITY_R_MM / h)
+    bone = [s + 1 for s, st in enumerate(model.structures) if st.kind == "bone"]
+    b = np.array([grid.brick_index(*v) for v in ijk])
+    off = ((ijk[:, 0] & 7) << 6) | ((ijk[:, 1] & 7) << 3) | (ijk[:, 2] & 7)
+    ok = b >= 0
+    sel = np.zeros(len(ijk), bool)
+    sel[ok] = (grid.density[b[ok], off[ok]] > 0) & np.isin(grid.label[b[ok], off[ok]], bone)
+    grid.density[b[sel], off[sel]] = 0.0
+    return ijk[sel].astype(np.int32), centre, u
+
+
+def bench_fps(quick: bool = False) -> dict:
+    """``render_fps_1024x768`` (see the module docstring)."""
+    from ..dust import DustGrid
+    from ..model import load_model, make_state
+    from ..sightline import depth_below_surface_mm
+    from ..surface import Surface
+    from ..surface import warmup as surface_warmup
+    from .scene import Scene
+
+    surface_warmup()
+    model = load_model("phantom", "cutting-5mm")
+    state = make_state(model)
+    surf = Surface.build(model.grid, model.colors)
+    removed, centre, u = _drill_from_camera(model, state)
+    surf.update(state.grid, removed)
+    dust = DustGrid.for_grid(state.grid, u)
+    dust.add_removed(removed)
+    for _ in range(120):                               # 2 s: the dust settles
+        dust.step(state.grid, 1.0 / 60.0)
+    scene = Scene.from_model(model, surf, size=FPS_SIZE)
+    scene.set_dust(*dust.sprites())
+    scene.render()
+    if not scene.refresh_visible():
+        raise RuntimeError("visible subset was not installed")
+    r = model.burr.radius_mm
+    eye = np.array(scene.camera.GetPosition())
+    seconds = 1.5 if quick else 3.0
+    times = []
+    n = 0
+    t_end = None
+    t0 = time.perf_counter()
+    while True:
+        ts = time.perf_counter()
+        phase = 2.0 * np.pi * n / 90.0
+        pos = centre + 2.0 * np.array([np.cos(phase), np.sin(phase), 0.0])
+        dust.step(state.grid, 1.0 / 60.0, tool_pos_mm=pos, tool_radius_mm=r)
+        spr = dust.sprites()
+        scene.set_dust(*spr)
+        depth = depth_below_surface_mm(state.grid, pos, eye, r)
+        scene.set_tool(pos, u, r, True, depth_mm=depth)
+        scene.set_hud({"case": model.name, "burr": model.burr.name, "drill": True,
+                       "speed_rpm": 60000, "force_n": 1.0, "depth_mm": depth,
+                       "elapsed_s": ts - t0, "injuries": 0})
+        scene.render()
+        n += 1
+        times.append(time.perf_counter() - ts)
+        if n == 2:                                    # warm-up frames not counted
+            t_end = time.perf_counter()
+            times = []
+        if n > 2 and time.perf_counter() - t_end >= seconds:
+            break
+    wall = time.perf_counter() - t_end
+    frames = n - 2
+    out = {"render_fps_1024x768": {
+        "value": round(frames / wall, 2), "unit": "Hz", "stat": "mean",
+        "frames": frames, "seconds": round(wall, 3),
+        "frame_ms_p50": round(_pct(np.array(times) * 1e3, 50), 2),
+        "frame_ms_p95": round(_pct(np.array(times) * 1e3, 95), 2),
+        "dust_sprites": int(len(spr.positions)), "removed_voxels": int(len(removed)),
+        "triangles": int(surf.n_triangles), "drawn": scene.drawing,
+        "size": list(FPS_SIZE), "gl": scene.gl.describe()}}
+    scene.close()
+    return out
 
 
 def bench_render(quick: bool = False) -> dict:

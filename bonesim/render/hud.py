@@ -1,12 +1,14 @@
 """Text of the head-up display and of the help overlay (no VTK here).
 
 :func:`format_hud` turns the dictionary the app passes to
-:meth:`bonesim.render.scene.Scene.set_hud` into lines. Recognised keys
-(all optional; units in the names):
+:meth:`bonesim.render.scene.Scene.set_hud` into short lines, a label column
+and a value, to fit the side panel (about 28 characters wide). Recognised
+keys (all optional; units in the names):
 
 ===================  ====================================================
 ``case``             case name
-``burr``             burr name (e.g. ``cutting-5mm``)
+``burr``             burr name (e.g. ``cutting-5mm``; shown only when it
+                     says more than kind and diameter)
 ``burr_kind``        ``cutting`` / ``diamond``
 ``burr_diameter_mm`` burr diameter [mm]
 ``tool``             ``burr`` or ``suction``
@@ -14,19 +16,31 @@
 ``direction``        +1 / -1 (or ``"forward"`` / ``"reverse"``)
 ``speed_rpm``        spindle speed [rpm]
 ``force_n``          applied force magnitude [N]
+``depth_mm``         tissue between the burr and the eye [mm]
+                     (:func:`bonesim.sightline.depth_below_surface_mm`);
+                     None: not shown
 ``haptic_hz``        haptic loop rate [Hz]
 ``frame_hz``         frame rate [Hz] (default: measured by the scene)
 ``elapsed_s``        run time [s]
 ``injuries``         count, list of structure names, or text
-``message``          one free line (status, warnings)
+``message``          free text (status, warnings), one paragraph a line,
+                     wrapped (continuations indented by two spaces)
 ===================  ====================================================
 
 Any other key is shown as ``key: value``.
 """
 from __future__ import annotations
 
+import textwrap
+
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "drill", "direction",
-         "speed_rpm", "force_n", "haptic_hz", "frame_hz", "elapsed_s", "injuries", "message")
+         "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
+         "injuries", "message")
+#: Width of the label column [characters].
+LABEL_W = 7
+#: Messages wrap at this many characters; continuation lines are indented.
+WRAP_CHARS = 28
+WRAP_INDENT = "  "
 
 
 def _num(v, fmt):
@@ -59,6 +73,33 @@ def _injuries(v) -> str:
     return str(v)
 
 
+def _line(label: str, value: str) -> str:
+    return f"{label.ljust(LABEL_W - 1)} {value}"
+
+
+def _burr_line(info: dict) -> str:
+    parts = []
+    if "burr_kind" in info:
+        parts.append(str(info["burr_kind"]))
+    if "burr_diameter_mm" in info:
+        parts.append(_num(info["burr_diameter_mm"], ".1f") + " mm")
+    name = str(info["burr"]) if "burr" in info else None
+    if name is not None:
+        plain = ""
+        try:
+            plain = f"{info.get('burr_kind', '')}-{float(info['burr_diameter_mm']):g}mm"
+        except (KeyError, TypeError, ValueError):
+            pass
+        if not parts or name.replace(" ", "").lower() != plain.lower():
+            parts.append(f"({name})" if parts else name)
+    return _line("burr", " ".join(parts))
+
+
+def _depth(v) -> str:
+    d = float(v)
+    return "in view" if d <= 0 else f"{d:.1f} mm under bone"
+
+
 def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     """Lines of the HUD for ``info`` (see the module docstring).
 
@@ -76,19 +117,11 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     """
     lines = []
     if "case" in info:
-        lines.append(f"case: {info['case']}")
-    tool = str(info.get("tool", "burr"))
-    if tool == "suction":
-        lines.append("tool: suction")
+        lines.append(_line("case", str(info["case"])))
+    if str(info.get("tool", "burr")) == "suction":
+        lines.append(_line("tool", "suction"))
     if any(k in info for k in ("burr", "burr_kind", "burr_diameter_mm")):
-        parts = []
-        if "burr_kind" in info:
-            parts.append(str(info["burr_kind"]))
-        if "burr_diameter_mm" in info:
-            parts.append(_num(info["burr_diameter_mm"], ".1f") + " mm")
-        if "burr" in info:
-            parts.append(f"({info['burr']})" if parts else str(info["burr"]))
-        lines.append("burr: " + " ".join(parts))
+        lines.append(_burr_line(info))
     drill = []
     if "drill" in info:
         drill.append("ON" if info["drill"] else "off")
@@ -97,26 +130,26 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     if "speed_rpm" in info:
         drill.append(_num(info["speed_rpm"], ",.0f") + " rpm")
     if drill:
-        lines.append("drill: " + "  ".join(drill))
+        lines.append(_line("drill", " ".join(drill)))
     if "force_n" in info:
-        lines.append("force: " + _num(info["force_n"], ".2f") + " N")
-    rates = []
+        lines.append(_line("force", _num(info["force_n"], ".2f") + " N"))
+    if info.get("depth_mm") is not None:
+        lines.append(_line("depth", _depth(info["depth_mm"])))
     if "haptic_hz" in info:
-        rates.append("haptic " + _num(info["haptic_hz"], ".0f") + " Hz")
+        lines.append(_line("haptic", _num(info["haptic_hz"], ".0f") + " Hz"))
     fr = info.get("frame_hz", measured_frame_hz)
     if fr is not None:
-        rates.append("frame " + _num(fr, ".0f") + " Hz")
-    if rates:
-        lines.append("rate: " + "  ".join(rates))
+        lines.append(_line("frame", _num(fr, ".0f") + " Hz"))
     if "elapsed_s" in info:
-        lines.append("time: " + _num(info["elapsed_s"], ".1f") + " s")
+        lines.append(_line("time", _num(info["elapsed_s"], ".1f") + " s"))
     if "injuries" in info:
-        lines.append("injuries: " + _injuries(info["injuries"]))
+        lines.append(_line("injury", _injuries(info["injuries"])))
     for k, v in info.items():
         if k not in KNOWN:
             lines.append(f"{k}: {v}")
     if info.get("message"):
-        lines.append(str(info["message"]))
+        for para in str(info["message"]).splitlines():
+            lines += textwrap.wrap(para, WRAP_CHARS, subsequent_indent=WRAP_INDENT) or [para]
     return "\n".join(lines)
 
 

@@ -111,8 +111,9 @@ class TimelineBar:
         self.update(0.0)
 
     def size(self) -> tuple[int, int]:
-        w, h = self.scene.render_window.GetSize()
-        return int(w), int(h)
+        """Size of the 3D view [px] (the bar spans it, left of the side panel)."""
+        x0, y0, x1, y1 = self.scene.view_rect()
+        return int(x1 - x0), int(y1 - y0)
 
     def rect(self) -> tuple[int, int, int, int]:
         """The bar's pixel rectangle for the current window size."""
@@ -237,8 +238,9 @@ class PlaybackView:
                         notices=self.notices)
         if self.video:
             info["frame_hz"] = None
+        if sc.panel_renderer is None:       # HUD over the view: keep it above the bar
+            sc.text_bottom_px = self.bar.top_px()
         sc.set_hud(info)
-        sc.hud_actor.SetPosition(8, self.bar.top_px() + 6)
         self.bar.update(f.t_s)
         self._camera(f)
         return f

@@ -1,7 +1,12 @@
 """The rendered scene: bone surface, critical structures, tool, dust, HUD.
 
-A :class:`Scene` owns one VTK renderer in one render window (offscreen or
-on an X display, see :mod:`bonesim.render.gl`). Everything here runs on the
+A :class:`Scene` owns one render window (offscreen or on an X display, see
+:mod:`bonesim.render.gl`) with three renderers: the 3D view, an overlay
+over it (the hidden burr) and a side panel for the HUD and the nerve
+monitor (:mod:`bonesim.render.layout`). The tool lives in
+:mod:`bonesim.render.tool`, the dust sprites in
+:mod:`bonesim.render.dustview`; the look (material, lights, dust, panel,
+stereo default) in ``bonesim/data/render.toml``. Everything here runs on the
 thread that created the scene (the main thread); the only work done
 elsewhere is the visible-subset computation of
 :mod:`bonesim.render.meshbuf`, which touches numpy arrays only.
@@ -18,7 +23,8 @@ grows its arrays), and the live triangles are compacted by a numba pass
 into an int32 buffer that a ``vtkCellArray`` uses in place. Colours are
 direct scalars, normals are the surface's density-gradient normals, and
 both faces are lit (two-sided lighting), so the bone looks right from
-inside a drilled cavity too.
+inside a drilled cavity too. The material (``[bone]``) has a soft, wide
+specular highlight under the microscope's headlight and fill light.
 
 Visible subset
 --------------
@@ -41,47 +47,28 @@ import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (OpenGL factories)
 from vtkmodules.util import numpy_support
 from vtkmodules.vtkCommonCore import (vtkFloatArray, vtkPoints, vtkTypeInt32Array,
                                       vtkUnsignedCharArray)
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
-from vtkmodules.vtkCommonMath import vtkMatrix4x4
-from vtkmodules.vtkFiltersCore import (vtkFlyingEdges3D, vtkPolyDataNormals,
-                                       vtkWindowedSincPolyDataFilter)
-from vtkmodules.vtkFiltersSources import vtkCylinderSource, vtkSphereSource
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOImage import vtkPNGWriter
-from vtkmodules.vtkRenderingCore import (vtkActor, vtkPointGaussianMapper, vtkPolyDataMapper,
-                                         vtkRenderer, vtkTextActor, vtkWindowToImageFilter)
+from vtkmodules.vtkRenderingCore import (vtkActor, vtkPolyDataMapper, vtkRenderer,
+                                         vtkWindowToImageFilter)
+from .dustview import DustLayer
+from .geometry import polydata_from_arrays, structure_polydata, tool_matrix
 from .gl import make_render_window
-from .hud import format_hud
+from .layout import LayoutMixin
 from .meshbuf import SurfaceBuffers
+from .stereo import STEREO_MODES, StereoUnavailable
+from .style import default_style
+from .tool import ToolMixin
+
+__all__ = ["Scene", "tool_matrix", "structure_polydata", "STEREO_MODES", "StereoUnavailable",
+           "BACKGROUND", "VIEW_ANGLE_DEG"]
 
 #: Default background (dark, like the microscope's field edge), RGB 0-1.
 BACKGROUND = (0.05, 0.06, 0.08)
 #: Seconds the camera must stay still before the visible subset is built.
 REST_S = 0.25
-#: Steel colour of the burr when idle / when spinning, and of the shaft.
-BURR_IDLE_RGB = (0.72, 0.74, 0.78)
-BURR_ON_RGB = (0.95, 0.82, 0.45)
-SHAFT_RGB = (0.55, 0.57, 0.6)
-SUCTION_RGB = (0.35, 0.55, 0.75)
-#: Shaft length drawn behind the burr [mm] and its largest radius [mm].
-SHAFT_LENGTH_MM = 40.0
-SHAFT_MAX_RADIUS_MM = 0.8
-#: Colour (RGB 0-1) and opacity of :meth:`Scene.set_marker`'s sphere.
-MARKER_RGB = (0.3, 0.85, 0.55)
-MARKER_OPACITY = 0.45
-#: Bone-dust colour (RGB 0-1).
-DUST_RGB = (0.93, 0.9, 0.8)
 #: Camera view angle [deg]: a microscope's narrow field.
 VIEW_ANGLE_DEG = 30.0
-
-# Round soft-edged sprite for the dust splats (replaces the Gaussian's colour).
-_DISK_SPLAT = (
-    "//VTK::Color::Impl\n"
-    "float dist2 = dot(offsetVCVSOutput.xy, offsetVCVSOutput.xy);\n"
-    "if (dist2 > 1.0) { discard; }\n"
-    "float fall = 1.0 - dist2 * dist2;\n"
-    "ambientColor *= fall;\n"
-    "diffuseColor *= fall;\n"
-    "opacity *= fall;\n")
 
 
 def _void_array(cls, ncomp: int, name: str | None = None):
@@ -98,95 +85,7 @@ def _point_to(arr, buf: np.ndarray, n_values: int) -> None:
     arr.Modified()
 
 
-def tool_matrix(pos_mm, axis, scale=(1.0, 1.0, 1.0)) -> np.ndarray:
-    """4x4 placing a model whose +y axis runs along ``-axis`` at ``pos_mm``.
-
-    Parameters
-    ----------
-    pos_mm : (3,) float
-        Origin of the model in the case frame [mm].
-    axis : (3,) float
-        Drill axis, handle toward burr tip (normalised here).
-    scale : (3,) float
-        Scale along the model's x, y, z before rotation.
-    """
-    u = -np.asarray(axis, dtype=float)
-    n = np.linalg.norm(u)
-    u = u / n if n > 0 else np.array([0.0, 0.0, 1.0])
-    h = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(u, h)
-    x /= np.linalg.norm(x)
-    z = np.cross(x, u)
-    m = np.eye(4)
-    m[:3, 0] = x * scale[0]
-    m[:3, 1] = u * scale[1]
-    m[:3, 2] = z * scale[2]
-    m[:3, 3] = np.asarray(pos_mm, dtype=float)
-    return m
-
-
-def _vtk_matrix(m: np.ndarray) -> vtkMatrix4x4:
-    vm = vtkMatrix4x4()
-    vm.DeepCopy(m.ravel().tolist())
-    return vm
-
-
-def structure_polydata(mask: np.ndarray, origin_mm, spacing_mm: float,
-                       smooth_iterations: int = 15) -> vtkPolyData:
-    """Smooth closed surface of a boolean voxel mask.
-
-    Flying edges at level 0.5 on the mask padded by one empty voxel, then a
-    windowed-sinc smoothing (no shrinkage) and point normals.
-
-    Parameters
-    ----------
-    mask : (nx, ny, nz) bool
-        Voxels of the structure, axes (x, y, z).
-    origin_mm : (3,) float
-        Case-frame centre of ``mask[0, 0, 0]`` [mm].
-    spacing_mm : float
-        Voxel edge [mm].
-    smooth_iterations : int
-        Smoothing passes (0: none).
-    """
-    pad = np.zeros(tuple(s + 2 for s in mask.shape), dtype=np.uint8)
-    pad[1:-1, 1:-1, 1:-1] = mask
-    img = vtkImageData()
-    img.SetDimensions(*pad.shape)
-    img.SetSpacing(spacing_mm, spacing_mm, spacing_mm)
-    img.SetOrigin(*(np.asarray(origin_mm, dtype=float) - spacing_mm))
-    flat = np.ascontiguousarray(pad.transpose(2, 1, 0)).ravel()   # x fastest
-    arr = numpy_support.numpy_to_vtk(flat, deep=True)
-    arr.SetName("mask")
-    img.GetPointData().SetScalars(arr)
-    fe = vtkFlyingEdges3D()
-    fe.SetInputData(img)
-    fe.SetValue(0, 0.5)
-    fe.ComputeNormalsOff()
-    fe.ComputeGradientsOff()
-    fe.ComputeScalarsOff()
-    src = fe
-    if smooth_iterations > 0:
-        sm = vtkWindowedSincPolyDataFilter()
-        sm.SetInputConnection(fe.GetOutputPort())
-        sm.SetNumberOfIterations(int(smooth_iterations))
-        sm.SetPassBand(0.1)
-        sm.NonManifoldSmoothingOn()
-        sm.NormalizeCoordinatesOn()
-        sm.BoundarySmoothingOff()
-        src = sm
-    nm = vtkPolyDataNormals()
-    nm.SetInputConnection(src.GetOutputPort())
-    nm.SplittingOff()
-    nm.ConsistencyOn()
-    nm.AutoOrientNormalsOff()
-    nm.Update()
-    out = vtkPolyData()
-    out.DeepCopy(nm.GetOutput())
-    return out
-
-
-class Scene:
+class Scene(LayoutMixin, ToolMixin):
     """Everything drawn in one view, with an incremental surface update.
 
     Parameters
@@ -205,30 +104,72 @@ class Scene:
         How long the camera must be still before the subset is built [s].
     title : str
         Window title (onscreen).
+    panel : bool
+        Dock the HUD and the nerve-monitor trace in a side column right of
+        the 3D view (``render.toml`` ``[panel]``), so that nothing covers
+        the field; False draws them over the view (older layout).
+    style : RenderStyle, optional
+        The look (default: the shipped ``bonesim/data/render.toml``).
+    stereo_capable : bool
+        Ask the display for a quad-buffered stereo OpenGL context (only
+        needed for :meth:`set_stereo` ``"quad-buffer"``; onscreen only).
 
     Attributes
     ----------
     render_window : vtkRenderWindow
     renderer : vtkRenderer
+        The 3D view.
+    overlay_renderer : vtkRenderer
+        Drawn over the 3D view with the same camera and a cleared depth
+        buffer: the hidden burr's silhouette.
+    panel_renderer : vtkRenderer or None
+        The side column (2-D text and the monitor trace).
     gl : bonesim.render.gl.GLInfo
         The OpenGL path in use.
     surface : Surface or None
         The surface last given to :meth:`update_surface`.
+    style : RenderStyle
     """
 
     def __init__(self, size=(800, 600), *, offscreen: bool = True,
                  background=BACKGROUND, visible_subset: bool = True,
-                 rest_s: float = REST_S, title: str = "bonesim"):
+                 rest_s: float = REST_S, title: str = "bonesim", panel: bool = True,
+                 style=None, stereo_capable: bool = False):
+        self.style = default_style() if style is None else style
         self.render_window, self.gl = make_render_window(offscreen, size)
-        self.render_window.SetWindowName(title)
+        rw = self.render_window
+        rw.SetWindowName(title)
+        self.stereo_capable = bool(stereo_capable and not offscreen)
+        if self.stereo_capable:
+            rw.StereoCapableWindowOn()
         self.offscreen = bool(offscreen)
+        rw.SetNumberOfLayers(2)
         ren = vtkRenderer()
         ren.SetBackground(*background)
         ren.TwoSidedLightingOn()
         ren.SetUseDepthPeeling(0)
         self.renderer = ren
-        self.render_window.AddRenderer(ren)
-        self.render_window.SetMultiSamples(0)
+        rw.AddRenderer(ren)
+        ov = vtkRenderer()
+        ov.SetLayer(1)
+        ov.SetActiveCamera(ren.GetActiveCamera())
+        ov.InteractiveOff()
+        ov.TwoSidedLightingOn()
+        self.overlay_renderer = ov
+        rw.AddRenderer(ov)
+        self.panel_renderer = None
+        if panel:
+            pr = vtkRenderer()
+            pr.SetBackground(*self.style.panel.rgb)
+            pr.InteractiveOff()
+            self.panel_renderer = pr
+            rw.AddRenderer(pr)
+        rw.SetMultiSamples(0)
+        self._layout_px = None
+        self._layout_viewports()
+        self._build_lights()
+        self.stereo_mode = None
+        self.eye_separation_mm = float(self.style.stereo.eye_separation_mm)
         self.visible_subset = bool(visible_subset)
         self.rest_s = float(rest_s)
         self.voxel_mm = 0.5
@@ -253,8 +194,8 @@ class Scene:
         self._frame_times = collections.deque(maxlen=61)
         self._hud_info: dict = {}
         self._hud_drawn_at = 0.0
-        ren.AddObserver("StartEvent", self._before_render)
-        ren.AddObserver("EndEvent", self._after_render)
+        rw.AddObserver("StartEvent", self._before_render)
+        rw.AddObserver("EndEvent", self._after_render)
         self._w2i = None
 
     # ------------------------------------------------------------ factories
@@ -325,10 +266,12 @@ class Scene:
         a.ForceOpaqueOn()
         p = a.GetProperty()
         p.SetInterpolationToGouraud()
-        p.SetAmbient(0.12)
-        p.SetDiffuse(0.85)
-        p.SetSpecular(0.12)
-        p.SetSpecularPower(20.0)
+        bone = self.style.bone
+        p.SetAmbient(bone.ambient)
+        p.SetDiffuse(bone.diffuse)
+        p.SetSpecular(bone.specular)
+        p.SetSpecularPower(bone.specular_power)
+        p.SetSpecularColor(*bone.specular_rgb)
         a.SetVisibility(False)
         self.renderer.AddActor(a)
         self.surface_actor = a
@@ -420,8 +363,13 @@ class Scene:
     def _cancel_job(self):
         self._job = None          # a running thread finishes on its own; result ignored
 
+    @staticmethod
+    def _now() -> float:
+        return time.perf_counter()
+
     def _before_render(self, *_):
         now = time.perf_counter()
+        self._layout_viewports()
         sig = self._camera_sig()
         if sig != self._cam_sig:
             self._cam_sig = sig
@@ -446,6 +394,7 @@ class Scene:
         if self._hud_info and now - self._hud_drawn_at > 0.25:
             self._draw_hud(now)
         self._reset_clipping_range()
+        self._update_stereo()
 
     def _reset_clipping_range(self):
         """Near and far planes from the bounds of everything drawn, taking
@@ -549,7 +498,7 @@ class Scene:
         opacity : float
         """
         if isinstance(polydata, tuple):
-            polydata = _polydata_from_arrays(*polydata)
+            polydata = polydata_from_arrays(*polydata)
         m = vtkPolyDataMapper()
         m.SetInputData(polydata)
         m.ScalarVisibilityOff()
@@ -558,10 +507,11 @@ class Scene:
         p = a.GetProperty()
         p.SetColor(*(np.asarray(color, dtype=float)[:3] / 255.0))
         p.SetOpacity(float(opacity))
-        p.SetAmbient(0.15)
-        p.SetDiffuse(0.8)
-        p.SetSpecular(0.35)
-        p.SetSpecularPower(30.0)
+        st = self.style.structures
+        p.SetAmbient(st.ambient)
+        p.SetDiffuse(st.diffuse)
+        p.SetSpecular(st.specular)
+        p.SetSpecularPower(st.specular_power)
         if name in self._structures:
             self.renderer.RemoveActor(self._structures[name])
         self._structures[name] = a
@@ -576,261 +526,33 @@ class Scene:
     def structure_names(self) -> list:
         return list(self._structures)
 
-    # ------------------------------------------------------------------ tool
-    def _build_tool(self):
-        # geometry is built at its real size (rigid placement keeps the
-        # lighting right); sources are re-run only when a radius changes
-        self._burr_src = vtkSphereSource()
-        self._burr_src.SetThetaResolution(40)
-        self._burr_src.SetPhiResolution(28)
-        self._shaft_src = vtkCylinderSource()          # along +y, from 0 to length
-        self._shaft_src.SetResolution(28)
-        self._shaft_src.CappingOn()
-        self._burr = self._static_actor(self._burr_src, BURR_IDLE_RGB, specular=0.6)
-        self._shaft = self._static_actor(self._shaft_src, SHAFT_RGB, specular=0.5)
-        for a in (self._burr, self._shaft):
-            a.SetVisibility(False)
-            a.PickableOff()
-            self.renderer.AddActor(a)
-        self._tool_radii = (None, None)
-        self.tool_pos_mm = None
-        self.tool_axis = np.array([0.0, 0.0, -1.0])
-        self._marker = None                            # set_marker builds it
-        self.marker_pos_mm = None
-
-    @staticmethod
-    def _static_actor(src, rgb, specular=0.3):
-        m = vtkPolyDataMapper()
-        m.SetInputConnection(src.GetOutputPort())
-        m.ScalarVisibilityOff()
-        a = vtkActor()
-        a.SetMapper(m)
-        p = a.GetProperty()
-        p.SetColor(*rgb)
-        p.SetAmbient(0.2)
-        p.SetDiffuse(0.75)
-        p.SetSpecular(specular)
-        p.SetSpecularPower(40.0)
-        return a
-
-    def _tool_geometry(self, burr_r: float, shaft_r: float) -> None:
-        if self._tool_radii == (burr_r, shaft_r):
-            return
-        self._burr_src.SetRadius(burr_r)
-        self._shaft_src.SetRadius(shaft_r)
-        self._shaft_src.SetHeight(SHAFT_LENGTH_MM)
-        self._shaft_src.SetCenter(0.0, 0.5 * SHAFT_LENGTH_MM, 0.0)
-        self._tool_radii = (burr_r, shaft_r)
-
-    def set_tool(self, pos_mm, axis, radius_mm: float, drill_on: bool = False,
-                 kind: str = "burr") -> None:
-        """Place the tool.
-
-        Parameters
-        ----------
-        pos_mm : (3,) float
-            Burr centre (suction: tip centre), case frame [mm].
-        axis : (3,) float
-            Drill axis, from the handle toward the tip; the shaft is drawn
-            along ``-axis`` from the burr centre.
-        radius_mm : float
-            Burr radius (suction: tube radius) [mm].
-        drill_on : bool
-            Drill running (the burr is drawn in a warmer colour).
-        kind : {"burr", "suction"}
-        """
-        pos = np.asarray(pos_mm, dtype=float).reshape(3)
-        ax = np.asarray(axis, dtype=float).reshape(3)
-        r = float(radius_mm)
-        if not (r > 0 and np.all(np.isfinite(pos)) and np.all(np.isfinite(ax))):
-            raise ValueError("set_tool needs a finite position and axis and a positive radius")
-        self.tool_pos_mm = pos.copy()
-        n = np.linalg.norm(ax)
-        self.tool_axis = ax / n if n > 0 else np.array([0.0, 0.0, -1.0])
-        place = _vtk_matrix(tool_matrix(pos, ax, (1.0, 1.0, 1.0)))
-        if kind == "suction":
-            self._tool_geometry(r, r)
-            self._burr.SetVisibility(False)
-            self._shaft.GetProperty().SetColor(*SUCTION_RGB)
-        elif kind == "burr":
-            self._tool_geometry(r, min(SHAFT_MAX_RADIUS_MM, 0.45 * r))
-            self._burr.SetUserMatrix(place)
-            self._burr.GetProperty().SetColor(*(BURR_ON_RGB if drill_on else BURR_IDLE_RGB))
-            self._burr.SetVisibility(True)
-            self._shaft.GetProperty().SetColor(*SHAFT_RGB)
-        else:
-            raise ValueError(f"unknown tool kind {kind!r} (burr or suction)")
-        self._shaft.SetUserMatrix(place)
-        self._shaft.SetVisibility(True)
-
-    def hide_tool(self) -> None:
-        self._burr.SetVisibility(False)
-        self._shaft.SetVisibility(False)
-
-    def set_marker(self, pos_mm, radius_mm: float, rgb=MARKER_RGB,
-                   opacity: float = MARKER_OPACITY) -> None:
-        """Show a translucent sphere: a second point of interest beside the
-        tool (the trainee's hand while the tool shows the instructor's).
-
-        Parameters
-        ----------
-        pos_mm : (3,) float
-            Centre, case frame [mm].
-        radius_mm : float
-            Radius [mm].
-        rgb : (3,) float
-            Colour, RGB in [0, 1].
-        opacity : float
-            In (0, 1].
-        """
-        pos = np.asarray(pos_mm, dtype=float).reshape(3)
-        r = float(radius_mm)
-        if not (r > 0 and np.all(np.isfinite(pos)) and 0 < opacity <= 1):
-            raise ValueError("set_marker needs a finite centre, a positive radius and an "
-                             "opacity in (0, 1]")
-        if self._marker is None:
-            self._marker_src = vtkSphereSource()
-            self._marker_src.SetThetaResolution(24)
-            self._marker_src.SetPhiResolution(16)
-            self._marker = self._static_actor(self._marker_src, rgb, specular=0.2)
-            self._marker.PickableOff()
-            self.renderer.AddActor(self._marker)
-        self._marker_src.SetRadius(r)
-        self._marker.SetPosition(*pos)
-        p = self._marker.GetProperty()
-        p.SetColor(*rgb)
-        p.SetOpacity(float(opacity))
-        self._marker.SetVisibility(True)
-        self.marker_pos_mm = pos.copy()
-
     # ------------------------------------------------------------------ dust
     def _build_dust(self):
-        self._dust_pd = vtkPolyData()
-        self._dust_pos = _void_array(vtkFloatArray, 3)
-        self._dust_pts = vtkPoints()
-        self._dust_pts.SetData(self._dust_pos)
-        self._dust_scale = _void_array(vtkFloatArray, 1, "radius")
-        self._dust_alpha = _void_array(vtkFloatArray, 1, "opacity")
-        self._dust_pd.SetPoints(self._dust_pts)
-        self._dust_pd.GetPointData().AddArray(self._dust_scale)
-        self._dust_pd.GetPointData().AddArray(self._dust_alpha)
-        m = vtkPointGaussianMapper()
-        m.SetInputData(self._dust_pd)
-        m.SetScaleArray("radius")
-        m.SetScaleFactor(1.0)
-        m.SetOpacityArray("opacity")
-        m.SetEmissive(False)
-        m.ScalarVisibilityOff()
-        m.SetSplatShaderCode(_DISK_SPLAT)
-        a = vtkActor()
-        a.SetMapper(m)
-        a.GetProperty().SetColor(*DUST_RGB)
-        a.GetProperty().SetAmbient(0.4)
-        a.GetProperty().SetDiffuse(0.7)
-        a.SetVisibility(False)
-        a.PickableOff()
-        self.renderer.AddActor(a)
-        self.dust_actor = a
-        self._dust_bufs = None
+        self.dust = DustLayer(self.renderer, self.style.dust)
+        self.dust_actor = self.dust.actor
 
-    def set_dust(self, positions, density, cell_mm: float | None = None) -> None:
-        """Show bone dust: one alpha-blended round sprite per dusty cell.
+    def set_dust(self, positions, density, cell_mm: float | None = None, age_s=None,
+                 wet=None) -> None:
+        """Show bone dust as soft translucent sprites (see
+        :mod:`bonesim.render.dustview`); ``scene.set_dust(*dust.sprites())``
+        passes everything.
 
         Parameters
         ----------
         positions : (n, 3) float32
-            Cell centres [mm].
+            Sprite centres [mm].
         density : (n,) float32
-            Fill of each cell (0 empty .. 1 full; larger values are clipped).
+            Dust in each sprite's cell [cells] (0 empty .. 1 full; larger
+            values are clipped; empty cells are dropped).
         cell_mm : float, optional
-            Dust cell edge [mm] (default: the voxel size). A full cell's
-            sprite has a radius of 0.7 cell; an emptier one shrinks with the
-            cube root of its fill and fades.
+            Dust cell edge [mm] (default: the voxel size).
+        age_s : (n,) float, optional
+            Age of the dust [s]: older dust fades (default: all fresh).
+        wet : (n,) bool or uint8, optional
+            Wet paste (darker, more translucent; default: all dry).
         """
-        p = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
-        d = np.clip(np.asarray(density, dtype=np.float32).reshape(-1), 0.0, 1.0)
-        if d.shape[0] != p.shape[0]:
-            raise ValueError(f"{p.shape[0]} dust positions but {d.shape[0]} densities")
-        keep = d > 0
-        if not keep.all():
-            p, d = np.ascontiguousarray(p[keep]), d[keep]
         cell = float(self.voxel_mm if cell_mm is None else cell_mm)
-        radius = (0.7 * cell * np.cbrt(d)).astype(np.float32)
-        alpha = (0.35 + 0.6 * d).astype(np.float32)
-        self._dust_bufs = (p, radius, alpha)          # keep the memory alive
-        _point_to(self._dust_pos, p, p.size)
-        _point_to(self._dust_scale, radius, radius.size)
-        _point_to(self._dust_alpha, alpha, alpha.size)
-        self._dust_pts.Modified()
-        self._dust_pd.Modified()
-        self.dust_actor.SetVisibility(p.shape[0] > 0)
-
-    # ------------------------------------------------------------------ text
-    def _build_text(self):
-        hud = vtkTextActor()
-        tp = hud.GetTextProperty()
-        tp.SetFontFamilyToCourier()
-        tp.SetFontSize(14)
-        tp.SetColor(0.95, 0.95, 0.9)
-        tp.SetBackgroundColor(0.0, 0.0, 0.0)
-        tp.SetBackgroundOpacity(0.35)
-        tp.SetVerticalJustificationToBottom()
-        hud.SetPosition(8, 8)
-        hud.SetVisibility(False)
-        self.hud_actor = hud
-        self.renderer.AddViewProp(hud)
-        hlp = vtkTextActor()
-        tp = hlp.GetTextProperty()
-        tp.SetFontFamilyToCourier()
-        tp.SetFontSize(14)
-        tp.SetColor(1.0, 1.0, 0.85)
-        tp.SetBackgroundColor(0.0, 0.0, 0.0)
-        tp.SetBackgroundOpacity(0.7)
-        tp.SetVerticalJustificationToTop()
-        hlp.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
-        hlp.SetPosition(0.02, 0.97)
-        hlp.SetVisibility(False)
-        self.help_actor = hlp
-        self.renderer.AddViewProp(hlp)
-
-    def set_hud(self, info: dict) -> None:
-        """Replace the HUD's values (see :mod:`bonesim.render.hud` for keys).
-
-        Without a ``frame_hz`` entry the scene shows the rate it measures."""
-        self._hud_info = dict(info)
-        self._draw_hud(time.perf_counter())
-
-    def _font_px(self) -> int:
-        """Text size for the window's height: 9 px at 300 rows, 18 px at 600+."""
-        h = self.render_window.GetSize()[1] if self.render_window is not None else 600
-        return int(np.clip(round(h / 33.0), 9, 18))
-
-    def _draw_hud(self, now):
-        fs = self._font_px()
-        for a in (self.hud_actor, self.help_actor):
-            if a.GetTextProperty().GetFontSize() != fs:
-                a.GetTextProperty().SetFontSize(fs)
-        self.hud_actor.SetInput(format_hud(self._hud_info, self.frame_hz))
-        self.hud_actor.SetVisibility(bool(self._hud_info))
-        self._hud_drawn_at = now
-
-    @property
-    def hud_text(self) -> str:
-        """The HUD text as drawn last."""
-        return self.hud_actor.GetInput() or ""
-
-    def set_help(self, text: str) -> None:
-        """Text of the help overlay."""
-        self.help_actor.SetInput(text)
-
-    def show_help(self, visible: bool | None = None) -> bool:
-        """Show, hide (or with None toggle) the help overlay; returns the new state."""
-        v = (not self.help_actor.GetVisibility()) if visible is None else bool(visible)
-        self.help_actor.GetTextProperty().SetFontSize(self._font_px())
-        self.help_actor.SetVisibility(v)
-        return v
-
-    toggle_help = show_help
+        self.dust.set(positions, density, cell, age_s, wet)
 
     # ---------------------------------------------------------------- camera
     @property
@@ -962,25 +684,3 @@ class Scene:
         if rw is not None:
             rw.Finalize()
         self.render_window = None
-
-
-def _polydata_from_arrays(verts, faces) -> vtkPolyData:
-    v = np.ascontiguousarray(verts, dtype=np.float32).reshape(-1, 3)
-    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
-    pd = vtkPolyData()
-    pts = vtkPoints()
-    pts.SetData(numpy_support.numpy_to_vtk(v, deep=True))
-    pd.SetPoints(pts)
-    cells = vtkCellArray()
-    conn = numpy_support.numpy_to_vtkIdTypeArray(f.ravel(), deep=True)
-    offs = numpy_support.numpy_to_vtkIdTypeArray(
-        np.arange(0, 3 * f.shape[0] + 1, 3, dtype=np.int64), deep=True)
-    cells.SetData(offs, conn)
-    pd.SetPolys(cells)
-    nm = vtkPolyDataNormals()
-    nm.SetInputData(pd)
-    nm.SplittingOff()
-    nm.Update()
-    out = vtkPolyData()
-    out.DeepCopy(nm.GetOutput())
-    return out

@@ -1,8 +1,11 @@
-"""The nerve monitor's scrolling trace, drawn over a scene.
+"""The nerve monitor's scrolling trace, docked beside the scene's 3D view.
 
-What the technician at the facial-nerve monitor watches, in the corner of
-the surgeon's view: one lane per monitored nerve (:mod:`bonesim.monitor`),
-stacked top to bottom in a semi-transparent panel in the top-right corner.
+What the technician at the facial-nerve monitor watches, beside the
+surgeon's view: one lane per monitored nerve (:mod:`bonesim.monitor`),
+stacked top to bottom in a panel at the top of the scene's side column
+(:meth:`bonesim.render.scene.Scene.text_rect`), so that it never covers the
+drilling field. A scene without a side column (``Scene(panel=False)``) gets
+the panel over the top-right corner of the view instead.
 
 In each lane
 
@@ -27,14 +30,17 @@ lane ``c``'s plot area ``(px0, py0, px1, py1)``)::
     x(t)    = px1 - (now - t) / window_s * (px1 - px0)
     y(rate) = py0 + sqrt(min(max(rate, 0), max_hz) / max_hz) * (py1 - py0)
 
-Layout (:meth:`MonitorTrace.rect`): :data:`MARGIN_PX` from the top and
-right edges, ``0.35`` of the window's width (150 to 560 px); lanes of
-``0.15`` of the height (36 to 110 px). The panel ends above the bottom
-:data:`BOTTOM_CLEAR_PX` pixels (where the playback timeline lives) and,
-when the scene's HUD text reaches under the panel, above the HUD; lanes
-shrink to fit. Where keeping clear of the HUD would make lanes lower than
-:data:`MIN_LANE_PX` (tiny windows) the panel overlaps it; it never enters
-the bottom rows (it is not drawn when it cannot fit at all).
+Layout (:meth:`MonitorTrace.rect`, window pixels). In a side column: the
+column's width less :data:`MARGIN_PX` on each side, :data:`MARGIN_PX` from
+its top. Over the view: :data:`MARGIN_PX` from the top and right edges,
+``0.35`` of the window's width (150 to 560 px). Lanes of ``0.15`` of the
+height (36 to 110 px). The panel ends above the bottom
+:data:`BOTTOM_CLEAR_PX` pixels of the view (where the playback timeline
+lives; :data:`MARGIN_PX` in a side column) and, when the scene's HUD text
+reaches under the panel, above the HUD; lanes shrink to fit. Where keeping
+clear of the HUD would make lanes lower than :data:`MIN_LANE_PX` (tiny
+windows) the panel overlaps it; it never enters the bottom rows (it is not
+drawn when it cannot fit at all).
 
 The overlay is built like :class:`bonesim.render.playback.TimelineBar`:
 2-D actors in pixel coordinates, fed from numpy arrays in one go, direct
@@ -181,7 +187,8 @@ class _Layout(NamedTuple):
 
 
 class MonitorTrace:
-    """Scrolling trace of the nerve monitor, drawn over a scene (top-right panel).
+    """Scrolling trace of the nerve monitor, in the scene's side column (or
+    over the top-right corner of its view without one).
 
     Parameters
     ----------
@@ -257,8 +264,13 @@ class MonitorTrace:
         self.foreground = vtkPolyData()
         self._bg_actor = _overlay(self.background)
         self._fg_actor = _overlay(self.foreground, 1.0)
-        scene.renderer.AddViewProp(self._bg_actor)
-        scene.renderer.AddViewProp(self._fg_actor)
+        # 2-D props go into the scene's text renderer (its side column);
+        # geometry is built in window pixels and shifted by the actors'
+        # positions into that renderer's viewport
+        self._ren = getattr(scene, "text_renderer", scene.renderer)
+        self._origin = (0, 0)
+        self._ren.AddViewProp(self._bg_actor)
+        self._ren.AddViewProp(self._fg_actor)
         self.labels = []
         for c in range(self.k):
             ta = vtkTextActor()
@@ -271,7 +283,7 @@ class MonitorTrace:
             tp.SetJustificationToLeft()
             ta.PickableOff()
             ta.SetInput("")
-            scene.renderer.AddViewProp(ta)
+            self._ren.AddViewProp(ta)
             self.labels.append(ta)
         self.update({"now": 0.0})
 
@@ -289,26 +301,41 @@ class MonitorTrace:
         w, h = rw.GetSize()
         return int(w), int(h)
 
+    def _host(self) -> tuple[tuple[int, int, int, int], bool]:
+        """The pixel rectangle the panel lives in (window coordinates) and
+        whether it is a side column of its own."""
+        w, h = self.size()
+        sc = self.scene
+        if getattr(sc, "panel_renderer", None) is not None and sc.render_window is not None:
+            return tuple(int(v) for v in sc.text_rect()), True
+        return (0, 0, w, h), False
+
     def _hud_box(self):
-        """Pixel box ``(x0, y0, x1, y1)`` of the scene's HUD text, or None."""
+        """Pixel box ``(x0, y0, x1, y1)`` of the scene's HUD text (window
+        coordinates), or None."""
         hud = getattr(self.scene, "hud_actor", None)
         if hud is None or not hud.GetVisibility() or not (hud.GetInput() or ""):
             return None
         bb = [0.0] * 4
-        hud.GetBoundingBox(self.scene.renderer, bb)
+        hud.GetBoundingBox(self._ren, bb)
         px, py = hud.GetPosition()
-        return px + bb[0], py + bb[2], px + bb[1], py + bb[3]
+        ox, oy = self._host()[0][:2]
+        return ox + px + bb[0], oy + py + bb[2], ox + px + bb[1], oy + py + bb[3]
 
     def _layout(self) -> "_Layout | None":
         """Panel, lanes and plot areas for the current window size (None
         when the window is too small to hold the panel)."""
         w, h = self.size()
         k = self.k
-        pw = min(max(round(0.35 * w), 150), 560, w - 2 * MARGIN_PX)
-        x1 = w - MARGIN_PX
+        (hx0, hy0, hx1, hy1), column = self._host()
+        if column:
+            pw = hx1 - hx0 - 2 * MARGIN_PX
+        else:
+            pw = min(max(round(0.35 * w), 150), 560, w - 2 * MARGIN_PX)
+        x1 = hx1 - MARGIN_PX
         x0 = x1 - pw
-        y1 = h - MARGIN_PX
-        hard = BOTTOM_CLEAR_PX
+        y1 = hy1 - MARGIN_PX
+        hard = hy0 + (MARGIN_PX if column else BOTTOM_CLEAR_PX)
         soft = hard
         hud = self._hud_box()
         if hud is not None and hud[2] >= x0 - HUD_GAP_PX and hud[1] < y1:
@@ -457,6 +484,11 @@ class MonitorTrace:
             self._show(False)
             return
         self._show(True)
+        origin = self._host()[0][:2]
+        if origin != self._origin:
+            self._origin = origin
+            for a in (self._bg_actor, self._fg_actor):
+                a.SetPosition(-origin[0], -origin[1])
         self._draw(lay, t, rate, dist, st, sn, now)
 
     def _draw(self, lay: _Layout, t, rate, dist, st, sn, now) -> None:
@@ -547,8 +579,9 @@ class MonitorTrace:
             tp = ta.GetTextProperty()
             if tp.GetFontSize() != fs:
                 tp.SetFontSize(fs)
-            if ta.GetPosition() != (lx0 + 3, ly1 - 1):
-                ta.SetPosition(lx0 + 3, ly1 - 1)
+            at = (lx0 + 3 - self._origin[0], ly1 - 1 - self._origin[1])
+            if ta.GetPosition() != at:
+                ta.SetPosition(*at)
 
     def _label_style(self, c: int, room: int, font: int, warn: bool) -> tuple[str, int]:
         """Field separator and font size of lane ``c``'s label: the longest

@@ -482,15 +482,212 @@ def test_sprites_list_dusty_cells():
     bone, wall, d = make_case((17, 15, 19), seed=4)
     dust = DustGrid.for_grid(bone, (0, 0, -1))
     load(dust, d)
-    pos, val = dust.sprites(threshold=0.25)
-    assert pos.dtype == np.float32 and val.dtype == np.float32
+    pos, val, cell_mm, age, wet = dust.sprites(threshold=0.25, top_only=False, jitter=0.0)
+    assert pos.dtype == np.float32 and val.dtype == np.float32 and cell_mm == H
     dense = dust.to_dense()
     want = np.argwhere(dense > 0.25)
-    assert len(pos) == len(want)
+    assert len(pos) == len(want) == len(age) == len(wet)
     got = np.round((pos - ORIGIN) / H).astype(int)
     order = np.lexsort(got.T[::-1])
     np.testing.assert_array_equal(got[order], want)
     np.testing.assert_allclose(val[order], dense[tuple(want.T)], rtol=1e-6)
+    assert not wet.any()
+
+
+def ref_top_layer(dense, g, thr, cover):
+    """Cells above ``thr`` whose neighbour against gravity's dominant axis
+    (outside the box: none) holds less than ``cover``."""
+    g = np.asarray(g, float)
+    dom = int(np.argmax(np.abs(g)))
+    up = -1 if g[dom] > 0 else 1
+    above = np.zeros_like(dense)
+    S, D = _pairs(dense.shape, dom, -up)         # D = S - up e_dom: S is above D
+    above[D] = dense[S]
+    return np.argwhere((dense > thr) & (above < cover))
+
+
+@pytest.mark.parametrize("g", [(0, 0, -1), (1, 0, 0), (0, -1, 0.3), (0, 0.2, 1)])
+def test_sprites_show_the_top_layer_only(g):
+    bone, wall, d = make_case((20, 17, 22), seed=8, dust_max=1.0, packed=True)
+    dust = DustGrid.for_grid(bone, g)
+    load(dust, d)
+    prm = dust.params
+    pos, val, _, _, _ = dust.sprites(jitter=0.0)
+    want = ref_top_layer(dust.to_dense(), g, prm.sprite_threshold, prm.sprite_cover)
+    got = np.round((pos - ORIGIN) / H).astype(int)
+    assert len(got) == len(want)
+    np.testing.assert_array_equal(got[np.lexsort(got.T[::-1])],
+                                  want[np.lexsort(want.T[::-1])])
+    # a packed block is covered: only its top face shows
+    assert len(want) < np.count_nonzero(dust.to_dense() > prm.sprite_threshold)
+
+
+def test_sprites_are_jittered_inside_their_cells_the_same_every_frame():
+    from bonesim.dust_sprites import cell_jitter
+
+    bone, dust = _floor_case()
+    ijk = np.stack(np.meshgrid(np.arange(4, 16), np.arange(4, 16), [4],
+                               indexing="ij"), -1).reshape(-1, 3)
+    dust.add_removed(ijk, 0.8)
+    pos0, *_ = dust.sprites(jitter=0.0)
+    pos, *_ = dust.sprites()
+    again, *_ = dust.sprites()
+    np.testing.assert_array_equal(pos, again)
+    cells = np.round((pos0 - ORIGIN) / H).astype(int)
+    off = (pos - pos0) / H
+    jit = dust.params.sprite_jitter
+    assert np.abs(off).max() <= jit + 1e-5
+    np.testing.assert_allclose(off, cell_jitter(cells) * jit, atol=1e-5)
+    # no regular pattern: offsets spread over the range, neighbours differ
+    assert off[:, 0].std() > 0.4 * jit and off[:, 1].std() > 0.4 * jit
+    assert len(np.unique(np.round(off, 3), axis=0)) == len(off)
+
+
+def test_sprites_carry_the_age_of_their_dust():
+    bone, dust = _floor_case(settle_rate=0.0, spill_rate=0.0)
+    dust.add_removed(np.array([[5, 5, 4]]), 0.6)
+    dust.sprites()                                  # arrival seen at t = 0
+    for _ in range(10):
+        dust.step(bone, 0.05)
+    dust.add_removed(np.array([[9, 9, 4]]), 0.6)    # arrives at t = 0.5
+    dust.sprites()                                  # (seen by the next frame's call)
+    for _ in range(4):
+        dust.step(bone, 0.05)
+    pos, _, _, age, _ = dust.sprites(jitter=0.0)
+    cells = [tuple(c) for c in np.round((pos - ORIGIN) / H).astype(int)]
+    ages = dict(zip(cells, age))
+    assert ages[(5, 5, 4)] == pytest.approx(0.7, abs=1e-6)
+    assert ages[(9, 9, 4)] == pytest.approx(0.2, abs=1e-6)
+    # a cell emptied by suction and filled again is young again
+    dust.step(bone, 0.05, suction_pos_mm=ORIGIN + H * np.array([5, 5, 4]),
+              suction_radius_mm=0.3, suction_rate=1e3)
+    dust.sprites()
+    dust.add_removed(np.array([[5, 5, 4]]), 0.6)
+    dust.sprites()
+    dust.step(bone, 0.05)
+    pos, _, _, age, _ = dust.sprites(jitter=0.0)
+    cells = [tuple(c) for c in np.round((pos - ORIGIN) / H).astype(int)]
+    assert dict(zip(cells, age))[(5, 5, 4)] == pytest.approx(0.05, abs=1e-6)
+
+
+# -------------------------------------------------------------- irrigation
+def test_wetting_matches_reference():
+    shape = (22, 20, 24)
+    bone, wall, d = make_case(shape, seed=21, dust_max=1.5)
+    prm = DustParams(settle_rate=0.0, spill_rate=0.0, wet_settle_rate=0.0,
+                     wet_spill_rate=0.0, wetting_rate=30.0)
+    dust = DustGrid.for_grid(bone, (0, 0, -1), prm)
+    load(dust, d)
+    dt = 4e-3
+    rate_q = int(round(prm.wetting_rate * dt * Q))
+    rng = np.random.default_rng(2)
+    wet = np.zeros_like(d)
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+    centres = ORIGIN + H * idx
+    for _ in range(6):
+        tip = ORIGIN + rng.uniform(2, 9, 3)
+        rad = float(rng.uniform(0.5, 3.0))
+        dust.step(bone, dt, irrigation_pos_mm=tip, irrigation_radius_mm=rad)
+        near = ((centres - tip) ** 2).sum(-1) <= rad * rad
+        f = np.where(near, np.minimum(d, rate_q), 0)
+        d, wet = d - f, wet + f
+        np.testing.assert_array_equal(np.round(dust.to_dense(species="dry") * Q), d)
+        np.testing.assert_array_equal(np.round(dust.to_dense(species="wet") * Q), wet)
+        assert int(wet.sum()) == int(round(dust.wetted_cells * Q))
+    # wet + dry is the original dust, cell by cell
+    check_mass(dust)
+    assert dust.wet_cells > 0
+
+
+def test_wetting_moves_dry_dust_to_wet_in_the_same_cell():
+    bone, dust = _floor_case(settle_rate=0.0, spill_rate=0.0, wet_settle_rate=0.0,
+                             wet_spill_rate=0.0, wetting_rate=1e4)
+    dust.add_removed(np.array([[6, 6, 4], [6, 7, 4], [15, 15, 4]]), 0.7)
+    before = dust.to_dense()
+    dust.step(bone, 0.01, irrigation_pos_mm=ORIGIN + H * np.array([6, 6.5, 4]),
+              irrigation_radius_mm=0.6)
+    np.testing.assert_array_equal(dust.to_dense(), before)        # no cell changed
+    wet = dust.to_dense(species="wet")
+    assert wet[6, 6, 4] == pytest.approx(0.7) and wet[6, 7, 4] == pytest.approx(0.7)
+    assert wet[15, 15, 4] == 0 and dust.to_dense(species="dry")[15, 15, 4] == \
+        pytest.approx(0.7)
+    _, _, _, _, flag = dust.sprites(top_only=False)
+    assert sorted(flag.tolist()) == [0, 1, 1]
+
+
+def test_wet_dust_drains_downhill_and_spreads_flat():
+    """A heap on a tilted floor: dry dust keeps its angle of repose; wetted,
+    it runs down the slope and spreads into a thin layer."""
+    shape = (30, 12, 20)
+    lab = np.zeros(shape, np.uint8)
+    lab[:, :, :3] = 1
+    bone = Grid.from_dense(lab, spacing_mm=H, origin_mm=ORIGIN)
+    g = (0.35, 0.0, -1.0)                       # downhill is +x
+    heap = np.stack(np.meshgrid(np.arange(4, 8), np.arange(4, 8), np.arange(3, 9),
+                                indexing="ij"), -1).reshape(-1, 3)
+    runs = {}
+    for wet in (False, True):
+        dust = DustGrid.for_grid(bone, g, DustParams(repose=0.5))
+        dust.add_removed(heap, 1.0)
+        for _ in range(200):
+            w = ORIGIN + H * np.array([6.0, 6.0, 5.0]) if wet else None
+            dust.step(bone, 5e-3, irrigation_pos_mm=w, irrigation_radius_mm=6.0)
+        d = dust.to_dense()
+        x = np.arange(shape[0])
+        runs[wet] = (float((d.sum(axis=(1, 2)) * x).sum() / d.sum()),
+                     float(d.max()), dust.totals_q())
+        check_mass(dust)
+    assert runs[True][0] > runs[False][0] + 3.0          # the paste ran downhill
+    assert runs[True][1] < runs[False][1]                # and spread thinner
+    assert runs[True][2][0] == runs[False][2][0]         # nothing lost
+
+
+def test_suction_takes_wet_and_dry_dust():
+    bone, dust = _floor_case(wetting_rate=1e4)
+    ijk = np.stack(np.meshgrid(np.arange(4, 12), np.arange(4, 12), [4], indexing="ij"),
+                   -1).reshape(-1, 3)
+    dust.add_removed(ijk, 0.5)
+    dust.step(bone, 0.01, irrigation_pos_mm=ORIGIN + H * np.array([6, 8, 4]),
+              irrigation_radius_mm=1.5)
+    assert dust.wet_cells > 0 and dust.to_dense(species="dry").sum() > 0
+    tip = ORIGIN + H * np.array([8, 8, 4])
+    got = 0.0
+    for _ in range(40):
+        got += dust.step(bone, 0.01, suction_pos_mm=tip, suction_radius_mm=6.0)
+    assert dust.total_cells == pytest.approx(0.0, abs=1e-9)
+    assert got == pytest.approx(dust.added_cells, abs=1e-6)
+    check_mass(dust)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=hs.integers(0, 2 ** 31), n_ops=hs.integers(1, 25))
+def test_mass_is_conserved_exactly_with_irrigation(seed, n_ops):
+    rng = np.random.default_rng(seed)
+    shape = (18, 16, 20)
+    lab = (rng.random(shape) < 0.15).astype(np.uint8)
+    lab[:, :, :3] = 1
+    bone = Grid.from_dense(lab, spacing_mm=H, origin_mm=ORIGIN)
+    prm = DustParams(wetting_rate=float(rng.uniform(0, 500)), initial_bricks=1)
+    g = rng.uniform(-1, 1, 3)
+    g[2] = -abs(g[2]) - 0.05
+    dust = DustGrid.for_grid(bone, g, prm)
+    for _ in range(n_ops):
+        if rng.random() < 0.4:
+            n = int(rng.integers(1, 60))
+            dust.add_removed(rng.integers(0, shape, size=(n, 3)), rng.uniform(0, 3, n))
+        tool = ORIGIN + rng.uniform(0, 10, 3) if rng.random() < 0.5 else None
+        suck = ORIGIN + rng.uniform(0, 10, 3) if rng.random() < 0.3 else None
+        wet = ORIGIN + rng.uniform(0, 10, 3) if rng.random() < 0.5 else None
+        dust.step(bone, float(rng.uniform(0, 0.02)), tool, float(rng.uniform(0, 2)),
+                  suck, float(rng.uniform(0, 2)), irrigation_pos_mm=wet,
+                  irrigation_radius_mm=float(rng.uniform(0, 4)))
+        total, added, sucked = dust.totals_q()
+        assert total == added - sucked
+        if rng.random() < 0.2:
+            dust.recycle()
+    check_mass(dust)
+    assert (dust.to_dense(species="wet") >= 0).all()
+    assert (dust.to_dense(species="dry") >= 0).all()
 
 
 def test_drain_turns_removed_voxels_into_bulked_dust():

@@ -61,6 +61,27 @@ def dust_cloud(seed=3, n=400, centre=(9.5, 2.0, -11.5)):
     return p.astype(np.float32), d.astype(np.float32)
 
 
+def drilling_dust(grid, removed):
+    """The dust of ``removed`` bone falling along the close view's axis (the
+    app's gravity is the view direction): settled for 1 s, then the nerve's
+    cavity irrigated for 0.5 s and drained for 0.5 s, then 0.3 s of suction
+    at the sinus cavity's floor."""
+    from bonesim.dust import DustGrid
+
+    g = np.subtract(CLOSE_FOCAL, CLOSE_EYE)
+    dust = DustGrid.for_grid(grid, g)
+    dust.add_removed(removed)
+    dt = 1.0 / 60.0
+    for _ in range(60):
+        dust.step(grid, dt)
+    for n in range(60):
+        wet = (8.0, -1.0, -6.5) if n < 30 else None
+        dust.step(grid, dt, irrigation_pos_mm=wet, irrigation_radius_mm=4.0)
+    for _ in range(18):
+        dust.step(grid, dt, suction_pos_mm=(10.0, 12.0, -2.0), suction_radius_mm=3.0)
+    return dust
+
+
 def build(model, which: str, **scene_kw):
     """A Scene of the named reference picture.
 
@@ -70,6 +91,10 @@ def build(model, which: str, **scene_kw):
     ``tool``     close-up of the running burr over intact bone with dust
     ``drilled_moved``  ``drilled`` with the burr 1 mm away (must not match)
     ``tool_nodust``, ``tool_notool``  ``tool`` without the dust / the tool
+    ``dust``     ``drilled`` with the removed bone turned into dust
+                 (:func:`drilling_dust`): settled, partly irrigated (wet
+                 paste), partly suctioned; the burr buried in the bone beside
+                 the cavity, drawn as a silhouette
     """
     from bonesim.model import make_state
     from bonesim.render.scene import Scene
@@ -91,6 +116,18 @@ def build(model, which: str, **scene_kw):
         scene.set_tool((12.5, 8.0 + dx, 1.0), (-1.0, 0.2, -0.4), 2.5, True)
         scene.set_dust(*dust_cloud(), cell_mm=0.8)
         scene.set_hud(HUD)
+    elif which == "dust":
+        from bonesim.sightline import depth_below_surface_mm
+
+        removed = mastoid_cavity(state.grid)
+        surf.update(state.grid, removed)
+        scene.update_surface(surf)
+        scene.set_camera(CLOSE_EYE, CLOSE_FOCAL, UP)
+        scene.set_dust(*drilling_dust(state.grid, removed).sprites())
+        pos = np.array([6.0, 4.0, -1.0])                      # in the bone between
+        d = depth_below_surface_mm(state.grid, pos, CLOSE_EYE, 1.5)
+        scene.set_tool(pos, (-1.0, 0.2, -0.4), 1.5, True, depth_mm=d)
+        scene.set_hud(dict(HUD, depth_mm=d))
     elif which in ("tool", "tool_nodust", "tool_notool"):
         scene.set_camera((60.0, 4.0, 8.0), (19.0, 4.0, -3.0), UP)
         if which != "tool_notool":

@@ -15,3 +15,14 @@ def test_bench_render_quick(gl_info):
     assert upd["subset_by_marks"] is True
     assert 600 < upd["voxels_per_blob_mean"] < 2000
     assert ff["unit"] == "s" and ff["value"] > 0 and ff["render_s"] > 0
+
+
+@pytest.mark.slow
+def test_bench_fps_quick(gl_info):
+    from bonesim.bench import BENCHMARKS
+
+    out = BENCHMARKS["render_fps_1024x768"](quick=True)
+    fps = out["render_fps_1024x768"]
+    assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["frames"] >= 1
+    assert fps["size"] == [1024, 768] and fps["drawn"] == "visible"
+    assert fps["dust_sprites"] > 100 and fps["removed_voxels"] > 1000

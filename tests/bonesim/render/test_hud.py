@@ -11,20 +11,34 @@ def test_hud_lines_with_units():
                        "speed_rpm": 60000, "force_n": 1.234, "haptic_hz": 998.6,
                        "elapsed_s": 3.21, "injuries": ["facial_nerve"]}, 59.7)
     lines = text.splitlines()
-    assert lines[0] == "case: phantom"
-    assert "burr: cutting 5.0 mm (cutting-5mm)" in lines
-    assert "drill: ON  REV  60,000 rpm" in lines
-    assert "force: 1.23 N" in lines
-    assert "rate: haptic 999 Hz  frame 60 Hz" in lines
-    assert "time: 3.2 s" in lines
-    assert "injuries: 1 (facial_nerve)" in lines
+    assert lines[0] == "case   phantom"
+    assert "burr   cutting 5.0 mm" in lines                  # the name says nothing more
+    assert "drill  ON REV 60,000 rpm" in lines
+    assert "force  1.23 N" in lines
+    assert "haptic 999 Hz" in lines and "frame  60 Hz" in lines
+    assert "time   3.2 s" in lines
+    assert "injury 1 (facial_nerve)" in lines
+    assert not any(ln.startswith("depth") for ln in lines)   # no depth given
+    # compact: fits the side panel
+    assert max(len(ln) for ln in lines) <= 28
+
+
+def test_hud_burr_name_when_it_says_more_and_depth():
+    text = format_hud({"burr": "diamond-coarse", "burr_kind": "diamond",
+                       "burr_diameter_mm": 3, "depth_mm": 2.345})
+    assert "burr   diamond 3.0 mm (diamond-coarse)" in text.splitlines()
+    assert "depth  2.3 mm under bone" in text.splitlines()
+    assert "depth  in view" in format_hud({"depth_mm": 0.0})
+    assert "depth" not in format_hud({"depth_mm": None})
 
 
 def test_hud_frame_rate_from_info_wins_and_extras_are_listed():
     text = format_hud({"frame_hz": 30, "drill": False, "tool": "suction", "foo": 3}, 60.0)
-    assert "rate: frame 30 Hz" in text
-    assert "drill: off" in text and "tool: suction" in text and "foo: 3" in text
-    assert format_hud({"injuries": 0}) == "injuries: none"
+    assert "frame  30 Hz" in text
+    assert "drill  off" in text and "tool   suction" in text and "foo: 3" in text
+    assert format_hud({"injuries": 0}) == "injury none"
+    msg = format_hud({"message": "no audio device: sound muted, recorded to /tmp/x.wav"})
+    assert len(msg.splitlines()) == 3 and max(map(len, msg.splitlines())) <= 28
 
 
 def test_help_lists_every_action_once():

@@ -124,28 +124,56 @@ def test_tool_pose(scene):
 
 
 def test_dust_sprites(scene):
-    p = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], np.float32)
-    scene.set_dust(p, np.array([1.0, 0.0, 0.5], np.float32), cell_mm=1.0)
-    pd = scene._dust_pd
-    assert pd.GetNumberOfPoints() == 2           # empty cells are not drawn
+    from bonesim.render.dustview import sprite_look
+
+    st = scene.style.dust
+    p = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], np.float32)
+    d = np.array([1.0, 0.0, 0.5, 2.0], np.float32)
+    age = np.array([0.0, 1.0, 2.0 * st.fade_s, 1e4], np.float32)
+    wet = np.array([0, 0, 1, 0], np.uint8)
+    scene.set_dust(p, d, cell_mm=1.0, age_s=age, wet=wet)
+    pd = scene.dust.polydata
+    assert pd.GetNumberOfPoints() == 3 == scene.dust.count      # empty cells are not drawn
     r = numpy_support.vtk_to_numpy(pd.GetPointData().GetArray("radius"))
-    assert r[0] == pytest.approx(0.7) and r[1] == pytest.approx(0.7 * 0.5 ** (1 / 3))
+    rgba = numpy_support.vtk_to_numpy(pd.GetPointData().GetScalars())
+    # radius: radius_cells * cell * cbrt(min(d, 1))
+    np.testing.assert_allclose(r, st.radius_cells * np.array([1.0, 0.5 ** (1 / 3), 1.0]),
+                               rtol=1e-6)
+    # opacity: fresh full dry cell = opacity; old dust fades to `aged`; wet paste
+    # darker and fainter
+    want = [st.opacity,
+            st.opacity * 0.5 ** 0.5 * (st.aged + (1 - st.aged) * np.exp(-2.0))
+            * st.wet_opacity,
+            st.opacity * st.aged]
+    np.testing.assert_allclose(rgba[:, 3] / 255.0, want, atol=1 / 255)
+    assert tuple(rgba[0, :3]) == tuple(np.rint(np.array(st.dry_rgb) * 255))
+    assert tuple(rgba[1, :3]) == tuple(np.rint(np.array(st.wet_rgb) * 255))
+    assert rgba[1, :3].sum() < rgba[0, :3].sum()
+    rr, cc = sprite_look(d[[0, 2, 3]], age[[0, 2, 3]], wet[[0, 2, 3]], 1.0, st)
+    np.testing.assert_array_equal(cc, rgba)
+    # the default (DustGrid.sprites without ages): fresh, dry, cell = voxel
+    scene.set_dust(p[:1], d[:1])
+    assert numpy_support.vtk_to_numpy(pd.GetPointData().GetArray("radius"))[0] == \
+        pytest.approx(st.radius_cells * scene.voxel_mm)
     scene.set_dust(np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
     assert not scene.dust_actor.GetVisibility()
     with pytest.raises(ValueError):
         scene.set_dust(p, np.ones(2, np.float32))
+    with pytest.raises(ValueError):
+        scene.set_dust(p, d, age_s=np.ones(2))
 
 
 def test_mouse_plane_through_the_tool(scene):
     scene.set_camera((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
     scene.set_tool((3.0, -2.0, 10.0), (0, 0, -1), 1.0)
     scene.render()
-    centre = scene.display_to_plane(80, 60)
+    x0, y0, x1, y1 = scene.view_rect()              # the 3D view, left of the panel
+    centre = scene.display_to_plane((x0 + x1) / 2, (y0 + y1) / 2)
     assert centre == pytest.approx((0.0, 0.0, 10.0), abs=0.4)
-    p = scene.display_to_plane(150, 20)
+    p = scene.display_to_plane(x1 - 5, 20)
     assert p[2] == pytest.approx(10.0, abs=1e-6)
     assert p[0] > 5.0 and p[1] < -5.0             # right and down in the view
-    q = scene.display_to_plane(150, 20, through_mm=(0, 0, -20.0))
+    q = scene.display_to_plane(x1 - 5, 20, through_mm=(0, 0, -20.0))
     assert q[2] == pytest.approx(-20.0, abs=1e-6) and abs(q[0]) > abs(p[0])
 
 

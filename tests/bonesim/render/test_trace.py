@@ -100,7 +100,7 @@ def test_mapping_is_the_documented_one(scene):
         lx0, ly0, lx1, ly1 = tr.lane_rect(c)
         px0, py0, px1, py1 = tr.plot_rect(c)
         assert x0 <= lx0 < px0 < px1 < lx1 <= x1 and y0 <= ly0 < py0 < py1 < ly1 <= y1
-        assert py1 - py0 >= 10 and px1 - px0 >= 120
+        assert py1 - py0 >= 10 and px1 - px0 >= 100
         # time: newest at the right edge, window_s back at the left edge
         assert tr.x_of(20.0, 20.0) == pytest.approx(px1)
         assert tr.x_of(15.0, 20.0) == pytest.approx(px0)
@@ -186,7 +186,36 @@ def test_spike_ticks_at_the_spike_times(scene):
 
 
 @pytest.mark.parametrize("k", [2, 4])
-def test_panel_top_right_clear_of_the_bottom_and_the_hud(scene, k):
+def test_panel_docks_in_the_side_column_above_the_hud(scene, k):
+    """With a side column the trace fills its top, above the HUD, and never
+    enters the 3D view."""
+    names = [f"n{i}" for i in range(k)]
+    colors = [(200, 50 * i, 100) for i in range(k)]
+    scene.set_hud(scenes.HUD)
+    tr = MonitorTrace(scene, names, colors)
+    for w, h in ((320, 240), (640, 480), (1280, 720), (500, 900), (900, 260)):
+        scene.render_window.SetSize(w, h)
+        scene.set_hud(scenes.HUD)
+        tr.set_visible(False)
+        img = scene.image()
+        tr.set_visible(True)
+        tr.update(history(k=k))
+        cx0, _, cx1, ch = scene.panel_rect()
+        assert (cx1, ch) == (w, h) and scene.view_rect()[2] == cx0
+        x0, y0, x1, y1 = tr.rect()
+        assert (x0, x1, y1) == (cx0 + 8, w - 8, h - 8), (w, h)
+        hud = tr._hud_box()
+        assert hud is not None and hud[3] < y0 and hud[0] >= cx0, (w, h, hud, tr.rect())
+        shown = scene.image()
+        changed = np.nonzero(np.abs(shown.astype(int) - img).max(axis=2) > 0)
+        assert changed[1].min() >= cx0                   # nothing drawn in the 3D view
+        assert changed[1].min() >= x0 and changed[1].max() < x1
+
+
+@pytest.mark.parametrize("k", [2, 4])
+def test_panel_top_right_clear_of_the_bottom_and_the_hud(gl_info, k):
+    """Without a side column (Scene(panel=False)): over the view's top-right."""
+    scene = Scene(size=SIZE, visible_subset=False, panel=False)
     names = [f"n{i}" for i in range(k)]
     colors = [(200, 50 * i, 100) for i in range(k)]
     scene.set_hud(scenes.HUD)
@@ -218,6 +247,7 @@ def test_panel_top_right_clear_of_the_bottom_and_the_hud(scene, k):
         changed = np.nonzero(np.abs(shown.astype(int) - img).max(axis=2) > 0)
         assert changed[1].min() >= x0 and changed[1].max() < x1
         assert h - 1 - changed[0].max() >= y0 and h - 1 - changed[0].min() < y1
+    scene.close()
 
 
 def test_warning_text_and_red_lane_below_warn_mm(scene):

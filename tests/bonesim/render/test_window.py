@@ -114,14 +114,16 @@ def test_mouse_moves_the_tool_in_the_view_plane(scene):
     rec = Recorder()
     win = make(scene, rec)
     scene.render()
-    mouse(win, "MouseMoveEvent", 100, 75)
+    x0, y0, x1, y1 = scene.view_rect()              # the 3D view, left of the panel
+    cx, cy = (x0 + x1) // 2, (y0 + y1) // 2
+    mouse(win, "MouseMoveEvent", cx, cy)
     p, b = rec.mouse[-1]
     assert b == 0 and p == pytest.approx((0, 0, 5.0), abs=0.5)
-    mouse(win, "LeftButtonPressEvent", 150, 75)
-    mouse(win, "MouseMoveEvent", 160, 75)
+    mouse(win, "LeftButtonPressEvent", x1 - 15, cy)
+    mouse(win, "MouseMoveEvent", x1 - 5, cy)
     p, b = rec.mouse[-1]
-    assert b == LEFT and p[2] == pytest.approx(5.0) and p[0] > 10.0
-    mouse(win, "LeftButtonReleaseEvent", 160, 75)
+    assert b == LEFT and p[2] == pytest.approx(5.0) and p[0] > 3.0     # right of centre
+    mouse(win, "LeftButtonReleaseEvent", x1 - 5, cy)
     assert rec.mouse[-1][1] == 0
 
 
