@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from . import events
+from .sightline import depth_below_surface_mm
 from .haptic_loop import (IN_DIR, IN_DRILL, IN_SPEED, ST_AXIS, ST_BURR, ST_DIR, ST_DRILL,
                           ST_EPOCH, ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
 
@@ -44,6 +45,8 @@ START_STANDOFF_MM = 10.0
 RATE_EVERY_FRAMES = 15
 #: Suction tip radius [mm].
 SUCTION_RADIUS_MM = 1.5
+#: Radius of the patch the irrigation water wets around the burr [mm].
+IRRIGATION_RADIUS_MM = 1.5
 
 
 class App:
@@ -75,12 +78,18 @@ class App:
     monitor_serve : dict, optional
         Stream the monitor to remote consoles: ``key`` (bytes), ``host``,
         ``port`` (see :class:`bonesim.monitor_net.MonitorServer`).
+    stereo : str, optional
+        Stereo view mode (:data:`bonesim.render.stereo.STEREO_MODES`).
+    eye_separation_mm : float, optional
+        Distance between the eyes for stereo [mm] (default from
+        ``render.toml``).
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
-                 monitor_serve: dict | None = None):
+                 monitor_serve: dict | None = None, stereo: str | None = None,
+                 eye_separation_mm: float | None = None):
         from .burrs import list_burrs, load_burr
         from .model import load_model
 
@@ -104,6 +113,9 @@ class App:
         self.press_mm = 0.0
         self.suction = False
         self.suction_pos = None
+        self.irrigation = False
+        self.stereo = stereo
+        self.eye_separation_mm = eye_separation_mm
         self.offscreen = offscreen
         self.size = size
         self.sound = sound or wav is not None
@@ -170,7 +182,10 @@ class App:
                                     + (f", recorded to {self.wav}" if self.wav else ""))
         self._fresh_consumers()
         self.scene = Scene.from_model(self.model, self.consumer.surface,
-                                      offscreen=self.offscreen, size=self.size)
+                                      offscreen=self.offscreen, size=self.size,
+                                      stereo_capable=self.stereo == "quad-buffer")
+        if self.stereo is not None or self.eye_separation_mm is not None:
+            self.scene.set_stereo(self.stereo, self.eye_separation_mm)
         if self.monitor is not None:
             from .render.trace import MonitorTrace
 
@@ -222,10 +237,18 @@ class App:
         suction = self.suction_pos if self.suction else None
         self.dust.step(self.consumer.grid, dt, tool_pos_mm=pos, tool_radius_mm=burr.radius_mm,
                        suction_pos_mm=suction,
-                       suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0)
+                       suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0,
+                       irrigation_pos_mm=pos if self.irrigation else None,
+                       irrigation_radius_mm=IRRIGATION_RADIUS_MM if self.irrigation else 0.0)
         scene.set_dust(*self.dust.sprites())
         drill = bool(st[ST_DRILL])
-        scene.set_tool(pos, axis, burr.radius_mm, drill)
+        depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],
+                                       burr.radius_mm)
+        scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
+        if suction is not None:                   # the suction tip where the mouse is
+            scene.set_suction(suction, self.view, SUCTION_RADIUS_MM)
+        else:
+            scene.set_suction(None)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
         inj = self.injury_cursor.drain()
@@ -239,6 +262,7 @@ class App:
             "case": self.model.name, "burr": burr.name, "burr_kind": burr.kind,
             "burr_diameter_mm": burr.diameter_mm,
             "tool": "suction" if self.suction else "burr",
+            "irrigation": self.irrigation, "depth_mm": depth,
             "drill": drill, "direction": st[ST_DIR], "speed_rpm": st[ST_SPEED],
             "force_n": float(np.linalg.norm(st[ST_FORCE:ST_FORCE + 3])),
             "haptic_hz": self._rates.get("rate_hz", 0.0),
@@ -277,6 +301,8 @@ class App:
             loop.set_drill(bool(loop.io[IN_DRILL]), speed_rpm=rpm)
         elif action == "suction":
             self.suction = not self.suction
+        elif action == "irrigation":
+            self.irrigation = not self.irrigation
         elif action == "reset_case":
             loop.reset()
         elif action == "nerve_monitor":

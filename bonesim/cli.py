@@ -198,8 +198,14 @@ def cmd_run(args) -> int:
         print("bonesim: no display found; running the headless demo instead "
               "(use --offscreen to ask for it explicitly)", file=sys.stderr)
         offscreen = True
+    if offscreen and script is None and frames is None:
+        return _run_showcase(args)
+    if args.video != "bonesim-run.mp4":
+        raise BonesimError("--video is the headless main job's time-lapse; the live "
+                           "simulator records with --record (bonesim video makes a video "
+                           "of a recording)", field="--video")
     if offscreen:
-        if script is None:                 # headless demo: the planned mastoidectomy
+        if script is None:                 # a glimpse of the planned mastoidectomy
             traj = _demo_trajectory(load_case(args.case), args.burr)
             import numpy as np
 
@@ -222,9 +228,11 @@ def cmd_run(args) -> int:
         serve = {"key": load_key(args.key_file), "host": args.monitor_host,
                  "port": args.monitor_port}
     app = App(args.case, args.burr, script=script, offscreen=offscreen,
-              size=tuple(args.size), sound=not args.no_sound, wav=args.wav,
+              size=tuple(args.size) if args.size else (1024, 768),
+              sound=not args.no_sound, wav=args.wav,
               record=record, who=_who(args), monitor=not args.no_monitor,
-              monitor_serve=serve)
+              monitor_serve=serve, stereo=args.stereo,
+              eye_separation_mm=args.eye_separation_mm)
     try:
         app.start()
         if serve is not None:
@@ -249,6 +257,47 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['wav']}")
         if "record" in summary:
             print(f"recorded the session to {summary['record']}")
+    return 0
+
+
+def _run_showcase(args) -> int:
+    """Headless ``bonesim run``: the whole demo plan in simulated time, as a
+    time-lapse video and a final picture (:mod:`bonesim.showcase`)."""
+    from .showcase import run_showcase
+
+    for flag, given in (("--record", args.record is not None), ("--wav", args.wav),
+                        ("--monitor-port", args.monitor_port is not None),
+                        ("--stereo", args.stereo)):
+        if given:
+            raise BonesimError(f"{flag} needs the live simulator: add --frames N (offscreen) "
+                               "or run on a display; the headless main job only drills the "
+                               "plan in simulated time", field=flag)
+    from .case_report import LoadProgress
+    from .showcase import SIZE
+
+    video = None if args.video == "none" else args.video
+    bar = LoadProgress()
+    try:
+        out = run_showcase(args.case, args.burr, video=video,
+                           picture=args.screenshot or "bonesim-run.png",
+                           size=tuple(args.size) if args.size else SIZE,
+                           monitor=not args.no_monitor, seconds=args.seconds,
+                           progress=bar)
+    finally:
+        bar.close()
+    if args.json:
+        _print_json(out)
+        return 0
+    print(f"case {out['case']}, burr {out['burr']}: the demo mastoidectomy, "
+          f"{out['simulated_s']:.0f} s of simulated surgery in {out['steps']} haptic steps "
+          f"({out['wall_s']:.0f} s here)")
+    print(f"removed {out['voxels_removed']} voxels ("
+          + ", ".join(f"{k} {v}" for k, v in out["removed_by_structure"].items())
+          + f"); injuries: {', '.join(out['injuries']) or 'none'}")
+    if "min_clearance_mm" in out:
+        print(f"closest approach to a critical structure: {out['min_clearance_mm']:.2f} mm")
+    print(f"wrote {out['picture']}" + (f" and {out['video']} ({out['frames']} frames, "
+                                       f"{out['speedup']:g}x)" if "video" in out else ""))
     return 0
 
 
@@ -606,8 +655,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "or ~/.local/share/bonesim/sessions")
     s.add_argument("--no-record", action="store_true", help=argparse.SUPPRESS)
     who_opts(s)
-    s.add_argument("--size", type=int, nargs=2, default=[1024, 768], metavar=("W", "H"),
-                   help="window size [px]")
+    s.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                   help="window size [px] (default 1024 768; headless video 1280 720)")
+    s.add_argument("--video", metavar="FILE.mp4", default="bonesim-run.mp4",
+                   help="headless main job: the time-lapse video (default "
+                        "bonesim-run.mp4; 'none' for no video)")
+    from .render.stereo import STEREO_MODES        # (no VTK in that module)
+
+    s.add_argument("--seconds", type=float, metavar="S",
+                   help="headless main job: drill only the plan's first S seconds")
+    s.add_argument("--stereo", choices=sorted(STEREO_MODES),
+                   help="stereo view (anaglyph needs red-cyan glasses; quad-buffer a "
+                        "stereo display)")
+    s.add_argument("--eye-separation-mm", type=float, metavar="MM",
+                   help="stereo: distance between the eyes [mm] (default from "
+                        "bonesim/data/render.toml)")
     s.add_argument("--no-monitor", action="store_true",
                    help="no nerve monitor (default: on when the case monitors a nerve)")
     s.add_argument("--monitor-port", type=int, metavar="PORT",

@@ -301,6 +301,12 @@ class SessionWriter:
         if self.compact:
             compact_session(self.path)
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
 
 def compact_session(path) -> int:
     """Rewrite a session file with every column compressed; returns its new size.
@@ -351,12 +357,6 @@ def compact_session(path) -> int:
         tmp.unlink(missing_ok=True)
         raise
     return path.stat().st_size
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class Drainer:

@@ -11,7 +11,9 @@ keys (all optional; units in the names):
                      says more than kind and diameter)
 ``burr_kind``        ``cutting`` / ``diamond``
 ``burr_diameter_mm`` burr diameter [mm]
-``tool``             ``burr`` or ``suction``
+``tool``             ``burr``, ``suction`` or ``irrigation`` (shown
+                     unless ``burr``)
+``irrigation``       bool, irrigation water running (shown when on)
 ``drill``            bool, drill running
 ``direction``        +1 / -1 (or ``"forward"`` / ``"reverse"``)
 ``speed_rpm``        spindle speed [rpm]
@@ -33,7 +35,8 @@ from __future__ import annotations
 
 import textwrap
 
-KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "drill", "direction",
+KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
+         "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
          "injuries", "message")
 #: Width of the label column [characters].
@@ -118,8 +121,10 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     lines = []
     if "case" in info:
         lines.append(_line("case", str(info["case"])))
-    if str(info.get("tool", "burr")) == "suction":
-        lines.append(_line("tool", "suction"))
+    if str(info.get("tool", "burr")) != "burr":
+        lines.append(_line("tool", str(info["tool"])))
+    if info.get("irrigation"):
+        lines.append(_line("water", "on"))
     if any(k in info for k in ("burr", "burr_kind", "burr_diameter_mm")):
         lines.append(_burr_line(info))
     drill = []

@@ -78,6 +78,8 @@ class ToolMixin:
         self.tool_axis = np.array([0.0, 0.0, -1.0])
         self._marker = None                            # set_marker builds it
         self.marker_pos_mm = None
+        self._suction = None                           # set_suction builds it
+        self.suction_pos_mm = None
 
     @staticmethod
     def _static_actor(src, rgb, specular=0.3):
@@ -177,6 +179,35 @@ class ToolMixin:
     def hide_tool(self) -> None:
         for a in (self._burr, self._shaft, self._ghost_burr, self._ghost_neck):
             a.SetVisibility(False)
+
+    def set_suction(self, pos_mm, axis=None, radius_mm: float = 1.5) -> None:
+        """Show a suction tip beside the burr (a tube of ``radius_mm`` [mm]
+        ending at ``pos_mm`` [mm], running back along ``-axis``), or hide it
+        with ``pos_mm=None``."""
+        if pos_mm is None:
+            if self._suction is not None:
+                self._suction.SetVisibility(False)
+            self.suction_pos_mm = None
+            return
+        pos = np.asarray(pos_mm, dtype=float).reshape(3)
+        ax = np.asarray(self.tool_axis if axis is None else axis, dtype=float).reshape(3)
+        r = float(radius_mm)
+        if not (r > 0 and np.all(np.isfinite(pos)) and np.all(np.isfinite(ax))
+                and np.linalg.norm(ax) > 0):
+            raise ValueError("set_suction needs a finite tip and axis and a positive radius")
+        if self._suction is None:
+            self._suction_src = vtkCylinderSource()
+            self._suction_src.SetResolution(24)
+            self._suction_src.CappingOn()
+            self._suction_src.SetHeight(SHAFT_LENGTH_MM)
+            self._suction_src.SetCenter(0.0, 0.5 * SHAFT_LENGTH_MM, 0.0)
+            self._suction = self._static_actor(self._suction_src, SUCTION_RGB, specular=0.4)
+            self._suction.PickableOff()
+            self.renderer.AddActor(self._suction)
+        self._suction_src.SetRadius(r)
+        self._suction.SetUserMatrix(vtk_matrix(tool_matrix(pos, ax, (1.0, 1.0, 1.0))))
+        self._suction.SetVisibility(True)
+        self.suction_pos_mm = pos.copy()
 
     def set_marker(self, pos_mm, radius_mm: float, rgb=MARKER_RGB,
                    opacity: float = MARKER_OPACITY) -> None:

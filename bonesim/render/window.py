@@ -56,7 +56,7 @@ LEFT, MIDDLE, RIGHT = 1, 2, 4
 
 #: Every action a key or the wheel can produce.
 ACTIONS = ("next_burr", "previous_burr", "drill_toggle", "reverse", "speed_up",
-           "speed_down", "suction", "reset_case", "screenshot", "help", "quit",
+           "speed_down", "suction", "irrigation", "reset_case", "screenshot", "help", "quit",
            "depth_in", "depth_out", "reset_view", "nerve_monitor",
            # session playback (bonesim.render.playback)
            "play_pause", "seek_back_1s", "seek_forward_1s", "seek_back_10s",
@@ -70,6 +70,7 @@ DEFAULT_KEYS = {
     "plus": "speed_up", "equal": "speed_up", "KP_Add": "speed_up",
     "minus": "speed_down", "KP_Subtract": "speed_down",
     "s": "suction",
+    "w": "irrigation",
     "BackSpace": "reset_case", "x": "reset_case",
     "F12": "screenshot", "c": "screenshot",
     "h": "help", "F1": "help",

@@ -71,8 +71,9 @@ def test_default_keys_map_to_actions(scene):
                         "speed_down", "suction", "reset_case", "reset_case", "depth_in",
                         "depth_out"]
     key(win, "N")                                         # shifted letters too
-    key(win, "w")                                         # unmapped: nothing (no wireframe)
-    assert rec.keys[-1] == "next_burr" and len(rec.keys) == 12
+    key(win, "w")                                         # irrigation (not VTK's wireframe)
+    key(win, "j")                                         # unmapped: nothing
+    assert rec.keys[-2:] == ["next_burr", "irrigation"] and len(rec.keys) == 13
     assert scene.surface_actor.GetProperty().GetRepresentation() == 2   # still surface
     assert set(DEFAULT_KEYS.values()) <= set(ACTIONS)
     assert "h" in scene.help_actor.GetInput() or "help" in scene.help_actor.GetInput()
