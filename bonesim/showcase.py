@@ -52,6 +52,11 @@ WATER_RADIUS_MM = 4.0
 #: surgeons work: its water lands on the burr and its tip trails the burr
 #: along its path by this much time [s] (the paste just made shows, then goes).
 ASSIST_LAG_S = 0.5
+#: How the trailing suction tube is drawn: its radius [mm] (a 7 Fr
+#: Frazier tip) and its tilt from the drill axis across the view (it
+#: comes in from the other hand) [tan of the angle].
+SUCTION_DRAWN_RADIUS_MM = 1.1
+SUCTION_TILT = 0.3
 #: The closest approach to critical structures is checked every this many
 #: haptic steps (at 20 mm/s the burr moves 0.1 mm in 5 ms).
 CLEARANCE_EVERY = 5
@@ -242,7 +247,8 @@ class Showcase:
         if tool == "burr":
             self.scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
             suck_at = self._assist(cur)[0] if drill else None
-            self.scene.set_suction(suck_at, axis - 0.5 * self._side, TIP_RADIUS_MM)
+            self.scene.set_suction(suck_at, axis - SUCTION_TILT * self._side,
+                                   SUCTION_DRAWN_RADIUS_MM)
         else:
             self.scene.set_suction(None)
             self.scene.set_tool(self._tip_mm(cur), axis, TIP_RADIUS_MM, False, kind="suction")
