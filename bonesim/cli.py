@@ -174,8 +174,13 @@ def cmd_demo(args) -> int:
     traj = _demo_trajectory(case, args.burr)
     tpath = out / "trajectory.csv"
     write_trajectory(tpath, traj)
+    import numpy as np
+
+    dt = np.diff(traj.t_s)
+    drilling = float(dt[traj.drill[:-1].astype(bool)].sum())
     print(f"planned a demo mastoidectomy on case '{case.name}' with {args.burr}: "
-          f"{traj.t_s[-1]:.1f} s of drilling, written to {tpath}")
+          f"{traj.t_s[-1] - traj.t_s[0]:.1f} s ({drilling:.1f} s with the drill on, the "
+          f"rest travel and rinses), written to {tpath}")
     args.check = True
     summary = _run(case.manifest, args.burr, traj, args)
     _print_summary(summary)
