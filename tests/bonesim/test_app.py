@@ -44,12 +44,19 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
 
     traj, _ = script
     app = App("phantom", "cutting-5mm", script=traj, offscreen=True, size=(320, 240),
-              sound=False, record=tmp_path / "app.h5", who={"participant": "t1"})
+              sound=False, record=tmp_path / "app.h5", who={"participant": "t1"},
+              stereo="anaglyph", eye_separation_mm=60.0)
     try:
         app.start()
+        assert app.scene.stereo_mode == "anaglyph" and app.scene.eye_separation_mm == 60.0
         before = app.consumer.surface.canonical()
         out = app.run(frames=90, screenshot=tmp_path / "shot.png")
         hud = app.scene.hud_text
+        assert re.search(r"depth\s+(in view|\d+\.\d mm under bone)", hud), hud
+        app.window.press("irrigation")                # w: the water wets the dust
+        app.window.run_offscreen(10, realtime=True)
+        assert app.irrigation and "water  on" in app.scene.hud_text
+        assert app.dust.wetted_cells > 0
         dust = app.dust.total_cells
         bone = app.consumer.grid.density.sum(dtype=np.float64)
         updates = len(app.consumer.update_s)
@@ -81,7 +88,7 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
 
     s = read_session(out["record"])
     assert s.complete and s.header["participant"] == "t1"
-    assert len(s.camera["t_s"]) == 100 and ("key", "reset_case") in [e[1:] for e in s.events]
+    assert len(s.camera["t_s"]) == 110 and ("key", "reset_case") in [e[1:] for e in s.events]
     assert s.samples["epoch"][-1] == 1 and len(s.removals["t_s"]) >= out["voxels_removed"]
     assert set(np.unique(s.removals["visible"])) <= {0, 1}     # judged from the camera
 
