@@ -45,8 +45,9 @@ START_STANDOFF_MM = 10.0
 RATE_EVERY_FRAMES = 15
 #: Suction tip radius [mm].
 SUCTION_RADIUS_MM = 1.5
-#: Radius of the patch the irrigation water wets around the burr [mm].
-IRRIGATION_RADIUS_MM = 1.5
+#: How far past the burr's surface the irrigation water wets the dust [mm]
+#: (the burr pushes dust out of its own sphere, so the water must reach past it).
+WATER_SPREAD_MM = 2.0
 
 
 class App:
@@ -239,7 +240,8 @@ class App:
                        suction_pos_mm=suction,
                        suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0,
                        irrigation_pos_mm=pos if self.irrigation else None,
-                       irrigation_radius_mm=IRRIGATION_RADIUS_MM if self.irrigation else 0.0)
+                       irrigation_radius_mm=(burr.radius_mm + WATER_SPREAD_MM
+                                             if self.irrigation else 0.0))
         scene.set_dust(*self.dust.sprites())
         drill = bool(st[ST_DRILL])
         depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],

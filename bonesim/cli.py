@@ -203,6 +203,9 @@ def cmd_run(args) -> int:
         print("bonesim: no display found; running the headless demo instead "
               "(use --offscreen to ask for it explicitly)", file=sys.stderr)
         offscreen = True
+    if args.monitor_port is not None and args.no_monitor:
+        raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
+                           "--no-monitor", field="--monitor-port")
     if offscreen and script is None and frames is None:
         return _run_showcase(args)
     if args.video != "bonesim-run.mp4":
@@ -225,9 +228,6 @@ def cmd_run(args) -> int:
         record = default_session_path(load_case(args.case).name, args.participant or "")
     serve = None
     if args.monitor_port is not None:
-        if args.no_monitor:
-            raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
-                               "--no-monitor", field="--monitor-port")
         from .net import load_key
 
         serve = {"key": load_key(args.key_file), "host": args.monitor_host,
