@@ -200,7 +200,7 @@ def cmd_run(args) -> int:
     screenshot = args.screenshot
     if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
             "WAYLAND_DISPLAY"):
-        print("bonesim: no display found; running the headless demo instead "
+        print("bonesim: no display found; running the headless main job instead "
               "(use --offscreen to ask for it explicitly)", file=sys.stderr)
         offscreen = True
     if args.monitor_port is not None and args.no_monitor:
@@ -640,17 +640,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("run", help="the interactive simulator (window, haptic loop, "
-                                   "sound, dust); headless with --offscreen")
+                                   "sound, dust); without a display the headless main "
+                                   "job: the demo plan in simulated time, video + picture")
     s.add_argument("--case", default=DEFAULT_CASE,
                    help=f"case name or case.toml path (default {DEFAULT_CASE})")
     s.add_argument("--burr", default=DEFAULT_BURR, help=f"starting burr (default {DEFAULT_BURR})")
     s.add_argument("--offscreen", action="store_true",
-                   help="render without a display (OSMesa/EGL); default when none exists")
+                   help="render without a display (OSMesa/EGL); default when none exists. "
+                        "Alone: the headless main job (the whole demo plan in simulated "
+                        "time); with --frames or --script: the live simulator offscreen")
     s.add_argument("--script", metavar="TRAJECTORY",
                    help="drive the tool from a trajectory CSV instead of the mouse "
                         "(offscreen default: the demo mastoidectomy)")
-    s.add_argument("--frames", type=int, help="stop after this many frames "
-                                              "(offscreen default 300)")
+    s.add_argument("--frames", type=int, help="stop after this many frames (offscreen "
+                                              "with --script: default 300)")
     s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
     s.add_argument("--wav", metavar="FILE.wav", help="record the drill sound")
     s.add_argument("--no-sound", action="store_true", help="no audio process")
