@@ -200,8 +200,10 @@ def cmd_run(args) -> int:
     screenshot = args.screenshot
     if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
             "WAYLAND_DISPLAY"):
-        print("bonesim: no display found; running the headless main job instead "
-              "(use --offscreen to ask for it explicitly)", file=sys.stderr)
+        what = ("rendering offscreen" if script is not None or frames is not None else
+                "running the headless main job instead")
+        print(f"bonesim: no display found; {what} (use --offscreen to ask for it "
+              "explicitly)", file=sys.stderr)
         offscreen = True
     if args.monitor_port is not None and args.no_monitor:
         raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
