@@ -345,6 +345,12 @@ def bench_monitor(quick=False) -> dict:
     return run(quick=quick)
 
 
+def bench_load(quick=False) -> dict:
+    from .bench_load import bench_load as run
+
+    return run(quick=quick)
+
+
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -370,6 +376,8 @@ BENCHMARKS = {
     "monitor_update_us": bench_monitor,
     "monitor_loopback_latency_p99_ms": bench_monitor,
     "monitor_loopback_loss_fraction": bench_monitor,
+    "load_labelstack_512_s": bench_load,
+    "load_labelstack_512_peak_mb": bench_load,
 }
 
 

@@ -66,7 +66,6 @@ manifest and the offending key.
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -232,10 +231,6 @@ class Target:
     box_max_mm: tuple[float, float, float] | None = None
 
 
-def _accepts_progress() -> bool:
-    return "progress" in inspect.signature(load_volume).parameters
-
-
 @dataclass(frozen=True)
 class Case:
     """A parsed case manifest.
@@ -357,8 +352,7 @@ class Case:
             size = v.size_mm if v.size_mm is not None else _phantom.DEFAULT_SIZE_MM
             vol = _phantom.phantom_volume(v.seed, v.voxel_mm, size, names)
         else:
-            kw = {"progress": progress} if progress is not None and \
-                _accepts_progress() else {}
+            kw = {"progress": progress}
             kinds = [s.kind for s in self.structures]
             if v.segmentation is not None:
                 kw["segment_names"] = [s.segment for s in self.structures]

@@ -17,7 +17,7 @@ from .case import (CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU, DEFAULT_PATTERN,
                    SEG_FORMAT, SIDES, Camera, Case, Structure, Target, VolumeSpec)
 from .errors import BonesimError
 from .orientation import parse_orientation
-from .segmentation import SEG_SUFFIX, read_seg_segments
+from .segmentation import SEG_SUFFIX, read_seg_segments, segment_keys
 from .tomlfile import check_keys, get_number, get_str, get_vector, read_toml
 from .volumes import MAX_STRUCTURES, UNKNOWN_COLOR_MODES
 
@@ -141,10 +141,7 @@ def _parse_volume(tab, path: Path) -> VolumeSpec:
 def _segment_lookup(segments, seg_path: Path):
     """Name / ID -> canonical segment key (its name, or its ID when two
     segments share the name)."""
-    counts: dict = {}
-    for g in segments:
-        counts[g.name] = counts.get(g.name, 0) + 1
-    key = {g.id: (g.name if counts[g.name] == 1 else g.id) for g in segments}
+    key = segment_keys(segments)
     exact = {}
     for g in segments:
         exact.setdefault(g.name, key[g.id])

@@ -404,3 +404,73 @@ def test_case_volume_checks():
     v = V.CaseVolume(np.ones((2, 2, 2), np.uint8), 0.5, (0, 0, 0), "x")
     assert v.counts(2).tolist() == [0, 8, 0]
     np.testing.assert_allclose(v.index_to_mm([1, 0, 1]), [0.5, 0, 0.5])
+
+
+# ----------------------------------------------- big stacks, fast resampling
+@settings(max_examples=300, deadline=None)
+@given(shape=st.tuples(*[st.integers(1, 9)] * 3),
+       spacing=st.tuples(*[st.sampled_from([0.1, 0.19, 0.25, 0.3, 0.5, 0.7, 1.0, 1.3])] * 3),
+       voxel=st.sampled_from([0.2, 0.25, 0.5, 0.6]))
+def test_nearest_resampling_matches_scipy(shape, spacing, voxel):
+    import scipy.ndimage
+
+    data = (np.arange(np.prod(shape)) % 251).astype(np.uint8).reshape(shape)
+    got, origin = V.resample_isotropic(data, spacing, (1.0, 2.0, 3.0), voxel, order=0)
+    sp = np.asarray(spacing)
+    if np.allclose(sp, voxel):
+        assert got is data
+        return
+    out_shape = tuple(int(n) for n in np.maximum(1, np.round(np.array(shape) * sp / voxel)))
+    scale = voxel / sp
+    ref = scipy.ndimage.affine_transform(data, scale, offset=0.5 * scale - 0.5,
+                                         output_shape=out_shape, order=0, mode="nearest",
+                                         prefilter=False)
+    np.testing.assert_array_equal(got, ref)
+    assert got.flags.c_contiguous
+    np.testing.assert_allclose(origin, np.array([1.0, 2.0, 3.0]) - sp / 2 + voxel / 2)
+
+
+def test_label_stack_threads_progress_and_image_modes(tmp_path):
+    lab = index_planes(nz=9, ny=5, nx=7)
+    V.write_label_stack(tmp_path / "st", lab, COLORS, orientation="PRI")
+    calls = []
+    one = V.read_label_stack(tmp_path / "st", "*.png", (1, 2, 3), COLORS, orientation="PRI",
+                             threads=1)
+    many = V.read_label_stack(tmp_path / "st", "*.png", (1, 2, 3), COLORS,
+                              orientation="PRI", threads=3,
+                              progress=lambda *a: calls.append(a))
+    np.testing.assert_array_equal(one.data, lab)
+    np.testing.assert_array_equal(many.data, lab)
+    assert many.data.flags.c_contiguous
+    assert sorted(c[0] for c in calls) == list(range(1, 10))
+    assert {c[1:] for c in calls} == {(9, "decoding slices")}
+    # palette and RGBA slices (as other tools save them) read the same
+    from PIL import Image
+
+    for mode in ("P", "RGBA"):
+        out = tmp_path / mode
+        out.mkdir()
+        for f in sorted((tmp_path / "st").iterdir()):
+            im = Image.open(f).convert("RGB")
+            (im.convert("P", palette=Image.Palette.ADAPTIVE) if mode == "P" else
+             im.convert(mode)).save(out / f.name)
+        raw = V.read_label_stack(out, "*.png", (1, 2, 3), COLORS, orientation="PRI")
+        np.testing.assert_array_equal(raw.data, lab)
+
+
+def test_ct_with_a_cropped_slicer_segmentation(tmp_path):
+    hu = np.full(SHAPE, -1000, np.int16)
+    hu[:3] = 1500
+    V.write_nrrd(tmp_path / "ct.nrrd", hu, SPACING, ORIGIN)
+    seg = np.zeros((2, 2, 2), np.uint8)
+    seg[0] = 1                                          # nerve, overrides bone
+    seg[1, 0] = 2                                       # sinus, in the air
+    V.write_seg_nrrd(tmp_path / "s.seg.nrrd", seg, ["nerve", "sinus"],
+                     [(255, 255, 0), (0, 0, 255)], SPACING, ORIGIN + SPACING * np.array([2, 1, 1]))
+    vol = V.load_volume("nrrd", tmp_path / "ct.nrrd", kinds=KINDS,
+                        labels_path=tmp_path / "s.seg.nrrd", voxel_mm=SPACING,
+                        segment_names=[None, "sinus", "nerve"])
+    want = np.where(hu >= 300, 1, 0).astype(np.uint8)
+    want[2, 1:3, 1:3] = 3
+    want[3, 1, 1:3] = 2
+    np.testing.assert_array_equal(vol.labels, want)
