@@ -149,6 +149,12 @@ def _print_summary(s: dict) -> None:
     print(f"injuries: {len(s['injuries'])}"
           + "".join(f"\n  {i['t_s']:8.3f} s  {i['kind']:8s} {i['structure']} "
                     f"({i['voxels']} voxels)" for i in s["injuries"][:20]))
+    if "closest_approach" in s:
+        c = s["closest_approach"]
+        grid = " x ".join(f"{v:g}" for v in c["native_spacing_mm"])
+        print(f"closest approach of the drilling burr: {c['clearance_mm']:.2f} mm to "
+              f"{c['structure']} at {c['t_s']:.2f} s (exact on the {grid} mm source "
+              "grid)")
     print(f"force: mean {s['force_n']['mean']} N, in contact "
           f"{s['force_n']['mean_in_contact']} N, max {s['force_n']['max']} N")
     print(f"haptic step: p50 {s['haptic_step_us']['p50']} us, "

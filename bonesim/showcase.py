@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import events
+from .simulate import CLEARANCE_EVERY, closest_approach
 
 __all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "Showcase",
            "run_showcase"]
@@ -57,9 +58,6 @@ ASSIST_LAG_S = 0.5
 #: comes in from the other hand) [tan of the angle].
 SUCTION_DRAWN_RADIUS_MM = 1.1
 SUCTION_TILT = 0.3
-#: The closest approach to critical structures is checked every this many
-#: haptic steps (at 20 mm/s the burr moves 0.1 mm in 5 ms).
-CLEARANCE_EVERY = 5
 
 
 class Showcase:
@@ -273,18 +271,15 @@ class Showcase:
                                            self.monitor.n, self.trace.window_s))
 
     def _clearance(self, lo: int, hi: int) -> None:
-        """Track the running burr's closest approach to a critical structure
-        (every :data:`CLEARANCE_EVERY` th step; exact native-resolution
-        distances, :mod:`bonesim.clearance`)."""
-        cl = self.model.clearance
-        if cl is None or hi <= lo:
+        """Track the running burr's closest approach to a structure that is not
+        bone (every :data:`~bonesim.simulate.CLEARANCE_EVERY` th step; exact
+        native-resolution distances, :func:`bonesim.simulate.closest_approach`)."""
+        if hi <= lo:
             return
         s = self.samples
-        sl = slice(lo, hi, CLEARANCE_EVERY)
-        p = s.pos_mm[sl][s.drill[sl].astype(bool)]
-        if len(p):
-            d = float(cl.distance(p).min()) - self.model.burr.radius_mm
-            self.min_clearance_mm = min(self.min_clearance_mm, d)
+        sl = slice(lo - lo % -CLEARANCE_EVERY, hi, CLEARANCE_EVERY)
+        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][s.drill[sl].astype(bool)])
+        self.min_clearance_mm = min(self.min_clearance_mm, gap)
 
     def image(self) -> np.ndarray:
         """The current frame, (height, width, 3) uint8."""

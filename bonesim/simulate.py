@@ -23,6 +23,10 @@ from .model import Model, Sample, clear_touched, make_state, step
 #: Frame rate at which the surface consumer drains the rings [Hz].
 FRAME_HZ = 60.0
 
+#: The drilling burr's closest approach to a structure is checked every this
+#: many haptic steps (5 ms at 1 kHz: under 0.1 mm of travel at drilling speed).
+CLEARANCE_EVERY = 5
+
 
 class SurfaceConsumer:
     """Keeps a :class:`~bonesim.surface.Surface` in step with a state's rings."""
@@ -147,6 +151,14 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     if consumer is not None:
         consumer.drain()
     summary = _summary(model, state, step_ns, force, contact, consumer)
+    every = np.arange(0, n, CLEARANCE_EVERY)
+    drilling = every[samples.drill[every].astype(bool)]
+    gap, label, at = closest_approach(model, pos[drilling])
+    if at >= 0:
+        summary["closest_approach"] = {
+            "clearance_mm": round(gap, 3), "structure": model.structure_name(label),
+            "t_s": round(float(samples.t_s[drilling[at]]), 3),
+            "native_spacing_mm": [round(float(v), 4) for v in model.clearance.spacing_mm]}
     if rec is not None:
         summary["record"] = rec.close()
     if check and consumer is not None:
@@ -209,6 +221,38 @@ class _Recording:
 def _same_surface(a, b) -> bool:
     """Same vertices (position, normal, colour) and same oriented triangles."""
     return not a.canonical().differences(b.canonical())
+
+
+def closest_approach(model: Model, pos_mm) -> tuple[float, int, int]:
+    """The burr's closest approach to any structure that is not bone.
+
+    Distances are exact at the case's native resolution
+    (:class:`bonesim.clearance.Clearance`, the model's ``clearance``).
+
+    Parameters
+    ----------
+    model : Model
+    pos_mm : (n, 3) float
+        Burr centres, case frame [mm].
+
+    Returns
+    -------
+    clearance_mm : float
+        Smallest distance from the burr's sphere to a structure [mm]
+        (negative: the sphere reaches into it; inf without points or field).
+    label : int
+        That structure's index (0 when none).
+    index : int
+        The point where it happens (-1 when none).
+    """
+    cl = model.clearance
+    p = np.asarray(pos_mm, dtype=np.float64).reshape(-1, 3)
+    if cl is None or not len(p) or not cl.structures:
+        return float("inf"), 0, -1
+    labels = list(cl.structures)
+    d = cl.distances(p, [[s] for s in labels])
+    q, k = np.unravel_index(int(np.argmin(d)), d.shape)
+    return float(d[q, k]) - model.burr.radius_mm, int(labels[k]), int(q)
 
 
 def _summary(model, state, step_ns, force, contact, consumer) -> dict:
