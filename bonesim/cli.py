@@ -315,78 +315,21 @@ def _run_showcase(args) -> int:
 
 
 # --------------------------------------------------------------- sessions
-def cmd_sessions_info(args) -> int:
-    from .record import read_session, session_info
-
-    info = session_info(read_session(args.file))
-    if args.json:
-        _print_json(info)
-        return 0
-    for k, v in info.items():
-        if k == "injuries":
-            print(f"injuries: {len(v)}")
-            for i in v[:20]:
-                print(f"  {i['t_s']:9.3f} s  {i['kind']:8s} {i['structure']}")
-        elif isinstance(v, dict):
-            print(f"{k}: " + (", ".join(f"{kk} {vv}" for kk, vv in v.items()) or "none"))
-        else:
-            print(f"{k}: {v}")
-    return 0
-
-
-def cmd_sessions_list(args) -> int:
-    from .record import list_sessions, sessions_folder
-
-    rows = list_sessions(args.folder)
-    if args.json:
-        _print_json(rows)
-    elif not rows:
-        print(f"no sessions in {args.folder or sessions_folder()}")
-    else:
-        _table(rows, ["file", "start_time", "participant", "group", "case", "duration_s",
-                      "voxels_removed", "injuries", "complete", "error"])
-    return 0
-
-
-def cmd_replay(args) -> int:
-    from .model import warmup
-    from .record import read_session, replay, verify
-
-    session = read_session(args.file)
-    warmup()
-    if args.verify:
-        report = verify(session)
-        if args.json:
-            _print_json(report)
-        else:
-            print(f"{report['file']}: replayed {report['samples']} samples; removals "
-                  f"{report['removals_replayed']} replayed vs {report['removals_recorded']} "
-                  f"recorded: {'identical' if report['removals_match'] else 'DIFFERENT'}; "
-                  f"forces {'identical' if report['forces_match'] else 'DIFFERENT'}")
-            if report["first_mismatch"]:
-                print(f"first difference: {report['first_mismatch']}")
-        return 0 if report["ok"] else 1
-    out = replay(session)
-    res = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
-           "voxels_removed": int(len(out["removals"]["t_s"]))}
-    if args.json:
-        _print_json(res)
-    else:
-        print(f"{res['file']}: replayed {res['samples']} samples, "
-              f"{res['voxels_removed']} voxels removed")
-    return 0
-
-
 def cmd_playback(args) -> int:
     import os
 
     from .playback import Player, parse_size
-    from .record import read_session
+    from .session_reader import read_session
+
+    from .session_reader import damage_notice
 
     session = read_session(args.file)
     notices = [] if session.complete else [
         "recording incomplete: the writer did not close the file (shown up to its last "
         "flush)"]
+    if session.damage:
+        print(damage_notice(session), file=sys.stderr)
+        notices = [f"damaged file: {session.damage}"]
     if args.speed is not None and not args.speed > 0:
         raise BonesimError(f"speed must be positive, got {args.speed:g}", field="--speed")
     speed = 1.0 if args.speed is None else args.speed
@@ -726,12 +669,19 @@ def build_parser() -> argparse.ArgumentParser:
     si = ssub.add_parser("info", help="summarize a session file (schema checked)")
     si.add_argument("file", help="session file (.h5)")
     si.add_argument("--json", action="store_true", help="print JSON")
-    si.set_defaults(func=cmd_sessions_info)
+    si.set_defaults(func=_lazy("cli_sessions", "cmd_sessions_info"))
     sl = ssub.add_parser("list", help="list the session files in a folder")
     sl.add_argument("folder", nargs="?",
                     help="folder (default $BONESIM_SESSIONS or ~/.local/share/bonesim/sessions)")
     sl.add_argument("--json", action="store_true", help="print JSON")
-    sl.set_defaults(func=cmd_sessions_list)
+    sl.set_defaults(func=_lazy("cli_sessions", "cmd_sessions_list"))
+    sr = ssub.add_parser("repair", help="write the readable part of a damaged session "
+                         "file as a clean copy")
+    sr.add_argument("file", help="damaged session file (.h5)")
+    sr.add_argument("out", help="the clean copy to write (.h5, a new file)")
+    sr.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    sr.add_argument("--json", action="store_true", help="print JSON")
+    sr.set_defaults(func=_lazy("cli_sessions", "cmd_sessions_repair"))
 
     s = sub.add_parser("replay", help="re-run a session's samples through the engine")
     s.add_argument("file", help="session file (.h5)")
@@ -739,7 +689,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="check that the removals and forces equal the recording bit for "
                         "bit (exit status 1 if not)")
     s.add_argument("--json", action="store_true", help="print JSON")
-    s.set_defaults(func=cmd_replay)
+    s.set_defaults(func=_lazy("cli_sessions", "cmd_replay"))
 
     s = sub.add_parser(
         "playback", help="play a session back in a window with a timeline, or export it "

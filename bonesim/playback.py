@@ -33,7 +33,7 @@ once (:meth:`Surface.build`).
 
 Session objects
 ---------------
-Anything with the attributes of :func:`bonesim.record.read_session`'s
+Anything with the attributes of :func:`bonesim.session_reader.read_session`'s
 result works: ``header``, ``complete``, ``samples``, ``removals``,
 ``injuries``, ``camera``, ``events``, ``load_model()`` and
 ``burr_models()``.

@@ -26,7 +26,6 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -52,8 +51,9 @@ CHUNK_ROWS = {"samples": 4096, "removals": 8192, "injuries": 256, "camera": 1024
 #: at this level with byte shuffling (level 4 comes within 5% of level 9's
 #: size in half its time; a 3-minute run shrinks about 9x) ...
 COMPACT_GZIP_LEVEL = 4
-#: ... in chunks of at most this many rows, copied a chunk at a time.
-COMPACT_CHUNK_ROWS = 1 << 16
+#: ... in chunks of at most this many rows (8 s of samples at 1 kHz: a copy
+#: cut short keeps the run up to the last whole chunk), copied a chunk at a time.
+COMPACT_CHUNK_ROWS = 1 << 13
 #: Columns of each group: name -> (dtype, trailing shape). ``samples``,
 #: ``camera`` and ``events`` are the rings of the same names
 #: (:data:`bonesim.events.OTHER_RINGS`); ``removals`` adds ``visible`` to the
@@ -276,8 +276,8 @@ class SessionWriter:
             ds.resize((r0 + n,) + tuple(shape))
             if name in cols:
                 ds[r0:r0 + n] = np.asarray(cols[name]).astype(dt, copy=False)
-            elif name == "visible":
-                ds[r0:r0 + n] = -1
+            else:                  # written, so a salvage finds every row's chunk
+                ds[r0:r0 + n] = -1 if name == "visible" else 0
         self.rows[group] = r0 + n
         return n
 
@@ -317,6 +317,14 @@ def compact_session(path) -> int:
     lost or half-written. The content (attributes, every group and column,
     the ``closed`` flag) is identical.
 
+    The copy is laid out in time order: every group and column is created
+    first (all metadata at the file's start), then the chunks are written
+    straight to disk (no chunk cache), all columns of a group's chunk
+    together, chunks ordered by the time of their first row. A copy cut
+    short (a full disk, an interrupted transfer) so keeps the run's
+    beginning in every stream, which :func:`bonesim.session_reader.read_session`
+    salvages.
+
     Parameters
     ----------
     path : path
@@ -331,9 +339,11 @@ def compact_session(path) -> int:
     path = Path(path)
     tmp = path.with_name(f".{path.name}.compacting")
     try:
-        with h5py.File(path, "r") as src, h5py.File(tmp, "w", libver="latest") as dst:
+        with h5py.File(path, "r") as src, \
+                h5py.File(tmp, "w", libver="latest", rdcc_nbytes=0) as dst:
             for k, v in src.attrs.items():
                 dst.attrs[k] = v
+            pieces = []                       # (start time, group, row) per chunk
             for name, item in src.items():
                 if not isinstance(item, h5py.Group):
                     dst.create_dataset(name, data=item[()])
@@ -346,10 +356,18 @@ def compact_session(path) -> int:
                         opts = {"compression": "gzip", "compression_opts": COMPACT_GZIP_LEVEL,
                                 "shuffle": True,
                                 "chunks": (min(n, COMPACT_CHUNK_ROWS),) + ds.shape[1:]}
-                    out = grp.create_dataset(col, shape=ds.shape, maxshape=ds.maxshape,
-                                             dtype=ds.dtype, **opts)
-                    for r0 in range(0, n, COMPACT_CHUNK_ROWS):
-                        out[r0:r0 + COMPACT_CHUNK_ROWS] = ds[r0:r0 + COMPACT_CHUNK_ROWS]
+                    grp.create_dataset(col, shape=ds.shape, maxshape=ds.shape,
+                                       dtype=ds.dtype, **opts)
+                first = next(iter(item.values()), None)
+                t = item["t_s"] if "t_s" in item else None
+                rows = 0 if first is None else first.shape[0]
+                pieces += [(float(t[r]) if t is not None else -math.inf, name, r)
+                           for r in range(0, rows, COMPACT_CHUNK_ROWS)]
+            dst.flush()                       # the metadata lands at the start
+            for _, name, r in sorted(pieces, key=lambda p: (p[0], list(GROUPS).index(p[1])
+                                                              if p[1] in GROUPS else 99)):
+                for col, ds in src[name].items():
+                    dst[name][col][r:r + COMPACT_CHUNK_ROWS] = ds[r:r + COMPACT_CHUNK_ROWS]
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -609,325 +627,3 @@ class Recorder:
 
     def __exit__(self, *exc):
         self.close()
-
-
-# ---------------------------------------------------------------------------
-# Reading
-# ---------------------------------------------------------------------------
-@dataclass
-class Session:
-    """A recorded run, read into memory (see ``docs/session_schema.md``).
-
-    Attributes
-    ----------
-    path : Path
-    schema : int
-    header : dict
-    complete : bool
-        The writer closed the file cleanly (False after a crash: the data is
-        complete up to the writer's last flush).
-    samples, removals, injuries, camera : dict of str -> ndarray
-        Columns of equal length per group. ``removals`` gains ``epoch``
-        (case resets before each removal), derived from the samples.
-    events : list of (t_s, name, value)
-    """
-
-    path: Path
-    schema: int
-    header: dict
-    complete: bool
-    samples: dict
-    removals: dict
-    injuries: dict
-    camera: dict
-    events: list = field(default_factory=list)
-
-    @property
-    def duration_s(self) -> float:
-        t = self.samples["t_s"]
-        return float(t[-1] - t[0]) if len(t) else 0.0
-
-    def burr_models(self, check: bool = True) -> list:
-        """One :class:`~bonesim.model.Model` per burr index, rebuilt from the
-        recorded case and burrs; with ``check``, their physics must hash to
-        what was recorded."""
-        from .burrs import load_burr
-        from .devices import DeviceCaps
-        from .model import load_model
-
-        h = self.header
-        case = h["case"]
-        src = case.get("path") or case["name"]
-        if case.get("path") and not Path(case["path"]).exists():
-            src = case["name"]
-        dev = h["device"]
-        inf = math.inf
-        caps = DeviceCaps(dev["name"], dev["max_force_n"] or inf,
-                          tuple(x or inf for x in dev["workspace_mm"]),
-                          dev["max_stiffness_n_per_mm"] or inf, dev["rate_hz"])
-        burrs = []
-        for b in h["burrs"]:
-            p = b.get("path")
-            try:
-                burrs.append(load_burr(b["name"]))
-            except Exception:
-                if p is None:
-                    raise
-                burrs.append(load_burr(p))
-        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]))
-        models = [model] + [model.with_burr(b) for b in burrs[1:]]
-        if check:
-            for q, (m, want) in enumerate(zip(models, h["model_sha256"])):
-                if model_sha256(m) != want:
-                    raise BonesimError(
-                        f"{self.path}: burr {q} ({h['burrs'][q]['name']}) on case "
-                        f"{case['name']!r} no longer builds the recorded model (the case, "
-                        "burr or material files changed since the recording)")
-        return models
-
-    def load_model(self, check: bool = True):
-        """The model of burr 0 (see :meth:`burr_models`)."""
-        return self.burr_models(check)[0]
-
-
-def _open(path: Path):
-    h5py = _h5py()
-    if not path.exists():
-        raise BonesimError(f"{path}: no such session file")
-    try:
-        return h5py.File(path, "r", swmr=True, locking=False)
-    except OSError as exc:
-        raise BonesimError(f"{path}: not a readable HDF5 session file ({exc})") from exc
-
-
-def read_session(path) -> Session:
-    """Read and check a session file.
-
-    Raises
-    ------
-    BonesimError
-        Naming the file and the problem: not HDF5, not a bonesim session,
-        written by a newer schema, a missing or malformed header field, group
-        or column.
-    """
-    path = Path(path)
-    with _open(path) as f:
-        fmt = f.attrs.get("format")
-        if isinstance(fmt, bytes):
-            fmt = fmt.decode()
-        if fmt != FORMAT:
-            raise BonesimError(f"{path}: not a bonesim session (format attribute is "
-                               f"{fmt!r}, expected {FORMAT!r})")
-        try:
-            schema = int(f.attrs["schema"])
-        except (KeyError, TypeError, ValueError):
-            raise BonesimError(f"{path}: the schema version attribute is missing or not "
-                               "an integer") from None
-        if schema > SCHEMA_VERSION:
-            raise BonesimError(f"{path}: written with session schema {schema}, newer than "
-                               f"this bonesim reads ({SCHEMA_VERSION}); upgrade bonesim")
-        if schema < 1:
-            raise BonesimError(f"{path}: invalid session schema version {schema}")
-        try:
-            header = json.loads(f.attrs["header"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise BonesimError(f"{path}: the header attribute is missing or not JSON "
-                               f"({exc})") from None
-        if not isinstance(header, dict):
-            raise BonesimError(f"{path}: the header is not a JSON object")
-        missing = [k for k in HEADER_KEYS if k not in header]
-        if missing:
-            raise BonesimError(f"{path}: header lacks {', '.join(missing)}")
-        groups = {}
-        for g, cols in GROUPS.items():
-            if g not in f:
-                raise BonesimError(f"{path}: group /{g} is missing")
-            data = {}
-            for name, (dt, shape) in cols.items():
-                if name not in f[g]:
-                    raise BonesimError(f"{path}: dataset /{g}/{name} is missing")
-                ds = f[g][name]
-                if ds.shape[1:] != tuple(shape) or ds.dtype != np.dtype(dt):
-                    raise BonesimError(
-                        f"{path}: dataset /{g}/{name} has shape {ds.shape} and type "
-                        f"{ds.dtype}; schema {SCHEMA_VERSION} expects (n, "
-                        f"{', '.join(map(str, shape))}) {np.dtype(dt)}".replace("(n, )", "(n,)"))
-                data[name] = ds[()]
-            # a crash between two columns' resizes leaves them uneven: keep
-            # the rows every column has
-            n = min(len(a) for a in data.values())
-            groups[g] = {k: a[:n] for k, a in data.items()}
-        complete = bool("closed" in f and f["closed"][0] == 1)
-    s = groups["samples"]
-    rem = groups["removals"]
-    if len(s["t_s"]):
-        idx = np.clip(np.searchsorted(s["t_s"], rem["t_s"]), 0, len(s["t_s"]) - 1)
-        rem["epoch"] = s["epoch"][idx]
-    else:
-        rem["epoch"] = np.zeros(len(rem["t_s"]), np.int32)
-    ev = groups["events"]
-    evlist = [(float(t), n.decode(errors="replace"), v.decode(errors="replace"))
-              for t, n, v in zip(ev["t_s"], ev["name"], ev["value"])]
-    return Session(path, schema, header, complete, s, rem, groups["injuries"],
-                   groups["camera"], evlist)
-
-
-def session_info(session: Session) -> dict:
-    """JSON-ready summary of a session (``bonesim sessions info``)."""
-    h = session.header
-    s = session.samples
-    t = s["t_s"]
-    names = {st["label"]: st["name"] for st in h["structures"]}
-    labels, counts = np.unique(session.removals["label"], return_counts=True)
-    dt = np.diff(t)
-    inj = session.injuries
-    vis = session.removals["visible"]
-    n_vis, n_hid = int(np.sum(vis == 1)), int(np.sum(vis == 0))
-    return {
-        "file": str(session.path),
-        "size_bytes": session.path.stat().st_size,
-        "schema": session.schema,
-        "complete": session.complete,
-        "bonesim_version": h["bonesim_version"],
-        "start_time": h["start_time"],
-        "participant": h["participant"], "group": h["group"], "notes": h["notes"],
-        "case": h["case"]["name"],
-        "burrs": [b["name"] for b in h["burrs"]],
-        "device": h["device"]["name"],
-        "voxel_mm": h["voxel_mm"],
-        "duration_s": round(session.duration_s, 3),
-        "samples": int(len(t)),
-        "sample_rate_hz": round(float(1.0 / np.median(dt)), 1) if len(dt) else 0.0,
-        "resets": int(s["epoch"][-1]) if len(t) else 0,
-        "drill_on_s": round(float(np.sum(dt[s["drill"][:-1] > 0])), 3) if len(dt) else 0.0,
-        "max_force_n": round(float(np.linalg.norm(s["force_n"], axis=1).max()), 3)
-        if len(t) else 0.0,
-        "voxels_removed": int(len(session.removals["t_s"])),
-        "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
-                                 for lab, c in zip(labels, counts)},
-        # removals seen from the eye, of those judged (SPEC: voxel visibility)
-        "removals_visible": n_vis, "removals_hidden": n_hid,
-        "removals_visibility_unknown": int(len(vis)) - n_vis - n_hid,
-        "visible_fraction": round(n_vis / (n_vis + n_hid), 4) if n_vis + n_hid else None,
-        "injuries": [{"t_s": round(float(ti), 4),
-                      "structure": names.get(int(lab), str(int(lab))),
-                      "kind": events.INJURY_KINDS[int(k)] if int(k) < 2 else str(int(k))}
-                     for ti, lab, k in zip(inj["t_s"], inj["label"], inj["kind"])],
-        "camera_frames": int(len(session.camera["t_s"])),
-        "events": len(session.events),
-    }
-
-
-def list_sessions(folder=None) -> list[dict]:
-    """One row per ``*.h5`` file in ``folder`` (default :func:`sessions_folder`),
-    newest first; unreadable files are listed with their error."""
-    folder = sessions_folder() if folder is None else Path(folder)
-    if not folder.is_dir():
-        raise BonesimError(f"{folder}: no such sessions folder")
-    rows = []
-    for p in sorted(folder.glob("*.h5"), key=lambda q: q.stat().st_mtime, reverse=True):
-        try:
-            info = session_info(read_session(p))
-            rows.append({k: info[k] for k in ("file", "start_time", "participant", "group",
-                                               "case", "duration_s", "voxels_removed",
-                                               "complete")}
-                        | {"injuries": len(info["injuries"])})
-        except BonesimError as exc:
-            rows.append({"file": str(p), "error": str(exc)})
-    return rows
-
-
-# ---------------------------------------------------------------------------
-# Replay
-# ---------------------------------------------------------------------------
-def replay(session: Session, models=None, progress=None) -> dict:
-    """Re-run the recorded samples through the engine.
-
-    Parameters
-    ----------
-    session : Session
-    models : list of Model, optional
-        Default :meth:`Session.burr_models` (hash-checked).
-    progress : callable, optional
-        Called with the fraction done now and then.
-
-    Returns
-    -------
-    dict
-        ``removals`` (``t_s``, ``ijk``, ``label``), ``mag_n`` and
-        ``tangential_n`` per sample, and the final ``state``.
-    """
-    from .model import Sample, make_state, reset_state, step
-
-    models = session.burr_models() if models is None else models
-    s = session.samples
-    n = len(s["t_s"])
-    state = make_state(models[0])
-    for m in models:
-        state.fit_scratch(m)
-    from .haptics import O_MAG, O_TX, O_TZ
-
-    mag = np.zeros(n)
-    tang = np.zeros((n, 3))
-    cur = events.Cursor(state.removed, 0)
-    chunks = []
-    epoch = 0
-    t_col, pos, axis = s["t_s"], s["pos_mm"], s["axis"]
-    drill, speed, direc = s["drill"], s["speed_rpm"], s["direction"]
-    burr, ep = s["burr"], s["epoch"]
-    for q in range(n):
-        if int(ep[q]) != epoch:
-            reset_state(models[int(burr[q])], state, rings=False)
-            epoch = int(ep[q])
-        step(models[int(burr[q])], state,
-             Sample(float(t_col[q]), pos[q], axis[q], bool(drill[q]), float(speed[q]),
-                    int(direc[q])))
-        mag[q] = state.out[O_MAG]
-        tang[q] = state.out[O_TX:O_TZ + 1]
-        if state.removed.count - cur.pos > state.removed.capacity // 2:
-            chunks.append(cur.drain())
-        if progress is not None and q % 20000 == 0:
-            progress(q / max(n, 1))
-    chunks.append(cur.drain())
-    rem = {k: np.concatenate([c[k] for c in chunks]) for k in ("t_s", "ijk", "label")}
-    return {"removals": rem, "mag_n": mag, "tangential_n": tang, "state": state}
-
-
-def verify(session: Session, progress=None) -> dict:
-    """Replay ``session`` and compare with the recording bit for bit.
-
-    Returns
-    -------
-    dict
-        ``ok`` and, per stream, whether it matched and the first mismatch.
-    """
-    out = replay(session, progress=progress)
-    rec = session.removals
-    s = session.samples
-    if not session.complete and len(s["t_s"]):
-        # a file cut by a crash may hold removals of steps whose samples had
-        # not been flushed yet: compare what the samples cover
-        keep = rec["t_s"] <= s["t_s"][-1]
-        rec = {k: v[keep] for k, v in rec.items()}
-    got = out["removals"]
-    report = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
-              "removals_recorded": int(len(rec["t_s"])),
-              "removals_replayed": int(len(got["t_s"]))}
-    n = min(len(rec["t_s"]), len(got["t_s"]))
-    first = None
-    for k in ("t_s", "ijk", "label"):
-        a, b = rec[k][:n], got[k][:n]
-        bad = np.flatnonzero((a != b).reshape(n, -1).any(axis=1)) if n else []
-        if len(bad) and (first is None or bad[0] < first["index"]):
-            first = {"index": int(bad[0]), "field": k,
-                     "recorded": np.asarray(a[bad[0]]).tolist(),
-                     "replayed": np.asarray(b[bad[0]]).tolist()}
-    if first is None and len(rec["t_s"]) != len(got["t_s"]):
-        first = {"index": n, "field": "count", "recorded": int(len(rec["t_s"])),
-                 "replayed": int(len(got["t_s"]))}
-    report["removals_match"] = first is None
-    report["first_mismatch"] = first
-    report["forces_match"] = bool(np.array_equal(s["mag_n"], out["mag_n"])
-                                  and np.array_equal(s["tangential_n"], out["tangential_n"]))
-    report["ok"] = report["removals_match"] and report["forces_match"]
-    return report

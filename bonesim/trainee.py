@@ -78,7 +78,7 @@ def _make_source(spec):
         src = tutor.NetworkSource(host, port, key, case=case)
         return src, timeout_s
     if kind == "recording":
-        from .record import read_session
+        from .session_reader import read_session
 
         _, path, speed, start_s = spec
         session = read_session(path)

@@ -923,7 +923,7 @@ class RecordingSource(Source):
     Parameters
     ----------
     session : Session
-        From :func:`bonesim.record.read_session`.
+        From :func:`bonesim.session_reader.read_session`.
     model : Model, optional
         The recorded case (default: rebuilt from the session's header).
     speed : float
@@ -1394,7 +1394,7 @@ def cmd_join(args) -> int:
 def cmd_playback(args) -> int:
     """``bonesim tutor playback FILE.h5``: drive the trainee's device from a recording."""
     from .devices import SimulatedHandDevice
-    from .record import read_session
+    from .session_reader import read_session
 
     if _window_mode(args):                        # the servo's process reads the file
         s = _trainee_window(args, ("recording", str(args.file), args.speed, args.start))

@@ -84,7 +84,7 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     assert "facial_nerve" in trace_text and "chorda_tympani" in trace_text and trace_hidden
     assert (tmp_path / "shot.png").stat().st_size > 1000
     # the session was recorded: samples, every removal, camera per frame, the key
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     s = read_session(out["record"])
     assert s.complete and s.header["participant"] == "t1"
@@ -105,7 +105,7 @@ def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
     assert out["surface_updates"] > 0                 # the mesh followed the drilling
     assert re.search(r"haptic\s+\d+ Hz\s+frame\s+\d+ Hz", out["hud"]), out["hud"]
     assert "no display" not in res.stderr             # it really used the X server
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     s = read_session(out["record"])                  # --record: the sessions folder
     assert Path(out["record"]).parent == Path(os.environ["BONESIM_SESSIONS"])

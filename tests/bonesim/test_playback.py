@@ -81,7 +81,7 @@ def drill_run(model, state, plan, snap_every=100):
 
 def fake_session(camera: bool = True):
     """A recorded-session stand-in with the attributes of
-    ``bonesim.record.read_session``'s result: 1.8 s on the nerve block (a
+    ``bonesim.session_reader.read_session``'s result: 1.8 s on the nerve block (a
     pit, a sweep over the nerve, a reset at 1.2 s, a second pit).
 
     Returns (session, snapshots)."""
@@ -403,7 +403,7 @@ def demo_file(tmp_path_factory):
 
 def _engine_density(model, session, t):
     """The live engine's density at playback time ``t``: the recorded samples
-    stepped again from the initial tissue (as bonesim.record.replay does)."""
+    stepped again from the initial tissue (as bonesim.replay.replay does)."""
     from bonesim.model import make_state
 
     s = session.samples
@@ -417,7 +417,7 @@ def _engine_density(model, session, t):
 
 
 def test_recorded_file_seeks_match_the_engine(demo_file):
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     s = read_session(demo_file)
     p = Player(s)
@@ -444,7 +444,9 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     from bonesim.case import load_case
     from bonesim.haptic_loop import ST_EPOCH, HapticLoop
     from bonesim.model import load_model
-    from bonesim.record import Recorder, make_header, read_session, replay
+    from bonesim.record import Recorder, make_header
+    from bonesim.replay import replay
+    from bonesim.session_reader import read_session
     import time
 
     model = load_model("phantom", "cutting-5mm")

@@ -21,8 +21,9 @@ from bonesim.cli import _demo_trajectory, main
 from bonesim.errors import BonesimError
 from bonesim.haptic_loop import ST_T, HapticLoop
 from bonesim.model import load_model
-from bonesim.record import (SCHEMA_VERSION, Recorder, make_header, read_session,
-                            replay, session_info, verify)
+from bonesim.record import SCHEMA_VERSION, Recorder, make_header
+from bonesim.replay import replay, verify
+from bonesim.session_reader import read_session, session_info
 from bonesim.shared import SharedArrays
 from bonesim.simulate import run_trajectory
 
@@ -136,7 +137,7 @@ def test_broken_or_newer_files_get_a_clear_error(recorded, tmp_path, edit, words
 def test_not_hdf5_and_missing_files(tmp_path, capsys):
     junk = tmp_path / "junk.h5"
     junk.write_bytes(b"not an hdf5 file at all")
-    with pytest.raises(BonesimError, match="not a readable HDF5"):
+    with pytest.raises(BonesimError, match="junk.h5: not an HDF5 file \\(no HDF5 signature"):
         read_session(junk)
     assert main(["sessions", "info", str(tmp_path / "nope.h5")]) == 2
     assert "no such session file" in capsys.readouterr().err
@@ -309,7 +310,7 @@ def test_sessions_list_shows_good_and_broken_files(recorded, tmp_path, capsys):
     assert main(["sessions", "list", str(tmp_path), "--json"]) == 0
     rows = {Path(r["file"]).name: r for r in json.loads(capsys.readouterr().out)}
     assert rows["a.h5"]["participant"] == "p07" and rows["a.h5"]["complete"]
-    assert "not a readable HDF5" in rows["b.h5"]["error"]
+    assert "not an HDF5 file" in rows["b.h5"]["error"]
     assert main(["sessions", "list", str(tmp_path / "none")]) == 2
 
 

@@ -41,7 +41,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_children_end_when_the_parent_is_killed(tmp_path):
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     path = tmp_path / "orphan.h5"
     proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(path), str(ROOT)],

@@ -23,7 +23,7 @@ KEY = bytes(range(7, 39))
 
 
 def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     session = read_session(demo_file)
     with TraineeProcess(("recording", str(demo_file), 4.0, 0.0)) as proc:

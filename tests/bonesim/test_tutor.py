@@ -552,6 +552,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
 # ---------------------------------------------------------------- playback
 def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
     from bonesim import record
+    from bonesim.session_reader import read_session
 
     model, state = block_model()
     inst = Instructor(model, state)
@@ -565,7 +566,7 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
             if q % 100 == 99:
                 drainer.drain()
         drainer.drain()
-    session = record.read_session(path)
+    session = read_session(path)
     src = tutor.RecordingSource(session, model=model)
     hand = SimulatedHandDevice()
     trainee = tutor.Trainee(src, hand)

@@ -130,7 +130,7 @@ def test_tool_hand_and_hud_come_from_the_status(view):
 @pytest.mark.slow
 def test_cli_playback_window_offscreen(gl_info, demo_file, tmp_path, capsys):
     from bonesim.cli import main
-    from bonesim.record import read_session
+    from bonesim.session_reader import read_session
 
     n_rem = len(read_session(demo_file).removals["t_s"])
     shot = tmp_path / "trainee.png"
