@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .bench_tools import ball_offsets, remove_voxels
+
 #: Synthetic CT size for the tessellation benchmarks [voxels].
 CT_SHAPE = (512, 512, 300)
 
@@ -68,13 +70,6 @@ def bench_haptic_step(quick=False) -> dict:
 
 
 # ----------------------------------------------------------------- surface
-def ball_offsets(radius_vox: float) -> np.ndarray:
-    """Integer offsets (n, 3) int32 of the voxels of a ball of ``radius_vox`` [voxels]."""
-    m = int(np.ceil(radius_vox))
-    g = np.stack(np.meshgrid(*[np.arange(-m, m + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    return g[(g ** 2).sum(1) <= radius_vox ** 2].astype(np.int32)
-
-
 def bench_surface(quick=False) -> dict:
     """From-scratch and incremental tessellation of the phantom."""
     from .model import load_model
@@ -118,23 +113,6 @@ def bench_surface(quick=False) -> dict:
             "reference": "Surface.build of the phantom vs incremental update per 1000 "
                          "removed voxels (mean)"},
     }
-
-
-def remove_voxels(grid, ijk) -> np.ndarray:
-    """Empty the occupied voxels among ``ijk`` (as a burr would); returns them
-    as (n, 3) int32, the list a surface update needs."""
-    from .grid import BRICK_SHIFT, find_brick, voxel_offset
-
-    out = []
-    for i, j, k in ijk:
-        b = find_brick(grid.keys, grid.vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
-                       k >> BRICK_SHIFT)
-        if b >= 0:
-            o = voxel_offset(i, j, k)
-            if grid.density[b, o] > 0:
-                grid.density[b, o] = 0.0
-                out.append((i, j, k))
-    return np.array(out, dtype=np.int32).reshape(-1, 3)
 
 
 def synthetic_ct(shape=CT_SHAPE, seed=0) -> np.ndarray:
@@ -202,10 +180,11 @@ def bench_ct512(quick=False) -> dict:
 def bench_simulate(quick=False) -> dict:
     """Wall time of a warm ``bonesim simulate`` of a 5 s trajectory (new process)."""
     from .case import load_case
-    from .cli import DEFAULT_BURR, _demo_trajectory
+    from .burrs import DEFAULT_BURR
+    from .toolpath import demo_trajectory
     from .trajectory import Trajectory, write_trajectory
 
-    traj = _demo_trajectory(load_case("phantom"), DEFAULT_BURR)
+    traj = demo_trajectory(load_case("phantom"), DEFAULT_BURR)
     keep = traj.t_s <= 5.0
     cut = Trajectory(t_s=traj.t_s[keep], pos_mm=traj.pos_mm[keep], axis=traj.axis[keep],
                      drill=traj.drill[keep], speed_rpm=traj.speed_rpm[keep],
@@ -232,12 +211,13 @@ def bench_simulate(quick=False) -> dict:
 def _loop_for_bench(seconds: float):
     """A haptic loop on the phantom playing the demo path where it drills."""
     from .case import load_case
-    from .cli import DEFAULT_BURR, _demo_trajectory
+    from .burrs import DEFAULT_BURR
+    from .toolpath import demo_trajectory
     from .haptic_loop import HapticLoop
     from .model import load_model
 
     model = load_model("phantom", DEFAULT_BURR)
-    traj = _demo_trajectory(load_case("phantom"), DEFAULT_BURR)
+    traj = demo_trajectory(load_case("phantom"), DEFAULT_BURR)
     start = int(np.flatnonzero(traj.drill)[0])
     traj = traj.at_times(traj.t_s[start:])
     return model, HapticLoop(model, device=("scripted", traj), run_s=seconds)
@@ -275,10 +255,11 @@ def bench_haptic_loop_rendering(quick=False) -> dict:
     callback: surface, dust, tool and HUD updates)."""
     from .app import App
     from .case import load_case
-    from .cli import DEFAULT_BURR, _demo_trajectory
+    from .burrs import DEFAULT_BURR
+    from .toolpath import demo_trajectory
     from .render import gl
 
-    traj = _demo_trajectory(load_case("phantom"), DEFAULT_BURR)
+    traj = demo_trajectory(load_case("phantom"), DEFAULT_BURR)
     start = int(np.flatnonzero(traj.drill)[0])
     traj = traj.at_times(traj.t_s[start:])
     frames = 100 if quick else 300

@@ -23,9 +23,9 @@ import numpy as np
 
 def _demo_samples(model, n: int):
     from .case import load_case
-    from .cli import _demo_trajectory
+    from .toolpath import demo_trajectory
 
-    t = _demo_trajectory(load_case("phantom"), model.burr.name)
+    t = demo_trajectory(load_case("phantom"), model.burr.name)
     start = int(np.flatnonzero(t.drill)[0])
     return t.at_times(t.t_s[start:]).resample(model.haptic_rate_hz), start
 

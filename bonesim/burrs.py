@@ -58,10 +58,13 @@ import burrs as _burr_package
 from .errors import BonesimError
 from .tomlfile import check_keys, get_str, read_toml
 
-__all__ = ["BURR_KINDS", "CONTACT_LEVELS", "Burr", "burr_folder", "load_burr", "load_burr_file",
+__all__ = ["DEFAULT_BURR", "BURR_KINDS", "CONTACT_LEVELS", "Burr", "burr_folder", "load_burr", "load_burr_file",
            "list_burrs", "burr_table"]
 
 #: Burr kinds the simulator models.
+#: The burr a run starts with when none is named.
+DEFAULT_BURR = "cutting-5mm"
+
 BURR_KINDS = ("cutting", "diamond")
 
 #: Contact levels reported by :meth:`Burr.contact_level`, weakest first.

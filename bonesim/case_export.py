@@ -226,7 +226,8 @@ def export_case(case, fmt: str, out_dir: str | Path, overwrite: bool = False,
         The written ``case.toml``.
     """
     from .anatomy import load_table
-    from .case import CASE_FILE, parse_case
+    from .case_manifest import parse_manifest as parse_case
+    from .case_records import CASE_FILE
 
     if fmt not in EXPORT_FORMATS:
         raise BonesimError(f"cannot export to {fmt!r}; formats: {list(EXPORT_FORMATS)}")

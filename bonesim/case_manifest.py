@@ -12,9 +12,10 @@ import numpy as np
 
 from . import anatomy as _anatomy
 from . import phantom as _phantom
-from .case import (CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU, DEFAULT_PATTERN,
-                   DEFAULT_VOXEL_MM, KINDS, MAX_LABEL, MAX_VOXEL_MM, MIN_VOXEL_MM,
-                   SEG_FORMAT, SIDES, Camera, Case, Structure, Target, VolumeSpec)
+from .case_records import (CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU, DEFAULT_PATTERN,
+                           DEFAULT_VOXEL_MM, KINDS, MAX_LABEL, MAX_VOXEL_MM,
+                           MIN_VOXEL_MM, SEG_FORMAT, SIDES, Camera, Case, Structure,
+                           Target, VolumeSpec)
 from .errors import BonesimError
 from .orientation import parse_orientation
 from .segmentation import SEG_SUFFIX, read_seg_segments, segment_keys

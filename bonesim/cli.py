@@ -11,10 +11,10 @@ import json
 import sys
 from pathlib import Path
 
+from .burrs import DEFAULT_BURR
 from .errors import BonesimError
 
 DEFAULT_CASE = "phantom"
-DEFAULT_BURR = "cutting-5mm"
 
 
 def _print_json(obj) -> None:
@@ -90,7 +90,7 @@ def cmd_burrs(args) -> int:
 
 
 # ------------------------------------------------------ trajectories / runs
-def _demo_trajectory(case, burr_name: str):
+def _plan(case, burr_name: str):
     from .toolpath import demo_trajectory
 
     return demo_trajectory(case, burr_name)
@@ -101,7 +101,7 @@ def cmd_trajectory(args) -> int:
     from .trajectory import write_trajectory
 
     case = load_case(args.case)
-    traj = _demo_trajectory(case, args.burr)
+    traj = _plan(case, args.burr)
     write_trajectory(args.out, traj)
     print(f"wrote {args.kind} trajectory for case '{case.name}' ({len(traj.t_s)} points, "
           f"{traj.t_s[-1]:.1f} s) to {args.out}")
@@ -177,7 +177,7 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     case = load_case(args.case)
-    traj = _demo_trajectory(case, args.burr)
+    traj = _plan(case, args.burr)
     tpath = out / "trajectory.csv"
     write_trajectory(tpath, traj)
     import numpy as np
@@ -222,7 +222,7 @@ def cmd_run(args) -> int:
                            "of a recording)", field="--video")
     if offscreen:
         if script is None:                 # a glimpse of the planned mastoidectomy
-            traj = _demo_trajectory(load_case(args.case), args.burr)
+            traj = _plan(load_case(args.case), args.burr)
             import numpy as np
 
             start = int(np.flatnonzero(traj.drill)[0])
@@ -394,7 +394,7 @@ def _lazy(module: str, name: str):
 
 def _tutor(name: str):
     """A ``bonesim tutor`` handler (:func:`_lazy`)."""
-    return _lazy("tutor", name)
+    return _lazy("tutor_commands", name)
 
 
 def _trainee_window_args(p) -> None:

@@ -55,6 +55,7 @@ import numpy as np
 from . import events
 from .clearance import Clearance
 from .errors import BonesimError
+from .monitor_rings import HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history, shared_rings
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 from .tomlfile import check_keys, get_number, read_toml
 
@@ -65,12 +66,6 @@ __all__ = ["ActivityParams", "load_activity_params", "default_params_path", "act
 
 #: Rate at which the monitor process updates [Hz].
 UPDATE_HZ = 200.0
-#: Rate history kept for the trace [s] (the ring holds a little more).
-HISTORY_S = 5.0
-#: Capacity of the shared rate history [updates] (power of two, > HISTORY_S * UPDATE_HZ).
-HISTORY_CAP = 2048
-#: Capacity of the shared spike ring [spikes] (power of two; max_hz * nerves * history).
-SPIKE_CAP = 1 << 14
 #: Updates between refreshes of the measured rate and cost statistics.
 STATS_EVERY = 100
 #: Most nerves one monitor handles (the spike ring stores the nerve as uint8).
@@ -498,42 +493,6 @@ def _monitor_spec(k: int) -> list:
             ("hist.dist", (HISTORY_CAP, k), np.float32), ("hist.head", (1,), np.int64),
             ("spikes.t_s", (SPIKE_CAP,), np.float64),
             ("spikes.nerve", (SPIKE_CAP,), np.uint8), ("spikes.head", (1,), np.int64)]
-
-
-def shared_rings(arrays) -> tuple:
-    """``(history, spikes)`` rings over a monitor block's arrays: the rate
-    history (``t_s``, ``rate`` (k), ``dist`` (k)) and the spikes (``t_s``,
-    ``nerve``)."""
-    hist = events.Ring({"t_s": arrays["hist.t_s"], "rate": arrays["hist.rate"],
-                        "dist": arrays["hist.dist"]}, arrays["hist.head"])
-    spikes = events.Ring({"t_s": arrays["spikes.t_s"], "nerve": arrays["spikes.nerve"]},
-                         arrays["spikes.head"])
-    return hist, spikes
-
-
-def read_history(hist: events.Ring, spikes: events.Ring, now: float, k: int,
-                 window_s: float = HISTORY_S) -> dict:
-    """The last ``window_s`` seconds before ``now`` of a monitor's rate
-    history and spikes (rings as :func:`shared_rings` makes them): ``now``,
-    ``t_s`` (m,), ``rate`` (m, k), ``dist`` (m, k), ``spike_t`` (s,),
-    ``spike_nerve`` (s,). Reads at most half of each ring, so a writer in
-    another process may go on meanwhile."""
-    out = {"now": now}
-    for ring, keys in ((hist, ("t_s", "rate", "dist")), (spikes, ("t_s", "nerve"))):
-        stop = ring.count
-        start = max(0, stop - ring.capacity // 2)
-        try:
-            rec = ring.read(start, stop)
-        except events.RingOverflow:                     # raced by the writer
-            rec = ring.read(stop - 1, stop) if stop else ring.read(0, 0)
-        keep = rec["t_s"] >= now - window_s
-        for key in keys:
-            v = rec[key][keep]
-            if ring is spikes:
-                out["spike_" + ("t" if key == "t_s" else key)] = v
-            else:
-                out[key] = v[:, :k] if v.ndim == 2 else v
-    return out
 
 
 class MonitorView:

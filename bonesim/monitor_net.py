@@ -466,8 +466,8 @@ class MonitorConsole:
     # ------------------------------------------------------------- output
     def history(self, window_s: float = 5.0) -> dict:
         """The last ``window_s`` seconds, as :meth:`bonesim.monitor.MonitorView.history`
-        returns them (:func:`bonesim.monitor.read_history`)."""
-        from .monitor import read_history
+        returns them (:func:`bonesim.monitor_rings.read_history`)."""
+        from .monitor_rings import read_history
 
         now = 0.0 if math.isnan(self.t_s) else self.t_s
         return read_history(self._hist, self._spikes, now, self.n, window_s)

@@ -78,7 +78,7 @@ from .thin_bone import (_as_bone, _near_structure, _structure_bits, _tint, benea
 __all__ = ["NORMAL_RADIUS", "SHADE_MIN", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
            "ShadingParams", "default_shading_path", "load_shading", "normal_weights",
            "stencil_weights", "tint_weight", "tint_reach", "bone_labels", "beneath", "Shader",
-           "warmup"]
+           ]
 
 #: Darkest shade factor, applied to a voxel of density 0 (density 1 is full colour).
 SHADE_MIN = 0.35
@@ -637,12 +637,3 @@ def _split(rem, tch, margin):
         out.append((np.ascontiguousarray(rem[(rem[:, ax] <= mid) == lower]),
                     np.ascontiguousarray(tch[(tch[:, ax] <= mid) == lower])))
     return out
-
-
-def warmup() -> None:
-    """Compile (or load from the cache) this module's kernels on a tiny grid
-    (through :func:`bonesim.surface.warmup`, which builds and updates a
-    surface with a tint)."""
-    from .surface import warmup as surface_warmup
-
-    surface_warmup()

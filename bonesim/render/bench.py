@@ -46,7 +46,7 @@ import time
 
 import numpy as np
 
-from ..bench import ball_offsets, remove_voxels
+from ..bench_tools import ball_offsets, remove_voxels
 
 SIZE = (800, 600)
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory
+from bonesim.toolpath import demo_trajectory
 from bonesim.trajectory import write_trajectory
 
 pytestmark = pytest.mark.slow
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def script(tmp_path_factory):
     """A few seconds of the demo path, from where it starts drilling bone."""
-    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(traj.drill)[0])
     traj = traj.at_times(traj.t_s[start:start + 500])
     path = tmp_path_factory.mktemp("app") / "script.csv"

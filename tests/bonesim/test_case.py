@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bonesim import case as C
+from bonesim import case_records
 from bonesim import phantom as P
 from bonesim import volumes as VOL
 from bonesim.errors import BonesimError
@@ -490,7 +491,7 @@ def test_case_info_shows_a_progress_bar(tmp_path, monkeypatch, capsys, phantom_v
             progress(k, 4, "reading slices")
         return VOL.CaseVolume(phantom_vol.labels, 0.5, phantom_vol.origin_mm, "fake")
 
-    monkeypatch.setattr(C, "load_volume", fake_load_volume)
+    monkeypatch.setattr(case_records, "load_volume", fake_load_volume)
     (tmp_path / "slices").mkdir()
     assert main(["case-info", str(their_manifest(tmp_path))]) == 0
     out, err = capsys.readouterr()

@@ -9,7 +9,7 @@ import pytest
 
 from bonesim.burrs import load_burr
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory
+from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import (ST_BURR, ST_EPOCH, ST_STEPS, HapticLoop)
 from bonesim.model import load_model
 from bonesim.simulate import SurfaceConsumer
@@ -25,7 +25,7 @@ def model():
 
 
 def test_scripted_loop_publishes_and_consumer_stays_exact(model):
-    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
     # skip the approach: start where the path first drills bone
     start = np.flatnonzero(traj.drill)[0]
     traj = traj.at_times(traj.t_s[start:start + 400])

@@ -6,7 +6,7 @@ import pytest
 
 from bonesim.burrs import load_burr
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory
+from bonesim.toolpath import demo_trajectory
 from bonesim.model import load_model, make_state, step
 
 
@@ -17,7 +17,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def samples():
-    traj = _demo_trajectory(load_case("phantom"), "cutting-4mm").resample(1000.0)
+    traj = demo_trajectory(load_case("phantom"), "cutting-4mm").resample(1000.0)
     # the first 3 s that actually drill bone
     return list(traj.samples())[:3000]
 

@@ -389,11 +389,11 @@ def demo_file(tmp_path_factory):
     """A recorded scripted run: 8 s of the planned demo from its first drilling
     sample (bonesim.simulate with record=)."""
     from bonesim.case import load_case
-    from bonesim.cli import _demo_trajectory
+    from bonesim.toolpath import demo_trajectory
     from bonesim.model import load_model
     from bonesim.simulate import run_trajectory
 
-    t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(t.drill)[0])
     traj = t.at_times(t.t_s[start:start + 800])
     path = tmp_path_factory.mktemp("pb") / "demo.h5"

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory, main
+from bonesim.cli import main
+from bonesim.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
 from bonesim.haptic_loop import ST_T, HapticLoop
 from bonesim.model import load_model
@@ -36,7 +37,7 @@ def model():
 @pytest.fixture(scope="module")
 def traj():
     """The planned demo, from its first drilling sample, 8 s long."""
-    t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(t.drill)[0])
     return t.at_times(t.t_s[start:start + 800])
 
@@ -192,13 +193,13 @@ def test_live_loop_recording_replays_bit_for_bit(model, traj, tmp_path):
 _CHILD = r"""
 import json, sys, time
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory
+from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import HapticLoop
 from bonesim.model import load_model
 from bonesim.record import Recorder, make_header
 import numpy as np
 m = load_model("phantom", "cutting-5mm")
-t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+t = demo_trajectory(load_case("phantom"), "cutting-5mm")
 s = int(np.flatnonzero(t.drill)[0])
 loop = HapticLoop(m, device=("scripted", t.at_times(t.t_s[s:])))
 rec = Recorder(loop, sys.argv[1], make_header(m)).start()

@@ -16,7 +16,8 @@ import pytest
 
 from bonesim import record
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory, main
+from bonesim.cli import main
+from bonesim.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
 from bonesim.model import load_model
 from bonesim.record import SessionWriter, make_header
@@ -36,7 +37,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def traj():
-    t = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(t.drill)[0])
     return t.at_times(t.t_s[start:start + 800])
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.bench import ball_offsets, remove_voxels
+from bonesim.bench_tools import ball_offsets, remove_voxels
 from bonesim.model import load_model
 from bonesim.surface import Surface
 

@@ -65,11 +65,11 @@ def test_path_keeps_its_margin_and_approaches_sinus_and_nerve(phantom):
         assert near - R < PLAN.margin_mm + 0.5, f"path never approaches {name}"
 
 
-def test_demo_trajectory_is_the_cli_one(phantom):
-    from bonesim.cli import _demo_trajectory
+def test_demo_trajectory_is_deterministic(phantom):
+    from bonesim.toolpath import demo_trajectory
 
     case, _, traj = phantom
-    again = _demo_trajectory(case, "cutting-5mm")
+    again = demo_trajectory(case, "cutting-5mm")
     np.testing.assert_array_equal(again.pos_mm, traj.pos_mm)
     np.testing.assert_array_equal(again.suction, traj.suction)
     assert np.all(traj.speed_rpm == 60000.0) and np.all(traj.direction == 1)

@@ -94,13 +94,13 @@ def _exit_at_once(*args) -> None:
 
 def test_live_instructor_over_loopback_window_replica_matches():
     from bonesim.case import load_case
-    from bonesim.cli import _demo_trajectory
+    from bonesim.toolpath import demo_trajectory
     from bonesim.haptic_loop import HapticLoop
     from bonesim.model import load_model
     from bonesim.tutor import TutorServer
 
     model = load_model("phantom", "cutting-5mm")
-    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(traj.drill)[0])
     traj = traj.at_times(traj.t_s[start:start + 3000])
     with HapticLoop(model, device=("scripted", traj)) as loop:

@@ -650,9 +650,9 @@ def phantom():
 
 def _demo_path():
     from bonesim.case import load_case
-    from bonesim.cli import _demo_trajectory
+    from bonesim.toolpath import demo_trajectory
 
-    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(traj.drill)[0])
     return traj.at_times(traj.t_s[start:start + 3000])
 
@@ -785,10 +785,10 @@ def test_cli_playback_headless_json(tmp_path, capsys):
     import json
 
     from bonesim.case import load_case
-    from bonesim.cli import _demo_trajectory
+    from bonesim.toolpath import demo_trajectory
     from bonesim.trajectory import write_trajectory
 
-    traj = _demo_trajectory(load_case("phantom"), "cutting-5mm")
+    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(traj.drill)[0])
     traj = traj.at_times(traj.t_s[start:start + 60])
     csv = tmp_path / "short.csv"

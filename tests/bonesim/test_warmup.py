@@ -47,7 +47,7 @@ for name, fn in W._parts():
 before = signatures()
 
 from bonesim.case import load_case
-from bonesim.cli import _demo_trajectory
+from bonesim.toolpath import demo_trajectory
 from bonesim.model import load_model, make_state, step
 from bonesim.monitor import NerveMonitor
 from bonesim.render.meshbuf import SurfaceBuffers
@@ -57,7 +57,7 @@ model = load_model("phantom", "cutting-5mm")
 sent = pickle.loads(pickle.dumps(model))        # as the loop's process gets it
 state = make_state(sent)
 consumer = SurfaceConsumer(model, state)
-traj = _demo_trajectory(load_case("phantom"), "cutting-5mm").resample(1000.0)
+traj = demo_trajectory(load_case("phantom"), "cutting-5mm").resample(1000.0)
 start = int(np.flatnonzero(traj.drill)[0])
 buf = SurfaceBuffers()
 for q, s in enumerate(traj.samples()):
