@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench_tools import ball_offsets, remove_voxels
+from .bench_tools import ball_offsets, floor_scratch, remove_voxels, stencil_density_pass
 
 #: Synthetic CT size for the tessellation benchmarks [voxels].
 CT_SHAPE = (512, 512, 300)
@@ -49,6 +49,10 @@ def bench_haptic_step(quick=False) -> dict:
     axis = np.array([0.3, 0.0, -1.0])
     perf = time.perf_counter_ns
     state = None
+    floor_ns = np.empty(n, dtype=np.int64)
+    samples = model.stencil.packed
+    scratch = floor_scratch(burr.radius_mm, 0.5)
+    stencil_density_pass(model.grid, samples, np.zeros(3), burr.radius_mm, scratch)
     for q in range(n):
         if q % per_reset == 0:
             state = make_state(model)          # fresh bone, outside the timing
@@ -57,10 +61,22 @@ def bench_haptic_step(quick=False) -> dict:
         pos = np.array([10.0 + (0.08 * u) % 40.0, 10.0 + 8.0 * ((q // per_reset) % 5), top])
         smp = Sample(q * 1e-3, pos, axis, True, burr.default_speed_rpm, 1)
         t0 = perf()
+        stencil_density_pass(state.grid, samples, pos, burr.radius_mm, scratch)  # floor
+        t1 = perf()
         step(model, state, smp)
-        ns[q] = perf() - t0
+        ns[q] = perf() - t1
+        floor_ns[q] = t1 - t0
     us = ns / 1e3
+    floor_us = floor_ns / 1e3
     return {
+        "haptic_step_floor_us": {
+            "value": round(_pct(floor_us, 50), 2), "unit": "us",
+            "what": "p50 of one pass over the 7 mm stencil's samples that only looks up "
+                    "each sample's voxel density, at the step's positions",
+            "samples": model.stencil.n},
+        "haptic_step_vs_floor": {
+            "value": round(_pct(us, 50) / _pct(floor_us, 50), 2), "unit": "x",
+            "what": "haptic_step_7mm_p50_us / haptic_step_floor_us, measured interleaved"},
         "haptic_step_7mm_p50_us": {"value": round(_pct(us, 50), 2), "unit": "us",
                                    "samples": model.stencil.n, "steps": n,
                                    "oversample": model.oversample},
@@ -335,6 +351,8 @@ def bench_load(quick=False) -> dict:
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
+    "haptic_step_floor_us": bench_haptic_step,
+    "haptic_step_vs_floor": bench_haptic_step,
     "retessellate_1000_p99_ms": bench_surface,
     "retessellate_speedup_vs_full": bench_surface,
     "tessellate_phantom_s": bench_surface,
