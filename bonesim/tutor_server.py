@@ -1,0 +1,337 @@
+"""The instructor's side of haptic tutoring: the :class:`Streamer` that turns
+the haptic loop's samples and removals into STATE packets, and the
+:class:`TutorServer` process that serves them to trainees."""
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import time
+
+import numpy as np
+
+from . import events, net
+from .errors import BonesimError
+from .net import udp_socket
+from .shared import die_with_parent, end_process, start_process, wait_ready
+from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK, KIND_STATE,
+                             MAX_REMOVALS, SERVO_HZ, STALE_S, RemovalLog, pack_state,
+                             removed_voxels, session_info)
+
+# -------------------------------------------------------------------- server
+class Streamer:
+    """The instructor side of tutoring, one :meth:`tick` at a time.
+
+    It reads the haptic loop's ``samples`` and ``removed`` rings (in shared
+    memory when run by :class:`TutorServer`), answers JOINs and ACKs, and
+    sends each streaming trainee a STATE packet per new sample.
+
+    Parameters
+    ----------
+    sock : socket.socket
+        Bound, non-blocking UDP socket (anything with ``sendto`` and
+        ``recvfrom_into``).
+    key : bytes
+    samples, removed : events.Ring
+        The loop's rings.
+    info : dict
+        Session description sent in WELCOME (:func:`session_info`).
+    density, initial_density, bricks : ndarray, optional
+        Live and initial tissue density and the brick coordinates: with them
+        the log starts with the voxels already removed when the server
+        starts (a server started mid-session).
+
+    Attributes
+    ----------
+    counters : dict
+        ``sent``, ``removals_sent``, ``nacks``, ``go_backs`` and the
+        session's ``joins``, ``welcomes``, ``send_errors``, ``peers_dropped``
+        (:class:`bonesim.net.SessionServer`); :attr:`rx` holds the received
+        datagrams by outcome.
+    """
+
+    def __init__(self, sock, key: bytes, samples: events.Ring, removed: events.Ring,
+                 info: dict, density=None, initial_density=None, bricks=None):
+        self.samples = samples
+        self.removed = removed
+        self.log = RemovalLog()
+        self.counters = dict.fromkeys(("sent", "removals_sent", "nacks", "go_backs"), 0)
+        self.session = net.SessionServer(sock, key, info, stale_s=STALE_S,
+                                         timeout_s=CLIENT_TIMEOUT_S, counters=self.counters,
+                                         make_peer=self._new_trainee)
+        self._pbuf = bytearray(net.MAX_PAYLOAD)
+        self._sf = samples.fields
+        self._smask = samples.capacity - 1
+        n = samples.count
+        self.s_pos = n
+        self.epoch = int(self._sf["epoch"][(n - 1) & self._smask]) if n else 0
+        self.t_done = float(self._sf["t_s"][(n - 1) & self._smask]) if n else -math.inf
+        # cursor first, then the snapshot (re-listing a voxel is harmless)
+        self.r_pos = removed.count
+        if density is not None:
+            self.log.extend(removed_voxels(initial_density, density, bricks))
+
+    @staticmethod
+    def _new_trainee(peer) -> None:
+        peer.send_from = 0                     # next log index to send it
+        peer.acked = 0                         # removals it holds
+        peer.last_sent_sample = -1
+
+    @property
+    def clients(self) -> dict:
+        """Joined trainees by address (:class:`bonesim.net.Peer`)."""
+        return self.session.peers
+
+    @property
+    def rx(self) -> dict:
+        """Received datagrams by outcome (:data:`bonesim.net.COUNTERS`)."""
+        return self.session.rx
+
+    # ------------------------------------------------------------- inputs
+    def _pump(self) -> None:
+        """Take the samples and removals published since the last call."""
+        n = self.samples.count
+        if n == self.s_pos:
+            return
+        start = max(self.s_pos, n - self.samples.capacity + 1)
+        ep = self._sf["epoch"]
+        idx = np.arange(start, n) & self._smask
+        epochs = ep[idx]
+        t_new = self._sf["t_s"][idx]
+        t_last = float(t_new[-1])
+        boundary = -math.inf
+        changed = np.flatnonzero(epochs != np.concatenate(([self.epoch], epochs[:-1])))
+        if len(changed):                         # a case reset: new log
+            boundary = float(t_new[changed[-1]])
+            self.epoch = int(epochs[-1])
+            self.log.clear()
+            for c in self.clients.values():
+                c.send_from = 0
+                c.acked = 0
+        # removals of completed steps only (their sample is out): t <= t_last
+        r_n = self.removed.count
+        if r_n > self.r_pos:
+            rec = self.removed.read(self.r_pos, r_n)
+            t = rec["t_s"]
+            done = int(np.searchsorted(t, t_last, side="right"))
+            first = int(np.searchsorted(t[:done], boundary, side="left"))
+            if done > first:
+                self.log.extend(rec["ijk"][first:done])
+            self.r_pos += done
+        self.s_pos = n
+        self.t_done = t_last
+
+    def _ack(self, c, p) -> None:
+        if len(p.payload) != ACK.size:
+            self.rx["malformed"] += 1
+            self.rx["accepted"] -= 1
+            return
+        have, epoch = ACK.unpack(p.payload)
+        if not c.streaming:
+            c.streaming = True
+            c.send_from = 0
+        if epoch != self.epoch or have > self.log.n:
+            return                                    # about another epoch: ignore
+        c.acked = max(c.acked, have)
+        if p.flags & FLAG_NACK:
+            self.counters["nacks"] += 1
+            if have < c.send_from:
+                c.send_from = have
+                self.counters["go_backs"] += 1
+
+    # --------------------------------------------------------------- tick
+    def tick(self, now: float) -> int:
+        """Receive, take new data, send at time ``now`` [s] (the clock the
+        packets are stamped with). Returns the STATE packets sent."""
+        for c, p in self.session.receive(now):
+            self._ack(c, p)
+        self._pump()
+        head = self.s_pos
+        if head == 0:
+            return 0
+        q = (head - 1) & self._smask
+        f = self._sf
+        sent = 0
+        for c in self.session.expire(now):
+            if not c.streaming:
+                continue
+            pending = self.log.n - c.send_from
+            if head == c.last_sent_sample and pending <= 0:
+                continue
+            k = min(max(pending, 0), MAX_REMOVALS)
+            n = pack_state(self._pbuf, f["t_s"][q], f["pos_mm"][q], f["axis"][q],
+                           f["force_n"][q], f["speed_rpm"][q], f["mag_n"][q],
+                           f["volume_mm3"][q], self.epoch, int(f["buttons"][q]),
+                           int(f["drill"][q]), int(f["direction"][q]), int(f["burr"][q]),
+                           self.log.n, c.send_from,
+                           self.log.ijk[c.send_from:c.send_from + k])
+            self.session.send(c, KIND_STATE, memoryview(self._pbuf)[:n])
+            c.send_from += k
+            c.last_sent_sample = head
+            self.counters["sent"] += 1
+            self.counters["removals_sent"] += k
+            sent += 1
+        return sent
+
+    def bye(self) -> None:
+        """Tell every trainee the session ends."""
+        self.session.bye()
+
+    def stats(self) -> dict:
+        return {**self.counters, "received": dict(self.rx), "clients": len(self.clients),
+                "streaming": sum(c.streaming for c in self.clients.values()),
+                "log_removals": self.log.n, "epoch": self.epoch}
+
+
+# server process ------------------------------------------------------------
+(SV_READY, SV_PORT, SV_QUIT, SV_DONE, SV_CLIENTS, SV_SENT, SV_REMOVALS, SV_NACKS,
+ SV_GO_BACKS, SV_LOG, SV_TICKS, SV_ERROR) = range(12)
+N_SV = 16
+
+
+def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks, status,
+                conn) -> None:
+    """Body of the server process: attach to the loop, stream until told to quit."""
+    from .haptic_loop import attach
+
+    die_with_parent()
+    sh, rings = attach(handle)
+    sock = None
+    stats = {}
+    try:
+        try:
+            sock = udp_socket(host, port)
+        except BonesimError as exc:
+            conn.send({"error": str(exc)})
+            status[SV_ERROR] = 1.0
+            return
+        streamer = Streamer(sock, key, rings["samples"], rings["removed"], info,
+                            density=sh.arrays["density"], initial_density=initial_density,
+                            bricks=bricks)
+        status[SV_PORT] = sock.getsockname()[1]
+        status[SV_READY] = 1.0
+        period = 1.0 / rate_hz
+        clock = time.monotonic
+        deadline = clock()
+        ticks = 0
+        while status[SV_QUIT] == 0.0:
+            streamer.tick(clock())
+            ticks += 1
+            if ticks % 64 == 0:
+                c = streamer.counters
+                status[SV_CLIENTS] = len(streamer.clients)
+                status[SV_SENT] = c["sent"]
+                status[SV_REMOVALS] = c["removals_sent"]
+                status[SV_NACKS] = c["nacks"]
+                status[SV_GO_BACKS] = c["go_backs"]
+                status[SV_LOG] = streamer.log.n
+                status[SV_TICKS] = ticks
+            deadline += period
+            rest = deadline - clock()
+            if rest > 0:
+                time.sleep(rest)
+            elif rest < -10 * period:                 # fell far behind: do not burst
+                deadline = clock()
+        streamer.bye()
+        stats = streamer.stats()
+        stats["ticks"] = ticks
+    finally:
+        try:
+            conn.send(stats)
+        except (OSError, ValueError):
+            pass
+        if sock is not None:
+            sock.close()
+        rings.clear()
+        sh.close()
+        status[SV_DONE] = 1.0
+
+
+class TutorServer:
+    """Streams a running :class:`~bonesim.haptic_loop.HapticLoop` to trainees
+    from its own process, attached to the loop's shared memory, so that
+    neither the loop nor a window in the main process delays sending.
+
+    Parameters
+    ----------
+    loop : HapticLoop
+        Started or about to be (its rings must exist: the shared memory).
+    key : bytes
+        Shared packet key (:func:`bonesim.net.load_key`).
+    host : str
+        Address to bind ("0.0.0.0": every interface; "127.0.0.1": local only).
+    port : int
+        UDP port (0: any free one, see :attr:`port`).
+    rate_hz : float
+        Send rate [Hz] (the haptic rate).
+    """
+
+    def __init__(self, loop, key: bytes, host: str = "0.0.0.0", port: int = DEFAULT_PORT,
+                 rate_hz: float = SERVO_HZ):
+        self.loop = loop
+        self.key = bytes(key)
+        self.host = host
+        self.port = int(port)
+        self.rate_hz = float(rate_hz)
+        self._proc = None
+        self._conn = None
+        self._status = None
+        self.final: dict = {}
+
+    def start(self, timeout_s: float = 30.0) -> "TutorServer":
+        ctx = mp.get_context("spawn")
+        self._status = ctx.RawArray("d", N_SV)
+        mine, theirs = ctx.Pipe(duplex=False)
+        model = self.loop.model
+        burrs = [b for b in self.loop.burrs if b is not None]
+        self._proc = start_process(
+            _serve_main, "bonesim-tutor-server",
+            (self.loop.handle, self.host, self.port, self.key, self.rate_hz,
+             session_info(model, burrs), np.asarray(model.grid.density),
+             np.asarray(model.grid.bricks), self._status, theirs))
+        theirs.close()
+        self._conn = mine
+        got = wait_ready(self._proc, lambda: self._status[SV_READY] != 0.0, timeout_s,
+                         failed=lambda: self._status[SV_ERROR] != 0.0)
+        if got == "exited":
+            msg = self._conn.recv() if self._conn.poll(1.0) else {}
+            self.stop()
+            raise BonesimError(msg.get("error", "the tutoring server process exited "
+                                                "during start-up"))
+        if got == "timeout":
+            self.stop()
+            raise BonesimError("the tutoring server did not start in time")
+        self.port = int(self._status[SV_PORT])
+        return self
+
+    def status(self) -> dict:
+        """Live figures (refreshed every 64 ticks)."""
+        s = self._status
+        return {"clients": int(s[SV_CLIENTS]), "sent": int(s[SV_SENT]),
+                "removals_sent": int(s[SV_REMOVALS]), "nacks": int(s[SV_NACKS]),
+                "go_backs": int(s[SV_GO_BACKS]), "log_removals": int(s[SV_LOG]),
+                "ticks": int(s[SV_TICKS])}
+
+    def stop(self, timeout_s: float = 5.0) -> dict:
+        """Say BYE to the trainees, stop the process; returns its final stats."""
+        if self._proc is None:
+            return self.final
+        self._status[SV_QUIT] = 1.0
+        if self._conn.poll(timeout_s):
+            try:
+                self.final = self._conn.recv()
+            except EOFError:
+                pass
+        end_process(self._proc, timeout_s)
+        self._proc = None
+        self._conn.close()
+        return self.final
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
