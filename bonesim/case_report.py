@@ -15,7 +15,7 @@ def table(rows: list[dict], cols: list[str]) -> None:
 
 class LoadProgress:
     """``progress(done, total, what)`` callback drawing one bar per stage on
-    stderr (:class:`bonesim.playback.ProgressBar`)."""
+    stderr (:class:`bonesim.progress.ProgressBar`)."""
 
     def __init__(self, stream=None):
         self.stream = stream
@@ -23,7 +23,7 @@ class LoadProgress:
         self.what = None
 
     def __call__(self, done, total, what="loading") -> None:
-        from .playback import ProgressBar
+        from .progress import ProgressBar
 
         if self.bar is None or what != self.what or int(total) != self.bar.total:
             self.close()

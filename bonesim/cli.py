@@ -318,7 +318,8 @@ def _run_showcase(args) -> int:
 def cmd_playback(args) -> int:
     import os
 
-    from .playback import Player, parse_size
+    from .playback import Player
+    from .video import parse_size
     from .session_reader import read_session
 
     from .session_reader import damage_notice

@@ -13,7 +13,7 @@ Each frame drains the removals into the hybrid surface and the bone dust,
 moves the dust (gravity, the burr's push, irrigation, suction), updates the
 nerve monitor's trace from the steps since the previous frame, and renders
 the scene offscreen. The frames become a short time-lapse video (H.264,
-:class:`bonesim.playback.VideoWriter`) and the last one the final picture.
+:class:`bonesim.video.VideoWriter`) and the last one the final picture.
 """
 from __future__ import annotations
 
@@ -348,7 +348,7 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
         :meth:`Showcase.summary` plus ``frames``, ``speedup``, ``wall_s`` and
         the files written.
     """
-    from .playback import VideoWriter
+    from .video import VideoWriter
 
     wall0 = time.perf_counter()
     if seconds is not None and not (math.isfinite(seconds) and seconds > 0):

@@ -33,8 +33,9 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor2D, vtkPolyDataMapper2D
 
-from ..playback import (SEEK_LONG_S, SEEK_SHORT_S, PlaybackClock, ProgressBar, VideoWriter,
-                        hud_info, video_times)
+from ..playback import SEEK_LONG_S, SEEK_SHORT_S, PlaybackClock, hud_info
+from ..progress import ProgressBar
+from ..video import VideoWriter, video_times
 from .hud import format_help
 from .window import LEFT
 

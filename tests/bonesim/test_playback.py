@@ -13,8 +13,9 @@ import pytest
 from bonesim import events
 from bonesim.errors import BonesimError
 from bonesim.model import Sample, reset_state, step
-from bonesim.playback import (SPEEDS, PlaybackClock, Player, ProgressBar, Timeline,
-                              VideoWriter, format_clock, hud_info, parse_size, video_times)
+from bonesim.playback import SPEEDS, PlaybackClock, Player, Timeline, hud_info
+from bonesim.progress import ProgressBar, format_clock
+from bonesim.video import VideoWriter, parse_size, video_times
 from bonesim.surface import Surface
 
 RATE_HZ = 1000.0
