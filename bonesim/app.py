@@ -35,6 +35,9 @@ from .sightline import depth_below_surface_mm
 from .haptic_loop import (IN_DIR, IN_DRILL, IN_SPEED, ST_AXIS, ST_BURR, ST_DIR, ST_DRILL,
                           ST_EPOCH, ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
 
+__all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
+           "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "App"]
+
 #: Press depth change per wheel click or Up/Down key [mm] (1 mm = 1 N).
 PRESS_STEP_MM = 0.5
 #: Spindle speed change per key press [rpm].

@@ -20,6 +20,9 @@ import time
 
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
+__all__ = ["CONTROL_HZ", "THICKNESS_MAX_MM", "A_READY", "A_SILENT", "A_DONE", "A_QUIT",
+           "A_CLICKS", "A_LATE", "A_DROPPED", "A_ANCHORS", "N_AS", "AudioProcess"]
+
 #: Rate at which sound parameters follow the haptic loop [Hz].
 CONTROL_HZ = 100.0
 #: Longest ray cast for the thickness estimate [mm].

@@ -20,6 +20,12 @@ import numpy as np
 
 from .bench_tools import ball_offsets, floor_scratch, remove_voxels, stencil_density_pass
 
+__all__ = ["CT_SHAPE", "bench_haptic_step", "bench_surface", "synthetic_ct",
+           "bench_ct512", "bench_simulate", "bench_haptic_loop",
+           "bench_haptic_loop_rendering", "bench_render", "bench_audio", "bench_dust",
+           "bench_recording", "bench_tutor", "bench_monitor", "bench_load",
+           "BENCHMARKS", "run_benchmarks"]
+
 #: Synthetic CT size for the tessellation benchmarks [voxels].
 CT_SHAPE = (512, 512, 300)
 

@@ -13,6 +13,8 @@ import time
 
 import numpy as np
 
+__all__ = ["EDGE", "FLOOR", "DT_S", "bench_dust"]
+
 #: Edge of the dusty box [cells].
 EDGE = 64
 #: Bone floor thickness under the box [cells].

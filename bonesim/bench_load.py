@@ -25,6 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+__all__ = ["SHAPE", "QUICK_SHAPE", "ORIENTATION", "REPEATS", "write_stack_case",
+           "bench_load"]
+
 #: Stack size: image columns, rows, slices.
 SHAPE = (512, 512, 500)
 #: Quick mode's stack (CI smoke test of the benchmark itself).

@@ -25,6 +25,8 @@ import numpy as np
 
 from .shared import end_process
 
+__all__ = ["SAMPLES_PER_UPDATE", "bench_update", "bench_loopback", "bench_monitor"]
+
 _KEY = bytes(range(64, 96))
 #: Samples per monitor update (1 kHz loop, 200 Hz monitor).
 SAMPLES_PER_UPDATE = 5

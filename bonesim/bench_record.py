@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+__all__ = ["bench_recording"]
+
 
 def _demo_samples(model, n: int):
     from .case import load_case

@@ -15,6 +15,8 @@ import time
 
 import numpy as np
 
+__all__ = ["BLOCK", "SAMPLE_RATE", "bench_audio"]
+
 #: Block length [samples] and rate [Hz] of the benchmark.
 BLOCK = 256
 SAMPLE_RATE = 48000

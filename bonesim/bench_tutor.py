@@ -21,6 +21,8 @@ import numpy as np
 
 from .shared import end_process
 
+__all__ = ["RATE_HZ", "PAYLOAD_BYTES", "bench_tutor"]
+
 #: Send rate [Hz].
 RATE_HZ = 1000.0
 #: Payload bytes (a STATE packet with a few removals).

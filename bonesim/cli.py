@@ -14,6 +14,10 @@ from pathlib import Path
 from .burrs import DEFAULT_BURR
 from .errors import BonesimError
 
+__all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
+           "cmd_trajectory", "cmd_simulate", "cmd_demo", "cmd_run", "cmd_playback",
+           "cmd_warmup", "cmd_bench", "build_parser", "main"]
+
 DEFAULT_CASE = "phantom"
 
 

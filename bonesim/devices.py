@@ -15,6 +15,10 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
+__all__ = ["DeviceCaps", "SCRIPTED", "DeviceReading", "Device", "MOUSE_CAPS",
+           "NULL_CAPS", "NullDevice", "ScriptedDevice", "SharedInputDevice",
+           "VirtualCoupling", "TOUCH_CAPS", "SIM_HAND_CAPS", "SimulatedHandDevice"]
+
 
 @dataclass(frozen=True)
 class DeviceCaps:

@@ -14,6 +14,15 @@ from numba import njit
 
 from .grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, _hash_slot, find_brick, pack_brick_key
 
+__all__ = ["Q_SHIFT", "Q", "FULL", "MAX_SPILL_FRACTION", "C_NFREE", "C_HW", "C_CUR",
+           "C_ADDED", "C_SUCKED", "C_NEED", "C_NALIVE", "C_PUSHED", "C_SUCKED_STEP",
+           "C_WETTED", "I_RATE", "I_KQ", "I_REPOSE", "I_NG", "I_DOM", "I_DSGN",
+           "I_LAT0", "I_LAT1", "I_SEARCH", "I_SRATE", "I_TOOL", "I_SUCTION", "I_GAX",
+           "I_GSG", "I_GWQ", "I_WRATE", "F_TX", "F_TY", "F_TZ", "F_TR", "F_SX", "F_SY",
+           "F_SZ", "F_SR", "F_OX", "F_OY", "F_OZ", "F_H", "F_UX", "F_UY", "F_UZ",
+           "F_WX", "F_WY", "F_WZ", "F_WR", "STAGE_GRAVITY", "STAGE_SPILL", "STAGE_TOOL",
+           "STAGE_SUCTION", "STAGE_DONE"]
+
 #: Fixed-point units per full cell of dust.
 Q_SHIFT = 20
 Q = 1 << Q_SHIFT

@@ -21,6 +21,8 @@ from .dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_SHIFT, C_ADDED, C_CUR, C_HW, 
                           STAGE_SPILL, STAGE_TOOL, _brick_in_domain, _insert_brick)
 from .grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
 
+__all__ = []
+
 # ================================================================ step rules
 @njit(cache=True, nogil=True)
 def _collect_active(alive, bmass, hw, active):

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+__all__ = ["BonesimError"]
+
 
 class BonesimError(Exception):
     """A clear, user-facing error about an input.

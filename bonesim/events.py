@@ -26,6 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = ["INJURY_CONTACT", "INJURY_REMOVAL", "INJURY_KINDS", "RingOverflow", "Ring",
+           "Cursor", "RINGS", "OTHER_RINGS", "ring_arrays_spec", "ring_from_arrays",
+           "removal_ring"]
+
 INJURY_CONTACT = 0
 INJURY_REMOVAL = 1
 INJURY_KINDS = ("contact", "removal")

@@ -35,6 +35,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+__all__ = ["BRICK", "BRICK_SHIFT", "BRICK_MASK", "BRICK_VOXELS", "EMPTY_KEY",
+           "pack_brick_key", "find_brick", "voxel_offset", "density_at", "gather_box",
+           "Grid", "sync_replica"]
+
 BRICK = 8
 BRICK_SHIFT = 3
 BRICK_MASK = 7

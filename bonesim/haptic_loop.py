@@ -46,6 +46,13 @@ from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
+__all__ = ["IN_POS", "IN_AXIS", "IN_DRILL", "IN_SPEED", "IN_DIR", "IN_BURR", "IN_RESET",
+           "IN_QUIT", "N_IN", "ST_T", "ST_POS", "ST_AXIS", "ST_FORCE", "ST_MAG",
+           "ST_VOLUME", "ST_IMMERSED", "ST_DRILL", "ST_SPEED", "ST_DIR", "ST_BURR",
+           "ST_STEPS", "ST_EPOCH", "ST_READY", "ST_DONE", "ST_OVERRUNS",
+           "ST_HAND_FORCE", "ST_REALTIME", "N_ST", "PERIOD_RING", "SPIN_S",
+           "START_TIMEOUT_S", "RT_PRIORITY", "attach", "push_sample", "HapticLoop"]
+
 # io: window -> loop
 IN_POS, IN_AXIS = 0, 3
 (IN_DRILL, IN_SPEED, IN_DIR, IN_BURR, IN_RESET, IN_QUIT) = range(6, 12)

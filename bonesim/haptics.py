@@ -51,6 +51,12 @@ from numba import njit
 
 from .grid import BRICK_SHIFT, find_brick, voxel_offset
 
+__all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
+           "P_INV_VOXEL_VOL", "P_RADIUS", "N_PARAMS", "O_FX", "O_FY", "O_FZ", "O_TX",
+           "O_TY", "O_TZ", "O_MAG", "O_VOLUME", "O_N_IMMERSED", "O_N_REMOVED",
+           "O_N_TOUCHED", "N_OUT", "Stencil", "make_stencil", "block_size",
+           "tool_frame", "multi_gain", "haptic_kernel"]
+
 # Layout of the float64 ``params`` vector handed to the kernel.
 (P_K_LOW, P_K_HIGH, P_V_T, P_K_TAN, P_MAX_FORCE, P_H3, P_INV_VOXEL_VOL,
  P_RADIUS) = range(8)

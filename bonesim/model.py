@@ -27,6 +27,11 @@ from .haptics import (N_OUT, N_PARAMS, P_H3, P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW,
                       P_K_TAN, P_MAX_FORCE, P_RADIUS, P_V_T, Stencil, block_size,
                       haptic_kernel, make_stencil)
 
+__all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
+           "make_model", "load_model", "State", "state_arrays_spec", "make_state",
+           "reset_state", "step", "clear_touched", "warmup_model", "warmup_sample",
+           "warmup"]
+
 #: Default haptic rate [Hz].
 HAPTIC_RATE_HZ = 1000.0
 #: Longest step the removal integrates over [s]; a stalled loop must not

@@ -41,6 +41,14 @@ from typing import NamedTuple
 
 from .errors import BonesimError
 
+__all__ = ["PROTOCOL_VERSION", "MAGIC", "HEADER", "TAG_BYTES", "MAX_DATAGRAM",
+           "MAX_PAYLOAD", "MIN_KEY_BYTES", "KEY_ENV", "DEFAULT_KEY_HELP",
+           "DEFAULT_PORT", "MONITOR_PORT", "CLOCK_DRIFT", "KIND_JOIN", "KIND_WELCOME",
+           "KIND_ACK", "KIND_BYE", "SESSION_KINDS", "REASONS", "PacketError", "Packet",
+           "load_key", "write_key", "new_nonce", "Codec", "udp_socket", "COUNTER_OF",
+           "COUNTERS", "Inbox", "WELCOME_NONCE", "datagrams", "Peer", "SessionServer",
+           "Welcome", "SessionClient", "pack_records", "unpack_records"]
+
 #: Wire-format version; a packet of any other version is dropped.
 PROTOCOL_VERSION = 1
 MAGIC = b"BSIM"

@@ -50,6 +50,9 @@ from .errors import BonesimError
 from .grid import sync_replica
 from .progress import format_clock
 
+__all__ = ["SPEEDS", "INJURY_NOTICE_S", "SEEK_SHORT_S", "SEEK_LONG_S", "Timeline",
+           "Frame", "Player", "hud_info", "PlaybackClock"]
+
 #: Playback speeds offered by :meth:`PlaybackClock.faster` / ``slower``.
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 #: How long the HUD names an injury after it happened [s of session time].

@@ -6,6 +6,8 @@ import math
 import sys
 import time
 
+__all__ = ["format_clock", "ProgressBar"]
+
 
 
 

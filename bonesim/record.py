@@ -34,6 +34,13 @@ from . import events
 from .errors import BonesimError
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
+__all__ = ["SCHEMA_VERSION", "FORMAT", "FLUSH_S", "WRITER_NICE", "CHUNK_ROWS",
+           "COMPACT_GZIP_LEVEL", "COMPACT_CHUNK_ROWS", "GROUPS", "HEADER_KEYS",
+           "case_sha256", "burr_sha256", "model_sha256", "make_header",
+           "sessions_folder", "default_session_path", "SessionWriter",
+           "compact_session", "Drainer", "C_STOP", "C_ROWS", "C_FLUSHES", "C_READY",
+           "C_ERROR", "C_OVERFLOWS", "C_LAST_FLUSH", "Recorder"]
+
 #: Version of the file layout written here (``docs/session_schema.md``).
 SCHEMA_VERSION = 1
 #: Value of the root attribute ``format``.

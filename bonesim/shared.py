@@ -17,6 +17,9 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+__all__ = ["SharedArrays", "start_process", "wait_ready", "end_process",
+           "die_with_parent"]
+
 _ALIGN = 64
 
 

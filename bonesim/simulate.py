@@ -20,6 +20,9 @@ from .grid import sync_replica
 from .haptics import O_N_IMMERSED
 from .model import Model, Sample, clear_touched, make_state, step
 
+__all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "SurfaceConsumer", "warmup", "run_trajectory",
+           "closest_approach"]
+
 #: Frame rate at which the surface consumer drains the rings [Hz].
 FRAME_HZ = 60.0
 

@@ -10,6 +10,8 @@ from bonesim.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
 from .surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
                              _LOW_HALF_X, _LOW_HALF_Y, _LOW_HALF_Z, _TR_KEY)
 
+__all__ = []
+
 # ----------------------------------------------------------------------------
 # Full tessellation, per brick
 # ----------------------------------------------------------------------------

@@ -14,6 +14,8 @@ from .surface_tables import (AFFECTED_CELL_OFFSETS, MAX_PER_CELL, QUAL_KEY, QUAL
                              _S_V_ADD, _S_V_DEL, _T_ALIVE, _T_HW, _T_NFREE, _V_ALIVE,
                              _V_HW, _V_NFREE, _nb_slot, _slot_of)
 
+__all__ = ["WINDOW_VOXELS_PER_INPUT"]
+
 # ----------------------------------------------------------------------------
 # Incremental update
 # ----------------------------------------------------------------------------

@@ -11,6 +11,10 @@ from numba import njit
 from bonesim.grid import (BRICK_SHIFT, find_brick)
 from bonesim.shading import (NORMAL_RADIUS)
 
+__all__ = ["MAX_PER_CELL", "RESHADE_REACH", "CORNER_OFFSETS", "TRIPLE_CORNERS",
+           "N_TRIPLES", "qualifying_triples", "TRIPLE_FACE", "QUAL_N", "QUAL_KEY",
+           "QUAL_NMIN", "AFFECTED_CELL_OFFSETS"]
+
 
 #: Most triples that qualify in one cell (checked when the table is built).
 MAX_PER_CELL = 4

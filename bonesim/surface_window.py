@@ -15,6 +15,8 @@ from .surface_tables import (N_TRIPLES, QUAL_KEY, QUAL_N, TRIPLE_CORNERS, TRIPLE
                              _TR_ONEXT, _T_ALIVE, _T_HW, _T_NFREE, _VR_HEAD, _VR_OHEAD,
                              _V_ALIVE, _V_HW, _V_NFREE)
 
+__all__ = ["FAST_MIN_VOXELS", "FAST_VOXELS_PER_INPUT"]
+
 # ----------------------------------------------------------------------------
 # Incremental update, window path
 # ----------------------------------------------------------------------------

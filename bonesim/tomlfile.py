@@ -11,6 +11,8 @@ from typing import Any, Iterable
 
 from .errors import BonesimError
 
+__all__ = ["read_toml", "check_keys", "get_number", "get_str", "get_vector"]
+
 
 def read_toml(path: str | Path) -> dict:
     """Parse a TOML file, raising a clear error if it is missing or malformed."""

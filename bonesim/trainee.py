@@ -33,6 +33,12 @@ from . import events
 from .errors import BonesimError
 from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
 
+__all__ = ["TS_DONE", "TS_T", "TS_TICKS", "TS_GAIN", "TS_LOST", "TS_VALID", "TS_DRILL",
+           "TS_SPEED", "TS_DIR", "TS_BURR", "TS_EPOCH", "TS_ERR_MM", "TS_LATENCY_MS",
+           "TS_PLAYBACK_S", "TS_ENDED", "TS_INSTR_POS", "TS_INSTR_AXIS",
+           "TS_INSTR_FORCE", "TS_HAND_POS", "TS_FORCE", "N_TS", "C_QUIT",
+           "CHANGES_CAPACITY", "changes_ring", "TraineeProcess"]
+
 #: Status vector layout (float64).
 (TS_DONE, TS_T, TS_TICKS, TS_GAIN, TS_LOST, TS_VALID, TS_DRILL, TS_SPEED, TS_DIR,
  TS_BURR, TS_EPOCH, TS_ERR_MM, TS_LATENCY_MS, TS_PLAYBACK_S, TS_ENDED) = range(15)

@@ -38,6 +38,12 @@ import numpy as np
 
 from . import net
 
+__all__ = ["KP_N_PER_MM", "LOSS_S", "RAMP_S", "RECOVER_S", "SERVO_HZ", "DEFAULT_PORT",
+           "STALE_S", "JOIN_RETRY_S", "KEEPALIVE_S", "NACK_HOLD_S", "REJOIN_S",
+           "CLIENT_TIMEOUT_S", "KIND_STATE", "FLAG_NACK", "STATE", "REMOVAL_BYTES",
+           "MAX_REMOVALS", "ACK", "RESET_IJK", "InstructorState", "pack_state",
+           "unpack_state", "RemovalLog", "removed_voxels", "session_info"]
+
 # ----------------------------------------------------------------- constants
 #: Controller spring K_p [N/mm]. Half the stable stiffness of a 3D Systems
 #: Touch's weakest axis (0.39 N/mm), so the coupling is stable on the usual

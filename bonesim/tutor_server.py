@@ -17,6 +17,10 @@ from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK, KIN
                              MAX_REMOVALS, SERVO_HZ, STALE_S, RemovalLog, pack_state,
                              removed_voxels, session_info)
 
+__all__ = ["Streamer", "SV_READY", "SV_PORT", "SV_QUIT", "SV_DONE", "SV_CLIENTS",
+           "SV_SENT", "SV_REMOVALS", "SV_NACKS", "SV_GO_BACKS", "SV_LOG", "SV_TICKS",
+           "SV_ERROR", "N_SV", "TutorServer"]
+
 # -------------------------------------------------------------------- server
 class Streamer:
     """The instructor side of tutoring, one :meth:`tick` at a time.

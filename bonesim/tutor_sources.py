@@ -14,6 +14,8 @@ from .tutor_protocol import (ACK, FLAG_NACK, JOIN_RETRY_S, KEEPALIVE_S, KIND_STA
                              NACK_HOLD_S, REJOIN_S, RESET_IJK, STALE_S, InstructorState,
                              unpack_state)
 
+__all__ = ["Source", "NetworkSource", "RecordingSource"]
+
 # ------------------------------------------------------------------- sources
 class Source:
     """Where a :class:`Trainee` gets the instructor's state.

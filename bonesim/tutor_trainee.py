@@ -13,6 +13,8 @@ from .tutor_law import link_gain, tutor_force
 from .tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, SERVO_HZ
 from .tutor_sources import Source, _LatencyLog
 
+__all__ = ["Trainee", "warmup"]
+
 # ------------------------------------------------------------------- trainee
 class Trainee:
     """The trainee's servo: source -> controller -> device, one tick at a time.

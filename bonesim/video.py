@@ -9,6 +9,8 @@ import numpy as np
 
 from .errors import BonesimError
 
+__all__ = ["parse_size", "video_times", "VideoWriter"]
+
 
 def parse_size(text: str, even: bool = True) -> tuple[int, int]:
     """``"1280x720"`` -> ``(1280, 720)``.

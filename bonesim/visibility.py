@@ -19,6 +19,8 @@ from numba import njit
 
 from .grid import BRICK_SHIFT, find_brick, voxel_offset
 
+__all__ = ["CONTACT_MARGIN_VOXELS", "occluders", "judge_removals", "VisibilityTracker"]
+
 #: Voxels whose centre lies within the burr radius plus this many voxel
 #: edges of the burr centre count as "in contact with the drill".
 CONTACT_MARGIN_VOXELS = 1.0

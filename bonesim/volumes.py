@@ -54,6 +54,16 @@ from .raw_volume import (GRID_TOL_MM, MAX_LISTED, MAX_STRUCTURES,  # noqa: F401
 from .segmentation import (SEG_SUFFIX, embed_on_grid, read_segmentation,  # noqa: F401
                            write_seg_nrrd)
 
+__all__ = ["FORMATS", "NativeLabels", "CaseVolume", "labels_from_intensity",
+           "nearest_indices", "resample_isotropic", "load_volume", "DICOM_HU_OFFSET",
+           "SLICE_GAP_RTOL", "read_dicom_series", "write_dicom_series", "BonesimError",
+           "NRRD_GZIP_LEVEL", "read_nifti", "read_nrrd", "write_nifti", "write_nrrd",
+           "UNKNOWN_COLOR_MODES", "natural_key", "read_label_stack",
+           "write_label_stack", "PATIENT_FRAME", "GRID_TOL_MM", "MAX_LISTED",
+           "MAX_STRUCTURES", "OBLIQUE_TOL", "SPACING_RTOL", "ObliqueWarning",
+           "RawVolume", "SEG_SUFFIX", "embed_on_grid", "read_segmentation",
+           "write_seg_nrrd"]
+
 FORMATS = ("phantom", "dicom", "nrrd", "nifti", "label-stack", "seg-nrrd")
 """Volume formats a case manifest may name."""
 

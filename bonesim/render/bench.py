@@ -48,6 +48,9 @@ import numpy as np
 
 from ..bench_tools import ball_offsets, remove_voxels
 
+__all__ = ["SIZE", "bench_update", "bench_first_frame", "FPS_SIZE", "FPS_CAVITY_R_MM",
+           "FPS_CAVITY_DEPTH_MM", "bench_fps", "bench_render"]
+
 SIZE = (800, 600)
 
 

@@ -54,6 +54,10 @@ from dataclasses import dataclass, field
 
 from ..errors import BonesimError
 
+__all__ = ["WINDOW_CLASS", "OFFSCREEN_ORDER", "ONSCREEN_ORDER", "PROBE_TIMEOUT_S",
+           "RenderUnavailable", "GLInfo", "probe", "candidates", "start_probe",
+           "select_backend", "make_render_window", "reset"]
+
 #: Render-window class of each backend.
 WINDOW_CLASS = {
     "x11": "vtkXOpenGLRenderWindow",

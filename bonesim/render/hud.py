@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import textwrap
 
+__all__ = ["KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
+
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
          "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",

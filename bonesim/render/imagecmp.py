@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+__all__ = ["MAD_TOL", "FRAC_TOL", "PIXEL_TOL", "ImageDiff", "compare_images",
+           "read_png", "write_png", "diff_image"]
+
 #: Default tolerances (see the module docstring).
 MAD_TOL = 2.0
 FRAC_TOL = 0.004

@@ -59,6 +59,8 @@ from numba import njit
 
 from ..grid import BRICK_SHIFT, find_brick, voxel_offset
 
+__all__ = ["VisibleJob", "SurfaceBuffers", "warmup"]
+
 
 @njit(cache=True, nogil=True)
 def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,

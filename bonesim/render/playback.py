@@ -39,6 +39,10 @@ from ..video import VideoWriter, video_times
 from .hud import format_help
 from .window import LEFT
 
+__all__ = ["PLAYBACK_KEYS", "PLAYBACK_MOUSE_HELP", "BAR_RGBA", "PLAYED_RGBA",
+           "CONTACT_RGBA", "REMOVAL_RGBA", "RESET_RGBA", "HEAD_RGBA", "BAR_MARGIN_PX",
+           "bar_rect", "TimelineBar", "PlaybackView", "PlaybackApp", "export_video"]
+
 #: Key symbol -> action in the playback window.
 PLAYBACK_KEYS = {
     "space": "play_pause",

@@ -27,6 +27,8 @@ from ..events import Cursor
 from ..grid import sync_replica
 from .hud import format_help
 
+__all__ = ["TRAINEE_KEYS", "TRAINEE_MOUSE_HELP", "TraineeView", "TraineeApp"]
+
 #: Key symbol -> action in the trainee's window.
 TRAINEE_KEYS = {
     "v": "reset_view", "Home": "reset_view",

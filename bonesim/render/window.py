@@ -51,6 +51,8 @@ from vtkmodules.vtkRenderingUI import vtkGenericRenderWindowInteractor
 
 from .hud import format_help
 
+__all__ = ["LEFT", "MIDDLE", "RIGHT", "ACTIONS", "DEFAULT_KEYS", "MOUSE_HELP", "Window"]
+
 #: Button bits of ``on_mouse``'s ``buttons``.
 LEFT, MIDDLE, RIGHT = 1, 2, 4
 

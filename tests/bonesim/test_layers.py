@@ -81,3 +81,28 @@ def test_import_linter_contracts_hold():
                          text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
     assert "0 broken" in res.stdout
+
+
+def test_every_module_declares_all_and_it_names_real_things():
+    import importlib
+    import pkgutil
+
+    sys.path.insert(0, str(ROOT))
+    try:
+        import bonesim
+
+        missing, wrong = [], []
+        for info in pkgutil.walk_packages(bonesim.__path__, "bonesim."):
+            if info.name.endswith("__main__"):
+                continue
+            mod = importlib.import_module(info.name)
+            names = getattr(mod, "__all__", None)
+            if names is None:
+                if not info.ispkg:
+                    missing.append(info.name)
+                continue
+            wrong += [f"{info.name}.{n}" for n in names if not hasattr(mod, n)]
+    finally:
+        sys.path.remove(str(ROOT))
+    assert not missing, f"modules without __all__: {missing}"
+    assert not wrong, f"__all__ names that do not exist: {wrong}"
