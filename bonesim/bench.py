@@ -35,45 +35,57 @@ def _pct(values, q) -> float:
 
 
 # ----------------------------------------------------------------- haptics
-def bench_haptic_step(quick=False) -> dict:
-    """Haptic step with the 7 mm cutting burr half immersed in a bone block."""
-    from .burrs import load_burr
-    from .model import Sample, make_model, make_state, step, warmup
+def _time_haptic_steps(oversample: int, n: int, with_floor: bool):
+    """Step times [ns] of the 7 mm cutting burr half immersed in a bone block,
+    sweeping slowly through fresh bone, and (optionally) the floor's times at
+    the same positions; returns ``(model, step_ns, floor_ns)``."""
+    from types import SimpleNamespace
 
-    warmup()
+    from .burrs import load_burr
+    from .model import Sample, make_model, make_state, step
+
     burr = load_burr("cutting-7mm")
     labels = np.zeros((120, 120, 60), np.uint8)
     labels[:, :, :40] = 1
-    from types import SimpleNamespace
-
     bone = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
-    model = make_model(labels, 0.5, [bone], burr)
+    model = make_model(labels, 0.5, [bone], burr, oversample=oversample)
     top = 40 * 0.5 - 0.25                      # top face of the block [mm]
-    n = 2000 if quick else 20000
     per_reset = 500
     ns = np.empty(n, dtype=np.int64)
+    floor_ns = np.zeros(n, dtype=np.int64)
     axis = np.array([0.3, 0.0, -1.0])
     perf = time.perf_counter_ns
-    state = None
-    floor_ns = np.empty(n, dtype=np.int64)
     samples = model.stencil.packed
     scratch = floor_scratch(burr.radius_mm, 0.5)
     stencil_density_pass(model.grid, samples, np.zeros(3), burr.radius_mm, scratch)
+    state = None
     for q in range(n):
         if q % per_reset == 0:
             state = make_state(model)          # fresh bone, outside the timing
-        # sweep slowly so the burr stays half immersed in fresh bone
         u = q % per_reset
         pos = np.array([10.0 + (0.08 * u) % 40.0, 10.0 + 8.0 * ((q // per_reset) % 5), top])
         smp = Sample(q * 1e-3, pos, axis, True, burr.default_speed_rpm, 1)
         t0 = perf()
-        stencil_density_pass(state.grid, samples, pos, burr.radius_mm, scratch)  # floor
+        if with_floor:
+            stencil_density_pass(state.grid, samples, pos, burr.radius_mm, scratch)
         t1 = perf()
         step(model, state, smp)
         ns[q] = perf() - t1
         floor_ns[q] = t1 - t0
-    us = ns / 1e3
-    floor_us = floor_ns / 1e3
+    return model, ns, floor_ns
+
+
+def bench_haptic_step(quick=False) -> dict:
+    """Haptic step with the 7 mm cutting burr half immersed in a bone block
+    (2x oversampling), its floor, and the same step at 4x oversampling."""
+    from .model import warmup
+
+    warmup()
+    n = 2000 if quick else 20000
+    model, ns, floor_ns = _time_haptic_steps(2, n, True)
+    us, floor_us = ns / 1e3, floor_ns / 1e3
+    model4, ns4, _ = _time_haptic_steps(4, n // 4, False)
+    us4 = ns4 / 1e3
     return {
         "haptic_step_floor_us": {
             "value": round(_pct(floor_us, 50), 2), "unit": "us",
@@ -88,6 +100,10 @@ def bench_haptic_step(quick=False) -> dict:
                                    "oversample": model.oversample},
         "haptic_step_7mm_p99_us": {"value": round(_pct(us, 99), 2), "unit": "us",
                                    "samples": model.stencil.n, "steps": n},
+        "haptic_step_7mm_4x_p99_us": {"value": round(_pct(us4, 99), 2), "unit": "us",
+                                      "samples": model4.stencil.n, "steps": len(ns4),
+                                      "oversample": model4.oversample,
+                                      "p50_us": round(_pct(us4, 50), 2)},
     }
 
 
@@ -359,6 +375,7 @@ BENCHMARKS = {
     "haptic_step_7mm_p99_us": bench_haptic_step,
     "haptic_step_floor_us": bench_haptic_step,
     "haptic_step_vs_floor": bench_haptic_step,
+    "haptic_step_7mm_4x_p99_us": bench_haptic_step,
     "retessellate_1000_p99_ms": bench_surface,
     "retessellate_speedup_vs_full": bench_surface,
     "tessellate_phantom_s": bench_surface,
