@@ -203,7 +203,7 @@ def _cut_to_one_moment(groups: dict, declared: dict) -> None:
         return
     for g in _TIMED:
         t = groups[g]["t_s"]
-        keep = (t <= upto) & (t < before)
+        keep = np.isnan(t) | ((t <= upto) & (t < before))   # NaN: the writer's notes
         if not keep.all():
             groups[g] = {k: a[keep] for k, a in groups[g].items()}
 
