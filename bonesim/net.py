@@ -31,15 +31,14 @@ from __future__ import annotations
 import hmac
 import json
 import math
-import os
-import secrets
 import socket
 import struct
 import time
-from pathlib import Path
 from typing import NamedTuple
 
 from .errors import BonesimError
+from .net_keys import (DEFAULT_KEY_HELP, KEY_ENV, MIN_KEY_BYTES,  # noqa: F401 (re-exported)
+                       load_key, new_nonce, write_key)
 
 __all__ = ["PROTOCOL_VERSION", "MAGIC", "HEADER", "TAG_BYTES", "MAX_DATAGRAM",
            "MAX_PAYLOAD", "MIN_KEY_BYTES", "KEY_ENV", "DEFAULT_KEY_HELP",
@@ -59,11 +58,6 @@ TAG_BYTES = 16
 #: minus IPv4/IPv6 and UDP headers, so no IP fragmentation.
 MAX_DATAGRAM = 1400
 MAX_PAYLOAD = MAX_DATAGRAM - HEADER.size - TAG_BYTES
-#: Smallest accepted key [bytes].
-MIN_KEY_BYTES = 16
-#: Environment variable holding the key (hex) when no key file is given.
-KEY_ENV = "BONESIM_KEY"
-DEFAULT_KEY_HELP = f"shared key file (default: ${KEY_ENV}, hex)"
 #: Default UDP port of ``bonesim tutor serve``.
 DEFAULT_PORT = 47810
 #: Default UDP port of the nerve monitor's console server (``bonesim monitor``).
@@ -130,92 +124,6 @@ class Packet(NamedTuple):
     t_s: float
     payload: bytes
     flags: int = 0
-
-
-# --------------------------------------------------------------------- keys
-def _parse_key(raw: bytes) -> bytes:
-    text = raw.strip()
-    if text and len(text) % 2 == 0:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    return raw
-
-
-def load_key(path: str | Path | None = None) -> bytes:
-    """The shared packet key.
-
-    Parameters
-    ----------
-    path : str or Path, optional
-        Key file: hex text (as :func:`write_key` writes) or raw bytes. Without
-        it the key is taken from the environment variable ``BONESIM_KEY``
-        (hex, or else the text itself).
-
-    Returns
-    -------
-    bytes
-        At least :data:`MIN_KEY_BYTES` bytes.
-
-    Raises
-    ------
-    BonesimError
-        No key, an unreadable file, or a key shorter than 16 bytes.
-    """
-    if path is None:
-        env = os.environ.get(KEY_ENV)
-        if not env:
-            raise BonesimError(f"no key: pass a key file (--key-file) or set {KEY_ENV}; "
-                               "'bonesim tutor keygen FILE' makes one", field=KEY_ENV)
-        key = _parse_key(env.encode())
-        where = {"field": KEY_ENV}
-    else:
-        p = Path(path)
-        try:
-            raw = p.read_bytes()
-        except FileNotFoundError:
-            raise BonesimError("key file not found ('bonesim tutor keygen FILE' makes "
-                               "one)", path=p) from None
-        except OSError as exc:
-            raise BonesimError(f"cannot read key file: {exc.strerror}", path=p) from None
-        key = _parse_key(raw)
-        where = {"path": p}
-    if len(key) < MIN_KEY_BYTES:
-        raise BonesimError(f"key is {len(key)} bytes; at least {MIN_KEY_BYTES} are needed "
-                           "(32 random bytes recommended)", **where)
-    return key
-
-
-def write_key(path: str | Path, n_bytes: int = 32, overwrite: bool = False) -> Path:
-    """Write a new random key as hex text, readable by the owner only.
-
-    Raises
-    ------
-    BonesimError
-        If the file exists (and ``overwrite`` is False) or cannot be written.
-    """
-    p = Path(path)
-    if n_bytes < MIN_KEY_BYTES:
-        raise ValueError(f"keys need at least {MIN_KEY_BYTES} bytes")
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
-    try:
-        fd = os.open(p, flags, 0o600)
-    except FileExistsError:
-        raise BonesimError("key file exists; refusing to overwrite it", path=p) from None
-    except OSError as exc:
-        raise BonesimError(f"cannot write key file: {exc.strerror}", path=p) from None
-    with os.fdopen(fd, "w") as fh:
-        fh.write(secrets.token_hex(n_bytes) + "\n")
-    return p
-
-
-def new_nonce() -> int:
-    """A fresh random non-zero session nonce (u64)."""
-    while True:
-        n = secrets.randbits(64)
-        if n:
-            return n
 
 
 # -------------------------------------------------------------------- codec
