@@ -82,6 +82,7 @@ __all__ = ["CASE_FILE", "SIDES", "KINDS", "CASE_FORMATS", "EXPORT_FORMATS",
            "Structure", "VolumeSpec", "Camera", "Target", "Case", "parse_case",
            "cases_dir", "load_case", "list_cases", "case_info", "export_case"]
 
+
 def parse_case(path: str | Path) -> Case:
     """Parse and check one ``case.toml`` (no volume is read; a segmentation's
     header is, for its segment table). See :mod:`bonesim.case_manifest`."""

@@ -47,7 +47,6 @@ _CAMERA_KEYS = ("eye_mm", "focal_mm", "up")
 _TARGET_KEYS = ("description", "structures", "box_mm")
 
 
-
 def _rgb(table: dict, key: str, path: Path, where: str) -> tuple[int, int, int]:
     rgb = get_vector(table, key, path, where, length=3, integer=True)
     if any(c < 0 or c > 255 for c in rgb):
@@ -346,5 +345,3 @@ def parse_manifest(path: str | Path) -> Case:
     target = (_parse_target(doc["target"], path, [s.name for s in structures])
               if "target" in doc else None)
     return Case(name, desc, side, path, volume, structures, camera, target)
-
-

@@ -44,6 +44,7 @@ ORIENTATION_SOURCES = ("declared", "file", "assumed", "generated")
 file's header, assumed (a label stack without ``orientation``: LPS), or the
 phantom's (generated in the patient frame)."""
 
+
 # ------------------------------------------------------------------ records
 @dataclass(frozen=True)
 class Structure:

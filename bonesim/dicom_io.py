@@ -219,4 +219,3 @@ def write_dicom_series(folder: str | Path, hu: np.ndarray, spacing_mm: float,
         ds.save_as(path, enforce_file_format=True)
         paths.append(path)
     return paths
-

@@ -23,6 +23,7 @@ from .grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
 
 __all__ = []
 
+
 # ================================================================ step rules
 @njit(cache=True, nogil=True)
 def _collect_active(alive, bmass, hw, active):

@@ -198,4 +198,3 @@ def write_nifti(path: str | Path, data: np.ndarray, spacing_mm: float, origin_mm
     img.set_sform(ras, code=1)
     nib.save(img, str(path))
     return path
-

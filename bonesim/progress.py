@@ -9,8 +9,6 @@ import time
 __all__ = ["format_clock", "ProgressBar"]
 
 
-
-
 def format_clock(t_s: float) -> str:
     """``m:ss.s`` (or ``h:mm:ss`` from an hour on) for a duration [s]."""
     t = max(0.0, float(t_s))

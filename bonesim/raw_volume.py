@@ -126,4 +126,3 @@ def squeeze3(data: np.ndarray, path: Path) -> np.ndarray:
     if data.ndim != 3:
         raise BonesimError(f"expected a 3-D volume, got shape {data.shape}", path)
     return data
-

@@ -386,5 +386,3 @@ def list_sessions(folder=None) -> list[dict]:
         except BonesimError as exc:
             rows.append({"file": str(p), "error": str(exc)})
     return rows
-
-

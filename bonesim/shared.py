@@ -179,4 +179,3 @@ def die_with_parent(on_term=None) -> None:
         return
     if os.getppid() == 1:                      # the parent died before prctl
         raise SystemExit(0)
-

@@ -16,6 +16,7 @@ from .tutor_protocol import LOSS_S, RAMP_S, RECOVER_S
 
 __all__ = ["tutor_force", "link_gain"]
 
+
 # ----------------------------------------------------------------- controller
 @njit(cache=True, nogil=True)
 def tutor_force(p_instr, p_trainee, f_instr, kp_n_per_mm, max_force_n, gain, out):

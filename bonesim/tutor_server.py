@@ -21,6 +21,7 @@ __all__ = ["Streamer", "SV_READY", "SV_PORT", "SV_QUIT", "SV_DONE", "SV_CLIENTS"
            "SV_SENT", "SV_REMOVALS", "SV_NACKS", "SV_GO_BACKS", "SV_LOG", "SV_TICKS",
            "SV_ERROR", "N_SV", "TutorServer"]
 
+
 # -------------------------------------------------------------------- server
 class Streamer:
     """The instructor side of tutoring, one :meth:`tick` at a time.

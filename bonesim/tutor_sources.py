@@ -16,6 +16,7 @@ from .tutor_protocol import (ACK, FLAG_NACK, JOIN_RETRY_S, KEEPALIVE_S, KIND_STA
 
 __all__ = ["Source", "NetworkSource", "RecordingSource"]
 
+
 # ------------------------------------------------------------------- sources
 class Source:
     """Where a :class:`Trainee` gets the instructor's state.

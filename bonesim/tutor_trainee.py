@@ -15,6 +15,7 @@ from .tutor_sources import Source, _LatencyLog
 
 __all__ = ["Trainee", "warmup"]
 
+
 # ------------------------------------------------------------------- trainee
 class Trainee:
     """The trainee's servo: source -> controller -> device, one tick at a time.

@@ -171,7 +171,6 @@ class CaseVolume:
         return self.origin_mm + self.spacing_mm * np.asarray(ijk, dtype=np.float64)
 
 
-
 # ------------------------------------------------------------- label assembly
 def labels_from_intensity(hu: np.ndarray | None, label_map: np.ndarray | None,
                           kinds: Sequence[str], label_values: Sequence[int | None],

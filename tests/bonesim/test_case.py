@@ -15,7 +15,6 @@ from bonesim.segmentation import read_seg_segments
 from tests.bonesim.test_anatomy import assert_looks_at_mastoid
 
 
-
 @pytest.fixture(scope="module")
 def phantom_case():
     return C.load_case("phantom")
