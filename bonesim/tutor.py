@@ -32,33 +32,8 @@ log), :mod:`bonesim.tutor_law` (the force and the link gain),
 (network and recording sources), :mod:`bonesim.tutor_trainee` (the servo) and
 :mod:`bonesim.tutor_commands` (``bonesim tutor ...``).
 
-Wire protocol (packets of :mod:`bonesim.net`)
----------------------------------------------
-1. The trainee draws a random nonce and sends ``JOIN`` (header nonce = its
-   own nonce) every :data:`JOIN_RETRY_S` until welcomed.
-2. The server answers ``WELCOME`` (nonce = the trainee's) whose payload is
-   the server's nonce for this trainee (u64) and a JSON description of the
-   session (case, burrs, grid size). A replayed JOIN therefore earns at most
-   one small WELCOME: streaming starts only after
-3. the trainee's first ``ACK`` carrying the server's nonce. The trainee keeps
-   ACKing every :data:`KEEPALIVE_S`; the server forgets a trainee that is
-   silent for :data:`CLIENT_TIMEOUT_S`.
-4. The server sends one ``STATE`` packet (:data:`KIND_STATE`) per haptic
-   sample to every trainee: the latest sample's pose, force and drill state
-   (:data:`STATE`), then up to :data:`MAX_REMOVALS` voxel removals.
-
-Voxel removals must all arrive. The server keeps the current epoch's removals
-in a log (an epoch starts at a case reset; the log of a server started
-mid-session begins with a snapshot of the voxels already gone). Every STATE
-packet names the log index of its first removal and the log's length; the
-trainee applies only the next contiguous removals and, seeing a gap, sends
-an ACK flagged :data:`FLAG_NACK` with the count it holds. The server then
-resends from that index (go-back-N). A new epoch, or a new server, restarts
-the log and the trainee's replica.
-
-Every datagram is authenticated and checked (nonce, sequence, staleness) by
-:class:`bonesim.net.Inbox`; anything else is dropped and counted, and
-changes nothing.
+The wire protocol (join, welcome, acknowledgements, STATE packets and the
+go-back-N removal log) is described in :mod:`bonesim.tutor_protocol`.
 """
 from __future__ import annotations
 
