@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .grid import BRICK_SHIFT, find_brick, voxel_offset
-from .haptics import block_size
+from .grid import BRICK_SHIFT, voxel_offset
+from .haptics import block_bricks, block_size
 
 __all__ = ["ball_offsets", "remove_voxels", "stencil_density_pass", "floor_scratch"]
 
@@ -16,16 +16,9 @@ __all__ = ["ball_offsets", "remove_voxels", "stencil_density_pass", "floor_scrat
 def _density_pass(keys, vals, density, origin, spacing, samples, pos, radius, lbrick,
                   ldens):
     # the local block around the burr, gathered as the haptic step gathers it
-    nbk = lbrick.shape[0]
     n_vox = int(round(len(ldens) ** (1.0 / 3.0)))
-    lo0 = int(np.floor((pos[0] - radius - origin[0]) / spacing + 0.5)) - 1
-    lo1 = int(np.floor((pos[1] - radius - origin[1]) / spacing + 0.5)) - 1
-    lo2 = int(np.floor((pos[2] - radius - origin[2]) / spacing + 0.5)) - 1
+    lo0, lo1, lo2, _ = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
-    for x in range(nbk):
-        for y in range(nbk):
-            for z in range(nbk):
-                lbrick[x, y, z] = find_brick(keys, vals, b0 + x, b1 + y, b2 + z)
     nn = n_vox * n_vox
     for x in range(n_vox):
         i = lo0 + x

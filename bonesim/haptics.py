@@ -55,7 +55,7 @@ __all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
            "P_INV_VOXEL_VOL", "P_RADIUS", "N_PARAMS", "O_FX", "O_FY", "O_FZ", "O_TX",
            "O_TY", "O_TZ", "O_MAG", "O_VOLUME", "O_N_IMMERSED", "O_N_REMOVED",
            "O_N_TOUCHED", "N_OUT", "Stencil", "make_stencil", "block_size",
-           "tool_frame", "multi_gain", "haptic_kernel"]
+           "block_bricks", "tool_frame", "multi_gain", "haptic_kernel"]
 
 # Layout of the float64 ``params`` vector handed to the kernel.
 (P_K_LOW, P_K_HIGH, P_V_T, P_K_TAN, P_MAX_FORCE, P_H3, P_INV_VOXEL_VOL,
@@ -216,6 +216,37 @@ def multi_gain(volume, k_low, k_high, v_t):
     return k_low * v_t + k_high * (volume - v_t)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def block_bricks(keys, vals, pos, radius, origin, spacing, lbrick):
+    """Find the bricks of the local voxel block around a burr.
+
+    The block's first voxel is ``lo = round((pos - radius - origin) /
+    spacing) - 1`` per axis; ``lbrick[x, y, z]`` receives the brick index
+    (-1 for none) of the brick ``(lo >> BRICK_SHIFT) + (x, y, z)``.
+
+    Returns
+    -------
+    lo0, lo1, lo2 : int
+        First voxel of the block [voxels].
+    any_brick : bool
+        Some brick of the block is allocated.
+    """
+    lo0 = int(np.floor((pos[0] - radius - origin[0]) / spacing + 0.5)) - 1
+    lo1 = int(np.floor((pos[1] - radius - origin[1]) / spacing + 0.5)) - 1
+    lo2 = int(np.floor((pos[2] - radius - origin[2]) / spacing + 0.5)) - 1
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    nbk = lbrick.shape[0]
+    any_brick = False
+    for x in range(nbk):
+        for y in range(nbk):
+            for z in range(nbk):
+                b = find_brick(keys, vals, b0 + x, b1 + y, b2 + z)
+                lbrick[x, y, z] = b
+                if b >= 0:
+                    any_brick = True
+    return lo0, lo1, lo2, any_brick
+
+
 @njit(cache=True, nogil=True)
 def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                   stiff, removal, injury,
@@ -293,22 +324,11 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     for q in range(contact.shape[0]):
         contact[q] = 0
         lost[q] = 0
-    nbk = lbrick.shape[0]
     tool_frame(axis, R)
     # local block of voxels around the burr
-    rad = params[P_RADIUS]
-    lo0 = int(np.floor((pos[0] - rad - origin[0]) / spacing + 0.5)) - 1
-    lo1 = int(np.floor((pos[1] - rad - origin[1]) / spacing + 0.5)) - 1
-    lo2 = int(np.floor((pos[2] - rad - origin[2]) / spacing + 0.5)) - 1
+    lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, params[P_RADIUS], origin,
+                                            spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
-    any_brick = False
-    for x in range(nbk):
-        for y in range(nbk):
-            for z in range(nbk):
-                b = find_brick(keys, vals, b0 + x, b1 + y, b2 + z)
-                lbrick[x, y, z] = b
-                if b >= 0:
-                    any_brick = True
     if not any_brick:
         for q in range(prev_contact.shape[0]):
             prev_contact[q] = 0
