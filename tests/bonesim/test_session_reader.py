@@ -15,31 +15,17 @@ import numpy as np
 import pytest
 
 from bonesim import record
-from bonesim.case import load_case
 from bonesim.cli import main
-from bonesim.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
-from bonesim.model import load_model
 from bonesim.record import SessionWriter, make_header
 from bonesim.replay import verify
 from bonesim.session_reader import damage_notice, read_session, repair_session
 from bonesim.session_salvage import lookup3, read_superblock
 from bonesim.simulate import run_trajectory
+from tests.bonesim.test_record import model, traj  # noqa: F401 (fixtures: an 8 s demo run)
 
 #: Rows per compacted chunk in these tests (an 8 s run spans 16 chunks).
 SMALL_CHUNKS = 512
-
-
-@pytest.fixture(scope="module")
-def model():
-    return load_model("phantom", "cutting-5mm")
-
-
-@pytest.fixture(scope="module")
-def traj():
-    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    start = int(np.flatnonzero(t.drill)[0])
-    return t.at_times(t.t_s[start:start + 800])
 
 
 @pytest.fixture(scope="module")
