@@ -30,10 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import events
 from .sightline import depth_below_surface_mm
 from .haptic_loop import (IN_DIR, IN_DRILL, IN_SPEED, ST_AXIS, ST_BURR, ST_DIR, ST_DRILL,
-                          ST_EPOCH, ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
+                          ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
 
 __all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
            "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "App"]
@@ -147,12 +146,10 @@ class App:
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
         from .dust import DustGrid
-        from .simulate import SurfaceConsumer
+        from .replica import TissueReplica
 
-        self.consumer = SurfaceConsumer(self.model, self.loop.state)
+        self.consumer = TissueReplica(self.model, self.loop.state, surface=True)
         self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
-        self.injury_cursor = events.Cursor(self.loop.state.injuries)
-        self.epoch = float(self.loop.status[ST_EPOCH])
 
     def start(self) -> "App":
         """Start the haptic (and audio) processes and build the scene."""
@@ -226,11 +223,14 @@ class App:
         return self.burrs[int(self.loop.status[ST_BURR])]
 
     def on_frame(self, scene) -> None:
+        from .dust import DustGrid
+
         st = self.loop.status
-        if st[ST_EPOCH] != self.epoch:                 # the case was reset
-            self._fresh_consumers()
+        ch = self.consumer.drain()
+        if ch.reset:                                   # the case was reset
+            self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
             self.injuries.clear()
-        rem, tch = self.consumer.drain()
+        rem, tch = ch.removed, ch.touched
         scene.update_surface(self.consumer.surface, rem, tch)
         pos = st[ST_POS:ST_POS + 3].copy()
         axis = st[ST_AXIS:ST_AXIS + 3].copy()
@@ -256,7 +256,7 @@ class App:
             scene.set_suction(None)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
-        inj = self.injury_cursor.drain()
+        inj = ch.injuries
         for lab in inj["label"]:
             name = self.model.structure_name(int(lab))
             if name not in self.injuries:

@@ -265,13 +265,13 @@ def bench_haptic_loop(quick=False) -> dict:
     """Period of the 1 kHz haptic loop process while a consumer keeps the
     surface up to date (no rendering)."""
     from .haptic_loop import ST_REALTIME
-    from .simulate import SurfaceConsumer
+    from .replica import TissueReplica
 
     seconds = 2.0 if quick else 6.0
     model, loop = _loop_for_bench(seconds)
     try:
         loop.start()
-        consumer = SurfaceConsumer(model, loop.state)
+        consumer = TissueReplica(model, loop.state, surface=True)
         while loop.running:
             consumer.drain()
             time.sleep(1.0 / 60.0)

@@ -70,9 +70,9 @@ def bench_recording(quick=False) -> dict:
         path = Path(tmp) / "bench.h5"
         writer = SessionWriter(path, make_header(model), compact=False)
         sub = events.Ring({k: v for k, v in ring.fields.items()}, np.zeros(1, np.int64))
-        rem = state.removed
+        rem = state.tissue
         sub_rem = events.Ring(rem.fields, np.zeros(1, np.int64))
-        drainer = Drainer(writer, {"samples": sub, "removed": sub_rem})
+        drainer = Drainer(writer, {"samples": sub, "tissue": sub_rem})
         n_rem = rem.count
         t0 = time.perf_counter()
         for q in range(0, n, batch):

@@ -69,9 +69,9 @@ def cmd_replay(args) -> int:
         if args.json:
             _print_json(report)
         else:
-            print(f"{report['file']}: replayed {report['samples']} samples; removals "
-                  f"{report['removals_replayed']} replayed vs {report['removals_recorded']} "
-                  f"recorded: {'identical' if report['removals_match'] else 'DIFFERENT'}; "
+            print(f"{report['file']}: replayed {report['samples']} samples; tissue events "
+                  f"{report['events_replayed']} replayed vs {report['events_recorded']} "
+                  f"recorded: {'identical' if report['tissue_match'] else 'DIFFERENT'}; "
                   f"forces {'identical' if report['forces_match'] else 'DIFFERENT'}")
             if report["first_mismatch"]:
                 print(f"first difference: {report['first_mismatch']}")

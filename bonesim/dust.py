@@ -163,6 +163,7 @@ from .dust_bricks import (_MAX_RATE_Q, _MIN_GRAVITY_COMPONENT, _N_CTR, _N_FP, _N
                           STAGE_DONE, STAGE_GRAVITY, _ensure_bricks, _recycle,
                           _refresh_bone_bricks, _rehash)
 from .dust_rules import _SC_SIZE, _add, _recount, _step_kernel, _wet_out
+from . import events
 from .dust_params import DustParams
 from .dust_sprites import DustSprites, _fill, _stamp
 from .grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
@@ -593,9 +594,9 @@ class DustGrid:
         self._add_q(ijk, amount_q)
 
     def drain(self, cursor, amount=None) -> int:
-        """Add the dust of every removal a cursor on a ``removed`` ring has not
-        seen yet (see :mod:`bonesim.events`); returns how many voxels."""
-        rec = cursor.drain()
+        """Add the dust of every removal a cursor on a tissue-event ring has
+        not seen yet (see :mod:`bonesim.events`); returns how many voxels."""
+        rec = events.removals(cursor.drain())
         self.add_removed(rec["ijk"], amount)
         return int(len(rec["ijk"]))
 

@@ -2,23 +2,44 @@
 
 The haptic step never waits for anybody. It appends fixed-size records to
 single-producer ring buffers (plain numpy arrays plus a monotonically growing
-write counter); each consumer (surface, dust, sound, recorder, metrics) keeps
-its own read counter and drains at its own pace. A consumer that falls more
-than ``capacity`` records behind has lost records, which :meth:`Ring.read`
-reports as an overflow instead of returning garbage.
+write counter); each consumer (surface, dust, sound, recorder, tutor, metrics)
+keeps its own read counter and drains at its own pace. A consumer that falls
+more than ``capacity`` records behind has lost records, which
+:meth:`Ring.read` reports as an overflow instead of returning garbage.
 
-Three rings exist per :class:`~bonesim.model.State`:
+One tissue-event stream
+-----------------------
+Every change of the tissue travels as one versioned record
+(:data:`TISSUE_EVENT_VERSION`) in the ``tissue`` ring: the haptic loop's
+shared memory, the session file's ``tissue`` table, the tutoring packets and
+the trainee's ring all carry exactly these columns, and nothing else carries
+tissue changes. A record is
 
-``removed``
-    one record per voxel whose density reached 0:
-    ``ijk`` (int32, 3), ``label`` (uint8), ``t_s`` (float64 [s]).
-``touched``
-    voxels whose density dropped but stayed positive (vertex shading only);
-    a voxel is pushed once until a consumer clears its flag.
-``injuries``
-    contact with or removal of a structure whose material emits injuries:
-    ``label`` (uint8), ``kind`` (0 contact onset, 1 voxels removed),
-    ``t_s`` [s], ``pos_mm`` (3) tool centre [mm], ``voxels`` lost this step.
+``kind`` (uint8)
+    :data:`REMOVED`, :data:`CONTACT`, :data:`INJURY`, :data:`RESET`,
+    :data:`BURR`, :data:`SPLIT` or :data:`POSE` (names in :data:`KIND_NAMES`);
+``body`` (uint8)
+    the body it concerns (see :mod:`bonesim.bodies`);
+``label`` (uint8)
+    structure label (removal, contact, injury);
+``t_s`` (float64) [s]
+    step time;
+``ijk`` (int32, 3)
+    voxel index in the body's own frame (removal);
+``n`` (int32)
+    a count or index: voxels lost this step (injury), voxels of the new body
+    (split), the burr index (burr change), the epoch (reset);
+``value`` (float64, 7)
+    the tool centre in the case frame [mm] in the first three (contact,
+    injury), or the body's pose ``(tx, ty, tz [mm], qw, qx, qy, qz)`` (pose;
+    body-to-case rigid transform, unit quaternion).
+
+A ``touched`` ring beside it carries shading hints only (voxels that lost
+density but stayed): the density itself is shared state, so the hint is not
+a tissue change and is never recorded.
+
+Rings that are not tissue events (:data:`OTHER_RINGS`): the haptic loop's
+per-step ``samples`` and the window's ``camera`` and ``ui`` streams.
 """
 from __future__ import annotations
 
@@ -26,10 +47,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["INJURY_CONTACT", "INJURY_REMOVAL", "INJURY_KINDS", "RingOverflow", "Ring",
-           "Cursor", "RINGS", "OTHER_RINGS", "ring_arrays_spec", "ring_from_arrays",
-           "removal_ring"]
+__all__ = ["TISSUE_EVENT_VERSION", "REMOVED", "CONTACT", "INJURY", "RESET", "BURR",
+           "SPLIT", "POSE", "KIND_NAMES", "N_VALUE", "INJURY_CONTACT", "INJURY_REMOVAL",
+           "INJURY_KINDS", "RingOverflow", "Ring", "Cursor", "RINGS", "OTHER_RINGS",
+           "TISSUE_FIELDS", "ring_arrays_spec", "ring_from_arrays", "tissue_ring", "push_event",
+           "empty_events", "removals", "injuries", "select", "concat"]
 
+#: Version of the tissue-event record (session schema 2 stores it as is).
+TISSUE_EVENT_VERSION = 2
+# tissue-event kinds
+REMOVED, CONTACT, INJURY, RESET, BURR, SPLIT, POSE = range(7)
+KIND_NAMES = ("removed", "contact", "injury", "reset", "burr", "split", "pose")
+#: Floats in a record's ``value`` column.
+N_VALUE = 7
+
+# injury kinds as :func:`injuries` reports them (0 contact onset, 1 removal)
 INJURY_CONTACT = 0
 INJURY_REMOVAL = 1
 INJURY_KINDS = ("contact", "removal")
@@ -120,14 +152,16 @@ class Cursor:
         return out
 
 
-#: Ring name -> (capacity, {field: (dtype, trailing shape)}).
+#: Columns of one tissue event: name -> (dtype, trailing shape).
+TISSUE_FIELDS = {"kind": (np.uint8, ()), "body": (np.uint8, ()), "label": (np.uint8, ()),
+                 "t_s": (np.float64, ()), "ijk": (np.int32, (3,)), "n": (np.int32, ()),
+                 "value": (np.float64, (N_VALUE,))}
+
+#: Ring name -> (capacity, {field: (dtype, trailing shape)}): the rings that
+#: live in a :class:`~bonesim.model.State`.
 RINGS = {
-    "removed": (1 << 20, {"ijk": (np.int32, (3,)), "label": (np.uint8, ()),
-                          "t_s": (np.float64, ())}),
+    "tissue": (1 << 20, TISSUE_FIELDS),
     "touched": (1 << 18, {"ijk": (np.int32, (3,))}),
-    "injuries": (1 << 14, {"label": (np.uint8, ()), "kind": (np.uint8, ()),
-                           "t_s": (np.float64, ()), "pos_mm": (np.float64, (3,)),
-                           "voxels": (np.int32, ())}),
 }
 
 
@@ -178,6 +212,55 @@ def ring_from_arrays(name: str, arrays: dict) -> Ring:
     return Ring(fields, arrays[f"{name}.head"])
 
 
-def removal_ring(capacity: int = RINGS["removed"][0]) -> Ring:
-    """A private removal ring (tests, single-process tools)."""
-    return Ring.create(capacity, **RINGS["removed"][1])
+def tissue_ring(capacity: int = RINGS["tissue"][0]) -> Ring:
+    """A private tissue-event ring (tests, single-process tools)."""
+    return Ring.create(capacity, **TISSUE_FIELDS)
+
+
+def push_event(ring: Ring, kind: int, t_s: float, *, body: int = 0, label: int = 0,
+               ijk=(0, 0, 0), n: int = 0, value=()) -> None:
+    """Append one tissue event from Python (commands, resets, burr changes);
+    ``value`` fills the first floats of the record's ``value``, the rest is 0."""
+    v = np.zeros(N_VALUE)
+    v[:len(value)] = value
+    ring.append(kind=[kind], body=[body], label=[label], t_s=[t_s], ijk=[ijk], n=[n],
+                value=[v])
+
+
+def empty_events(n: int = 0) -> dict:
+    """``n`` zeroed tissue-event records, column-wise."""
+    return {f: np.zeros((n,) + tuple(shape), dtype=dt)
+            for f, (dt, shape) in TISSUE_FIELDS.items()}
+
+
+def select(ev: dict, *kinds: int) -> dict:
+    """The records of ``ev`` whose kind is one of ``kinds``, in order."""
+    k = ev["kind"]
+    m = k == kinds[0] if len(kinds) == 1 else np.isin(k, kinds)
+    return {f: a[m] for f, a in ev.items()}
+
+
+def concat(parts) -> dict:
+    """Tissue-event batches joined in order."""
+    parts = list(parts)
+    if not parts:
+        return empty_events()
+    return {f: np.concatenate([p[f] for p in parts]) for f in TISSUE_FIELDS}
+
+
+def removals(ev: dict) -> dict:
+    """Removed voxels of a tissue-event batch: ``ijk`` (n, 3) int32 (body
+    frame), ``label`` (n,) uint8, ``body`` (n,) uint8, ``t_s`` (n,) [s]."""
+    r = select(ev, REMOVED)
+    return {"ijk": r["ijk"], "label": r["label"], "body": r["body"], "t_s": r["t_s"]}
+
+
+def injuries(ev: dict) -> dict:
+    """Contact onsets and removals of injury-emitting structures: ``label``,
+    ``kind`` (:data:`INJURY_CONTACT` or :data:`INJURY_REMOVAL`), ``t_s`` [s],
+    ``pos_mm`` (n, 3) tool centre [mm], ``voxels`` lost that step, ``body``."""
+    r = select(ev, CONTACT, INJURY)
+    kind = np.where(r["kind"] == CONTACT, INJURY_CONTACT, INJURY_REMOVAL).astype(np.uint8)
+    return {"label": r["label"], "kind": kind, "t_s": r["t_s"],
+            "pos_mm": np.ascontiguousarray(r["value"][:, :3]), "voxels": r["n"],
+            "body": r["body"]}

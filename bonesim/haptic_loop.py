@@ -99,11 +99,11 @@ def attach(handle) -> tuple:
     shared : SharedArrays
         Keep it alive while the rings are used; ``close()`` it after.
     rings : dict of str -> events.Ring
-        ``samples``, ``removed``, ``touched`` and ``injuries``.
+        ``samples``, ``tissue`` and ``touched``.
     """
     sh = SharedArrays.attach(handle)
     rings = {name: events.ring_from_arrays(name, sh.arrays)
-             for name in ("samples", "removed", "touched", "injuries")}
+             for name in ("samples", "tissue", "touched")}
     return sh, rings
 
 
@@ -213,9 +213,11 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                     coupling.pos = None
                 epoch = io[IN_RESET]
                 status[ST_EPOCH] = epoch
+                events.push_event(state.tissue, events.RESET, t, n=int(epoch))
             b = int(io[IN_BURR])
             if b != burr and 0 <= b < len(models):
                 burr = b
+                events.push_event(state.tissue, events.BURR, t, n=burr)
             m = models[burr]
             r: DeviceReading = device.read(t)
             pos = r.pos_mm
@@ -296,7 +298,7 @@ class HapticLoop:
     state : State
         A view of the loop's state in shared memory (grid density, touched
         flags, rings) for consumers such as
-        :class:`bonesim.simulate.SurfaceConsumer`. Only the loop writes it,
+        :class:`bonesim.replica.TissueReplica`. Only the loop writes it,
         except the touched flags that consumers clear.
     io, status : ndarray
         The shared command and status arrays (see the module docstring).

@@ -49,6 +49,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .events import CONTACT as _EV_CONTACT
+from .events import INJURY as _EV_INJURY
+from .events import REMOVED as _EV_REMOVED
 from .grid import BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
@@ -247,22 +250,63 @@ def block_bricks(keys, vals, pos, radius, origin, spacing, lbrick):
     return lo0, lo1, lo2, any_brick
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab, body, lab):
+    """Body of some immersed-candidate voxel of label ``lab`` in the local
+    block (rare: only called on a contact onset)."""
+    nn = n_vox * n_vox
+    for li in range(n_vox * nn):
+        if llab[li] == lab and ldens[li] > 0.0:
+            i = lo0 + li // nn
+            j = lo1 + (li // n_vox) % n_vox
+            k = lo2 + li % n_vox
+            b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
+                       (k >> BRICK_SHIFT) - b2]
+            return body[b, voxel_offset(i, j, k)]
+    return 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                kind, bod, lab, t, i, j, k, n, px, py, pz):
+    """Append one tissue event (see :mod:`bonesim.events`); head moves last."""
+    h = ev_head[0] & (ev_kind.shape[0] - 1)
+    ev_kind[h] = kind
+    ev_body[h] = bod
+    ev_label[h] = lab
+    ev_t[h] = t
+    ev_ijk[h, 0], ev_ijk[h, 1], ev_ijk[h, 2] = i, j, k
+    ev_n[h] = n
+    ev_value[h, 0], ev_value[h, 1], ev_value[h, 2] = px, py, pz
+    for q in range(3, ev_value.shape[1]):
+        ev_value[h, q] = 0.0
+    ev_head[0] += 1
+
+
 @njit(cache=True, nogil=True)
-def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
+def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacing,
                   stiff, removal, injury,
                   samples, params,
                   pos, axis, drill, direction, speed_factor, dt, t,
+                  group, gsel, first, last, case_pos,
                   R, n_vox, lbrick, ldens, llab, acc, dirty, contact, prev_contact, lost,
-                  rem_ijk, rem_label, rem_t, rem_head,
+                  lab_body,
+                  ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
                   tch_ijk, tch_head,
-                  inj_label, inj_kind, inj_t, inj_pos, inj_vox, inj_head,
                   out):
-    """One haptic step: force, tangential drag, removal and events.
+    """One haptic pass: force, tangential drag, removal and events.
+
+    A step is one pass per group of bodies that share a pose (one pass when
+    the bone is one body, see :func:`bonesim.model.step`). The pass sees only
+    the voxels of bodies whose ``group`` is ``gsel``; ``pos`` and ``axis``
+    are in those bodies' frame.
 
     Parameters
     ----------
     keys, vals, density, label : arrays
         The grid (see :mod:`bonesim.grid`); ``density`` is modified in place.
+    body : (n_bricks, 512) uint8
+        Body id per voxel.
     touched_flag : (n_bricks, 512) uint8
         Set to 1 when a voxel is published to the touched ring.
     origin : (3,) float64
@@ -280,9 +324,9 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         ``k_low [N/mm^3], k_high [N/mm^3], V_t [mm^3], k_tan [N/mm^4],
         max_force [N], h^3 [mm^3], 1/voxel^3 [1/mm^3], burr radius [mm]``.
     pos : (3,) float64
-        Tool centre [mm].
+        Tool centre in the pass's body frame [mm].
     axis : (3,) float64
-        Unit drill axis.
+        Unit drill axis in the pass's body frame.
     drill : bool
         Drill running.
     direction : float
@@ -293,6 +337,15 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
         Step duration [s].
     t : float
         Simulation time at the end of the step [s].
+    group : (max_bodies,) int32
+        Pass group per body (-1: not in any pass).
+    gsel : int
+        The group this pass handles.
+    first, last : bool
+        First pass of the step (clears the per-label counts) and last pass
+        (publishes contact onsets and injuries).
+    case_pos : (3,) float64
+        Tool centre in the case frame [mm] (recorded with injuries).
     R : (3, 3) float64
         Scratch for the tool frame.
     n_vox : int
@@ -312,8 +365,11 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     prev_contact : (n_labels + 1,) uint8
         In/out: 1 where the label was in contact with the drill running.
     lost : (n_labels + 1,) int64
-        Out: voxels removed per label.
-    rem_*, tch_*, inj_* : ring columns and their (1,) int64 heads.
+        Out: voxels removed per label (summed over the step's passes).
+    lab_body : (n_labels + 1,) int32
+        Scratch: the body whose voxels of a label were removed last.
+    ev_* : columns of the tissue-event ring and its (1,) int64 head.
+    tch_* : the touched ring's column and head.
     out : (N_OUT,) float64
         Out: force ``(fx, fy, fz)`` [N] (including tangential), tangential part
         ``(tx, ty, tz)`` [N], normal magnitude ``|F|`` [N], immersed volume
@@ -321,17 +377,19 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     """
     for q in range(out.shape[0]):
         out[q] = 0.0
-    for q in range(contact.shape[0]):
-        contact[q] = 0
-        lost[q] = 0
+    if first:
+        for q in range(contact.shape[0]):
+            contact[q] = 0
+            lost[q] = 0
     tool_frame(axis, R)
     # local block of voxels around the burr
     lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, params[P_RADIUS], origin,
                                             spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     if not any_brick:
-        for q in range(prev_contact.shape[0]):
-            prev_contact[q] = 0
+        if last:
+            for q in range(prev_contact.shape[0]):
+                prev_contact[q] = 0
         return
     # gather the block's density and labels into dense local scratch
     nn = n_vox * n_vox
@@ -347,7 +405,10 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                 b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
                 if b >= 0:
                     off = voxel_offset(i, j, k)
-                    ldens[base + z] = density[b, off]
+                    if group[body[b, off]] == gsel:
+                        ldens[base + z] = density[b, off]
+                    else:
+                        ldens[base + z] = 0.0
                     llab[base + z] = label[b, off]
                 else:
                     ldens[base + z] = 0.0
@@ -431,7 +492,6 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
     scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
     n_rem = 0
     n_tch = 0
-    rcap = rem_label.shape[0] - 1
     tcap = tch_ijk.shape[0] - 1
     for q in range(n_dirty):
         li = dirty[q]
@@ -449,11 +509,10 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
             density[b, off] = 0.0
             lab = label[b, off]
             lost[lab] += 1
-            h = rem_head[0] & rcap
-            rem_ijk[h, 0], rem_ijk[h, 1], rem_ijk[h, 2] = i, j, k
-            rem_label[h] = lab
-            rem_t[h] = t
-            rem_head[0] += 1
+            bod = body[b, off]
+            lab_body[lab] = bod
+            _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                        _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
             n_rem += 1
         else:
             density[b, off] = np.float32(d)
@@ -465,25 +524,20 @@ def haptic_kernel(keys, vals, density, label, touched_flag, origin, spacing,
                 n_tch += 1
     out[O_N_REMOVED] = n_rem
     out[O_N_TOUCHED] = n_tch
-    # injuries
-    icap = inj_label.shape[0] - 1
+    if not last:
+        return
+    # injuries, once per step over all passes
     for lab in range(contact.shape[0]):
         touching = drill and contact[lab] > 0
         if injury[lab]:
             if touching and prev_contact[lab] == 0:
-                h = inj_head[0] & icap
-                inj_label[h] = lab
-                inj_kind[h] = 0
-                inj_t[h] = t
-                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = pos[0], pos[1], pos[2]
-                inj_vox[h] = 0
-                inj_head[0] += 1
+                bod = _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab,
+                                  body, lab)
+                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                            ev_head, _EV_CONTACT, bod, lab, t, 0, 0, 0, 0,
+                            case_pos[0], case_pos[1], case_pos[2])
             if lost[lab] > 0:
-                h = inj_head[0] & icap
-                inj_label[h] = lab
-                inj_kind[h] = 1
-                inj_t[h] = t
-                inj_pos[h, 0], inj_pos[h, 1], inj_pos[h, 2] = pos[0], pos[1], pos[2]
-                inj_vox[h] = lost[lab]
-                inj_head[0] += 1
+                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                            ev_head, _EV_INJURY, lab_body[lab], lab, t, 0, 0, 0, lost[lab],
+                            case_pos[0], case_pos[1], case_pos[2])
         prev_contact[lab] = 1 if touching else 0

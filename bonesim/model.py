@@ -21,11 +21,13 @@ import numpy as np
 from numba import njit
 
 from . import events
+from .bodies import (BODY_LIMIT, DEFAULT_MAX_BODIES, body_arrays_spec, init_bodies,
+                     plan_passes)
 from .devices import SCRIPTED, DeviceCaps
 from .grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, voxel_offset
-from .haptics import (N_OUT, N_PARAMS, P_H3, P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW,
-                      P_K_TAN, P_MAX_FORCE, P_RADIUS, P_V_T, Stencil, block_size,
-                      haptic_kernel, make_stencil)
+from .haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
+                      P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
+                      P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
            "make_model", "load_model", "State", "state_arrays_spec", "make_state",
@@ -58,6 +60,8 @@ class Sample(NamedTuple):
         Spindle speed [rpm].
     direction : int
         +1 forward, -1 reverse.
+    burr : int
+        Index of the burr in the model's burr table (:attr:`Model.burrs`).
     """
 
     t_s: float
@@ -66,6 +70,7 @@ class Sample(NamedTuple):
     drill: bool
     speed_rpm: float
     direction: int = 1
+    burr: int = 0
 
 
 @dataclass(frozen=True)
@@ -81,10 +86,11 @@ class Model:
         ``s`` is ``structures[s - 1]``.
     grid : Grid
         Initial tissue (arrays read-only; :func:`make_state` copies them).
-    burr : Burr
-        The burr in the hand.
-    stencil : Stencil
-        The burr's samples.
+    burrs : tuple of Burr
+        The burr table: a sample's ``burr`` indexes it; burr 0 is the default
+        (:attr:`burr`).
+    stencils : tuple of Stencil
+        Each burr's samples.
     device : DeviceCaps
         Limits of the device driving the tool.
     oversample : int
@@ -95,8 +101,10 @@ class Model:
         1 where touching/removing the label is an injury.
     colors : (n_labels + 1, 3) uint8
         Display colour per label.
-    params : (N_PARAMS,) float64
-        Gains and constants for :func:`bonesim.haptics.haptic_kernel`.
+    burr_params : tuple of (N_PARAMS,) float64
+        Each burr's gains and constants for :func:`bonesim.haptics.haptic_kernel`.
+    max_bodies : int
+        Most bone bodies a run may hold (see :mod:`bonesim.bodies`).
     haptic_rate_hz : float
         Nominal step rate [Hz].
     case : object
@@ -110,15 +118,16 @@ class Model:
     name: str
     structures: tuple
     grid: Grid
-    burr: object
-    stencil: Stencil
+    burrs: tuple
+    stencils: tuple
     device: DeviceCaps
     oversample: int
     stiff: np.ndarray
     removal: np.ndarray
     injury: np.ndarray
     colors: np.ndarray
-    params: np.ndarray
+    burr_params: tuple
+    max_bodies: int = DEFAULT_MAX_BODIES
     haptic_rate_hz: float = HAPTIC_RATE_HZ
     case: object = None
     clearance: object = None
@@ -126,6 +135,21 @@ class Model:
     @property
     def spacing_mm(self) -> float:
         return self.grid.spacing_mm
+
+    @property
+    def burr(self):
+        """The default burr (burr 0 of the table)."""
+        return self.burrs[0]
+
+    @property
+    def stencil(self) -> Stencil:
+        """The default burr's samples."""
+        return self.stencils[0]
+
+    @property
+    def params(self) -> np.ndarray:
+        """The default burr's kernel parameters."""
+        return self.burr_params[0]
 
     @property
     def max_force_n(self) -> float:
@@ -142,17 +166,28 @@ class Model:
         # writable copy made the loop compile a second haptic kernel at its
         # first step (1.8 s with a cold cache).
         self.__dict__.update(state)
-        st = self.stencil
         for a in (self.grid.density, self.grid.label, self.stiff, self.removal,
-                  self.injury, self.colors, self.params,
-                  st.offsets, st.inv_r, st.lat, st.packed):
+                  self.injury, self.colors, *self.burr_params):
             a.flags.writeable = False
+        for st in self.stencils:
+            for a in (st.offsets, st.inv_r, st.lat, st.packed):
+                a.flags.writeable = False
+
+    def with_burrs(self, burrs) -> "Model":
+        """The same model with ``burrs`` added to its burr table (indices
+        ``len(self.burrs)`` on)."""
+        extra = [_burr_arrays(b, self.grid.spacing_mm, self.oversample, self.device)
+                 for b in burrs]
+        return replace(self, burrs=self.burrs + tuple(burrs),
+                       stencils=self.stencils + tuple(e[0] for e in extra),
+                       burr_params=self.burr_params + tuple(e[1] for e in extra))
 
     def with_burr(self, burr) -> "Model":
-        """The same model holding another burr (new stencil and gains)."""
+        """The same model whose default burr (burr 0) is ``burr``; the rest of
+        the table is dropped."""
         stencil, params = _burr_arrays(burr, self.grid.spacing_mm, self.oversample,
                                        self.device)
-        return replace(self, burr=burr, stencil=stencil, params=params)
+        return replace(self, burrs=(burr,), stencils=(stencil,), burr_params=(params,))
 
 
 def _burr_arrays(burr, spacing_mm: float, oversample: int, device: DeviceCaps):
@@ -183,7 +218,7 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
                *, origin_mm=(0.0, 0.0, 0.0), density: np.ndarray | None = None,
                materials: dict | None = None, device: DeviceCaps = SCRIPTED,
                oversample: int = DEFAULT_OVERSAMPLE, name: str = "arrays",
-               case=None) -> Model:
+               case=None, max_bodies: int = DEFAULT_MAX_BODIES) -> Model:
     """Build a :class:`Model` from a label volume.
 
     Parameters
@@ -209,8 +244,12 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
         The device's limits (default: scripted, unlimited).
     oversample : int
         Burr lattice refinement (samples per voxel edge).
+    max_bodies : int
+        Most bone bodies a run may hold (1 .. 255).
     """
     labels = np.asarray(labels)
+    if not 1 <= int(max_bodies) <= BODY_LIMIT:
+        raise ValueError(f"max_bodies must be in 1..{BODY_LIMIT}, got {max_bodies}")
     n = len(structures)
     if labels.size and int(labels.max()) > n:
         raise ValueError(f"label volume uses label {int(labels.max())} but only {n} "
@@ -236,11 +275,11 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
     for a in (grid.density, grid.label):
         a.flags.writeable = False
     stencil, params = _burr_arrays(burr, grid.spacing_mm, oversample, device)
-    return Model(name=name, structures=tuple(structures), grid=grid, burr=burr,
-                 stencil=stencil, device=device, oversample=int(oversample),
+    return Model(name=name, structures=tuple(structures), grid=grid, burrs=(burr,),
+                 stencils=(stencil,), device=device, oversample=int(oversample),
                  stiff=_readonly(stiff), removal=_readonly(removal),
-                 injury=_readonly(injury), colors=_readonly(colors), params=params,
-                 case=case)
+                 injury=_readonly(injury), colors=_readonly(colors),
+                 burr_params=(params,), max_bodies=int(max_bodies), case=case)
 
 
 def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
@@ -287,16 +326,26 @@ class State:
         Current tissue (density is modified in place by :func:`step`).
     touched_flag : (n_bricks, 512) uint8
         1 where a voxel sits in the touched ring unconsumed.
+    body : (n_bricks, 512) uint8
+        Body id per voxel (see :mod:`bonesim.bodies`).
+    pose : (max_bodies, 7) float64
+        Body-to-case pose per body ``(tx, ty, tz [mm], qw, qx, qy, qz)``.
+    pose_m : (max_bodies, 3, 4) float64
+        The same poses as ``[R | t]`` matrices.
+    alive : (max_bodies,) uint8
+        1 for the bodies that exist.
+    bounds : (max_bodies, 6) int32
+        Each body's voxel box in its own frame (inclusive).
     t_s : float
         Time of the last step [s] (NaN before the first).
     pos_mm, axis : (3,) float64
-        Last tool pose.
+        Last tool pose (case frame).
     force_n : (3,) float64
         Last force sent to the device [N].
     out : (N_OUT,) float64
-        The last step's kernel output (see :mod:`bonesim.haptics`).
-    removed, touched, injuries : events.Ring
-        Event rings drained by consumers.
+        The last step's kernel output (see :mod:`bonesim.haptics`), case frame.
+    tissue, touched : events.Ring
+        The tissue-event ring and the shading-hint ring, drained by consumers.
     removed_by_label : (n_labels + 1,) int64
         Running total of removed voxels per label.
     n_steps : int
@@ -305,9 +354,13 @@ class State:
 
     grid: Grid
     touched_flag: np.ndarray
-    removed: events.Ring
+    body: np.ndarray
+    pose: np.ndarray
+    pose_m: np.ndarray
+    alive: np.ndarray
+    bounds: np.ndarray
+    tissue: events.Ring
     touched: events.Ring
-    injuries: events.Ring
     removed_by_label: np.ndarray
     t_s: float = math.nan
     pos_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -326,36 +379,56 @@ class State:
     _contact: np.ndarray = None
     _prev_contact: np.ndarray | None = None
     _lost: np.ndarray = None
+    _lab_body: np.ndarray = None
+    _group: np.ndarray = None
+    _pass_body: np.ndarray = None
+    _pass_ident: np.ndarray = None
     _pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _bpos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _baxis: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def fit_scratch(self, model: Model) -> None:
-        """Size the kernel's scratch for the model's burr (call after a burr change)."""
-        n_vox, n_brick = block_size(model.burr.radius_mm, model.spacing_mm)
-        if n_vox > self._n_vox:
-            self._n_vox = n_vox
-            self._lbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
-            self._ldens = np.zeros(n_vox ** 3, dtype=np.float32)
-            self._llab = np.zeros(n_vox ** 3, dtype=np.uint8)
-            self._acc = np.zeros(n_vox ** 3)
-            self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
+        """Size the kernel's scratch for the largest burr of the model's table."""
+        for burr in model.burrs:
+            n_vox, n_brick = block_size(burr.radius_mm, model.spacing_mm)
+            if n_vox > self._n_vox:
+                self._n_vox = n_vox
+                self._lbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
+                self._ldens = np.zeros(n_vox ** 3, dtype=np.float32)
+                self._llab = np.zeros(n_vox ** 3, dtype=np.uint8)
+                self._acc = np.zeros(n_vox ** 3)
+                self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
+
+    @property
+    def n_removed(self) -> int:
+        """Voxels removed since the last reset."""
+        return int(self.removed_by_label.sum())
+
+    @property
+    def n_bodies(self) -> int:
+        """Bodies that exist."""
+        return int(self.alive.sum())
 
 
-def state_arrays_spec(model: Model) -> list:
+def state_arrays_spec(model: Model, ring_capacity: int | None = None) -> list:
     """The state arrays another process may need to see, as
-    ``(name, shape, dtype)``: density, touched flags, removal totals and the
-    event rings (for :class:`bonesim.shared.SharedArrays`)."""
+    ``(name, shape, dtype)``: density, touched flags, the body arrays,
+    removal totals and the event rings (for :class:`bonesim.shared.SharedArrays`).
+    ``ring_capacity`` overrides the rings' capacities (a power of two)."""
     n_b = model.grid.n_bricks
     spec = [("density", (n_b, BRICK_VOXELS), np.float32),
             ("touched_flag", (n_b, BRICK_VOXELS), np.uint8),
             ("removed_by_label", (len(model.structures) + 1,), np.int64)]
+    spec += body_arrays_spec(n_b, model.max_bodies)
     for ring in events.RINGS:
-        spec += events.ring_arrays_spec(ring)
+        spec += events.ring_arrays_spec(ring, ring_capacity)
     return spec
 
 
-def make_state(model: Model, arrays: dict | None = None) -> State:
-    """A fresh state: the model's initial grid, no events, time unset.
+def make_state(model: Model, arrays: dict | None = None,
+               ring_capacity: int | None = None) -> State:
+    """A fresh state: the model's initial grid as one body, no events, time unset.
 
     Parameters
     ----------
@@ -364,29 +437,37 @@ def make_state(model: Model, arrays: dict | None = None) -> State:
         Arrays laid out as :func:`state_arrays_spec` says (e.g. in shared
         memory) to hold the state; they are reset to the model's initial
         tissue and empty rings. Default: private arrays.
+    ring_capacity : int, optional
+        Capacity of private rings (default :data:`bonesim.events.RINGS`'s).
     """
     if arrays is None:
         arrays = {name: np.zeros(shape, dtype=dt)
-                  for name, shape, dt in state_arrays_spec(model)}
+                  for name, shape, dt in state_arrays_spec(model, ring_capacity)}
     n = len(model.structures) + 1
     g0 = model.grid
     grid = Grid(g0.spacing_mm, g0.origin_mm, g0.shape, g0.keys, g0.vals, g0.bricks,
                 arrays["density"], g0.label)
-    st = State(grid=grid, touched_flag=arrays["touched_flag"],
-               removed=events.ring_from_arrays("removed", arrays),
+    st = State(grid=grid, touched_flag=arrays["touched_flag"], body=arrays["body"],
+               pose=arrays["pose"], pose_m=arrays["pose_m"], alive=arrays["alive"],
+               bounds=arrays["bounds"],
+               tissue=events.ring_from_arrays("tissue", arrays),
                touched=events.ring_from_arrays("touched", arrays),
-               injuries=events.ring_from_arrays("injuries", arrays),
                removed_by_label=arrays["removed_by_label"])
     reset_state(model, st)
     st._contact = np.zeros(n, dtype=np.int64)
     st._prev_contact = np.zeros(n, dtype=np.uint8)
     st._lost = np.zeros(n, dtype=np.int64)
+    st._lab_body = np.zeros(n, dtype=np.int32)
+    st._group = np.zeros(model.max_bodies, dtype=np.int32)
+    st._pass_body = np.zeros(model.max_bodies, dtype=np.int32)
+    st._pass_ident = np.zeros(model.max_bodies, dtype=np.bool_)
     st.fit_scratch(model)
     return st
 
 
 def reset_state(model: Model, state: State, rings: bool = True) -> None:
-    """Put the model's initial tissue back, in place.
+    """Put the model's initial tissue back, in place: one body at the
+    identity pose.
 
     Parameters
     ----------
@@ -397,9 +478,11 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
     """
     state.grid.density[:] = model.grid.density
     state.touched_flag[:] = 0
+    init_bodies(state.body, state.pose, state.pose_m, state.alive, state.bounds,
+                model.grid.shape)
     state.removed_by_label[:] = 0
     if rings:
-        for ring in (state.removed, state.touched, state.injuries):
+        for ring in (state.tissue, state.touched):
             ring.reset()
     state.t_s = math.nan
     state.n_steps = 0
@@ -412,8 +495,16 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     """Advance ``state`` by one haptic sample.
 
     Computes the volume-sampled force and tangential drag, removes material
-    while the drill runs, and appends removals, touched voxels and injuries
-    to the state's rings. See :mod:`bonesim.haptics` for the model.
+    while the drill runs, and appends removals and injuries to the state's
+    tissue ring and touched voxels to its touched ring. See
+    :mod:`bonesim.haptics` for the model.
+
+    Bodies: the tool is transformed into the frame of every body within its
+    reach, one kernel pass per group of bodies that share a pose
+    (:func:`bonesim.bodies.plan_passes`); each pass's force is turned back
+    into the case frame and the sum is clamped to the force limit. A bone
+    that is one body at the identity pose takes one pass in the case frame,
+    which is exactly the single-body step.
 
     Parameters
     ----------
@@ -421,7 +512,7 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     state : State
         Modified in place.
     sample : Sample
-        Time [s], position [mm], axis, drill, speed [rpm], direction.
+        Time [s], position [mm], axis, drill, speed [rpm], direction, burr.
 
     Returns
     -------
@@ -436,6 +527,12 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
         if not dt >= 0.0:
             raise ValueError(f"sample time {t} s precedes the previous step ({state.t_s} s)")
         dt = min(dt, MAX_DT_S)
+    bi = int(getattr(sample, "burr", 0))      # a trajectory sample has no burr
+    if not 0 <= bi < len(model.burrs):
+        raise ValueError(f"sample at t={t} s: burr {bi} is not in the model's table of "
+                         f"{len(model.burrs)}")
+    burr = model.burrs[bi]
+    params = model.burr_params[bi]
     pos = state._pos
     pos[:] = sample.pos_mm
     ax = state._axis
@@ -445,22 +542,22 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
         raise ValueError(f"sample at t={t} s: position must be finite and axis non-zero")
     ax /= norm
     drill = bool(sample.drill)
-    speed_factor = max(0.0, float(sample.speed_rpm)) / model.burr.default_speed_rpm
+    speed_factor = max(0.0, float(sample.speed_rpm)) / burr.default_speed_rpm
     direction = -1.0 if sample.direction < 0 else 1.0
     g = state.grid
-    st = model.stencil
-    rem, tch, inj = state.removed.fields, state.touched.fields, state.injuries.fields
-    haptic_kernel(g.keys, g.vals, g.density, g.label, state.touched_flag, g.origin_mm,
-                  g.spacing_mm, model.stiff, model.removal, model.injury,
-                  st.packed, model.params,
-                  pos, ax, drill, direction, speed_factor, dt, t,
-                  state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
-                  state._acc, state._dirty,
-                  state._contact, state._prev_contact, state._lost,
-                  rem["ijk"], rem["label"], rem["t_s"], state.removed.head,
-                  tch["ijk"], state.touched.head,
-                  inj["label"], inj["kind"], inj["t_s"], inj["pos_mm"], inj["voxels"],
-                  state.injuries.head, state.out)
+    n_pass = plan_passes(state.alive, state.pose, state.pose_m, state.bounds, pos,
+                         params[P_RADIUS], g.origin_mm, g.spacing_mm, state._group,
+                         state._pass_body, state._pass_ident)
+    if n_pass == 1 and state._pass_ident[0]:
+        _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, 0,
+                True, True)
+    elif n_pass == 0:
+        state.out[:] = 0.0
+        state._lost[:] = 0
+        state._prev_contact[:] = 0
+    else:
+        _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor,
+                     dt, t)
     state.removed_by_label += state._lost
     state.t_s = t
     state.pos_mm[:] = pos
@@ -468,6 +565,50 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     state.force_n[:] = state.out[:3]
     state.n_steps += 1
     return state.force_n
+
+
+def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gsel,
+            first, last) -> None:
+    g = state.grid
+    ev, tch = state.tissue.fields, state.touched.fields
+    haptic_kernel(g.keys, g.vals, g.density, g.label, state.body, state.touched_flag,
+                  g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
+                  model.stencils[bi].packed, model.burr_params[bi],
+                  pos, ax, drill, direction, speed_factor, dt, t,
+                  state._group, gsel, first, last, state._pos,
+                  state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
+                  state._acc, state._dirty,
+                  state._contact, state._prev_contact, state._lost, state._lab_body,
+                  ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
+                  ev["value"], state.tissue.head,
+                  tch["ijk"], state.touched.head, state.out)
+
+
+def _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor, dt,
+                 t) -> None:
+    """Several kernel passes (bodies at different poses), summed in the case frame."""
+    force = np.zeros(3)
+    tang = np.zeros(3)
+    acc = np.zeros(N_OUT)
+    for q in range(n_pass):
+        m = state.pose_m[state._pass_body[q]]
+        rot, tr = m[:, :3], m[:, 3]
+        state._bpos[:] = rot.T @ (pos - tr)
+        state._baxis[:] = rot.T @ ax
+        _kernel(model, state, bi, state._bpos, state._baxis, drill, direction,
+                speed_factor, dt, t, q, q == 0, q == n_pass - 1)
+        force += rot @ state.out[O_FX:O_FZ + 1]
+        tang += rot @ state.out[O_TX:O_TZ + 1]
+        acc += state.out
+    limit = model.burr_params[bi][P_MAX_FORCE]
+    fm = math.sqrt(force @ force)
+    if fm > limit:
+        force *= limit / fm
+    out = state.out
+    out[:] = acc
+    out[O_FX:O_FZ + 1] = force
+    out[O_TX:O_TZ + 1] = tang
+    out[O_MAG] = min(acc[O_MAG], limit)
 
 
 def clear_touched(state: State, ijk: np.ndarray) -> None:
@@ -501,6 +642,10 @@ def warmup() -> None:
     s = make_state(m)
     step(m, s, warmup_sample(m))
     clear_touched(s, s.touched.read(0)["ijk"])
+    from .bodies import split_body
+
+    split_body(s, 0, np.array([[0, 0, 0]]))
+    step(m, s, warmup_sample(m)._replace(t_s=0.001))
 
 
 @njit(cache=True, nogil=True)

@@ -2,15 +2,16 @@
 
 A recording holds everything needed to review, replay and score a run: a
 header (who, what case and burrs with content hashes, device limits), the
-device-sample stream at the haptic rate, forces, every voxel removal,
-injuries, the camera stream at the frame rate and user-interface events. The
+device-sample stream at the haptic rate, forces, the tissue-event stream
+(every voxel removal, contact and injury, reset, burr change, body split and
+pose: :mod:`bonesim.events`), the camera stream at the frame rate and user-interface events. The
 layout is documented in ``docs/session_schema.md`` and versioned by
 :data:`SCHEMA_VERSION`; :func:`read_session` checks it.
 
 How the data gets there without slowing the haptic loop
 -------------------------------------------------------
-The loop only appends records to shared-memory rings (``samples``,
-``removed``, ``injuries``; the window adds ``camera`` and ``ui``). A
+The loop only appends records to shared-memory rings (``samples`` and
+``tissue``; the window adds ``camera`` and ``ui``). A
 :class:`Recorder` runs a writer in its own process that drains the rings
 every :data:`FLUSH_S` and appends the batches to the file, which is open in
 HDF5's single-writer/multiple-reader (SWMR) mode: readers may open it while
@@ -42,7 +43,7 @@ __all__ = ["SCHEMA_VERSION", "FORMAT", "FLUSH_S", "WRITER_NICE", "CHUNK_ROWS",
            "C_ERROR", "C_OVERFLOWS", "C_LAST_FLUSH", "Recorder"]
 
 #: Version of the file layout written here (``docs/session_schema.md``).
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: Value of the root attribute ``format``.
 FORMAT = "bonesim-session"
 #: How often the writer drains the rings and flushes the file [s].
@@ -52,8 +53,7 @@ FLUSH_S = 0.05
 #: behind, and a crash then loses more than one flush period.
 WRITER_NICE = 10
 #: Rows per HDF5 chunk, per group, while a file is written.
-CHUNK_ROWS = {"samples": 4096, "removals": 8192, "injuries": 256, "camera": 1024,
-              "events": 256}
+CHUNK_ROWS = {"samples": 4096, "tissue": 8192, "camera": 1024, "events": 256}
 #: A closed session is rewritten compressed (:func:`compact_session`): gzip
 #: at this level with byte shuffling (level 4 comes within 5% of level 9's
 #: size in half its time; a 3-minute run shrinks about 9x) ...
@@ -63,12 +63,12 @@ COMPACT_GZIP_LEVEL = 4
 COMPACT_CHUNK_ROWS = 1 << 13
 #: Columns of each group: name -> (dtype, trailing shape). ``samples``,
 #: ``camera`` and ``events`` are the rings of the same names
-#: (:data:`bonesim.events.OTHER_RINGS`); ``removals`` adds ``visible`` to the
-#: ``removed`` ring (1 visible from the eye, 0 hidden, -1 unknown).
+#: (:data:`bonesim.events.OTHER_RINGS`); ``tissue`` is the tissue-event
+#: record (:data:`bonesim.events.TISSUE_FIELDS`) plus ``visible`` (removals:
+#: 1 visible from the eye, 0 hidden, -1 unknown; -1 for other kinds).
 GROUPS = {
     "samples": events.OTHER_RINGS["samples"][1],
-    "removals": {**events.RINGS["removed"][1], "visible": (np.int8, ())},
-    "injuries": events.RINGS["injuries"][1],
+    "tissue": {**events.TISSUE_FIELDS, "visible": (np.int8, ())},
     "camera": events.OTHER_RINGS["camera"][1],
     "events": events.OTHER_RINGS["ui"][1],
 }
@@ -395,17 +395,16 @@ class Drainer:
     ----------
     writer : SessionWriter
     rings : dict of str -> events.Ring
-        Any of ``samples``, ``removed``, ``injuries``, ``camera``, ``ui``.
+        Any of ``samples``, ``tissue``, ``camera``, ``ui``.
         Cursors start at record 0: the rings must not have wrapped yet.
     visibility : bonesim.visibility.VisibilityTracker, optional
         Fills the removals' ``visible`` column (else -1, unknown).
     """
 
     #: ring name -> file group, in drain order (samples before what follows them)
-    TARGET = {"samples": "samples", "camera": "camera", "removed": "removals",
-              "injuries": "injuries", "ui": "events"}
+    TARGET = {"samples": "samples", "camera": "camera", "tissue": "tissue", "ui": "events"}
     #: rings held back until the samples of their steps are in
-    HELD = ("removed", "injuries")
+    HELD = ("tissue",)
 
     def __init__(self, writer: SessionWriter, rings: dict, visibility=None):
         self.writer = writer
@@ -414,8 +413,6 @@ class Drainer:
         self.visibility = visibility
         self.held = {name: None for name in self.HELD}
         self.last_t = -math.inf if "samples" in rings else math.inf
-        self._burr = 0
-        self._epoch = 0
         self.rows = 0
         self.overflows = 0
 
@@ -431,30 +428,12 @@ class Drainer:
                                           "value": [name.encode()]})
             return cur.drain()
 
-    def _note_changes(self, s: dict) -> None:
-        """Burr changes and case resets, as events (``burr``: the new index;
-        ``reset``: the new epoch) at the first step that saw them."""
-        t, rows = [], []
-        for col, name, last in (("burr", b"burr", self._burr), ("epoch", b"reset", self._epoch)):
-            v = s[col].astype(np.int64)
-            prev = np.concatenate([[last], v[:-1]])
-            for q in np.flatnonzero(v != prev):
-                t.append(s["t_s"][q])
-                rows.append((name, str(int(v[q])).encode()))
-        self._burr, self._epoch = int(s["burr"][-1]), int(s["epoch"][-1])
-        if t:
-            order = np.argsort(t, kind="stable")
-            self.writer.append("events", {"t_s": np.asarray(t)[order],
-                                          "name": [rows[q][0] for q in order],
-                                          "value": [rows[q][1] for q in order]})
-
     def drain(self) -> int:
         """Append everything new; returns the rows written."""
         recs = {name: self._take(name, cur) for name, cur in self.cursors.items()}
         s = recs.get("samples")
         if s is not None and len(s["t_s"]):
             self.last_t = float(s["t_s"][-1])
-            self._note_changes(s)
         for name in self.HELD:
             if name not in recs:
                 continue
@@ -469,8 +448,13 @@ class Drainer:
                 self.visibility.add_samples(s)
             if "camera" in recs:
                 self.visibility.add_camera(recs["camera"])
-            if "removed" in recs:
-                recs["removed"]["visible"] = self.visibility.judge(recs["removed"])
+        if "tissue" in recs:
+            r = recs["tissue"]
+            vis = np.full(len(r["t_s"]), -1, np.int8)
+            if self.visibility is not None:
+                rem = r["kind"] == events.REMOVED
+                vis[rem] = self.visibility.judge(events.removals(r))
+            r["visible"] = vis
         n = sum(self.writer.append(self.TARGET[name], r) for name, r in recs.items())
         self.rows += n
         return n
@@ -494,8 +478,7 @@ def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, mode
         os.nice(-WRITER_NICE)    # ahead of the window and the tests' load; best effort
     except (OSError, AttributeError):
         pass
-    rings = {"samples": rings["samples"], "removed": rings["removed"],
-             "injuries": rings["injuries"],
+    rings = {"samples": rings["samples"], "tissue": rings["tissue"],
              "camera": events.ring_from_arrays("camera", own.arrays),
              "ui": events.ring_from_arrays("ui", own.arrays)}
     vis = None

@@ -8,12 +8,17 @@ short, zeroed blocks, left open by a writer that died; see
 every stream cut at the same moment so that replaying its samples gives its
 removals, and the :class:`Session` says what is wrong (:attr:`Session.damage`).
 :func:`repair_session` writes that readable prefix as a clean file.
+
+Files of schema 1 are read too: their removals, injuries, resets and burr
+changes are migrated into the tissue-event stream of schema 2
+(:mod:`bonesim.session_v1`); a repaired copy is written in schema 2.
 """
 from __future__ import annotations
 
 import json
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -23,12 +28,17 @@ from .errors import BonesimError
 from .record import (FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, SessionWriter, _h5py,
                      compact_session, model_sha256, sessions_folder)
 from .session_salvage import open_session_file, read_prefix
+from .session_v1 import GROUPS_V1
+from .session_v1 import migrate as migrate_v1
 
 __all__ = ["Session", "read_session", "damage_notice", "session_info", "list_sessions",
            "repair_session"]
 
-#: Streams that must agree for a replay (cut to one moment in a damaged file).
-_TIMED = ("samples", "removals", "injuries", "camera", "events")
+#: Per schema: the groups read (name -> columns) and the tissue stream that
+#: must be whole up to the moment a damaged file is cut at.
+_SCHEMAS = {1: ({"samples": GROUPS["samples"], **GROUPS_V1, "camera": GROUPS["camera"],
+                 "events": GROUPS["events"]}, "removals"),
+            2: (GROUPS, "tissue")}
 
 
 @dataclass
@@ -43,10 +53,13 @@ class Session:
     complete : bool
         The writer closed the file cleanly (False after a crash: the data is
         complete up to the writer's last flush).
-    samples, removals, injuries, camera : dict of str -> ndarray
-        Columns of equal length per group. ``removals`` gains ``epoch``
-        (case resets before each removal), derived from the samples.
+    samples, tissue, camera : dict of str -> ndarray
+        Columns of equal length per group. ``tissue`` is the tissue-event
+        stream (:mod:`bonesim.events`) with ``visible``; a schema-1 file's
+        removals, injuries, resets and burr changes are migrated into it
+        (:mod:`bonesim.session_v1`).
     events : list of (t_s, name, value)
+        User-interface events.
     damage : str or None
         What is wrong with the file (cut short, unreadable blocks, groups
         lost), in words; None for a sound file. A damaged session holds the
@@ -63,13 +76,33 @@ class Session:
     header: dict
     complete: bool
     samples: dict
-    removals: dict
-    injuries: dict
+    tissue: dict
     camera: dict
     events: list = field(default_factory=list)
     damage: str | None = None
     readable: dict = field(default_factory=dict)
     repaired: dict | None = None
+
+    @cached_property
+    def removals(self) -> dict:
+        """The removed voxels (:func:`bonesim.events.removals`) with
+        ``visible`` and ``epoch`` (case resets before each removal, from the
+        samples)."""
+        m = self.tissue["kind"] == events.REMOVED
+        rem = events.removals({k: a[m] for k, a in self.tissue.items() if k != "visible"})
+        rem["visible"] = self.tissue["visible"][m]
+        s = self.samples
+        if len(s["t_s"]):
+            idx = np.clip(np.searchsorted(s["t_s"], rem["t_s"]), 0, len(s["t_s"]) - 1)
+            rem["epoch"] = s["epoch"][idx]
+        else:
+            rem["epoch"] = np.zeros(len(rem["t_s"]), np.int32)
+        return rem
+
+    @cached_property
+    def injuries(self) -> dict:
+        """Contacts and injuries (:func:`bonesim.events.injuries`)."""
+        return events.injuries({k: a for k, a in self.tissue.items() if k != "visible"})
 
     @property
     def duration_s(self) -> float:
@@ -187,7 +220,7 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list):
     return {k: a[:n] for k, a in data.items()}, (declared if lost else None)
 
 
-def _cut_to_one_moment(groups: dict, declared: dict) -> None:
+def _cut_to_one_moment(groups: dict, declared: dict, whole: str) -> None:
     """Cut every stream of a damaged file at the moment its sample or removal
     stream stops being readable: samples up to the last readable one, and
     nothing from the step of the last readable removal on (that step's other
@@ -196,12 +229,12 @@ def _cut_to_one_moment(groups: dict, declared: dict) -> None:
     if declared.get("samples") is not None:
         t = groups["samples"]["t_s"]
         upto = float(t[-1]) if len(t) else -math.inf
-    if declared.get("removals") is not None:
-        t = groups["removals"]["t_s"]
+    if declared.get(whole) is not None:
+        t = groups[whole]["t_s"]
         before = float(t[-1]) if len(t) else -math.inf
     if upto == math.inf and before == math.inf:
         return
-    for g in _TIMED:
+    for g in groups:
         t = groups[g]["t_s"]
         keep = np.isnan(t) | ((t <= upto) & (t < before))   # NaN: the writer's notes
         if not keep.all():
@@ -232,8 +265,9 @@ def read_session(path) -> Session:
                     else None
             except (TypeError, ValueError):
                 repaired = None
+            spec, whole = _SCHEMAS[schema]
             groups, declared = {}, {}
-            for g, cols in GROUPS.items():
+            for g, cols in spec.items():
                 groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems)
             try:
                 closed = read_prefix(f["closed"], real_size)
@@ -249,24 +283,21 @@ def read_session(path) -> Session:
             view.close()
     readable = {}
     if problems:
-        rows_before = {g: len(groups[g]["t_s"]) for g in GROUPS}
-        _cut_to_one_moment(groups, declared)
-        for g in GROUPS:
+        rows_before = {g: len(groups[g]["t_s"]) for g in spec}
+        _cut_to_one_moment(groups, declared, whole)
+        for g in spec:
             if declared[g] is not None or len(groups[g]["t_s"]) < rows_before[g]:
                 total = declared[g] if declared[g] is not None else rows_before[g]
                 readable[g] = (int(len(groups[g]["t_s"])), int(total))
         complete = False
-    s = groups["samples"]
-    rem = groups["removals"]
-    if len(s["t_s"]):
-        idx = np.clip(np.searchsorted(s["t_s"], rem["t_s"]), 0, len(s["t_s"]) - 1)
-        rem["epoch"] = s["epoch"][idx]
-    else:
-        rem["epoch"] = np.zeros(len(rem["t_s"]), np.int32)
     ev = groups["events"]
     evlist = [(float(t), n.decode(errors="replace"), v.decode(errors="replace"))
               for t, n, v in zip(ev["t_s"], ev["name"], ev["value"])]
-    return Session(path, schema, header, complete, s, rem, groups["injuries"],
+    if schema == 1:
+        tissue, evlist = migrate_v1(groups["removals"], groups["injuries"], evlist)
+    else:
+        tissue = groups["tissue"]
+    return Session(path, schema, header, complete, groups["samples"], tissue,
                    groups["camera"], evlist, "; ".join(problems) or None, readable,
                    repaired)
 
@@ -302,8 +333,7 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     if out.resolve() == Path(path).resolve():
         raise BonesimError(f"{out}: the repaired copy must be a new file, not the one "
                            "read")
-    groups = {"samples": src.samples, "injuries": src.injuries, "camera": src.camera,
-              "removals": {k: v for k, v in src.removals.items() if k != "epoch"}}
+    groups = {"samples": src.samples, "tissue": src.tissue, "camera": src.camera}
     ev = src.events
     groups["events"] = {"t_s": np.array([e[0] for e in ev], np.float64),
                         "name": np.array([e[1].encode() for e in ev],

@@ -81,7 +81,7 @@ class Showcase:
         from .dust import DustGrid
         from .model import load_model, make_state
         from .render.scene import Scene
-        from .simulate import SurfaceConsumer
+        from .replica import TissueReplica
         from .toolpath import demo_trajectory
 
         self.model = model = load_model(case, burr)
@@ -90,7 +90,7 @@ class Showcase:
         if len(self.samples.t_s) < 2:
             raise ValueError("the trajectory is shorter than one haptic step")
         self.state = make_state(model)
-        self.consumer = SurfaceConsumer(model, self.state)
+        self.consumer = TissueReplica(model, self.state, surface=True)
         cam = model.case.camera
         view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
         self.view = view / np.linalg.norm(view)
@@ -102,7 +102,6 @@ class Showcase:
         focal = np.asarray(cam.focal_mm, float)
         eye = focal + (np.asarray(cam.eye_mm, float) - focal) / ZOOM
         self.scene.set_case_camera(eye, focal, cam.up)
-        self.injury_cursor = events.Cursor(self.state.injuries)
         self.injuries: list[str] = []
         self.q = 0                                   # next sample to step
         self.frame_hz = None                         # run_showcase: the video's rate
@@ -212,8 +211,9 @@ class Showcase:
         dt = max(t_s - t0, 0.0)
         self.t_s = t_s
         cur = max(self.q - 1, 0)
-        rem, tch = self.consumer.drain()
-        self.scene.update_surface(self.consumer.surface, rem, tch)
+        ch = self.consumer.drain()
+        rem = ch.removed
+        self.scene.update_surface(self.consumer.surface, rem, ch.touched)
         if len(rem):
             self.dust.add_removed(rem)
         burr = model.burr
@@ -249,7 +249,7 @@ class Showcase:
         else:
             self.scene.set_suction(None)
             self.scene.set_tool(self._tip_mm(cur), axis, TIP_RADIUS_MM, False, kind="suction")
-        for lab in self.injury_cursor.drain()["label"]:
+        for lab in ch.injuries["label"]:
             name = model.structure_name(int(lab))
             if name not in self.injuries:
                 self.injuries.append(name)

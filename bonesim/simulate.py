@@ -3,9 +3,10 @@
 :func:`run_trajectory` is what ``bonesim simulate`` does. The trajectory is
 resampled at the model's haptic rate (simulated time, not wall-clock) and fed
 sample by sample to :func:`bonesim.model.step`, exactly as an interactive run
-feeds device samples. A consumer drains the removal and touched rings at the
-frame rate and updates the hybrid surface incrementally, as the renderer
-will. The haptic step never waits for it.
+feeds device samples. A :class:`~bonesim.replica.TissueReplica` drains the
+tissue-event and touched rings at the frame rate and updates the hybrid
+surface incrementally, as the window does. The haptic step never waits for
+it.
 """
 from __future__ import annotations
 
@@ -16,12 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from . import events
-from .grid import sync_replica
 from .haptics import O_N_IMMERSED
-from .model import Model, Sample, clear_touched, make_state, step
+from .model import Model, Sample, make_state, step
+from .replica import TissueReplica
 
-__all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "SurfaceConsumer", "warmup", "run_trajectory",
-           "closest_approach"]
+__all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "warmup", "run_trajectory", "closest_approach"]
 
 #: Frame rate at which the surface consumer drains the rings [Hz].
 FRAME_HZ = 60.0
@@ -29,47 +29,6 @@ FRAME_HZ = 60.0
 #: The drilling burr's closest approach to a structure is checked every this
 #: many haptic steps (5 ms at 1 kHz: under 0.1 mm of travel at drilling speed).
 CLEARANCE_EVERY = 5
-
-
-class SurfaceConsumer:
-    """Keeps a :class:`~bonesim.surface.Surface` in step with a state's rings."""
-
-    def __init__(self, model: Model, state):
-        from .surface import Surface
-
-        self.state = state
-        # Cursors first, then a snapshot: whatever the haptic side changes
-        # after the cursors were set is drained later (re-listing a voxel the
-        # snapshot already shows removed is harmless), so the surface stays
-        # exact even while another process is drilling.
-        self.removed = events.Cursor(state.removed)
-        self.touched = events.Cursor(state.touched)
-        #: The consumer's replica of the tissue: it changes only through the
-        #: events drained, so it always matches what the surface was told.
-        self.grid = state.grid.copy()
-        self.surface = Surface.of_model(model, self.grid)   # thin bone shows the tint
-        self.update_s: list[float] = []
-
-    def drain(self):
-        """Apply everything the haptic side published since the last call.
-
-        Returns
-        -------
-        removed, touched : (n, 3) int32
-            The voxels drained (for other consumers of the same frame).
-        """
-        rem = self.removed.drain()["ijk"]
-        tch = self.touched.drain()["ijk"]
-        if len(rem) == 0 and len(tch) == 0:
-            return rem, tch
-        # clear the flags before reading densities: a voxel the haptic side
-        # lowers again after this point is published again, never lost
-        clear_touched(self.state, tch)
-        t0 = time.perf_counter()
-        sync_replica(self.grid, self.state.grid, rem, tch)
-        self.surface.update(self.grid, rem, tch)
-        self.update_s.append(time.perf_counter() - t0)
-        return rem, tch
 
 
 def warmup() -> None:
@@ -81,10 +40,10 @@ def warmup() -> None:
 
     m = warmup_model()
     s = make_state(m)
-    consumer = SurfaceConsumer(m, s)
+    consumer = TissueReplica(m, s, surface=True)
     step(m, s, warmup_sample(m))
-    rem, tch = consumer.drain()
-    if len(rem) + len(tch) == 0:
+    ch = consumer.drain()
+    if len(ch.removed) + len(ch.touched) == 0:
         raise RuntimeError("surface consumer warm-up: the step published nothing to drain")
 
 
@@ -123,7 +82,8 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     rate = model.haptic_rate_hz
     samples = traj.resample(rate)
     state = make_state(model)
-    consumer = SurfaceConsumer(model, state) if surface else None
+    consumer = TissueReplica(model, state, surface=True) if surface else None
+    injuries = []
     n = len(samples.t_s)
     frame_every = max(int(round(rate / FRAME_HZ)), 1)
     step_ns = np.zeros(n, dtype=np.int64)
@@ -144,7 +104,7 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
             force[q] = np.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
             contact[q] = state.out[O_N_IMMERSED] > 0
             if consumer is not None and q % frame_every == frame_every - 1:
-                consumer.drain()
+                injuries.append(consumer.drain().injuries)
             if progress is not None and q % 5000 == 0:
                 progress(q / n)
     except BaseException:
@@ -152,8 +112,11 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
             rec.close()
         raise
     if consumer is not None:
-        consumer.drain()
-    summary = _summary(model, state, step_ns, force, contact, consumer)
+        injuries.append(consumer.drain().injuries)
+    else:
+        injuries.append(events.injuries(state.tissue.read(max(0, state.tissue.count
+                                                                  - state.tissue.capacity))))
+    summary = _summary(model, state, step_ns, force, contact, consumer, injuries)
     every = np.arange(0, n, CLEARANCE_EVERY)
     drilling = every[samples.drill[every].astype(bool)]
     gap, label, at = closest_approach(model, pos[drilling])
@@ -202,8 +165,8 @@ class _Recording:
             from .visibility import VisibilityTracker
 
             vis = VisibilityTracker([model], cam.eye_mm)
-        self.drainer = Drainer(self.writer, {"samples": self.ring, "removed": state.removed,
-                                             "injuries": state.injuries}, vis)
+        self.drainer = Drainer(self.writer, {"samples": self.ring, "tissue": state.tissue},
+                               vis)
         self.zero = np.zeros(3)
 
     def push(self, smp, f) -> None:
@@ -258,10 +221,10 @@ def closest_approach(model: Model, pos_mm) -> tuple[float, int, int]:
     return float(d[q, k]) - model.burr.radius_mm, int(labels[k]), int(q)
 
 
-def _summary(model, state, step_ns, force, contact, consumer) -> dict:
+def _summary(model, state, step_ns, force, contact, consumer, injuries) -> dict:
     names = [model.structure_name(s) for s in range(len(model.structures) + 1)]
     rem = {names[s]: int(c) for s, c in enumerate(state.removed_by_label) if s and c}
-    inj = state.injuries.read(0)
+    inj = {k: np.concatenate([i[k] for i in injuries]) for k in injuries[0]}
     injuries = [{"structure": names[int(lab)], "kind": events.INJURY_KINDS[int(k)],
                  "t_s": round(float(t), 4),
                  "pos_mm": [round(float(x), 3) for x in p], "voxels": int(v)}
@@ -273,8 +236,9 @@ def _summary(model, state, step_ns, force, contact, consumer) -> dict:
         "burr": getattr(model.burr, "name", "?"),
         "duration_s": round(float(state.t_s), 4) if len(step_ns) else 0.0,
         "steps": int(len(step_ns)),
-        "voxels_removed": int(state.removed.count),
-        "volume_removed_mm3": round(state.removed.count * model.spacing_mm ** 3, 3),
+        "voxels_removed": int(state.removed_by_label.sum()),
+        "volume_removed_mm3": round(int(state.removed_by_label.sum()) * model.spacing_mm ** 3,
+                                    3),
         "removed_by_structure": rem,
         "injuries": injuries,
         "force_n": {

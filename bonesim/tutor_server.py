@@ -54,10 +54,10 @@ class Streamer:
         datagrams by outcome.
     """
 
-    def __init__(self, sock, key: bytes, samples: events.Ring, removed: events.Ring,
+    def __init__(self, sock, key: bytes, samples: events.Ring, tissue: events.Ring,
                  info: dict, density=None, initial_density=None, bricks=None):
         self.samples = samples
-        self.removed = removed
+        self.tissue = tissue
         self.log = RemovalLog()
         self.counters = dict.fromkeys(("sent", "removals_sent", "nacks", "go_backs"), 0)
         self.session = net.SessionServer(sock, key, info, stale_s=STALE_S,
@@ -71,7 +71,7 @@ class Streamer:
         self.epoch = int(self._sf["epoch"][(n - 1) & self._smask]) if n else 0
         self.t_done = float(self._sf["t_s"][(n - 1) & self._smask]) if n else -math.inf
         # cursor first, then the snapshot (re-listing a voxel is harmless)
-        self.r_pos = removed.count
+        self.r_pos = tissue.count
         if density is not None:
             self.log.extend(removed_voxels(initial_density, density, bricks))
 
@@ -113,14 +113,15 @@ class Streamer:
                 c.send_from = 0
                 c.acked = 0
         # removals of completed steps only (their sample is out): t <= t_last
-        r_n = self.removed.count
+        r_n = self.tissue.count
         if r_n > self.r_pos:
-            rec = self.removed.read(self.r_pos, r_n)
+            rec = self.tissue.read(self.r_pos, r_n)
             t = rec["t_s"]
             done = int(np.searchsorted(t, t_last, side="right"))
             first = int(np.searchsorted(t[:done], boundary, side="left"))
             if done > first:
-                self.log.extend(rec["ijk"][first:done])
+                part = {k: a[first:done] for k, a in rec.items()}
+                self.log.extend(events.removals(part)["ijk"])
             self.r_pos += done
         self.s_pos = n
         self.t_done = t_last
@@ -209,7 +210,7 @@ def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks,
             conn.send({"error": str(exc)})
             status[SV_ERROR] = 1.0
             return
-        streamer = Streamer(sock, key, rings["samples"], rings["removed"], info,
+        streamer = Streamer(sock, key, rings["samples"], rings["tissue"], info,
                             density=sh.arrays["density"], initial_density=initial_density,
                             bricks=bricks)
         status[SV_PORT] = sock.getsockname()[1]

@@ -33,7 +33,7 @@ Driving it from the app (sketch; the haptic loop and devices are the app's)::
     scene = Scene.from_model(model, consumer.surface, offscreen=False)
 
     def on_frame(scene):                       # main thread, once per frame
-        consumer.drain()                       # rings -> Surface.update
+        consumer.drain()                       # TissueReplica: events -> Surface.update
         scene.update_surface(consumer.surface)
         depth = depth_below_surface_mm(grid, pos_mm, scene.camera_pose()[0],
                                        model.burr.radius_mm)     # bonesim.sightline

@@ -691,11 +691,12 @@ def test_mass_is_conserved_exactly_with_irrigation(seed, n_ops):
 
 
 def test_drain_turns_removed_voxels_into_bulked_dust():
-    ring = events.removal_ring(64)
+    ring = events.tissue_ring(64)
     cur = events.Cursor(ring)
     n = 5
-    ring.fields["ijk"][:n] = [[4, 4, 6], [5, 4, 6], [4, 4, 6], [6, 6, 6], [7, 7, 7]]
-    ring.head[0] = n
+    ring.fields["ijk"][:n + 1] = [[4, 4, 6], [5, 4, 6], [4, 4, 6], [0, 0, 0], [6, 6, 6], [7, 7, 7]]
+    ring.fields["kind"][3] = events.CONTACT          # not a removal: no dust
+    ring.head[0] = n + 1
     bone, dust = _floor_case(bulking=1.6)
     assert dust.drain(cur) == n
     assert math.isclose(dust.added_cells, 1.6 * n, abs_tol=1e-5)

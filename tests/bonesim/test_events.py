@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.events import Cursor, Ring, RingOverflow, removal_ring
+from bonesim.events import Cursor, Ring, RingOverflow, tissue_ring
 
 
 def _push(ring, n, start=0):
@@ -17,7 +17,7 @@ def _push(ring, n, start=0):
 
 
 def test_two_consumers_read_everything_once():
-    ring = removal_ring(16)
+    ring = tissue_ring(16)
     a, b = Cursor(ring), Cursor(ring)
     _push(ring, 5)
     got_a = a.drain()
@@ -31,7 +31,7 @@ def test_two_consumers_read_everything_once():
 
 
 def test_wrap_around_keeps_order():
-    ring = removal_ring(8)
+    ring = tissue_ring(8)
     c = Cursor(ring)
     for chunk in range(5):
         _push(ring, 6, start=6 * chunk)
@@ -41,7 +41,7 @@ def test_wrap_around_keeps_order():
 
 
 def test_overflow_is_reported_not_garbage():
-    ring = removal_ring(8)
+    ring = tissue_ring(8)
     c = Cursor(ring)
     _push(ring, 9)
     with pytest.raises(RingOverflow, match="behind"):

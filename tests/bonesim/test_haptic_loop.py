@@ -12,7 +12,7 @@ from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import (ST_BURR, ST_EPOCH, ST_STEPS, HapticLoop)
 from bonesim.model import load_model
-from bonesim.simulate import SurfaceConsumer
+from bonesim.replica import TissueReplica
 from bonesim.surface import Surface
 from tests.bonesim.fakes import wait_for
 
@@ -30,7 +30,7 @@ def test_scripted_loop_publishes_and_consumer_stays_exact(model):
     start = np.flatnonzero(traj.drill)[0]
     traj = traj.at_times(traj.t_s[start:start + 400])
     with HapticLoop(model, device=("scripted", traj)) as loop:
-        consumer = SurfaceConsumer(model, loop.state)
+        consumer = TissueReplica(model, loop.state, surface=True)
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end:
             consumer.drain()                   # the loop never waits for this
@@ -39,7 +39,7 @@ def test_scripted_loop_publishes_and_consumer_stays_exact(model):
         consumer.drain()
         stats = loop.rate_stats()
         assert loop.status[ST_STEPS] > 500 and stats["n"] > 100 and stats["rate_hz"] > 0
-        assert loop.state.removed.count > 0
+        assert loop.state.n_removed > 0
         # the replica saw every published change, and the surface matches it
         np.testing.assert_array_equal(consumer.grid.density, loop.state.grid.density)
         fresh = Surface.of_model(model, consumer.grid)
@@ -54,11 +54,11 @@ def test_mouse_device_drills_reset_restores_and_burr_switches(model):
         # the cortex is near x = 20 on the focal line; ask for 3 mm into it
         loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait_for(lambda: loop.state.removed.count > 20), "mouse drilling removed nothing"
+        assert wait_for(lambda: loop.state.n_removed > 20), "mouse drilling removed nothing"
         loop.set_drill(False)
         loop.set_burr(1)
         assert wait_for(lambda: loop.status[ST_BURR] == 1)
-        n_before = loop.state.removed.count
+        n_before = loop.state.n_removed
         epoch = loop.reset()
         assert wait_for(lambda: loop.status[ST_EPOCH] == epoch)
         # the loop announces the epoch before it steps in it: every sample
@@ -67,7 +67,7 @@ def test_mouse_device_drills_reset_restores_and_burr_switches(model):
         assert wait_for(lambda: loop.state.removed_by_label.sum() == 0)
         np.testing.assert_array_equal(loop.state.grid.density, model.grid.density)
         # the event counters keep running, so other processes miss nothing
-        assert loop.state.removed.count >= n_before
+        assert loop.state.n_removed >= n_before
         assert wait_for(lambda: loop.samples.count >= first_new + 10)
         smp = loop.samples.read(first_new, first_new + 10)
         assert (smp["epoch"] == epoch).all() and (smp["burr"] == 1).all()

@@ -34,10 +34,11 @@ def drill_run(model, state, plan, snap_every=100):
     snaps = {}
     epoch, q = 0, 0
     axis = np.array([0.0, 0.0, -1.0])
-    rc, ic = events.Cursor(state.removed), events.Cursor(state.injuries)
+    cur = events.Cursor(state.tissue)
 
     def drain():
-        r, i = rc.drain(), ic.drain()
+        ev = cur.drain()
+        r, i = events.removals(ev), events.injuries(ev)
         for k in ("t_s", "ijk", "label"):
             rem[k].extend(r[k])
         rem["epoch"].extend([epoch] * len(r["t_s"]))
@@ -48,7 +49,7 @@ def drill_run(model, state, plan, snap_every=100):
         if kind == "reset":
             drain()
             reset_state(model, state)
-            rc, ic = events.Cursor(state.removed), events.Cursor(state.injuries)
+            cur = events.Cursor(state.tissue)
             epoch += 1
             continue
         for p in path:
@@ -368,12 +369,12 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
         loop.start()
         loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait(lambda: loop.state.removed.count > 30)
+        assert wait(lambda: loop.state.n_removed > 30)
         epoch = loop.reset()
         assert wait(lambda: loop.status[ST_EPOCH] == epoch)
         loop.set_burr(1)
-        n1 = loop.state.removed.count
-        assert wait(lambda: loop.state.removed.count > n1 + 20)
+        n1 = loop.state.n_removed
+        assert wait(lambda: loop.state.n_removed > n1 + 20)
         loop.set_drill(False)
         time.sleep(0.1)
         rec.close()

@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
+from bonesim import events
 from bonesim.case import load_case
 from bonesim.cli import main
 from bonesim.toolpath import demo_trajectory
@@ -85,7 +86,7 @@ def test_verify_catches_a_changed_removal(recorded, tmp_path):
     bad = tmp_path / "bad.h5"
     shutil.copy(path, bad)
     with h5py.File(bad, "r+") as f:
-        f["removals/ijk"][5, 0] += 1
+        f["tissue/ijk"][5, 0] += 1
     report = verify(read_session(bad))
     assert not report["ok"] and report["first_mismatch"]["index"] == 5
     assert report["first_mismatch"]["field"] == "ijk"
@@ -122,7 +123,7 @@ def _copy_with(path, tmp_path, edit):
     (lambda f: f.attrs.__setitem__("format", "something-else"), "not a bonesim session"),
     (lambda f: f.attrs.__setitem__("header", "{not json"), "not JSON"),
     (lambda f: f.attrs.__setitem__("header", json.dumps({"case": {}})), "header lacks"),
-    (lambda f: f.__delitem__("removals"), "/removals is missing"),
+    (lambda f: f.__delitem__("tissue"), "/tissue is missing"),
     (lambda f: f["samples"].__delitem__("force_n"), "/samples/force_n is missing"),
     (lambda f: (f["samples"].__delitem__("t_s"),
                 f["samples"].create_dataset("t_s", data=np.zeros(3, np.float32))),
@@ -178,7 +179,7 @@ def test_live_loop_recording_replays_bit_for_bit(model, traj, tmp_path):
         rec.camera((0.0, 0.0, 100.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
         assert loop.wait(30.0)
         stats = rec.close()
-        n_samples, n_removed = loop.samples.count, loop.state.removed.count
+        n_samples, n_removed = loop.samples.count, loop.state.n_removed
     finally:
         loop.close()
     s = read_session(path)
@@ -278,29 +279,37 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
         loop.start()
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait(lambda: loop.state.removed.count > 20)
+        assert wait(lambda: loop.state.n_removed > 20)
         loop.set_burr(1)
-        n0 = loop.state.removed.count
-        assert wait(lambda: loop.state.removed.count > n0 + 5)
+        n0 = loop.state.n_removed
+        assert wait(lambda: loop.state.n_removed > n0 + 5)
         epoch = loop.reset()
         assert wait(lambda: loop.status[ST_EPOCH] == epoch)
-        n1 = loop.state.removed.count
-        assert wait(lambda: loop.state.removed.count > n1 + 20)
+        n1 = loop.state.n_removed
+        assert wait(lambda: loop.state.n_removed > n1 + 20)
         loop.set_drill(False)
         time.sleep(0.1)
         rec.close()
-        n_removed = loop.state.removed.count
+        ev = loop.state.tissue.read(0)
+        n_removed = int((ev["kind"] == events.REMOVED).sum())
     finally:
         loop.close()
     s = read_session(path)
     assert len(s.removals["t_s"]) == n_removed
     assert set(np.unique(s.removals["epoch"])) == {0, 1}
     assert set(np.unique(s.samples["burr"])) == {0, 1}
-    # the writer logged the burr change and the reset at the steps that saw them
-    changes = [(name, value) for _, name, value in s.events]
-    assert ("burr", "1") in changes and ("reset", "1") in changes
-    t_burr = next(t for t, n, _ in s.events if n == "burr")
-    assert s.samples["burr"][np.searchsorted(s.samples["t_s"], t_burr) - 1] == 0
+    # the loop published the burr change and the reset as tissue events, at
+    # the steps that saw them first
+    tis = s.tissue
+    changes = [(events.KIND_NAMES[k], int(n)) for k, n in zip(tis["kind"], tis["n"])
+               if k in (events.BURR, events.RESET)]
+    assert changes == [("burr", 1), ("reset", 1)]
+    t_burr = float(tis["t_s"][tis["kind"] == events.BURR][0])
+    q = np.searchsorted(s.samples["t_s"], t_burr)
+    assert s.samples["burr"][q] == 1 and s.samples["burr"][q - 1] == 0
+    t_reset = float(tis["t_s"][tis["kind"] == events.RESET][0])
+    q = np.searchsorted(s.samples["t_s"], t_reset)
+    assert s.samples["epoch"][q] == 1 and s.samples["epoch"][q - 1] == 0
     report = verify(s)
     assert report["ok"], report
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from bonesim import events
 from bonesim.case import load_case
 from bonesim.clearance import Clearance
 from bonesim.errors import BonesimError
@@ -252,7 +253,7 @@ def test_demo_run_drills_bone_rinses_without_contact(phantom):
     r, state, force = drive(model, traj)
     removed = state.removed_by_label
     assert removed[1] > 25000 and removed[2:].sum() == 0      # bone only
-    assert state.injuries.count == 0
+    assert len(events.injuries(state.tissue.read(0))["t_s"]) == 0
     assert r.suction.sum() > 5000 and r.irrigation.sum() > 2000
     # the suction / irrigation tip never touches bone: no force at all
     assert np.all(force[r.suction | r.irrigation] == 0.0)
@@ -276,7 +277,7 @@ def test_fine_anisotropic_export_run_injures_nothing(tmp_path, fine_phantom):
                               Clearance.from_native(vol.native_labels, danger))
     r, state, force = drive(model, traj)
     assert state.removed_by_label[1] > 20000 and state.removed_by_label[2:].sum() == 0
-    assert state.injuries.count == 0
+    assert len(events.injuries(state.tissue.read(0))["t_s"]) == 0
     assert np.all(force[r.suction | r.irrigation] == 0.0)
 
 

@@ -240,7 +240,7 @@ def _session(drop=0.0, seed=0, snapshot=False):
     if snapshot:
         kw = dict(density=state.grid.density, initial_density=model.grid.density,
                   bricks=model.grid.bricks)
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.removed,
+    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
                          tutor.session_info(model), **kw)
     src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                               sock=netw.endpoint(TRAINEE))
@@ -297,7 +297,7 @@ def test_trainee_follows_the_instructor_and_feels_its_force():
     # (a passive hand is pushed off the bone by F_i: the trainee is meant to
     # push back as the instructor does)
     contact = np.linalg.norm(f_i, axis=1) > 1.0
-    assert contact.sum() > 100 and inst.state.removed.count > 100
+    assert contact.sum() > 100 and inst.state.n_removed > 100
     assert np.linalg.norm(F[contact], axis=1).max() > 1.0
 
 
@@ -316,7 +316,7 @@ def test_replica_equals_instructor_tissue_under_10_percent_loss():
     assert netw.dropped > 100
     s = trainee.stats()
     assert s["nacks_sent"] > 0 and srv.counters["go_backs"] > 0
-    assert src.have == srv.log.n == inst.state.removed.count > 100
+    assert src.have == srv.log.n == inst.state.n_removed > 100
     np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(inst.state.grid))
     assert not np.array_equal(_occupancy(src.grid), _occupancy(model.grid))
 
@@ -514,9 +514,9 @@ def test_server_started_mid_session_sends_what_was_already_drilled():
     inst = Instructor(model, state)
     for q in range(2000):                                     # drilled before serving
         inst.step(q * DT)
-    assert state.removed.count > 50
+    assert state.n_removed > 50
     netw = MemoryNet()
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.removed,
+    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
                          tutor.session_info(model), density=state.grid.density,
                          initial_density=model.grid.density, bricks=model.grid.bricks)
     src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
@@ -559,8 +559,7 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
     path = tmp_path / "run.h5"
     header = dict.fromkeys(record.HEADER_KEYS, "")          # the block is no case file
     with record.SessionWriter(path, header) as writer:
-        drainer = record.Drainer(writer, {"samples": inst.samples, "removed": state.removed,
-                                          "injuries": state.injuries})
+        drainer = record.Drainer(writer, {"samples": inst.samples, "tissue": state.tissue})
         for q in range(2200):
             inst.step(q * DT)
             if q % 100 == 99:

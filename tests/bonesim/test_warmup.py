@@ -51,12 +51,12 @@ from bonesim.toolpath import demo_trajectory
 from bonesim.model import load_model, make_state, step
 from bonesim.monitor import NerveMonitor
 from bonesim.render.meshbuf import SurfaceBuffers
-from bonesim.simulate import SurfaceConsumer
+from bonesim.replica import TissueReplica
 
 model = load_model("phantom", "cutting-5mm")
 sent = pickle.loads(pickle.dumps(model))        # as the loop's process gets it
 state = make_state(sent)
-consumer = SurfaceConsumer(model, state)
+consumer = TissueReplica(model, state, surface=True)
 traj = demo_trajectory(load_case("phantom"), "cutting-5mm").resample(1000.0)
 start = int(np.flatnonzero(traj.drill)[0])
 buf = SurfaceBuffers()
@@ -65,8 +65,8 @@ for q, s in enumerate(traj.samples()):
         continue
     step(sent, state, s)
     if q % 50 == 0:
-        rem, tch = consumer.drain()
-        buf.sync(consumer.surface, rem, tch)
+        ch = consumer.drain()
+        buf.sync(consumer.surface, ch.removed, ch.touched)
     if q > start + 4000:
         break
 assert state.removed.count > 0
