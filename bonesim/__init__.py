@@ -1,6 +1,6 @@
 """bonesim: a temporal-bone drilling simulator.
 
-The core contract (see :mod:`bonesim.model`)::
+The core contract (see :mod:`bonesim.model`; files: :mod:`bonesim.loading`)::
 
     import bonesim
     model = bonesim.load_model("phantom", "cutting-5mm")   # immutable
@@ -15,9 +15,10 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 _LAZY = {
-    "Model": "model", "State": "model", "Sample": "model", "load_model": "model",
-    "make_model": "model", "make_state": "model", "step": "model", "warmup": "model",
-    "Grid": "grid", "BonesimError": "errors", "DeviceCaps": "devices",
+    "Model": "model", "State": "model", "Sample": "model", "load_model": "loading",
+    "make_model": "model", "make_state": "model", "step": "model", "warmup": "loading",
+    "Grid": "grid", "BonesimError": "errors", "DeviceCaps": "device_caps",
+    "data_path": "resources",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]

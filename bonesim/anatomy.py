@@ -126,7 +126,9 @@ class AnatomyTable:
 
 def default_table_path() -> Path:
     """The shipped ``bonesim/data/anatomy.toml``."""
-    return Path(__file__).resolve().parent / "data" / "anatomy.toml"
+    from .resources import data_path
+
+    return data_path("anatomy.toml")
 
 
 def _colors(value, path: Path, where: str) -> tuple:

@@ -94,7 +94,7 @@ class App:
                  monitor_serve: dict | None = None, stereo: str | None = None,
                  eye_separation_mm: float | None = None):
         from .burrs import list_burrs, load_burr
-        from .model import load_model
+        from .loading import load_model
 
         chosen = load_burr(burr)
         table = list_burrs()

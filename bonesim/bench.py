@@ -78,7 +78,7 @@ def _time_haptic_steps(oversample: int, n: int, with_floor: bool):
 def bench_haptic_step(quick=False) -> dict:
     """Haptic step with the 7 mm cutting burr half immersed in a bone block
     (2x oversampling), its floor, and the same step at 4x oversampling."""
-    from .model import warmup
+    from .loading import warmup
 
     warmup()
     n = 2000 if quick else 20000
@@ -110,7 +110,7 @@ def bench_haptic_step(quick=False) -> dict:
 # ----------------------------------------------------------------- surface
 def bench_surface(quick=False) -> dict:
     """From-scratch and incremental tessellation of the phantom."""
-    from .model import load_model
+    from .loading import load_model
     from .surface import Surface, warmup
 
     warmup()
@@ -252,7 +252,7 @@ def _loop_for_bench(seconds: float):
     from .burrs import DEFAULT_BURR
     from .toolpath import demo_trajectory
     from .haptic_loop import HapticLoop
-    from .model import load_model
+    from .loading import load_model
 
     model = load_model("phantom", DEFAULT_BURR)
     traj = demo_trajectory(load_case("phantom"), DEFAULT_BURR)

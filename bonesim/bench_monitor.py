@@ -39,7 +39,7 @@ def _pcts(a, scale):
 
 
 def bench_update(quick: bool = False) -> dict:
-    from .model import load_model
+    from .loading import load_model
     from .monitor import UPDATE_HZ, NerveMonitor
 
     model = load_model("phantom", "cutting-5mm")

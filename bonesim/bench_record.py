@@ -35,7 +35,8 @@ def _demo_samples(model, n: int):
 def bench_recording(quick=False) -> dict:
     from . import events
     from .haptic_loop import push_sample
-    from .model import Sample, load_model, make_state, step, warmup
+    from .model import Sample, make_state, step
+    from .loading import load_model, warmup
     from .record import FLUSH_S, Drainer, SessionWriter, make_header
 
     warmup()

@@ -118,7 +118,7 @@ def _who(args) -> dict:
 
 
 def _run(case, burr, traj, args) -> dict:
-    from .model import load_model, warmup
+    from .loading import load_model, warmup
     from .simulate import run_trajectory
 
     warmup()

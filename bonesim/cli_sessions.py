@@ -58,7 +58,7 @@ def cmd_sessions_list(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from .model import warmup
+    from .loading import warmup
     from .replay import replay, verify
 
     session = read_session(args.file)

@@ -10,52 +10,15 @@ haptic devices come as further backends that import their SDKs lazily.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
+from .device_caps import SCRIPTED, DeviceCaps
+
 __all__ = ["DeviceCaps", "SCRIPTED", "DeviceReading", "Device", "MOUSE_CAPS",
            "NULL_CAPS", "NullDevice", "ScriptedDevice", "SharedInputDevice",
            "VirtualCoupling", "TOUCH_CAPS", "SIM_HAND_CAPS", "SimulatedHandDevice"]
-
-
-@dataclass(frozen=True)
-class DeviceCaps:
-    """What a device can do, in physical units.
-
-    Attributes
-    ----------
-    name : str
-        Backend name.
-    max_force_n : float
-        Largest continuous force the device can render [N] (``inf`` if it
-        renders none, e.g. a scripted trajectory).
-    workspace_mm : tuple of 3 float
-        Usable translation range along x, y, z [mm].
-    max_stiffness_n_per_mm : float
-        Largest stable virtual stiffness [N/mm].
-    rate_hz : float
-        Nominal servo rate [Hz].
-    """
-
-    name: str
-    max_force_n: float
-    workspace_mm: tuple
-    max_stiffness_n_per_mm: float
-    rate_hz: float = 1000.0
-
-    def __post_init__(self):
-        if not self.max_force_n > 0:
-            raise ValueError(f"device {self.name}: max_force_n must be positive")
-        if not self.max_stiffness_n_per_mm > 0:
-            raise ValueError(f"device {self.name}: max_stiffness_n_per_mm must be positive")
-        if len(self.workspace_mm) != 3 or min(self.workspace_mm) <= 0:
-            raise ValueError(f"device {self.name}: workspace_mm must be 3 positive lengths")
-
-
-#: A trajectory or script drives the tool: no force limit beyond the burr's.
-SCRIPTED = DeviceCaps("scripted", math.inf, (math.inf, math.inf, math.inf), math.inf)
 
 
 # --------------------------------------------------------------------------

@@ -151,7 +151,7 @@ def _make_device(spec, io):
 def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                run_s: float | None, vibration: bool) -> None:
     """Body of the haptic process."""
-    from .model import warmup
+    from .loading import warmup
 
     die_with_parent()
     sh = SharedArrays.attach(handle)

@@ -62,7 +62,9 @@ class Material:
 
 def default_materials_path() -> Path:
     """Path of the shipped ``materials.toml``."""
-    return Path(__file__).resolve().parent / "data" / "materials.toml"
+    from .resources import data_path
+
+    return data_path("materials.toml")
 
 
 def _factor(table: dict, key: str, path: Path, where: str) -> float:

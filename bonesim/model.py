@@ -2,7 +2,7 @@
 
 * :class:`Model` is immutable: the case's initial grid, the structure table
   and its material factors, the burr and its sampled stencil, the gains, the
-  device's limits. It is loaded from files by :func:`load_model` (or built
+  device's limits. It is loaded from files by :func:`bonesim.loading.load_model` (or built
   from arrays by :func:`make_model`).
 * :class:`State` is everything a run changes: the voxel grid, the tool pose,
   time, the last force, the event rings and the kernel's scratch memory.
@@ -23,16 +23,15 @@ from numba import njit
 from . import events
 from .bodies import (BODY_LIMIT, DEFAULT_MAX_BODIES, body_arrays_spec, init_bodies,
                      plan_passes)
-from .devices import SCRIPTED, DeviceCaps
+from .device_caps import SCRIPTED, DeviceCaps
 from .grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, voxel_offset
 from .haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
                       P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                       P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
-           "make_model", "load_model", "State", "state_arrays_spec", "make_state",
-           "reset_state", "step", "clear_touched", "warmup_model", "warmup_sample",
-           "warmup"]
+           "make_model", "State", "state_arrays_spec", "make_state", "reset_state",
+           "step", "clear_touched"]
 
 #: Default haptic rate [Hz].
 HAPTIC_RATE_HZ = 1000.0
@@ -280,40 +279,6 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
                  stiff=_readonly(stiff), removal=_readonly(removal),
                  injury=_readonly(injury), colors=_readonly(colors),
                  burr_params=(params,), max_bodies=int(max_bodies), case=case)
-
-
-def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
-               device: DeviceCaps = SCRIPTED, oversample: int = DEFAULT_OVERSAMPLE,
-               materials: dict | None = None) -> Model:
-    """Load a case and a burr from their files and build the model.
-
-    Parameters
-    ----------
-    case : str
-        Bundled case name or path of a ``case.toml``.
-    burr : str
-        Burr name (``cutting-5mm``) or path of a burr file.
-    device : DeviceCaps
-        The device's limits.
-    oversample : int
-        Burr lattice refinement.
-    """
-    from .burrs import load_burr
-    from .case import load_case
-
-    c = load_case(case)
-    b = load_burr(burr) if isinstance(burr, str) else burr
-    vol = c.load_volume()
-    # display colours settled on this volume (neighbours apart); the case keeps
-    # the view derived from it, so nothing reads the volume twice
-    c = c.resolved(vol)
-    model = make_model(vol.labels, vol.spacing_mm, c.structures, b,
-                       origin_mm=vol.origin_mm, materials=materials, device=device,
-                       oversample=oversample, name=c.name, case=c)
-    from .clearance import Clearance
-
-    danger = [s for s, st in enumerate(c.structures, start=1) if st.kind != "bone"]
-    return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
 
 
 @dataclass
@@ -615,37 +580,6 @@ def clear_touched(state: State, ijk: np.ndarray) -> None:
     """Let the touched voxels ``ijk`` (n, 3) be published again (consumer side)."""
     _clear_flags(state.grid.keys, state.grid.vals, state.touched_flag,
                  np.ascontiguousarray(ijk, dtype=np.int32))
-
-
-def warmup_model() -> Model:
-    """A 12³ slab of bone (0.5 mm voxels, the 1 mm cutting burr) on which the
-    warm-ups compile kernels for a real model's array types."""
-    from types import SimpleNamespace
-
-    from .burrs import load_burr
-
-    labels = np.zeros((12, 12, 12), dtype=np.uint8)
-    labels[:, :, :6] = 1
-    bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
-    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
-
-
-def warmup_sample(model: Model) -> Sample:
-    """A sample of the running drill just under the warm-up slab's top."""
-    return Sample(0.0, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
-                  True, model.burr.default_speed_rpm, 1)
-
-
-def warmup() -> None:
-    """Compile every kernel :func:`step` uses (cached on disk after the first run)."""
-    m = warmup_model()
-    s = make_state(m)
-    step(m, s, warmup_sample(m))
-    clear_touched(s, s.touched.read(0)["ijk"])
-    from .bodies import split_body
-
-    split_body(s, 0, np.array([[0, 0, 0]]))
-    step(m, s, warmup_sample(m)._replace(t_s=0.001))
 
 
 @njit(cache=True, nogil=True)

@@ -126,7 +126,9 @@ _SHARES = ("force_floor", "drill_off")
 
 def default_params_path() -> Path:
     """Path of the shipped ``monitor.toml``."""
-    return Path(__file__).resolve().parent / "data" / "monitor.toml"
+    from .resources import data_path
+
+    return data_path("monitor.toml")
 
 
 def load_activity_params(path: str | Path | None = None) -> ActivityParams:

@@ -114,8 +114,8 @@ class Session:
         recorded case and burrs; with ``check``, their physics must hash to
         what was recorded."""
         from .burrs import load_burr
-        from .devices import DeviceCaps
-        from .model import load_model
+        from .device_caps import DeviceCaps
+        from .loading import load_model
 
         h = self.header
         case = h["case"]

@@ -61,7 +61,9 @@ class ShadingParams:
 
 def default_shading_path() -> Path:
     """Path of the shipped ``shading.toml``."""
-    return Path(__file__).resolve().parent / "data" / "shading.toml"
+    from .resources import data_path
+
+    return data_path("shading.toml")
 
 
 def load_shading(path: str | Path | None = None) -> ShadingParams:

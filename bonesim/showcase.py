@@ -79,7 +79,8 @@ class Showcase:
     def __init__(self, case="phantom", burr="cutting-5mm", *, trajectory=None,
                  size=SIZE, monitor: bool = True):
         from .dust import DustGrid
-        from .model import load_model, make_state
+        from .loading import load_model
+        from .model import make_state
         from .render.scene import Scene
         from .replica import TissueReplica
         from .toolpath import demo_trajectory

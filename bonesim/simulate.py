@@ -36,7 +36,7 @@ def warmup() -> None:
     replica shares the model's read-only labels, which the surface's own
     warm-up grid does not have (the first ``bonesim run`` after set-up
     compiled them at start, about 2 s)."""
-    from .model import warmup_model, warmup_sample
+    from .loading import warmup_model, warmup_sample
 
     m = warmup_model()
     s = make_state(m)

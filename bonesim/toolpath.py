@@ -173,7 +173,9 @@ _POSITIVE_KEYS = ("region_radius_mm", "column_mm", "layer_mm", "speed_mm_s",
 
 def default_plan_path() -> Path:
     """Path of the shipped ``demo_plan.toml``."""
-    return Path(__file__).resolve().parent / "data" / "demo_plan.toml"
+    from .resources import data_path
+
+    return data_path("demo_plan.toml")
 
 
 def load_demo_plan(path: str | Path | None = None) -> DemoPlan:

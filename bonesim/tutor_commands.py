@@ -91,8 +91,8 @@ def _serve_headless(args, key: bytes, traj) -> int:
     import sys
 
     from .haptic_loop import HapticLoop
-    from .model import load_model
-    from .model import warmup as model_warmup
+    from .loading import load_model
+    from .loading import warmup as model_warmup
 
     model_warmup()
     model = load_model(args.case, args.burr)

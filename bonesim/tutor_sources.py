@@ -190,7 +190,7 @@ class NetworkSource(Source):
     def _load_model(self, info: dict):
         from pathlib import Path
 
-        from .model import load_model
+        from .loading import load_model
 
         src = self.case or info.get("case")
         if self.case is None and info.get("case_path") and Path(info["case_path"]).exists():

@@ -19,7 +19,7 @@ def _monitor() -> None:
     read-only labels that it and the window's structure meshes start from."""
     import numpy as np
 
-    from .model import warmup_model
+    from .loading import warmup_model
     from .monitor import NerveField
 
     mask = np.zeros((6, 6, 6), bool)
@@ -32,7 +32,7 @@ def _visibility() -> None:
     """The recorder's writer judges each removal's visibility (its kernels)."""
     import numpy as np
 
-    from .model import warmup_model
+    from .loading import warmup_model
     from .visibility import VisibilityTracker
 
     m = warmup_model()
@@ -49,7 +49,7 @@ def _loop() -> None:
     import numpy as np
 
     from .haptic_loop import HapticLoop
-    from .model import load_model
+    from .loading import load_model
     from .trajectory import Trajectory
 
     model = load_model("phantom", "cutting-5mm")
@@ -69,10 +69,10 @@ def _loop() -> None:
 
 
 def _parts():
-    from . import clicks, dust, model, simulate, sound, surface, thickness, tutor, vibration
+    from . import clicks, dust, loading, simulate, sound, surface, thickness, tutor, vibration
     from .render import meshbuf
 
-    return [("haptic step", model.warmup), ("surface", surface.warmup),
+    return [("haptic step", loading.warmup), ("surface", surface.warmup),
             ("surface consumer", simulate.warmup), ("mesh buffers", meshbuf.warmup),
             ("dust", dust.warmup),
             ("vibration", vibration.warmup), ("sound", sound.warmup),

@@ -60,7 +60,8 @@ def _pct(values, q) -> float:
 
 def bench_update(quick: bool = False) -> dict:
     """``render_update_1000_ms`` (see the module docstring)."""
-    from ..model import load_model, make_state
+    from ..loading import load_model
+    from ..model import make_state
     from ..surface import Surface
     from ..surface import warmup as surface_warmup
     from .scene import Scene
@@ -131,7 +132,7 @@ def _first_frame_child() -> None:
     from . import gl
 
     gl.start_probe(True)                 # overlaps the probe with the case load
-    from ..model import load_model
+    from ..loading import load_model
     from ..surface import Surface
     from .scene import Scene
 
@@ -154,7 +155,7 @@ def _first_frame_child() -> None:
 def _warm_caches() -> None:
     """Fill numba's on-disk caches and the OS file cache for the child (in
     this process: cheaper than a throw-away child when they are warm)."""
-    from ..model import load_model
+    from ..loading import load_model
     from ..surface import Surface
     from .meshbuf import SurfaceBuffers
 
@@ -243,7 +244,8 @@ def _drill_from_camera(model, state) -> np.ndarray:
 def bench_fps(quick: bool = False) -> dict:
     """``render_fps_1024x768`` (see the module docstring)."""
     from ..dust import DustGrid
-    from ..model import load_model, make_state
+    from ..loading import load_model
+    from ..model import make_state
     from ..sightline import depth_below_surface_mm
     from ..surface import Surface
     from ..surface import warmup as surface_warmup

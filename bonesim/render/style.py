@@ -49,7 +49,9 @@ class RenderStyle(SimpleNamespace):
 
 def style_path() -> Path:
     """Path of the shipped ``render.toml``."""
-    return Path(__file__).resolve().parent.parent / "data" / "render.toml"
+    from ..resources import data_path
+
+    return data_path("render.toml")
 
 
 def load_style(path=None) -> RenderStyle:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bonesim.bench_tools import ball_offsets, stencil_density_pass
-from bonesim.model import load_model
+from bonesim.loading import load_model
 
 
 def test_stencil_density_pass_matches_a_naive_lookup():

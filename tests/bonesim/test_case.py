@@ -383,7 +383,7 @@ def test_their_label_stack_loads_in_the_patient_frame(their_stack, phantom_case,
 
 
 def test_model_draws_the_resolved_colours(their_stack):
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
 
     model = load_model(str(their_manifest(their_stack)), "cutting-5mm")
     case = model.case

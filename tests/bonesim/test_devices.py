@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.devices import (MOUSE_CAPS, SCRIPTED, Device, DeviceCaps, NullDevice,
-                             ScriptedDevice, SharedInputDevice, VirtualCoupling)
+from bonesim.devices import (MOUSE_CAPS, Device, NullDevice, ScriptedDevice,
+                             SharedInputDevice, VirtualCoupling)
+from bonesim.device_caps import SCRIPTED, DeviceCaps
 from bonesim.model import Sample, step
 from bonesim.trajectory import Trajectory
 

@@ -11,7 +11,7 @@ from bonesim.burrs import load_burr
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import (ST_BURR, ST_EPOCH, ST_STEPS, HapticLoop)
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.replica import TissueReplica
 from bonesim.surface import Surface
 from tests.bonesim.fakes import wait_for

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as hs
 
 from bonesim import events
-from bonesim.devices import DeviceCaps
+from bonesim.device_caps import DeviceCaps
 from bonesim.haptics import (O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME, make_stencil,
                              multi_gain)
 from bonesim.model import Sample, make_model, make_state, step

@@ -8,7 +8,8 @@ from bonesim import events
 from bonesim.burrs import load_burr
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
-from bonesim.model import load_model, make_state, step
+from bonesim.loading import load_model
+from bonesim.model import make_state, step
 
 
 @pytest.fixture(scope="module")

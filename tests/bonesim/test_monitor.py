@@ -109,7 +109,7 @@ def test_bad_parameter_files_name_file_and_key(tmp_path, old, new, fragment):
 # -------------------------------------------------------------- distance field
 @pytest.fixture(scope="module")
 def phantom_model():
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
 
     return load_model("phantom", "cutting-5mm")
 

@@ -305,7 +305,7 @@ def test_console_reports_a_silent_server_or_a_wrong_key():
 # ------------------------------------------------------ real processes, loopback
 @pytest.fixture(scope="module")
 def phantom_model():
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
 
     return load_model("phantom", "cutting-5mm")
 
@@ -449,7 +449,7 @@ def test_cli_errors_are_clear(tmp_path, capsys, monkeypatch):
         s.bind(("127.0.0.1", 0))
         from bonesim.errors import BonesimError
         from bonesim.haptic_loop import HapticLoop
-        from bonesim.model import load_model
+        from bonesim.loading import load_model
         from bonesim.monitor import MonitorProcess
 
         loop = HapticLoop(load_model("phantom", "cutting-5mm"), device=("null",))

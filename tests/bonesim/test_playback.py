@@ -290,7 +290,7 @@ def demo_file(tmp_path_factory):
     sample (bonesim.simulate with record=)."""
     from bonesim.case import load_case
     from bonesim.toolpath import demo_trajectory
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
     from bonesim.simulate import run_trajectory
 
     t = demo_trajectory(load_case("phantom"), "cutting-5mm")
@@ -343,7 +343,7 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     from bonesim.burrs import load_burr
     from bonesim.case import load_case
     from bonesim.haptic_loop import ST_EPOCH, HapticLoop
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
     from bonesim.record import Recorder, make_header
     from bonesim.replay import replay
     from bonesim.session_reader import read_session

@@ -22,7 +22,7 @@ from bonesim.cli import main
 from bonesim.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
 from bonesim.haptic_loop import ST_T, HapticLoop
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.record import SCHEMA_VERSION, Recorder, make_header
 from bonesim.replay import replay, verify
 from bonesim.session_reader import read_session, session_info
@@ -196,7 +196,7 @@ import json, sys, time
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import HapticLoop
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.record import Recorder, make_header
 import numpy as np
 m = load_model("phantom", "cutting-5mm")

@@ -17,7 +17,7 @@ _CHILD = """
 import json, sys, time
 sys.path.insert(0, sys.argv[2])
 from bonesim.haptic_loop import HapticLoop
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.record import Recorder, make_header
 m = load_model("phantom", "cutting-5mm")
 loop = HapticLoop(m, device=("null",))

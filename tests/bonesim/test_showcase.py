@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bonesim.cli import main
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.showcase import Showcase, run_showcase
 from bonesim.toolpath import demo_trajectory
 

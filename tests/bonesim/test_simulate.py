@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.simulate import CLEARANCE_EVERY, closest_approach, run_trajectory
 from bonesim.trajectory import Trajectory
 

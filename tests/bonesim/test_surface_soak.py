@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bonesim.bench_tools import ball_offsets, remove_voxels
-from bonesim.model import load_model
+from bonesim.loading import load_model
 from bonesim.surface import Surface
 
 pytestmark = pytest.mark.slow

@@ -13,7 +13,8 @@ from bonesim import events
 from bonesim.case import load_case
 from bonesim.clearance import Clearance
 from bonesim.errors import BonesimError
-from bonesim.model import load_model, make_model, make_state, step
+from bonesim.loading import load_model
+from bonesim.model import make_model, make_state, step
 from bonesim.toolpath import (DemoPlan, _segment_clear, _trace_floors, default_plan_path,
                               demo_mastoidectomy, demo_trajectory, load_demo_plan)
 from bonesim.trajectory import Trajectory

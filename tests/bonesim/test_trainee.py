@@ -96,7 +96,7 @@ def test_live_instructor_over_loopback_window_replica_matches():
     from bonesim.case import load_case
     from bonesim.toolpath import demo_trajectory
     from bonesim.haptic_loop import HapticLoop
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
     from bonesim.tutor import TutorServer
 
     model = load_model("phantom", "cutting-5mm")

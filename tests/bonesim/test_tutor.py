@@ -642,7 +642,7 @@ pytestmark_slow = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def phantom():
-    from bonesim.model import load_model
+    from bonesim.loading import load_model
 
     return load_model("phantom", "cutting-5mm")
 

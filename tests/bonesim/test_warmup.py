@@ -48,7 +48,8 @@ before = signatures()
 
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
-from bonesim.model import load_model, make_state, step
+from bonesim.loading import load_model
+from bonesim.model import make_state, step
 from bonesim.monitor import NerveMonitor
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.replica import TissueReplica
