@@ -75,6 +75,62 @@ def _time_haptic_steps(oversample: int, n: int, with_floor: bool):
     return model, ns, floor_ns
 
 
+#: Bodies the multi-body figure splits the bench block into.
+BENCH_BODIES = 8
+#: Edge of the cubes the bodies interleave in [voxels]: every body is within
+#: the burr's reach wherever it cuts.
+BENCH_BODY_CELL = 4
+
+
+def _interleaved_bodies(model) -> list:
+    """Voxel lists (body frame) of bodies 1..7 of a 3D checkerboard of cubes."""
+    g = np.mgrid[0:model.grid.shape[0], 0:model.grid.shape[1], 0:model.grid.shape[2]]
+    c = g // BENCH_BODY_CELL
+    body = (c[0] % 2) + 2 * (c[1] % 2) + 4 * (c[2] % 2)
+    ijk = g.reshape(3, -1).T.astype(np.int32)
+    return [ijk[body.ravel() == b] for b in range(1, BENCH_BODIES)]
+
+
+def _time_multibody_steps(n: int):
+    """Step times [ns] of the same sweep as :func:`_time_haptic_steps` on the
+    block as one body and split into :data:`BENCH_BODIES` interleaved bodies
+    (identity poses), stepped alternately with the same samples; returns
+    ``(one_ns, many_ns)``."""
+    from types import SimpleNamespace
+
+    from .bodies import split_body
+    from .burrs import load_burr
+    from .model import Sample, make_model, make_state, step
+
+    burr = load_burr("cutting-7mm")
+    labels = np.zeros((120, 120, 60), np.uint8)
+    labels[:, :, :40] = 1
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
+    model = make_model(labels, 0.5, [bone], burr)
+    parts = _interleaved_bodies(model)
+    top = 40 * 0.5 - 0.25
+    per_reset = 500
+    one_ns = np.empty(n, dtype=np.int64)
+    many_ns = np.empty(n, dtype=np.int64)
+    axis = np.array([0.3, 0.0, -1.0])
+    perf = time.perf_counter_ns
+    one = many = None
+    for q in range(n):
+        if q % per_reset == 0:
+            one, many = make_state(model), make_state(model)
+            for b, ijk in enumerate(parts, start=1):
+                split_body(many, 0, ijk, b)
+        u = q % per_reset
+        pos = np.array([10.0 + (0.08 * u) % 40.0, 10.0 + 8.0 * ((q // per_reset) % 5), top])
+        smp = Sample(q * 1e-3, pos, axis, True, burr.default_speed_rpm, 1)
+        for st, out in ((one, one_ns), (many, many_ns)) if q % 2 else \
+                ((many, many_ns), (one, one_ns)):
+            t0 = perf()
+            step(model, st, smp)
+            out[q] = perf() - t0
+    return one_ns, many_ns
+
+
 def bench_haptic_step(quick=False) -> dict:
     """Haptic step with the 7 mm cutting burr half immersed in a bone block
     (2x oversampling), its floor, and the same step at 4x oversampling."""
@@ -86,6 +142,8 @@ def bench_haptic_step(quick=False) -> dict:
     us, floor_us = ns / 1e3, floor_ns / 1e3
     model4, ns4, _ = _time_haptic_steps(4, n // 4, False)
     us4 = ns4 / 1e3
+    one_ns, many_ns = _time_multibody_steps(n // 2)
+    one_p99, many_p99 = _pct(one_ns / 1e3, 99), _pct(many_ns / 1e3, 99)
     return {
         "haptic_step_floor_us": {
             "value": round(_pct(floor_us, 50), 2), "unit": "us",
@@ -104,6 +162,14 @@ def bench_haptic_step(quick=False) -> dict:
                                       "samples": model4.stencil.n, "steps": len(ns4),
                                       "oversample": model4.oversample,
                                       "p50_us": round(_pct(us4, 50), 2)},
+        "haptic_step_7mm_8bodies_p99_us": {
+            "value": round(many_p99, 2), "unit": "us", "steps": len(many_ns),
+            "what": f"the 7 mm step with the block split into {BENCH_BODIES} interleaved "
+                    f"bodies of {BENCH_BODY_CELL}-voxel cubes (all within reach, identity "
+                    "poses)", "one_body_p99_us": round(one_p99, 2)},
+        "haptic_step_8bodies_vs_1body_p99": {
+            "value": round(many_p99 / one_p99, 3), "unit": "x",
+            "what": "haptic_step_7mm_8bodies_p99_us / the one-body p99, stepped alternately"},
     }
 
 
@@ -376,6 +442,8 @@ BENCHMARKS = {
     "haptic_step_floor_us": bench_haptic_step,
     "haptic_step_vs_floor": bench_haptic_step,
     "haptic_step_7mm_4x_p99_us": bench_haptic_step,
+    "haptic_step_7mm_8bodies_p99_us": bench_haptic_step,
+    "haptic_step_8bodies_vs_1body_p99": bench_haptic_step,
     "retessellate_1000_p99_ms": bench_surface,
     "retessellate_speedup_vs_full": bench_surface,
     "tessellate_phantom_s": bench_surface,
