@@ -13,10 +13,10 @@ haptic loop started, as stored in the file) are ``timeline.t0 + t``.
 What is shown at time ``t``
 ---------------------------
 * Tool, drill, burr, force: the last haptic sample at or before ``t``.
-* Tissue: the case's initial grid with every recorded removal of the current
-  epoch (the samples' ``epoch`` at ``t``; a case reset starts a new epoch
-  with the initial tissue) made at or before ``t`` set to density 0. The
-  file records removals only, not the partial density loss of voxels that
+* Tissue: the case's initial grid with every recorded tissue event of the
+  current epoch (the samples' ``epoch`` at ``t``; a case reset starts a new
+  epoch with the initial tissue) made at or before ``t`` applied: removals,
+  body splits and poses. The file records removals only, not the partial density loss of voxels that
   were grazed, so a partly drilled voxel is shown intact (same geometry as
   the live run; only its shading can differ).
 * Injuries: the injuries recorded at or before ``t`` in the current epoch
@@ -25,18 +25,18 @@ What is shown at time ``t``
 * Camera: the recorded camera stream interpolated linearly at ``t``, if the
   session has one.
 
-:class:`Player` keeps a grid and its :class:`~bonesim.surface.Surface` at
-the current time: a forward seek zeroes the removals in between and updates
-the surface incrementally (:meth:`Surface.update`); a backward seek, or a
-seek across a reset, starts again from the initial grid and tessellates
-once (:meth:`Surface.build`).
+:class:`Player` keeps the tissue and its :class:`~bonesim.surface.Surface`
+at the current time in a :class:`~bonesim.replica.TissueReplica`: a forward
+seek applies the events in between and updates the surface incrementally;
+a backward seek, or a seek across a reset, starts again from the initial
+tissue and tessellates once.
 
 Session objects
 ---------------
 Anything with the attributes of :func:`bonesim.session_reader.read_session`'s
-result works: ``header``, ``complete``, ``samples``, ``removals``,
-``injuries``, ``camera``, ``events``, ``load_model()`` and
-``burr_models()``.
+result works: ``header``, ``complete``, ``samples``, ``tissue`` (or, for a
+stand-in, ``removals`` alone), ``removals``, ``injuries``, ``camera``,
+``events``, ``load_model()`` and ``burr_models()``.
 """
 from __future__ import annotations
 
@@ -46,9 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
+from . import events
 from .errors import BonesimError
-from .grid import sync_replica
 from .progress import format_clock
+from .replica import TissueReplica
 
 __all__ = ["SPEEDS", "INJURY_NOTICE_S", "SEEK_SHORT_S", "SEEK_LONG_S", "Timeline",
            "Frame", "Player", "hud_info", "PlaybackClock"]
@@ -165,6 +166,20 @@ class Timeline:
         self.inj_kind = ikind[order]
         self.inj_epoch = self._epoch_of(it[order])
 
+        # what shapes the tissue (removals, splits, poses), for the replica
+        tissue = getattr(session, "tissue", None)
+        if tissue is None:                 # removals alone (a stand-in session)
+            ev = events.empty_events(m)
+            ev["kind"][:] = events.REMOVED
+            ev["t_s"][:], ev["ijk"][:], ev["label"][:] = rt, self.rem_ijk, lab
+        else:
+            ev = events.select({f: tissue[f] for f in events.TISSUE_FIELDS},
+                               events.REMOVED, events.SPLIT, events.POSE)
+            order = np.argsort(ev["t_s"], kind="stable")
+            ev = {f: a[order] for f, a in ev.items()}
+        self.shape_ev = ev
+        self.shape_epoch = self._epoch_of(ev["t_s"]) if tissue is not None else rep
+
         ep = cols["epoch"]
         self.reset_t = t[1:][np.diff(ep) > 0] - self.t0
 
@@ -217,6 +232,17 @@ class Timeline:
         lo = int(np.searchsorted(self.rem_epoch, e, side="left"))
         hi_e = int(np.searchsorted(self.rem_epoch, e, side="right"))
         hi = int(np.searchsorted(self.rem_t, self.t0 + t, side="right"))
+        return e, lo, max(lo, min(hi, hi_e))
+
+    def shape_range(self, t: float) -> tuple[int, int, int]:
+        """The tissue events (removals, splits, poses) that shape the tissue at
+        playback time ``t``: ``epoch, lo, hi`` with events ``lo .. hi-1`` of
+        :attr:`shape_ev` those of ``epoch`` made at or before ``t``."""
+        t = self.clamp(t)
+        e = self.epoch_at(t)
+        lo = int(np.searchsorted(self.shape_epoch, e, side="left"))
+        hi_e = int(np.searchsorted(self.shape_epoch, e, side="right"))
+        hi = int(np.searchsorted(self.shape_ev["t_s"], self.t0 + t, side="right"))
         return e, lo, max(lo, min(hi, hi_e))
 
     def camera_at(self, t: float):
@@ -331,8 +357,10 @@ class Player:
     ----------
     timeline : Timeline
     model : Model
+    replica : TissueReplica
+        The tissue at :attr:`t`, kept by applying the recorded tissue events.
     grid : Grid
-        The tissue at :attr:`t` (a copy sharing the model's brick table).
+        The replica's grid (a copy sharing the model's brick table).
     surface : Surface or None
         Its surface; replaced by a new object when a seek rebuilds.
     t : float
@@ -362,30 +390,32 @@ class Player:
             if self.timeline.rem_label.size and int(self.timeline.rem_label.max()) > top:
                 raise BonesimError("removals name a structure label the case does not have",
                                    _where(session), "removals/label")
-        self._surface_on = bool(surface)
         self.stats = {"rebuilds": 0, "forward": 0, "applied": 0}
-        self.grid = None
-        self.surface = None
+        self.replica = TissueReplica(self.model, surface=surface)
         self._epoch = None
         self._hi = 0
         self.t = 0.0
-        self._rebuild(*self.timeline.removal_range(0.0))
+        self._rebuild(*self.timeline.shape_range(0.0))
+
+    @property
+    def grid(self):
+        return self.replica.grid
+
+    @property
+    def surface(self):
+        return self.replica.surface
 
     # --------------------------------------------------------------- seeking
-    def _zero(self, lo: int, hi: int) -> np.ndarray:
-        ijk = self.timeline.rem_ijk[lo:hi]
-        if len(ijk):
-            sync_replica(self.grid, self.grid, ijk, _EMPTY_IJK)
-            self.stats["applied"] += len(ijk)
-        return ijk
+    def _apply(self, lo: int, hi: int, surface: bool = True) -> np.ndarray:
+        ev = self.timeline.shape_ev
+        ch = self.replica.apply({f: a[lo:hi] for f, a in ev.items()}, surface=surface)
+        self.stats["applied"] += len(ch.removed)
+        return ch.removed
 
     def _rebuild(self, epoch: int, lo: int, hi: int) -> None:
-        from .surface import Surface
-
-        self.grid = self.model.grid.copy()
-        self._zero(lo, hi)
-        if self._surface_on:
-            self.surface = Surface.of_model(self.model, self.grid)
+        self.replica.reset(epoch, surface=False)
+        self._apply(lo, hi, surface=False)
+        self.replica.rebuild_surface()
         self._epoch, self._hi = epoch, hi
         self.stats["rebuilds"] += 1
 
@@ -401,14 +431,12 @@ class Player:
             them to ``Scene.update_surface``); ``t``.
         """
         t = self.timeline.clamp(t)
-        epoch, lo, hi = self.timeline.removal_range(t)
+        epoch, lo, hi = self.timeline.shape_range(t)
         self.t = t
         if epoch == self._epoch and hi == self._hi:
             return {"mode": "none", "removed": _EMPTY_IJK, "t": t}
         if epoch == self._epoch and hi > self._hi:
-            ijk = self._zero(self._hi, hi)
-            if self.surface is not None:
-                self.surface.update(self.grid, ijk)
+            ijk = self._apply(self._hi, hi)
             self._hi = hi
             self.stats["forward"] += 1
             return {"mode": "forward", "removed": ijk, "t": t}

@@ -149,15 +149,30 @@ class TissueReplica:
 
         self.surface = Surface.of_model(self.model, self.grid)   # thin bone shows the tint
 
-    def reset(self, epoch: int | None = None) -> None:
-        """Back to the model's initial tissue (one body, identity pose)."""
+    def reset(self, epoch: int | None = None, surface: bool = True) -> None:
+        """Back to the model's initial tissue (one body, identity pose).
+
+        Parameters
+        ----------
+        epoch : int, optional
+            The epoch now (default: one more).
+        surface : bool
+            Rebuild the surface now (False: the caller applies more events
+            with ``surface=False`` and then calls :meth:`rebuild_surface`).
+        """
         reset_state(self.model, self.state, rings=False)
         self.epoch = self.epoch + 1 if epoch is None else int(epoch)
+        if self.surface is not None and surface:
+            self._rebuild_surface()
+
+    def rebuild_surface(self) -> None:
+        """Tessellate the replica's tissue from scratch (after applying events
+        with ``surface=False``)."""
         if self.surface is not None:
             self._rebuild_surface()
 
     # ------------------------------------------------------------------ apply
-    def apply(self, ev: dict, touched=None) -> Changes:
+    def apply(self, ev: dict, touched=None, surface: bool = True) -> Changes:
         """Apply tissue events in order.
 
         Parameters
@@ -166,6 +181,8 @@ class TissueReplica:
             Tissue-event columns (:data:`bonesim.events.TISSUE_FIELDS`).
         touched : (m, 3) int, optional
             Shading hints to sync from the followed live state.
+        surface : bool
+            Update the surface (False: leave it to :meth:`rebuild_surface`).
 
         Returns
         -------
@@ -212,7 +229,7 @@ class TissueReplica:
             np.ascontiguousarray(touched, dtype=np.int32).reshape(-1, 3)
         if len(tch) and self.source is not None:
             sync_replica(g, self.source.grid, _NO_IJK, tch)
-        if self.surface is not None:
+        if self.surface is not None and surface:
             if did_reset:
                 self._rebuild_surface()
                 if len(rem) or len(tch):
