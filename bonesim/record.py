@@ -450,11 +450,8 @@ class Drainer:
                 self.visibility.add_camera(recs["camera"])
         if "tissue" in recs:
             r = recs["tissue"]
-            vis = np.full(len(r["t_s"]), -1, np.int8)
-            if self.visibility is not None:
-                rem = r["kind"] == events.REMOVED
-                vis[rem] = self.visibility.judge(events.removals(r))
-            r["visible"] = vis
+            r["visible"] = np.full(len(r["t_s"]), -1, np.int8) if self.visibility is None \
+                else self.visibility.judge(r)
         n = sum(self.writer.append(self.TARGET[name], r) for name, r in recs.items())
         self.rows += n
         return n

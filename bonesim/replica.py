@@ -123,6 +123,11 @@ class TissueReplica:
             # changes after the cursors were set is drained later (applying a
             # removal the snapshot already shows is harmless)
             start = None if snapshot else 0
+            g, live = self.state.grid, source.grid
+            if g.keys is not live.keys and not (np.array_equal(g.keys, live.keys)
+                                                and np.array_equal(g.vals, live.vals)):
+                raise ValueError("the replica's model and the followed state have "
+                                 "different brick tables (not the same case)")
             self.cursor = events.Cursor(source.tissue, start)
             self.touched = events.Cursor(source.touched, start)
             if snapshot:
@@ -228,7 +233,7 @@ class TissueReplica:
         tch = _NO_IJK if touched is None else \
             np.ascontiguousarray(touched, dtype=np.int32).reshape(-1, 3)
         if len(tch) and self.source is not None:
-            sync_replica(g, self.source.grid, _NO_IJK, tch)
+            sync_replica(g, self.source.grid, _NO_IJK, tch, check=False)
         if self.surface is not None and surface:
             if did_reset:
                 self._rebuild_surface()

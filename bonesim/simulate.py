@@ -45,6 +45,9 @@ def warmup() -> None:
     ch = consumer.drain()
     if len(ch.removed) + len(ch.touched) == 0:
         raise RuntimeError("surface consumer warm-up: the step published nothing to drain")
+    ev = events.empty_events(1)                 # a removal through the replica itself
+    ev["ijk"][0] = (6, 6, 5)
+    consumer.apply(ev)
 
 
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,

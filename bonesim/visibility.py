@@ -17,7 +17,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import events
 from .grid import BRICK_SHIFT, find_brick, voxel_offset
+from .replica import TissueReplica
 
 __all__ = ["CONTACT_MARGIN_VOXELS", "occluders", "judge_removals", "VisibilityTracker"]
 
@@ -153,18 +155,19 @@ class VisibilityTracker:
 
     def __init__(self, models, eye_mm):
         self.models = models
+        #: The tissue as the removals judged so far left it (removals are
+        #: applied by the judge itself, in order; resets, splits and poses
+        #: through the replica).
+        self.replica = TissueReplica(models[0])
         self.initial = models[0].grid
-        self.grid = self.initial.copy()
         self.occluder = occluders(models[0].structures)
         margin = CONTACT_MARGIN_VOXELS * self.initial.spacing_mm
         self.contact_r = np.array([m.burr.radius_mm + margin for m in models])
         self.eye = np.asarray(eye_mm, float).copy()
-        self.epoch = 0
         # the last sample seen and the camera poses not yet passed
         self._s_t = np.zeros(0)
         self._s_pos = np.zeros((0, 3))
         self._s_burr = np.zeros(0, np.int64)
-        self._s_epoch = np.zeros(0, np.int64)
         self._cam_t = np.zeros(0)
         self._cam_eye = np.zeros((0, 3))
 
@@ -174,18 +177,17 @@ class VisibilityTracker:
         more under load), and a recorder's writer must not spend that at the
         run's first removal with its flushes held up. Judges no removal."""
         n = np.zeros((0, 3))
-        judge_removals(self.grid, self.occluder, np.zeros((0, 3), np.int64), n, n,
+        judge_removals(self.replica.grid, self.occluder, np.zeros((0, 3), np.int64), n, n,
                        np.zeros(0))
 
     def add_samples(self, s: dict) -> None:
-        """Samples drained since the last call (``t_s``, ``pos_mm``, ``burr``, ``epoch``)."""
+        """Samples drained since the last call (``t_s``, ``pos_mm``, ``burr``)."""
         if len(s["t_s"]) == 0:
             return
         keep = slice(-1, None)              # the previous batch's last row
         self._s_t = np.concatenate([self._s_t[keep], s["t_s"]])
         self._s_pos = np.concatenate([self._s_pos[keep], s["pos_mm"]])
         self._s_burr = np.concatenate([self._s_burr[keep], s["burr"].astype(np.int64)])
-        self._s_epoch = np.concatenate([self._s_epoch[keep], s["epoch"].astype(np.int64)])
 
     def add_camera(self, c: dict) -> None:
         """Camera poses drained since the last call (``t_s``, ``eye_mm``)."""
@@ -193,17 +195,33 @@ class VisibilityTracker:
             self._cam_t = np.concatenate([self._cam_t, c["t_s"]])
             self._cam_eye = np.concatenate([self._cam_eye, c["eye_mm"]])
 
-    def judge(self, rem: dict) -> np.ndarray:
-        """``visible`` (n,) int8 for removals drained since the last call; the
-        samples of their steps must have been added already."""
-        n = len(rem["t_s"])
-        vis = np.empty(n, np.int8)
+    def judge(self, ev: dict) -> np.ndarray:
+        """``visible`` (n,) int8 for tissue events drained since the last call
+        (1 visible, 0 hidden for removals; -1 for other kinds); the samples of
+        their steps must have been added already. The events are applied to
+        the tracker's replica in order (resets, splits, poses), removals as
+        they are judged."""
+        kinds = np.asarray(ev["kind"])
+        n = len(kinds)
+        vis = np.full(n, -1, np.int8)
         if n == 0:
             return vis
-        if len(self._s_t) == 0 or rem["t_s"][-1] > self._s_t[-1]:
-            raise ValueError("removals must come after the samples of their steps")
+        rem = kinds == events.REMOVED
+        if rem.any():
+            t_last = ev["t_s"][np.flatnonzero(rem)[-1]]
+            if len(self._s_t) == 0 or t_last > self._s_t[-1]:
+                raise ValueError("removals must come after the samples of their steps")
+        starts = np.concatenate(([0], np.flatnonzero(np.diff(kinds)) + 1, [n]))
+        for a, b in zip(starts[:-1], starts[1:]):
+            part = {f: c[a:b] for f, c in ev.items()}
+            if kinds[a] == events.REMOVED:
+                vis[a:b] = self._judge_run(part)
+            else:
+                self.replica.apply(part)
+        return vis
+
+    def _judge_run(self, rem: dict) -> np.ndarray:
         idx = np.clip(np.searchsorted(self._s_t, rem["t_s"]), 0, len(self._s_t) - 1)
-        epochs = self._s_epoch[idx]
         # the eye: the last camera pose at or before each removal
         c = np.searchsorted(self._cam_t, rem["t_s"], side="right") - 1
         eyes = np.where((c >= 0)[:, None], self._cam_eye[np.maximum(c, 0)]
@@ -211,17 +229,5 @@ class VisibilityTracker:
         if c[-1] >= 0:                       # poses before that one are passed
             self.eye = self._cam_eye[c[-1]].copy()
             self._cam_t, self._cam_eye = self._cam_t[c[-1]:], self._cam_eye[c[-1]:]
-        start = 0
-        for q in np.flatnonzero(np.diff(epochs)) + 1:
-            self._judge_run(rem, idx, eyes, vis, start, q, int(epochs[start]))
-            start = q
-        self._judge_run(rem, idx, eyes, vis, start, n, int(epochs[start]))
-        return vis
-
-    def _judge_run(self, rem, idx, eyes, vis, a, b, epoch):
-        if epoch != self.epoch:              # the case was reset
-            self.grid.density[:] = self.initial.density
-            self.epoch = epoch
-        vis[a:b] = judge_removals(self.grid, self.occluder, rem["ijk"][a:b], eyes[a:b],
-                                  self._s_pos[idx[a:b]],
-                                  self.contact_r[self._s_burr[idx[a:b]]])
+        return judge_removals(self.replica.grid, self.occluder, rem["ijk"], eyes,
+                              self._s_pos[idx], self.contact_r[self._s_burr[idx]])

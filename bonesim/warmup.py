@@ -32,6 +32,7 @@ def _visibility() -> None:
     """The recorder's writer judges each removal's visibility (its kernels)."""
     import numpy as np
 
+    from . import events
     from .loading import warmup_model
     from .visibility import VisibilityTracker
 
@@ -39,7 +40,9 @@ def _visibility() -> None:
     vt = VisibilityTracker([m], (3.0, 3.0, 20.0))
     vt.add_samples({"t_s": np.array([0.0]), "pos_mm": np.array([[3.0, 3.0, 2.9]]),
                     "burr": np.zeros(1, np.int64), "epoch": np.zeros(1, np.int64)})
-    vt.judge({"t_s": np.array([0.0]), "ijk": np.array([[6, 6, 5]], np.int32)})
+    ev = events.empty_events(1)
+    ev["ijk"][0] = (6, 6, 5)
+    vt.judge(ev)
 
 
 def _loop() -> None:

@@ -8,8 +8,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bonesim import events
 from bonesim.grid import Grid
+from bonesim.model import make_model
 from bonesim.visibility import VisibilityTracker, judge_removals, occluders
+
+from .fakes import MATERIALS, FakeBurr, FakeStructure
 
 BONE = SimpleNamespace(name="bone", kind="bone")
 SOFT = SimpleNamespace(name="dura", kind="soft")
@@ -112,24 +116,38 @@ def test_removals_are_judged_in_order_against_the_tissue_they_leave():
     assert g.occupied_count() == 0                     # each was removed after judging
 
 
-def test_tracker_uses_step_tool_camera_and_resets_per_epoch():
+def _removals(t, ijk) -> dict:
+    ev = events.empty_events(len(t))
+    ev["t_s"][:], ev["ijk"][:] = t, ijk
+    return ev
+
+
+def test_tracker_uses_step_tool_camera_and_resets_from_the_stream():
     labels = np.zeros((8, 8, 8), np.uint8)
     labels[4, 4, 1:5] = 1
-    model = SimpleNamespace(grid=Grid.from_dense(labels, None, 1.0), structures=[BONE, SOFT],
-                            burr=SimpleNamespace(radius_mm=0.4))
+    model = make_model(labels, 1.0, [FakeStructure("bone", "bone")],
+                       FakeBurr(radius_mm=0.4), materials=MATERIALS, oversample=4)
     tr = VisibilityTracker([model], eye_mm=[4.0, 4.0, 30.0])
-    before = tr.grid.density.copy()
+    grid = tr.replica.grid
+    before = grid.density.copy()
     tr.warm()                                        # loads the kernels, judges nothing
-    assert np.array_equal(tr.grid.density, before) and tr.epoch == 0
+    assert np.array_equal(grid.density, before) and tr.replica.epoch == 0
     tr.add_samples({"t_s": np.array([0.0, 1.0]), "pos_mm": np.full((2, 3), 50.0),
                     "burr": np.zeros(2, np.uint8), "epoch": np.zeros(2, np.int32)})
-    rem = {"t_s": np.array([0.0, 0.0, 1.0]), "ijk": np.array([[4, 4, 1], [4, 4, 2],
-                                                             [4, 4, 3]])}
+    rem = _removals([0.0, 0.0, 1.0], [[4, 4, 1], [4, 4, 2], [4, 4, 3]])
     assert tr.judge(rem).tolist() == [0, 0, 0]       # bottom up, under the top voxel
     # now the camera looks from below: without a reset (4, 4, 4) would be in
     # plain view, but the reset put the column back in front of it
     tr.add_camera({"t_s": np.array([1.5]), "eye_mm": np.array([[4.0, 4.0, -30.0]])})
     tr.add_samples({"t_s": np.array([2.0]), "pos_mm": np.full((1, 3), 50.0),
                     "burr": np.zeros(1, np.uint8), "epoch": np.ones(1, np.int32)})
-    assert tr.judge({"t_s": np.array([2.0]), "ijk": np.array([[4, 4, 4]])}).tolist() == [0]
-    assert tr.epoch == 1
+    batch = events.concat([events.empty_events(1), _removals([2.0], [[4, 4, 4]])])
+    batch["kind"][0], batch["t_s"][0], batch["n"][0] = events.RESET, 2.0, 1
+    assert tr.judge(batch).tolist() == [-1, 0]        # the reset is no removal
+    assert tr.replica.epoch == 1
+    # without the reset, from below, it would have been in view
+    tr2 = VisibilityTracker([model], eye_mm=[4.0, 4.0, -30.0])
+    tr2.add_samples({"t_s": np.array([0.0, 1.0]), "pos_mm": np.full((2, 3), 50.0),
+                     "burr": np.zeros(2, np.uint8), "epoch": np.zeros(2, np.int32)})
+    tr2.judge(_removals([0.0, 0.0, 1.0], [[4, 4, 1], [4, 4, 2], [4, 4, 3]]))
+    assert tr2.judge(_removals([1.0], [[4, 4, 4]])).tolist() == [1]

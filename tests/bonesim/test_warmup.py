@@ -70,7 +70,7 @@ for q, s in enumerate(traj.samples()):
         buf.sync(consumer.surface, ch.removed, ch.touched)
     if q > start + 4000:
         break
-assert state.removed.count > 0
+assert state.n_removed > 0
 NerveMonitor(model)
 after = signatures()
 new = {k: sorted(set(v) - set(before.get(k, []))) for k, v in after.items()}
