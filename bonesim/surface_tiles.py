@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from bonesim.grid import BRICK
+from .brick_hash import BRICK, pack_brick_key
 from .surface_tables import _S_RESUME, _S_STATUS
 from .surface_window import WINDOW_DEPTH, WINDOW_MARGIN, _window_pass
 
@@ -64,8 +64,6 @@ WINDOW_VOXELS_PER_INPUT = 64
 TILE_SHIFT = 5
 #: Voxel coordinates must have a magnitude below this (packed keys, margins).
 COORD_LIMIT = (1 << 20) - 2 * BRICK
-_KEY_BITS = 21          # bits per axis of a packed tile key
-_KEY_BIAS = 1 << 20     # makes tile coordinates non-negative
 
 if (1 << TILE_SHIFT) + 2 * WINDOW_MARGIN > WINDOW_DEPTH:
     raise AssertionError("a tile's window must fit WINDOW_DEPTH")
@@ -73,10 +71,9 @@ if (1 << TILE_SHIFT) + 2 * WINDOW_MARGIN > WINDOW_DEPTH:
 
 @njit(cache=True, nogil=True, inline="always")
 def _tile_key(ijk, q, shift):
-    """Packed key of the tile of voxel ``ijk[q]`` (ordered by (i, j, k) tile)."""
-    return ((((ijk[q, 0] >> shift) + _KEY_BIAS) << (2 * _KEY_BITS))
-            | (((ijk[q, 1] >> shift) + _KEY_BIAS) << _KEY_BITS)
-            | ((ijk[q, 2] >> shift) + _KEY_BIAS))
+    """Packed key of the tile of voxel ``ijk[q]`` (ordered by (i, j, k) tile;
+    packed as brick keys are)."""
+    return pack_brick_key(ijk[q, 0] >> shift, ijk[q, 1] >> shift, ijk[q, 2] >> shift)
 
 
 @njit(cache=True, nogil=True)
