@@ -1,8 +1,9 @@
 """Brick pool and hash table of :class:`bonesim.dust.DustGrid` (numba kernels).
 
 Dust cells are grouped in bricks of ``8**3`` like :mod:`bonesim.grid` (same
-``pack_brick_key`` / ``voxel_offset`` layout), found through an
-open-addressing table that grows at run time; each brick keeps the indices of
+``pack_brick_key`` / ``voxel_offset`` layout), found through the same
+open-addressing table (:mod:`bonesim.brick_hash`), which here grows at run
+time and also loses bricks; each brick keeps the indices of
 its six face neighbours. This module holds the fixed-point constants, the
 layout of the counter and parameter arrays shared by every dust kernel, and
 the kernels that insert, link and recycle bricks. See :mod:`bonesim.dust`
@@ -12,7 +13,8 @@ from __future__ import annotations
 
 from numba import njit
 
-from .grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, _hash_slot, find_brick, pack_brick_key
+from .brick_hash import (BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, pack_brick_key,
+                         table_insert, table_remove)
 
 __all__ = ["Q_SHIFT", "Q", "FULL", "MAX_SPILL_FRACTION", "C_NFREE", "C_HW", "C_CUR",
            "C_ADDED", "C_SUCKED", "C_NEED", "C_NALIVE", "C_PUSHED", "C_SUCKED_STEP",
@@ -62,47 +64,10 @@ STAGE_GRAVITY, STAGE_SPILL, STAGE_TOOL, STAGE_SUCTION, STAGE_DONE = range(5)
 
 # ====================================================================== table
 @njit(cache=True, nogil=True)
-def _table_insert(keys, vals, key, b):
-    mask = keys.shape[0] - 1
-    s = _hash_slot(key, mask)
-    while keys[s] != -1:
-        s = (s + 1) & mask
-    keys[s] = key
-    vals[s] = b
-
-
-@njit(cache=True, nogil=True)
-def _table_remove(keys, vals, key):
-    """Delete ``key`` (which must be present) by backward-shift deletion."""
-    mask = keys.shape[0] - 1
-    s = _hash_slot(key, mask)
-    while keys[s] != key:
-        s = (s + 1) & mask
-    j = s
-    while True:
-        j = (j + 1) & mask
-        kj = keys[j]
-        if kj == -1:
-            break
-        h = _hash_slot(kj, mask)
-        # keep keys[j] where it is if its home slot lies cyclically in (s, j]
-        if s <= j:
-            stay = s < h <= j
-        else:
-            stay = h > s or h <= j
-        if not stay:
-            keys[s] = kj
-            vals[s] = vals[j]
-            s = j
-    keys[s] = -1
-    vals[s] = -1
-
-
-@njit(cache=True, nogil=True)
 def _rehash(keys, vals, bcoord, alive, hw):
     for b in range(hw):
         if alive[b]:
-            _table_insert(keys, vals,
+            table_insert(keys, vals,
                           pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2]), b)
 
 
@@ -124,7 +89,7 @@ def _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr
     if b + 1 > ctr[C_HW]:
         ctr[C_HW] = b + 1
     ctr[C_NALIVE] += 1
-    _table_insert(keys, vals, pack_brick_key(bi, bj, bk), b)
+    table_insert(keys, vals, pack_brick_key(bi, bj, bk), b)
     bcoord[b, 0] = bi
     bcoord[b, 1] = bj
     bcoord[b, 2] = bk
@@ -182,7 +147,7 @@ def _recycle(keys, vals, bcoord, nbr, alive, bmass, free, ctr):
                 keep = True
         if keep:
             continue
-        _table_remove(keys, vals, pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2]))
+        table_remove(keys, vals, pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2]))
         for d in range(6):
             m = nbr[b, d]
             if m >= 0:

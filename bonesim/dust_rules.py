@@ -19,6 +19,7 @@ from .dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_SHIFT, C_ADDED, C_CUR, C_HW, 
                           I_GWQ, I_KQ, I_LAT0, I_LAT1, I_NG, I_RATE, I_REPOSE, I_SEARCH,
                           I_SRATE, I_SUCTION, I_TOOL, I_WRATE, STAGE_DONE, STAGE_GRAVITY,
                           STAGE_SPILL, STAGE_TOOL, _brick_in_domain, _insert_brick)
+from .brick_hash import brick_voxel_span, sphere_voxel_range
 from .grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
 
 __all__ = []
@@ -378,12 +379,6 @@ def _jacobi(rule, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cell_range(c, r, o, h):
-    """Cells whose centres may lie within ``r`` of ``c`` along one axis."""
-    return (int(math.floor((c - r - o) / h)) - 1, int(math.floor((c + r - o) / h)) + 2)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _cell_ok(ci, cj, ck, lo0, lo1, lo2, hi0, hi1, hi2):
     return lo0 <= ci < hi0 and lo1 <= cj < hi1 and lo2 <= ck < hi2
 
@@ -442,9 +437,9 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
     h = fp[F_H]
     r2 = rad * rad
     search = ip[I_SEARCH]
-    i0, i1 = _cell_range(fp[F_TX], rad, fp[F_OX], h)
-    j0, j1 = _cell_range(fp[F_TY], rad, fp[F_OY], h)
-    k0, k1 = _cell_range(fp[F_TZ], rad, fp[F_OZ], h)
+    i0, i1 = sphere_voxel_range(fp[F_TX], rad, fp[F_OX], h)
+    j0, j1 = sphere_voxel_range(fp[F_TY], rad, fp[F_OY], h)
+    k0, k1 = sphere_voxel_range(fp[F_TZ], rad, fp[F_OZ], h)
     cur = ctr[C_CUR]
     den = dens[cur]
     oth = dens[1 - cur]
@@ -460,20 +455,17 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                     b = find_brick(keys, vals, bi, bj, bk)
                     if b < 0 or bmass[b] == 0:
                         continue
-                    for x in range(BRICK):
+                    x0, x1 = brick_voxel_span(i0, i1, bi)
+                    y0, y1 = brick_voxel_span(j0, j1, bj)
+                    z0, z1 = brick_voxel_span(k0, k1, bk)
+                    for x in range(x0, x1):
                         ci = (bi << BRICK_SHIFT) + x
-                        if ci < i0 or ci >= i1:
-                            continue
                         dx = (fp[F_OX] + h * ci) - fp[F_TX]
-                        for y in range(BRICK):
+                        for y in range(y0, y1):
                             cj = (bj << BRICK_SHIFT) + y
-                            if cj < j0 or cj >= j1:
-                                continue
                             dy = (fp[F_OY] + h * cj) - fp[F_TY]
-                            for z in range(BRICK):
+                            for z in range(z0, z1):
                                 ck = (bk << BRICK_SHIFT) + z
-                                if ck < k0 or ck >= k1:
-                                    continue
                                 off = (x << 6) | (y << 3) | z
                                 d = np.int64(den[b, off])
                                 if d <= 0:
@@ -523,9 +515,9 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
         return
     h = fp[F_H]
     r2 = rad * rad
-    i0, i1 = _cell_range(fp[F_SX], rad, fp[F_OX], h)
-    j0, j1 = _cell_range(fp[F_SY], rad, fp[F_OY], h)
-    k0, k1 = _cell_range(fp[F_SZ], rad, fp[F_OZ], h)
+    i0, i1 = sphere_voxel_range(fp[F_SX], rad, fp[F_OX], h)
+    j0, j1 = sphere_voxel_range(fp[F_SY], rad, fp[F_OY], h)
+    k0, k1 = sphere_voxel_range(fp[F_SZ], rad, fp[F_OZ], h)
     cur = ctr[C_CUR]
     den = dens[cur]
     oth = dens[1 - cur]
@@ -536,20 +528,17 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
                 b = find_brick(keys, vals, bi, bj, bk)
                 if b < 0 or bmass[b] == 0:
                     continue
-                for x in range(BRICK):
+                x0, x1 = brick_voxel_span(i0, i1, bi)
+                y0, y1 = brick_voxel_span(j0, j1, bj)
+                z0, z1 = brick_voxel_span(k0, k1, bk)
+                for x in range(x0, x1):
                     ci = (bi << BRICK_SHIFT) + x
-                    if ci < i0 or ci >= i1:
-                        continue
                     dx = (fp[F_OX] + h * ci) - fp[F_SX]
-                    for y in range(BRICK):
+                    for y in range(y0, y1):
                         cj = (bj << BRICK_SHIFT) + y
-                        if cj < j0 or cj >= j1:
-                            continue
                         dy = (fp[F_OY] + h * cj) - fp[F_SY]
-                        for z in range(BRICK):
+                        for z in range(z0, z1):
                             ck = (bk << BRICK_SHIFT) + z
-                            if ck < k0 or ck >= k1:
-                                continue
                             off = (x << 6) | (y << 3) | z
                             d = np.int64(den[b, off])
                             if d <= 0:
@@ -638,9 +627,9 @@ def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, out_ijk, out_q):
         return 0
     h = fp[F_H]
     r2 = rad * rad
-    i0, i1 = _cell_range(fp[F_WX], rad, fp[F_OX], h)
-    j0, j1 = _cell_range(fp[F_WY], rad, fp[F_OY], h)
-    k0, k1 = _cell_range(fp[F_WZ], rad, fp[F_OZ], h)
+    i0, i1 = sphere_voxel_range(fp[F_WX], rad, fp[F_OX], h)
+    j0, j1 = sphere_voxel_range(fp[F_WY], rad, fp[F_OY], h)
+    k0, k1 = sphere_voxel_range(fp[F_WZ], rad, fp[F_OZ], h)
     cur = ctr[C_CUR]
     den = dens[cur]
     oth = dens[1 - cur]
@@ -651,20 +640,17 @@ def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, out_ijk, out_q):
                 b = find_brick(keys, vals, bi, bj, bk)
                 if b < 0 or bmass[b] == 0:
                     continue
-                for x in range(BRICK):
+                x0, x1 = brick_voxel_span(i0, i1, bi)
+                y0, y1 = brick_voxel_span(j0, j1, bj)
+                z0, z1 = brick_voxel_span(k0, k1, bk)
+                for x in range(x0, x1):
                     ci = (bi << BRICK_SHIFT) + x
-                    if ci < i0 or ci >= i1:
-                        continue
                     dx = (fp[F_OX] + h * ci) - fp[F_WX]
-                    for y in range(BRICK):
+                    for y in range(y0, y1):
                         cj = (bj << BRICK_SHIFT) + y
-                        if cj < j0 or cj >= j1:
-                            continue
                         dy = (fp[F_OY] + h * cj) - fp[F_WY]
-                        for z in range(BRICK):
+                        for z in range(z0, z1):
                             ck = (bk << BRICK_SHIFT) + z
-                            if ck < k0 or ck >= k1:
-                                continue
                             off = (x << 6) | (y << 3) | z
                             d = np.int64(den[b, off])
                             if d <= 0:

@@ -9,7 +9,8 @@ frame's ``(x, y, z)`` axes. The centre of voxel ``(i, j, k)`` lies at
 Voxels are grouped in bricks of ``BRICK**3 = 8**3`` voxels. Brick
 ``(bi, bj, bk) = (i >> 3, j >> 3, k >> 3)`` is found through an
 open-addressing hash table (linear probing, power-of-two capacity) keyed by the
-packed brick coordinate; inside a brick a voxel sits at the flat offset
+packed brick coordinate (:mod:`bonesim.brick_hash`, shared with the dust);
+inside a brick a voxel sits at the flat offset
 ``((i & 7) << 6) | ((j & 7) << 3) | (k & 7)``. Memory is proportional to the
 number of bricks that hold bone (plus a one-voxel halo, so that every voxel
 26-adjacent to bone lives in an allocated brick), and a lookup is O(1): one
@@ -35,57 +36,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+# the brick hash table is shared with the dust grid
+from .brick_hash import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, EMPTY_KEY,
+                         find_brick, pack_brick_key, table_insert)
+
 __all__ = ["BRICK", "BRICK_SHIFT", "BRICK_MASK", "BRICK_VOXELS", "EMPTY_KEY",
            "pack_brick_key", "find_brick", "voxel_offset", "density_at", "gather_box",
            "Grid", "sync_replica"]
-
-BRICK = 8
-BRICK_SHIFT = 3
-BRICK_MASK = 7
-BRICK_VOXELS = BRICK ** 3
-_KEY_OFFSET = 1 << 20          # brick coordinates in [-2**20, 2**20)
-_KEY_BITS = 21
-_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
-EMPTY_KEY = np.int64(-1)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def pack_brick_key(bi, bj, bk):
-    """Pack a brick coordinate into one non-negative int64."""
-    return ((np.int64(bi) + _KEY_OFFSET) << (2 * _KEY_BITS)) | \
-           ((np.int64(bj) + _KEY_OFFSET) << _KEY_BITS) | (np.int64(bk) + _KEY_OFFSET)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _hash_slot(key, mask):
-    h = np.uint64(key) * _HASH_MULT
-    return np.int64((h >> np.uint64(32)) & np.uint64(mask))
-
-
-@njit(cache=True, nogil=True)
-def find_brick(keys, vals, bi, bj, bk):
-    """Index of brick ``(bi, bj, bk)`` in the brick arrays, or -1 if absent.
-
-    Parameters
-    ----------
-    keys : (capacity,) int64
-        Hash table keys (``-1`` marks an empty slot).
-    vals : (capacity,) int32
-        Brick index stored with each key.
-    bi, bj, bk : int
-        Brick coordinates (voxel coordinates shifted right by 3).
-    """
-    key = pack_brick_key(bi, bj, bk)
-    mask = keys.shape[0] - 1
-    s = _hash_slot(key, mask)
-    while True:
-        k = keys[s]
-        if k == key:
-            return vals[s]
-        if k == -1:
-            return -1
-        s = (s + 1) & mask
-
 
 @njit(cache=True, nogil=True, inline="always")
 def voxel_offset(i, j, k):
@@ -104,14 +61,9 @@ def density_at(keys, vals, density, i, j, k):
 
 @njit(cache=True, nogil=True)
 def _insert_all(keys, vals, bcoords):
-    mask = keys.shape[0] - 1
     for b in range(bcoords.shape[0]):
-        key = pack_brick_key(bcoords[b, 0], bcoords[b, 1], bcoords[b, 2])
-        s = _hash_slot(key, mask)
-        while keys[s] != -1:
-            s = (s + 1) & mask
-        keys[s] = key
-        vals[s] = b
+        table_insert(keys, vals, pack_brick_key(bcoords[b, 0], bcoords[b, 1], bcoords[b, 2]),
+                     b)
 
 
 @njit(cache=True, nogil=True)

@@ -94,15 +94,14 @@ listed twice, still bone, already empty before the batch, or never bone)
 are harmless; what must hold is that every voxel whose density changed
 since the last update is listed.
 
-When the inputs fit a box of moderate size (the usual case, see
-``FAST_MIN_VOXELS``), the update runs on dense copies of that box: sets of
-voxels and cells are bit rows (one uint64 per row of the box along k),
-obtained from the inputs by a few shifts and ORs, and visited in (i, j, k)
-order; the densities, occupancy and vertex slots of the box are gathered
-once. Otherwise (inputs spread far apart, or a box deeper than 64 voxels
-along k) cells and voxels are deduplicated with a window of flags or hash
-sets and visited one by one. Either way the cost is proportional to the
-number of input voxels, and the result is the same.
+The update runs on dense copies of a window around the removed voxels
+(:mod:`bonesim.surface_window`): sets of voxels and cells are bit rows (one
+uint64 per row of the window along k), obtained from the inputs by a few
+shifts and ORs, and visited in (i, j, k) order; the densities, occupancy
+and vertex slots of the window are gathered once. Removed voxels spread far
+apart, or over more than 64 voxels along k, are tiled into several windows
+(:mod:`bonesim.surface_tiles`, which says why the result is the same). The
+cost is proportional to the number of input voxels.
 
 Vertex -> triangles map: every live triangle ``t`` is threaded on three
 singly linked lists, one per corner. ``vhead[v]`` is the first triangle of
@@ -136,7 +135,6 @@ from bonesim.grid import (BRICK_SHIFT, BRICK_VOXELS, Grid,
 from bonesim.shading import (GRAD_EPS, SHADE_MIN, Shader, ShadingParams,
                              bone_labels)
 from .surface_build import (_CHUNK, _build_count, _build_triangles, _build_vertices)
-from .surface_scatter import (WINDOW_VOXELS_PER_INPUT, _update_kernel)
 from .surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                              _N_STATS, qualifying_triples,
                              _S_CELLS, _S_ERR, _S_NEED_T, _S_NEED_V, _S_STATUS,
@@ -144,7 +142,8 @@ from .surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE
                              _TR_NEXT, _TR_ONEXT, _TR_WIDTH, _T_ALIVE, _T_HW, _VR_HEAD,
                              _VR_OHEAD, _V_ALIVE, _V_HW, _brick_neighbours, _link_all,
                              _triangles_of_vertex)
-from .surface_window import (_COORD_LIMIT, _N_ROWSETS, _update_window)
+from .surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, _update
+from .surface_window import _N_ROWSETS
 
 __all__ = ["Surface", "CanonicalSurface", "SHADE_MIN", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
@@ -161,7 +160,7 @@ def _as_ijk(a, name):
     """Validate an (n, 3) array of integer voxel coordinates -> int32 C array.
 
     int32 (n, 3) arrays take a short path: copied as they are, their range
-    is checked by :func:`_update_window` (status 4 / 5)."""
+    is checked by :func:`bonesim.surface_tiles._update` (status 4 / 5)."""
     if a is None:
         return _NO_VOXELS
     if type(a) is np.ndarray and a.dtype == np.int32 and a.ndim == 2 and a.shape[1] == 3:
@@ -173,8 +172,8 @@ def _as_ijk(a, name):
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
     if not np.issubdtype(arr.dtype, np.integer):
         raise TypeError(f"{name} must hold integer voxel coordinates, got {arr.dtype}")
-    if np.abs(arr).max() >= _COORD_LIMIT:
-        raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
+    if np.abs(arr).max() >= COORD_LIMIT:
+        raise ValueError(f"{name} has voxel coordinates beyond +-{COORD_LIMIT}")
     # always a fresh, writable C array: read-only or strided inputs would
     # make numba compile another specialisation of every kernel
     return np.array(arr, dtype=np.int32, order="C", copy=True)
@@ -327,7 +326,10 @@ class Surface:
         self._origin = np.asarray(origin_mm, dtype=np.float64)
         self._spacing = float(spacing_mm)
         self._record_views()
-        self._win_per_input = WINDOW_VOXELS_PER_INPUT   # tests set 0 to force hash sets
+        # the update's window size limit and tile size (tests set -1 / small
+        # tiles to exercise the tiling on small grids)
+        self._win_limit = WINDOW_MIN_VOXELS
+        self._tile_shift = TILE_SHIFT
         self._stats = np.zeros(_N_STATS, dtype=np.int64)
         self._grow_scratch(4096, 256)
         self.shader = shader
@@ -453,23 +455,13 @@ class Surface:
         removed = _as_ijk(removed, "removed")
         touched = _as_ijk(touched, "touched")
         stats = self._stats
-        window = True
+        resume = False
         while True:
-            if window:
-                _update_window(grid.keys, grid.vals, grid.density,
-                               self._origin, self._spacing, removed, touched,
-                               self._win_per_input,
-                               self.vmap, self.pos, self.ijk, self.alive,
-                               self._vrec, self._vfree, self._trec, self._tfree, self._cnt,
-                               stats, self._sf32, self._si32, self._su8, self._su64)
-            else:
-                _update_kernel(grid.keys, grid.vals, grid.density, self._nbr,
-                               self._origin, self._spacing, removed, touched,
-                               self._win_per_input,
-                               self.vmap, self.pos, self.ijk,
-                               self.alive, self.vhead, self._vfree, self.tri, self.tnext,
-                               self.tri_key, self._tfree, self._cnt, stats, self._ohead,
-                               self._onext)
+            _update(grid.keys, grid.vals, grid.density, self._origin, self._spacing,
+                    removed, touched, self._win_limit, self._tile_shift, resume,
+                    self.vmap, self.pos, self.ijk, self.alive, self._vrec, self._vfree,
+                    self._trec, self._tfree, self._cnt, stats,
+                    self._sf32, self._si32, self._su8, self._su64)
             st = stats.tolist()
             status = st[_S_STATUS]
             if status == 0:
@@ -478,11 +470,10 @@ class Surface:
                 self._grow(st[_S_NEED_V], st[_S_NEED_T])
             elif status == 2:
                 self._grow_scratch(st[_S_NEED_V], st[_S_NEED_T])
-            elif status == 3:
-                window = False
             else:
                 name = "removed" if status == 4 else "touched"
-                raise ValueError(f"{name} has voxel coordinates beyond +-{_COORD_LIMIT}")
+                raise ValueError(f"{name} has voxel coordinates beyond +-{COORD_LIMIT}")
+            resume = True
         if st[_S_ERR]:
             raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
         n_shaded = self.shader.refresh(grid, self.vmap, self.nrm, self.col, removed, touched)
@@ -491,7 +482,7 @@ class Surface:
                 "vertices_reshaded": n_shaded, "cells_visited": st[_S_CELLS]}
 
     def _grow_scratch(self, vol, nrows):
-        """Scratch of the window path for windows of ``vol`` voxels, ``nrows`` rows."""
+        """Scratch of the update for windows of ``vol`` voxels, ``nrows`` rows."""
         cur = getattr(self, "_sf32", None)
         if cur is None or cur.shape[0] < vol:
             v = vol if cur is None else max(vol, 2 * cur.shape[0])
@@ -634,7 +625,7 @@ def warmup() -> None:
     b = grid.brick_index(2, 2, 2)
     grid.density[b, voxel_offset(2, 2, 2)] = 0.5
     surf.update(grid, np.array([[2, 2, 1]], dtype=np.int32), np.array([[2, 2, 2]]))
-    surf._win_per_input = 0                 # the kernel for spread-out inputs
+    surf._win_limit = -1                    # tiles, as for spread-out inputs
     b = grid.brick_index(3, 2, 1)
     grid.density[b, voxel_offset(3, 2, 1)] = 0.0
     surf.update(grid, np.array([[3, 2, 1]], dtype=np.int32))

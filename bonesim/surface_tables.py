@@ -8,12 +8,12 @@ import itertools
 import numpy as np
 from numba import njit
 
-from bonesim.grid import (BRICK_SHIFT, find_brick)
+from bonesim.grid import find_brick
 from bonesim.shading import (NORMAL_RADIUS)
 
 __all__ = ["MAX_PER_CELL", "RESHADE_REACH", "CORNER_OFFSETS", "TRIPLE_CORNERS",
            "N_TRIPLES", "qualifying_triples", "TRIPLE_FACE", "QUAL_N", "QUAL_KEY",
-           "QUAL_NMIN", "AFFECTED_CELL_OFFSETS"]
+           "QUAL_NMIN"]
 
 
 #: Most triples that qualify in one cell (checked when the table is built).
@@ -137,14 +137,6 @@ TRIPLE_FACE, QUAL_N, QUAL_KEY, QUAL_NMIN = _build_tables()
 # the minimum face along a.
 
 
-# Offsets (from a removed voxel p) of every cell whose owned triangles may
-# change: cells containing p (p - {0,1}^3) and their 6 face neighbours.
-_AFFECTED = sorted({tuple(int(x) for x in (-np.array(d) + e))
-                    for d in itertools.product((0, 1), repeat=3)
-                    for e in [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
-                              (0, 0, 1), (0, 0, -1)]})
-AFFECTED_CELL_OFFSETS = np.array(_AFFECTED, dtype=np.int32)
-
 # Triangle records: Surface._trec is (tcap, 8) int32, one 32-byte row per
 # triangle slot holding everything the update reads about it, so a step along
 # a list touches one cache line: corners (tri), key, the next triangle on
@@ -161,14 +153,15 @@ _VR_OHEAD = 1
 
 # counters kept in Surface._cnt
 _V_HW, _V_NFREE, _T_HW, _T_NFREE, _V_ALIVE, _T_ALIVE = range(6)
-# status / statistics slots of the update kernel
+# status / statistics slots of the update kernel (_S_RESUME: where an update
+# that stopped for room goes on)
 (_S_STATUS, _S_NEED_V, _S_NEED_T, _S_V_ADD, _S_V_DEL, _S_T_ADD, _S_T_DEL,
- _S_RESHADE, _S_CELLS, _S_ERR) = range(10)
-_N_STATS = 10
+ _S_RESHADE, _S_CELLS, _S_ERR, _S_RESUME) = range(11)
+_N_STATS = 11
 
 
 # ----------------------------------------------------------------------------
-# Small kernels shared by both paths
+# Small kernels of the surface's lists
 # ----------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
 def _brick_neighbours(keys, vals, bricks):
@@ -185,14 +178,6 @@ def _brick_neighbours(keys, vals, bricks):
                                            bricks[b, 1] + dj, bricks[b, 2] + dk)
                     s += 1
     return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _nb_slot(qi, qj, qk, i, j, k):
-    """Slot in the 27-neighbour row of voxel q's brick that holds voxel (i, j, k)."""
-    return (((i >> BRICK_SHIFT) - (qi >> BRICK_SHIFT) + 1) * 9
-            + ((j >> BRICK_SHIFT) - (qj >> BRICK_SHIFT) + 1) * 3
-            + ((k >> BRICK_SHIFT) - (qk >> BRICK_SHIFT) + 1))
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -1,6 +1,7 @@
-"""Incremental update of the hybrid surface for dense removals: a window
-around the removed voxels is gathered into dense rows and re-planned there
-(:meth:`bonesim.surface.Surface.update` picks it for big bursts)."""
+"""Incremental update of the hybrid surface on one window: the box around
+a set of removed voxels is gathered into dense bit rows and re-planned
+there. :mod:`bonesim.surface_tiles` tiles any input into such
+windows (:meth:`bonesim.surface.Surface.update`)."""
 from __future__ import annotations
 
 
@@ -10,30 +11,29 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from bonesim.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset)
 from .surface_tables import (N_TRIPLES, QUAL_KEY, QUAL_N, TRIPLE_CORNERS, TRIPLE_FACE,
-                             _S_CELLS, _S_ERR, _S_NEED_T, _S_NEED_V, _S_STATUS,
+                             _S_CELLS, _S_ERR, _S_NEED_T, _S_NEED_V,
                              _S_T_ADD, _S_T_DEL, _S_V_ADD, _S_V_DEL, _TR_KEY, _TR_NEXT,
                              _TR_ONEXT, _T_ALIVE, _T_HW, _T_NFREE, _VR_HEAD, _VR_OHEAD,
                              _V_ALIVE, _V_HW, _V_NFREE)
 
-__all__ = ["FAST_MIN_VOXELS", "FAST_VOXELS_PER_INPUT"]
+__all__ = ["WINDOW_DEPTH", "WINDOW_MARGIN"]
 
 # ----------------------------------------------------------------------------
-# Incremental update, window path
+# Incremental update on one window
 # ----------------------------------------------------------------------------
-# When the inputs of an update fit a small box (the usual case: a burr's
-# worth of voxels), the update works on dense copies of that box instead of
-# looking voxels up one by one:
+# The update works on dense copies of a small box around its inputs instead
+# of looking voxels up one by one:
 #
-# * the window is the inputs' bounding box plus _FAST_MARGIN voxels (every
+# * the window is the inputs' bounding box plus WINDOW_MARGIN voxels (every
 #   voxel an update reads lies within 2 voxels of an input);
 # * sets of voxels / cells are bit rows: one uint64 per (x, y) row of the
 #   window, bit z for voxel (or cell minimum corner) z along k. Rows are
 #   stored with two guard rows / columns on each side (row index
 #   ``(x + 2) * (wd1 + 4) + y + 2``), so neighbouring rows can be read
 #   without bounds checks. The sets the update needs (cells to re-evaluate,
-#   voxels that may join or leave the surface, voxels to re-shade, voxels
-#   to read) are dilations of the set of inputs, a few shifts and ORs per
-#   row, and they are visited in (i, j, k) order;
+#   voxels that may join or leave the surface, voxels to read) are
+#   dilations of the set of inputs, a few shifts and ORs per row, and they
+#   are visited in (i, j, k) order;
 # * the densities and the voxel -> vertex map of the voxels it reads are
 #   gathered once into local arrays laid out like the rows (voxel
 #   ``row * wd2 + z``), with the occupancy as bit rows, so a cell's code is
@@ -47,22 +47,23 @@ __all__ = ["FAST_MIN_VOXELS", "FAST_VOXELS_PER_INPUT"]
 # re-evaluating a cell is harmless).
 #
 # Scratch memory lives in the Surface and grows on demand (status 2).
+#
+# Vertices dropped are those of the sources (every voxel emptied since the
+# last update is listed, so every emptied voxel that had a vertex is a
+# source); all cells containing a source are re-evaluated in the same
+# window, so its triangles are gone first. Vertices created are the occupied
+# voxels next to a source without one.
 
 #: Margin [voxels] of the window around the inputs.
-_FAST_MARGIN = 2
+WINDOW_MARGIN = 2
 #: Guard rows / columns around the window's bit rows.
 _GUARD = 2
-#: Voxel coordinates must have a magnitude below this (packed keys, margins).
-_COORD_LIMIT = (1 << 20) - 2 * BRICK
-#: The window path is taken when the window holds at most
-#: ``FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_inputs`` voxels and is at
-#: most 64 voxels deep along k.
-FAST_MIN_VOXELS = 32768
-FAST_VOXELS_PER_INPUT = 64
+#: Deepest window along k [voxels]: one uint64 bit row per (i, j).
+WINDOW_DEPTH = 64
 # bit-row sets (_R_T0.. are temporaries of the dilations)
-(_R_REM, _R_SEED, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_OCC, _R_HASV, _R_NEED,
- _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4) = range(16)
-_N_ROWSETS = 16
+(_R_REM, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_OCC, _R_HASV, _R_NEED,
+ _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4) = range(15)
+_N_ROWSETS = 15
 # per-slot bit masks of the qualifying triples lying in the minimum face along a
 _QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
 for _code in range(256):
@@ -80,29 +81,22 @@ for _code in range(256):
 
 
 @njit(cache=True, nogil=True)
-def _fw_mark(removed, touched, wlo, w1, rows, nr_p):
-    """REM (removed) and SEED (all inputs) bit rows."""
+def _fw_mark(removed, wlo, w1, rows, nr_p):
+    """REM bit rows: the removed voxels."""
     rem0 = _R_REM * nr_p
-    seed0 = _R_SEED * nr_p
-    for r in range(2 * nr_p):
-        rows[rem0 + r] = np.uint64(0)       # REM and SEED are adjacent
-    nr = removed.shape[0]
-    for q in range(nr):
+    for r in range(nr_p):
+        rows[rem0 + r] = np.uint64(0)
+    for q in range(removed.shape[0]):
         row = (removed[q, 0] - wlo[0] + _GUARD) * w1 + (removed[q, 1] - wlo[1] + _GUARD)
-        bit = np.uint64(1) << np.uint64(removed[q, 2] - wlo[2])
-        rows[rem0 + row] |= bit
-        rows[seed0 + row] |= bit
-    for q in range(touched.shape[0]):
-        row = (touched[q, 0] - wlo[0] + _GUARD) * w1 + (touched[q, 1] - wlo[1] + _GUARD)
-        rows[seed0 + row] |= np.uint64(1) << np.uint64(touched[q, 2] - wlo[2])
+        rows[rem0 + row] |= np.uint64(1) << np.uint64(removed[q, 2] - wlo[2])
 
 
 @njit(cache=True, nogil=True)
 def _fw_need(rows, nr_p, w0, w1):
-    """NEED: the voxels within 2 (along each axis) of an input."""
+    """NEED: the voxels within 2 (along each axis) of a removed voxel."""
     one = np.uint64(1)
     two = np.uint64(2)
-    E = _R_SEED * nr_p
+    E = _R_REM * nr_p
     N = _R_NEED * nr_p
     T0 = _R_T0 * nr_p
     T1 = _R_T1 * nr_p
@@ -212,10 +206,11 @@ def _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, rows, nr_p):
 
 
 @njit(cache=True, nogil=True)
-def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
+def _fw_plan(rows, nr_p, wd, lcode, lact, clist):
     """Code and active slots of every cell to re-evaluate; list the cells that
     own or may own a triangle (LIST bits, ``clist``). Returns ``(n_listed,
-    bound on triangles to add, vertices to add, vertices to drop)``."""
+    bound on triangles to add, vertices to add, vertices to drop, cells
+    visited)``."""
     wd0 = wd[0]
     wd1 = wd[1]
     wd2 = wd[2]
@@ -227,6 +222,7 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
     O = _R_OCC * nr_p
     H = _R_HASV * nr_p
     T = _R_TOPO * nr_p
+    S = _R_SRC * nr_p
     L = _R_LIST * nr_p
     for r in range(nr_p):
         rows[L + r] = np.uint64(0)
@@ -246,10 +242,9 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
             # vertices to create / drop
             tb = rows[np.uint64(T) + ur]
             if tb != 0:
-                occ = rows[uO]
                 hv = rows[uH]
-                add = tb & occ & ~hv
-                dele = tb & ~occ & hv
+                add = tb & rows[uO] & ~hv
+                dele = rows[np.uint64(S) + ur] & hv
                 while add != 0:
                     add &= add - one
                     nvadd += 1
@@ -308,8 +303,7 @@ def _fw_plan(rows, nr_p, wd, lcode, lact, clist, stats):
                 tbound += _POP4[act]
                 lbits |= one << zz
             rows[np.uint64(L) + ur] = lbits
-    stats[_S_CELLS] = ncells
-    return nl, tbound, nvadd, nvdel
+    return nl, tbound, nvadd, nvdel, ncells
 
 
 @njit(cache=True, nogil=True)
@@ -449,9 +443,10 @@ def _fw_unlink_dead(rows, nr_p, wd, lv, trec, vrec):
 @njit(cache=True, nogil=True)
 def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats):
-    """Drop the vertices of emptied voxels, then create those of new surface
-    voxels (which so reuse the slots just freed, whose lines are in cache);
-    HASV becomes the set of voxels with a vertex after the edit."""
+    """Drop the vertices of the sources, then create those of new surface
+    voxels (which so reuse the slots just freed, whose
+    lines are in cache); HASV becomes the set of voxels with a vertex after
+    the edit."""
     one = np.uint64(1)
     wd0 = wd[0]
     wd1 = wd[1]
@@ -460,17 +455,17 @@ def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, p
     T = _R_TOPO * nr_p
     O = _R_OCC * nr_p
     H = _R_HASV * nr_p
+    S = _R_SRC * nr_p
     for create in range(2):
         for x in range(wd0):
             i = wlo[0] + x
             for y in range(wd1):
                 r = (x + _GUARD) * w1 + y + _GUARD
-                occ = rows[O + r]
                 hv = rows[H + r]
                 if create:
-                    chg = rows[T + r] & occ & ~hv
+                    chg = rows[T + r] & rows[O + r] & ~hv
                 else:
-                    chg = rows[T + r] & ~occ & hv
+                    chg = rows[S + r] & hv
                 if chg == 0:
                     continue
                 rows[H + r] = hv ^ chg
@@ -504,7 +499,7 @@ def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, p
                         valive[v] = 1
                         cnt[_V_ALIVE] += 1
                         stats[_S_V_ADD] += 1
-                    else:                                   # emptied
+                    else:                                   # a source
                         v = lv[li]
                         if vrec[v, _VR_OHEAD] >= 0:
                             stats[_S_ERR] += 1
@@ -558,28 +553,22 @@ def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
 
 
 @njit(cache=True, nogil=True)
-def _update_window(keys, vals, density, origin, spacing,
-                   removed, touched, win_per_input,
-                   vmap, pos, vijk, valive, vrec, vfree,
-                   trec, tfree, cnt, stats, sf32, si32, su8, su64):
-    """The update on dense copies of the inputs' window (see above).
+def _window_pass(keys, vals, density, origin, spacing, removed,
+                 vmap, pos, vijk, valive, vrec, vfree, trec, tfree, cnt, stats,
+                 sf32, si32, su8, su64):
+    """The update on dense copies of the window around ``removed`` (see
+    above; at least one voxel, coordinates checked by the caller, a window
+    at most ``WINDOW_DEPTH`` deep along k).
 
-    Sets ``stats[_S_STATUS]``: 0 done, 1 vertex / triangle arrays too small
-    (nothing changed), 2 scratch too small (``stats[_S_NEED_V]`` voxels,
-    ``stats[_S_NEED_T]`` rows; nothing changed), 3 window unsuitable (use
-    :func:`_update_kernel`; nothing changed), 4 / 5 a removed / touched voxel
-    has a coordinate of magnitude ``_COORD_LIMIT`` or more (nothing changed).
+    Adds its counts to ``stats``. Returns 0 when done, 1 when the vertex /
+    triangle arrays are too small (``stats[_S_NEED_V]``, ``stats[_S_NEED_T]``
+    extra slots needed), 2 when the scratch is too small (``stats[_S_NEED_V]``
+    voxels, ``stats[_S_NEED_T]`` rows); then nothing changed.
     """
-    for s in range(stats.shape[0]):
-        stats[s] = 0
     nr = removed.shape[0]
-    ntch = touched.shape[0]
-    n_in = nr + ntch
-    if n_in == 0:
-        return
-    lo0 = hi0 = np.int64(removed[0, 0] if nr > 0 else touched[0, 0])
-    lo1 = hi1 = np.int64(removed[0, 1] if nr > 0 else touched[0, 1])
-    lo2 = hi2 = np.int64(removed[0, 2] if nr > 0 else touched[0, 2])
+    lo0 = hi0 = np.int64(removed[0, 0])
+    lo1 = hi1 = np.int64(removed[0, 1])
+    lo2 = hi2 = np.int64(removed[0, 2])
     for q in range(nr):
         lo0 = min(lo0, removed[q, 0])
         hi0 = max(hi0, removed[q, 0])
@@ -587,37 +576,19 @@ def _update_window(keys, vals, density, origin, spacing,
         hi1 = max(hi1, removed[q, 1])
         lo2 = min(lo2, removed[q, 2])
         hi2 = max(hi2, removed[q, 2])
-    if nr > 0 and (min(lo0, lo1, lo2) <= -_COORD_LIMIT or max(hi0, hi1, hi2) >= _COORD_LIMIT):
-        stats[_S_STATUS] = 4
-        return
-    for q in range(ntch):
-        lo0 = min(lo0, touched[q, 0])
-        hi0 = max(hi0, touched[q, 0])
-        lo1 = min(lo1, touched[q, 1])
-        hi1 = max(hi1, touched[q, 1])
-        lo2 = min(lo2, touched[q, 2])
-        hi2 = max(hi2, touched[q, 2])
-    if min(lo0, lo1, lo2) <= -_COORD_LIMIT or max(hi0, hi1, hi2) >= _COORD_LIMIT:
-        stats[_S_STATUS] = 5
-        return
     wlo = np.empty(3, dtype=np.int64)
     wd = np.empty(3, dtype=np.int64)
     blo = np.empty(3, dtype=np.int64)
     bd = np.empty(3, dtype=np.int64)
-    wlo[0] = lo0 - _FAST_MARGIN
-    wlo[1] = lo1 - _FAST_MARGIN
-    wlo[2] = lo2 - _FAST_MARGIN
-    wd[0] = hi0 - lo0 + 1 + 2 * _FAST_MARGIN
-    wd[1] = hi1 - lo1 + 1 + 2 * _FAST_MARGIN
-    wd[2] = hi2 - lo2 + 1 + 2 * _FAST_MARGIN
+    wlo[0] = lo0 - WINDOW_MARGIN
+    wlo[1] = lo1 - WINDOW_MARGIN
+    wlo[2] = lo2 - WINDOW_MARGIN
+    wd[0] = hi0 - lo0 + 1 + 2 * WINDOW_MARGIN
+    wd[1] = hi1 - lo1 + 1 + 2 * WINDOW_MARGIN
+    wd[2] = hi2 - lo2 + 1 + 2 * WINDOW_MARGIN
     for a in range(3):
         blo[a] = wlo[a] >> BRICK_SHIFT
         bd[a] = ((wlo[a] + wd[a] - 1) >> BRICK_SHIFT) - blo[a] + 1
-    vol = wd[0] * wd[1] * wd[2]
-    if (win_per_input <= 0 or wd[2] > 64
-            or vol > FAST_MIN_VOXELS + FAST_VOXELS_PER_INPUT * n_in):
-        stats[_S_STATUS] = 3
-        return
     w0 = wd[0] + 2 * _GUARD
     w1 = wd[1] + 2 * _GUARD
     nr_p = w0 * w1
@@ -625,10 +596,9 @@ def _update_window(keys, vals, density, origin, spacing,
     nwb = bd[0] * bd[1] * bd[2]
     if sf32.shape[0] < vol_p or si32.shape[0] < 2 * vol_p + nwb or su8.shape[0] < 2 * vol_p \
             or su64.shape[0] < _N_ROWSETS * nr_p:
-        stats[_S_STATUS] = 2
         stats[_S_NEED_V] = vol_p
         stats[_S_NEED_T] = nr_p
-        return
+        return 2
     ld = sf32
     lv = si32[:vol_p]
     clist = si32[vol_p:2 * vol_p]
@@ -643,22 +613,22 @@ def _update_window(keys, vals, density, origin, spacing,
                 s += 1
 
     # ---- plan (read-only) ----------------------------------------------------
-    _fw_mark(removed, touched, wlo, w1, su64, nr_p)
+    _fw_mark(removed, wlo, w1, su64, nr_p)
     _fw_need(su64, nr_p, w0, w1)
     _fw_gather(density, vmap, wbr, wlo, wd, blo, bd, ld, lv, su64, nr_p)
     _fw_dilate(su64, nr_p, w0, w1)
-    nl, tbound, n_vadd, n_vdel = _fw_plan(su64, nr_p, wd, lcode, lact, clist, stats)
+    nl, tbound, n_vadd, n_vdel, ncells = _fw_plan(su64, nr_p, wd, lcode, lact, clist)
 
     # ---- room? (triangles: bound, ignoring the ones that will be freed) ------
     v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
     t_room = cnt[_T_NFREE] + (trec.shape[0] - cnt[_T_HW])
     if n_vadd > v_room or tbound > t_room:
-        stats[_S_STATUS] = 1
         stats[_S_NEED_V] = max(0, n_vadd - v_room)
         stats[_S_NEED_T] = max(0, tbound - t_room)
-        return
+        return 1
 
     # ---- edit ------------------------------------------------------------------
+    stats[_S_CELLS] += ncells
     na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nr_p, trec, vrec, tfree,
                            cnt, stats)
     if _fw_unlink_dead(su64, nr_p, wd, lv, trec, vrec) != n_dead:
@@ -666,3 +636,4 @@ def _update_window(keys, vals, density, origin, spacing,
     _fw_vertices(su64, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats)
     _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats)
+    return 0

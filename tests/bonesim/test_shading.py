@@ -254,13 +254,13 @@ def test_slab_shows_the_structure_by_its_thickness(n_bone, struct, h):
     assert surf.col[side].tolist() == list(COLORS[struct]) + [255]
 
 
-@pytest.mark.parametrize("hash_sets", [False, True])
-def test_drilling_a_slab_thinner_strengthens_the_tint(hash_sets):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_drilling_a_slab_thinner_strengthens_the_tint(tiled):
     h = 0.5
     grid, top = slab(5, 2, h, width=16)
     surf = Surface.build(grid, COLORS, bone=BONE)
-    if hash_sets:
-        surf._win_per_input = 0
+    if tiled:
+        _force_tiles(surf)
     seen = []
     for layer in range(4):                 # 5 -> 1 voxels of bone over the sinus
         k = top - layer
@@ -385,12 +385,19 @@ def test_build_colours_match_the_reference(seed):
 # ---------------------------------------------------------------------------
 # incremental == rebuild, tint included
 # ---------------------------------------------------------------------------
-def _run_removals(seed, shape, h, n_batches, max_batch, hash_sets):
+def _force_tiles(surf, shift=1):
+    """Tile every update of ``surf`` into windows of ``2**shift`` voxels (the
+    path of removals spread far apart), so tiles meet everywhere."""
+    surf._win_limit = -1
+    surf._tile_shift = shift
+
+
+def _run_removals(seed, shape, h, n_batches, max_batch, tiled):
     rng = np.random.default_rng(seed)
     grid = _random_tissue(rng, shape, h)
     surf = Surface.build(grid, COLORS, bone=BONE)
-    if hash_sets:
-        surf._win_per_input = 0
+    if tiled:
+        _force_tiles(surf)
     for _ in range(n_batches):
         d, _ = grid.to_dense()
         occ = np.argwhere(d > 0)
@@ -413,13 +420,13 @@ def _run_removals(seed, shape, h, n_batches, max_batch, hash_sets):
 @settings(max_examples=_EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2 ** 32 - 1),
        shape=st.tuples(st.integers(2, 12), st.integers(2, 12), st.integers(2, 12)),
-       h=st.sampled_from([0.5, 0.25]), hash_sets=st.booleans())
-def test_incremental_tint_equals_rebuild_hypothesis(seed, shape, h, hash_sets):
-    _run_removals(seed, shape, h, n_batches=4, max_batch=15, hash_sets=hash_sets)
+       h=st.sampled_from([0.5, 0.25]), tiled=st.booleans())
+def test_incremental_tint_equals_rebuild_hypothesis(seed, shape, h, tiled):
+    _run_removals(seed, shape, h, n_batches=4, max_batch=15, tiled=tiled)
 
 
 def test_incremental_until_empty():
-    surf = _run_removals(3, (9, 10, 8), 0.25, n_batches=120, max_batch=20, hash_sets=False)
+    surf = _run_removals(3, (9, 10, 8), 0.25, n_batches=120, max_batch=20, tiled=False)
     assert surf.n_vertices == 0
 
 

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from bonesim.grid import Grid, voxel_offset
 from bonesim.shading import NORMAL_RADIUS, load_shading
 from bonesim.surface import SHADE_MIN, GRAD_EPS, CanonicalSurface, Surface
+from bonesim.surface_window import WINDOW_DEPTH
 
 COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dtype=np.uint8)
 CORNERS = [np.array(c) for c in itertools.product((0, 1), repeat=3)]   # lexicographic
@@ -443,19 +444,26 @@ def test_input_validation():
 # ---------------------------------------------------------------------------
 # incremental update == full tessellation
 # ---------------------------------------------------------------------------
+def _force_tiles(surf, shift=1):
+    """Tile every update of ``surf`` into windows of ``2**shift`` voxels (the
+    path of removals spread far apart), so tiles meet everywhere."""
+    surf._win_limit = -1
+    surf._tile_shift = shift
+
+
 def _assert_same_as_rebuild(surf, grid):
     fresh = Surface.build(grid, COLORS).canonical()
     diffs = surf.canonical().differences(fresh)          # exact, normals included
     assert not diffs, diffs
 
 
-def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, hash_sets):
+def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, tiled):
     rng = np.random.default_rng(seed)
     dens, lab = _random_volume(rng, shape, p_occ, graded)
     grid = Grid.from_dense(lab, dens, spacing_mm=0.5, origin_mm=(-1.0, 0.5, 2.0))
     surf = Surface.build(grid, COLORS)
-    if hash_sets:
-        surf._win_per_input = 0                          # force the hash-set path
+    if tiled:
+        _force_tiles(surf)
     for _ in range(n_batches):
         d, _ = grid.to_dense()
         occ = np.argwhere(d > 0)
@@ -482,16 +490,16 @@ def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, hash_
 @settings(max_examples=_EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2 ** 32 - 1),
        shape=st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9)),
-       p_occ=st.floats(0.2, 1.0), graded=st.booleans(), hash_sets=st.booleans())
-def test_incremental_equals_rebuild_hypothesis(seed, shape, p_occ, graded, hash_sets):
+       p_occ=st.floats(0.2, 1.0), graded=st.booleans(), tiled=st.booleans())
+def test_incremental_equals_rebuild_hypothesis(seed, shape, p_occ, graded, tiled):
     _run_random_removals(seed, shape, p_occ, graded, n_batches=4, max_batch=12,
-                         hash_sets=hash_sets)
+                         tiled=tiled)
 
 
-@pytest.mark.parametrize("hash_sets", [False, True])
-def test_incremental_until_empty(hash_sets):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_incremental_until_empty(tiled):
     surf = _run_random_removals(5, (7, 8, 6), 0.8, True, n_batches=200, max_batch=25,
-                                hash_sets=hash_sets)
+                                tiled=tiled)
     assert surf.n_vertices == 0 and surf.n_triangles == 0
 
 
@@ -503,8 +511,8 @@ def _burr_path(grid_shape, r, steps):
     return a
 
 
-@pytest.mark.parametrize("hash_sets", [False, True])
-def test_incremental_burr_sequence(hash_sets):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_incremental_burr_sequence(tiled):
     """A spherical burr moving into a ball of bone: voxels inside the burr are
     removed, a shell around it has its density lowered."""
     n = 22
@@ -512,8 +520,8 @@ def test_incremental_burr_sequence(hash_sets):
     lab[(np.indices((n, n, n))[2] < 8) & (lab > 0)] = 2
     grid = Grid.from_dense(lab, spacing_mm=0.3)
     surf = Surface.build(grid, COLORS)
-    if hash_sets:
-        surf._win_per_input = 0
+    if tiled:
+        _force_tiles(surf)
     g = np.indices((n, n, n)).reshape(3, -1).T
     r = 3.2
     total = 0
@@ -541,6 +549,8 @@ def test_update_grows_capacity():
     lab = ((g >= 1) & (g <= n - 2)).all(0).astype(np.uint8)
     grid = Grid.from_dense(lab)
     surf = Surface.build(grid, COLORS)
+    tiled = Surface.build(grid, COLORS)
+    _force_tiles(tiled, 2)              # runs out of room part way, then resumes
     vcap, tcap = surf.pos.shape[0], surf.tri.shape[0]
     # drill a grid of holes: much more surface than the box had
     holes = g.reshape(3, -1).T
@@ -550,6 +560,35 @@ def test_update_grows_capacity():
     stats = surf.update(grid, holes)
     assert surf.pos.shape[0] > vcap and surf.tri.shape[0] > tcap
     assert stats["vertices_added"] > 0 and stats["triangles_added"] > 0
+    _assert_same_as_rebuild(surf, grid)
+    _assert_links(surf)
+    # the tiles change each triangle once, so they count what one window counts
+    stats_tiled = tiled.update(grid, holes)
+    assert tiled.pos.shape[0] > vcap and tiled.tri.shape[0] > tcap
+    for key in ("vertices_added", "vertices_removed", "triangles_added", "triangles_removed"):
+        assert stats_tiled[key] == stats[key], key
+    _assert_same_as_rebuild(tiled, grid)
+    _assert_links(tiled)
+
+
+def test_removals_far_apart_are_tiled():
+    """Two burr holes 80 voxels apart along k (no single window of 64
+    voxels covers them) and a scatter of single voxels, with default tiles."""
+    n = 96
+    lab = np.zeros((24, 24, n), np.uint8)
+    lab[2:22, 2:22, 2:n - 2] = 1
+    grid = Grid.from_dense(lab)
+    surf = Surface.build(grid, COLORS)
+    g = np.indices(lab.shape).reshape(3, -1).T
+    rng = np.random.default_rng(4)
+    removed = np.concatenate([
+        g[((g - (12, 12, 4)) ** 2).sum(1) <= 16],
+        g[((g - (12, 12, 84)) ** 2).sum(1) <= 16],
+        g[rng.choice(len(g), 40, replace=False)]])
+    assert np.ptp(removed[:, 2]) + 1 > WINDOW_DEPTH
+    _set_density(grid, removed, 0.0)
+    stats = surf.update(grid, removed.astype(np.int32))
+    assert stats["triangles_added"] > 0
     _assert_same_as_rebuild(surf, grid)
     _assert_links(surf)
 

@@ -1,7 +1,7 @@
 """Soak: many cumulative burr-ball removals on the phantom keep the
 incremental surface identical to a from-scratch tessellation, normals and
-thin-bone tint included (both update paths: the dense-window path and the
-hash-set fallback)."""
+thin-bone tint included (one window per ball, and every ball tiled into
+windows of 4 voxels)."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,13 +14,14 @@ from bonesim.surface import Surface
 pytestmark = pytest.mark.slow
 
 
-@pytest.mark.parametrize("window", [True, False])
-def test_cumulative_balls_match_rebuild(window):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_cumulative_balls_match_rebuild(tiled):
     model = load_model("phantom", "cutting-5mm")
     grid = model.grid.copy()
     surf = Surface.of_model(model, grid)
-    if not window:
-        surf._win_per_input = 0                   # force the hash-set path
+    if tiled:
+        surf._win_limit = -1                      # tile every update
+        surf._tile_shift = 2
     rng = np.random.default_rng(11)
     ball = ball_offsets(7.8)
     done = 0
