@@ -65,10 +65,10 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         app.window.press("nerve_monitor")             # m hides it
         trace_hidden = not app.trace.visible and app.trace.text() == ""
         # reset the case: the loop restores the bone, the app rebuilds its side
-        epoch = app.epoch
+        epoch = app.consumer.epoch
         app.window.press("reset_case")
         app.window.run_offscreen(10, realtime=True)
-        assert app.epoch != epoch and not app.injuries
+        assert app.consumer.epoch != epoch and not app.injuries
         assert app.consumer.grid.density.sum(dtype=np.float64) > bone
     finally:
         app.close()
