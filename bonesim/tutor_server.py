@@ -9,9 +9,8 @@ import time
 import numpy as np
 
 from . import events, net
-from .errors import BonesimError
-from .net import udp_socket
 from .child import ChildProcess
+from .net import udp_socket
 from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK, KIND_STATE,
                              MAX_REMOVALS, SERVO_HZ, STALE_S, RemovalLog, pack_state,
                              removed_voxels, session_info)

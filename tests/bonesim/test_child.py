@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from bonesim.child import (BASE_STATUS, ERROR_BYTES, ChildProcess, record_dtype)
+from bonesim.child import BASE_STATUS, ERROR_BYTES, ChildProcess, record_dtype
 from bonesim.errors import BonesimError, ProcessFailed
 from tests.bonesim.fakes import wait_for
 

@@ -60,7 +60,7 @@ class Record(Command):
 
 
 def _ring(capacity: int = 8) -> events.Ring:
-    cap, fields = events.OTHER_RINGS["commands"]
+    fields = events.OTHER_RINGS["commands"][1]
     return events.Ring.create(capacity, **fields)
 
 
