@@ -31,8 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .sightline import depth_below_surface_mm
-from .haptic_loop import (IN_DIR, IN_DRILL, IN_SPEED, ST_AXIS, ST_BURR, ST_DIR, ST_DRILL,
-                          ST_FORCE, ST_POS, ST_SPEED, HapticLoop)
+from .haptic_loop import HapticLoop
 
 __all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
            "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "App"]
@@ -220,7 +219,7 @@ class App:
     # -------------------------------------------------------------- frames
     @property
     def burr(self):
-        return self.burrs[int(self.loop.status[ST_BURR])]
+        return self.burrs[int(self.loop.status["burr"])]
 
     def on_frame(self, scene) -> None:
         from .dust import DustGrid
@@ -232,8 +231,8 @@ class App:
             self.injuries.clear()
         rem, tch = ch.removed, ch.touched
         scene.update_surface(self.consumer.surface, rem, tch)
-        pos = st[ST_POS:ST_POS + 3].copy()
-        axis = st[ST_AXIS:ST_AXIS + 3].copy()
+        pos = st["pos_mm"].copy()
+        axis = st["axis"].copy()
         burr = self.burr
         if len(rem):
             self.dust.add_removed(rem)
@@ -246,7 +245,7 @@ class App:
                        irrigation_radius_mm=(burr.radius_mm + WATER_SPREAD_MM
                                              if self.irrigation else 0.0))
         scene.set_dust(*self.dust.sprites())
-        drill = bool(st[ST_DRILL])
+        drill = bool(st["drill"])
         depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],
                                        burr.radius_mm)
         scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
@@ -268,8 +267,8 @@ class App:
             "burr_diameter_mm": burr.diameter_mm,
             "tool": "suction" if self.suction else "burr",
             "irrigation": self.irrigation, "depth_mm": depth,
-            "drill": drill, "direction": st[ST_DIR], "speed_rpm": st[ST_SPEED],
-            "force_n": float(np.linalg.norm(st[ST_FORCE:ST_FORCE + 3])),
+            "drill": drill, "direction": int(st["direction"]), "speed_rpm": float(st["speed_rpm"]),
+            "force_n": float(np.linalg.norm(st["force_n"])),
             "haptic_hz": self._rates.get("rate_hz", 0.0),
             "elapsed_s": time.perf_counter() - self.t_start,
             "injuries": list(self.injuries),
@@ -291,19 +290,19 @@ class App:
     def on_key(self, action: str) -> bool:
         if self.recorder is not None:
             self.recorder.event("key", action)
-        loop, st = self.loop, self.loop.status
+        loop, st, ctl = self.loop, self.loop.status, self.loop.control
         if action in ("next_burr", "previous_burr"):
             step = 1 if action == "next_burr" else -1
-            loop.set_burr((int(st[ST_BURR]) + step) % len(self.burrs))
+            loop.set_burr((int(st["burr"]) + step) % len(self.burrs))
         elif action == "drill_toggle":
-            loop.set_drill(not bool(loop.io[IN_DRILL]))
+            loop.set_drill(not bool(ctl["drill"]))
         elif action == "reverse":
-            loop.set_drill(bool(loop.io[IN_DRILL]), direction=-1 if loop.io[IN_DIR] >= 0 else 1)
+            loop.set_drill(bool(ctl["drill"]), direction=-1 if ctl["direction"] >= 0 else 1)
         elif action in ("speed_up", "speed_down"):
             b = self.burr
             sign = 1 if action == "speed_up" else -1
-            rpm = float(np.clip(loop.io[IN_SPEED] + sign * SPEED_STEP_RPM, 0.0, b.max_speed_rpm))
-            loop.set_drill(bool(loop.io[IN_DRILL]), speed_rpm=rpm)
+            rpm = float(np.clip(ctl["speed_rpm"] + sign * SPEED_STEP_RPM, 0.0, b.max_speed_rpm))
+            loop.set_drill(bool(ctl["drill"]), speed_rpm=rpm)
         elif action == "suction":
             self.suction = not self.suction
         elif action == "irrigation":

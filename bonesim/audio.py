@@ -18,34 +18,29 @@ from __future__ import annotations
 
 import time
 
-from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
+import numpy as np
 
-__all__ = ["CONTROL_HZ", "THICKNESS_MAX_MM", "A_READY", "A_SILENT", "A_DONE", "A_QUIT",
-           "A_CLICKS", "A_LATE", "A_DROPPED", "A_ANCHORS", "N_AS", "AudioProcess"]
+from .child import ChildProcess
+from .shared import SharedArrays
+
+__all__ = ["CONTROL_HZ", "THICKNESS_MAX_MM", "AudioProcess"]
 
 #: Rate at which sound parameters follow the haptic loop [Hz].
 CONTROL_HZ = 100.0
 #: Longest ray cast for the thickness estimate [mm].
 THICKNESS_MAX_MM = 6.0
-# audio status slots (written by the audio process): ready, no device, done,
-# quit; with a monitor the clicks scheduled, sounded late, dropped (ring full)
-# and clock re-anchors
-A_READY, A_SILENT, A_DONE, A_QUIT, A_CLICKS, A_LATE, A_DROPPED, A_ANCHORS = range(8)
-N_AS = 8
 
 
-def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
+def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
+    """Body of the audio process (:meth:`AudioProcess.run`)."""
     from .grid import Grid
-    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_SPEED, ST_T
     from .sound import SoundSynth, WavRecorder, open_output
     from .sound import warmup as sound_warmup
     from .thickness import bone_thickness_mm
     from .thickness import warmup as thickness_warmup
 
-    die_with_parent()
-    sh = SharedArrays.attach(handle)
-    ash = SharedArrays.attach(status_handle)
-    astat = ash["audio"]
+    sh = SharedArrays.attach(loop_handle)
+    astat = child.status
     status = sh["status"]
     g0 = model.grid
     grid = Grid(g0.spacing_mm, g0.origin_mm, g0.shape, g0.keys, g0.vals, g0.bricks,
@@ -66,46 +61,44 @@ def _audio_main(handle, model, burrs, wav, status_handle, monitor=None) -> None:
         spikes = shared_rings(msh.arrays)[1]
         spike_pos = spikes.count
         clicks = ClickSynth(synth.sample_rate, monitor[1])
-        clicks.sync(float(status[ST_T]))        # provisional: re-anchored once it renders
+        clicks.sync(float(status["t_s"]))       # provisional: re-anchored once it renders
     out = open_output(synth if clicks is None else MixedSynth(synth, clicks),
                       recorder=recorder)
-    astat[A_SILENT] = 0.0 if out.notice is None else 1.0
-    astat[A_READY] = 1.0
+    astat["silent"] = 0 if out.notice is None else 1
+    child.ready()
     burr = 0
     try:
-        while astat[A_QUIT] == 0.0:
-            b = int(status[ST_BURR])
+        while not child.quit:
+            b = int(status["burr"])
             if b != burr and 0 <= b < len(all_burrs):
                 burr = b
                 synth.set_burr(all_burrs[b])
-            drill = bool(status[ST_DRILL])
-            force = float(status[ST_MAG])
+            drill = bool(status["drill"])
+            force = float(status["mag_n"])
             thick = float("inf")
             if drill and force > 0.0:
-                thick = bone_thickness_mm(grid, status[ST_POS:ST_POS + 3].copy(),
+                thick = bone_thickness_mm(grid, status["pos_mm"].copy(),
                                           all_burrs[burr].radius_mm, THICKNESS_MAX_MM)
-            synth.set_params(drill, float(status[ST_SPEED]), force, thick)
+            synth.set_params(drill, float(status["speed_rpm"]), force, thick)
             if clicks is not None:
-                astat[A_ANCHORS] += clicks.sync(float(status[ST_T]))
+                astat["anchors"] += clicks.sync(float(status["t_s"]))
                 head = spikes.count
                 if head > spike_pos:
                     rec = spikes.read(max(spike_pos, head - spikes.capacity // 2), head)
                     clicks.schedule(rec["t_s"], rec["nerve"])
                     spike_pos = head
-                astat[A_CLICKS] = clicks.scheduled
-                astat[A_LATE] = clicks.late
-                astat[A_DROPPED] = clicks.dropped
+                astat["clicks"] = clicks.scheduled
+                astat["late"] = clicks.late
+                astat["dropped"] = clicks.dropped
             time.sleep(1.0 / CONTROL_HZ)
     finally:
         out.close()
         if recorder is not None:
             recorder.close()
-        astat[A_DONE] = 1.0
-        ash.close()
         sh.close()
 
 
-class AudioProcess:
+class AudioProcess(ChildProcess):
     """Plays (or records) the drill sound of a running :class:`HapticLoop`.
 
     Parameters
@@ -116,48 +109,43 @@ class AudioProcess:
         Also write everything rendered to this WAV file.
     monitor : MonitorProcess, optional
         Mix a click per spike of this nerve monitor into the sound.
+
+    Attributes
+    ----------
+    status : ndarray
+        ``silent`` (no sound device) and, with a monitor, the ``clicks``
+        scheduled, sounded ``late``, ``dropped`` (ring full) and clock
+        re-``anchors``.
     """
 
-    def __init__(self, loop, wav=None, monitor=None):
-        import numpy as np
+    NAME = "bonesim-audio"
+    STATUS = (("silent", np.uint8), ("clicks", np.int64), ("late", np.int64),
+              ("dropped", np.int64), ("anchors", np.int64))
+    START_REQUIRED = False          # a slow start is not fatal: silent until ready
 
+    def __init__(self, loop, wav=None, monitor=None):
         self.loop = loop
         self.wav = None if wav is None else str(wav)
         self.monitor = None if monitor is None else (monitor.handle, len(monitor.names))
-        self._ash = SharedArrays.create([("audio", (N_AS,), np.float64)])
-        self.status = self._ash["audio"]
-        self._proc = None
+        super().__init__()
 
-    def start(self, timeout_s: float = 60.0) -> "AudioProcess":
-        self._proc = start_process(
-            _audio_main, "bonesim-audio",
-            (self.loop.handle, self.loop.model, self.loop.burrs[1:], self.wav,
-             self._ash.handle, self.monitor))
-        # a slow start is not fatal: the drill is silent until it is ready
-        if wait_ready(self._proc, lambda: self.status[A_READY] != 0.0, timeout_s) == "exited":
-            raise RuntimeError("the audio process exited during start-up "
-                               f"(exit code {self._proc.exitcode})")
-        return self
+    def child_args(self) -> dict:
+        return {"loop_handle": self.loop.handle, "model": self.loop.model,
+                "burrs": self.loop.burrs[1:], "wav": self.wav, "monitor": self.monitor}
+
+    @classmethod
+    def run(cls, child, **kwargs) -> None:
+        _run_audio(child, **kwargs)
 
     @property
     def silent(self) -> bool:
         """True when no sound device was found (a silent sink renders instead)."""
-        return bool(self.status[A_SILENT])
+        return bool(self.status["silent"])
 
     def click_stats(self) -> dict:
         """The nerve monitor's clicks so far: scheduled, sounded late (their
         spike came after the click delay), dropped (ring full) and clock
         re-anchors (the first one included)."""
         s = self.status
-        return {"clicks": int(s[A_CLICKS]), "late": int(s[A_LATE]),
-                "dropped": int(s[A_DROPPED]), "anchors": int(s[A_ANCHORS])}
-
-    def close(self, timeout_s: float = 5.0) -> None:
-        if self._ash is None:
-            return
-        self.status[A_QUIT] = 1.0
-        if self._proc is not None:
-            end_process(self._proc, timeout_s)
-            self._proc = None
-        self._ash.close()
-        self._ash = None
+        return {"clicks": int(s["clicks"]), "late": int(s["late"]),
+                "dropped": int(s["dropped"]), "anchors": int(s["anchors"])}

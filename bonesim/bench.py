@@ -330,7 +330,6 @@ def _loop_for_bench(seconds: float):
 def bench_haptic_loop(quick=False) -> dict:
     """Period of the 1 kHz haptic loop process while a consumer keeps the
     surface up to date (no rendering)."""
-    from .haptic_loop import ST_REALTIME
     from .replica import TissueReplica
 
     seconds = 2.0 if quick else 6.0
@@ -342,7 +341,7 @@ def bench_haptic_loop(quick=False) -> dict:
             consumer.drain()
             time.sleep(1.0 / 60.0)
         p = loop.recent_periods(int(seconds * 1000))[1:] * 1e3
-        realtime = bool(loop.status[ST_REALTIME])
+        realtime = bool(loop.status["realtime"])
     finally:
         loop.close()
     return {"haptic_loop_period_p99_ms": {
@@ -377,9 +376,7 @@ def bench_haptic_loop_rendering(quick=False) -> dict:
         wall = time.perf_counter() - t0
         n = app.loop.steps_measured - head0
         p = app.loop.recent_periods(n)[1:] * 1e3
-        from .haptic_loop import ST_REALTIME
-
-        realtime = bool(app.loop.status[ST_REALTIME])
+        realtime = bool(app.loop.status["realtime"])
     finally:
         app.close()
     info = gl.select_backend(offscreen=True)

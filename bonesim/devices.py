@@ -148,28 +148,29 @@ class ScriptedDevice:
 
 
 class SharedInputDevice:
-    """The mouse/keyboard device: the window writes the target pose into a
-    shared array (see :mod:`bonesim.haptic_loop`), the haptic loop reads it.
+    """The mouse/keyboard device: the window writes the target pose into
+    shared memory (the haptic loop's ``control`` fields ``target_mm`` and
+    ``axis``, see :mod:`bonesim.haptic_loop`), the haptic loop reads it.
 
     Parameters
     ----------
-    io : ndarray
-        The loop's shared input array; ``io[IN_POS:IN_POS+3]`` and
-        ``io[IN_AXIS:IN_AXIS+3]`` hold the target pose.
+    pos_mm : (3,) ndarray
+        Shared view of the target position [mm].
+    axis : (3,) ndarray
+        Shared view of the target drill axis (normalized on reading).
     """
 
     caps = MOUSE_CAPS
 
-    def __init__(self, io, pos_slice=slice(0, 3), axis_slice=slice(3, 6)):
-        self.io = io
-        self._pos = pos_slice
-        self._axis = axis_slice
+    def __init__(self, pos_mm, axis):
+        self.pos_mm = pos_mm
+        self.axis = axis
 
     def open(self) -> None:
         pass
 
     def read(self, t_s: float) -> DeviceReading:
-        return DeviceReading(self.io[self._pos].copy(), _unit(self.io[self._axis]))
+        return DeviceReading(self.pos_mm.copy(), _unit(self.axis))
 
     def write_force(self, force_n) -> None:
         pass

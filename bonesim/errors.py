@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["BonesimError"]
+__all__ = ["BonesimError", "ProcessFailed"]
 
 
 class BonesimError(Exception):
@@ -39,3 +39,23 @@ class BonesimError(Exception):
         elif field:
             where = f"[{field}]: "
         super().__init__(where + message)
+
+
+class ProcessFailed(BonesimError):
+    """A child process (:mod:`bonesim.child`) failed to start or run.
+
+    Parameters
+    ----------
+    process : str
+        The process's name (``bonesim-recorder``, ...).
+    message : str
+        What the child reported, or how it failed (died, timed out).
+    """
+
+    def __init__(self, process: str, message: str):
+        super().__init__(message)
+        self.process = process
+        self.args = (f"{process}: {message}",)
+
+    def __str__(self) -> str:
+        return self.args[0]

@@ -49,9 +49,10 @@ import numpy as np
 
 __all__ = ["TISSUE_EVENT_VERSION", "REMOVED", "CONTACT", "INJURY", "RESET", "BURR",
            "SPLIT", "POSE", "KIND_NAMES", "N_VALUE", "INJURY_CONTACT", "INJURY_REMOVAL",
-           "INJURY_KINDS", "RingOverflow", "Ring", "Cursor", "RINGS", "OTHER_RINGS",
-           "TISSUE_FIELDS", "ring_arrays_spec", "ring_from_arrays", "tissue_ring", "push_event",
-           "empty_events", "removals", "injuries", "select", "concat"]
+           "INJURY_KINDS", "RingOverflow", "Ring", "Cursor", "RINGS", "COMMAND_ARGS",
+           "OTHER_RINGS", "TISSUE_FIELDS", "ring_arrays_spec", "ring_from_arrays",
+           "tissue_ring", "push_event", "empty_events", "removals", "injuries", "select",
+           "concat"]
 
 #: Version of the tissue-event record (session schema 2 stores it as is).
 TISSUE_EVENT_VERSION = 2
@@ -165,10 +166,15 @@ RINGS = {
 }
 
 
+#: Arguments of one command record (a body id and a 4x4 pose fit, with room).
+COMMAND_ARGS = 24
+
 #: Rings that live beside a :class:`~bonesim.model.State` but are not part of
 #: it: the haptic loop's per-step ``samples`` (what the device read, what was
-#: stepped and what force went back: the recorder's and the tutor's input) and
-#: the window's ``camera`` and ``ui`` streams (see :mod:`bonesim.record`).
+#: stepped and what force went back: the recorder's and the tutor's input),
+#: the window's ``camera`` and ``ui`` streams (see :mod:`bonesim.record`), the
+#: trainee servo's replica ``changes`` (:mod:`bonesim.trainee`) and the
+#: ``commands`` into the haptic loop (see :mod:`bonesim.commands`).
 OTHER_RINGS = {
     "samples": (1 << 16, {
         "t_s": (np.float64, ()),            # loop time [s]
@@ -190,6 +196,11 @@ OTHER_RINGS = {
     "camera": (1 << 12, {"t_s": (np.float64, ()), "eye_mm": (np.float64, (3,)),
                          "focal_mm": (np.float64, (3,)), "up": (np.float64, (3,))}),
     "ui": (1 << 10, {"t_s": (np.float64, ()), "name": ("S16", ()), "value": ("S64", ())}),
+    # the trainee's replica changes (bonesim.trainee): emptied voxels, RESET_IJK rows
+    "changes": (1 << 20, {"ijk": (np.int32, (3,))}),
+    # window -> haptic loop (bonesim.commands): kind, producer's sequence number, arguments
+    "commands": (1 << 8, {"kind": (np.uint16, ()), "seq": (np.int64, ()),
+                          "args": (np.float64, (COMMAND_ARGS,))}),
 }
 
 

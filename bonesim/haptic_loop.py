@@ -9,14 +9,19 @@ rings, so the window, sound and recorder read removals without ever making the
 loop wait (the CHAI3D voxel-example pattern: the servo loop publishes, the
 graphics loop consumes).
 
-Two small shared float64 arrays connect the sides:
+:class:`HapticLoop` is a :class:`bonesim.child.ChildProcess` (start-up,
+errors and quit as for every child process). Three things connect the sides:
 
-``io`` (window -> loop)
-    target pose (mouse), drill, speed, direction, burr index, reset and quit
-    requests; see the ``IN_*`` indices.
+``control`` (window -> loop, a stream)
+    named fields (:data:`CONTROL`): the mouse's target pose, drill on/off,
+    speed and direction, read at every step.
+``commands`` ring (window -> loop, discrete)
+    reset, burr change, tool change (:mod:`bonesim.commands`), applied in
+    order between two steps.
 ``status`` (loop -> window)
-    tool pose, force, immersed volume, drill state, steps, epoch, readiness;
-    see the ``ST_*`` indices.
+    named fields (:data:`STATUS`): tool pose, force, immersed volume, drill
+    state, steps, epoch, burr, tool, commands applied;
+    ``loop.status["epoch"]``.
 
 The loop also writes each measured period into the ``periods`` ring, from
 which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99,
@@ -26,7 +31,7 @@ recorder and the tutoring server drain it from their own processes
 (:func:`attach`), so the loop itself never touches a disk or a socket.
 
 The loop process asks for real-time scheduling (``SCHED_FIFO``) and runs with
-Python's garbage collector frozen; ``status[ST_REALTIME]`` says whether the
+Python's garbage collector frozen; ``status["realtime"]`` says whether the
 operating system granted the priority (it needs the right to, e.g. root or
 ``CAP_SYS_NICE``; without it the loop still runs, at normal priority).
 """
@@ -39,29 +44,50 @@ import time
 
 import numpy as np
 
-from . import events
+from . import commands, events
+from .child import ChildProcess
+from .commands import CommandQueue, CommandSender, LoopContext, Reset, SetBurr, SetTool
 from .devices import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevice,
                       VirtualCoupling)
 from .haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
-from .model import Model, Sample, make_state, reset_state, state_arrays_spec, step
-from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
+from .model import Model, Sample, make_state, state_arrays_spec, step
+from .shared import SharedArrays
 
-__all__ = ["IN_POS", "IN_AXIS", "IN_DRILL", "IN_SPEED", "IN_DIR", "IN_BURR", "IN_RESET",
-           "IN_QUIT", "N_IN", "ST_T", "ST_POS", "ST_AXIS", "ST_FORCE", "ST_MAG",
-           "ST_VOLUME", "ST_IMMERSED", "ST_DRILL", "ST_SPEED", "ST_DIR", "ST_BURR",
-           "ST_STEPS", "ST_EPOCH", "ST_READY", "ST_DONE", "ST_OVERRUNS",
-           "ST_HAND_FORCE", "ST_REALTIME", "N_ST", "PERIOD_RING", "SPIN_S",
-           "START_TIMEOUT_S", "RT_PRIORITY", "attach", "push_sample", "HapticLoop"]
+__all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",
+           "attach", "push_sample", "HapticLoop"]
 
-# io: window -> loop
-IN_POS, IN_AXIS = 0, 3
-(IN_DRILL, IN_SPEED, IN_DIR, IN_BURR, IN_RESET, IN_QUIT) = range(6, 12)
-N_IN = 16
-# status: loop -> window
-ST_T, ST_POS, ST_AXIS, ST_FORCE = 0, 1, 4, 7
-(ST_MAG, ST_VOLUME, ST_IMMERSED, ST_DRILL, ST_SPEED, ST_DIR, ST_BURR, ST_STEPS,
- ST_EPOCH, ST_READY, ST_DONE, ST_OVERRUNS, ST_HAND_FORCE, ST_REALTIME) = range(10, 24)
-N_ST = 32
+#: The loop's status fields (loop -> window), after the process base's.
+STATUS = (
+    ("t_s", np.float64),                    # loop time of the last step [s]
+    ("pos_mm", np.float64, (3,)),           # tool centre [mm]
+    ("axis", np.float64, (3,)),             # unit drill axis
+    ("force_n", np.float64, (3,)),          # sent to the device [N]
+    ("mag_n", np.float64),                  # normal force magnitude [N]
+    ("volume_mm3", np.float64),             # immersed volume [mm^3]
+    ("immersed", np.float64),               # immersed samples
+    ("drill", np.uint8),
+    ("speed_rpm", np.float64),
+    ("direction", np.int8),
+    ("burr", np.int32),                     # burr index
+    ("tool", np.int32),                     # tool index (bonesim.commands.TOOLS)
+    ("steps", np.int64),                    # steps since the last reset
+    ("epoch", np.int64),                    # case resets so far
+    ("overruns", np.int64),                 # periods that fell a whole period behind
+    ("hand_force_n", np.float64),           # virtual coupling's pull on the hand [N]
+    ("realtime", np.uint8),                 # real-time priority granted
+    ("commands_read", np.int64),            # command records taken
+    ("commands_applied", np.int64),
+    ("commands_rejected", np.int64),
+    ("command_error", f"S{commands.ERROR_TEXT_BYTES}"),   # the last rejection
+)
+#: The window's continuous inputs (window -> loop), after the process base's.
+CONTROL = (
+    ("target_mm", np.float64, (3,)),        # where the hand (mouse) wants the tool [mm]
+    ("axis", np.float64, (3,)),             # the drill axis it wants
+    ("drill", np.uint8),
+    ("speed_rpm", np.float64),
+    ("direction", np.int8),                 # +1 forward, -1 reverse
+)
 #: Periods kept for rate statistics.
 PERIOD_RING = 1 << 16
 #: The loop sleeps until this long before its deadline, then spins [s].
@@ -83,12 +109,6 @@ def _ask_realtime() -> bool:
         except (AttributeError, OSError, PermissionError):
             pass
         return False
-
-
-def _loop_spec(model: Model) -> list:
-    return state_arrays_spec(model) + events.ring_arrays_spec("samples") + [
-        ("io", (N_IN,), np.float64), ("status", (N_ST,), np.float64),
-        ("periods", (PERIOD_RING,), np.float64), ("periods.head", (1,), np.int64)]
 
 
 def attach(handle) -> tuple:
@@ -137,10 +157,10 @@ def push_sample(ring: events.Ring, t: float, state, hand_mm, axis, drill: bool,
     ring.head[0] += 1               # publish after the record is complete
 
 
-def _make_device(spec, io):
+def _make_device(spec, control):
     kind = spec[0]
     if kind == "mouse":
-        return SharedInputDevice(io, slice(IN_POS, IN_POS + 3), slice(IN_AXIS, IN_AXIS + 3))
+        return SharedInputDevice(control["target_mm"], control["axis"])
     if kind == "scripted":
         return ScriptedDevice(spec[1], loop=bool(spec[2]) if len(spec) > 2 else False)
     if kind == "null":
@@ -148,28 +168,26 @@ def _make_device(spec, io):
     raise ValueError(f"unknown device backend {kind!r}")
 
 
-def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
-               run_s: float | None, vibration: bool) -> None:
-    """Body of the haptic process."""
+def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
+              run_s: float | None, vibration: bool, known: tuple) -> None:
+    """Body of the haptic process (:meth:`HapticLoop.run`)."""
     from .loading import warmup
-
-    die_with_parent()
-    sh = SharedArrays.attach(handle)
-    arr = sh.arrays
-    io, status = arr["io"], arr["status"]
-    periods, p_head = arr["periods"], arr["periods.head"]
     from .vibration import Vibration
 
-    models = [model if b is None else model.with_burr(b) for b in burrs]
-    vibs = [Vibration(m.burr, rate_hz) if vibration else None for m in models]
-    state = make_state(models[0], arr)
-    samples = events.ring_from_arrays("samples", arr)
+    arr = child.arrays
+    status, control = child.status, child.control
+    periods, p_head = arr["periods"], arr["periods.head"]
+    # one model holding the burr table: a sample names its burr
+    m = model.with_burrs([b for b in burrs if b is not None])
+    vibs = [Vibration(b, rate_hz) if vibration else None for b in m.burrs]
+    state = make_state(m, arr)             # scratch for the largest burr, once
+    samples = child.rings["samples"]
     no_vib = np.zeros(3)
-    for m in models:                       # scratch for the largest burr, once
-        state.fit_scratch(m)
-    device = _make_device(device_spec, io)
+    device = _make_device(device_spec, control)
     coupling = VirtualCoupling() if not math.isfinite(device.caps.max_force_n) \
         and isinstance(device, SharedInputDevice) else None
+    ctx = LoopContext(m, state, device, coupling, status)
+    queue = CommandQueue(child.rings["commands"], known)
     warmup()
     if vibration:
         from .vibration import warmup as vibration_warmup
@@ -179,25 +197,31 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
             v.sample(0.0, np.array([0.0, 0.0, -1.0]), False, False, 0.0, 0.0)
             v.reset()
     device.open()
-    device.read(0.0)
-    status[ST_REALTIME] = 1.0 if _ask_realtime() else 0.0
-    # everything the loop needs exists now; no collector pauses from here on
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    out_f = np.zeros(3)
-    period = 1.0 / rate_hz
-    pmask = periods.shape[0] - 1
-    epoch = io[IN_RESET]
-    burr = int(io[IN_BURR])
-    clock = time.perf_counter
-    t0 = clock()
-    last = t0
-    deadline = t0
-    overruns = 0
-    status[ST_READY] = 1.0
     try:
-        while io[IN_QUIT] == 0.0:
+        device.read(0.0)
+        status["realtime"] = 1 if _ask_realtime() else 0
+        # the fields read or written every step, bound once
+        quit_f, drill_in, speed_in, dir_in = (control[k] for k in
+                                              ("quit", "drill", "speed_rpm", "direction"))
+        (st_t, st_pos, st_axis, st_force, st_mag, st_volume, st_immersed, st_drill,
+         st_speed, st_dir, st_burr, st_steps, st_overruns, st_hand) = (
+            status[k] for k in ("t_s", "pos_mm", "axis", "force_n", "mag_n", "volume_mm3",
+                                "immersed", "drill", "speed_rpm", "direction", "burr",
+                                "steps", "overruns", "hand_force_n"))
+        # everything the loop needs exists now; no collector pauses from here on
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        out_f = np.zeros(3)
+        period = 1.0 / rate_hz
+        pmask = periods.shape[0] - 1
+        clock = time.perf_counter
+        t0 = clock()
+        last = t0
+        deadline = t0
+        overruns = 0
+        child.ready()
+        while quit_f == 0:
             now = clock()
             periods[p_head[0] & pmask] = now - last
             p_head[0] += 1
@@ -205,30 +229,18 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
             t = now - t0
             if run_s is not None and t >= run_s:
                 break
-            if io[IN_RESET] != epoch:
-                # keep the event counters running across resets, so that
-                # consumers in other processes (recorder, tutor) lose nothing
-                reset_state(models[burr], state, rings=False)
-                if coupling is not None:
-                    coupling.pos = None
-                epoch = io[IN_RESET]
-                status[ST_EPOCH] = epoch
-                events.push_event(state.tissue, events.RESET, t, n=int(epoch))
-            b = int(io[IN_BURR])
-            if b != burr and 0 <= b < len(models):
-                burr = b
-                events.push_event(state.tissue, events.BURR, t, n=burr)
-            m = models[burr]
+            ctx.t_s = t
+            queue.poll(ctx)                    # reset, burr, tool, bodies: between steps
+            burr = ctx.burr
             r: DeviceReading = device.read(t)
             pos = r.pos_mm
             if coupling is not None:
                 dt = period if math.isnan(state.t_s) else t - state.t_s
                 pos = coupling.update(pos, state.force_n, dt)
-            drill = bool(io[IN_DRILL]) if r.drill is None else r.drill
-            speed = io[IN_SPEED] if r.speed_rpm is None else r.speed_rpm
-            direction = (1 if io[IN_DIR] >= 0 else -1) if r.direction is None \
-                else r.direction
-            f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction))
+            drill = bool(drill_in) if r.drill is None else r.drill
+            speed = float(speed_in) if r.speed_rpm is None else r.speed_rpm
+            direction = (1 if dir_in >= 0 else -1) if r.direction is None else r.direction
+            f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction, burr))
             fv = no_vib
             if vibs[burr] is not None:
                 # felt, not simulated: added to what the device renders only
@@ -242,21 +254,21 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                 f = out_f
             device.write_force(f)
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
-                        int(epoch), r.buttons, f, fv)
-            status[ST_T] = t
-            status[ST_POS:ST_POS + 3] = state.pos_mm
-            status[ST_AXIS:ST_AXIS + 3] = state.axis
-            status[ST_FORCE:ST_FORCE + 3] = f
-            status[ST_MAG] = state.out[O_MAG]
-            status[ST_VOLUME] = state.out[O_VOLUME]
-            status[ST_IMMERSED] = state.out[O_N_IMMERSED]
-            status[ST_DRILL] = drill
-            status[ST_SPEED] = speed
-            status[ST_DIR] = direction
-            status[ST_BURR] = burr
-            status[ST_STEPS] = state.n_steps
+                        ctx.epoch, r.buttons, f, fv)
+            st_t[...] = t
+            st_pos[...] = state.pos_mm
+            st_axis[...] = state.axis
+            st_force[...] = f
+            st_mag[...] = state.out[O_MAG]
+            st_volume[...] = state.out[O_VOLUME]
+            st_immersed[...] = state.out[O_N_IMMERSED]
+            st_drill[...] = drill
+            st_speed[...] = speed
+            st_dir[...] = direction
+            st_burr[...] = burr
+            st_steps[...] = state.n_steps
             if coupling is not None:
-                status[ST_HAND_FORCE] = coupling.hand_force_n(r.pos_mm)
+                st_hand[...] = coupling.hand_force_n(r.pos_mm)
             deadline += period
             rest = deadline - clock()
             if rest > SPIN_S:
@@ -265,15 +277,13 @@ def _loop_main(handle, model: Model, burrs, device_spec, rate_hz: float,
                 pass
             if clock() - deadline > period:        # fell behind: do not burst
                 overruns += 1
-                status[ST_OVERRUNS] = overruns
+                st_overruns[...] = overruns
                 deadline = clock()
     finally:
         device.close()
-        status[ST_DONE] = 1.0
-        sh.close()
 
 
-class HapticLoop:
+class HapticLoop(ChildProcess):
     """Runs the haptic loop in a child process and exposes its shared state.
 
     Parameters
@@ -300,9 +310,18 @@ class HapticLoop:
         flags, rings) for consumers such as
         :class:`bonesim.replica.TissueReplica`. Only the loop writes it,
         except the touched flags that consumers clear.
-    io, status : ndarray
-        The shared command and status arrays (see the module docstring).
+    status, control : ndarray
+        The shared status and control records (:data:`STATUS`,
+        :data:`CONTROL`; the module docstring).
+    samples : events.Ring
+        One record per haptic step (see :func:`push_sample`).
     """
+
+    NAME = "bonesim-haptic"
+    STATUS = STATUS
+    CONTROL = CONTROL
+    RINGS = ("samples", "commands")
+    START_TIMEOUT_S = START_TIMEOUT_S
 
     def __init__(self, model: Model, burrs=(), device=("mouse",), rate_hz: float = 1000.0,
                  run_s: float | None = None, vibration: bool = True):
@@ -312,92 +331,84 @@ class HapticLoop:
         self.rate_hz = float(rate_hz)
         self.run_s = run_s
         self.vibration = bool(vibration)
-        self._sh = SharedArrays.create(_loop_spec(model))
-        self.state = make_state(model, self._sh.arrays)
-        self.io = self._sh["io"]
-        self.status = self._sh["status"]
-        self._periods = events.Ring({"period": self._sh["periods"]}, self._sh["periods.head"])
-        #: One record per haptic step (see :func:`push_sample`).
-        self.samples = events.ring_from_arrays("samples", self._sh.arrays)
-        self.io[IN_AXIS:IN_AXIS + 3] = (0.0, 0.0, -1.0)
-        self.io[IN_SPEED] = model.burr.default_speed_rpm
-        self.io[IN_DIR] = 1.0
-        self._proc = None
+        super().__init__()
+        self.state = make_state(model, self.arrays)
+        self._periods = events.Ring({"period": self.arrays["periods"]},
+                                    self.arrays["periods.head"])
+        self.samples = self.rings["samples"]
+        self._sender = CommandSender(self.rings["commands"], self.status)
+        self._known = None
+        self._epoch = 0
+        self.control["axis"] = (0.0, 0.0, -1.0)
+        self.control["speed_rpm"] = model.burr.default_speed_rpm
+        self.control["direction"] = 1
 
-    # ----------------------------------------------------------- lifecycle
-    def start(self, timeout_s: float = START_TIMEOUT_S) -> "HapticLoop":
-        """Start the process and wait until it is warm and stepping."""
-        self._proc = start_process(
-            _loop_main, "bonesim-haptic",
-            (self._sh.handle, self.model, [b for b in self.burrs], self.device,
-             self.rate_hz, self.run_s, self.vibration))
-        got = wait_ready(self._proc, lambda: self.status[ST_READY] != 0.0, timeout_s)
-        if got == "exited":
-            raise RuntimeError("the haptic loop process exited during start-up "
-                               f"(exit code {self._proc.exitcode})")
-        if got == "timeout":
-            self.stop()
-            raise RuntimeError("the haptic loop did not start in time")
-        return self
+    # ------------------------------------------------------ process parts
+    def shared_spec(self) -> list:
+        return state_arrays_spec(self.model) + [
+            ("periods", (PERIOD_RING,), np.float64), ("periods.head", (1,), np.int64)]
 
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Ask the loop to quit and wait for it."""
-        self.io[IN_QUIT] = 1.0
-        if self._proc is not None:
-            end_process(self._proc, timeout_s)
-            self._proc = None
+    def child_args(self) -> dict:
+        # every command registered now travels (by reference) to the loop
+        self._known = commands.registered()
+        return {"model": self.model, "burrs": list(self.burrs), "device_spec": self.device,
+                "rate_hz": self.rate_hz, "run_s": self.run_s, "vibration": self.vibration,
+                "known": self._known}
 
-    def wait(self, timeout_s: float | None = None) -> bool:
-        """Wait for a loop started with ``run_s`` to finish; True if it did."""
-        if self._proc is None:
-            return True
-        self._proc.join(timeout_s)
-        return not self._proc.is_alive()
-
-    def close(self) -> None:
-        """Stop the loop and free the shared memory."""
-        self.stop()
-        self._sh.close()
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.close()
-
-    @property
-    def handle(self) -> tuple:
-        """Shared-memory handle for other processes (sound, recorder)."""
-        return self._sh.handle
-
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+    @classmethod
+    def run(cls, child, **kwargs) -> None:
+        _run_loop(child, **kwargs)
 
     # ------------------------------------------------------------ commands
     def set_target(self, pos_mm, axis=None) -> None:
         """Where the hand (mouse) wants the tool [mm], and its axis."""
-        self.io[IN_POS:IN_POS + 3] = pos_mm
+        self.control["target_mm"] = pos_mm
         if axis is not None:
-            self.io[IN_AXIS:IN_AXIS + 3] = axis
+            self.control["axis"] = axis
 
     def set_drill(self, on: bool, speed_rpm: float | None = None,
                   direction: int | None = None) -> None:
-        self.io[IN_DRILL] = 1.0 if on else 0.0
+        """Drill on/off, and optionally its speed [rpm] and direction (sign)."""
+        self.control["drill"] = 1 if on else 0
         if speed_rpm is not None:
-            self.io[IN_SPEED] = speed_rpm
+            self.control["speed_rpm"] = speed_rpm
         if direction is not None:
-            self.io[IN_DIR] = 1.0 if direction >= 0 else -1.0
+            self.control["direction"] = 1 if direction >= 0 else -1
+
+    def send(self, command, **params) -> int:
+        """Send a command (:mod:`bonesim.commands`: a class or its name) to
+        the loop; returns its sequence number.
+
+        Raises
+        ------
+        UnknownCommand
+            No such command, or one registered after the loop started.
+        CommandOverflow
+            The loop has not taken the commands already sent.
+        """
+        cls = commands.command_class(command)
+        if self._known is not None and cls not in self._known:
+            raise commands.UnknownCommand(
+                f"command {cls.name!r} (kind {cls.kind}) was registered after the haptic "
+                "loop started; it does not know it", field="kind")
+        return self._sender.send(cls, **params)
 
     def set_burr(self, index: int) -> None:
+        """Switch to burr ``index`` (0: the model's)."""
         if not 0 <= index < len(self.burrs):
             raise IndexError(f"burr index {index} out of range 0..{len(self.burrs) - 1}")
-        self.io[IN_BURR] = index
+        self.send(SetBurr, index=index)
 
-    def reset(self) -> float:
-        """Ask the loop to restore the case; returns the new epoch."""
-        self.io[IN_RESET] += 1.0
-        return float(self.io[IN_RESET])
+    def set_tool(self, tool) -> None:
+        """Switch the tool (:data:`bonesim.commands.TOOLS`: index or name)."""
+        self.send(SetTool, tool=tool)
+
+    def reset(self) -> int:
+        """Ask the loop to restore the case; returns the epoch it will announce
+        in ``status["epoch"]``."""
+        self.send(Reset)
+        self._epoch += 1
+        return self._epoch
 
     # --------------------------------------------------------------- stats
     @property

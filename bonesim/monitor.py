@@ -56,7 +56,8 @@ from . import events
 from .clearance import Clearance
 from .errors import BonesimError
 from .monitor_rings import HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history, shared_rings
-from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
+from .child import ChildProcess
+from .shared import SharedArrays
 from .tomlfile import check_keys, get_number, read_toml
 
 __all__ = ["ActivityParams", "load_activity_params", "default_params_path", "activity",
@@ -478,17 +479,27 @@ class NerveMonitor:
 
 
 # ------------------------------------------------------- shared monitor state
-# monitor status slots
-(M_READY, M_DONE, M_QUIT, M_UPDATES, M_RATE_HZ, M_COST_P50_US, M_COST_P99_US, M_T,
- M_T0, M_SOURCE, M_CLIENTS, M_PACKETS, M_PORT, M_STREAM_HZ) = range(14)
-N_MS = 16
-#: Where the monitor read the loop: its status array, or its samples ring.
-SOURCE_STATUS, SOURCE_SAMPLES = 1.0, 2.0
+#: The monitor's status fields (after the process base's).
+STATUS = (
+    ("updates", np.int64),
+    ("rate_hz", np.float64),                # measured update rate [Hz]
+    ("cost_p50_us", np.float64),            # per-update cost [us]
+    ("cost_p99_us", np.float64),
+    ("t_s", np.float64),                    # loop time of the last update [s]
+    ("t0", np.float64),                     # monotonic clock at loop time 0 [s]
+    ("source", np.uint8),                   # SOURCE_STATUS or SOURCE_SAMPLES
+    ("clients", np.int64),                  # remote consoles
+    ("packets", np.int64),                  # packets sent to them
+    ("port", np.int64),                     # console server's UDP port
+    ("stream_hz", np.float64),              # its stream rate [Hz]
+)
+#: Where the monitor read the loop: its status record, or its samples ring.
+SOURCE_STATUS, SOURCE_SAMPLES = 1, 2
 
 
 def _monitor_spec(k: int) -> list:
     k = max(k, 1)
-    return [("mon.status", (N_MS,), np.float64), ("mon.rates", (k,), np.float64),
+    return [("mon.rates", (k,), np.float64),
             ("mon.dist", (k,), np.float64),
             ("hist.t_s", (HISTORY_CAP,), np.float64),
             ("hist.rate", (HISTORY_CAP, k), np.float32),
@@ -514,7 +525,7 @@ class MonitorView:
         self.names = list(names)
         self.colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
         self.params = params
-        self.status = arrays["mon.status"]
+        self.status = arrays["status"]
         self.hist, self.spike_ring = shared_rings(arrays)
 
     @property
@@ -532,24 +543,24 @@ class MonitorView:
     @property
     def t_s(self) -> float:
         """Loop time of the last update [s]."""
-        return float(self.status[M_T])
+        return float(self.status["t_s"])
 
     @property
     def update_hz(self) -> float:
         """Measured update rate [Hz] (0 until measured)."""
-        return float(self.status[M_RATE_HZ])
+        return float(self.status["rate_hz"])
 
     def stats(self) -> dict:
         """Measured figures: update rate [Hz], per-update cost p50/p99 [us],
         updates, source, remote consoles and packets sent."""
         s = self.status
-        return {"update_hz": round(float(s[M_RATE_HZ]), 1),
-                "cost_p50_us": round(float(s[M_COST_P50_US]), 1),
-                "cost_p99_us": round(float(s[M_COST_P99_US]), 1),
-                "updates": int(s[M_UPDATES]),
+        return {"update_hz": round(float(s["rate_hz"]), 1),
+                "cost_p50_us": round(float(s["cost_p50_us"]), 1),
+                "cost_p99_us": round(float(s["cost_p99_us"]), 1),
+                "updates": int(s["updates"]),
                 "source": {SOURCE_STATUS: "status", SOURCE_SAMPLES: "samples"}.get(
-                    float(s[M_SOURCE]), "none"),
-                "consoles": int(s[M_CLIENTS]), "packets_sent": int(s[M_PACKETS])}
+                    int(s["source"]), "none"),
+                "consoles": int(s["clients"]), "packets_sent": int(s["packets"])}
 
     def history(self, window_s: float = HISTORY_S) -> dict:
         """The last ``window_s`` seconds (:func:`read_history`)."""
@@ -561,17 +572,13 @@ def _percentile_us(costs) -> tuple[float, float]:
     return float(np.percentile(a, 50)), float(np.percentile(a, 99))
 
 
-def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz,
-                  server, source) -> None:
-    """Body of the monitor process."""
-    from .haptic_loop import ST_BURR, ST_DRILL, ST_MAG, ST_POS, ST_STEPS, ST_T
-
-    die_with_parent()
+def _run_monitor(child, loop_handle, model, radii, params, seed, update_hz,
+                 server, source) -> None:
+    """Body of the monitor process (:meth:`MonitorProcess.run`)."""
     parent = os.getppid()
     sh = SharedArrays.attach(loop_handle)
-    msh = SharedArrays.attach(mon_handle)
-    arr = msh.arrays
-    mstat = arr["mon.status"]
+    arr = child.arrays
+    mstat = child.status
     nm = NerveMonitor(model, params, seed)
     nm.distances(np.zeros((1, 3)))                    # compile (or load) the kernel
     k = nm.n
@@ -582,26 +589,26 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     if "samples.head" in sh.arrays and source != "status":
         samples = events.ring_from_arrays("samples", sh.arrays)
         cursor = max(0, samples.count - samples.capacity // 2)   # steps taken so far
-        mstat[M_SOURCE] = SOURCE_SAMPLES
+        mstat["source"] = SOURCE_SAMPLES
     else:
-        mstat[M_SOURCE] = SOURCE_STATUS
+        mstat["source"] = SOURCE_STATUS
     srv = None
     if server is not None:
         from .monitor_net import MonitorServer
 
         srv = MonitorServer(nm.names, nm.colors, params, update_hz=update_hz, **server)
-        mstat[M_PORT] = srv.port
-        mstat[M_STREAM_HZ] = srv.stream_hz
+        mstat["port"] = srv.port
+        mstat["stream_hz"] = srv.stream_hz
     period = 1.0 / update_hz
     clock = time.perf_counter
     t_last = -math.inf
     t0 = math.inf
     costs: list = []
     stamps: list = []
-    mstat[M_READY] = 1.0
+    child.ready()
     deadline = clock()
     try:
-        while mstat[M_QUIT] == 0.0 and os.getppid() == parent:
+        while not child.quit and os.getppid() == parent:
             begin = clock()
             if samples is not None:
                 head = samples.count
@@ -617,42 +624,42 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
                 cursor = head
             else:
                 rec = None
-                tl = float(status[ST_T])
-                if tl != t_last and status[ST_STEPS] > 0:
+                tl = float(status["t_s"])
+                if tl != t_last and status["steps"] > 0:
                     rec = True
                     t = np.array([tl])
-                    pos = status[ST_POS:ST_POS + 3].reshape(1, 3).copy()
-                    force = np.array([status[ST_MAG]])
-                    drill = np.array([status[ST_DRILL] != 0.0])
-                    b = int(status[ST_BURR])
+                    pos = status["pos_mm"].reshape(1, 3).copy()
+                    force = np.array([float(status["mag_n"])])
+                    drill = np.array([status["drill"] != 0])
+                    b = int(status["burr"])
                     r = radii[min(max(b, 0), len(radii) - 1)]
             if rec is not None and len(t):
                 if t[-1] < t_last:                          # a new loop clock
                     nm.reset()
                 rates, dist = nm.update_many(t, pos, force, drill, r)
                 t_last = float(t[-1])
-                t0 = min(t0, clock() - float(status[ST_T]))
+                t0 = min(t0, clock() - float(status["t_s"]))
                 st_t, st_n = nm.spikes
                 spikes.append(t_s=st_t, nerve=st_n)
                 hist.append(t_s=np.array([t_last]), rate=nm.rates_hz.reshape(1, k).astype(
                     np.float32), dist=nm.distance_mm.reshape(1, k).astype(np.float32))
                 arr["mon.rates"][:k] = nm.rates_hz
                 arr["mon.dist"][:k] = nm.distance_mm
-                mstat[M_T] = t_last
-                mstat[M_T0] = t0
-                mstat[M_UPDATES] += 1
+                mstat["t_s"] = t_last
+                mstat["t0"] = t0
+                mstat["updates"] += 1
                 if srv is not None:
                     srv.add(t_last, nm.rates_hz, nm.distance_mm, st_t, st_n)
             if srv is not None:
                 srv.poll(time.monotonic())         # the clock packets are stamped with
-                mstat[M_CLIENTS] = srv.n_clients
-                mstat[M_PACKETS] = srv.packets_sent
+                mstat["clients"] = srv.n_clients
+                mstat["packets"] = srv.packets_sent
             end = clock()
             costs.append(end - begin)
             stamps.append(begin)
             if len(stamps) >= STATS_EVERY:
-                mstat[M_RATE_HZ] = (len(stamps) - 1) / (stamps[-1] - stamps[0])
-                mstat[M_COST_P50_US], mstat[M_COST_P99_US] = _percentile_us(costs)
+                mstat["rate_hz"] = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+                mstat["cost_p50_us"], mstat["cost_p99_us"] = _percentile_us(costs)
                 costs.clear()
                 stamps.clear()
             deadline += period
@@ -664,12 +671,10 @@ def _monitor_main(loop_handle, mon_handle, model, radii, params, seed, update_hz
     finally:
         if srv is not None:
             srv.close()
-        mstat[M_DONE] = 1.0
-        msh.close()
         sh.close()
 
 
-class MonitorProcess:
+class MonitorProcess(ChildProcess):
     """Runs a :class:`NerveMonitor` beside a running haptic loop.
 
     Parameters
@@ -695,7 +700,12 @@ class MonitorProcess:
     view : MonitorView
         The shared block, readable in this process.
     names : list of str
+    status : ndarray
+        The shared status record (:data:`STATUS`).
     """
+
+    NAME = "bonesim-monitor"
+    STATUS = STATUS
 
     def __init__(self, loop, params: ActivityParams | None = None, seed: int = 0,
                  update_hz: float = UPDATE_HZ, serve: dict | None = None,
@@ -716,19 +726,24 @@ class MonitorProcess:
         if not self.names:
             raise ValueError(f"case {loop.model.name!r} monitors no structure "
                              "(set monitor = true on a nerve in its case.toml)")
-        self._sh = SharedArrays.create(_monitor_spec(len(self.names)))
-        self.view = MonitorView(self._sh.arrays, self.names, colors, self.params)
-        self.status = self._sh["mon.status"]
         burrs = [loop.model.burr] + [b for b in loop.burrs[1:]]
         self._radii = [float(b.radius_mm) for b in burrs]
-        self._proc = None
+        super().__init__()                  # (its handle: the audio attaches for clicks)
+        self.view = MonitorView(self.arrays, self.names, colors, self.params)
 
-    @property
-    def handle(self) -> tuple:
-        """Shared-memory handle (the audio process attaches for the clicks)."""
-        return self._sh.handle
+    def shared_spec(self) -> list:
+        return _monitor_spec(len(self.names))
 
-    def start(self, timeout_s: float = 60.0, wait: bool = True) -> "MonitorProcess":
+    def child_args(self) -> dict:
+        return {"loop_handle": self.loop.handle, "model": self.loop.model,
+                "radii": self._radii, "params": self.params, "seed": self.seed,
+                "update_hz": self.update_hz, "server": self.serve, "source": self.source}
+
+    @classmethod
+    def run(cls, child, **kwargs) -> None:
+        _run_monitor(child, **kwargs)
+
+    def start(self, timeout_s: float | None = None, wait: bool = True) -> "MonitorProcess":
         """Start the process; wait until it is ready (or raise).
 
         With ``wait`` False it returns at once (the caller starts the haptic
@@ -741,6 +756,8 @@ class MonitorProcess:
         BonesimError
             If the console server's address cannot be bound (checked here,
             so the message names it rather than a dead child process).
+        ProcessFailed
+            The process failed to start (:meth:`wait_ready`).
         """
         if self.serve is not None:
             from .monitor_net import DEFAULT_PORT
@@ -749,50 +766,18 @@ class MonitorProcess:
             port = int(self.serve.get("port", DEFAULT_PORT))
             if port != 0:
                 udp_socket(self.serve.get("host", "0.0.0.0"), port).close()
-        self._proc = start_process(
-            _monitor_main, "bonesim-monitor",
-            (self.loop.handle, self._sh.handle, self.loop.model, self._radii,
-             self.params, self.seed, self.update_hz, self.serve, self.source))
+        self.launch()
         return self.wait_ready(timeout_s) if wait else self
-
-    def wait_ready(self, timeout_s: float = 60.0) -> "MonitorProcess":
-        """Wait until the started process runs (or raise RuntimeError)."""
-        got = wait_ready(self._proc, lambda: self.status[M_READY] != 0.0, timeout_s)
-        if got == "exited":
-            raise RuntimeError("the monitor process exited during start-up "
-                               f"(exit code {self._proc.exitcode})")
-        if got == "timeout":
-            self.close()
-            raise RuntimeError("the monitor process did not start in time")
-        return self
 
     @property
     def port(self) -> int | None:
         """UDP port the console server listens on (None without one)."""
-        return int(self.status[M_PORT]) if self.serve is not None else None
-
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+        return int(self.status["port"]) if self.serve is not None else None
 
     def stats(self) -> dict:
         return self.view.stats()
 
-    def close(self, timeout_s: float = 5.0) -> None:
+    def close(self) -> None:
         """Stop the process and free the shared block; idempotent."""
-        if self._sh is None:
-            return
-        self.status[M_QUIT] = 1.0
-        if self._proc is not None:
-            end_process(self._proc, timeout_s)
-            self._proc = None
+        super().close()
         self.view = None
-        self.status = None
-        self._sh.close()
-        self._sh = None
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.close()

@@ -33,14 +33,13 @@ import numpy as np
 
 from . import events
 from .errors import BonesimError
-from .shared import SharedArrays, die_with_parent, end_process, start_process, wait_ready
+from .child import ChildProcess
 
 __all__ = ["SCHEMA_VERSION", "FORMAT", "FLUSH_S", "WRITER_NICE", "CHUNK_ROWS",
            "COMPACT_GZIP_LEVEL", "COMPACT_CHUNK_ROWS", "GROUPS", "HEADER_KEYS",
            "case_sha256", "burr_sha256", "model_sha256", "make_header",
            "sessions_folder", "default_session_path", "SessionWriter",
-           "compact_session", "Drainer", "C_STOP", "C_ROWS", "C_FLUSHES", "C_READY",
-           "C_ERROR", "C_OVERFLOWS", "C_LAST_FLUSH", "Recorder"]
+           "compact_session", "Drainer", "Recorder"]
 
 #: Version of the file layout written here (``docs/session_schema.md``).
 SCHEMA_VERSION = 2
@@ -457,68 +456,60 @@ class Drainer:
         return n
 
 
-# control array of a Recorder's writer process
-(C_STOP, C_ROWS, C_FLUSHES, C_READY, C_ERROR, C_OVERFLOWS, C_LAST_FLUSH) = range(7)
-
-
-def _writer_main(loop_handle, own_handle, path, header, flush_s, overwrite, models,
-                 eye_mm) -> None:
+def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
+                eye_mm) -> None:
+    """Body of the recorder's writer process (:meth:`Recorder.run`)."""
     from .haptic_loop import attach
 
-    die_with_parent()
     lsh, rings = attach(loop_handle)
-    own = SharedArrays.attach(own_handle)
-    ctl = own.arrays["ctl"]
-    # SIGTERM (the parent died, or terminate()): stop as when asked, file complete
-    die_with_parent(lambda: ctl.__setitem__(C_STOP, 1.0))
+    status = child.status
     try:
         os.nice(-WRITER_NICE)    # ahead of the window and the tests' load; best effort
     except (OSError, AttributeError):
         pass
     rings = {"samples": rings["samples"], "tissue": rings["tissue"],
-             "camera": events.ring_from_arrays("camera", own.arrays),
-             "ui": events.ring_from_arrays("ui", own.arrays)}
+             "camera": child.rings["camera"], "ui": child.rings["ui"]}
     vis = None
     if models is not None:
         from .visibility import VisibilityTracker
 
         model, burrs = models
         vis = VisibilityTracker([model] + [model.with_burr(b) for b in burrs], eye_mm)
-        vis.warm()                     # before READY, not at the first removal
+        vis.warm()                     # before ready, not at the first removal
     try:
         writer = SessionWriter(path, header, overwrite=overwrite)
-    except Exception as exc:
-        ctl[C_ERROR] = 1.0
-        own.arrays["error"][:] = np.frombuffer(str(exc).encode()[:255].ljust(256), np.uint8)
+    except BaseException:
+        rings.clear()
+        lsh.close()
         raise
     drainer = Drainer(writer, rings, vis)
-    ctl[C_READY] = 1.0
+    child.ready()
     try:
-        while ctl[C_STOP] == 0.0:
+        # quit (or SIGTERM: the parent died, or terminate()) ends as asked, file complete
+        while not child.quit:
             t0 = time.monotonic()
             drainer.drain()
             writer.flush()
-            ctl[C_ROWS] = drainer.rows
-            ctl[C_FLUSHES] = writer.flushes
-            ctl[C_OVERFLOWS] = drainer.overflows
-            ctl[C_LAST_FLUSH] = time.time()
+            status["rows"] = drainer.rows
+            status["flushes"] = writer.flushes
+            status["overflows"] = drainer.overflows
+            status["last_flush"] = time.time()
             time.sleep(max(0.0, flush_s - (time.monotonic() - t0)))
         drainer.drain()
-        ctl[C_ROWS] = drainer.rows
+        status["rows"] = drainer.rows
     finally:
         writer.close()
-        ctl[C_FLUSHES] = writer.flushes
-        ctl[C_STOP] = 2.0                      # done
-        own.close()
+        status["flushes"] = writer.flushes
+        rings.clear()
         lsh.close()
 
 
-class Recorder:
+class Recorder(ChildProcess):
     """Records a running :class:`~bonesim.haptic_loop.HapticLoop` to a file.
 
-    The writer runs in its own process. The window side may add the camera
-    pose (:meth:`camera`) and UI events (:meth:`event`); both are stamped with
-    the loop's clock.
+    The writer runs in its own process (:mod:`bonesim.child`). The window
+    side may add the camera pose (:meth:`camera`) and UI events
+    (:meth:`event`); both are stamped with the loop's clock.
 
     Parameters
     ----------
@@ -535,45 +526,44 @@ class Recorder:
         Judge each removal's visibility from the eye
         (:mod:`bonesim.visibility`) in the writer: from the camera poses
         logged with :meth:`camera`, else from the case camera.
+
+    Attributes
+    ----------
+    status : ndarray
+        ``rows`` written, ``flushes``, ring ``overflows``, ``last_flush``
+        (wall clock [s]).
     """
+
+    NAME = "bonesim-recorder"
+    STATUS = (("rows", np.int64), ("flushes", np.int64), ("overflows", np.int64),
+              ("last_flush", np.float64))
+    RINGS = ("camera", "ui")
+    TERM_QUITS = True               # SIGTERM: drain the rings and close the file
 
     def __init__(self, loop, path, header: dict, flush_s: float = FLUSH_S,
                  overwrite: bool = False, visibility: bool = True):
         self.loop = loop
         self.path = Path(path)
-        spec = (events.ring_arrays_spec("camera") + events.ring_arrays_spec("ui")
-                + [("ctl", (8,), np.float64), ("error", (256,), np.uint8)])
-        self._sh = SharedArrays.create(spec)
-        self._camera = events.ring_from_arrays("camera", self._sh.arrays)
-        self._ui = events.ring_from_arrays("ui", self._sh.arrays)
-        self.ctl = self._sh["ctl"]
+        super().__init__()
+        self._camera = self.rings["camera"]
+        self._ui = self.rings["ui"]
         cam = getattr(getattr(loop.model, "case", None), "camera", None)
         judge = visibility and cam is not None
-        self._args = (loop.handle, self._sh.handle, str(self.path), header, flush_s,
-                      overwrite, (loop.model, [b for b in loop.burrs[1:]]) if judge else None,
-                      np.asarray(cam.eye_mm, float) if judge else None)
-        self._proc = None
+        self._args = {"loop_handle": loop.handle, "path": str(self.path), "header": header,
+                      "flush_s": flush_s, "overwrite": overwrite,
+                      "models": ((loop.model, [b for b in loop.burrs[1:]]) if judge
+                                 else None),
+                      "eye_mm": np.asarray(cam.eye_mm, float) if judge else None}
 
-    def start(self, timeout_s: float = 60.0) -> "Recorder":
-        self._proc = start_process(_writer_main, "bonesim-recorder", self._args)
-        got = wait_ready(self._proc, lambda: self.ctl[C_READY] != 0.0, timeout_s,
-                         failed=lambda: self.ctl[C_ERROR] != 0.0)
-        if got == "exited":
-            msg = bytes(self._sh["error"]).rstrip(b"\0 ").decode(errors="replace")
-            self._proc.join(1.0)
-            raise BonesimError(msg or f"{self.path}: the recorder failed to start")
-        if got == "timeout":
-            raise BonesimError(f"{self.path}: the recorder did not start in time")
-        return self
+    def child_args(self) -> dict:
+        return self._args
 
-    @property
-    def pid(self) -> int | None:
-        return None if self._proc is None else self._proc.pid
+    @classmethod
+    def run(cls, child, **kwargs) -> None:
+        _run_writer(child, **kwargs)
 
     def _now(self) -> float:
-        from .haptic_loop import ST_T
-
-        return float(self.loop.status[ST_T])
+        return float(self.loop.status["t_s"])
 
     def camera(self, eye_mm, focal_mm, up) -> None:
         """Log the camera pose (call once per frame)."""
@@ -596,21 +586,16 @@ class Recorder:
 
     def stats(self) -> dict:
         """Rows written, flushes and overflows so far."""
-        return {"rows": int(self.ctl[C_ROWS]), "flushes": int(self.ctl[C_FLUSHES]),
-                "overflows": int(self.ctl[C_OVERFLOWS]), "path": str(self.path)}
+        s = self.status
+        return {"rows": int(s["rows"]), "flushes": int(s["flushes"]),
+                "overflows": int(s["overflows"]), "path": str(self.path)}
 
     def close(self, timeout_s: float = 30.0) -> dict:
-        """Drain what is left, close the file cleanly and stop the writer."""
-        if self._proc is not None:
-            self.ctl[C_STOP] = 1.0
-            end_process(self._proc, timeout_s)
-            self._proc = None
-        out = self.stats()
-        self._sh.close()
-        return out
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.close()
+        """Drain what is left, close the file cleanly and stop the writer;
+        returns :meth:`stats` (idempotent)."""
+        if self._sh is None:
+            return self._final
+        self.stop(timeout_s)
+        self._final = self.stats()
+        super().close()
+        return self._final

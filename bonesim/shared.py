@@ -11,14 +11,11 @@ the records they publish (see :mod:`bonesim.events`).
 """
 from __future__ import annotations
 
-import multiprocessing as mp
-import time
 from multiprocessing import shared_memory
 
 import numpy as np
 
-__all__ = ["SharedArrays", "start_process", "wait_ready", "end_process",
-           "die_with_parent"]
+__all__ = ["SharedArrays", "end_process", "die_with_parent"]
 
 _ALIGN = 64
 
@@ -29,7 +26,7 @@ def _layout(spec):
         dt = np.dtype(dtype)
         shape = tuple(int(s) for s in shape)
         n = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
-        out.append((name, shape, dt.str, off))
+        out.append((name, shape, dt, off))       # the dtype itself: structured ones too
         off += (n + _ALIGN - 1) // _ALIGN * _ALIGN
     return out, max(off, _ALIGN)
 
@@ -40,14 +37,16 @@ class SharedArrays:
     Parameters
     ----------
     spec : list of (name, shape, dtype)
-        The arrays, created zero-filled.
+        The arrays, created zero-filled. ``dtype`` may be structured (a
+        process's named status fields, :mod:`bonesim.child`); shape ``()``
+        is one record.
     """
 
     def __init__(self, shm, layout, owner: bool):
         self._shm = shm
         self._layout = layout
         self.owner = owner
-        self.arrays = {name: np.ndarray(shape, dtype=np.dtype(dt), buffer=shm.buf, offset=off)
+        self.arrays = {name: np.ndarray(shape, dtype=dt, buffer=shm.buf, offset=off)
                        for name, shape, dt, off in layout}
 
     @classmethod
@@ -56,7 +55,7 @@ class SharedArrays:
         shm = shared_memory.SharedMemory(create=True, size=size)
         arr = cls(shm, layout, owner=True)
         for a in arr.arrays.values():
-            a.fill(0)
+            a.reshape(-1).view(np.uint8).fill(0)     # bytes: structured fields too
         return arr
 
     @property
@@ -85,53 +84,12 @@ class SharedArrays:
         try:
             self._shm.close()
         except BufferError:
-            return                     # views still alive; the OS frees at exit
+            pass                       # views still alive: the mapping goes at exit
         if self.owner:
             try:
                 self._shm.unlink()
             except FileNotFoundError:
                 pass
-
-
-def start_process(target, name: str, args: tuple):
-    """Run ``target(*args)`` in a new spawned daemon process (started).
-
-    Spawned, not forked: the child starts with no copy of the parent's
-    threads, VTK or sound objects, and its arguments travel pickled.
-    """
-    proc = mp.get_context("spawn").Process(target=target, name=name, daemon=True,
-                                           args=args)
-    proc.start()
-    return proc
-
-
-def wait_ready(proc, ready, timeout_s: float, failed=None) -> str:
-    """Poll until a started child process says it is ready.
-
-    Parameters
-    ----------
-    proc : multiprocessing.Process
-    ready : callable
-        True once the child is ready (it reads a flag the child sets).
-    timeout_s : float
-        How long to wait [s].
-    failed : callable, optional
-        True when the child reported an error of its own.
-
-    Returns
-    -------
-    str
-        ``"ready"``, ``"exited"`` (the child died or reported an error) or
-        ``"timeout"``. The caller decides what each means for it.
-    """
-    end = time.monotonic() + timeout_s
-    while not ready():
-        if (failed is not None and failed()) or not proc.is_alive():
-            return "exited"
-        if time.monotonic() > end:
-            return "timeout"
-        time.sleep(0.01)
-    return "ready"
 
 
 def end_process(proc, timeout_s: float = 5.0) -> None:

@@ -45,7 +45,7 @@ from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK,
                              STATE, InstructorState, RemovalLog, pack_state,
                              removed_voxels, session_info, unpack_state)
 from .tutor_law import link_gain, tutor_force
-from .tutor_server import N_SV, Streamer, TutorServer
+from .tutor_server import Streamer, TutorServer
 from .tutor_sources import NetworkSource, RecordingSource, Source
 from .tutor_trainee import Trainee, warmup
 
@@ -54,5 +54,5 @@ __all__ = ["ACK", "CLIENT_TIMEOUT_S", "DEFAULT_PORT", "FLAG_NACK", "JOIN_RETRY_S
            "NACK_HOLD_S", "RAMP_S", "RECOVER_S", "REJOIN_S", "REMOVAL_BYTES",
            "RESET_IJK", "SERVO_HZ", "STALE_S", "STATE", "InstructorState", "RemovalLog",
            "pack_state", "removed_voxels", "session_info", "unpack_state", "link_gain",
-           "tutor_force", "N_SV", "Streamer", "TutorServer", "NetworkSource",
+           "tutor_force", "Streamer", "TutorServer", "NetworkSource",
            "RecordingSource", "Source", "Trainee", "warmup"]

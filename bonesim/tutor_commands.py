@@ -76,7 +76,7 @@ def cmd_serve(args) -> int:
             frames = None if args.duration is None else max(1, int(args.duration * 60))
             summary = app.run(frames=frames)
         finally:
-            final = server.stop()
+            final = server.close()
     finally:
         app.close()
     out = {"case": summary["case"], "port": server.port, "server": final,
@@ -109,7 +109,7 @@ def _serve_headless(args, key: bytes, traj) -> int:
         try:
             loop.wait(duration + 30.0)
         finally:
-            final = server.stop()
+            final = server.close()
         rates = loop.rate_stats(5000)
         removed = int(loop.state.removed_by_label.sum())
     finally:

@@ -4,22 +4,18 @@ the haptic loop's samples and removals into STATE packets, and the
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 import time
 
 import numpy as np
 
 from . import events, net
-from .errors import BonesimError
+from .child import ChildProcess
 from .net import udp_socket
-from .shared import die_with_parent, end_process, start_process, wait_ready
 from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK, KIND_STATE,
                              MAX_REMOVALS, SERVO_HZ, STALE_S, RemovalLog, pack_state,
                              removed_voxels, session_info)
 
-__all__ = ["Streamer", "SV_READY", "SV_PORT", "SV_QUIT", "SV_DONE", "SV_CLIENTS",
-           "SV_SENT", "SV_REMOVALS", "SV_NACKS", "SV_GO_BACKS", "SV_LOG", "SV_TICKS",
-           "SV_ERROR", "N_SV", "TutorServer"]
+__all__ = ["Streamer", "STATUS_EVERY_TICKS", "TutorServer"]
 
 
 # -------------------------------------------------------------------- server
@@ -189,48 +185,42 @@ class Streamer:
 
 
 # server process ------------------------------------------------------------
-(SV_READY, SV_PORT, SV_QUIT, SV_DONE, SV_CLIENTS, SV_SENT, SV_REMOVALS, SV_NACKS,
- SV_GO_BACKS, SV_LOG, SV_TICKS, SV_ERROR) = range(12)
-N_SV = 16
+#: The server refreshes its shared status every this many ticks.
+STATUS_EVERY_TICKS = 64
 
 
-def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks, status,
-                conn) -> None:
+def _run_server(child, loop_handle, host, port, key, rate_hz, info, initial_density,
+                bricks) -> None:
     """Body of the server process: attach to the loop, stream until told to quit."""
     from .haptic_loop import attach
 
-    die_with_parent()
-    sh, rings = attach(handle)
+    sh, rings = attach(loop_handle)
+    status = child.status
     sock = None
     stats = {}
     try:
-        try:
-            sock = udp_socket(host, port)
-        except BonesimError as exc:
-            conn.send({"error": str(exc)})
-            status[SV_ERROR] = 1.0
-            return
+        sock = udp_socket(host, port)          # a BonesimError here reaches start()
         streamer = Streamer(sock, key, rings["samples"], rings["tissue"], info,
                             density=sh.arrays["density"], initial_density=initial_density,
                             bricks=bricks)
-        status[SV_PORT] = sock.getsockname()[1]
-        status[SV_READY] = 1.0
+        status["port"] = sock.getsockname()[1]
+        child.ready()
         period = 1.0 / rate_hz
         clock = time.monotonic
         deadline = clock()
         ticks = 0
-        while status[SV_QUIT] == 0.0:
+        while not child.quit:
             streamer.tick(clock())
             ticks += 1
-            if ticks % 64 == 0:
+            if ticks % STATUS_EVERY_TICKS == 0:
                 c = streamer.counters
-                status[SV_CLIENTS] = len(streamer.clients)
-                status[SV_SENT] = c["sent"]
-                status[SV_REMOVALS] = c["removals_sent"]
-                status[SV_NACKS] = c["nacks"]
-                status[SV_GO_BACKS] = c["go_backs"]
-                status[SV_LOG] = streamer.log.n
-                status[SV_TICKS] = ticks
+                status["clients"] = len(streamer.clients)
+                status["sent"] = c["sent"]
+                status["removals_sent"] = c["removals_sent"]
+                status["nacks"] = c["nacks"]
+                status["go_backs"] = c["go_backs"]
+                status["log_removals"] = streamer.log.n
+                status["ticks"] = ticks
             deadline += period
             rest = deadline - clock()
             if rest > 0:
@@ -241,18 +231,14 @@ def _serve_main(handle, host, port, key, rate_hz, info, initial_density, bricks,
         stats = streamer.stats()
         stats["ticks"] = ticks
     finally:
-        try:
-            conn.send(stats)
-        except (OSError, ValueError):
-            pass
         if sock is not None:
+            child.send(stats)                  # the final figures, for stop()
             sock.close()
         rings.clear()
         sh.close()
-        status[SV_DONE] = 1.0
 
 
-class TutorServer:
+class TutorServer(ChildProcess):
     """Streams a running :class:`~bonesim.haptic_loop.HapticLoop` to trainees
     from its own process, attached to the loop's shared memory, so that
     neither the loop nor a window in the main process delays sending.
@@ -269,7 +255,18 @@ class TutorServer:
         UDP port (0: any free one, see :attr:`port`).
     rate_hz : float
         Send rate [Hz] (the haptic rate).
+
+    Attributes
+    ----------
+    final : dict
+        The server's final statistics (after :meth:`stop`).
     """
+
+    NAME = "bonesim-tutor-server"
+    STATUS = (("port", np.int64), ("clients", np.int64), ("sent", np.int64),
+              ("removals_sent", np.int64), ("nacks", np.int64), ("go_backs", np.int64),
+              ("log_removals", np.int64), ("ticks", np.int64))
+    START_TIMEOUT_S = 30.0
 
     def __init__(self, loop, key: bytes, host: str = "0.0.0.0", port: int = DEFAULT_PORT,
                  rate_hz: float = SERVO_HZ):
@@ -278,66 +275,49 @@ class TutorServer:
         self.host = host
         self.port = int(port)
         self.rate_hz = float(rate_hz)
-        self._proc = None
-        self._conn = None
-        self._status = None
         self.final: dict = {}
+        super().__init__()
 
-    def start(self, timeout_s: float = 30.0) -> "TutorServer":
-        ctx = mp.get_context("spawn")
-        self._status = ctx.RawArray("d", N_SV)
-        mine, theirs = ctx.Pipe(duplex=False)
+    def child_args(self) -> dict:
         model = self.loop.model
         burrs = [b for b in self.loop.burrs if b is not None]
-        self._proc = start_process(
-            _serve_main, "bonesim-tutor-server",
-            (self.loop.handle, self.host, self.port, self.key, self.rate_hz,
-             session_info(model, burrs), np.asarray(model.grid.density),
-             np.asarray(model.grid.bricks), self._status, theirs))
-        theirs.close()
-        self._conn = mine
-        got = wait_ready(self._proc, lambda: self._status[SV_READY] != 0.0, timeout_s,
-                         failed=lambda: self._status[SV_ERROR] != 0.0)
-        if got == "exited":
-            msg = self._conn.recv() if self._conn.poll(1.0) else {}
-            self.stop()
-            raise BonesimError(msg.get("error", "the tutoring server process exited "
-                                                "during start-up"))
-        if got == "timeout":
-            self.stop()
-            raise BonesimError("the tutoring server did not start in time")
-        self.port = int(self._status[SV_PORT])
+        return {"loop_handle": self.loop.handle, "host": self.host, "port": self.port,
+                "key": self.key, "rate_hz": self.rate_hz,
+                "info": session_info(model, burrs),
+                "initial_density": np.asarray(model.grid.density),
+                "bricks": np.asarray(model.grid.bricks)}
+
+    @classmethod
+    def run(cls, child, **kwargs) -> None:
+        _run_server(child, **kwargs)
+
+    def start(self, timeout_s: float | None = None) -> "TutorServer":
+        """Start the server; :attr:`port` is the bound one after.
+
+        Raises
+        ------
+        ProcessFailed
+            The address could not be bound (its message says why), or the
+            process died or did not start in time.
+        """
+        super().start(timeout_s)
+        self.port = int(self.status["port"])
         return self
 
-    def status(self) -> dict:
-        """Live figures (refreshed every 64 ticks)."""
-        s = self._status
-        return {"clients": int(s[SV_CLIENTS]), "sent": int(s[SV_SENT]),
-                "removals_sent": int(s[SV_REMOVALS]), "nacks": int(s[SV_NACKS]),
-                "go_backs": int(s[SV_GO_BACKS]), "log_removals": int(s[SV_LOG]),
-                "ticks": int(s[SV_TICKS])}
+    def figures(self) -> dict:
+        """Live figures (refreshed every :data:`STATUS_EVERY_TICKS` ticks)."""
+        s = self.status
+        return {k: int(s[k]) for k in ("clients", "sent", "removals_sent", "nacks",
+                                        "go_backs", "log_removals", "ticks")}
 
     def stop(self, timeout_s: float = 5.0) -> dict:
         """Say BYE to the trainees, stop the process; returns its final stats."""
-        if self._proc is None:
-            return self.final
-        self._status[SV_QUIT] = 1.0
-        if self._conn.poll(timeout_s):
-            try:
-                self.final = self._conn.recv()
-            except EOFError:
-                pass
-        end_process(self._proc, timeout_s)
-        self._proc = None
-        self._conn.close()
+        super().stop(timeout_s)
+        if self.messages:
+            self.final = self.messages[-1]
         return self.final
 
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.stop()
+    def close(self) -> dict:
+        """:meth:`stop`, then free the shared memory; returns the final stats."""
+        super().close()
+        return self.final

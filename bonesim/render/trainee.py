@@ -22,7 +22,6 @@ import math
 
 import numpy as np
 
-from .. import trainee as T
 from ..events import Cursor
 from ..grid import sync_replica
 from .hud import format_help
@@ -108,29 +107,29 @@ class TraineeView:
         """What the HUD shows, from the servo's status."""
         s = self.proc.status
         p = self.proc
-        burr = int(s[T.TS_BURR])
+        burr = int(s["burr"])
         names = p.burrs
         info = {"case": self.model.name, "following": p.what}
         if 0 <= burr < len(names):
             info["burr"] = names[burr]
-        info["drill"] = bool(s[T.TS_DRILL])
-        info["direction"] = s[T.TS_DIR]
-        info["speed_rpm"] = s[T.TS_SPEED]
-        info["force_n"] = float(np.linalg.norm(s[T.TS_FORCE:T.TS_FORCE + 3]))
-        t = s[T.TS_T]
-        info["haptic_hz"] = s[T.TS_TICKS] / t if t > 0 else 0.0
-        err = s[T.TS_ERR_MM]
+        info["drill"] = bool(s["drill"])
+        info["direction"] = int(s["direction"])
+        info["speed_rpm"] = float(s["speed_rpm"])
+        info["force_n"] = float(np.linalg.norm(s["force_n"]))
+        t = float(s["t_s"])
+        info["haptic_hz"] = int(s["ticks"]) / t if t > 0 else 0.0
+        err = float(s["err_mm"])
         info["tracking error"] = "-" if math.isnan(err) else f"{err:.1f} mm"
         if p.source[0] == "network":
-            lat = s[T.TS_LATENCY_MS]
+            lat = float(s["latency_ms"])
             info["latency"] = "-" if math.isnan(lat) else f"{lat:.2f} ms"
         else:
-            info["playback"] = (f"{s[T.TS_PLAYBACK_S]:.1f} / "
+            info["playback"] = (f"{float(s['playback_s']):.1f} / "
                                 f"{p.duration_of_source_s:.1f} s")
         info["removed"] = self.applied
-        if s[T.TS_DONE]:
+        if s["done"]:
             info["message"] = f"{p.lost_text}: the session is over (q quits)"
-        elif s[T.TS_LOST]:
+        elif s["lost"]:
             info["message"] = p.lost_text
         return info
 
@@ -140,11 +139,11 @@ class TraineeView:
         self.drain()
         s = self.proc.status
         sc = self.scene
-        r = self.proc.radius_mm(int(s[T.TS_BURR]))
-        if s[T.TS_VALID]:
-            sc.set_tool(s[T.TS_INSTR_POS:T.TS_INSTR_POS + 3],
-                        s[T.TS_INSTR_AXIS:T.TS_INSTR_AXIS + 3], r, bool(s[T.TS_DRILL]))
-            sc.set_marker(s[T.TS_HAND_POS:T.TS_HAND_POS + 3], r)
+        r = self.proc.radius_mm(int(s["burr"]))
+        if s["valid"]:
+            sc.set_tool(s["instr_pos_mm"],
+                        s["instr_axis"], r, bool(s["drill"]))
+            sc.set_marker(s["hand_mm"], r)
         info = self.hud_info()
         sc.set_hud(info)
         return info

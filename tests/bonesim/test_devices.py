@@ -22,8 +22,8 @@ def _line(n=11):
 
 
 def test_backends_implement_the_interface():
-    io = np.zeros(16)
-    for dev in (NullDevice(), ScriptedDevice(_line()), SharedInputDevice(io)):
+    for dev in (NullDevice(), ScriptedDevice(_line()),
+                SharedInputDevice(np.zeros(3), np.array([0.0, 0.0, -1.0]))):
         assert isinstance(dev, Device)
         dev.open()
         r = dev.read(0.0)
@@ -44,10 +44,10 @@ def test_scripted_device_interpolates_and_carries_drill_state():
 
 
 def test_shared_input_device_reads_the_window_target():
-    io = np.zeros(16)
-    dev = SharedInputDevice(io)
-    io[0:3] = (1, 2, 3)
-    io[3:6] = (0, 0, 2)
+    pos, axis = np.zeros(3), np.zeros(3)
+    dev = SharedInputDevice(pos, axis)
+    pos[:] = (1, 2, 3)                          # the window writes the shared views
+    axis[:] = (0, 0, 2)
     r = dev.read(0.0)
     np.testing.assert_allclose(r.pos_mm, [1, 2, 3])
     np.testing.assert_allclose(r.axis, [0, 0, 1])

@@ -10,7 +10,7 @@ import pytest
 from bonesim.burrs import load_burr
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
-from bonesim.haptic_loop import (ST_BURR, ST_EPOCH, ST_STEPS, HapticLoop)
+from bonesim.haptic_loop import HapticLoop
 from bonesim.loading import load_model
 from bonesim.replica import TissueReplica
 from bonesim.surface import Surface
@@ -38,7 +38,7 @@ def test_scripted_loop_publishes_and_consumer_stays_exact(model):
         loop.stop()
         consumer.drain()
         stats = loop.rate_stats()
-        assert loop.status[ST_STEPS] > 500 and stats["n"] > 100 and stats["rate_hz"] > 0
+        assert loop.status["steps"] > 500 and stats["n"] > 100 and stats["rate_hz"] > 0
         assert loop.state.n_removed > 0
         # the replica saw every published change, and the surface matches it
         np.testing.assert_array_equal(consumer.grid.density, loop.state.grid.density)
@@ -57,10 +57,10 @@ def test_mouse_device_drills_reset_restores_and_burr_switches(model):
         assert wait_for(lambda: loop.state.n_removed > 20), "mouse drilling removed nothing"
         loop.set_drill(False)
         loop.set_burr(1)
-        assert wait_for(lambda: loop.status[ST_BURR] == 1)
+        assert wait_for(lambda: loop.status["burr"] == 1)
         n_before = loop.state.tissue.count
         epoch = loop.reset()
-        assert wait_for(lambda: loop.status[ST_EPOCH] == epoch)
+        assert wait_for(lambda: loop.status["epoch"] == epoch)
         # the loop announces the epoch before it steps in it: every sample
         # published from here on belongs to the new epoch
         first_new = loop.samples.count
@@ -80,6 +80,6 @@ def test_loop_stops_by_itself_after_run_s(model):
     try:
         loop.start()
         assert loop.wait(20.0)
-        assert not loop.running and loop.status[ST_STEPS] > 100
+        assert not loop.running and loop.status["steps"] > 100
     finally:
         loop.close()

@@ -301,7 +301,7 @@ def approach_trajectory(field, seconds=3.0, start_mm=10.0, end_mm=0.0, drill=Tru
 @pytest.mark.slow
 @pytest.mark.parametrize("source", ["auto", "status"])
 def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor, source):
-    from bonesim.haptic_loop import ST_T, HapticLoop
+    from bonesim.haptic_loop import HapticLoop
     from bonesim.monitor import MonitorProcess
 
     traj = approach_trajectory(phantom_monitor.fields[0])
@@ -310,7 +310,7 @@ def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor,
     try:            # the monitor first: it sees the approach from its start
         mon = MonitorProcess(loop, P, seed=1, source=source).start()
         loop.start()
-        assert wait_for(lambda: loop.status[ST_T] > traj.t_s[-1] + 0.5, 30.0)
+        assert wait_for(lambda: loop.status["t_s"] > traj.t_s[-1] + 0.5, 30.0)
         assert wait_for(lambda: mon.view.t_s > traj.t_s[-1] + 0.5, 30.0)
         stats = mon.stats()
         hist = mon.view.history(10.0)

@@ -342,7 +342,7 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     and the HUD names the second burr."""
     from bonesim.burrs import load_burr
     from bonesim.case import load_case
-    from bonesim.haptic_loop import ST_EPOCH, HapticLoop
+    from bonesim.haptic_loop import HapticLoop
     from bonesim.loading import load_model
     from bonesim.record import Recorder, make_header
     from bonesim.replay import replay
@@ -371,7 +371,7 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
         loop.set_drill(True, speed_rpm=60000.0)
         assert wait(lambda: loop.state.n_removed > 30)
         epoch = loop.reset()
-        assert wait(lambda: loop.status[ST_EPOCH] == epoch)
+        assert wait(lambda: loop.status["epoch"] == epoch)
         loop.set_burr(1)
         n1 = loop.state.n_removed
         assert wait(lambda: loop.state.n_removed > n1 + 20)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 import signal
 import subprocess
@@ -21,7 +22,7 @@ from bonesim.case import load_case
 from bonesim.cli import main
 from bonesim.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
-from bonesim.haptic_loop import ST_T, HapticLoop
+from bonesim.haptic_loop import HapticLoop
 from bonesim.loading import load_model
 from bonesim.record import SCHEMA_VERSION, Recorder, make_header
 from bonesim.replay import replay, verify
@@ -192,7 +193,7 @@ def test_live_loop_recording_replays_bit_for_bit(model, traj, tmp_path):
 
 
 _CHILD = r"""
-import json, sys, time
+import json, pickle, sys, time
 from bonesim.case import load_case
 from bonesim.toolpath import demo_trajectory
 from bonesim.haptic_loop import HapticLoop
@@ -205,7 +206,9 @@ s = int(np.flatnonzero(t.drill)[0])
 loop = HapticLoop(m, device=("scripted", t.at_times(t.t_s[s:])))
 rec = Recorder(loop, sys.argv[1], make_header(m)).start()
 loop.start()
-print(json.dumps({"loop": loop.handle, "rec": rec._sh.handle, "writer": rec.pid}), flush=True)
+# handles hold numpy dtypes (structured status records): pickled, as hex
+print(json.dumps({"loop": pickle.dumps(loop.handle).hex(),
+                  "rec": pickle.dumps(rec.handle).hex(), "writer": rec.pid}), flush=True)
 while True:
     time.sleep(1)
 """
@@ -218,7 +221,8 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
                             stdout=subprocess.PIPE, text=True, start_new_session=True)
     handles = None
     try:
-        handles = json.loads(proc.stdout.readline())
+        handles = {k: pickle.loads(bytes.fromhex(v)) if k != "writer" else v
+                   for k, v in json.loads(proc.stdout.readline()).items()}
         time.sleep(1.5)
         # readable while being written (SWMR), and growing
         n1 = len(read_session(path).samples["t_s"])
@@ -231,8 +235,8 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
         proc.wait(10)
     try:
         # the loop's last published time, from its orphaned shared memory
-        sh = SharedArrays.attach(tuple(handles["loop"]))
-        t_last = float(sh.arrays["status"][ST_T])
+        sh = SharedArrays.attach(handles["loop"])
+        t_last = float(sh.arrays["status"]["t_s"])
         n_loop = int(sh.arrays["samples.head"][0])
         sh.close()
     finally:
@@ -257,7 +261,6 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
     """Mouse drilling, a burr change, a case reset, more drilling: the file
     keeps every removal of both epochs and replays bit for bit."""
     from bonesim.burrs import load_burr
-    from bonesim.haptic_loop import ST_EPOCH
 
     cam = load_case("phantom").camera
     view = np.subtract(cam.focal_mm, cam.eye_mm)
@@ -284,7 +287,7 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
         n0 = loop.state.n_removed
         assert wait(lambda: loop.state.n_removed > n0 + 5)
         epoch = loop.reset()
-        assert wait(lambda: loop.status[ST_EPOCH] == epoch)
+        assert wait(lambda: loop.status["epoch"] == epoch)
         n1 = loop.state.n_removed
         assert wait(lambda: loop.state.n_removed > n1 + 20)
         loop.set_drill(False)

@@ -23,7 +23,7 @@ m = load_model("phantom", "cutting-5mm")
 loop = HapticLoop(m, device=("null",))
 rec = Recorder(loop, sys.argv[1], make_header(m)).start()
 loop.start()
-print(json.dumps({"loop": loop._proc.pid, "writer": rec.pid}), flush=True)
+print(json.dumps({"loop": loop.pid, "writer": rec.pid}), flush=True)
 while True:
     time.sleep(1)
 """
@@ -60,26 +60,3 @@ def test_children_end_when_the_parent_is_killed(tmp_path):
     # the writer, told by SIGTERM, drained the rings and closed its file
     s = read_session(path)
     assert s.complete and len(s.samples["t_s"]) > 100
-
-
-def test_start_process_and_wait_ready_outcomes():
-    from bonesim.shared import start_process, wait_ready
-
-    # a child that lives but never says ready: timeout, and it is a daemon
-    sleeper = start_process(time.sleep, "bonesim-test-sleeper", (5.0,))
-    try:
-        assert sleeper.daemon and sleeper.is_alive()
-        t0 = time.monotonic()
-        assert wait_ready(sleeper, lambda: False, 0.3) == "timeout"
-        assert 0.3 <= time.monotonic() - t0 < 3.0
-        # the flag it would set: ready at once; an error it reports: exited
-        assert wait_ready(sleeper, lambda: True, 0.3) == "ready"
-        assert wait_ready(sleeper, lambda: False, 5.0, failed=lambda: True) == "exited"
-    finally:
-        sleeper.terminate()
-        sleeper.join(5.0)
-    # a child that ends before it is ready: exited, not a wait for the timeout
-    quitter = start_process(int, "bonesim-test-quitter", ("0",))
-    t0 = time.monotonic()
-    assert wait_ready(quitter, lambda: False, 30.0) == "exited"
-    assert time.monotonic() - t0 < 20.0 and quitter.exitcode == 0

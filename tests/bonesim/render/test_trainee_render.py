@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from bonesim import trainee as T
+from bonesim.child import BASE_STATUS, record_dtype
 from bonesim.events import Ring
 from bonesim.render.scene import Scene
 from bonesim.render.trainee import TraineeView
@@ -32,7 +33,7 @@ def last_message(hud: str) -> str:
 
 def _fake_proc(model):
     """What TraineeView reads of a TraineeProcess, with no process."""
-    status = np.zeros(T.N_TS)
+    status = np.zeros((), record_dtype(BASE_STATUS, T.STATUS))
     changes = Ring.create(1 << 12, ijk=(np.int32, (3,)))
     return SimpleNamespace(model=model, status=status, changes=changes, burrs=["fake"],
                            radii=[1.5], radius_mm=lambda b: 1.5, what="instructor at test",
@@ -95,17 +96,17 @@ def test_tool_hand_and_hud_come_from_the_status(view):
     sc = v.scene
     info = v.show()                          # nothing received yet: no tool drawn
     assert sc.tool_pos_mm is None and sc.marker_pos_mm is None
-    s[T.TS_VALID] = 1.0
-    s[T.TS_INSTR_POS:T.TS_INSTR_POS + 3] = (8.0, 6.0, 9.0)
-    s[T.TS_INSTR_AXIS:T.TS_INSTR_AXIS + 3] = (0.0, 0.0, -1.0)
-    s[T.TS_HAND_POS:T.TS_HAND_POS + 3] = (9.0, 6.5, 10.0)
-    s[T.TS_FORCE:T.TS_FORCE + 3] = (0.3, 0.0, 0.4)
-    s[T.TS_DRILL] = 1.0
-    s[T.TS_SPEED] = 60000.0
-    s[T.TS_DIR] = 1.0
-    s[T.TS_ERR_MM] = 1.5
-    s[T.TS_LATENCY_MS] = 0.25
-    s[T.TS_T], s[T.TS_TICKS] = 2.0, 2000.0
+    s["valid"] = 1
+    s["instr_pos_mm"] = (8.0, 6.0, 9.0)
+    s["instr_axis"] = (0.0, 0.0, -1.0)
+    s["hand_mm"] = (9.0, 6.5, 10.0)
+    s["force_n"] = (0.3, 0.0, 0.4)
+    s["drill"] = 1
+    s["speed_rpm"] = 60000.0
+    s["direction"] = 1
+    s["err_mm"] = 1.5
+    s["latency_ms"] = 0.25
+    s["t_s"], s["ticks"] = 2.0, 2000
     info = v.show()
     np.testing.assert_array_equal(sc.tool_pos_mm, (8.0, 6.0, 9.0))
     np.testing.assert_array_equal(sc.marker_pos_mm, (9.0, 6.5, 10.0))
@@ -114,10 +115,10 @@ def test_tool_hand_and_hud_come_from_the_status(view):
     text = sc.hud_text
     assert "following: instructor at test" in text and "tracking error: 1.5 mm" in text
     assert "latency: 0.25 ms" in text and "drill  ON" in text
-    s[T.TS_LOST] = 1.0
+    s["lost"] = 1
     v.show()
     assert sc.hud_text.splitlines()[-1] == "LINK LOST"
-    s[T.TS_DONE] = 1.0
+    s["done"] = 1
     v.show()
     assert last_message(sc.hud_text).startswith("LINK LOST: the session is over")
     # the picture: the instructor's tool and the green hand are drawn
