@@ -282,11 +282,17 @@ class ChildProcess:
             raise RuntimeError(f"{self.NAME} is already started")
         ctx = mp.get_context("spawn")
         mine, theirs = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=_child_main, name=self.NAME, daemon=True,
-                                 args=(type(self), self._sh.handle, self.NAME, theirs,
-                                       self.child_args()))
-        self._proc.start()
-        theirs.close()
+        proc = ctx.Process(target=_child_main, name=self.NAME, daemon=True,
+                           args=(type(self), self._sh.handle, self.NAME, theirs,
+                                 self.child_args()))
+        try:
+            proc.start()                    # pickles the arguments: may raise
+        except BaseException:
+            mine.close()
+            raise
+        finally:
+            theirs.close()
+        self._proc = proc
         self._conn = mine
         return self
 

@@ -46,8 +46,7 @@ from .errors import BonesimError
 from .model import reset_state
 
 __all__ = ["N_ARGS", "MAX_KIND", "TOOLS", "ERROR_TEXT_BYTES", "UnknownCommand",
-           "CommandOverflow", "Command", "command_class", "registered", "unregister",
-           "LoopContext",
+           "CommandOverflow", "Command", "command_class", "registered", "LoopContext",
            "CommandSender", "CommandQueue", "Reset", "SetBurr", "SetTool", "SplitBox",
            "MoveBody"]
 
@@ -165,13 +164,6 @@ def registered() -> tuple:
     """Every registered command class, by kind."""
     return tuple(c for _, c in sorted(_BY_KIND.items()))
 
-
-def unregister(cls: type) -> None:
-    """Forget a command class (a command defined for a moment, e.g. in a
-    test: a loop started later must not try to carry it to its process)."""
-    if _BY_KIND.get(cls.kind) is cls:
-        del _BY_KIND[cls.kind]
-        del _BY_NAME[cls.name]
 
 
 class LoopContext:

@@ -349,8 +349,10 @@ class HapticLoop(ChildProcess):
             ("periods", (PERIOD_RING,), np.float64), ("periods.head", (1,), np.int64)]
 
     def child_args(self) -> dict:
-        # every command registered now travels (by reference) to the loop
-        self._known = commands.registered()
+        # every command registered now and importable by the loop's process
+        # travels there (by reference); a class defined in a function cannot
+        self._known = tuple(c for c in commands.registered()
+                            if "<locals>" not in c.__qualname__)
         return {"model": self.model, "burrs": list(self.burrs), "device_spec": self.device,
                 "rate_hz": self.rate_hz, "run_s": self.run_s, "vibration": self.vibration,
                 "known": self._known}
@@ -382,15 +384,17 @@ class HapticLoop(ChildProcess):
         Raises
         ------
         UnknownCommand
-            No such command, or one registered after the loop started.
+            No such command, or one the loop does not know (registered
+            after it started, or defined inside a function).
         CommandOverflow
             The loop has not taken the commands already sent.
         """
         cls = commands.command_class(command)
         if self._known is not None and cls not in self._known:
             raise commands.UnknownCommand(
-                f"command {cls.name!r} (kind {cls.kind}) was registered after the haptic "
-                "loop started; it does not know it", field="kind")
+                f"the haptic loop does not know command {cls.name!r} (kind {cls.kind}): it "
+                "was registered after the loop started, or inside a function (define "
+                "commands at module level)", field="kind")
         return self._sender.send(cls, **params)
 
     def set_burr(self, index: int) -> None:
