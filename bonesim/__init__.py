@@ -6,6 +6,7 @@ The core contract (see :mod:`bonesim.model`; files: :mod:`bonesim.loading`)::
     model = bonesim.load_model("phantom", "cutting-5mm")   # immutable
     state = bonesim.make_state(model)                      # mutable
     force = bonesim.step(model, state, sample)             # one haptic step
+    replica = bonesim.TissueReplica(model, state)          # a consumer's copy
 
 ``import bonesim`` is light: it imports no rendering, sound or device
 library, and loads the engine modules only when first used.
@@ -18,7 +19,7 @@ _LAZY = {
     "Model": "model", "State": "model", "Sample": "model", "load_model": "loading",
     "make_model": "model", "make_state": "model", "step": "model", "warmup": "loading",
     "Grid": "grid", "BonesimError": "errors", "DeviceCaps": "device_caps",
-    "data_path": "resources",
+    "data_path": "resources", "TissueReplica": "replica", "read_session": "session_reader",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]
