@@ -97,6 +97,23 @@ class Stencil:
         Lattice spacing ``h`` [mm].
     radius_mm : float
         Burr radius [mm].
+    row_head : (n_rows, 3) float64
+        The samples as lattice rows along the tool axis ``z`` (the order of
+        ``offsets``: consecutive samples with equal ``(o_x, o_y)``): each row's
+        ``(o_x, o_y, o_z of its first sample)`` [mm] (exact lattice values,
+        not rounded to float32); its samples sit ``h`` apart along ``z``.
+    row_off : (n_rows, 2) int64
+        Per row, ``(start, n)``: its ``n`` samples' prefix sums are
+        ``row_sums[start:start + n + 1]``.
+    row_sums : (m, 3) float64
+        Prefix sums over a row's samples of ``(1/|o|, o_z/|o|, lat)``
+        (float32-rounded values as in ``packed``), starting with a zero
+        entry: the sums over samples ``a..b-1`` of row ``r`` are
+        ``row_sums[start + b] - row_sums[start + a]``. Rows that are mirror
+        images about the axis (equal ``|o_x|, |o_y|`` in either order) have
+        the same sums and share one block (about 1/8 of ``n + n_rows``
+        entries, so that the table stays in cache). For
+        :func:`bonesim.haptics_rows.haptic_rows_kernel`.
     """
 
     offsets: np.ndarray
@@ -105,6 +122,13 @@ class Stencil:
     packed: np.ndarray
     spacing_mm: float
     radius_mm: float
+    row_head: np.ndarray = None
+    row_off: np.ndarray = None
+    row_sums: np.ndarray = None
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.row_head.shape[0])
 
     @property
     def n(self) -> int:
@@ -169,9 +193,41 @@ def make_stencil(radius_mm: float, spacing_mm: float, r_max: float,
     packed[:, 4] = lat
     arrs = [packed[:, :3].astype(np.float64), packed[:, 3].astype(np.float64),
             packed[:, 4].astype(np.float64), packed]
+    arrs += _stencil_rows(g, arrs[1], arrs[2])
     for a in arrs:
         a.flags.writeable = False
-    return Stencil(*arrs, spacing_mm=float(spacing_mm), radius_mm=float(radius_mm))
+    return Stencil(*arrs[:4], spacing_mm=float(spacing_mm), radius_mm=float(radius_mm),
+                   row_head=arrs[4], row_off=arrs[5], row_sums=arrs[6])
+
+
+def _stencil_rows(g: np.ndarray, inv_r: np.ndarray, lat: np.ndarray) -> list:
+    """The samples ``g`` (n, 3) [mm], ordered x, y, then z (as the lattice is
+    built), as rows along z with prefix sums shared by the rows that are
+    mirror images about the axis (see :class:`Stencil`)."""
+    n = len(g)
+    new_row = np.ones(n, dtype=bool)
+    new_row[1:] = (g[1:, 0] != g[:-1, 0]) | (g[1:, 1] != g[:-1, 1])
+    starts = np.flatnonzero(new_row)
+    lengths = np.diff(np.append(starts, n))
+    head = g[starts].copy()
+    vals = np.stack([inv_r, g[:, 2].astype(np.float32) * inv_r, lat], axis=1)
+    # (|o_x|, |o_y|) in either order: the same samples along z up to a mirror
+    # in x, y (so the same 1/|o|, o_z/|o| and latitude)
+    key = np.sort(np.abs(head[:, :2]), axis=1)
+    shared = {}
+    blocks = []
+    off = np.zeros((len(starts), 2), dtype=np.int64)
+    at = 0
+    for r, (a, ln) in enumerate(zip(starts, lengths)):
+        k = (float(key[r, 0]), float(key[r, 1]))
+        if k not in shared:
+            block = np.zeros((ln + 1, 3))
+            block[1:] = np.cumsum(vals[a:a + ln], axis=0)
+            shared[k] = at
+            blocks.append(block)
+            at += ln + 1
+        off[r] = shared[k], ln
+    return [head, off, np.concatenate(blocks)]
 
 
 def block_size(radius_mm: float, voxel_mm: float) -> tuple[int, int]:
