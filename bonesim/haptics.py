@@ -100,8 +100,8 @@ class Stencil:
     row_head : (n_rows, 3) float64
         The samples as lattice rows along the tool axis ``z`` (the order of
         ``offsets``: consecutive samples with equal ``(o_x, o_y)``): each row's
-        ``(o_x, o_y, o_z of its first sample)`` [mm] (exact lattice values,
-        not rounded to float32); its samples sit ``h`` apart along ``z``.
+        ``(o_x, o_y, o_z of its first sample)`` [mm] (rounded to float32 as
+        in ``packed``); its samples sit ``h`` apart along ``z``.
     row_off : (n_rows, 2) int64
         Per row, ``(start, n)``: its ``n`` samples' prefix sums are
         ``row_sums[start:start + n + 1]``.
@@ -209,7 +209,7 @@ def _stencil_rows(g: np.ndarray, inv_r: np.ndarray, lat: np.ndarray) -> list:
     new_row[1:] = (g[1:, 0] != g[:-1, 0]) | (g[1:, 1] != g[:-1, 1])
     starts = np.flatnonzero(new_row)
     lengths = np.diff(np.append(starts, n))
-    head = g[starts].copy()
+    head = g[starts].astype(np.float32).astype(np.float64)   # as in ``packed``
     vals = np.stack([inv_r, g[:, 2].astype(np.float32) * inv_r, lat], axis=1)
     # (|o_x|, |o_y|) in either order: the same samples along z up to a mirror
     # in x, y (so the same 1/|o|, o_z/|o| and latitude)

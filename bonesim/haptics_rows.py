@@ -25,8 +25,9 @@ The row's first and last samples are put in voxels by truncation, exactly as
 the per-sample kernel does, and the walk takes exactly the voxel steps
 between them, so it never leaves the burr's local block. A sample's voxel can
 differ from the per-sample kernel's only when the sample lies within floating
-point distance of a voxel boundary (``a + b k`` against ``c + R o``, and the
-lattice here is not rounded to float32: about 1e-6 voxel).
+point distance of a voxel boundary (``a + b k`` against ``c + R o``; the
+row's samples sit exactly ``h`` apart while ``packed`` rounds each offset to
+float32: below 1e-6 voxel).
 
 The pass's start (block gather) and end (force, removal, events) are those
 of :func:`bonesim.haptics.haptic_kernel`; only the sum over samples differs,
