@@ -46,8 +46,10 @@ from .haptics import _begin, _finish
 __all__ = ["ROWS_MIN_OVERSAMPLE", "haptic_rows_kernel"]
 
 #: Oversampling from which :func:`bonesim.model.step` takes the row pass.
-#: Below it (the default 2x, with ~8 samples per voxel) the per-sample kernel
-#: is as fast, and it is the one every recorded session replays bit for bit.
+#: Below it the per-sample kernel runs: every recorded session (the default
+#: 2x) replays with it bit for bit, and with ~8 samples per voxel the rows
+#: gain little there (7 mm burr, half immersed, drill off: 66 against 75 us).
+#: At 3x the row pass takes 114 against 184 us, at 4x 185 against 400 us.
 ROWS_MIN_OVERSAMPLE = 3
 
 
