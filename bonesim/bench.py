@@ -162,6 +162,10 @@ def bench_haptic_step(quick=False) -> dict:
                                       "samples": model4.stencil.n, "steps": len(ns4),
                                       "oversample": model4.oversample,
                                       "p50_us": round(_pct(us4, 50), 2)},
+        "haptic_step_4x_vs_2x_p50": {
+            "value": round(_pct(us4, 50) / _pct(us, 50), 2), "unit": "x",
+            "what": "p50 of the 7 mm step at 4x oversampling (one lookup per voxel a "
+                    "row of samples crosses) / at 2x (one per sample), same run"},
         "haptic_step_7mm_8bodies_p99_us": {
             "value": round(many_p99, 2), "unit": "us", "steps": len(many_ns),
             "what": f"the 7 mm step with the block split into {BENCH_BODIES} interleaved "
@@ -439,6 +443,7 @@ BENCHMARKS = {
     "haptic_step_floor_us": bench_haptic_step,
     "haptic_step_vs_floor": bench_haptic_step,
     "haptic_step_7mm_4x_p99_us": bench_haptic_step,
+    "haptic_step_4x_vs_2x_p50": bench_haptic_step,
     "haptic_step_7mm_8bodies_p99_us": bench_haptic_step,
     "haptic_step_8bodies_vs_1body_p99": bench_haptic_step,
     "retessellate_1000_p99_ms": bench_surface,

@@ -97,6 +97,23 @@ class Stencil:
         Lattice spacing ``h`` [mm].
     radius_mm : float
         Burr radius [mm].
+    row_head : (n_rows, 3) float64
+        The samples as lattice rows along the tool axis ``z`` (the order of
+        ``offsets``: consecutive samples with equal ``(o_x, o_y)``): each row's
+        ``(o_x, o_y, o_z of its first sample)`` [mm] (rounded to float32 as
+        in ``packed``); its samples sit ``h`` apart along ``z``.
+    row_off : (n_rows, 2) int64
+        Per row, ``(start, n)``: its ``n`` samples' prefix sums are
+        ``row_sums[start:start + n + 1]``.
+    row_sums : (m, 3) float64
+        Prefix sums over a row's samples of ``(1/|o|, o_z/|o|, lat)``
+        (float32-rounded values as in ``packed``), starting with a zero
+        entry: the sums over samples ``a..b-1`` of row ``r`` are
+        ``row_sums[start + b] - row_sums[start + a]``. Rows that are mirror
+        images about the axis (equal ``|o_x|, |o_y|`` in either order) have
+        the same sums and share one block (about 1/8 of ``n + n_rows``
+        entries, so that the table stays in cache). For
+        :func:`bonesim.haptics_rows.haptic_rows_kernel`.
     """
 
     offsets: np.ndarray
@@ -105,6 +122,13 @@ class Stencil:
     packed: np.ndarray
     spacing_mm: float
     radius_mm: float
+    row_head: np.ndarray = None
+    row_off: np.ndarray = None
+    row_sums: np.ndarray = None
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.row_head.shape[0])
 
     @property
     def n(self) -> int:
@@ -169,9 +193,41 @@ def make_stencil(radius_mm: float, spacing_mm: float, r_max: float,
     packed[:, 4] = lat
     arrs = [packed[:, :3].astype(np.float64), packed[:, 3].astype(np.float64),
             packed[:, 4].astype(np.float64), packed]
+    arrs += _stencil_rows(g, arrs[1], arrs[2])
     for a in arrs:
         a.flags.writeable = False
-    return Stencil(*arrs, spacing_mm=float(spacing_mm), radius_mm=float(radius_mm))
+    return Stencil(*arrs[:4], spacing_mm=float(spacing_mm), radius_mm=float(radius_mm),
+                   row_head=arrs[4], row_off=arrs[5], row_sums=arrs[6])
+
+
+def _stencil_rows(g: np.ndarray, inv_r: np.ndarray, lat: np.ndarray) -> list:
+    """The samples ``g`` (n, 3) [mm], ordered x, y, then z (as the lattice is
+    built), as rows along z with prefix sums shared by the rows that are
+    mirror images about the axis (see :class:`Stencil`)."""
+    n = len(g)
+    new_row = np.ones(n, dtype=bool)
+    new_row[1:] = (g[1:, 0] != g[:-1, 0]) | (g[1:, 1] != g[:-1, 1])
+    starts = np.flatnonzero(new_row)
+    lengths = np.diff(np.append(starts, n))
+    head = g[starts].astype(np.float32).astype(np.float64)   # as in ``packed``
+    vals = np.stack([inv_r, g[:, 2].astype(np.float32) * inv_r, lat], axis=1)
+    # (|o_x|, |o_y|) in either order: the same samples along z up to a mirror
+    # in x, y (so the same 1/|o|, o_z/|o| and latitude)
+    key = np.sort(np.abs(head[:, :2]), axis=1)
+    shared = {}
+    blocks = []
+    off = np.zeros((len(starts), 2), dtype=np.int64)
+    at = 0
+    for r, (a, ln) in enumerate(zip(starts, lengths)):
+        k = (float(key[r, 0]), float(key[r, 1]))
+        if k not in shared:
+            block = np.zeros((ln + 1, 3))
+            block[1:] = np.cumsum(vals[a:a + ln], axis=0)
+            shared[k] = at
+            blocks.append(block)
+            at += ln + 1
+        off[r] = shared[k], ln
+    return [head, off, np.concatenate(blocks)]
 
 
 def block_size(radius_mm: float, voxel_mm: float) -> tuple[int, int]:
@@ -281,6 +337,165 @@ def _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_hea
     for q in range(3, ev_value.shape[1]):
         ev_value[h, q] = 0.0
     ev_head[0] += 1
+
+
+# The per-sample kernel below keeps its own copy of the pass's start and end:
+# calling these two from it cost ~5% of the 2x step. The row kernel
+# (bonesim.haptics_rows) calls them.
+@njit(cache=True, nogil=True)
+def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis, group,
+           gsel, first, last, R, n_vox, lbrick, ldens, llab, contact, prev_contact, lost,
+           out):
+    """Start of a pass (as in :func:`haptic_kernel`): clear the outputs, build
+    the tool frame ``R`` and gather the burr's block into ``ldens``/``llab``.
+
+    Returns ``(lo0, lo1, lo2, any_brick)``: the block's first voxel and whether
+    any brick is allocated there (if not, the pass is over).
+    """
+    for q in range(out.shape[0]):
+        out[q] = 0.0
+    if first:
+        for q in range(contact.shape[0]):
+            contact[q] = 0
+            lost[q] = 0
+    tool_frame(axis, R)
+    # local block of voxels around the burr
+    lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, params[P_RADIUS], origin,
+                                            spacing, lbrick)
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    if not any_brick:
+        if last:
+            for q in range(prev_contact.shape[0]):
+                prev_contact[q] = 0
+        return lo0, lo1, lo2, False
+    # gather the block's density and labels into dense local scratch
+    nn = n_vox * n_vox
+    for x in range(n_vox):
+        i = lo0 + x
+        bx = (i >> BRICK_SHIFT) - b0
+        for y in range(n_vox):
+            j = lo1 + y
+            by = (j >> BRICK_SHIFT) - b1
+            base = x * nn + y * n_vox
+            for z in range(n_vox):
+                k = lo2 + z
+                b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
+                if b >= 0:
+                    off = voxel_offset(i, j, k)
+                    if group[body[b, off]] == gsel:
+                        ldens[base + z] = density[b, off]
+                    else:
+                        ldens[base + z] = 0.0
+                    llab[base + z] = label[b, off]
+                else:
+                    ldens[base + z] = 0.0
+                    llab[base + z] = 0
+    return lo0, lo1, lo2, True
+
+
+@njit(cache=True, nogil=True)
+def _finish(density, label, body, touched_flag, injury, params, drill, direction,
+            speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
+            llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
+            ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+            tch_ijk, tch_head, out, sux, suy, suz, stx, sty, wsum, n_imm):
+    """End of a pass (as in :func:`haptic_kernel`): force from the summed
+    samples, removal of the accumulated amounts and the pass's events.
+
+    ``sux, suy, suz`` are the stiffness-weighted unit vectors summed in the
+    tool frame, ``stx, sty`` the weighted lever ``(o_y, -o_x)`` [mm], ``wsum``
+    the weighted count and ``n_imm`` the immersed samples; ``acc[dirty[:n_dirty]]``
+    the removal weights per local voxel (see :func:`haptic_kernel`).
+    """
+    nn = n_vox * n_vox
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    h3 = params[P_H3]
+    volume = wsum * h3
+    max_force = params[P_MAX_FORCE]
+    mag = multi_gain(volume, params[P_K_LOW], params[P_K_HIGH], params[P_V_T])
+    if mag > max_force:
+        mag = max_force
+    # normal force: along minus the summed outward unit vectors, in case frame
+    fx = -(R[0, 0] * sux + R[0, 1] * suy + R[0, 2] * suz)
+    fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
+    fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
+    fn = np.sqrt(fx * fx + fy * fy + fz * fz)
+    if fn > _MIN_DIRECTION * (n_imm + 1):
+        fx *= mag / fn
+        fy *= mag / fn
+        fz *= mag / fn
+    else:
+        fx = fy = fz = 0.0
+    tx = ty = tz = 0.0
+    if drill:
+        g = params[P_K_TAN] * h3 * direction * speed_factor
+        tx = g * (R[0, 0] * stx + R[0, 1] * sty)
+        ty = g * (R[1, 0] * stx + R[1, 1] * sty)
+        tz = g * (R[2, 0] * stx + R[2, 1] * sty)
+    Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
+    Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
+    if Fm > max_force:
+        Fx *= max_force / Fm
+        Fy *= max_force / Fm
+        Fz *= max_force / Fm
+    out[O_FX], out[O_FY], out[O_FZ] = Fx, Fy, Fz
+    out[O_TX], out[O_TY], out[O_TZ] = tx, ty, tz
+    out[O_MAG] = mag
+    out[O_VOLUME] = volume
+    out[O_N_IMMERSED] = n_imm
+    # removal: each immersed sample took lat*m*f*phi*dt of its voxel's share
+    scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
+    n_rem = 0
+    n_tch = 0
+    tcap = tch_ijk.shape[0] - 1
+    for q in range(n_dirty):
+        li = dirty[q]
+        amount = acc[li] * scale
+        acc[li] = 0.0
+        if amount <= 0.0:
+            continue
+        i = lo0 + li // nn
+        j = lo1 + (li // n_vox) % n_vox
+        k = lo2 + li % n_vox
+        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
+        off = voxel_offset(i, j, k)
+        d = density[b, off] - amount
+        if d <= 0.0:
+            density[b, off] = 0.0
+            lab = label[b, off]
+            lost[lab] += 1
+            bod = body[b, off]
+            lab_body[lab] = bod
+            _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                        _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
+            n_rem += 1
+        else:
+            density[b, off] = np.float32(d)
+            if touched_flag[b, off] == 0:
+                touched_flag[b, off] = 1
+                h = tch_head[0] & tcap
+                tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
+                tch_head[0] += 1
+                n_tch += 1
+    out[O_N_REMOVED] = n_rem
+    out[O_N_TOUCHED] = n_tch
+    if not last:
+        return
+    # injuries, once per step over all passes
+    for lab in range(contact.shape[0]):
+        touching = drill and contact[lab] > 0
+        if injury[lab]:
+            if touching and prev_contact[lab] == 0:
+                bod = _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab,
+                                  body, lab)
+                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                            ev_head, _EV_CONTACT, bod, lab, t, 0, 0, 0, 0,
+                            case_pos[0], case_pos[1], case_pos[2])
+            if lost[lab] > 0:
+                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                            ev_head, _EV_INJURY, lab_body[lab], lab, t, 0, 0, 0, lost[lab],
+                            case_pos[0], case_pos[1], case_pos[2])
+        prev_contact[lab] = 1 if touching else 0
 
 
 @njit(cache=True, nogil=True)

@@ -28,6 +28,7 @@ from .grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, voxel_offset
 from .haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
                       P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                       P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
+from .haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
            "make_model", "State", "state_arrays_spec", "make_state", "reset_state",
@@ -169,7 +170,8 @@ class Model:
                   self.injury, self.colors, *self.burr_params):
             a.flags.writeable = False
         for st in self.stencils:
-            for a in (st.offsets, st.inv_r, st.lat, st.packed):
+            for a in (st.offsets, st.inv_r, st.lat, st.packed, st.row_head, st.row_off,
+                      st.row_sums):
                 a.flags.writeable = False
 
     def with_burrs(self, burrs) -> "Model":
@@ -536,9 +538,25 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
             first, last) -> None:
     g = state.grid
     ev, tch = state.tissue.fields, state.touched.fields
+    st = model.stencils[bi]
+    if model.oversample >= ROWS_MIN_OVERSAMPLE:
+        # fine sampling: one lookup per voxel a row of samples crosses
+        haptic_rows_kernel(
+            g.keys, g.vals, g.density, g.label, state.body, state.touched_flag,
+            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
+            st.row_head, st.row_off, st.row_sums, st.spacing_mm, model.burr_params[bi],
+            pos, ax, drill, direction, speed_factor, dt, t,
+            state._group, gsel, first, last, state._pos,
+            state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
+            state._acc, state._dirty,
+            state._contact, state._prev_contact, state._lost, state._lab_body,
+            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
+            ev["value"], state.tissue.head,
+            tch["ijk"], state.touched.head, state.out)
+        return
     haptic_kernel(g.keys, g.vals, g.density, g.label, state.body, state.touched_flag,
                   g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-                  model.stencils[bi].packed, model.burr_params[bi],
+                  st.packed, model.burr_params[bi],
                   pos, ax, drill, direction, speed_factor, dt, t,
                   state._group, gsel, first, last, state._pos,
                   state._R, state._n_vox, state._lbrick, state._ldens, state._llab,

@@ -42,3 +42,5 @@ def test_haptic_bench_reports_its_floor():
     four = out["haptic_step_7mm_4x_p99_us"]
     assert four["oversample"] == 4 and four["samples"] > 7 * out["haptic_step_floor_us"]["samples"]
     assert four["value"] >= four["p50_us"] > 0
+    ratio = out["haptic_step_4x_vs_2x_p50"]["value"]
+    assert abs(ratio - four["p50_us"] / p50) <= 0.05 * ratio

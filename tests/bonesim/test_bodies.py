@@ -35,8 +35,9 @@ def _rm(ev):
 
 
 # --------------------------------------------------------------- identity
-def test_a_split_at_the_identity_steps_exactly_as_one_body():
-    m, one = block_model()
+@pytest.mark.parametrize("oversample", [2, 4])
+def test_a_split_at_the_identity_steps_exactly_as_one_body(oversample):
+    m, one = block_model(oversample=oversample)
     two = make_state(m)
     dst, n = publish_split(two, 0, _voxels(m.grid.shape, ((10, 40), (0, 40), (0, 20))), 0.0)
     assert dst == 1 and n == 30 * 40 * 20 and two.n_bodies == 2
@@ -112,15 +113,16 @@ def _placed_reference(m, pose):
     q = np.rint((p @ mat[:, :3].T + mat[:, 3] - m.grid.origin_mm) / m.spacing_mm).astype(int)
     lab[q[:, 0], q[:, 1], q[:, 2]] = 1
     ref = make_model(lab, m.spacing_mm, [BONE], m.burr, materials=MATERIALS,
-                     origin_mm=m.grid.origin_mm)
+                     origin_mm=m.grid.origin_mm, oversample=m.oversample)
     return ref, cube, q
 
 
+@pytest.mark.parametrize("oversample", [2, 4])
 @pytest.mark.parametrize("turn", [False, True])
-def test_a_moved_body_is_drilled_where_it_now_stands(turn):
+def test_a_moved_body_is_drilled_where_it_now_stands(turn, oversample):
     labels = np.zeros((48, 48, 24), np.uint8)
     labels[CUBE[0][0]:CUBE[0][1], CUBE[1][0]:CUBE[1][1], CUBE[2][0]:CUBE[2][1]] = 1
-    m, st = block_model(labels=labels)
+    m, st = block_model(labels=labels, oversample=oversample)
     dst, n = publish_split(st, 0, _voxels(m.grid.shape, CUBE), 0.0)
     assert n == 8 * 8 * 8
     if turn:
