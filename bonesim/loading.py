@@ -15,6 +15,7 @@ from .bodies import split_body
 from .burrs import load_burr
 from .clearance import Clearance
 from .device_caps import SCRIPTED, DeviceCaps
+from .haptics_rows import ROWS_MIN_OVERSAMPLE
 from .model import (DEFAULT_OVERSAMPLE, Model, Sample, clear_touched, make_model, make_state,
                     step)
 
@@ -52,7 +53,7 @@ def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
     return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
 
 
-def warmup_model() -> Model:
+def warmup_model(oversample: int = DEFAULT_OVERSAMPLE) -> Model:
     """A 12³ slab of bone (0.5 mm voxels, the 1 mm cutting burr) on which the
     warm-ups compile kernels for a real model's array types."""
     from types import SimpleNamespace
@@ -60,7 +61,7 @@ def warmup_model() -> Model:
     labels = np.zeros((12, 12, 12), dtype=np.uint8)
     labels[:, :, :6] = 1
     bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
-    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"))
+    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"), oversample=oversample)
 
 
 def warmup_sample(model: Model) -> Sample:
@@ -77,3 +78,5 @@ def warmup() -> None:
     clear_touched(s, s.touched.read(0)["ijk"])
     split_body(s, 0, np.array([[0, 0, 0]]))           # a second body: the split kernel
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
+    m4 = warmup_model(ROWS_MIN_OVERSAMPLE)             # the row kernel of fine stencils
+    step(m4, make_state(m4), warmup_sample(m4))
