@@ -258,6 +258,8 @@ def split_body(state, src: int, ijk: np.ndarray, dst: int | None = None,
     g = state.grid
     n = _split(g.keys, g.vals, state.body, g.density, ijk, np.uint8(src), np.uint8(dst),
                state.bounds, grow)
+    if n:
+        state._one_body = False
     if n and not grow:
         state.pose[dst] = state.pose[src]
         state.pose_m[dst] = state.pose_m[src]
@@ -321,6 +323,7 @@ def set_pose(state, body: int, pose) -> None:
     if not 0 <= body < len(state.alive) or not state.alive[body]:
         raise ValueError(f"pose: body {body} does not exist")
     p = validate_pose(pose)
+    state._one_body = False
     state.pose[body] = p
     state.pose_m[body] = pose_matrix(p)
 

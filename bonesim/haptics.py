@@ -307,6 +307,48 @@ def block_bricks(keys, vals, pos, radius, origin, spacing, lbrick):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick,
+            ldens, llab):
+    """Copy the burr's block of voxels into dense local scratch: density (0
+    where the voxel's body is not in group ``gsel``; ``gsel < 0``: every
+    body) and label. The one-body step takes the first loop only."""
+    nn = n_vox * n_vox
+    for x in range(n_vox):
+        i = lo0 + x
+        bx = (i >> BRICK_SHIFT) - b0
+        for y in range(n_vox):
+            j = lo1 + y
+            by = (j >> BRICK_SHIFT) - b1
+            base = x * nn + y * n_vox
+            for z in range(n_vox):
+                k = lo2 + z
+                b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
+                if b >= 0:
+                    off = voxel_offset(i, j, k)
+                    ldens[base + z] = density[b, off]
+                    llab[base + z] = label[b, off]
+                else:
+                    ldens[base + z] = 0.0
+                    llab[base + z] = 0
+    if gsel < 0:
+        return
+    # bodies of other groups are not there for this pass
+    for x in range(n_vox):
+        i = lo0 + x
+        bx = (i >> BRICK_SHIFT) - b0
+        for y in range(n_vox):
+            j = lo1 + y
+            by = (j >> BRICK_SHIFT) - b1
+            base = x * nn + y * n_vox
+            for z in range(n_vox):
+                if ldens[base + z] > 0.0:
+                    k = lo2 + z
+                    b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
+                    if group[body[b, voxel_offset(i, j, k)]] != gsel:
+                        ldens[base + z] = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab, body, lab):
     """Body of some immersed-candidate voxel of label ``lab`` in the local
     block (rare: only called on a contact onset)."""
@@ -370,26 +412,8 @@ def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis,
         return lo0, lo1, lo2, False
     # gather the block's density and labels into dense local scratch
     nn = n_vox * n_vox
-    for x in range(n_vox):
-        i = lo0 + x
-        bx = (i >> BRICK_SHIFT) - b0
-        for y in range(n_vox):
-            j = lo1 + y
-            by = (j >> BRICK_SHIFT) - b1
-            base = x * nn + y * n_vox
-            for z in range(n_vox):
-                k = lo2 + z
-                b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                if b >= 0:
-                    off = voxel_offset(i, j, k)
-                    if group[body[b, off]] == gsel:
-                        ldens[base + z] = density[b, off]
-                    else:
-                        ldens[base + z] = 0.0
-                    llab[base + z] = label[b, off]
-                else:
-                    ldens[base + z] = 0.0
-                    llab[base + z] = 0
+    _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick,
+            ldens, llab)
     return lo0, lo1, lo2, True
 
 
@@ -555,7 +579,7 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     group : (max_bodies,) int32
         Pass group per body (-1: not in any pass).
     gsel : int
-        The group this pass handles.
+        The group this pass handles; -1 for every voxel (the bone is one body).
     first, last : bool
         First pass of the step (clears the per-label counts) and last pass
         (publishes contact onsets and injuries).
@@ -608,26 +632,8 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         return
     # gather the block's density and labels into dense local scratch
     nn = n_vox * n_vox
-    for x in range(n_vox):
-        i = lo0 + x
-        bx = (i >> BRICK_SHIFT) - b0
-        for y in range(n_vox):
-            j = lo1 + y
-            by = (j >> BRICK_SHIFT) - b1
-            base = x * nn + y * n_vox
-            for z in range(n_vox):
-                k = lo2 + z
-                b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                if b >= 0:
-                    off = voxel_offset(i, j, k)
-                    if group[body[b, off]] == gsel:
-                        ldens[base + z] = density[b, off]
-                    else:
-                        ldens[base + z] = 0.0
-                    llab[base + z] = label[b, off]
-                else:
-                    ldens[base + z] = 0.0
-                    llab[base + z] = 0
+    _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick,
+            ldens, llab)
     sux = suy = suz = 0.0
     stx = sty = 0.0
     wsum = 0.0

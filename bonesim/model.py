@@ -350,6 +350,8 @@ class State:
     _group: np.ndarray = None
     _pass_body: np.ndarray = None
     _pass_ident: np.ndarray = None
+    #: the bone is one body at the identity pose (the step needs no pass plan)
+    _one_body: bool = True
     _pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _bpos: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -447,6 +449,7 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
     state.touched_flag[:] = 0
     init_bodies(state.body, state.pose, state.pose_m, state.alive, state.bounds,
                 model.grid.shape)
+    state._one_body = True
     state.removed_by_label[:] = 0
     if rings:
         for ring in (state.tissue, state.touched):
@@ -499,7 +502,6 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
         raise ValueError(f"sample at t={t} s: burr {bi} is not in the model's table of "
                          f"{len(model.burrs)}")
     burr = model.burrs[bi]
-    params = model.burr_params[bi]
     pos = state._pos
     pos[:] = sample.pos_mm
     ax = state._axis
@@ -511,10 +513,26 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     drill = bool(sample.drill)
     speed_factor = max(0.0, float(sample.speed_rpm)) / burr.default_speed_rpm
     direction = -1.0 if sample.direction < 0 else 1.0
+    if state._one_body:                    # no plan, no body mask: the one-body step
+        _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, -1,
+                True, True)
+    else:
+        _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t)
+    state.removed_by_label += state._lost
+    state.t_s = t
+    state.pos_mm[:] = pos
+    state.axis[:] = ax
+    state.force_n[:] = state.out[:3]
+    state.n_steps += 1
+    return state.force_n
+
+
+def _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t) -> None:
+    """The step over several bodies: one pass per group sharing a pose."""
     g = state.grid
     n_pass = plan_passes(state.alive, state.pose, state.pose_m, state.bounds, pos,
-                         params[P_RADIUS], g.origin_mm, g.spacing_mm, state._group,
-                         state._pass_body, state._pass_ident)
+                         model.burr_params[bi][P_RADIUS], g.origin_mm, g.spacing_mm,
+                         state._group, state._pass_body, state._pass_ident)
     if n_pass == 1 and state._pass_ident[0]:
         _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, 0,
                 True, True)
@@ -525,13 +543,6 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
     else:
         _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor,
                      dt, t)
-    state.removed_by_label += state._lost
-    state.t_s = t
-    state.pos_mm[:] = pos
-    state.axis[:] = ax
-    state.force_n[:] = state.out[:3]
-    state.n_steps += 1
-    return state.force_n
 
 
 def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gsel,

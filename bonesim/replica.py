@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit
 
 from . import events
-from .bodies import set_pose, split_body
+from .bodies import is_identity, set_pose, split_body
 from .grid import BRICK_SHIFT, find_brick, sync_replica, voxel_offset
 from .model import Model, clear_touched, make_state, reset_state
 
@@ -148,6 +148,8 @@ class TissueReplica:
         for name in ("body", "pose", "pose_m", "alive", "bounds", "removed_by_label"):
             getattr(st, name)[:] = getattr(src, name)
         st.grid.density[:] = src.grid.density
+        st._one_body = int(st.alive.sum()) == 1 and bool(st.alive[0]) \
+            and is_identity(st.pose[0])
 
     def _rebuild_surface(self) -> None:
         from .surface import Surface
