@@ -38,8 +38,10 @@ A ``touched`` ring beside it carries shading hints only (voxels that lost
 density but stayed): the density itself is shared state, so the hint is not
 a tissue change and is never recorded.
 
-Rings that are not tissue events (:data:`OTHER_RINGS`): the haptic loop's
-per-step ``samples`` and the window's ``camera`` and ``ui`` streams.
+Rings that live outside a state (:data:`OTHER_RINGS`): the haptic loop's
+per-step ``samples``, the window's ``camera`` and ``ui`` streams, the
+``commands`` into the loop, and the trainee's ``changes`` (tissue events
+again: those its source applied, for the trainee's window).
 """
 from __future__ import annotations
 
