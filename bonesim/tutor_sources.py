@@ -264,6 +264,16 @@ class NetworkSource(Source):
         return self.counters["byes"] > 0
 
     def poll(self, now_s: float) -> None:
+        """Take whatever arrived by ``now_s`` (trainee clock [s]); join and
+        acknowledge as the protocol says.
+
+        Raises
+        ------
+        BonesimError
+            The instructor streams tissue-event records of a version this
+            trainee does not read (the message names the WELCOME or STATE
+            packet), or an event the replica cannot apply.
+        """
         for item in self.link.receive(now_s):
             try:
                 if isinstance(item, net.Welcome):
