@@ -25,7 +25,7 @@ __all__ = ["RATE_HZ", "PAYLOAD_BYTES", "bench_tutor"]
 
 #: Send rate [Hz].
 RATE_HZ = 1000.0
-#: Payload bytes (a STATE packet with a few removals).
+#: Payload bytes (a STATE packet, 134 bytes, with one 83-byte tissue event or so).
 PAYLOAD_BYTES = 200
 _KEY = bytes(range(32))
 _KIND = 16

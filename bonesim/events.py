@@ -38,8 +38,10 @@ A ``touched`` ring beside it carries shading hints only (voxels that lost
 density but stayed): the density itself is shared state, so the hint is not
 a tissue change and is never recorded.
 
-Rings that are not tissue events (:data:`OTHER_RINGS`): the haptic loop's
-per-step ``samples`` and the window's ``camera`` and ``ui`` streams.
+Rings that live outside a state (:data:`OTHER_RINGS`): the haptic loop's
+per-step ``samples``, the window's ``camera`` and ``ui`` streams, the
+``commands`` into the loop, and the trainee's ``changes`` (tissue events
+again: those its source applied, for the trainee's window).
 """
 from __future__ import annotations
 
@@ -173,7 +175,8 @@ COMMAND_ARGS = 24
 #: it: the haptic loop's per-step ``samples`` (what the device read, what was
 #: stepped and what force went back: the recorder's and the tutor's input),
 #: the window's ``camera`` and ``ui`` streams (see :mod:`bonesim.record`), the
-#: trainee servo's replica ``changes`` (:mod:`bonesim.trainee`) and the
+#: tissue events the trainee servo applied, ``changes`` (tissue-event records,
+#: for the trainee's window: :mod:`bonesim.trainee`) and the
 #: ``commands`` into the haptic loop (see :mod:`bonesim.commands`).
 OTHER_RINGS = {
     "samples": (1 << 16, {
@@ -196,8 +199,8 @@ OTHER_RINGS = {
     "camera": (1 << 12, {"t_s": (np.float64, ()), "eye_mm": (np.float64, (3,)),
                          "focal_mm": (np.float64, (3,)), "up": (np.float64, (3,))}),
     "ui": (1 << 10, {"t_s": (np.float64, ()), "name": ("S16", ()), "value": ("S64", ())}),
-    # the trainee's replica changes (bonesim.trainee): emptied voxels, RESET_IJK rows
-    "changes": (1 << 20, {"ijk": (np.int32, (3,))}),
+    # the tissue events a trainee's source applied, in order (bonesim.trainee)
+    "changes": (1 << 19, TISSUE_FIELDS),
     # window -> haptic loop (bonesim.commands): kind, producer's sequence number, arguments
     "commands": (1 << 8, {"kind": (np.uint16, ()), "seq": (np.int64, ()),
                           "args": (np.float64, (COMMAND_ARGS,))}),

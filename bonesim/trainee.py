@@ -12,14 +12,15 @@ child process and publishes, through shared memory:
     :data:`STATUS`: ``proc.status["ticks"]``), rewritten after every servo
     tick; ``done`` once the servo has ended;
 ``changes``
-    a ring of the replica's changes in order (see
-    :attr:`bonesim.tutor.Source.changes`): the voxels each applied removal
-    emptied, and a row of :data:`~bonesim.tutor.RESET_IJK` when the replica
-    went back to the initial tissue.
+    a ring of tissue-event records (:data:`bonesim.events.TISSUE_FIELDS`,
+    the ring spec ``changes`` of :data:`bonesim.events.OTHER_RINGS`): every
+    event the source applied to its replica, in order (see
+    :attr:`bonesim.tutor.Source.changes`), beginning with a ``RESET``.
 
-The window (:mod:`bonesim.render.trainee`) keeps its own replica of the
-tissue from the ``changes`` ring, as the simulator's window does from the
-haptic loop's removal ring. The model (the case the instructor drills, or the
+The window (:mod:`bonesim.render.trainee`) applies the ``changes`` ring to
+its own :class:`~bonesim.replica.TissueReplica` (with a surface), as the
+simulator's window applies the haptic loop's tissue ring; its reset handling
+comes from the ``RESET`` events. The model (the case the instructor drills, or the
 recorded one) and the burr radii reach the parent once, through a pipe, when
 the child is ready; its final statistics follow when it ends.
 """
@@ -58,13 +59,15 @@ STATUS = (
     ("hand_mm", np.float64, (3,)),          # the trainee's device [mm]
     ("force_n", np.float64, (3,)),          # written to the trainee's device [N]
 )
-#: Capacity of the changes ring (records; 12 MB). A window drains it every
-#: frame; falling this far behind would take millions of removals a second.
+#: Capacity of the changes ring (tissue events; 83 bytes each, 43 MB). A
+#: window drains it every frame; falling this far behind would take millions
+#: of events a second (or a playback started late in a session of more
+#: events since its last reset).
 CHANGES_CAPACITY = events.OTHER_RINGS["changes"][0]
 
 
 def changes_ring(arrays: dict) -> events.Ring:
-    """The ``changes`` ring over shared arrays."""
+    """The ``changes`` ring (tissue events) over shared arrays."""
     return events.ring_from_arrays("changes", arrays)
 
 
@@ -172,7 +175,7 @@ def _run_trainee(child, spec, duration_s: float) -> None:
 
 class TraineeProcess(ChildProcess):
     """The trainee's servo (source -> controller -> simulated hand) in a
-    child process, publishing its state and the replica's changes.
+    child process, publishing its state and the tissue events it applied.
 
     Parameters
     ----------
@@ -183,7 +186,7 @@ class TraineeProcess(ChildProcess):
     duration_s : float
         Stop after this long [s] (default: when the source ends).
     capacity : int
-        Records of the changes ring (a power of two).
+        Tissue events the changes ring holds (a power of two).
 
     Attributes
     ----------
@@ -202,7 +205,7 @@ class TraineeProcess(ChildProcess):
     status : ndarray
         Shared status record (:data:`STATUS`).
     changes : events.Ring
-        The replica's changes, in order.
+        The tissue events the servo's source applied, in order.
     stats : dict
         The servo's final statistics (after the process ended and
         :meth:`stop` or :meth:`close` collected them).

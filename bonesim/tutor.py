@@ -26,33 +26,35 @@ loss, end of a recording) the force ramps to zero within
 fades back in over :data:`RECOVER_S`.
 
 The pieces live in their own modules and are gathered here:
-:mod:`bonesim.tutor_protocol` (constants, the state on the wire, the removal
-log), :mod:`bonesim.tutor_law` (the force and the link gain),
+:mod:`bonesim.tutor_protocol` (constants, the state on the wire, the
+tissue-event log and the late joiner's snapshot), :mod:`bonesim.tutor_law` (the force and the link gain),
 :mod:`bonesim.tutor_server` (streamer and server), :mod:`bonesim.tutor_sources`
 (network and recording sources), :mod:`bonesim.tutor_trainee` (the servo) and
 :mod:`bonesim.tutor_commands` (``bonesim tutor ...``).
 
-The wire protocol (join, welcome, acknowledgements, STATE packets and the
-go-back-N removal log) is described in :mod:`bonesim.tutor_protocol`.
+The wire protocol (join, welcome, acknowledgements, STATE packets carrying
+tissue-event records, and the go-back-N event log) is described in
+:mod:`bonesim.tutor_protocol`. The trainee's tissue is one
+:class:`~bonesim.replica.TissueReplica` fed by that stream.
 """
 from __future__ import annotations
 
 from .net import udp_socket  # noqa: F401 (tests and tools reach it here)
 from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK,
                              JOIN_RETRY_S, KEEPALIVE_S, KIND_STATE, KP_N_PER_MM,
-                             LOSS_S, MAX_REMOVALS, NACK_HOLD_S, RAMP_S, RECOVER_S,
-                             REJOIN_S, REMOVAL_BYTES, RESET_IJK, SERVO_HZ, STALE_S,
-                             STATE, InstructorState, RemovalLog, pack_state,
-                             removed_voxels, session_info, unpack_state)
+                             LOSS_S, MAX_BURST, MAX_EVENTS, NACK_HOLD_S, RAMP_S, RECORD,
+                             RECOVER_S, REJOIN_S, SERVO_HZ, STALE_S, STATE,
+                             InstructorState, TissueLog, check_tissue_version,
+                             pack_state, session_info, tissue_snapshot, unpack_state)
 from .tutor_law import link_gain, tutor_force
 from .tutor_server import Streamer, TutorServer
 from .tutor_sources import NetworkSource, RecordingSource, Source
 from .tutor_trainee import Trainee, warmup
 
 __all__ = ["ACK", "CLIENT_TIMEOUT_S", "DEFAULT_PORT", "FLAG_NACK", "JOIN_RETRY_S",
-           "KEEPALIVE_S", "KIND_STATE", "KP_N_PER_MM", "LOSS_S", "MAX_REMOVALS",
-           "NACK_HOLD_S", "RAMP_S", "RECOVER_S", "REJOIN_S", "REMOVAL_BYTES",
-           "RESET_IJK", "SERVO_HZ", "STALE_S", "STATE", "InstructorState", "RemovalLog",
-           "pack_state", "removed_voxels", "session_info", "unpack_state", "link_gain",
+           "KEEPALIVE_S", "KIND_STATE", "KP_N_PER_MM", "LOSS_S", "MAX_BURST", "MAX_EVENTS",
+           "NACK_HOLD_S", "RAMP_S", "RECORD", "RECOVER_S", "REJOIN_S", "SERVO_HZ",
+           "STALE_S", "STATE", "InstructorState", "TissueLog", "check_tissue_version",
+           "pack_state", "session_info", "tissue_snapshot", "unpack_state", "link_gain",
            "tutor_force", "Streamer", "TutorServer", "NetworkSource",
            "RecordingSource", "Source", "Trainee", "warmup"]

@@ -121,7 +121,7 @@ def _serve_headless(args, key: bytes, traj) -> int:
     rx = final.get("received", {})
     _print(out, args.json, [
         f"served case {model.name} on {args.host}:{server.port} for {out['duration_s']} s: "
-        f"{final.get('sent', 0)} packets, {final.get('removals_sent', 0)} removals sent, "
+        f"{final.get('sent', 0)} packets, {final.get('events_sent', 0)} tissue events sent, "
         f"{final.get('go_backs', 0)} go-backs, {final.get('joins', 0)} join(s)",
         "dropped: " + (", ".join(f"{k} {v}" for k, v in rx.items()
                                   if k != "accepted" and v) or "none"),
@@ -138,7 +138,7 @@ def _trainee_lines(s: dict) -> list:
         + (", ".join(f"{k} {v}" for k, v in pk.items() if k != "accepted" and v) or "none"),
         f"latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms; tracking error p50 "
         f"{err.get('p50')} mm, p99 {err.get('p99')} mm",
-        f"removals applied {s.get('removals_applied', 0)}; link lost "
+        f"tissue events applied {s.get('events_applied', 0)}; link lost "
         f"{s['link_lost_events']} time(s); {s['hud']}"]
 
 

@@ -1,5 +1,5 @@
 """Haptic tutoring's constants and wire format: the instructor state on the wire,
-the removal log, the session description.
+the tissue-event log, the session description.
 
 Wire protocol (packets of :mod:`bonesim.net`)
 ---------------------------------------------
@@ -7,23 +7,40 @@ Wire protocol (packets of :mod:`bonesim.net`)
    own nonce) every :data:`JOIN_RETRY_S` until welcomed.
 2. The server answers ``WELCOME`` (nonce = the trainee's) whose payload is
    the server's nonce for this trainee (u64) and a JSON description of the
-   session (case, burrs, grid size). A replayed JOIN therefore earns at most
-   one small WELCOME: streaming starts only after
+   session (case, burrs, grid size, ``tissue_version``: the version of the
+   tissue-event record it streams, :data:`bonesim.events.TISSUE_EVENT_VERSION`).
+   A replayed JOIN therefore earns at most one small WELCOME: streaming
+   starts only after
 3. the trainee's first ``ACK`` carrying the server's nonce. The trainee keeps
    ACKing every :data:`KEEPALIVE_S`; the server forgets a trainee that is
    silent for :data:`CLIENT_TIMEOUT_S`.
 4. The server sends one ``STATE`` packet (:data:`KIND_STATE`) per haptic
    sample to every trainee: the latest sample's pose, force and drill state
-   (:data:`STATE`), then up to :data:`MAX_REMOVALS` voxel removals.
+   and the record version (:data:`STATE`), then up to :data:`MAX_EVENTS`
+   tissue events (:data:`RECORD`: the columns of
+   :data:`bonesim.events.TISSUE_FIELDS`, packed, little-endian). A trainee
+   behind by more than one packet gets up to :data:`MAX_BURST` packets a
+   sample until it has caught up.
 
-Voxel removals must all arrive. The server keeps the current epoch's removals
-in a log (an epoch starts at a case reset; the log of a server started
-mid-session begins with a snapshot of the voxels already gone). Every STATE
-packet names the log index of its first removal and the log's length; the
-trainee applies only the next contiguous removals and, seeing a gap, sends
-an ACK flagged :data:`FLAG_NACK` with the count it holds. The server then
-resends from that index (go-back-N). A new epoch, or a new server, restarts
-the log and the trainee's replica.
+The tissue travels as the one tissue-event stream (:mod:`bonesim.events`):
+removals, contacts and injuries, resets, burr changes, body splits and
+poses. Every event must arrive, in order. The server keeps the current
+epoch's events in a :class:`TissueLog` that always begins with a ``RESET``
+record: a ``RESET`` in the haptic loop's stream starts a new log (and a new
+epoch, the reset's ``n``), and the log of a server started mid-session begins
+with a snapshot of the tissue (:func:`tissue_snapshot`: a ``RESET``, the
+splits and poses of the bodies, the voxels already removed). Applying a log
+from index 0 to a :class:`~bonesim.replica.TissueReplica` of the case gives
+the instructor's tissue. Every STATE packet names its log's epoch, the log
+index of its first event and the log's length; the trainee applies only the
+next contiguous events and, seeing a gap, sends an ACK flagged
+:data:`FLAG_NACK` with the count it holds. The server then resends from that
+index (go-back-N). A new epoch, or a new server, restarts the count; the
+log's leading ``RESET`` restarts the trainee's replica.
+
+A trainee refuses a record version it does not know: a WELCOME announcing
+another ``tissue_version`` and a STATE packet carrying another version
+raise :class:`~bonesim.errors.BonesimError` naming the packet.
 
 Every datagram is authenticated and checked (nonce, sequence, staleness) by
 :class:`bonesim.net.Inbox`; anything else is dropped and counted, and
@@ -36,13 +53,14 @@ import struct
 
 import numpy as np
 
-from . import net
+from . import events, net
+from .bodies import IDENTITY_POSE
 
 __all__ = ["KP_N_PER_MM", "LOSS_S", "RAMP_S", "RECOVER_S", "SERVO_HZ", "DEFAULT_PORT",
            "STALE_S", "JOIN_RETRY_S", "KEEPALIVE_S", "NACK_HOLD_S", "REJOIN_S",
-           "CLIENT_TIMEOUT_S", "KIND_STATE", "FLAG_NACK", "STATE", "REMOVAL_BYTES",
-           "MAX_REMOVALS", "ACK", "RESET_IJK", "InstructorState", "pack_state",
-           "unpack_state", "RemovalLog", "removed_voxels", "session_info"]
+           "CLIENT_TIMEOUT_S", "KIND_STATE", "FLAG_NACK", "STATE", "RECORD", "MAX_EVENTS",
+           "MAX_BURST", "ACK", "InstructorState", "pack_state", "unpack_state",
+           "check_tissue_version", "TissueLog", "tissue_snapshot", "session_info"]
 
 # ----------------------------------------------------------------- constants
 #: Controller spring K_p [N/mm]. Half the stable stiffness of a 3D Systems
@@ -83,22 +101,27 @@ CLIENT_TIMEOUT_S = 2.0
 
 #: Tutoring's data packet kind (services number their kinds from 16).
 KIND_STATE = 16
-#: ACK flag: the trainee found a gap in the removals (go back).
+#: ACK flag: the trainee found a gap in the tissue events (go back).
 FLAG_NACK = 1
 
 #: STATE payload, fixed part: sample time [s], tool centre [mm] (3), axis (3),
 #: force sent to the instructor's device [N] (3), speed [rpm], normal force
-#: magnitude [N], immersed volume [mm^3], epoch, buttons, drill, direction,
-#: burr, (pad), removal log length, first removal's log index, removals here.
+#: magnitude [N], immersed volume [mm^3], the log's epoch, buttons, drill,
+#: direction, burr, tissue-event record version, log length, first event's
+#: log index, events here.
 STATE = struct.Struct("<d3d3d3ddddiIBbBBQQH")
-#: One removal on the wire: voxel (i, j, k) as int32.
-REMOVAL_BYTES = 12
-#: Removals that fit in one STATE packet.
-MAX_REMOVALS = (net.MAX_PAYLOAD - STATE.size) // REMOVAL_BYTES
-#: ACK payload: removals held (u64), epoch (i32).
+#: One tissue event on the wire: :data:`bonesim.events.TISSUE_FIELDS`,
+#: packed, little-endian (83 bytes), of record version
+#: :data:`bonesim.events.TISSUE_EVENT_VERSION`.
+RECORD = np.dtype([(name, np.dtype(dt).newbyteorder("<"), shape)
+                   for name, (dt, shape) in events.TISSUE_FIELDS.items()])
+#: Tissue events that fit in one STATE packet.
+MAX_EVENTS = (net.MAX_PAYLOAD - STATE.size) // RECORD.itemsize
+#: STATE packets a trainee behind the log gets per sample (catching up on a
+#: late join's snapshot at up to ``MAX_BURST * MAX_EVENTS`` events per ms).
+MAX_BURST = 4
+#: ACK payload: log events held (u64), the log's epoch (i32).
 ACK = struct.Struct("<Qi")
-#: A :attr:`Source.changes` row saying "back to the initial tissue".
-RESET_IJK = np.full((1, 3), -1, dtype=np.int32)
 
 
 # ------------------------------------------------------------ instructor state
@@ -112,7 +135,10 @@ class InstructorState:
     pos_mm, axis, force_n : (3,) float64
         Tool centre [mm], drill axis, force on the instructor's device [N].
     speed_rpm, mag_n, volume_mm3 : float
-    epoch, buttons, drill, direction, burr : int
+    epoch : int
+        The epoch of the tissue-event log the sample came with (the last
+        ``RESET`` of the instructor's tissue stream).
+    buttons, drill, direction, burr : int
     valid : bool
         A sample has been received.
     """
@@ -134,20 +160,57 @@ class InstructorState:
 
 
 def pack_state(buf, t_s, pos, axis, force, speed, mag, volume, epoch, buttons, drill,
-               direction, burr, log_len, first, ijk) -> int:
+               direction, burr, log_len, first, records) -> int:
     """Write a STATE payload into ``buf``; returns its length [bytes].
 
-    ``ijk`` is a (k, 3) int32 array of removals (k <= :data:`MAX_REMOVALS`)
-    starting at log index ``first``.
+    Parameters
+    ----------
+    buf : bytearray
+        At least :data:`bonesim.net.MAX_PAYLOAD` bytes.
+    t_s : float
+        Sample time [s].
+    pos, axis, force : (3,) float
+        Tool centre [mm], drill axis, force on the instructor's device [N].
+    speed, mag, volume : float
+        Drill speed [rpm], normal force magnitude [N], immersed volume [mm^3].
+    epoch, buttons, drill, direction, burr : int
+        The log's epoch and the sample's buttons, drill, direction and burr.
+    log_len, first : int
+        The log's length and the log index of ``records[0]``.
+    records : ndarray of :data:`RECORD`
+        At most :data:`MAX_EVENTS` tissue events.
     """
-    k = len(ijk)
+    k = len(records)
     STATE.pack_into(buf, 0, t_s, pos[0], pos[1], pos[2], axis[0], axis[1], axis[2],
                     force[0], force[1], force[2], speed, mag, volume, epoch, buttons,
-                    drill, direction, burr, 0, log_len, first, k)
-    end = STATE.size + k * REMOVAL_BYTES
+                    drill, direction, burr, events.TISSUE_EVENT_VERSION, log_len, first, k)
+    end = STATE.size + k * RECORD.itemsize
     if k:
-        buf[STATE.size:end] = np.ascontiguousarray(ijk, dtype="<i4").data.cast("B")
+        buf[STATE.size:end] = net.pack_records(records)
     return end
+
+
+def check_tissue_version(version, packet: str) -> None:
+    """Refuse a tissue-event record version this side does not know.
+
+    Parameters
+    ----------
+    version : int or None
+        The version a packet announces (None: it announces none).
+    packet : str
+        The packet, for the message (``"STATE"``, ``"WELCOME"``).
+
+    Raises
+    ------
+    bonesim.net.PacketError
+        ``version``, naming the packet and both versions.
+    """
+    if version != events.TISSUE_EVENT_VERSION:
+        said = "no version" if version is None else f"version {version}"
+        raise net.PacketError(
+            "version", f"the instructor's {packet} packet carries tissue-event records of "
+                       f"{said}; this trainee reads version {events.TISSUE_EVENT_VERSION} "
+                       "(run the same bonesim release on both machines)")
 
 
 def unpack_state(payload, st: InstructorState):
@@ -156,22 +219,25 @@ def unpack_state(payload, st: InstructorState):
     Returns
     -------
     log_len, first : int
-    ijk : (k, 3) int32
-        The removals carried (a read-only view of ``payload``).
+    records : ndarray of :data:`RECORD`
+        The tissue events carried (a read-only view of ``payload``).
 
     Raises
     ------
     bonesim.net.PacketError
-        ``length`` if the payload size disagrees with its removal count.
+        ``version`` if the records are of another version
+        (:func:`check_tissue_version`), ``length`` if the payload size
+        disagrees with its event count or carries a non-finite number.
     """
     if len(payload) < STATE.size:
         raise net.PacketError("length", f"STATE payload of {len(payload)} bytes, the fixed "
                                         f"part alone is {STATE.size}")
     (t, px, py, pz, ax, ay, az, fx, fy, fz, speed, mag, vol, epoch, buttons, drill,
-     direction, burr, _, log_len, first, k) = STATE.unpack_from(payload, 0)
-    if len(payload) != STATE.size + k * REMOVAL_BYTES:
-        raise net.PacketError("length", f"STATE says {k} removals, the payload holds "
-                                        f"{(len(payload) - STATE.size) / REMOVAL_BYTES:g}")
+     direction, burr, version, log_len, first, k) = STATE.unpack_from(payload, 0)
+    check_tissue_version(version, "STATE")
+    if len(payload) != STATE.size + k * RECORD.itemsize:
+        raise net.PacketError("length", f"STATE says {k} tissue events, the payload holds "
+                                        f"{(len(payload) - STATE.size) / RECORD.itemsize:g}")
     vals = (t, px, py, pz, ax, ay, az, fx, fy, fz, speed, mag, vol)
     if not all(math.isfinite(v) for v in vals):
         raise net.PacketError("length", "STATE carries a non-finite number")
@@ -184,36 +250,57 @@ def unpack_state(payload, st: InstructorState):
     st.epoch, st.buttons, st.drill, st.direction, st.burr = epoch, buttons, drill, \
         direction, burr
     st.valid = True
-    ijk = np.frombuffer(payload, dtype="<i4", count=3 * k, offset=STATE.size).reshape(k, 3)
-    return log_len, first, ijk
+    records = net.unpack_records(memoryview(payload)[STATE.size:], RECORD, "STATE")
+    return log_len, first, records
 
 
-class RemovalLog:
-    """The current epoch's removals, indexed from 0, growing (server side)."""
+class TissueLog:
+    """The current epoch's tissue events, from its ``RESET`` on, indexed from
+    0, growing (server side).
+
+    Attributes
+    ----------
+    rec : ndarray of :data:`RECORD`
+        Storage; ``rec[:n]`` is the log.
+    n : int
+        Events logged.
+    """
 
     def __init__(self, capacity: int = 1 << 14):
-        self.ijk = np.zeros((capacity, 3), np.int32)
+        self.rec = np.zeros(capacity, RECORD)
         self.n = 0
+
+    @property
+    def epoch(self) -> int:
+        """The epoch the log's leading ``RESET`` names (-1 while empty)."""
+        return int(self.rec["n"][0]) if self.n else -1
 
     def clear(self) -> None:
         self.n = 0
 
-    def extend(self, ijk) -> None:
-        k = len(ijk)
-        if self.n + k > len(self.ijk):
-            cap = len(self.ijk)
+    def extend(self, ev: dict) -> None:
+        """Append tissue events given column-wise
+        (:data:`bonesim.events.TISSUE_FIELDS`)."""
+        k = len(ev["kind"])
+        if self.n + k > len(self.rec):
+            cap = len(self.rec)
             while cap < self.n + k:
                 cap *= 2
-            grown = np.zeros((cap, 3), np.int32)
-            grown[:self.n] = self.ijk[:self.n]
-            self.ijk = grown
-        self.ijk[self.n:self.n + k] = ijk
+            grown = np.zeros(cap, RECORD)
+            grown[:self.n] = self.rec[:self.n]
+            self.rec = grown
+        for f in events.TISSUE_FIELDS:
+            self.rec[f][self.n:self.n + k] = ev[f]
         self.n += k
 
+    def columns(self, start: int = 0, stop: int | None = None) -> dict:
+        """Events ``start .. stop-1`` column-wise (copies)."""
+        part = self.rec[start:self.n if stop is None else stop]
+        return {f: part[f].copy() for f in events.TISSUE_FIELDS}
 
-def removed_voxels(initial_density, density, bricks) -> np.ndarray:
-    """Voxels present initially and gone now, as (n, 3) int32."""
-    b, o = np.nonzero((initial_density > 0) & (density <= 0))
+
+def _voxels(bricks, b, o) -> np.ndarray:
+    """Voxel indices (n, 3) int32 of brick rows ``b`` and in-brick offsets ``o``."""
     out = np.empty((len(b), 3), np.int32)
     out[:, 0] = bricks[b, 0] * 8 + (o >> 6)
     out[:, 1] = bricks[b, 1] * 8 + ((o >> 3) & 7)
@@ -221,10 +308,86 @@ def removed_voxels(initial_density, density, bricks) -> np.ndarray:
     return out
 
 
+def tissue_snapshot(initial_density, label, bricks, density, body, pose, alive,
+                    epoch: int = 0, t_s: float = 0.0) -> dict:
+    """The tissue events that turn the initial tissue into a live one.
+
+    A ``RESET`` (``n`` = ``epoch``), then per body other than 0 one ``SPLIT``
+    block of its voxels that held material initially (split from body 0,
+    which holds every voxel after a reset), a ``POSE`` for every body so
+    created and for body 0 when it is not at the identity, and a ``REMOVED``
+    record for every voxel present initially and gone now. A
+    :class:`~bonesim.replica.TissueReplica` that applies them holds the live
+    tissue's occupancy, body ids and poses. A body left with no voxel that
+    ever held material cannot be split off and is not created.
+
+    Parameters
+    ----------
+    initial_density, density : (n_bricks, 512) float32
+        The case's initial and the live tissue density.
+    label : (n_bricks, 512) uint8
+        Structure label per voxel (the removals' labels).
+    bricks : (n_bricks, 3) int
+        Brick coordinates [bricks].
+    body : (n_bricks, 512) uint8
+        Live body id per voxel.
+    pose : (max_bodies, 7) float64
+        Live body poses ``(tx, ty, tz [mm], qw, qx, qy, qz)``.
+    alive : (max_bodies,) uint8
+        Live bodies.
+    epoch : int
+        The epoch the ``RESET`` names.
+    t_s : float
+        The events' time [s].
+
+    Returns
+    -------
+    dict of str -> ndarray
+        Tissue-event columns (:data:`bonesim.events.TISSUE_FIELDS`).
+    """
+    held = np.asarray(initial_density) > 0
+    parts = [events.empty_events(1)]
+    parts[0]["kind"][0] = events.RESET
+    parts[0]["n"][0] = epoch
+    made = [0]
+    bod = np.asarray(body)
+    for b in np.unique(bod[held]):
+        if b == 0 or not alive[b]:
+            continue
+        bb, oo = np.nonzero(held & (bod == b))
+        ev = events.empty_events(len(bb))
+        ev["kind"][:] = events.SPLIT
+        ev["body"][:] = b
+        ev["ijk"][:] = _voxels(bricks, bb, oo)
+        ev["n"][:] = len(bb)
+        parts.append(ev)
+        made.append(int(b))
+    for b in made:
+        if b == 0 and tuple(float(v) for v in pose[0]) == IDENTITY_POSE:
+            continue
+        ev = events.empty_events(1)
+        ev["kind"][0] = events.POSE
+        ev["body"][0] = b
+        ev["value"][0] = pose[b]
+        parts.append(ev)
+    bb, oo = np.nonzero(held & (np.asarray(density) <= 0))
+    ev = events.empty_events(len(bb))
+    ev["kind"][:] = events.REMOVED
+    ev["body"][:] = bod[bb, oo]
+    ev["label"][:] = np.asarray(label)[bb, oo]
+    ev["ijk"][:] = _voxels(bricks, bb, oo)
+    parts.append(ev)
+    out = events.concat(parts)
+    out["t_s"][:] = t_s
+    return out
+
+
 def session_info(model, burrs=()) -> dict:
-    """What a trainee needs to rebuild the instructor's tissue (WELCOME)."""
+    """What a trainee needs to rebuild the instructor's tissue (WELCOME),
+    with the tissue-event record version the server streams."""
     case = model.case
     return {"case": getattr(case, "name", model.name),
+            "tissue_version": events.TISSUE_EVENT_VERSION,
             "case_path": str(getattr(case, "manifest", "")) or None,
             "burrs": [model.burr.name] + [b.name for b in burrs],
             "n_bricks": int(model.grid.n_bricks),

@@ -1,5 +1,5 @@
 """The instructor's side of haptic tutoring: the :class:`Streamer` that turns
-the haptic loop's samples and removals into STATE packets, and the
+the haptic loop's samples and tissue events into STATE packets, and the
 :class:`TutorServer` process that serves them to trainees."""
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from . import events, net
 from .child import ChildProcess
 from .net import udp_socket
 from .tutor_protocol import (ACK, CLIENT_TIMEOUT_S, DEFAULT_PORT, FLAG_NACK, KIND_STATE,
-                             MAX_REMOVALS, SERVO_HZ, STALE_S, RemovalLog, pack_state,
-                             removed_voxels, session_info)
+                             MAX_BURST, MAX_EVENTS, SERVO_HZ, STALE_S, TissueLog, pack_state,
+                             session_info, tissue_snapshot)
 
 __all__ = ["Streamer", "STATUS_EVERY_TICKS", "TutorServer"]
 
@@ -22,9 +22,14 @@ __all__ = ["Streamer", "STATUS_EVERY_TICKS", "TutorServer"]
 class Streamer:
     """The instructor side of tutoring, one :meth:`tick` at a time.
 
-    It reads the haptic loop's ``samples`` and ``removed`` rings (in shared
-    memory when run by :class:`TutorServer`), answers JOINs and ACKs, and
-    sends each streaming trainee a STATE packet per new sample.
+    It reads the haptic loop's ``samples`` and ``tissue`` rings (in shared
+    memory when run by :class:`TutorServer`), keeps the current epoch's
+    tissue events in a :class:`~bonesim.tutor_protocol.TissueLog` (every kind:
+    removals, contacts and injuries, resets, burr changes, splits, poses),
+    answers JOINs and ACKs, and sends each streaming trainee a STATE packet
+    per new sample (more while it is behind the log, see
+    :data:`~bonesim.tutor_protocol.MAX_BURST`). A ``RESET`` in the stream
+    starts a new log; the samples' ``epoch`` column is not read.
 
     Parameters
     ----------
@@ -32,30 +37,38 @@ class Streamer:
         Bound, non-blocking UDP socket (anything with ``sendto`` and
         ``recvfrom_into``).
     key : bytes
-    samples, removed : events.Ring
-        The loop's rings.
+    samples, tissue : events.Ring
+        The loop's rings; the tissue ring is read from its current count on.
     info : dict
         Session description sent in WELCOME (:func:`session_info`).
-    density, initial_density, bricks : ndarray, optional
-        Live and initial tissue density and the brick coordinates: with them
-        the log starts with the voxels already removed when the server
-        starts (a server started mid-session).
+    snapshot : dict or callable, optional
+        Tissue events that bring the case's initial tissue to the live one
+        now, beginning with a ``RESET``
+        (:func:`~bonesim.tutor_protocol.tissue_snapshot`): the log of a
+        server started mid-session. A callable returning them is called
+        after the tissue ring's cursor is set, so that what the loop changes
+        meanwhile is logged after the snapshot (a replica applies an event
+        the snapshot already shows harmlessly). Default: a ``RESET`` of
+        epoch 0 alone (a server started with the loop).
 
     Attributes
     ----------
+    log : TissueLog
+    epoch : int
+        The log's epoch (its leading ``RESET``'s ``n``).
     counters : dict
-        ``sent``, ``removals_sent``, ``nacks``, ``go_backs`` and the
-        session's ``joins``, ``welcomes``, ``send_errors``, ``peers_dropped``
+        ``sent``, ``events_sent``, ``nacks``, ``go_backs`` and the session's
+        ``joins``, ``welcomes``, ``send_errors``, ``peers_dropped``
         (:class:`bonesim.net.SessionServer`); :attr:`rx` holds the received
         datagrams by outcome.
     """
 
     def __init__(self, sock, key: bytes, samples: events.Ring, tissue: events.Ring,
-                 info: dict, density=None, initial_density=None, bricks=None):
+                 info: dict, snapshot=None):
         self.samples = samples
         self.tissue = tissue
-        self.log = RemovalLog()
-        self.counters = dict.fromkeys(("sent", "removals_sent", "nacks", "go_backs"), 0)
+        self.log = TissueLog()
+        self.counters = dict.fromkeys(("sent", "events_sent", "nacks", "go_backs"), 0)
         self.session = net.SessionServer(sock, key, info, stale_s=STALE_S,
                                          timeout_s=CLIENT_TIMEOUT_S, counters=self.counters,
                                          make_peer=self._new_trainee)
@@ -64,17 +77,22 @@ class Streamer:
         self._smask = samples.capacity - 1
         n = samples.count
         self.s_pos = n
-        self.epoch = int(self._sf["epoch"][(n - 1) & self._smask]) if n else 0
         self.t_done = float(self._sf["t_s"][(n - 1) & self._smask]) if n else -math.inf
-        # cursor first, then the snapshot (re-listing a voxel is harmless)
-        self.r_pos = tissue.count
-        if density is not None:
-            self.log.extend(removed_voxels(initial_density, density, bricks))
+        self.r_pos = tissue.count              # cursor first, then the snapshot
+        if callable(snapshot):
+            snapshot = snapshot()
+        if snapshot is None:
+            snapshot = events.empty_events(1)
+            snapshot["kind"][0] = events.RESET
+        if len(snapshot["kind"]) == 0 or snapshot["kind"][0] != events.RESET:
+            raise ValueError("a tutoring snapshot begins with a RESET event")
+        self.epoch = 0
+        self._take(snapshot)
 
     @staticmethod
     def _new_trainee(peer) -> None:
         peer.send_from = 0                     # next log index to send it
-        peer.acked = 0                         # removals it holds
+        peer.acked = 0                         # events it holds
         peer.last_sent_sample = -1
 
     @property
@@ -88,36 +106,33 @@ class Streamer:
         return self.session.rx
 
     # ------------------------------------------------------------- inputs
-    def _pump(self) -> None:
-        """Take the samples and removals published since the last call."""
-        n = self.samples.count
-        if n == self.s_pos:
-            return
-        start = max(self.s_pos, n - self.samples.capacity + 1)
-        ep = self._sf["epoch"]
-        idx = np.arange(start, n) & self._smask
-        epochs = ep[idx]
-        t_new = self._sf["t_s"][idx]
-        t_last = float(t_new[-1])
-        boundary = -math.inf
-        changed = np.flatnonzero(epochs != np.concatenate(([self.epoch], epochs[:-1])))
-        if len(changed):                         # a case reset: new log
-            boundary = float(t_new[changed[-1]])
-            self.epoch = int(epochs[-1])
+    def _take(self, ev: dict) -> None:
+        """Log tissue events; from the last ``RESET`` among them, a new log."""
+        resets = np.flatnonzero(ev["kind"] == events.RESET)
+        if len(resets):
+            r = int(resets[-1])
+            ev = {f: a[r:] for f, a in ev.items()}
             self.log.clear()
+            self.epoch = int(ev["n"][0])
             for c in self.clients.values():
                 c.send_from = 0
                 c.acked = 0
-        # removals of completed steps only (their sample is out): t <= t_last
+        if len(ev["kind"]):
+            self.log.extend(ev)
+
+    def _pump(self) -> None:
+        """Take the samples and tissue events published since the last call."""
+        n = self.samples.count
+        if n == self.s_pos:
+            return
+        t_last = float(self._sf["t_s"][(n - 1) & self._smask])
+        # events of completed steps only (their sample is out): t <= t_last
         r_n = self.tissue.count
         if r_n > self.r_pos:
             rec = self.tissue.read(self.r_pos, r_n)
-            t = rec["t_s"]
-            done = int(np.searchsorted(t, t_last, side="right"))
-            first = int(np.searchsorted(t[:done], boundary, side="left"))
-            if done > first:
-                part = {k: a[first:done] for k, a in rec.items()}
-                self.log.extend(events.removals(part)["ijk"])
+            done = int(np.searchsorted(rec["t_s"], t_last, side="right"))
+            if done:
+                self._take({f: a[:done] for f, a in rec.items()})
             self.r_pos += done
         self.s_pos = n
         self.t_done = t_last
@@ -152,26 +167,31 @@ class Streamer:
             return 0
         q = (head - 1) & self._smask
         f = self._sf
+        log = self.log
         sent = 0
         for c in self.session.expire(now):
             if not c.streaming:
                 continue
-            pending = self.log.n - c.send_from
+            pending = log.n - c.send_from
             if head == c.last_sent_sample and pending <= 0:
                 continue
-            k = min(max(pending, 0), MAX_REMOVALS)
-            n = pack_state(self._pbuf, f["t_s"][q], f["pos_mm"][q], f["axis"][q],
-                           f["force_n"][q], f["speed_rpm"][q], f["mag_n"][q],
-                           f["volume_mm3"][q], self.epoch, int(f["buttons"][q]),
-                           int(f["drill"][q]), int(f["direction"][q]), int(f["burr"][q]),
-                           self.log.n, c.send_from,
-                           self.log.ijk[c.send_from:c.send_from + k])
-            self.session.send(c, KIND_STATE, memoryview(self._pbuf)[:n])
-            c.send_from += k
+            for _ in range(MAX_BURST):
+                k = min(max(pending, 0), MAX_EVENTS)
+                a = c.send_from
+                n = pack_state(self._pbuf, f["t_s"][q], f["pos_mm"][q], f["axis"][q],
+                               f["force_n"][q], f["speed_rpm"][q], f["mag_n"][q],
+                               f["volume_mm3"][q], self.epoch, int(f["buttons"][q]),
+                               int(f["drill"][q]), int(f["direction"][q]),
+                               int(f["burr"][q]), log.n, a, log.rec[a:a + k])
+                self.session.send(c, KIND_STATE, memoryview(self._pbuf)[:n])
+                c.send_from += k
+                pending -= k
+                self.counters["sent"] += 1
+                self.counters["events_sent"] += k
+                sent += 1
+                if pending <= 0:
+                    break
             c.last_sent_sample = head
-            self.counters["sent"] += 1
-            self.counters["removals_sent"] += k
-            sent += 1
         return sent
 
     def bye(self) -> None:
@@ -181,7 +201,7 @@ class Streamer:
     def stats(self) -> dict:
         return {**self.counters, "received": dict(self.rx), "clients": len(self.clients),
                 "streaming": sum(c.streaming for c in self.clients.values()),
-                "log_removals": self.log.n, "epoch": self.epoch}
+                "log_events": self.log.n, "epoch": self.epoch}
 
 
 # server process ------------------------------------------------------------
@@ -189,8 +209,21 @@ class Streamer:
 STATUS_EVERY_TICKS = 64
 
 
+def _snapshot_of(arrays: dict, samples: events.Ring, initial_density, label,
+                 bricks) -> dict:
+    """The live tissue in the loop's shared ``arrays`` as snapshot events,
+    stamped with the latest sample's time and epoch (the epoch only names
+    the snapshot's ``RESET``; later resets come as events)."""
+    n = samples.count
+    q = (n - 1) & (samples.capacity - 1)
+    epoch = int(samples.fields["epoch"][q]) if n else 0
+    t_s = float(samples.fields["t_s"][q]) if n else 0.0
+    return tissue_snapshot(initial_density, label, bricks, arrays["density"],
+                           arrays["body"], arrays["pose"], arrays["alive"], epoch, t_s)
+
+
 def _run_server(child, loop_handle, host, port, key, rate_hz, info, initial_density,
-                bricks) -> None:
+                label, bricks) -> None:
     """Body of the server process: attach to the loop, stream until told to quit."""
     from .haptic_loop import attach
 
@@ -201,8 +234,8 @@ def _run_server(child, loop_handle, host, port, key, rate_hz, info, initial_dens
     try:
         sock = udp_socket(host, port)          # a BonesimError here reaches start()
         streamer = Streamer(sock, key, rings["samples"], rings["tissue"], info,
-                            density=sh.arrays["density"], initial_density=initial_density,
-                            bricks=bricks)
+                            snapshot=lambda: _snapshot_of(sh.arrays, rings["samples"],
+                                                          initial_density, label, bricks))
         status["port"] = sock.getsockname()[1]
         child.ready()
         period = 1.0 / rate_hz
@@ -216,10 +249,10 @@ def _run_server(child, loop_handle, host, port, key, rate_hz, info, initial_dens
                 c = streamer.counters
                 status["clients"] = len(streamer.clients)
                 status["sent"] = c["sent"]
-                status["removals_sent"] = c["removals_sent"]
+                status["events_sent"] = c["events_sent"]
                 status["nacks"] = c["nacks"]
                 status["go_backs"] = c["go_backs"]
-                status["log_removals"] = streamer.log.n
+                status["log_events"] = streamer.log.n
                 status["ticks"] = ticks
             deadline += period
             rest = deadline - clock()
@@ -264,8 +297,8 @@ class TutorServer(ChildProcess):
 
     NAME = "bonesim-tutor-server"
     STATUS = (("port", np.int64), ("clients", np.int64), ("sent", np.int64),
-              ("removals_sent", np.int64), ("nacks", np.int64), ("go_backs", np.int64),
-              ("log_removals", np.int64), ("ticks", np.int64))
+              ("events_sent", np.int64), ("nacks", np.int64), ("go_backs", np.int64),
+              ("log_events", np.int64), ("ticks", np.int64))
     START_TIMEOUT_S = 30.0
 
     def __init__(self, loop, key: bytes, host: str = "0.0.0.0", port: int = DEFAULT_PORT,
@@ -285,6 +318,7 @@ class TutorServer(ChildProcess):
                 "key": self.key, "rate_hz": self.rate_hz,
                 "info": session_info(model, burrs),
                 "initial_density": np.asarray(model.grid.density),
+                "label": np.asarray(model.grid.label),
                 "bricks": np.asarray(model.grid.bricks)}
 
     @classmethod
@@ -307,8 +341,8 @@ class TutorServer(ChildProcess):
     def figures(self) -> dict:
         """Live figures (refreshed every :data:`STATUS_EVERY_TICKS` ticks)."""
         s = self.status
-        return {k: int(s[k]) for k in ("clients", "sent", "removals_sent", "nacks",
-                                        "go_backs", "log_removals", "ticks")}
+        return {k: int(s[k]) for k in ("clients", "sent", "events_sent", "nacks",
+                                        "go_backs", "log_events", "ticks")}
 
     def stop(self, timeout_s: float = 5.0) -> dict:
         """Say BYE to the trainees, stop the process; returns its final stats."""

@@ -1,6 +1,13 @@
 """Where a trainee's instructor state comes from: a live :class:`NetworkSource`
 (an instructor's server over UDP) or a :class:`RecordingSource` (a recorded
-session: haptic playback)."""
+session: haptic playback).
+
+Either keeps the trainee's copy of the instructor's tissue in one
+:class:`~bonesim.replica.TissueReplica`, changed only by the tissue-event
+stream (:mod:`bonesim.events`): the server's log, or the session file's
+``tissue`` table. Resets, splits and poses arrive as events like the
+removals; the replica's reset handling is the only one.
+"""
 from __future__ import annotations
 
 import math
@@ -8,11 +15,12 @@ import time
 
 import numpy as np
 
-from . import net
+from . import events, net
 from .errors import BonesimError
+from .replica import TissueReplica
 from .tutor_protocol import (ACK, FLAG_NACK, JOIN_RETRY_S, KEEPALIVE_S, KIND_STATE,
-                             NACK_HOLD_S, REJOIN_S, RESET_IJK, STALE_S, InstructorState,
-                             unpack_state)
+                             NACK_HOLD_S, REJOIN_S, STALE_S, InstructorState,
+                             check_tissue_version, unpack_state)
 
 __all__ = ["Source", "NetworkSource", "RecordingSource"]
 
@@ -25,22 +33,29 @@ class Source:
     ----------
     state : InstructorState
         The latest instructor sample.
-    grid : Grid or None
-        The trainee's replica of the instructor's tissue.
+    replica : TissueReplica or None
+        The trainee's copy of the instructor's tissue (None until the case
+        is known).
     last_valid_s : float
         Trainee clock of the last valid data [s] (NaN before any).
     lost_text : str
         HUD text while the source is silent.
     changes : events.Ring or None
-        Set it to a ring with an ``ijk`` (int32 (3,)) column to have every
-        change to :attr:`grid` published in order, for a display in another
-        process (:mod:`bonesim.trainee`): the voxels each applied removal
-        emptied, and a row of :data:`RESET_IJK` whenever the replica went
-        back to the initial tissue (a case reset, a new session).
+        Set it to a tissue-event ring (:data:`bonesim.events.TISSUE_FIELDS`)
+        to have every event applied to :attr:`replica` published in order,
+        for a display in another process (:mod:`bonesim.trainee`) that keeps
+        its own replica. The events start with a ``RESET`` (the tissue the
+        source starts from).
     """
 
     lost_text = "LINK LOST"
     changes = None
+    replica = None
+
+    @property
+    def grid(self):
+        """The replica's grid (None until the case is known)."""
+        return None if self.replica is None else self.replica.grid
 
     def poll(self, now_s: float) -> None:
         """Take whatever arrived by ``now_s`` (trainee clock [s])."""
@@ -51,13 +66,13 @@ class Source:
         """No more data will come (the instructor said BYE, the recording ended)."""
         return False
 
-    def _publish(self, ijk) -> None:
-        if self.changes is not None and len(ijk):
-            self.changes.append(ijk=ijk)
-
-    def _publish_reset(self) -> None:
+    def _apply(self, ev: dict) -> None:
+        """Apply tissue events (columns) to the replica and publish them."""
+        if len(ev["kind"]) == 0:
+            return
+        self.replica.apply(ev)
         if self.changes is not None:
-            self.changes.append(ijk=RESET_IJK)
+            self.changes.append(**{f: ev[f] for f in events.TISSUE_FIELDS})
 
     def stats(self) -> dict:
         return {}
@@ -103,7 +118,7 @@ class NetworkSource(Source):
     port : int
     key : bytes
     model : Model, optional
-        The case the instructor drills (its grid is replicated). Default:
+        The case the instructor drills (its tissue is replicated). Default:
         loaded from the WELCOME's description (``case`` override by name or
         manifest path).
     sock : socket, optional
@@ -115,7 +130,9 @@ class NetworkSource(Source):
     Attributes
     ----------
     have : int
-        Removals of the current epoch applied to :attr:`grid`.
+        Events of the server's current log applied to :attr:`replica`.
+    epoch : int or None
+        The epoch of the log followed (None before the first STATE).
     welcomed : bool
     info : dict
         The instructor's session description (from WELCOME).
@@ -123,21 +140,20 @@ class NetworkSource(Source):
 
     def __init__(self, host: str, port: int, key: bytes, model=None, sock=None,
                  case: str | None = None):
-        self.counters = dict.fromkeys(("acks_sent", "nacks_sent", "removals_applied",
-                                       "removals_skipped", "resets", "states"), 0)
+        self.counters = dict.fromkeys(("acks_sent", "nacks_sent", "events_applied",
+                                       "events_skipped", "resets", "states"), 0)
         self.link = net.SessionClient(host, port, key, (KIND_STATE,), stale_s=STALE_S,
                                       join_retry_s=JOIN_RETRY_S, rejoin_s=REJOIN_S,
                                       sock=sock, what="instructor", counters=self.counters)
         self.model = model
         self.case = case
-        self.grid = None if model is None else model.grid.copy()
+        self.replica = None if model is None else TissueReplica(model)
         self.state = InstructorState()
         self.have = 0
         self.epoch = None
         self._last_ack = -math.inf
         self._nack_have = -1
         self._nack_at = -math.inf
-        self._empty = np.zeros((0, 3), np.int32)
         #: ``now - t_s`` of every STATE packet [s]: the one-way latency on one
         #: machine (shared monotonic clock); across machines it also holds the
         #: clocks' offset, and only its spread (``delay_over_fastest_ms``) means much.
@@ -176,6 +192,10 @@ class NetworkSource(Source):
     def _welcome(self, new: bool, now: float) -> None:
         if new:                                       # a new server session
             info = self.info
+            try:
+                check_tissue_version(info.get("tissue_version"), "WELCOME")
+            except net.PacketError as exc:
+                raise BonesimError(str(exc), field="HOST") from None
             if self.model is None:
                 self.model = self._load_model(info)
             if int(info.get("n_bricks", -1)) != self.model.grid.n_bricks:
@@ -184,7 +204,10 @@ class NetworkSource(Source):
                     f"{info.get('n_bricks')} bricks, this trainee's "
                     f"{self.model.name!r} has {self.model.grid.n_bricks}: not the same case",
                     field="--case")
-            self._reset_replica(None)
+            if self.replica is None:
+                self.replica = TissueReplica(self.model)
+            self.have = 0                  # the new log's leading RESET resets the replica
+            self.epoch = None
         self._ack(now, False)
 
     def _load_model(self, info: dict):
@@ -201,26 +224,22 @@ class NetworkSource(Source):
         except BonesimError:
             return load_model(src, "cutting-5mm")     # the burr matters only for display
 
-    def _reset_replica(self, epoch) -> None:
-        self.grid = self.model.grid.copy()
-        self.grid.density.flags.writeable = True
-        self.have = 0
-        self.epoch = epoch
-        self.counters["resets"] += 1
-        self._publish_reset()
-
     def _state(self, p, now: float) -> None:
-        from .grid import sync_replica
-
-        log_len, first, ijk = unpack_state(p.payload, self.state)
+        try:
+            log_len, first, rec = unpack_state(p.payload, self.state)
+        except net.PacketError as exc:
+            if exc.reason == "version":           # a stream this trainee cannot read
+                raise BonesimError(str(exc), field="HOST") from None
+            raise
         self.counters["states"] += 1
         self.link.last_valid_s = now
         self.latency.add(now - p.t_s)
-        if self.state.epoch != self.epoch:
-            self._reset_replica(self.state.epoch)
-        k = len(ijk)
+        if self.state.epoch != self.epoch:            # a new log (a reset): count from 0
+            self.epoch = self.state.epoch
+            self.have = 0
+        k = len(rec)
         if first > self.have:                         # a gap: ask to go back
-            self.counters["removals_skipped"] += k
+            self.counters["events_skipped"] += k
             if self.have != self._nack_have or now - self._nack_at > NACK_HOLD_S:
                 self._nack_have = self.have
                 self._nack_at = now
@@ -228,10 +247,16 @@ class NetworkSource(Source):
             return
         skip = self.have - first
         if skip < k:
-            sync_replica(self.grid, self.grid, ijk[skip:], self._empty)
-            self._publish(ijk[skip:])
+            new = rec[skip:]
+            ev = {f: new[f] for f in events.TISSUE_FIELDS}
+            try:
+                self._apply(ev)
+            except ValueError as exc:
+                raise BonesimError(f"the instructor's STATE packet carries a tissue event "
+                                   f"this trainee cannot apply: {exc}", field="HOST") from None
             self.have = first + k
-            self.counters["removals_applied"] += k - skip
+            self.counters["events_applied"] += k - skip
+            self.counters["resets"] += int(np.count_nonzero(ev["kind"] == events.RESET))
 
     @property
     def ended(self) -> bool:
@@ -239,6 +264,16 @@ class NetworkSource(Source):
         return self.counters["byes"] > 0
 
     def poll(self, now_s: float) -> None:
+        """Take whatever arrived by ``now_s`` (trainee clock [s]); join and
+        acknowledge as the protocol says.
+
+        Raises
+        ------
+        BonesimError
+            The instructor streams tissue-event records of a version this
+            trainee does not read (the message names the WELCOME or STATE
+            packet), or an event the replica cannot apply.
+        """
         for item in self.link.receive(now_s):
             try:
                 if isinstance(item, net.Welcome):
@@ -278,7 +313,7 @@ class NetworkSource(Source):
     def stats(self) -> dict:
         lat = self.latency.values()
         return {"packets": dict(self.inbox.counters), **self.counters,
-                "have_removals": self.have, "epoch": self.epoch,
+                "have_events": self.have, "epoch": self.epoch,
                 "latency_ms": _pcts_ms(lat),
                 "delay_over_fastest_ms": _pcts_ms(lat - lat.min() if len(lat) else lat)}
 
@@ -288,6 +323,15 @@ class NetworkSource(Source):
 
 class RecordingSource(Source):
     """A recorded session played back in real time (haptic playback).
+
+    The instructor's samples come from the session's ``samples`` (through a
+    :class:`~bonesim.playback.Timeline`), the tissue from its ``tissue``
+    event stream (schema 2; schema-1 files are migrated on read): every
+    event made at or before the playback time is applied to the replica in
+    order, resets included. The replica starts with a ``RESET`` of epoch 0
+    (the recording begins with the case's initial tissue); when playback
+    starts late, the events before the last reset up to the start are
+    skipped.
 
     Parameters
     ----------
@@ -306,6 +350,11 @@ class RecordingSource(Source):
         Current playback time [s].
     done : bool
         The recording has ended (the trainee's force then ramps to zero).
+    stream : dict of str -> ndarray
+        The session's tissue events (:data:`bonesim.events.TISSUE_FIELDS`) in
+        time order.
+    applied : int
+        Events of :attr:`stream` handled (applied, or skipped at the start).
     """
 
     lost_text = "PLAYBACK ENDED"
@@ -321,26 +370,40 @@ class RecordingSource(Source):
         self.speed = float(speed)
         self.start_s = self.timeline.clamp(start_s)
         self.state = InstructorState()
-        self.grid = self.model.grid.copy()
-        self.epoch = None
+        self.replica = TissueReplica(self.model)
+        tissue = session.tissue
+        ev = {f: np.asarray(tissue[f]) for f in events.TISSUE_FIELDS}
+        if (np.diff(ev["t_s"]) < 0).any():
+            order = np.argsort(ev["t_s"], kind="stable")
+            ev = {f: a[order] for f, a in ev.items()}
+        self.stream = ev
         self.applied = 0
         self.t = self.start_s
         self.done = False
         self.last_valid_s = math.nan
         self._t0 = math.nan
-        self._empty = np.zeros((0, 3), np.int32)
+
+    def _start(self, hi: int) -> None:
+        """The first poll: a RESET, or the stream from its last reset before ``hi``."""
+        resets = np.flatnonzero(self.stream["kind"][:hi] == events.RESET)
+        if len(resets):
+            self.applied = int(resets[-1])
+        else:
+            start = events.empty_events(1)
+            start["kind"][0] = events.RESET
+            start["t_s"][0] = self.timeline.t0
+            self._apply(start)
 
     def poll(self, now_s: float) -> None:
-        from .grid import sync_replica
-
-        if self._t0 != self._t0:
+        first = self._t0 != self._t0
+        if first:
             self._t0 = now_s
         tl = self.timeline
         if self.done:
             return                                    # no new data: the force ramps out
         t = self.start_s + (now_s - self._t0) * self.speed
         if t >= tl.duration:
-            # this poll shows the end of the recording (the removals since the
+            # this poll shows the end of the recording (the events since the
             # last poll included); silence after it
             t = tl.duration
             self.done = True
@@ -355,19 +418,15 @@ class RecordingSource(Source):
         st.drill = int(s["drill"][i])
         st.direction = int(s["direction"][i])
         st.burr = int(s["burr"][i])
-        st.epoch = int(s["epoch"][i])
         st.valid = True
         self.last_valid_s = now_s
-        epoch, lo, hi = tl.removal_range(t)
-        if epoch != self.epoch:
-            self.grid = self.model.grid.copy()
-            self.epoch = epoch
-            self.applied = lo
-            self._publish_reset()
+        hi = int(np.searchsorted(self.stream["t_s"], tl.t0 + t, side="right"))
+        if first:
+            self._start(hi)
         if hi > self.applied:
-            sync_replica(self.grid, self.grid, tl.rem_ijk[self.applied:hi], self._empty)
-            self._publish(tl.rem_ijk[self.applied:hi])
+            self._apply({f: a[self.applied:hi] for f, a in self.stream.items()})
             self.applied = hi
+        st.epoch = self.replica.epoch
 
     @property
     def ended(self) -> bool:
@@ -375,4 +434,4 @@ class RecordingSource(Source):
 
     def stats(self) -> dict:
         return {"playback_s": round(self.t, 4), "duration_s": round(self.timeline.duration, 4),
-                "done": self.done, "speed": self.speed}
+                "done": self.done, "speed": self.speed, "events_applied": self.applied}

@@ -3,9 +3,10 @@
 The trainee's servo runs in its own process (:class:`bonesim.trainee.TraineeProcess`);
 this window only reads what it publishes, at its own frame rate:
 
-- the tissue: a replica kept from the servo's ``changes`` ring (removals as
-  the instructor makes them, and resets), drawn with the incremental surface
-  update, as the simulator's window draws its own drilling;
+- the tissue: a :class:`~bonesim.replica.TissueReplica` with a surface that
+  applies the servo's ``changes`` ring (the tissue events as the instructor
+  makes them: removals, resets, splits, poses), drawn with the incremental
+  surface update, as the simulator's window draws its own drilling;
 - the instructor's tool at its latest pose (the burr turns warm while the
   instructor's drill runs);
 - the trainee's hand: a translucent green sphere of the burr's size where
@@ -22,8 +23,8 @@ import math
 
 import numpy as np
 
-from ..events import Cursor
-from ..grid import sync_replica
+from .. import events
+from ..replica import TissueReplica
 from .hud import format_help
 
 __all__ = ["TRAINEE_KEYS", "TRAINEE_MOUSE_HELP", "TraineeView", "TraineeApp"]
@@ -43,8 +44,6 @@ TRAINEE_MOUSE_HELP = (
     "Ctrl+right, Ctrl+wheel  zoom        v: back to the case camera",
 )
 
-_EMPTY_IJK = np.zeros((0, 3), dtype=np.int32)
-
 
 class TraineeView:
     """Draws a started :class:`~bonesim.trainee.TraineeProcess` on a scene.
@@ -57,51 +56,54 @@ class TraineeView:
 
     Attributes
     ----------
+    replica : TissueReplica
+        The window's copy of the tissue, with its surface.
     grid : Grid
-        The window's replica of the tissue.
+        The replica's grid.
     surface : Surface
         Its surface (rebuilt at a reset, updated incrementally otherwise).
     applied : int
         Removals applied since the last reset.
     resets : int
-        Resets seen.
+        ``RESET`` events applied.
     """
 
     def __init__(self, scene, proc):
         self.scene = scene
         self.proc = proc
         self.model = proc.model
-        self.cursor = Cursor(proc.changes, start=0)    # from the servo's first change
+        self.cursor = events.Cursor(proc.changes, start=0)   # from the servo's first event
+        self.replica = TissueReplica(self.model, surface=True)
         self.resets = 0
         self.applied = 0
-        self.grid = self.surface = None
-        self._reset()
+        scene.update_surface(self.replica.surface)
 
-    def _reset(self) -> None:
-        from ..surface import Surface
+    @property
+    def grid(self):
+        return self.replica.grid
 
-        self.grid = self.model.grid.copy()
-        self.surface = Surface.build(self.grid, self.model.colors)
-        self.scene.update_surface(self.surface)
-        self.applied = 0
+    @property
+    def surface(self):
+        return self.replica.surface
 
     def drain(self) -> int:
-        """Apply the servo's changes since the last call; returns the
-        removals applied."""
-        ijk = self.cursor.drain()["ijk"]
-        if len(ijk) == 0:
+        """Apply the servo's tissue events since the last call; returns the
+        removals applied since the last reset among them (all of them
+        without a reset)."""
+        ev = self.cursor.drain()
+        if len(ev["kind"]) == 0:
             return 0
-        marks = np.flatnonzero(ijk[:, 0] < 0)
-        if len(marks):                       # back to the initial tissue: what
-            self._reset()                    # came before the last reset is moot
-            self.resets += len(marks)
-            ijk = ijk[marks[-1] + 1:]
-        if len(ijk):
-            sync_replica(self.grid, self.grid, ijk, _EMPTY_IJK)
-            self.surface.update(self.grid, ijk)
-            self.scene.update_surface(self.surface, ijk, None)
-            self.applied += len(ijk)
-        return len(ijk)
+        ch = self.replica.apply(ev)
+        rem = ch.removed
+        if ch.reset:                         # a new surface: drawn in full
+            self.resets += int(np.count_nonzero(ev["kind"] == events.RESET))
+            self.applied = len(rem)
+            self.scene.update_surface(self.replica.surface)
+        else:
+            self.applied += len(rem)
+            if len(rem):
+                self.scene.update_surface(self.replica.surface, rem, None)
+        return len(rem)
 
     def hud_info(self) -> dict:
         """What the HUD shows, from the servo's status."""

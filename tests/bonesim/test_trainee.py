@@ -1,5 +1,6 @@
 """The trainee's servo in its own process: what it publishes for the window
-(status and the replica's changes), how it ends, and its errors. Real
+(status and the tissue events its replica applied), how it ends, and its
+errors. Real
 processes, real time: a recorded run, and a live instructor over loopback."""
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ pytestmark = pytest.mark.slow
 KEY = bytes(range(7, 39))
 
 
-def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
+def test_recording_runs_to_its_end_and_publishes_every_tissue_event(demo_file):
     from bonesim.session_reader import read_session
 
     session = read_session(demo_file)
@@ -40,7 +41,8 @@ def test_recording_runs_to_its_end_and_publishes_every_removal(demo_file):
         assert np.all(late == s["instr_pos_mm"], axis=1).any()
         g, resets = _replay_changes(proc.model, proc.changes)
         occ = g.density > 0
-        assert resets == 1 and proc.changes.count == len(session.removals["t_s"]) + 1
+        # the starting RESET, then the session's tissue stream
+        assert resets == 1 and proc.changes.count == len(session.tissue["t_s"]) + 1
         ref = proc.model.grid.copy()
         for v in session.removals["ijk"]:
             ref.density[ref.brick_index(*v), (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0
@@ -121,7 +123,7 @@ def test_live_instructor_over_loopback_window_replica_matches():
         finally:
             server.stop()
         instructor = loop.state.grid.density > 0
-    assert resets >= 1 and final["log_removals"] > 0
-    assert stats["have_removals"] == final["log_removals"]
+    assert resets >= 1 and final["log_events"] > 0
+    assert stats["have_events"] == final["log_events"]
     np.testing.assert_array_equal(occ, instructor)
     assert math.isfinite(stats["latency_ms"]["p50"])

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from bonesim import events, net, tutor
+from bonesim.commands import LoopContext, MoveBody, Reset, SplitBox
 from bonesim.devices import SIM_HAND_CAPS, Device, SimulatedHandDevice
 from bonesim.haptic_loop import push_sample
 from bonesim.model import Sample, step
@@ -134,30 +135,6 @@ def test_simulated_hand_clamps_and_rejects_nan():
         SimulatedHandDevice(mass_kg=0.0)
 
 
-# --------------------------------------------------------------- wire format
-def test_state_payload_round_trip_and_length_checks():
-    buf = bytearray(net.MAX_PAYLOAD)
-    ijk = np.arange(3 * tutor.MAX_REMOVALS, dtype=np.int32).reshape(-1, 3)
-    n = tutor.pack_state(buf, 1.5, [1, 2, 3], [0, 0, -1], [0.1, 0.2, 0.3], 60000.0, 1.25,
-                         7.5, 3, 5, 1, -1, 2, 1000, 900, ijk)
-    assert n <= net.MAX_PAYLOAD
-    st = tutor.InstructorState()
-    log_len, first, got = tutor.unpack_state(bytes(buf[:n]), st)
-    assert (log_len, first) == (1000, 900)
-    np.testing.assert_array_equal(got, ijk)
-    assert st.t_s == 1.5 and st.pos_mm.tolist() == [1, 2, 3] and st.force_n[2] == 0.3
-    assert (st.epoch, st.buttons, st.drill, st.direction, st.burr) == (3, 5, 1, -1, 2)
-    assert st.speed_rpm == 60000.0 and st.mag_n == 1.25 and st.volume_mm3 == 7.5
-    for bad in (bytes(buf[:n - 1]), bytes(buf[:10])):
-        with pytest.raises(net.PacketError) as ei:
-            tutor.unpack_state(bad, tutor.InstructorState())
-        assert ei.value.reason == "length"
-    nan = bytearray(buf[:n])
-    tutor.STATE.pack_into(nan, 0, math.nan, *([0.0] * 12), 0, 0, 0, 0, 0, 0, 0, 0, 0)
-    with pytest.raises(net.PacketError):
-        tutor.unpack_state(bytes(nan[:tutor.STATE.size]), tutor.InstructorState())
-
-
 # -------------------------------------------------- in-memory test network
 class MemoryNet:
     """Datagram delivery between named endpoints, in order, with optional loss."""
@@ -205,13 +182,25 @@ class MemorySocket:
 
 
 class Instructor:
-    """The real haptic step on a bone block, publishing like the haptic loop."""
+    """The real haptic step on a bone block, publishing like the haptic loop;
+    :meth:`command` carries out the loop's commands between two steps."""
 
     def __init__(self, model, state):
         self.model, self.state = model, state
         self.samples = events.Ring.create(1 << 12, **events.OTHER_RINGS["samples"][1])
-        self.epoch = 0
         self.zero = np.zeros(3)
+        self.ctx = LoopContext(model, state, None, None,
+                               {"epoch": 0, "commands_applied": 0})
+
+    @property
+    def epoch(self) -> int:
+        return self.ctx.epoch
+
+    def command(self, cls, t, **params):
+        """Apply command ``cls`` before the step at ``t`` [s], as the loop does
+        (tissue changes are published as events of time ``t``)."""
+        self.ctx.t_s = t
+        cls.apply(self.ctx, cls.encode(**params))
 
     def path(self, t):
         """Figure in free space above the block, then down into it drilling."""
@@ -236,17 +225,20 @@ def _session(drop=0.0, seed=0, snapshot=False):
     model, state = block_model()
     inst = Instructor(model, state)
     netw = MemoryNet(drop=drop, seed=seed)
-    kw = {}
-    if snapshot:
-        kw = dict(density=state.grid.density, initial_density=model.grid.density,
-                  bricks=model.grid.bricks)
     srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
-                         tutor.session_info(model), **kw)
+                         tutor.session_info(model),
+                         snapshot=(lambda: _snapshot(model, state)) if snapshot else None)
     src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                               sock=netw.endpoint(TRAINEE))
     hand = SimulatedHandDevice()
     trainee = tutor.Trainee(src, hand)
     return model, inst, netw, srv, src, trainee
+
+
+def _snapshot(model, state, epoch=0, t_s=0.0):
+    g = model.grid
+    return tutor.tissue_snapshot(g.density, g.label, g.bricks, state.grid.density,
+                                 state.body, state.pose, state.alive, epoch, t_s)
 
 
 def _run(model, inst, srv, trainee, t0, t1, log=None, before_trainee=None, serve=True):
@@ -316,7 +308,10 @@ def test_replica_equals_instructor_tissue_under_10_percent_loss():
     assert netw.dropped > 100
     s = trainee.stats()
     assert s["nacks_sent"] > 0 and srv.counters["go_backs"] > 0
-    assert src.have == srv.log.n == inst.state.n_removed > 100
+    assert src.have == srv.log.n
+    logged = srv.log.columns()
+    assert logged["kind"][0] == events.RESET                   # the log's first event
+    assert len(events.removals(logged)["ijk"]) == inst.state.n_removed > 100
     np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(inst.state.grid))
     assert not np.array_equal(_occupancy(src.grid), _occupancy(model.grid))
 
@@ -459,72 +454,51 @@ def test_case_reset_restarts_the_replica():
     model, inst, netw, srv, src, trainee = _session()
     _run(model, inst, srv, trainee, 0.0, 2.2)
     assert src.have > 50
-    # the instructor resets the case: tissue back, a new epoch
-    from bonesim.model import reset_state
-
-    reset_state(model, inst.state, rings=False)
-    inst.epoch = 1
+    # the instructor resets the case: tissue back, a RESET event of a new epoch
+    inst.command(Reset, 2.2)
     _run(model, inst, srv, trainee, 2.2, 2.3)
-    assert src.epoch == 1 and srv.epoch == 1
+    assert src.epoch == 1 and srv.epoch == 1 and src.replica.epoch == 1
+    assert srv.log.columns()["kind"][0] == events.RESET and srv.log.epoch == 1
     np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(inst.state.grid))
 
 
 def _replay_changes(model, ring):
-    """Reference: the initial tissue with a ``changes`` ring applied row by
-    row (a row of -1 goes back to the initial tissue)."""
+    """Reference: the initial tissue with a ``changes`` ring's removals
+    applied voxel by voxel (a RESET goes back to the initial tissue)."""
     g = model.grid.copy()
     resets = 0
-    for v in ring.read(0)["ijk"]:
-        if v[0] < 0:
+    ev = ring.read(0)
+    for kind, v in zip(ev["kind"], ev["ijk"]):
+        if kind == events.RESET:
             g = model.grid.copy()
             resets += 1
-        else:
+        elif kind == events.REMOVED:
             b = g.brick_index(*v)
             g.density[b, (v[0] & 7) << 6 | (v[1] & 7) << 3 | (v[2] & 7)] = 0.0
     return g, resets
 
 
-def test_changes_ring_replays_to_the_replica_under_loss_and_a_reset():
-    from bonesim.model import reset_state
-
-    model, inst, netw, srv, src, trainee = _session(drop=0.10, seed=5)
-    src.changes = events.Ring.create(1 << 14, ijk=(np.int32, (3,)))
-    _run(model, inst, srv, trainee, 0.0, 2.2)
-    q = 2200
-    while src.have < srv.log.n and q < 6000:     # the go-backs finish
-        _run(model, inst, srv, trainee, q * DT, (q + 1) * DT)
-        q += 1
-    assert netw.dropped > 100 and src.counters["nacks_sent"] > 0
-    g, resets = _replay_changes(model, src.changes)
-    assert resets == src.counters["resets"] >= 1             # WELCOME, first STATE
-    assert src.changes.count == src.have + resets > 100      # each removal once
-    np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
-    reset_state(model, inst.state, rings=False)              # the instructor resets
-    inst.epoch = 1
-    _run(model, inst, srv, trainee, q * DT, q * DT + 0.1)
-    before = resets
-    g, resets = _replay_changes(model, src.changes)
-    assert resets == before + 1 and src.epoch == 1
-    np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
-    np.testing.assert_array_equal(_occupancy(g), _occupancy(inst.state.grid))
+def _same_tissue(replica_state, state):
+    """Occupancy, live bodies, their poses and every held voxel's body agree."""
+    occ = _occupancy(state.grid)
+    np.testing.assert_array_equal(_occupancy(replica_state.grid), occ)
+    np.testing.assert_array_equal(replica_state.alive, state.alive)
+    live = state.alive.astype(bool)
+    np.testing.assert_array_equal(replica_state.pose[live], state.pose[live])
+    np.testing.assert_array_equal(replica_state.body[occ], state.body[occ])
 
 
-def test_server_started_mid_session_sends_what_was_already_drilled():
-    model, state = block_model()
-    inst = Instructor(model, state)
-    for q in range(2000):                                     # drilled before serving
-        inst.step(q * DT)
-    assert state.n_removed > 50
-    netw = MemoryNet()
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
-                         tutor.session_info(model), density=state.grid.density,
-                         initial_density=model.grid.density, bricks=model.grid.bricks)
-    src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
-                              sock=netw.endpoint(TRAINEE))
-    trainee = tutor.Trainee(src, SimulatedHandDevice())
-    _run(model, inst, srv, trainee, 2.0, 2.3)
-    assert src.have == srv.log.n
-    np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(state.grid))
+def _split_and_move(inst, t, pose_shift_mm):
+    """Split two boxes of the block off body 0 by hand (one far from the
+    drilling, one around it) and move both; returns the new bodies."""
+    inst.command(SplitBox, t, lo=(0, 0, 0), hi=(9, 9, 19))
+    inst.command(SplitBox, t, lo=(14, 14, 10), hi=(31, 26, 19))
+    made = np.flatnonzero(inst.state.alive)[1:]
+    assert len(made) == 2
+    c, s_ = math.cos(0.3), math.sin(0.3)
+    inst.command(MoveBody, t, body=int(made[0]), pose=(0.0, 0.0, -15.0, c, 0.0, 0.0, s_))
+    inst.command(MoveBody, t, body=int(made[1]), pose=(pose_shift_mm, 0.0, 0.0, 1, 0, 0, 0))
+    return made
 
 
 def test_server_ignores_unauthenticated_joins_and_acks():
@@ -561,11 +535,14 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
     with record.SessionWriter(path, header) as writer:
         drainer = record.Drainer(writer, {"samples": inst.samples, "tissue": state.tissue})
         for q in range(2200):
+            if q == 2000:
+                _split_and_move(inst, 2.0, 0.4)    # the tool then drills a moved body
             inst.step(q * DT)
             if q % 100 == 99:
                 drainer.drain()
         drainer.drain()
     session = read_session(path)
+    assert {events.SPLIT, events.POSE} <= set(session.tissue["kind"].tolist())
     src = tutor.RecordingSource(session, model=model)
     hand = SimulatedHandDevice()
     trainee = tutor.Trainee(src, hand)
@@ -576,16 +553,17 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
         log.append((t, np.linalg.norm(f), trainee.link_lost, src.state.pos_mm.copy(),
                     trainee.device_pos.copy()))
         if q == 2100:
-            # the replica shows exactly the recorded removals so far
+            # the replica has applied exactly the recorded events so far
             tl = src.timeline
-            epoch, lo, hi = tl.removal_range(src.t)
-            assert hi - lo == src.applied - lo > 0
+            hi = int(np.searchsorted(session.tissue["t_s"], tl.t0 + src.t, side="right"))
+            assert src.applied == hi > 0
+            assert src.replica.applied == hi + 1          # and the starting RESET
     ref = model.grid.copy()
     from bonesim.grid import sync_replica
 
     sync_replica(ref, ref, session.removals["ijk"], np.zeros((0, 3), np.int32))
     np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(ref))
-    np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(state.grid))
+    _same_tissue(src.replica.state, state)
     t = np.array([r[0] for r in log])
     fm = np.array([r[1] for r in log])
     end = 100.0 + src.timeline.duration
@@ -593,47 +571,6 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
     assert (fm[t >= end + 0.050] == 0.0).all() and fm[(t > 100.5) & (t < end)].max() > 0
     err = np.array([np.linalg.norm(r[3] - r[4]) for r in log])
     assert err[(t > 100.5) & (t < 101.0)].max() < 3.0
-
-
-def test_recording_source_publishes_its_changes(tmp_path):
-    from tests.bonesim.test_playback import fake_session
-
-    session, _ = fake_session()                  # a reset at 1.2 s
-    model = session.load_model()
-    src = tutor.RecordingSource(session, model=model)
-    src.changes = events.Ring.create(1 << 14, ijk=(np.int32, (3,)))
-    for q in range(0, 1900, 7):
-        src.poll(q * DT)
-        if q in (1106, 1800):                   # before and after the reset
-            g, resets = _replay_changes(model, src.changes)
-            np.testing.assert_array_equal(_occupancy(g), _occupancy(src.grid))
-            assert resets == (1 if q < 1200 else 2)
-    assert src.ended and src.done
-    assert src.changes.count == len(session.removals["t_s"]) + 2
-
-
-def test_recording_source_ends_on_the_recordings_last_state():
-    from tests.bonesim.test_playback import fake_session
-
-    session, _ = fake_session()
-    model = session.load_model()
-    src = tutor.RecordingSource(session, model=model)
-    for t in (0.0, 0.5, 1.0, 1.5):               # coarse polls: the end falls between
-        src.poll(t)
-        assert not src.done
-    src.poll(2.5)
-    tl = src.timeline
-    assert src.done and src.t == tl.duration and src.last_valid_s == 2.5
-    np.testing.assert_array_equal(src.state.pos_mm, session.samples["pos_mm"][-1])
-    epoch, lo, hi = tl.removal_range(tl.duration)
-    assert hi == len(tl.rem_t) and src.applied == hi      # the last removals too
-    ref = model.grid.copy()
-    from bonesim.grid import sync_replica
-
-    sync_replica(ref, ref, tl.rem_ijk[lo:hi], np.zeros((0, 3), np.int32))
-    np.testing.assert_array_equal(_occupancy(src.grid), _occupancy(ref))
-    src.poll(3.0)                                # silence after the end
-    assert src.last_valid_s == 2.5
 
 
 # ------------------------------------------------------- real processes
@@ -680,7 +617,7 @@ def test_real_processes_over_loopback(phantom):
             trainee.close()
     assert stats["packets"]["accepted"] > 1000, stats
     assert stats["packets"]["auth"] == 0 and stats["packets"]["malformed"] == 0
-    assert src.have == final["log_removals"] > 0, (src.have, final)
+    assert src.have == final["log_events"] > 0, (src.have, final)
     np.testing.assert_array_equal(_occupancy(src.grid), instructor_tissue)
     # loopback latency: generous (2 cores shared by the loop, server, trainee)
     assert stats["latency_ms"]["p50"] < 5.0, stats["latency_ms"]
@@ -837,7 +774,7 @@ def test_cli_serve_and_join_headless(tmp_path, capsys):
     assert serve.returncode == 0, s_err
     assert trainee["byes"] == 1 and trainee["hud"] == "LINK LOST"
     assert trainee["packets"]["accepted"] > 500
-    assert trainee["have_removals"] == server["server"]["log_removals"]
+    assert trainee["have_events"] == server["server"]["log_events"]
     assert server["server"]["joins"] == 1 and server["server"]["sent"] > 500
 
 

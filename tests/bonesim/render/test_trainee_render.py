@@ -1,5 +1,6 @@
 """The trainee's window offscreen: the replica follows the servo's changes
-ring (removals, resets), the instructor's tool and the trainee's hand are
+ring (tissue events: removals, resets, splits, poses), the instructor's tool
+and the trainee's hand are
 placed from its status, the HUD says when the link is lost; and the
 ``tutor playback`` command's window on a recorded run."""
 from __future__ import annotations
@@ -11,13 +12,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from bonesim import events
 from bonesim import trainee as T
 from bonesim.child import BASE_STATUS, record_dtype
-from bonesim.events import Ring
 from bonesim.render.scene import Scene
 from bonesim.render.trainee import TraineeView
 from bonesim.surface import Surface
-from bonesim.tutor import RESET_IJK
 from tests.bonesim.render.scenes import nerve_block
 from tests.bonesim.test_playback import demo_file  # noqa: F401 (fixture)
 
@@ -34,7 +34,7 @@ def last_message(hud: str) -> str:
 def _fake_proc(model):
     """What TraineeView reads of a TraineeProcess, with no process."""
     status = np.zeros((), record_dtype(BASE_STATUS, T.STATUS))
-    changes = Ring.create(1 << 12, ijk=(np.int32, (3,)))
+    changes = events.tissue_ring(1 << 12)
     return SimpleNamespace(model=model, status=status, changes=changes, burrs=["fake"],
                            radii=[1.5], radius_mm=lambda b: 1.5, what="instructor at test",
                            lost_text="LINK LOST", source=("network",),
@@ -46,6 +46,22 @@ def _bone_voxels(model, k, n):
     ii, jj = np.meshgrid(np.arange(4, 28), np.arange(2, 12), indexing="ij")
     ijk = np.stack([ii.ravel(), jj.ravel(), np.full(ii.size, k)], 1).astype(np.int32)
     return ijk[:n]
+
+
+def _removed(ijk, t_s=0.0):
+    """REMOVED events of voxels ``ijk``."""
+    ev = events.empty_events(len(ijk))
+    ev["kind"][:] = events.REMOVED
+    ev["ijk"][:] = ijk
+    ev["t_s"][:] = t_s
+    return ev
+
+
+def _one(kind, body=0, n=0, value=()):
+    ev = events.empty_events(1)
+    ev["kind"][0], ev["body"][0], ev["n"][0] = kind, body, n
+    ev["value"][0, :len(value)] = value
+    return ev
 
 
 def _occupied(grid, ijk):
@@ -67,9 +83,9 @@ def test_replica_follows_removals_and_resets(view):
     v, proc = view
     model = proc.model
     top = _bone_voxels(model, 15, 120)
-    proc.changes.append(ijk=top[:70])
+    proc.changes.append(**_removed(top[:70]))
     assert v.drain() == 70
-    proc.changes.append(ijk=top[70:])
+    proc.changes.append(**_removed(top[70:]))
     v.show()
     assert v.applied == 120 and not _occupied(v.grid, top).any()
     # the drawn surface is the replica's, and equals one built from scratch
@@ -79,15 +95,26 @@ def test_replica_follows_removals_and_resets(view):
     assert v.scene._buffers.n_full == v.surface.n_triangles
     # a reset in the middle of a batch: what came before it is moot
     below = _bone_voxels(model, 14, 30)
-    proc.changes.append(ijk=top[:10])
-    proc.changes.append(ijk=RESET_IJK)
-    proc.changes.append(ijk=below)
+    proc.changes.append(**_removed(top[:10]))
+    proc.changes.append(**_one(events.RESET, n=1))
+    proc.changes.append(**_removed(below))
     assert v.drain() == 30 and v.resets == 1 and v.applied == 30
+    assert v.replica.epoch == 1 and v.scene.surface is v.surface
     assert _occupied(v.grid, top).all() and not _occupied(v.grid, below).any()
     fresh = Surface.build(v.grid, model.colors)
     assert not fresh.canonical().differences(v.surface.canonical())
     # the model itself is untouched
     assert _occupied(model.grid, below).all()
+    # a split and a pose reach the window's replica like the removals
+    split = _removed(top[:5])
+    split["kind"][:] = events.SPLIT
+    split["body"][:] = 1
+    split["n"][:] = 5
+    proc.changes.append(**split)
+    proc.changes.append(**_one(events.POSE, body=1, value=(1.0, 0, 0, 1, 0, 0, 0)))
+    assert v.drain() == 0 and v.applied == 30
+    assert v.replica.state.alive[1] and v.replica.state.pose[1, 0] == 1.0
+    assert (v.replica.state.body[v.grid.density > 0] == 1).sum() == 5
 
 
 def test_tool_hand_and_hud_come_from_the_status(view):
