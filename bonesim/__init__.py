@@ -1,6 +1,6 @@
 """bonesim: a temporal-bone drilling simulator.
 
-The core contract (see :mod:`bonesim.model`; files: :mod:`bonesim.loading`)::
+The core contract (see :mod:`bonesim.engine.model`; files: :mod:`bonesim.io.loading`)::
 
     import bonesim
     model = bonesim.load_model("phantom", "cutting-5mm")   # immutable
@@ -16,10 +16,20 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 _LAZY = {
-    "Model": "model", "State": "model", "Sample": "model", "load_model": "loading",
-    "make_model": "model", "make_state": "model", "step": "model", "warmup": "loading",
-    "Grid": "grid", "BonesimError": "errors", "DeviceCaps": "device_caps",
-    "data_path": "resources", "TissueReplica": "replica", "read_session": "session_reader",
+    "Model": "bonesim.engine.model",
+    "State": "bonesim.engine.model",
+    "Sample": "bonesim.engine.model",
+    "load_model": "bonesim.io.loading",
+    "make_model": "bonesim.engine.model",
+    "make_state": "bonesim.engine.model",
+    "step": "bonesim.engine.model",
+    "warmup": "bonesim.io.loading",
+    "Grid": "bonesim.engine.grid",
+    "BonesimError": "bonesim.errors",
+    "DeviceCaps": "bonesim.engine.device_caps",
+    "data_path": "bonesim.resources",
+    "TissueReplica": "bonesim.engine.replica",
+    "read_session": "bonesim.session.reader",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]
@@ -29,6 +39,6 @@ def __getattr__(name):
     if name in _LAZY:
         import importlib
 
-        mod = importlib.import_module(f".{_LAZY[name]}", __name__)
+        mod = importlib.import_module(_LAZY[name])
         return getattr(mod, name)
     raise AttributeError(f"module 'bonesim' has no attribute {name!r}")

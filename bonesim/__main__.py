@@ -1,7 +1,7 @@
-"""``python -m bonesim``: the command line (:mod:`bonesim.cli`)."""
+"""``python -m bonesim``: the command line (:mod:`bonesim.cli.main`)."""
 import sys
 
-from .cli import main
+from bonesim.cli.main import main
 
 __all__ = []
 

@@ -42,7 +42,7 @@ class BonesimError(Exception):
 
 
 class ProcessFailed(BonesimError):
-    """A child process (:mod:`bonesim.child`) failed to start or run.
+    """A child process (:mod:`bonesim.runtime.child`) failed to start or run.
 
     Parameters
     ----------

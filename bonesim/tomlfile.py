@@ -9,7 +9,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Iterable
 
-from .errors import BonesimError
+from bonesim.errors import BonesimError
 
 __all__ = ["read_toml", "check_keys", "get_number", "get_str", "get_vector"]
 

@@ -1,7 +1,7 @@
 """Burr definitions shipped with bonesim.
 
 Every ``*.toml`` file in this folder describes one *family* of burrs (for
-example ``cutting.toml`` and ``diamond.toml``). :mod:`bonesim.burrs` reads
+example ``cutting.toml`` and ``diamond.toml``). :mod:`bonesim.io.burrs` reads
 them; ``bonesim burrs`` lists them. A burr is named ``<family>-<d>mm`` where
 ``d`` is its diameter in millimetres written without trailing zeros
 (``cutting-5mm``, ``diamond-2mm``, ``cutting-2.5mm``).
@@ -18,7 +18,7 @@ value wins over the family's; every field must be set in one of the two::
     r_max = 4.0               # [1/(N*s)] removal rate per newton at the equator
     falloff = 2.0             # [1/rad]   rate lost per radian off the equator
     max_force_n = 3.3         # [N]
-    # ... vibration, sound and speed fields (see bonesim.burrs.Burr) ...
+    # ... vibration, sound and speed fields (see bonesim.io.burrs.Burr) ...
 
     [[burr]]
     diameter_mm = 5.0
@@ -39,12 +39,12 @@ A file with one ``[burr]`` table that carries every field itself, plus
     r_max = 2.0
     # ... every other field ...
 
-Pass such a file (or a family file) to ``bonesim.burrs.load_burr`` by path.
+Pass such a file (or a family file) to ``bonesim.io.burrs.load_burr`` by path.
 A family file that defines several burrs needs the burr's name after a
 ``#``: ``load_burr("my_burrs.toml#mine-3mm")``.
 
 The meaning and unit of each field is documented on
-:class:`bonesim.burrs.Burr`.
+:class:`bonesim.io.burrs.Burr`.
 """
 from __future__ import annotations
 

@@ -36,9 +36,9 @@ Driving it from the app (sketch; the haptic loop and devices are the app's)::
         consumer.drain()                       # TissueReplica: events -> Surface.update
         scene.update_surface(consumer.surface)
         depth = depth_below_surface_mm(grid, pos_mm, scene.camera_pose()[0],
-                                       model.burr.radius_mm)     # bonesim.sightline
+                                       model.burr.radius_mm)     # bonesim.physics.sightline
         scene.set_tool(pos_mm, axis, model.burr.radius_mm, drill_on, depth_mm=depth)
-        scene.set_dust(*dust.sprites())            # bonesim.dust.DustGrid
+        scene.set_dust(*dust.sprites())            # bonesim.physics.dust.DustGrid
         scene.set_hud({"case": model.name, "burr": model.burr.name,
                        "burr_kind": model.burr.kind,
                        "burr_diameter_mm": model.burr.diameter_mm,

@@ -46,7 +46,7 @@ import time
 
 import numpy as np
 
-from ..bench_tools import ball_offsets, remove_voxels
+from bonesim.bench.tools import ball_offsets, remove_voxels
 
 __all__ = ["SIZE", "bench_update", "bench_first_frame", "FPS_SIZE", "FPS_CAVITY_R_MM",
            "FPS_CAVITY_DEPTH_MM", "bench_fps", "bench_render"]
@@ -60,11 +60,11 @@ def _pct(values, q) -> float:
 
 def bench_update(quick: bool = False) -> dict:
     """``render_update_1000_ms`` (see the module docstring)."""
-    from ..loading import load_model
-    from ..model import make_state
-    from ..surface import Surface
-    from ..surface import warmup as surface_warmup
-    from .scene import Scene
+    from bonesim.io.loading import load_model
+    from bonesim.engine.model import make_state
+    from bonesim.engine.surface import Surface
+    from bonesim.engine.surface import warmup as surface_warmup
+    from bonesim.render.scene import Scene
 
     surface_warmup()
     model = load_model("phantom", "cutting-5mm")
@@ -129,12 +129,12 @@ def bench_update(quick: bool = False) -> dict:
 def _first_frame_child() -> None:
     """Body of the ``first_frame_s`` child process."""
     t0 = time.perf_counter()
-    from . import gl
+    from bonesim.render import gl
 
     gl.start_probe(True)                 # overlaps the probe with the case load
-    from ..loading import load_model
-    from ..surface import Surface
-    from .scene import Scene
+    from bonesim.io.loading import load_model
+    from bonesim.engine.surface import Surface
+    from bonesim.render.scene import Scene
 
     t_imp = time.perf_counter()
     model = load_model("phantom", "cutting-5mm")
@@ -155,9 +155,9 @@ def _first_frame_child() -> None:
 def _warm_caches() -> None:
     """Fill numba's on-disk caches and the OS file cache for the child (in
     this process: cheaper than a throw-away child when they are warm)."""
-    from ..loading import load_model
-    from ..surface import Surface
-    from .meshbuf import SurfaceBuffers
+    from bonesim.io.loading import load_model
+    from bonesim.engine.surface import Surface
+    from bonesim.render.meshbuf import SurfaceBuffers
 
     model = load_model("phantom", "cutting-5mm")
     surf = Surface.build(model.grid, model.colors)
@@ -243,13 +243,13 @@ def _drill_from_camera(model, state) -> np.ndarray:
 
 def bench_fps(quick: bool = False) -> dict:
     """``render_fps_1024x768`` (see the module docstring)."""
-    from ..dust import DustGrid
-    from ..loading import load_model
-    from ..model import make_state
-    from ..sightline import depth_below_surface_mm
-    from ..surface import Surface
-    from ..surface import warmup as surface_warmup
-    from .scene import Scene
+    from bonesim.physics.dust import DustGrid
+    from bonesim.io.loading import load_model
+    from bonesim.engine.model import make_state
+    from bonesim.physics.sightline import depth_below_surface_mm
+    from bonesim.engine.surface import Surface
+    from bonesim.engine.surface import warmup as surface_warmup
+    from bonesim.render.scene import Scene
 
     surface_warmup()
     model = load_model("phantom", "cutting-5mm")

@@ -1,7 +1,7 @@
 """Bone dust on screen: soft, small, translucent sprites.
 
 The dust must never hide the drilling field. Each dusty cell that
-:meth:`bonesim.dust.DustGrid.sprites` lists (the top layer of every pile,
+:meth:`bonesim.physics.dust.DustGrid.sprites` lists (the top layer of every pile,
 jittered inside its cell) becomes one round sprite facing the camera:
 
 * **flat colour, no rim**: the sprite's colour is the dust's (dry bone

@@ -52,7 +52,7 @@ import sys
 import threading
 from dataclasses import dataclass, field
 
-from ..errors import BonesimError
+from bonesim.errors import BonesimError
 
 __all__ = ["WINDOW_CLASS", "OFFSCREEN_ORDER", "ONSCREEN_ORDER", "PROBE_TIMEOUT_S",
            "RenderUnavailable", "GLInfo", "probe", "candidates", "start_probe",

@@ -19,7 +19,7 @@ keys (all optional; units in the names):
 ``speed_rpm``        spindle speed [rpm]
 ``force_n``          applied force magnitude [N]
 ``depth_mm``         tissue between the burr and the eye [mm]
-                     (:func:`bonesim.sightline.depth_below_surface_mm`);
+                     (:func:`bonesim.physics.sightline.depth_below_surface_mm`);
                      None: not shown
 ``haptic_hz``        haptic loop rate [Hz]
 ``frame_hz``         frame rate [Hz] (default: measured by the scene)

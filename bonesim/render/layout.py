@@ -42,8 +42,8 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.vtkRenderingCore import vtkLight, vtkTextActor
 
-from .hud import format_hud
-from .stereo import apply_stereo, eye_angle_deg
+from bonesim.render.hud import format_hud
+from bonesim.render.stereo import apply_stereo, eye_angle_deg
 
 __all__ = ["LayoutMixin", "panel_width_px", "PANEL_PAD_PX", "GLYPH_EM", "HINT_RGB"]
 

@@ -1,11 +1,11 @@
-"""Index buffers for drawing a :class:`~bonesim.surface.Surface`: all live
+"""Index buffers for drawing a :class:`~bonesim.engine.surface.Surface`: all live
 triangles, and the *visible subset*.
 
 No VTK here: these are numpy arrays that :mod:`bonesim.render.scene` hands
 to VTK without copying, and numba kernels that fill them.
 
 The surface keeps vertices and triangles in slot arrays with free slots
-(see :class:`bonesim.surface.Surface`). Vertex arrays are drawn as they are
+(see :class:`bonesim.engine.surface.Surface`). Vertex arrays are drawn as they are
 (a free slot is simply never referenced); triangles are *compacted*: one
 pass over the triangle slots writes the vertex indices of every live
 triangle into a flat int32 connectivity buffer. That pass is O(triangle
@@ -57,7 +57,7 @@ import weakref
 import numpy as np
 from numba import njit
 
-from ..grid import BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["VisibleJob", "SurfaceBuffers", "warmup"]
 
@@ -402,8 +402,8 @@ def _surface_table(surface):
 def warmup() -> None:
     """Compile (or load from the cache) this module's kernels: both
     compactions, the change marks and the visible flags, on a tiny surface."""
-    from ..grid import Grid
-    from ..surface import Surface
+    from bonesim.engine.grid import Grid
+    from bonesim.engine.surface import Surface
 
     lab = np.zeros((6, 6, 6), dtype=np.uint8)
     lab[1:5, 1:5, 1:5] = 1

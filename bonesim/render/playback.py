@@ -2,7 +2,7 @@
 video export.
 
 The logic (which voxels are gone at time t, where the tool was, what the
-HUD says) is :mod:`bonesim.playback`; this module only draws it.
+HUD says) is :mod:`bonesim.session.playback`; this module only draws it.
 
 :class:`TimelineBar`
     A 2-D overlay along the bottom of the view: the recording as a bar, the
@@ -10,7 +10,7 @@ HUD says) is :mod:`bonesim.playback`; this module only draws it.
     case resets as white ticks, and the play head. It maps pixels to times
     for clicks and drags.
 :class:`PlaybackView`
-    Shows a :class:`~bonesim.playback.Player` at a time on a
+    Shows a :class:`~bonesim.session.playback.Player` at a time on a
     :class:`~bonesim.render.scene.Scene`: the surface (incremental forward,
     rebuilt backward), the tool at its recorded pose, the HUD, the timeline,
     and the recorded camera (unless the user has orbited away from it).
@@ -33,11 +33,11 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor2D, vtkPolyDataMapper2D
 
-from ..playback import SEEK_LONG_S, SEEK_SHORT_S, PlaybackClock, hud_info
-from ..progress import ProgressBar
-from ..video import VideoWriter, video_times
-from .hud import format_help
-from .window import LEFT
+from bonesim.session.playback import SEEK_LONG_S, SEEK_SHORT_S, PlaybackClock, hud_info
+from bonesim.progress import ProgressBar
+from bonesim.session.video import VideoWriter, video_times
+from bonesim.render.hud import format_help
+from bonesim.render.window import LEFT
 
 __all__ = ["PLAYBACK_KEYS", "PLAYBACK_MOUSE_HELP", "BAR_RGBA", "PLAYED_RGBA",
            "CONTACT_RGBA", "REMOVAL_RGBA", "RESET_RGBA", "HEAD_RGBA", "BAR_MARGIN_PX",
@@ -92,7 +92,7 @@ class TimelineBar:
     Parameters
     ----------
     scene : Scene
-    timeline : bonesim.playback.Timeline
+    timeline : bonesim.session.playback.Timeline
         Supplies the duration, injury and reset times.
     """
 
@@ -191,13 +191,13 @@ class TimelineBar:
 
 
 class PlaybackView:
-    """Shows a :class:`~bonesim.playback.Player` on a scene.
+    """Shows a :class:`~bonesim.session.playback.Player` on a scene.
 
     Parameters
     ----------
     scene : Scene
         Made from the player's model and surface.
-    player : bonesim.playback.Player
+    player : bonesim.session.playback.Player
     notices : sequence of str
         Lines always shown in the HUD (e.g. an incomplete recording).
     video : bool
@@ -233,7 +233,7 @@ class PlaybackView:
 
     def show(self, t: float, *, speed: float | None = None, playing: bool | None = None):
         """Bring everything to playback time ``t``; returns the
-        :class:`~bonesim.playback.Frame` shown (the caller renders)."""
+        :class:`~bonesim.session.playback.Frame` shown (the caller renders)."""
         seek = self.player.seek(t)
         self._sync_surface(seek)
         f = self.player.frame()
@@ -282,7 +282,7 @@ class PlaybackApp:
 
     Parameters
     ----------
-    player : bonesim.playback.Player
+    player : bonesim.session.playback.Player
     size : (int, int)
         Window size [px].
     offscreen : bool
@@ -313,8 +313,8 @@ class PlaybackApp:
         self.scene = self.window = self.view = None
 
     def start(self) -> "PlaybackApp":
-        from .scene import Scene
-        from .window import Window
+        from bonesim.render.scene import Scene
+        from bonesim.render.window import Window
 
         self.scene = Scene.from_model(self.player.model, self.player.surface,
                                       offscreen=self.offscreen, size=self.size,
@@ -404,7 +404,7 @@ def export_video(player, path, *, fps: float = 30.0, size=(1280, 720), speed: fl
 
     Parameters
     ----------
-    player : bonesim.playback.Player
+    player : bonesim.session.playback.Player
     path : path
         Output ``.mp4``.
     fps : float
@@ -431,7 +431,7 @@ def export_video(player, path, *, fps: float = 30.0, size=(1280, 720), speed: fl
     BonesimError
         Bad times or size, unwritable output, ffmpeg failing.
     """
-    from .scene import Scene
+    from bonesim.render.scene import Scene
 
     times = video_times(player.timeline.duration, fps, speed, start, end)
     w, h = int(size[0]), int(size[1])

@@ -15,7 +15,7 @@ Units: positions in the case frame [mm], as everywhere in bonesim.
 
 Bone surface
 ------------
-:meth:`Scene.update_surface` draws a :class:`bonesim.surface.Surface` with
+:meth:`Scene.update_surface` draws a :class:`bonesim.engine.surface.Surface` with
 no per-vertex Python work: the surface's slot arrays ``pos`` (float32),
 ``nrm`` (float32) and ``col`` (RGBA uint8) are handed to VTK as they are
 (``vtkDataArray.SetVoidArray``, no copy; re-pointed only when the surface
@@ -51,14 +51,14 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOImage import vtkPNGWriter
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkPolyDataMapper, vtkRenderer,
                                          vtkWindowToImageFilter)
-from .dustview import DustLayer
-from .geometry import polydata_from_arrays, structure_polydata, tool_matrix
-from .gl import make_render_window
-from .layout import LayoutMixin
-from .meshbuf import SurfaceBuffers
-from .stereo import STEREO_MODES, StereoUnavailable
-from .style import default_style
-from .tool import ToolMixin
+from bonesim.render.dustview import DustLayer
+from bonesim.render.geometry import polydata_from_arrays, structure_polydata, tool_matrix
+from bonesim.render.gl import make_render_window
+from bonesim.render.layout import LayoutMixin
+from bonesim.render.meshbuf import SurfaceBuffers
+from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
+from bonesim.render.style import default_style
+from bonesim.render.tool import ToolMixin
 
 __all__ = ["Scene", "tool_matrix", "structure_polydata", "STEREO_MODES", "StereoUnavailable",
            "BACKGROUND", "VIEW_ANGLE_DEG"]
@@ -201,7 +201,7 @@ class Scene(LayoutMixin, ToolMixin):
     # ------------------------------------------------------------ factories
     @classmethod
     def from_model(cls, model, surface=None, *, structures: bool = True, **kwargs) -> "Scene":
-        """A scene of a :class:`bonesim.model.Model`: its surface (built from
+        """A scene of a :class:`bonesim.engine.model.Model`: its surface (built from
         the model's grid when not given), its non-bone structures, the case
         camera and the burr in the HUD.
 
@@ -217,7 +217,7 @@ class Scene(LayoutMixin, ToolMixin):
         """
         scene = cls(**kwargs)
         if surface is None:
-            from ..surface import Surface
+            from bonesim.engine.surface import Surface
 
             surface = Surface.build(model.grid, model.colors)
         scene.voxel_mm = float(model.spacing_mm)
@@ -286,7 +286,7 @@ class Scene(LayoutMixin, ToolMixin):
 
         Parameters
         ----------
-        surface : bonesim.surface.Surface
+        surface : bonesim.engine.surface.Surface
         removed, touched : (n, 3) int array_like, optional
             The voxels given to ``Surface.update`` since the previous call
             (every one of them; concatenate over several updates). They let
@@ -450,7 +450,7 @@ class Scene(LayoutMixin, ToolMixin):
 
         Parameters
         ----------
-        grid : bonesim.grid.Grid
+        grid : bonesim.engine.grid.Grid
             Labelled grid (label ``s`` is ``structures[s - 1]``); the initial
             tissue of the case.
         structures : sequence
@@ -465,7 +465,7 @@ class Scene(LayoutMixin, ToolMixin):
         dict
             Structure name -> triangle count.
         """
-        from ..grid import BRICK
+        from bonesim.engine.grid import BRICK
 
         out = {}
         occupied = grid.density > 0

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 
-from ..errors import BonesimError
+from bonesim.errors import BonesimError
 
 __all__ = ["STEREO_MODES", "StereoUnavailable", "eye_angle_deg", "apply_stereo"]
 

@@ -15,8 +15,8 @@ import functools
 from pathlib import Path
 from types import SimpleNamespace
 
-from ..errors import BonesimError
-from ..tomlfile import check_keys, get_number, get_str, get_vector, read_toml
+from bonesim.errors import BonesimError
+from bonesim.tomlfile import check_keys, get_number, get_str, get_vector, read_toml
 
 __all__ = ["RenderStyle", "load_style", "default_style", "style_path"]
 
@@ -49,7 +49,7 @@ class RenderStyle(SimpleNamespace):
 
 def style_path() -> Path:
     """Path of the shipped ``render.toml``."""
-    from ..resources import data_path
+    from bonesim.resources import data_path
 
     return data_path("render.toml")
 

@@ -19,7 +19,7 @@ import numpy as np
 from vtkmodules.vtkFiltersSources import vtkCylinderSource, vtkSphereSource
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
-from .geometry import tool_matrix, vtk_matrix
+from bonesim.render.geometry import tool_matrix, vtk_matrix
 
 __all__ = ["ToolMixin", "BURR_IDLE_RGB", "BURR_ON_RGB", "SHAFT_RGB", "SUCTION_RGB",
            "SHAFT_LENGTH_MM", "SHAFT_MAX_RADIUS_MM", "MARKER_RGB", "MARKER_OPACITY"]
@@ -123,7 +123,7 @@ class ToolMixin:
         kind : {"burr", "suction"}
         depth_mm : float, optional
             Tissue between the burr and the eye [mm]
-            (:func:`bonesim.sightline.depth_below_surface_mm`). Deeper than
+            (:func:`bonesim.physics.sightline.depth_below_surface_mm`). Deeper than
             ``render.toml`` ``[hidden_burr] min_depth_mm`` the burr is also
             drawn as a translucent silhouette over the bone, with the buried
             part of its shaft; None or shallower: not.

@@ -1,7 +1,7 @@
 """The nerve monitor's scrolling trace, docked beside the scene's 3D view.
 
 What the technician at the facial-nerve monitor watches, beside the
-surgeon's view: one lane per monitored nerve (:mod:`bonesim.monitor`),
+surgeon's view: one lane per monitored nerve (:mod:`bonesim.runtime.monitor`),
 stacked top to bottom in a panel at the top of the scene's side column
 (:meth:`bonesim.render.scene.Scene.text_rect`), so that it never covers the
 drilling field. A scene without a side column (``Scene(panel=False)``) gets
@@ -59,7 +59,7 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor2D, vtkPolyDataMapper2D, vtkTextActor
 
-from ..monitor import HISTORY_S
+from bonesim.runtime.monitor import HISTORY_S
 
 __all__ = ["MonitorTrace", "format_label", "PANEL_RGBA", "LANE_RGBA", "WARN_RGBA",
            "BASELINE_RGBA", "MARGIN_PX", "BOTTOM_CLEAR_PX", "MIN_LANE_PX", "FAR_MM",
@@ -438,7 +438,7 @@ class MonitorTrace:
         return "\n".join(a.GetInput() or "" for a in self.labels)
 
     def update(self, hist: dict) -> None:
-        """Redraw from a history (as :meth:`bonesim.monitor.MonitorView.history`).
+        """Redraw from a history (as :meth:`bonesim.runtime.monitor.MonitorView.history`).
 
         Parameters
         ----------

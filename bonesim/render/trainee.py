@@ -1,9 +1,9 @@
 """The trainee's window (``bonesim tutor join`` / ``bonesim tutor playback``).
 
-The trainee's servo runs in its own process (:class:`bonesim.trainee.TraineeProcess`);
+The trainee's servo runs in its own process (:class:`bonesim.tutoring.trainee.TraineeProcess`);
 this window only reads what it publishes, at its own frame rate:
 
-- the tissue: a :class:`~bonesim.replica.TissueReplica` with a surface that
+- the tissue: a :class:`~bonesim.engine.replica.TissueReplica` with a surface that
   applies the servo's ``changes`` ring (the tissue events as the instructor
   makes them: removals, resets, splits, poses), drawn with the incremental
   surface update, as the simulator's window draws its own drilling;
@@ -23,9 +23,9 @@ import math
 
 import numpy as np
 
-from .. import events
-from ..replica import TissueReplica
-from .hud import format_help
+from bonesim.engine import events
+from bonesim.engine.replica import TissueReplica
+from bonesim.render.hud import format_help
 
 __all__ = ["TRAINEE_KEYS", "TRAINEE_MOUSE_HELP", "TraineeView", "TraineeApp"]
 
@@ -46,7 +46,7 @@ TRAINEE_MOUSE_HELP = (
 
 
 class TraineeView:
-    """Draws a started :class:`~bonesim.trainee.TraineeProcess` on a scene.
+    """Draws a started :class:`~bonesim.tutoring.trainee.TraineeProcess` on a scene.
 
     Parameters
     ----------
@@ -152,7 +152,7 @@ class TraineeView:
 
 
 class TraineeApp:
-    """The trainee's window around a started :class:`~bonesim.trainee.TraineeProcess`.
+    """The trainee's window around a started :class:`~bonesim.tutoring.trainee.TraineeProcess`.
 
     Parameters
     ----------
@@ -170,8 +170,8 @@ class TraineeApp:
         self.scene = self.window = self.view = None
 
     def start(self) -> "TraineeApp":
-        from .scene import Scene
-        from .window import Window
+        from bonesim.render.scene import Scene
+        from bonesim.render.window import Window
 
         self.scene = Scene.from_model(self.proc.model, offscreen=self.offscreen,
                                       size=self.size, title="bonesim trainee")

@@ -49,7 +49,7 @@ from vtkmodules.vtkInteractionStyle import vtkInteractorStyleTrackballCamera
 from vtkmodules.vtkRenderingCore import vtkRenderWindowInteractor
 from vtkmodules.vtkRenderingUI import vtkGenericRenderWindowInteractor
 
-from .hud import format_help
+from bonesim.render.hud import format_help
 
 __all__ = ["LEFT", "MIDDLE", "RIGHT", "ACTIONS", "DEFAULT_KEYS", "MOUSE_HELP", "Window"]
 

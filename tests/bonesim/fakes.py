@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bonesim.model import make_model, make_state
+from bonesim.engine.model import make_model, make_state
 
 
 class FakeStructure(NamedTuple):

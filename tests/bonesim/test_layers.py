@@ -106,3 +106,52 @@ def test_every_module_declares_all_and_it_names_real_things():
         sys.path.remove(str(ROOT))
     assert not missing, f"modules without __all__: {missing}"
     assert not wrong, f"__all__ names that do not exist: {wrong}"
+
+
+# --- the layout (added with the package in layers) -------------------------
+
+#: Layers, lowest first (pyproject.toml's "The layers" contract, read below).
+TOP_LEVEL = {"__init__", "__main__", "errors", "tomlfile", "progress", "resources"}
+
+
+def _contracts():
+    import tomllib
+
+    with open(ROOT / "pyproject.toml", "rb") as f:
+        return tomllib.load(f)["tool"]["importlinter"]["contracts"]
+
+
+def test_every_subpackage_is_a_declared_layer():
+    layers = next(c for c in _contracts() if c["type"] == "layers")["layers"]
+    declared = {m.strip() for layer in layers for m in layer.split("|")}
+    pkgs = {f"bonesim.{p.name}" for p in (ROOT / "bonesim").iterdir()
+            if (p / "__init__.py").exists()}
+    assert pkgs == declared, (sorted(pkgs - declared), sorted(declared - pkgs))
+
+
+def test_the_top_level_stays_small():
+    mods = {p.stem for p in (ROOT / "bonesim").glob("*.py")}
+    assert mods <= TOP_LEVEL, f"top-level modules outside the layers: {sorted(mods - TOP_LEVEL)}"
+
+
+def test_tests_mirror_the_package():
+    """tests/bonesim/<layer>/test_x.py sits beside a bonesim/<layer>/ package,
+    and every layer's test folder is a package (so ``io`` never shadows the
+    standard library's)."""
+    here = ROOT / "tests" / "bonesim"
+    for d in sorted(p for p in here.iterdir() if p.is_dir() and p.name not in
+                    ("data", "__pycache__")):
+        assert (ROOT / "bonesim" / d.name / "__init__.py").exists(), d
+        assert (d / "__init__.py").exists(), d
+    stray = sorted(p.name for p in here.glob("test_*.py")
+                   if p.stem != "test_layers" and p.stem[5:] not in TOP_LEVEL)
+    assert not stray, f"tests outside the layers' folders: {stray}"
+
+
+def test_the_data_folder_is_found_from_every_layer():
+    from bonesim.resources import data_path
+
+    assert data_path("materials.toml").is_file()
+    hits = [str(p.relative_to(ROOT)) for p in (ROOT / "bonesim").rglob("*.py")
+            if '/ "data"' in p.read_text() and p.name != "resources.py"]
+    assert not hits, f"data paths not through bonesim.resources.data_path: {hits}"

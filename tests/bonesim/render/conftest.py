@@ -15,7 +15,7 @@ def gl_info():
 
 @pytest.fixture(scope="session")
 def phantom(gl_info):
-    from bonesim.loading import load_model
+    from bonesim.io.loading import load_model
 
     return load_model("phantom", "cutting-5mm")
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bonesim.grid import BRICK_SHIFT
+from bonesim.engine.grid import BRICK_SHIFT
 
 SIZE = (400, 300)
 
@@ -66,7 +66,7 @@ def drilling_dust(grid, removed):
     app's gravity is the view direction): settled for 1 s, then the nerve's
     cavity irrigated for 0.5 s and drained for 0.5 s, then 0.3 s of suction
     at the sinus cavity's floor."""
-    from bonesim.dust import DustGrid
+    from bonesim.physics.dust import DustGrid
 
     g = np.subtract(CLOSE_FOCAL, CLOSE_EYE)
     dust = DustGrid.for_grid(grid, g)
@@ -96,9 +96,9 @@ def build(model, which: str, **scene_kw):
                  paste), partly suctioned; the burr buried in the bone beside
                  the cavity, drawn as a silhouette
     """
-    from bonesim.model import make_state
+    from bonesim.engine.model import make_state
     from bonesim.render.scene import Scene
-    from bonesim.surface import Surface
+    from bonesim.engine.surface import Surface
 
     state = make_state(model)
     surf = Surface.of_model(model, state.grid)     # as the app: thin bone tinted
@@ -117,7 +117,7 @@ def build(model, which: str, **scene_kw):
         scene.set_dust(*dust_cloud(), cell_mm=0.8)
         scene.set_hud(HUD)
     elif which == "dust":
-        from bonesim.sightline import depth_below_surface_mm
+        from bonesim.physics.sightline import depth_below_surface_mm
 
         removed = mastoid_cavity(state.grid)
         surf.update(state.grid, removed)

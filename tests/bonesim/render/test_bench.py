@@ -19,7 +19,7 @@ def test_bench_render_quick(gl_info):
 
 @pytest.mark.slow
 def test_bench_fps_quick(gl_info):
-    from bonesim.bench import BENCHMARKS
+    from bonesim.bench.suite import BENCHMARKS
 
     out = BENCHMARKS["render_fps_1024x768"](quick=True)
     fps = out["render_fps_1024x768"]

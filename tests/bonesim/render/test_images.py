@@ -128,7 +128,7 @@ def test_another_rasterizer_is_within_tolerance(tmp_path):
     tolerance of the references."""
     if UPDATE:
         pytest.skip("updating references")
-    code = ("import sys; from bonesim.loading import load_model; "
+    code = ("import sys; from bonesim.io.loading import load_model; "
             "from tests.bonesim.render import scenes; "
             "from bonesim.render.imagecmp import write_png; "
             "m = load_model('phantom', 'cutting-5mm')\n"

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bonesim.grid import voxel_offset
+from bonesim.engine.grid import voxel_offset
 from bonesim.render.meshbuf import SurfaceBuffers
-from bonesim.surface import Surface
+from bonesim.engine.surface import Surface
 
 EYE = np.array([8.0, 8.0, 60.0])          # above the block's top face (z = 7.75 mm)
 DOWN = np.array([0.0, 0.0, -1.0])

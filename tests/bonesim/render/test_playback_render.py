@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bonesim.playback import Player
+from bonesim.session.playback import Player
 from bonesim.render.playback import (BAR_RGBA, CONTACT_RGBA, HEAD_RGBA, PLAYED_RGBA,
                                      PLAYBACK_KEYS, RESET_RGBA,
                                      PlaybackApp, PlaybackView, bar_rect, export_video)
 from bonesim.render.scene import Scene
-from tests.bonesim.test_playback import demo_file, fake_session  # noqa: F401 (fixture)
+from tests.bonesim.session.test_playback import demo_file, fake_session  # noqa: F401 (fixture)
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -222,7 +222,7 @@ def test_short_video_export_has_the_frames_and_size(gl_info, recorded, tmp_path)
 def test_cli_video_export_of_a_recorded_file(gl_info, demo_file, tmp_path, capsys):
     import imageio_ffmpeg
 
-    from bonesim.cli import main
+    from bonesim.cli.main import main
 
     out = tmp_path / "demo.mp4"
     assert main(["playback", str(demo_file), "--video", str(out), "--size", "192x108",

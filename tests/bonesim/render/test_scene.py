@@ -6,7 +6,7 @@ import pytest
 from vtkmodules.util import numpy_support
 
 from bonesim.render.scene import Scene, tool_matrix
-from bonesim.surface import Surface
+from bonesim.engine.surface import Surface
 from tests.bonesim.render.test_meshbuf import live, pit, remove, triples
 
 

@@ -3,7 +3,7 @@ and on a label-stack case (as another simulator hands one over), against
 stored references.
 
 Each reference (``images/showcase_*.png``, 960 x 300) is the headless main
-job's view (:class:`bonesim.showcase.Showcase`) as the plan starts and 60 s
+job's view (:class:`bonesim.apps.showcase.Showcase`) as the plan starts and 60 s
 of drilling later: the opened mastoid, the thinned bone over the sinus and
 the facial nerve tinted their colours, the little dust the suction leaves,
 the HUD and the nerve monitor. Regenerate with ``BONESIM_UPDATE_IMAGES=1``
@@ -14,12 +14,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim import case as C
-from bonesim import phantom as P
-from bonesim import volumes as VOL
-from bonesim.showcase import Showcase
+from bonesim.io import case as C
+from bonesim.io import phantom as P
+from bonesim.io import volumes as VOL
+from bonesim.apps.showcase import Showcase
 from tests.bonesim.render.test_images import check
-from tests.bonesim.test_case import THEIR_COLORS, their_manifest
+from tests.bonesim.io.test_case import THEIR_COLORS, their_manifest
 
 SIZE = (480, 300)
 DRILL_S = 60.0

@@ -12,14 +12,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bonesim import events
-from bonesim import trainee as T
-from bonesim.child import BASE_STATUS, record_dtype
+from bonesim.engine import events
+from bonesim.tutoring import trainee as T
+from bonesim.runtime.child import BASE_STATUS, record_dtype
 from bonesim.render.scene import Scene
 from bonesim.render.trainee import TraineeView
-from bonesim.surface import Surface
+from bonesim.engine.surface import Surface
 from tests.bonesim.render.scenes import nerve_block
-from tests.bonesim.test_playback import demo_file  # noqa: F401 (fixture)
+from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 
 SIZE = (320, 240)
 
@@ -157,8 +157,8 @@ def test_tool_hand_and_hud_come_from_the_status(view):
 
 @pytest.mark.slow
 def test_cli_playback_window_offscreen(gl_info, demo_file, tmp_path, capsys):
-    from bonesim.cli import main
-    from bonesim.session_reader import read_session
+    from bonesim.cli.main import main
+    from bonesim.session.reader import read_session
 
     n_rem = len(read_session(demo_file).removals["t_s"])
     shot = tmp_path / "trainee.png"

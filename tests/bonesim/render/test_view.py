@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.dust import DustGrid
+from bonesim.physics.dust import DustGrid
 from bonesim.render.scene import Scene
-from bonesim.sightline import depth_below_surface_mm
-from bonesim.surface import Surface
+from bonesim.physics.sightline import depth_below_surface_mm
+from bonesim.engine.surface import Surface
 
 SIZE = (400, 300)
 TOP_Z = 7.75                   # the nerve block's bone ends at z = 15.5 voxels [mm]

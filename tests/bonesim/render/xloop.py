@@ -12,10 +12,10 @@ import numpy as np
 
 
 def main(out_path: str, n_frames: int = 40) -> None:
-    from bonesim.grid import voxel_offset
+    from bonesim.engine.grid import voxel_offset
     from bonesim.render.scene import Scene
     from bonesim.render.window import Window
-    from bonesim.surface import Surface
+    from bonesim.engine.surface import Surface
     from tests.bonesim.render.scenes import nerve_block
 
     model, state = nerve_block()

@@ -1,12 +1,13 @@
 """Write a schema-1 session with removals, injuries, a reset and a burr change."""
 import sys
 import numpy as np
-from bonesim import events
-from bonesim.burrs import load_burr
-from bonesim.haptic_loop import push_sample
-from bonesim.model import Sample, load_model, make_state, reset_state, step
-from bonesim.record import Drainer, SessionWriter, make_header, SCHEMA_VERSION
-from bonesim.toolpath import demo_trajectory
+from bonesim.engine import events
+from bonesim.io.burrs import load_burr
+from bonesim.runtime.haptic_loop import push_sample
+from bonesim.engine.model import Sample, make_state, reset_state, step
+from bonesim.io.loading import load_model
+from bonesim.runtime.record import Drainer, SessionWriter, make_header, SCHEMA_VERSION
+from bonesim.io.toolpath import demo_trajectory
 assert SCHEMA_VERSION == 1
 out = sys.argv[1]
 m0 = load_model("phantom", "cutting-5mm")

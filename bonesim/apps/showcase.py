@@ -1,0 +1,384 @@
+"""The headless main job: the planned mastoidectomy, drilled in simulated time.
+
+``bonesim run`` without a display (or ``--offscreen`` without a script)
+runs this: the demo plan (:func:`bonesim.io.toolpath.demo_trajectory`: layered
+raster passes along the surgeon's view, drill off between layers for
+irrigation and suction) is fed to :func:`bonesim.engine.model.step` at the haptic
+rate in this process, and frames are drawn at fixed points of *simulated*
+time. Frames follow the simulation, not the other way round, so the result
+(what was drilled, the pictures) is the same on an idle machine and on a
+busy one; only the wall time differs.
+
+Each frame drains the removals into the hybrid surface and the bone dust,
+moves the dust (gravity, the burr's push, irrigation, suction), updates the
+nerve monitor's trace from the steps since the previous frame, and renders
+the scene offscreen. The frames become a short time-lapse video (H.264,
+:class:`bonesim.session.video.VideoWriter`) and the last one the final picture.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from bonesim.engine import events
+from bonesim.runtime.simulate import CLEARANCE_EVERY, closest_approach
+
+__all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "Showcase",
+           "run_showcase"]
+
+#: Length of the time-lapse video [s] (the plan's minutes are sped up to fit).
+VIDEO_S = 16.0
+#: Its frame rate [Hz].
+VIDEO_FPS = 25.0
+#: Frame size [px] (width, height; even for H.264).
+SIZE = (1280, 720)
+#: Longest dust step [s of simulated time]; a frame's interval is split into
+#: steps no longer than this.
+DUST_DT_S = 1.0 / 30.0
+#: Interval of the nerve monitor's updates [s of simulated time] (its
+#: process updates at 50 Hz in an interactive run).
+MONITOR_DT_S = 0.02
+#: The camera moves this many times closer to the case's focal point than
+#: the case camera (the cavity, not the whole bone, fills the frame).
+ZOOM = 1.5
+#: Suction tip radius [mm] (as the app's suction tool).
+TIP_RADIUS_MM = 1.5
+#: Radius of the patch the irrigation water wets around its tip [mm] (the
+#: water runs over the cavity's floor below the tip).
+WATER_RADIUS_MM = 4.0
+#: While the burr cuts, the other hand's suction-irrigator follows it, as
+#: surgeons work: its water lands on the burr and its tip trails the burr
+#: along its path by this much time [s] (the paste just made shows, then goes).
+ASSIST_LAG_S = 0.5
+#: How the trailing suction tube is drawn: its radius [mm] (a 7 Fr
+#: Frazier tip) and its tilt from the drill axis across the view (it
+#: comes in from the other hand) [tan of the angle].
+SUCTION_DRAWN_RADIUS_MM = 1.1
+SUCTION_TILT = 0.3
+
+
+class Showcase:
+    """A scripted run drawn frame by frame in simulated time.
+
+    Parameters
+    ----------
+    case : str or Path
+        Case name or manifest.
+    burr : str
+        Burr name or file.
+    trajectory : bonesim.io.trajectory.Trajectory, optional
+        Tool path (default: the case's demo mastoidectomy).
+    size : (int, int)
+        Frame size [px].
+    monitor : bool
+        Show the nerve monitor's trace when the case monitors a nerve.
+    """
+
+    def __init__(self, case="phantom", burr="cutting-5mm", *, trajectory=None,
+                 size=SIZE, monitor: bool = True):
+        from bonesim.physics.dust import DustGrid
+        from bonesim.io.loading import load_model
+        from bonesim.engine.model import make_state
+        from bonesim.render.scene import Scene
+        from bonesim.engine.replica import TissueReplica
+        from bonesim.io.toolpath import demo_trajectory
+
+        self.model = model = load_model(case, burr)
+        traj = trajectory if trajectory is not None else demo_trajectory(model.case, burr)
+        self.samples = traj.resample(model.haptic_rate_hz)
+        if len(self.samples.t_s) < 2:
+            raise ValueError("the trajectory is shorter than one haptic step")
+        self.state = make_state(model)
+        self.consumer = TissueReplica(model, self.state, surface=True)
+        cam = model.case.camera
+        view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+        self.view = view / np.linalg.norm(view)
+        side = np.cross(self.view, np.asarray(cam.up, float))   # the view's right
+        self._side = side / np.linalg.norm(side)
+        self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
+        self.scene = Scene.from_model(model, self.consumer.surface, offscreen=True,
+                                      size=tuple(size))
+        focal = np.asarray(cam.focal_mm, float)
+        eye = focal + (np.asarray(cam.eye_mm, float) - focal) / ZOOM
+        self.scene.set_case_camera(eye, focal, cam.up)
+        self.injuries: list[str] = []
+        self.q = 0                                   # next sample to step
+        self.frame_hz = None                         # run_showcase: the video's rate
+        self._force = np.zeros(len(self.samples.t_s))  # |force| per step [N]
+        self.t_s = float(self.samples.t_s[0])
+        self.force_n = 0.0
+        self.monitor = self.trace = None
+        self.min_clearance_mm = math.inf
+        if monitor:
+            self._start_monitor()
+
+    # ------------------------------------------------------------ monitor
+    def _start_monitor(self) -> None:
+        from bonesim.runtime.monitor import HISTORY_CAP, SPIKE_CAP, NerveMonitor, monitored_structures
+
+        if not monitored_structures(self.model):
+            return
+        from bonesim.render.trace import MonitorTrace
+
+        self.monitor = nm = NerveMonitor(self.model)
+        k = nm.n
+        self._hist = events.Ring.create(HISTORY_CAP, t_s=(np.float64, ()),
+                                        rate=(np.float32, (k,)), dist=(np.float32, (k,)))
+        self._spikes = events.Ring.create(SPIKE_CAP, t_s=(np.float64, ()),
+                                          nerve=(np.uint8, ()))
+        p = nm.params
+        self.trace = MonitorTrace(self.scene, nm.names, nm.colors, max_hz=p.max_hz,
+                                  warn_mm=p.warn_mm, baseline_hz=p.baseline_hz)
+
+    def _feed_monitor(self, lo: int, hi: int) -> None:
+        """Update the monitor from steps ``lo .. hi - 1`` in 20 ms chunks."""
+        nm, s = self.monitor, self.samples
+        t = s.t_s
+        while lo < hi:
+            stop = int(np.searchsorted(t, t[lo] + MONITOR_DT_S, side="left"))
+            stop = min(max(stop, lo + 1), hi)
+            sl = slice(lo, stop)
+            nm.update_many(t[sl], s.pos_mm[sl], self._force[sl], s.drill[sl])
+            st_t, st_n = nm.spikes
+            self._spikes.append(t_s=st_t, nerve=st_n)
+            self._hist.append(t_s=np.array([nm.t_s]),
+                              rate=nm.rates_hz.reshape(1, -1).astype(np.float32),
+                              dist=nm.distance_mm.reshape(1, -1).astype(np.float32))
+            lo = stop
+
+    # ------------------------------------------------------------ running
+    @property
+    def start_s(self) -> float:
+        return float(self.samples.t_s[0])
+
+    @property
+    def end_s(self) -> float:
+        return float(self.samples.t_s[-1])
+
+    def _tip(self, q: int) -> tuple[bool, bool]:
+        """(suction, irrigation) at sample ``q``."""
+        s = self.samples
+        return bool(s.suction[q]), bool(s.irrigation[q])
+
+    def _assist(self, q: int):
+        """Where suction and irrigation act at sample ``q`` [mm] (None: off).
+
+        Rinses (drill off) follow the plan's columns at the suction tip;
+        while the drill runs, the water lands at the burr and the suction
+        tip trails it by :data:`ASSIST_LAG_S`."""
+        s = self.samples
+        if s.drill[q]:
+            lag = int(np.searchsorted(s.t_s, s.t_s[q] - ASSIST_LAG_S, side="left"))
+            return self._tip_mm(min(lag, q)), s.pos_mm[q]
+        suck, wet = self._tip(q)
+        tip = self._tip_mm(q) if (suck or wet) else None
+        return (tip if suck else None), (tip if wet else None)
+
+    def _tip_mm(self, q: int) -> np.ndarray:
+        """Where the suction-irrigator's tip is at sample ``q`` [mm]: the
+        front of the burr's sphere, the point the plan keeps
+        ``rinse_gap_mm`` off the cavity (the trajectory gives the burr
+        centre)."""
+        s = self.samples
+        a = np.asarray(s.axis[q], float)
+        return s.pos_mm[q] + self.model.burr.radius_mm * a / np.linalg.norm(a)
+
+    def advance(self, t_s: float) -> None:
+        """Step the engine through every sample up to ``t_s`` and bring the
+        surface, dust, monitor and scene to that moment.
+
+        Parameters
+        ----------
+        t_s : float
+            Simulated time [s]; at most the trajectory's end.
+        """
+        from bonesim.engine.model import Sample, step
+        from bonesim.runtime.monitor import read_history
+        from bonesim.physics.sightline import depth_below_surface_mm
+
+        s, model, state = self.samples, self.model, self.state
+        t_s = min(float(t_s), self.end_s)
+        hi = int(np.searchsorted(s.t_s, t_s, side="right"))
+        lo = self.q
+        for q in range(lo, hi):
+            f = step(model, state, Sample(s.t_s[q], s.pos_mm[q], s.axis[q], bool(s.drill[q]),
+                                          float(s.speed_rpm[q]), int(s.direction[q])))
+            self._force[q] = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        self.q = max(hi, lo)
+        self._clearance(lo, self.q)
+        t0 = self.t_s
+        dt = max(t_s - t0, 0.0)
+        self.t_s = t_s
+        cur = max(self.q - 1, 0)
+        ch = self.consumer.drain()
+        rem = ch.removed
+        self.scene.update_surface(self.consumer.surface, rem, ch.touched)
+        if len(rem):
+            self.dust.add_removed(rem)
+        burr = model.burr
+        # the dust moves in steps of at most DUST_DT_S, each with the tool,
+        # suction and irrigation of its own moment
+        n_sub = int(math.ceil(dt / DUST_DT_S)) if dt > 0 else 0
+        for k in range(n_sub):
+            qk = min(int(np.searchsorted(s.t_s, t0 + (k + 1) * dt / n_sub, side="right")) - 1,
+                     len(s.t_s) - 1)
+            qk = max(qk, 0)
+            pk = s.pos_mm[qk]
+            suck_at, wet_at = self._assist(qk)
+            self.dust.step(self.consumer.grid, dt / n_sub, tool_pos_mm=pk,
+                           tool_radius_mm=burr.radius_mm,
+                           suction_pos_mm=suck_at,
+                           suction_radius_mm=TIP_RADIUS_MM if suck_at is not None else 0.0,
+                           irrigation_pos_mm=wet_at,
+                           irrigation_radius_mm=WATER_RADIUS_MM if wet_at is not None else 0.0)
+        pos, axis = s.pos_mm[cur], s.axis[cur]
+        suction, irrigation = self._tip(cur)
+        self.scene.set_dust(*self.dust.sprites())
+        tool = "suction" if suction else "irrigation" if irrigation else "burr"
+        drill = bool(s.drill[cur])
+        depth = None
+        if tool == "burr":
+            eye = self.scene.camera_pose()[0]
+            depth = depth_below_surface_mm(self.consumer.grid, pos, eye, burr.radius_mm)
+        if tool == "burr":
+            self.scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
+            suck_at = self._assist(cur)[0] if drill else None
+            self.scene.set_suction(suck_at, axis - SUCTION_TILT * self._side,
+                                   SUCTION_DRAWN_RADIUS_MM)
+        else:
+            self.scene.set_suction(None)
+            self.scene.set_tool(self._tip_mm(cur), axis, TIP_RADIUS_MM, False, kind="suction")
+        for lab in ch.injuries["label"]:
+            name = model.structure_name(int(lab))
+            if name not in self.injuries:
+                self.injuries.append(name)
+        lo_f = max(lo - int(model.haptic_rate_hz * MONITOR_DT_S), 0)
+        self.force_n = float(self._force[lo_f:self.q].max()) if self.q > lo_f else 0.0
+        self.scene.set_hud({
+            "case": model.name, "burr": burr.name, "burr_kind": burr.kind,
+            "burr_diameter_mm": burr.diameter_mm, "tool": tool, "drill": drill,
+            "direction": int(s.direction[cur]), "speed_rpm": float(s.speed_rpm[cur]),
+            "force_n": self.force_n, "haptic_hz": model.haptic_rate_hz,
+            "frame_hz": self.frame_hz,
+            "elapsed_s": t_s - self.start_s, "injuries": list(self.injuries),
+            **({} if depth is None else {"depth_mm": depth}),
+            "message": "simulated time"})
+        if self.monitor is not None and self.q > lo:
+            self._feed_monitor(lo, self.q)
+            self.trace.update(read_history(self._hist, self._spikes, self.monitor.t_s,
+                                           self.monitor.n, self.trace.window_s))
+
+    def _clearance(self, lo: int, hi: int) -> None:
+        """Track the running burr's closest approach to a structure that is not
+        bone (every :data:`~bonesim.runtime.simulate.CLEARANCE_EVERY` th step; exact
+        native-resolution distances, :func:`bonesim.runtime.simulate.closest_approach`)."""
+        if hi <= lo:
+            return
+        s = self.samples
+        sl = slice(lo - lo % -CLEARANCE_EVERY, hi, CLEARANCE_EVERY)
+        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][s.drill[sl].astype(bool)])
+        self.min_clearance_mm = min(self.min_clearance_mm, gap)
+
+    def image(self) -> np.ndarray:
+        """The current frame, (height, width, 3) uint8."""
+        return self.scene.image()
+
+    def summary(self) -> dict:
+        """What the run did so far (JSON-ready)."""
+        st = self.state
+        counts = st.removed_by_label
+        return {
+            "case": self.model.name, "burr": self.model.burr.name,
+            "simulated_s": round(self.t_s - self.start_s, 3),
+            "plan_s": round(self.end_s - self.start_s, 3),
+            "steps": int(self.q),
+            "voxels_removed": int(counts.sum()),
+            "removed_by_structure": {self.model.structure_name(i): int(c)
+                                     for i, c in enumerate(counts) if c and i},
+            "injuries": list(self.injuries),
+            "dust_cells": float(round(self.dust.total_cells, 2)),
+            "dust_suctioned_cells": float(round(self.dust.suctioned_cells, 2)),
+            **({} if not math.isfinite(self.min_clearance_mm) else
+               {"min_clearance_mm": round(self.min_clearance_mm, 3)}),
+        }
+
+    def close(self) -> None:
+        self.scene.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
+                 picture="bonesim-run.png", size=SIZE, video_s: float = VIDEO_S,
+                 fps: float = VIDEO_FPS, monitor: bool = True, seconds: float | None = None,
+                 trajectory=None, progress=None) -> dict:
+    """Drill the whole demo plan in simulated time; write a video and a picture.
+
+    Parameters
+    ----------
+    case, burr
+        As :class:`Showcase`.
+    video : path or None
+        The time-lapse video (``.mp4``); None: no video.
+    picture : path or None
+        The final frame (``.png``); None: none.
+    size : (int, int)
+        Frame size [px].
+    video_s : float
+        Video length [s]: the plan's duration is sped up to fit.
+    fps : float
+        Video frame rate [Hz].
+    monitor : bool
+        Show the nerve monitor's trace (when the case monitors a nerve).
+    seconds : float, optional
+        Drill only the plan's first ``seconds`` [s of simulated time].
+    trajectory : bonesim.io.trajectory.Trajectory, optional
+        Another tool path than the demo plan.
+    progress : callable, optional
+        Called as ``progress(done, total, what)`` after each frame.
+
+    Returns
+    -------
+    dict
+        :meth:`Showcase.summary` plus ``frames``, ``speedup``, ``wall_s`` and
+        the files written.
+    """
+    from bonesim.session.video import VideoWriter
+
+    wall0 = time.perf_counter()
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"seconds must be positive, got {seconds!r}")
+    with Showcase(case, burr, size=size, monitor=monitor, trajectory=trajectory) as show:
+        n = max(2, int(round(video_s * fps)))
+        show.frame_hz = fps
+        end = show.end_s if seconds is None else min(show.end_s, show.start_s + seconds)
+        times = np.linspace(show.start_s, end, n)
+        writer = VideoWriter(video, size, fps) if video is not None else None
+        try:
+            for i, t in enumerate(times):
+                show.advance(t)
+                if writer is not None:
+                    writer.write(show.image())
+                if progress is not None:
+                    progress(i + 1, n, "drilling the plan")
+            if writer is not None:
+                writer.close()
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+        out = show.summary()
+        out["frames"] = n
+        out["speedup"] = round((end - show.start_s) / video_s, 2)
+        if picture is not None:
+            out["picture"] = str(show.scene.screenshot(picture))
+        if video is not None:
+            out["video"] = str(video)
+    out["wall_s"] = round(time.perf_counter() - wall0, 2)
+    return out

@@ -1,0 +1,354 @@
+"""The interactive simulator: window, haptic loop, sound and dust together.
+
+:class:`App` wires the subsystems; ``bonesim run`` drives it.
+
+* The haptic loop (:mod:`bonesim.runtime.haptic_loop`) runs in its own process at
+  1 kHz with the device: the mouse/keyboard device (the window writes the
+  target, a virtual coupling keeps the burr on the bone) or a scripted
+  trajectory.
+* The sound (:mod:`bonesim.runtime.audio`) runs in a third process, steered by the
+  loop's shared status.
+* The window's frame callback (main thread) drains the loop's rings into the
+  hybrid surface and the bone dust, moves the tool, and fills the HUD. It
+  never blocks the loop: it only reads what the loop has published.
+
+* The nerve monitor (:mod:`bonesim.runtime.monitor`), when the case monitors a
+  nerve, runs in a fourth process on the loop's samples: its scrolling trace
+  is drawn over the window (``m`` shows or hides it), its clicks are mixed
+  into the sound, and with ``monitor_serve`` it streams to remote consoles
+  (``bonesim monitor HOST``, :mod:`bonesim.net.monitor_link`).
+
+Mouse and keys: the mouse moves the tool in the view plane; the wheel (or
+Up/Down) sets how hard the hand presses along the view, in millimetres of
+coupling-spring stretch (1 mm = 1 N with the default coupling): at 0 the burr
+hovers, above 0 it sinks until it rests on bone and drills its way in.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bonesim.physics.sightline import depth_below_surface_mm
+from bonesim.runtime.haptic_loop import HapticLoop
+
+__all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
+           "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "App"]
+
+#: Press depth change per wheel click or Up/Down key [mm] (1 mm = 1 N).
+PRESS_STEP_MM = 0.5
+#: Spindle speed change per key press [rpm].
+SPEED_STEP_RPM = 5000.0
+#: Where the tool starts: this far from the case's focal point toward the eye [mm].
+START_STANDOFF_MM = 10.0
+#: How often the HUD's haptic-rate statistics are recomputed [frames].
+RATE_EVERY_FRAMES = 15
+#: Suction tip radius [mm].
+SUCTION_RADIUS_MM = 1.5
+#: How far past the burr's surface the irrigation water wets the dust [mm]
+#: (the burr pushes dust out of its own sphere, so the water must reach past it).
+WATER_SPREAD_MM = 2.0
+
+
+class App:
+    """One simulator session.
+
+    Parameters
+    ----------
+    case : str
+        Case name or ``case.toml`` path.
+    burr : str
+        Starting burr; the others of the burr table are a key press away.
+    script : Trajectory, optional
+        Drive the tool from this trajectory instead of the mouse.
+    offscreen : bool
+        Render without a display.
+    size : (int, int)
+        Window size [px].
+    sound : bool
+        Play the drill sound (a silent sink with one notice if there is no
+        audio device).
+    wav : path, optional
+        Record the sound to this WAV file.
+    record : path, optional
+        Record the session to this HDF5 file (:mod:`bonesim.runtime.record`).
+    who : dict, optional
+        ``participant``, ``group`` and ``notes`` for the recording's header.
+    monitor : bool
+        Run the nerve monitor when the case monitors a nerve.
+    monitor_serve : dict, optional
+        Stream the monitor to remote consoles: ``key`` (bytes), ``host``,
+        ``port`` (see :class:`bonesim.net.monitor_link.MonitorServer`).
+    stereo : str, optional
+        Stereo view mode (:data:`bonesim.render.stereo.STEREO_MODES`).
+    eye_separation_mm : float, optional
+        Distance between the eyes for stereo [mm] (default from
+        ``render.toml``).
+    """
+
+    def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
+                 size=(1024, 768), sound: bool = True, wav=None, record=None,
+                 who: dict | None = None, monitor: bool = True,
+                 monitor_serve: dict | None = None, stereo: str | None = None,
+                 eye_separation_mm: float | None = None):
+        from bonesim.io.burrs import list_burrs, load_burr
+        from bonesim.io.loading import load_model
+
+        chosen = load_burr(burr)
+        table = list_burrs()
+        names = [b.name for b in table]
+        if chosen.name not in names:
+            table.insert(0, chosen)
+            names.insert(0, chosen.name)
+        i0 = names.index(chosen.name)
+        self.burrs = table[i0:] + table[:i0]          # index 0 = the chosen burr
+        self.model = load_model(case, chosen)
+        cam = self.model.case.camera
+        view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+        self.view = view / np.linalg.norm(view)
+        device = ("mouse",) if script is None else ("scripted", script)
+        self.scripted = script is not None
+        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device)
+        self.loop.set_target(np.asarray(cam.focal_mm, float)
+                             - START_STANDOFF_MM * self.view, self.view)
+        self.press_mm = 0.0
+        self.suction = False
+        self.suction_pos = None
+        self.irrigation = False
+        self.stereo = stereo
+        self.eye_separation_mm = eye_separation_mm
+        self.offscreen = offscreen
+        self.size = size
+        self.sound = sound or wav is not None
+        self.wav = wav
+        self.audio = None
+        self.notices: list[str] = []
+        self.injuries: list[str] = []
+        self.frames = 0
+        self.t_start = None
+        self._rates = {}
+        self.scene = self.window = None
+        self.record = None if record is None else Path(record)
+        self.who = dict(who or {})
+        self.recorder = None
+        from bonesim.runtime.monitor import monitored_structures
+
+        self.monitor = None
+        self.trace = None
+        self.want_monitor = monitor and bool(monitored_structures(self.model))
+        if monitor_serve is not None and not self.want_monitor:
+            raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
+                             "serve (set monitor = true on a nerve in its case.toml)")
+        self.monitor_serve = monitor_serve
+
+    # -------------------------------------------------------------- set-up
+    def _fresh_consumers(self):
+        from bonesim.physics.dust import DustGrid
+        from bonesim.engine.replica import TissueReplica
+
+        self.consumer = TissueReplica(self.model, self.loop.state, surface=True)
+        self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
+
+    def start(self) -> "App":
+        """Start the haptic (and audio) processes and build the scene."""
+        from bonesim.render import gl
+        from bonesim.render.scene import Scene
+        from bonesim.render.window import Window
+
+        gl.start_probe(offscreen=self.offscreen)      # overlaps with the loop's warm-up
+        if self.record is not None:
+            from bonesim.runtime.record import Recorder, make_header
+
+            header = make_header(self.model, self.burrs[1:],
+                                 input_device="scripted" if self.scripted else "mouse",
+                                 **self.who)
+            # the writer reads the loop's rings from record 0, so it may start
+            # while the loop warms up
+            self.recorder = Recorder(self.loop, self.record, header).start()
+        if self.want_monitor:           # warms up beside the loop; reads its samples from 0
+            from bonesim.runtime.monitor import MonitorProcess
+
+            self.monitor = MonitorProcess(self.loop, serve=self.monitor_serve).start(wait=False)
+        self.loop.start()
+        if self.monitor is not None:
+            self.monitor.wait_ready()
+        if self.sound:
+            from bonesim.runtime.audio import AudioProcess
+
+            self.audio = AudioProcess(self.loop, wav=self.wav, monitor=self.monitor).start()
+            if self.audio.silent:
+                self.notices.append("no audio device: sound muted"
+                                    + (f", recorded to {self.wav}" if self.wav else ""))
+        self._fresh_consumers()
+        self.scene = Scene.from_model(self.model, self.consumer.surface,
+                                      offscreen=self.offscreen, size=self.size,
+                                      stereo_capable=self.stereo == "quad-buffer")
+        if self.stereo is not None or self.eye_separation_mm is not None:
+            self.scene.set_stereo(self.stereo, self.eye_separation_mm)
+        if self.monitor is not None:
+            from bonesim.render.trace import MonitorTrace
+
+            v, p = self.monitor.view, self.monitor.params
+            self.trace = MonitorTrace(self.scene, v.names, v.colors, max_hz=p.max_hz,
+                                      warn_mm=p.warn_mm, baseline_hz=p.baseline_hz)
+        self.window = Window(self.scene, self.on_frame, self.on_key, self.on_mouse)
+        self.t_start = time.perf_counter()
+        return self
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recording = self.recorder.close()
+            self.recorder = None
+        if self.audio is not None:
+            self.audio.close()
+            self.audio = None
+        if self.monitor is not None:
+            self.monitor.close()
+            self.monitor = None
+        self.loop.close()
+        if self.scene is not None:
+            self.scene.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -------------------------------------------------------------- frames
+    @property
+    def burr(self):
+        return self.burrs[int(self.loop.status["burr"])]
+
+    def on_frame(self, scene) -> None:
+        from bonesim.physics.dust import DustGrid
+
+        st = self.loop.status
+        ch = self.consumer.drain()
+        if ch.reset:                                   # the case was reset
+            self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
+            self.injuries.clear()
+        rem, tch = ch.removed, ch.touched
+        scene.update_surface(self.consumer.surface, rem, tch)
+        pos = st["pos_mm"].copy()
+        axis = st["axis"].copy()
+        burr = self.burr
+        if len(rem):
+            self.dust.add_removed(rem)
+        dt = 1.0 / self.window.frame_hz
+        suction = self.suction_pos if self.suction else None
+        self.dust.step(self.consumer.grid, dt, tool_pos_mm=pos, tool_radius_mm=burr.radius_mm,
+                       suction_pos_mm=suction,
+                       suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0,
+                       irrigation_pos_mm=pos if self.irrigation else None,
+                       irrigation_radius_mm=(burr.radius_mm + WATER_SPREAD_MM
+                                             if self.irrigation else 0.0))
+        scene.set_dust(*self.dust.sprites())
+        drill = bool(st["drill"])
+        depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],
+                                       burr.radius_mm)
+        scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
+        if suction is not None:                   # the suction tip where the mouse is
+            scene.set_suction(suction, self.view, SUCTION_RADIUS_MM)
+        else:
+            scene.set_suction(None)
+        if self.recorder is not None:
+            self.recorder.camera(*scene.camera_pose())
+        inj = ch.injuries
+        for lab in inj["label"]:
+            name = self.model.structure_name(int(lab))
+            if name not in self.injuries:
+                self.injuries.append(name)
+        if self.frames % RATE_EVERY_FRAMES == 0:
+            self._rates = self.loop.rate_stats(1000)
+        scene.set_hud({
+            "case": self.model.name, "burr": burr.name, "burr_kind": burr.kind,
+            "burr_diameter_mm": burr.diameter_mm,
+            "tool": "suction" if self.suction else "burr",
+            "irrigation": self.irrigation, "depth_mm": depth,
+            "drill": drill, "direction": int(st["direction"]), "speed_rpm": float(st["speed_rpm"]),
+            "force_n": float(np.linalg.norm(st["force_n"])),
+            "haptic_hz": self._rates.get("rate_hz", 0.0),
+            "elapsed_s": time.perf_counter() - self.t_start,
+            "injuries": list(self.injuries),
+            "message": "; ".join(self.notices) if self.notices else None,
+        })
+        if self.trace is not None:          # after the HUD: the panel keeps clear of it
+            self.trace.update(self.monitor.view.history(self.trace.window_s))
+        self.frames += 1
+
+    def on_mouse(self, world_mm, buttons) -> None:
+        if self.scripted:
+            return
+        if self.suction:
+            self.suction_pos = np.asarray(world_mm, float)
+            return
+        self.loop.set_target(np.asarray(world_mm, float) + self.press_mm * self.view,
+                             self.view)
+
+    def on_key(self, action: str) -> bool:
+        if self.recorder is not None:
+            self.recorder.event("key", action)
+        loop, st, ctl = self.loop, self.loop.status, self.loop.control
+        if action in ("next_burr", "previous_burr"):
+            step = 1 if action == "next_burr" else -1
+            loop.set_burr((int(st["burr"]) + step) % len(self.burrs))
+        elif action == "drill_toggle":
+            loop.set_drill(not bool(ctl["drill"]))
+        elif action == "reverse":
+            loop.set_drill(bool(ctl["drill"]), direction=-1 if ctl["direction"] >= 0 else 1)
+        elif action in ("speed_up", "speed_down"):
+            b = self.burr
+            sign = 1 if action == "speed_up" else -1
+            rpm = float(np.clip(ctl["speed_rpm"] + sign * SPEED_STEP_RPM, 0.0, b.max_speed_rpm))
+            loop.set_drill(bool(ctl["drill"]), speed_rpm=rpm)
+        elif action == "suction":
+            self.suction = not self.suction
+        elif action == "irrigation":
+            self.irrigation = not self.irrigation
+        elif action == "reset_case":
+            loop.reset()
+        elif action == "nerve_monitor":
+            if self.trace is not None:
+                self.trace.set_visible(not self.trace.visible)
+        elif action in ("depth_in", "depth_out"):
+            self.press_mm += PRESS_STEP_MM if action == "depth_in" else -PRESS_STEP_MM
+        else:
+            return False                               # help, screenshot, quit, view
+        return True
+
+    # ----------------------------------------------------------------- run
+    def run(self, frames: int | None = None, screenshot=None) -> dict:
+        """Run the window (or ``frames`` offscreen frames); returns a summary."""
+        if self.offscreen:
+            out = self.window.run_offscreen(frames or 1, screenshot=screenshot, realtime=True)
+        else:
+            out = self.window.run(max_frames=frames)
+            if screenshot is not None:
+                out["screenshot"] = str(self.scene.screenshot(screenshot))
+        rates = self.loop.rate_stats(5000)
+        out.update({
+            "case": self.model.name, "burr": self.burr.name,
+            "haptic_rate_hz": round(rates["rate_hz"], 1),
+            "haptic_period_p99_ms": round(rates["period_p99_ms"], 3),
+            "voxels_removed": int(self.loop.state.removed_by_label.sum()),
+            "triangles": int(self.consumer.surface.n_triangles),
+            "surface_updates": len(self.consumer.update_s),
+            "hud": self.scene.hud_text,
+            "dust_cells": float(round(self.dust.total_cells, 2)),
+            "injuries": list(self.injuries),
+            "notices": list(self.notices),
+        })
+        if self.monitor is not None:
+            out["monitor"] = self.monitor.stats()
+            out["monitor"]["nerves"] = list(self.monitor.names)
+            if self.monitor_serve is not None:
+                out["monitor"]["port"] = self.monitor.port
+            if self.audio is not None:
+                out["monitor"]["clicks"] = self.audio.click_stats()
+        if self.wav is not None:
+            out["wav"] = str(Path(self.wav))
+        if self.record is not None:
+            out["record"] = str(self.record)
+        return out

@@ -1,0 +1,4 @@
+"""Benchmarks behind ``bonesim bench``.
+"""
+
+__all__: list[str] = []

@@ -1,0 +1,4 @@
+"""The ``bonesim`` command line.
+"""
+
+__all__: list[str] = []

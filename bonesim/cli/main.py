@@ -1,0 +1,762 @@
+"""The ``bonesim`` command line.
+
+Every subcommand has ``--help``. Bad input (a missing case, a malformed
+manifest, a broken trajectory) is reported as one line naming the file and the
+problem, with exit status 2; no traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.errors import BonesimError
+
+__all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
+           "cmd_trajectory", "cmd_simulate", "cmd_demo", "cmd_run", "cmd_playback",
+           "cmd_warmup", "cmd_bench", "build_parser", "main"]
+
+DEFAULT_CASE = "phantom"
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=2))
+
+
+def _table(rows: list[dict], cols: list[str]) -> None:
+    widths = [max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols]
+    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    for r in rows:
+        print("  ".join(str(r.get(c, "")).ljust(w) for c, w in zip(cols, widths)))
+
+
+# ------------------------------------------------------------------ cases
+def cmd_cases(args) -> int:
+    from bonesim.io.case import list_cases
+
+    rows = [{"name": c.name, "side": c.side, "format": c.volume.format,
+             "manifest": str(c.manifest), "description": c.description}
+            for c in list_cases()]
+    if args.json:
+        _print_json(rows)
+    else:
+        _table(rows, ["name", "side", "format", "description"])
+    return 0
+
+
+def cmd_case_info(args) -> int:
+    from bonesim.io.case import case_info, load_case
+    from bonesim.io.case_report import LoadProgress, print_case_info
+
+    case = load_case(args.case)
+    bar = LoadProgress()
+    try:
+        info = case_info(case, progress=bar)
+    finally:
+        bar.close()
+    if args.json:
+        _print_json(info)
+    else:
+        print_case_info(info)
+    return 0
+
+
+def cmd_case_export(args) -> int:
+    from bonesim.io.case import export_case, load_case
+    from bonesim.io.case_report import LoadProgress
+
+    bar = LoadProgress()
+    try:
+        manifest = export_case(load_case(args.case), args.format, Path(args.dir),
+                               orientation=args.orientation, progress=bar)
+    finally:
+        bar.close()
+    what = args.format + (f" ({args.orientation})" if args.orientation else "")
+    print(f"wrote {what} export of case '{args.case}' to {args.dir} "
+          f"(manifest {manifest})")
+    return 0
+
+
+# ------------------------------------------------------------------ burrs
+def cmd_burrs(args) -> int:
+    from bonesim.io.burrs import burr_table, list_burrs
+
+    rows = burr_table(list_burrs())
+    if args.json:
+        _print_json(rows)
+    else:
+        cols = [c for c in ("name", "kind", "diameter_mm", "max_force_n",
+                            "default_speed_rpm") if c in rows[0]]
+        _table(rows, cols)
+    return 0
+
+
+# ------------------------------------------------------ trajectories / runs
+def _plan(case, burr_name: str):
+    from bonesim.io.toolpath import demo_trajectory
+
+    return demo_trajectory(case, burr_name)
+
+
+def cmd_trajectory(args) -> int:
+    from bonesim.io.case import load_case
+    from bonesim.io.trajectory import write_trajectory
+
+    case = load_case(args.case)
+    traj = _plan(case, args.burr)
+    write_trajectory(args.out, traj)
+    print(f"wrote {args.kind} trajectory for case '{case.name}' ({len(traj.t_s)} points, "
+          f"{traj.t_s[-1]:.1f} s) to {args.out}")
+    return 0
+
+
+def _who(args) -> dict:
+    return {"participant": args.participant or "", "group": args.group or "",
+            "notes": args.notes or ""}
+
+
+def _run(case, burr, traj, args) -> dict:
+    from bonesim.io.loading import load_model, warmup
+    from bonesim.runtime.simulate import run_trajectory
+
+    warmup()
+    model = load_model(case, burr, oversample=args.oversample)
+    record = getattr(args, "record", None)
+    header = None
+    if record is not None:
+        from bonesim.runtime.record import make_header
+
+        header = make_header(model, input_device="scripted", **_who(args))
+    return run_trajectory(model, traj, check=args.check, out_dir=args.out,
+                          mesh_format=args.mesh_format, record=record, header=header)
+
+
+def cmd_simulate(args) -> int:
+    from bonesim.io.trajectory import read_trajectory
+
+    traj = read_trajectory(args.trajectory)
+    summary = _run(args.case, args.burr, traj, args)
+    if args.json:
+        _print_json(summary)
+    else:
+        _print_summary(summary)
+    return 0
+
+
+def _print_summary(s: dict) -> None:
+    print(f"case {s['case']}, burr {s['burr']}: {s['steps']} haptic steps "
+          f"({s['duration_s']} s simulated) in {s['wall_s']} s")
+    print(f"removed {s['voxels_removed']} voxels ({s['volume_removed_mm3']} mm^3): "
+          + ", ".join(f"{k} {v}" for k, v in s["removed_by_structure"].items()))
+    print(f"injuries: {len(s['injuries'])}"
+          + "".join(f"\n  {i['t_s']:8.3f} s  {i['kind']:8s} {i['structure']} "
+                    f"({i['voxels']} voxels)" for i in s["injuries"][:20]))
+    if "closest_approach" in s:
+        c = s["closest_approach"]
+        grid = " x ".join(f"{v:g}" for v in c["native_spacing_mm"])
+        print(f"closest approach of the drilling burr: {c['clearance_mm']:.2f} mm to "
+              f"{c['structure']} at {c['t_s']:.2f} s (exact on the {grid} mm source "
+              "grid)")
+    print(f"force: mean {s['force_n']['mean']} N, in contact "
+          f"{s['force_n']['mean_in_contact']} N, max {s['force_n']['max']} N")
+    print(f"haptic step: p50 {s['haptic_step_us']['p50']} us, "
+          f"p99 {s['haptic_step_us']['p99']} us")
+    if "vertices" in s:
+        print(f"surface: {s['vertices']} vertices, {s['triangles']} triangles")
+    if "surface_consistent" in s:
+        print(f"surface consistent with a from-scratch tessellation: "
+              f"{s['surface_consistent']}")
+    if "mesh" in s:
+        print(f"wrote {s['mesh']} and {s['summary']}")
+    if "record" in s:
+        print(f"recorded the session to {s['record']}")
+
+
+def cmd_demo(args) -> int:
+    from bonesim.io.case import load_case
+    from bonesim.io.trajectory import write_trajectory
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    case = load_case(args.case)
+    traj = _plan(case, args.burr)
+    tpath = out / "trajectory.csv"
+    write_trajectory(tpath, traj)
+    import numpy as np
+
+    dt = np.diff(traj.t_s)
+    drilling = float(dt[traj.drill[:-1].astype(bool)].sum())
+    print(f"planned a demo mastoidectomy on case '{case.name}' with {args.burr}: "
+          f"{traj.t_s[-1] - traj.t_s[0]:.1f} s ({drilling:.1f} s with the drill on, the "
+          f"rest travel and rinses), written to {tpath}")
+    args.check = True
+    summary = _run(case.manifest, args.burr, traj, args)
+    _print_summary(summary)
+    return 0 if summary.get("surface_consistent", True) else 1
+
+
+def cmd_run(args) -> int:
+    import os
+
+    from bonesim.apps.simulator import App
+    from bonesim.io.case import load_case
+    from bonesim.io.trajectory import read_trajectory
+
+    offscreen = args.offscreen
+    script = read_trajectory(args.script) if args.script else None
+    frames = args.frames
+    screenshot = args.screenshot
+    if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
+            "WAYLAND_DISPLAY"):
+        what = ("rendering offscreen" if script is not None or frames is not None else
+                "running the headless main job instead")
+        print(f"bonesim: no display found; {what} (use --offscreen to ask for it "
+              "explicitly)", file=sys.stderr)
+        offscreen = True
+    if args.monitor_port is not None and args.no_monitor:
+        raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
+                           "--no-monitor", field="--monitor-port")
+    if offscreen and script is None and frames is None:
+        return _run_showcase(args)
+    if args.video != "bonesim-run.mp4":
+        raise BonesimError("--video is the headless main job's time-lapse; the live "
+                           "simulator records with --record (bonesim video makes a video "
+                           "of a recording)", field="--video")
+    if offscreen:
+        if script is None:                 # a glimpse of the planned mastoidectomy
+            traj = _plan(load_case(args.case), args.burr)
+            import numpy as np
+
+            start = int(np.flatnonzero(traj.drill)[0])
+            script = traj.at_times(traj.t_s[start:])
+        frames = frames or 300
+        screenshot = screenshot or "bonesim-run.png"
+    record = None if args.no_record else args.record   # --no-record: the old opt-out
+    if record == "":
+        from bonesim.runtime.record import default_session_path
+
+        record = default_session_path(load_case(args.case).name, args.participant or "")
+    serve = None
+    if args.monitor_port is not None:
+        from bonesim.net.packets import load_key
+
+        serve = {"key": load_key(args.key_file), "host": args.monitor_host,
+                 "port": args.monitor_port}
+    app = App(args.case, args.burr, script=script, offscreen=offscreen,
+              size=tuple(args.size) if args.size else (1024, 768),
+              sound=not args.no_sound, wav=args.wav,
+              record=record, who=_who(args), monitor=not args.no_monitor,
+              monitor_serve=serve, stereo=args.stereo,
+              eye_separation_mm=args.eye_separation_mm)
+    try:
+        app.start()
+        if serve is not None:
+            print(f"bonesim: nerve monitor on {args.monitor_host}:{app.monitor.port} "
+                  f"({', '.join(app.monitor.names)})", file=sys.stderr, flush=True)
+        summary = app.run(frames=frames, screenshot=screenshot)
+    finally:
+        app.close()
+    if args.json:
+        _print_json(summary)
+    else:
+        print(f"case {summary['case']}, burr {summary['burr']}: {summary['frames']} frames "
+              f"at {summary['frame_hz']} Hz; haptic loop {summary['haptic_rate_hz']} Hz "
+              f"(period p99 {summary['haptic_period_p99_ms']} ms)")
+        print(f"removed {summary['voxels_removed']} voxels; injuries: "
+              f"{', '.join(summary['injuries']) or 'none'}")
+        for note in summary["notices"]:
+            print(f"note: {note}")
+        if "screenshot" in summary:
+            print(f"wrote {summary['screenshot']}")
+        if "wav" in summary:
+            print(f"wrote {summary['wav']}")
+        if "record" in summary:
+            print(f"recorded the session to {summary['record']}")
+    return 0
+
+
+def _run_showcase(args) -> int:
+    """Headless ``bonesim run``: the whole demo plan in simulated time, as a
+    time-lapse video and a final picture (:mod:`bonesim.apps.showcase`)."""
+    from bonesim.apps.showcase import run_showcase
+
+    for flag, given in (("--record", args.record is not None), ("--wav", args.wav),
+                        ("--monitor-port", args.monitor_port is not None),
+                        ("--stereo", args.stereo)):
+        if given:
+            raise BonesimError(f"{flag} needs the live simulator: add --frames N (offscreen) "
+                               "or run on a display; the headless main job only drills the "
+                               "plan in simulated time", field=flag)
+    from bonesim.io.case_report import LoadProgress
+    from bonesim.apps.showcase import SIZE
+
+    video = None if args.video == "none" else args.video
+    bar = LoadProgress()
+    try:
+        out = run_showcase(args.case, args.burr, video=video,
+                           picture=args.screenshot or "bonesim-run.png",
+                           size=tuple(args.size) if args.size else SIZE,
+                           monitor=not args.no_monitor, seconds=args.seconds,
+                           progress=bar)
+    finally:
+        bar.close()
+    if args.json:
+        _print_json(out)
+        return 0
+    print(f"case {out['case']}, burr {out['burr']}: the demo mastoidectomy, "
+          f"{out['simulated_s']:.0f} s of simulated surgery in {out['steps']} haptic steps "
+          f"({out['wall_s']:.0f} s here)")
+    print(f"removed {out['voxels_removed']} voxels ("
+          + ", ".join(f"{k} {v}" for k, v in out["removed_by_structure"].items())
+          + f"); injuries: {', '.join(out['injuries']) or 'none'}")
+    if "min_clearance_mm" in out:
+        print(f"closest approach to a critical structure: {out['min_clearance_mm']:.2f} mm")
+    print(f"wrote {out['picture']}" + (f" and {out['video']} ({out['frames']} frames, "
+                                       f"{out['speedup']:g}x)" if "video" in out else ""))
+    return 0
+
+
+# --------------------------------------------------------------- sessions
+def cmd_playback(args) -> int:
+    import os
+
+    from bonesim.session.playback import Player
+    from bonesim.session.video import parse_size
+    from bonesim.session.reader import read_session
+
+    from bonesim.session.reader import damage_notice
+
+    session = read_session(args.file)
+    notices = [] if session.complete else [
+        "recording incomplete: the writer did not close the file (shown up to its last "
+        "flush)"]
+    if session.damage:
+        print(damage_notice(session), file=sys.stderr)
+        notices = [f"damaged file: {session.damage}"]
+    if args.speed is not None and not args.speed > 0:
+        raise BonesimError(f"speed must be positive, got {args.speed:g}", field="--speed")
+    speed = 1.0 if args.speed is None else args.speed
+    if args.video is not None:
+        from bonesim.render.playback import export_video
+
+        size = parse_size(args.size or "1280x720")
+        out = export_video(Player(session), args.video, fps=args.fps, size=size,
+                           speed=speed, start=args.start, end=args.end,
+                           progress=not args.no_progress, notices=notices)
+        out["file"] = str(session.path)
+        if args.json:
+            _print_json(out)
+        else:
+            print(f"wrote {out['video']}: {out['frames']} frames, {size[0]}x{size[1]} at "
+                  f"{args.fps:g} fps ({out['start_s']:.2f}-{out['end_s']:.2f} s of the "
+                  f"recording at {speed:g}x), {out['frames_per_s']} frames/s")
+        return 0
+    offscreen = args.offscreen
+    if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
+            "WAYLAND_DISPLAY"):
+        raise BonesimError("no display found for the playback window; export a video "
+                           "instead (--video OUT.mp4), or render a frame with --offscreen "
+                           "--screenshot FILE.png")
+    from bonesim.render.playback import PlaybackApp
+
+    size = parse_size(args.size or "1280x720", even=False)
+    player = Player(session)
+    start = 0.0 if args.start is None else args.start
+    if not 0.0 <= start <= player.timeline.duration:
+        raise BonesimError(f"start {start:g} s lies outside the recording (0 .. "
+                           f"{player.timeline.duration:.3f} s)", field="--start")
+    app = PlaybackApp(player, size=size, offscreen=offscreen, speed=speed, start=start,
+                      play=not args.paused, notices=notices)
+    try:
+        app.start()
+        frames = args.frames if args.frames is not None else (1 if offscreen else None)
+        screenshot = args.screenshot or ("bonesim-playback.png" if offscreen else None)
+        out = app.run(frames=frames, screenshot=screenshot)
+    finally:
+        app.close()
+    out["file"] = str(session.path)
+    if args.json:
+        _print_json(out)
+    else:
+        print(f"{out['file']}: {out['frames']} frames; stopped at {out['t_s']:.2f} of "
+              f"{out['duration_s']:.2f} s")
+        if "screenshot" in out:
+            print(f"wrote {out['screenshot']}")
+    return 0
+
+
+def _lazy(module: str, name: str):
+    """A command handler ``<module>.<name>``, imported only when run
+    (keeps the CLI light)."""
+    def run(args) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module), name)(args)
+    return run
+
+
+def _tutor(name: str):
+    """A ``bonesim tutor`` handler (:func:`_lazy`)."""
+    return _lazy("bonesim.cli.tutor", name)
+
+
+def _trainee_window_args(p) -> None:
+    """The trainee's window options (``tutor join`` and ``tutor playback``)."""
+    p.add_argument("--headless", action="store_true",
+                   help="no window (default without a display)")
+    p.add_argument("--offscreen", action="store_true",
+                   help="render the window offscreen (--frames frames, or until the "
+                        "session ends) and save the last frame")
+    p.add_argument("--frames", type=int, help="window: stop after this many frames")
+    p.add_argument("--screenshot", metavar="FILE.png", help="window: save the last frame")
+    p.add_argument("--size", type=int, nargs=2, default=[1280, 720], metavar=("W", "H"),
+                   help="window size in pixels (default 1280 720)")
+
+
+def _tutor_parser(sub) -> None:
+    from bonesim.net.packets import DEFAULT_KEY_HELP, DEFAULT_PORT
+
+    s = sub.add_parser(
+        "tutor", help="networked haptic tutoring and haptic playback",
+        description="Haptic tutoring: the instructor drills (serve) and the trainee's "
+                    "device follows with F = K_p (P_instructor - P_trainee) + F_instructor "
+                    "(join), or follows a recorded session (playback). Packets are "
+                    "authenticated with a shared key (keygen).")
+    t = s.add_subparsers(dest="tutor_cmd", metavar="ACTION", required=True)
+    k = t.add_parser("keygen", help="write a new random shared key file")
+    k.add_argument("file", help="key file to create (hex text, owner-only)")
+    k.add_argument("--force", action="store_true", help="overwrite an existing file")
+    k.set_defaults(func=_tutor("cmd_keygen"))
+
+    v = t.add_parser("serve", help="run the instructor's simulator and stream it to trainees",
+                     description="Run the haptic loop (window with the mouse, or a scripted "
+                                 "trajectory) and stream tool pose, force, drill state and "
+                                 "voxel removals over UDP to every trainee that joins.")
+    v.add_argument("--case", default=DEFAULT_CASE, help="case name or case.toml path")
+    v.add_argument("--burr", default=DEFAULT_BURR, help="burr name or file")
+    v.add_argument("--trajectory", metavar="FILE.csv",
+                   help="scripted instructor (headless default: the demo mastoidectomy)")
+    v.add_argument("--headless", action="store_true", help="no window (default without a "
+                                                           "display)")
+    v.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (headless default: the trajectory's length)")
+    v.add_argument("--host", default="0.0.0.0", help="address to listen on (default all)")
+    v.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"UDP port (default {DEFAULT_PORT})")
+    v.add_argument("--no-sound", action="store_true", help="window: no audio process")
+    v.add_argument("--key-file", metavar="FILE", help=DEFAULT_KEY_HELP)
+    v.add_argument("--json", action="store_true", help="print the summary as JSON")
+    v.set_defaults(func=_tutor("cmd_serve"))
+
+    j = t.add_parser("join", help="follow an instructor with this trainee's device",
+                     description="Join an instructor and run the trainee's 1 kHz servo on a "
+                                 "simulated hand (no hardware backend yet). A window shows "
+                                 "the bone as the instructor drills it, the instructor's "
+                                 "tool and your hand (headless without a display); at the "
+                                 "end it prints packets, drops by reason, latency and "
+                                 "tracking error.")
+    j.add_argument("host", help="instructor's address")
+    j.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"UDP port (default {DEFAULT_PORT})")
+    j.add_argument("--case", help="load this case instead of the one the instructor names")
+    _trainee_window_args(j)
+    j.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (default: when the instructor stops)")
+    j.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="give up if the instructor does not answer within S seconds")
+    j.add_argument("--key-file", metavar="FILE", help=DEFAULT_KEY_HELP)
+    j.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    j.set_defaults(func=_tutor("cmd_join"))
+
+    b = t.add_parser("playback", help="drive the trainee's device from a recorded session",
+                     description="Feed a recorded session through the tutoring controller "
+                                 "to a simulated hand in real time, in a window as for "
+                                 "'tutor join' (headless without a display); the force "
+                                 "ramps out when the recording ends.")
+    b.add_argument("file", help="session file (.h5)")
+    b.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
+    b.add_argument("--start", type=float, default=0.0, metavar="S",
+                   help="start S seconds into the recording")
+    b.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    _trainee_window_args(b)
+    b.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    b.set_defaults(func=_tutor("cmd_playback"))
+
+
+def cmd_warmup(args) -> int:
+    import time
+
+    from bonesim.cli.warmup import warmup_all
+
+    t0 = time.perf_counter()
+    report = None if args.json else (lambda name, sec: print(f"  {name:16s} {sec:7.2f} s",
+                                                              flush=True))
+    parts = warmup_all(report)
+    total = round(time.perf_counter() - t0, 2)
+    if args.json:
+        _print_json({"seconds": parts, "total_s": total})
+    else:
+        print(f"compiled the kernels in {total} s (cached for the next runs)")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from bonesim.bench.suite import run_benchmarks
+
+    results = run_benchmarks(only=args.only, quick=args.quick)
+    if args.json:
+        _print_json(results)
+    else:
+        for name, r in results.items():
+            print(f"{name:34s} {r['value']:>12.4g} {r['unit']}")
+    return 0
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="bonesim",
+        description="Temporal-bone drilling simulator: cases, burrs, headless runs, "
+                    "benchmarks.")
+    from bonesim import __version__
+    from bonesim.net.packets import DEFAULT_KEY_HELP as KEY_HELP
+    from bonesim.net.packets import MONITOR_PORT
+    p.add_argument("--version", action="version", version=f"bonesim {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("cases", help="list the bundled cases")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_cases)
+
+    s = sub.add_parser("case-info", help="frame, orientation, grid, camera, colours, "
+                                         "monitored structures and voxels per structure; "
+                                         "warns where the layout contradicts the side")
+    s.add_argument("case", help="bundled case name or path of a case.toml")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_case_info)
+
+    s = sub.add_parser("case-export", help="write a case's volume as DICOM/NRRD/NIfTI/"
+                                           "label stack/Slicer segmentation with a "
+                                           "case.toml")
+    s.add_argument("case", help="bundled case name or path of a case.toml")
+    s.add_argument("--format", required=True,
+                   choices=["dicom", "nrrd", "nifti", "label-stack", "seg-nrrd"])
+    s.add_argument("--orientation", metavar="CODE",
+                   help="label stacks: axis code of the written slices (columns, rows, "
+                        "slices, e.g. PLS; default LPS)")
+    s.add_argument("dir", help="output folder")
+    s.set_defaults(func=cmd_case_export)
+
+    s = sub.add_parser("burrs", help="list the burrs")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_burrs)
+
+    def run_opts(s, need_traj):
+        s.add_argument("--case", default=DEFAULT_CASE,
+                       help=f"case name or case.toml path (default {DEFAULT_CASE})")
+        s.add_argument("--burr", default=DEFAULT_BURR,
+                       help=f"burr name or file (default {DEFAULT_BURR})")
+        if need_traj:
+            s.add_argument("--trajectory", required=True,
+                           help="CSV: t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,"
+                                "speed_rpm[,direction]")
+        s.add_argument("--oversample", type=int, default=2,
+                       help="burr samples per voxel edge (default 2)")
+        s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
+                       help="final surface mesh format (default ply)")
+
+    def who_opts(s):
+        s.add_argument("--participant", help="participant id, stored in the recording")
+        s.add_argument("--group", help="participant group (e.g. resident, expert)")
+        s.add_argument("--notes", help="free notes stored in the recording")
+
+    s = sub.add_parser("simulate", help="drill a scripted trajectory headless at 1 kHz")
+    s.add_argument("--record", metavar="FILE.h5", help="record the session to this file")
+    who_opts(s)
+    run_opts(s, True)
+    s.add_argument("--out", help="folder for the final mesh and summary.json")
+    s.add_argument("--check", action="store_true",
+                   help="verify the incremental surface against a from-scratch one")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("trajectory", help="write a planned trajectory for a case")
+    s.add_argument("--case", default=DEFAULT_CASE, help="case name or case.toml path")
+    s.add_argument("--kind", default="demo-mastoidectomy", choices=["demo-mastoidectomy"])
+    s.add_argument("--burr", default=DEFAULT_BURR, help="burr the path is planned for")
+    s.add_argument("--out", required=True, help="output CSV")
+    s.set_defaults(func=cmd_trajectory)
+
+    s = sub.add_parser("demo", help="headless demo: plan and drill a mastoidectomy on "
+                                    "the default case, write the mesh and a summary")
+    run_opts(s, False)
+    s.add_argument("--out", default="bonesim-demo", help="output folder")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("run", help="the interactive simulator (window, haptic loop, "
+                                   "sound, dust); without a display the headless main "
+                                   "job: the demo plan in simulated time, video + picture")
+    s.add_argument("--case", default=DEFAULT_CASE,
+                   help=f"case name or case.toml path (default {DEFAULT_CASE})")
+    s.add_argument("--burr", default=DEFAULT_BURR, help=f"starting burr (default {DEFAULT_BURR})")
+    s.add_argument("--offscreen", action="store_true",
+                   help="render without a display (OSMesa/EGL); default when none exists. "
+                        "Alone: the headless main job (the whole demo plan in simulated "
+                        "time); with --frames or --script: the live simulator offscreen")
+    s.add_argument("--script", metavar="TRAJECTORY",
+                   help="drive the tool from a trajectory CSV instead of the mouse "
+                        "(offscreen default: the demo mastoidectomy)")
+    s.add_argument("--frames", type=int, help="stop after this many frames (offscreen "
+                                              "with --script: default 300)")
+    s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
+    s.add_argument("--wav", metavar="FILE.wav", help="record the drill sound")
+    s.add_argument("--no-sound", action="store_true", help="no audio process")
+    s.add_argument("--record", metavar="FILE.h5", nargs="?", const="",
+                   help="record the session (nothing is recorded unless asked): to "
+                        "FILE.h5, or with no FILE to a new file in $BONESIM_SESSIONS "
+                        "or ~/.local/share/bonesim/sessions")
+    s.add_argument("--no-record", action="store_true", help=argparse.SUPPRESS)
+    who_opts(s)
+    s.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                   help="window size [px] (default 1024 768; headless video 1280 720)")
+    s.add_argument("--video", metavar="FILE.mp4", default="bonesim-run.mp4",
+                   help="headless main job: the time-lapse video (default "
+                        "bonesim-run.mp4; 'none' for no video)")
+    from bonesim.render.stereo import STEREO_MODES        # (no VTK in that module)
+
+    s.add_argument("--seconds", type=float, metavar="S",
+                   help="headless main job: drill only the plan's first S seconds")
+    s.add_argument("--stereo", choices=sorted(STEREO_MODES),
+                   help="stereo view (anaglyph needs red-cyan glasses; quad-buffer a "
+                        "stereo display)")
+    s.add_argument("--eye-separation-mm", type=float, metavar="MM",
+                   help="stereo: distance between the eyes [mm] (default from "
+                        "bonesim/data/render.toml)")
+    s.add_argument("--no-monitor", action="store_true",
+                   help="no nerve monitor (default: on when the case monitors a nerve)")
+    s.add_argument("--monitor-port", type=int, metavar="PORT",
+                   help=f"stream the nerve monitor to remote consoles ('bonesim monitor "
+                        f"HOST') on this UDP port ({MONITOR_PORT} is the consoles' default; "
+                        "0: any free port)")
+    s.add_argument("--monitor-host", default="0.0.0.0",
+                   help="address the monitor server listens on (default all)")
+    s.add_argument("--key-file", metavar="FILE", help="with --monitor-port: " + KEY_HELP)
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser(
+        "monitor", help="remote nerve-monitor console (the monitoring technician's)",
+        description="Join a simulator that serves its nerve monitor (bonesim run "
+                    "--monitor-port) and show, for every monitored nerve, the burr's "
+                    "distance, the firing rate and a warning below the warning distance, "
+                    "with a click per spike on the sound device. Packets are authenticated "
+                    "with the shared key ('bonesim tutor keygen FILE').")
+    s.add_argument("host", help="the simulator's address")
+    s.add_argument("--port", type=int, default=MONITOR_PORT,
+                   help=f"UDP port (default {MONITOR_PORT})")
+    s.add_argument("--key-file", metavar="FILE", help=KEY_HELP)
+    s.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (default: when the simulator stops)")
+    s.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="give up if the simulator does not answer within S seconds")
+    s.add_argument("--no-sound", action="store_true", help="no clicks")
+    s.add_argument("--wav", metavar="FILE.wav", help="record the clicks")
+    s.add_argument("--every", type=float, default=1.0, metavar="S",
+                   help="without a terminal: print the readings every S seconds "
+                        "(0: only the summary)")
+    s.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    s.set_defaults(func=_lazy("bonesim.net.monitor_link", "cmd_monitor"))
+
+    s = sub.add_parser("sessions", help="recorded sessions (HDF5 files)")
+    ssub = s.add_subparsers(dest="sessions_cmd", metavar="ACTION", required=True)
+    si = ssub.add_parser("info", help="summarize a session file (schema checked)")
+    si.add_argument("file", help="session file (.h5)")
+    si.add_argument("--json", action="store_true", help="print JSON")
+    si.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_sessions_info"))
+    sl = ssub.add_parser("list", help="list the session files in a folder")
+    sl.add_argument("folder", nargs="?",
+                    help="folder (default $BONESIM_SESSIONS or ~/.local/share/bonesim/sessions)")
+    sl.add_argument("--json", action="store_true", help="print JSON")
+    sl.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_sessions_list"))
+    sr = ssub.add_parser("repair", help="write the readable part of a damaged session "
+                         "file as a clean copy")
+    sr.add_argument("file", help="damaged session file (.h5)")
+    sr.add_argument("out", help="the clean copy to write (.h5, a new file)")
+    sr.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    sr.add_argument("--json", action="store_true", help="print JSON")
+    sr.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_sessions_repair"))
+
+    s = sub.add_parser("replay", help="re-run a session's samples through the engine")
+    s.add_argument("file", help="session file (.h5)")
+    s.add_argument("--verify", action="store_true",
+                   help="check that the removals and forces equal the recording bit for "
+                        "bit (exit status 1 if not)")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_replay"))
+
+    s = sub.add_parser(
+        "playback", help="play a session back in a window with a timeline, or export it "
+                         "as an H.264 video (--video)",
+        description="Play a recorded session back: the tool at its recorded pose, the "
+                    "bone as drilled up to the current time, HUD and timeline with "
+                    "injuries. Keys: Space play/pause, +/- speed (0.25x..8x), Left/Right "
+                    "-/+1 s, Down/Up -/+10 s, Home/End, click or drag on the timeline to "
+                    "seek, right-drag to orbit, v back to the recorded camera, h help, "
+                    "q quit. With --video it renders offscreen into an mp4 instead.")
+    s.add_argument("file", help="session file (.h5)")
+    s.add_argument("--video", metavar="OUT.mp4", help="export an H.264 video instead of "
+                                                     "opening the window")
+    s.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    s.add_argument("--size", metavar="WxH", help="window or video size in pixels "
+                                                 "(default 1280x720; even for video)")
+    s.add_argument("--speed", type=float, help="playback speed factor (default 1)")
+    s.add_argument("--start", type=float, metavar="S", help="start at S seconds into the "
+                                                            "recording")
+    s.add_argument("--end", type=float, metavar="S", help="video: stop at S seconds "
+                                                          "(default the end)")
+    s.add_argument("--paused", action="store_true", help="window: start paused")
+    s.add_argument("--offscreen", action="store_true",
+                   help="no window: render --frames frames offscreen and save the last")
+    s.add_argument("--frames", type=int, help="stop after this many frames")
+    s.add_argument("--screenshot", metavar="FILE.png", help="save the last frame")
+    s.add_argument("--no-progress", action="store_true", help="video: no progress bar")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.set_defaults(func=cmd_playback)
+
+    _tutor_parser(sub)
+
+    s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
+                                      "that the first run starts at once")
+    s.add_argument("--json", action="store_true", help="print seconds per part as JSON")
+    s.set_defaults(func=cmd_warmup)
+
+    s = sub.add_parser("bench", help="run the performance benchmarks")
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.add_argument("--only", action="append", metavar="NAME",
+                   help="run only this benchmark (repeatable)")
+    s.add_argument("--quick", action="store_true",
+                   help="fewer repetitions (for smoke tests; figures are noisier)")
+    s.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except BonesimError as exc:
+        print(f"bonesim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("bonesim: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:                 # output piped into head, less, ...
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+"""The ``bonesim sessions`` and ``bonesim replay`` commands.
+
+Every command reads session files through
+:func:`bonesim.session.reader.read_session`, so a damaged file gives one line
+saying what is wrong and the command works on its readable part.
+"""
+from __future__ import annotations
+
+import sys
+
+from bonesim.cli.main import _print_json, _table
+from bonesim.runtime.record import sessions_folder
+from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
+                                    session_info)
+
+__all__ = ["cmd_sessions_info", "cmd_sessions_list", "cmd_sessions_repair", "cmd_replay"]
+
+
+def _say_damage(session) -> None:
+    """One line on stderr when ``session`` is damaged."""
+    line = damage_notice(session)
+    if line:
+        print(line, file=sys.stderr)
+
+
+def cmd_sessions_info(args) -> int:
+    info = session_info(read_session(args.file))
+    if args.json:
+        _print_json(info)
+        return 0
+    for k, v in info.items():
+        if v is None and k in ("damage", "repaired_from", "readable_rows"):
+            continue
+        if k == "readable_rows":
+            print("readable: " + ", ".join(f"{g} {r['kept']} of {r['declared']} rows"
+                                           for g, r in v.items()))
+        elif k == "injuries":
+            print(f"injuries: {len(v)}")
+            for i in v[:20]:
+                print(f"  {i['t_s']:9.3f} s  {i['kind']:8s} {i['structure']}")
+        elif isinstance(v, dict):
+            print(f"{k}: " + (", ".join(f"{kk} {vv}" for kk, vv in v.items()) or "none"))
+        else:
+            print(f"{k}: {v}")
+    return 0
+
+
+def cmd_sessions_list(args) -> int:
+    rows = list_sessions(args.folder)
+    if args.json:
+        _print_json(rows)
+    elif not rows:
+        print(f"no sessions in {args.folder or sessions_folder()}")
+    else:
+        _table(rows, ["file", "start_time", "participant", "group", "case", "duration_s",
+                      "voxels_removed", "injuries", "complete", "damage", "error"])
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from bonesim.io.loading import warmup
+    from bonesim.session.replay import replay, verify
+
+    session = read_session(args.file)
+    _say_damage(session)
+    warmup()
+    if args.verify:
+        report = verify(session)
+        if args.json:
+            _print_json(report)
+        else:
+            print(f"{report['file']}: replayed {report['samples']} samples; tissue events "
+                  f"{report['events_replayed']} replayed vs {report['events_recorded']} "
+                  f"recorded: {'identical' if report['tissue_match'] else 'DIFFERENT'}; "
+                  f"forces {'identical' if report['forces_match'] else 'DIFFERENT'}")
+            if report["first_mismatch"]:
+                print(f"first difference: {report['first_mismatch']}")
+        return 0 if report["ok"] else 1
+    out = replay(session)
+    res = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
+           "voxels_removed": int(len(out["removals"]["t_s"]))}
+    if args.json:
+        _print_json(res)
+    else:
+        print(f"{res['file']}: replayed {res['samples']} samples, "
+              f"{res['voxels_removed']} voxels removed")
+    return 0
+
+
+def cmd_sessions_repair(args) -> int:
+    from pathlib import Path
+
+    from bonesim.errors import BonesimError
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise BonesimError(f"{out}: exists; choose a new file or pass --force",
+                           field="out")
+    fixed = repair_session(args.file, out, overwrite=args.force)
+    info = session_info(fixed)
+    if args.json:
+        _print_json(info)
+        return 0
+    src = fixed.repaired or {}
+    what = f"damaged: {src['damage']}" if src.get("damage") else "no damage found"
+    print(f"{args.file}: {what}")
+    print(f"wrote {out}: {info['duration_s']} s, {info['samples']} samples, "
+          f"{info['voxels_removed']} removals, {len(info['injuries'])} injuries")
+    return 0

@@ -1,0 +1,246 @@
+"""The ``bonesim tutor`` commands: keygen, serve, join, playback.
+
+They wire the tutoring pieces of :mod:`bonesim.tutoring.tutor` (the streamer and its
+server, the sources, the trainee's control law) to the app, the trainee's
+process (:mod:`bonesim.tutoring.trainee`) and its window (:mod:`bonesim.render.trainee`).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+
+from bonesim.net import packets as net
+from bonesim.errors import BonesimError
+from bonesim.tutoring.tutor import NetworkSource, RecordingSource, Trainee, TutorServer, warmup
+
+__all__ = ["cmd_keygen", "cmd_serve", "cmd_join", "cmd_playback"]
+
+
+def _print(obj, as_json: bool, lines) -> None:
+    if as_json:
+        print(json.dumps(obj, indent=2))
+    else:
+        for line in lines:
+            print(line)
+
+
+def _has_display() -> bool:
+    import os
+
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def cmd_keygen(args) -> int:
+    """``bonesim tutor keygen FILE``."""
+    p = net.write_key(args.file, overwrite=args.force)
+    print(f"wrote a new 32-byte key to {p} (owner-only); copy it to the other machine "
+          "over a trusted channel and pass it with --key-file")
+    return 0
+
+
+def cmd_serve(args) -> int:
+    """``bonesim tutor serve``: run the instructor's haptic loop and stream it."""
+    import sys
+
+    from bonesim.io.case import load_case
+    from bonesim.io.trajectory import read_trajectory
+
+    key = net.load_key(args.key_file)
+    traj = read_trajectory(args.trajectory) if args.trajectory else None
+    headless = args.headless
+    if not headless and not _has_display():
+        print("bonesim: no display found; serving headless (use --headless to ask for it "
+              "explicitly)", file=sys.stderr)
+        headless = True
+    if headless and traj is None:                 # nothing to drive the tool: the demo
+        from bonesim.io.toolpath import demo_trajectory
+
+        traj = demo_trajectory(load_case(args.case), args.burr)
+        start = int(np.flatnonzero(traj.drill)[0])
+        traj = traj.at_times(traj.t_s[start:])
+    if headless:
+        return _serve_headless(args, key, traj)
+    from bonesim.apps.simulator import App
+
+    app = App(args.case, args.burr, script=traj, offscreen=False, sound=not args.no_sound,
+              record=None)
+    try:
+        app.start()
+        server = TutorServer(app.loop, key, host=args.host, port=args.port).start()
+        print(f"bonesim: tutoring on {args.host}:{server.port} (case {app.model.name})",
+              file=sys.stderr)
+        try:
+            frames = None if args.duration is None else max(1, int(args.duration * 60))
+            summary = app.run(frames=frames)
+        finally:
+            final = server.close()
+    finally:
+        app.close()
+    out = {"case": summary["case"], "port": server.port, "server": final,
+           "voxels_removed": summary["voxels_removed"]}
+    _print(out, args.json, [f"served {final.get('sent', 0)} packets to "
+                            f"{final.get('joins', 0)} trainee join(s); "
+                            f"{summary['voxels_removed']} voxels removed"])
+    return 0
+
+
+def _serve_headless(args, key: bytes, traj) -> int:
+    import sys
+
+    from bonesim.runtime.haptic_loop import HapticLoop
+    from bonesim.io.loading import load_model
+    from bonesim.io.loading import warmup as model_warmup
+
+    model_warmup()
+    model = load_model(args.case, args.burr)
+    duration = args.duration
+    if duration is None:
+        duration = float(traj.t_s[-1] - traj.t_s[0])
+    loop = HapticLoop(model, device=("scripted", traj), run_s=duration)
+    t0 = time.monotonic()
+    try:
+        loop.start()
+        server = TutorServer(loop, key, host=args.host, port=args.port).start()
+        print(f"bonesim: tutoring on {args.host}:{server.port} (case {model.name}, "
+              f"scripted instructor for {duration:.1f} s)", file=sys.stderr)
+        try:
+            loop.wait(duration + 30.0)
+        finally:
+            final = server.close()
+        rates = loop.rate_stats(5000)
+        removed = int(loop.state.removed_by_label.sum())
+    finally:
+        loop.close()
+    out = {"case": model.name, "host": args.host, "port": server.port,
+           "duration_s": round(time.monotonic() - t0, 3),
+           "haptic_rate_hz": round(rates["rate_hz"], 1), "voxels_removed": removed,
+           "server": final}
+    rx = final.get("received", {})
+    _print(out, args.json, [
+        f"served case {model.name} on {args.host}:{server.port} for {out['duration_s']} s: "
+        f"{final.get('sent', 0)} packets, {final.get('events_sent', 0)} tissue events sent, "
+        f"{final.get('go_backs', 0)} go-backs, {final.get('joins', 0)} join(s)",
+        "dropped: " + (", ".join(f"{k} {v}" for k, v in rx.items()
+                                  if k != "accepted" and v) or "none"),
+        f"haptic loop {out['haptic_rate_hz']} Hz, {removed} voxels removed"])
+    return 0
+
+
+def _trainee_lines(s: dict) -> list:
+    lat = s.get("latency_ms", {})
+    err = s.get("tracking_error_mm", {})
+    pk = s.get("packets", {})
+    return [
+        f"{s['ticks']} servo ticks; packets accepted {pk.get('accepted', 0)}, dropped: "
+        + (", ".join(f"{k} {v}" for k, v in pk.items() if k != "accepted" and v) or "none"),
+        f"latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms; tracking error p50 "
+        f"{err.get('p50')} mm, p99 {err.get('p99')} mm",
+        f"tissue events applied {s.get('events_applied', 0)}; link lost "
+        f"{s['link_lost_events']} time(s); {s['hud']}"]
+
+
+def _window_mode(args) -> bool:
+    """Whether ``tutor join`` / ``tutor playback`` open the trainee's window."""
+    import sys
+
+    if args.headless:
+        return False
+    if args.offscreen or _has_display():
+        return True
+    print("bonesim: no display found; following headless (use --headless to ask for it "
+          "explicitly, or --offscreen --screenshot FILE.png for a picture)", file=sys.stderr)
+    return False
+
+
+def _trainee_window(args, source: tuple) -> dict:
+    """Run the trainee's servo in its process and its window here; returns
+    the servo's statistics with the window's summary under ``"window"``."""
+    import sys
+
+    from bonesim.render.trainee import TraineeApp
+    from bonesim.tutoring.trainee import TraineeProcess
+
+    duration = math.inf if args.duration is None else args.duration
+    with TraineeProcess(source, duration_s=duration) as proc:
+        print(f"bonesim: following the {proc.what} (case {proc.model.name})", file=sys.stderr)
+        with TraineeApp(proc, size=args.size, offscreen=args.offscreen) as app:
+            shot = args.screenshot or ("bonesim-trainee.png" if args.offscreen else None)
+            try:
+                win = app.run(frames=args.frames, screenshot=shot)
+            except KeyboardInterrupt:
+                win = {}
+        s = proc.stop()
+    if not s:
+        raise BonesimError("the trainee process ended without its statistics")
+    s["window"] = win
+    return s
+
+
+def _window_lines(s: dict) -> list:
+    w = s.get("window") or {}
+    if not w:
+        return []
+    return [f"window: {w.get('frames', 0)} frames at {w.get('frame_hz', 0)} Hz, "
+            f"{w.get('removed', 0)} removals drawn"
+            + (f"; wrote {w['screenshot']}" if w.get("screenshot") else "")]
+
+
+def cmd_join(args) -> int:
+    """``bonesim tutor join HOST``: follow an instructor with the simulated hand."""
+    import sys
+
+    from bonesim.devices.backends import SimulatedHandDevice
+
+    key = net.load_key(args.key_file)
+    if _window_mode(args):
+        s = _trainee_window(args, ("network", args.host, args.port, key, args.case,
+                                   args.timeout))
+        _print(s, args.json, _trainee_lines(s) + _window_lines(s))
+        return 0
+    warmup()
+    src = NetworkSource(args.host, args.port, key, case=args.case)
+    trainee = None
+    try:
+        src.connect(args.timeout)
+        trainee = Trainee(src, SimulatedHandDevice())
+        print(f"bonesim: following the instructor at {args.host}:{args.port} (case "
+              f"{src.info.get('case')})", file=sys.stderr)
+        s = trainee.follow(math.inf if args.duration is None else args.duration)
+    finally:
+        if trainee is not None:
+            trainee.close()
+        else:
+            src.close()
+    _print(s, args.json, _trainee_lines(s))
+    return 0
+
+
+def cmd_playback(args) -> int:
+    """``bonesim tutor playback FILE.h5``: drive the trainee's device from a recording."""
+    from bonesim.devices.backends import SimulatedHandDevice
+    from bonesim.session.reader import read_session
+
+    if _window_mode(args):                        # the servo's process reads the file
+        s = _trainee_window(args, ("recording", str(args.file), args.speed, args.start))
+        s["file"] = str(args.file)
+        _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s))
+        return 0
+    warmup()
+    src = RecordingSource(read_session(args.file), speed=args.speed, start_s=args.start)
+    trainee = Trainee(src, SimulatedHandDevice())
+    try:
+        s = trainee.follow(math.inf if args.duration is None else args.duration)
+        s["file"] = str(args.file)
+    finally:
+        trainee.close()
+    _print(s, args.json, _playback_lines(s, args.file))
+    return 0
+
+
+def _playback_lines(s: dict, path) -> list:
+    return [f"played back {s['playback_s']} s of {s['duration_s']} s from {path}; tracking "
+            f"error p50 {s.get('tracking_error_mm', {}).get('p50')} mm, force max "
+            f"{s.get('force_n', {}).get('max')} N; {s['hud']}"]

@@ -1,0 +1,353 @@
+"""The records a case manifest becomes: :class:`Case` and its parts.
+
+:class:`Structure`, :class:`VolumeSpec`, :class:`Camera`, :class:`Target` and
+:class:`Case` (with its volume loading, its display colours settled for a
+volume and its derived surgical view), and the manifest's constants. The
+manifest's layout and the public entry points (:func:`bonesim.io.case.load_case`,
+...) are in :mod:`bonesim.io.case`; parsing is :mod:`bonesim.io.case_manifest`,
+exports :mod:`bonesim.io.case_export`. Both build on this module, never on
+:mod:`bonesim.io.case`, so the three import in one direction.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bonesim.io import anatomy as _anatomy
+from bonesim.io import phantom as _phantom
+from bonesim.io.orientation import PATIENT_FRAME
+from bonesim.io.segmentation import SEG_SUFFIX
+from bonesim.io.volumes import FORMATS, CaseVolume, load_volume
+
+__all__ = ["CASE_FILE", "SIDES", "KINDS", "SEG_FORMAT", "CASE_FORMATS", "DEFAULT_VOXEL_MM",
+           "DEFAULT_BONE_THRESHOLD_HU", "DEFAULT_PATTERN", "MIN_VOXEL_MM", "MAX_VOXEL_MM",
+           "MAX_LABEL", "ORIENTATION_SOURCES", "Structure", "VolumeSpec", "Camera", "Target",
+           "Case"]
+
+CASE_FILE = "case.toml"
+SIDES = ("left", "right")
+KINDS = ("bone", "critical", "soft")
+SEG_FORMAT = "seg-nrrd"
+CASE_FORMATS = tuple(dict.fromkeys(FORMATS + (SEG_FORMAT,)))
+"""Volume formats a manifest may name."""
+DEFAULT_VOXEL_MM = 0.5
+DEFAULT_BONE_THRESHOLD_HU = 300.0
+DEFAULT_PATTERN = "*.png"
+MIN_VOXEL_MM = 0.01
+MAX_VOXEL_MM = 10.0
+MAX_LABEL = 65535                     # label maps are at most 16-bit
+ORIENTATION_SOURCES = ("declared", "file", "assumed", "generated")
+"""How a case's orientation is known: declared in the manifest, read from the
+file's header, assumed (a label stack without ``orientation``: LPS), or the
+phantom's (generated in the patient frame)."""
+
+
+# ------------------------------------------------------------------ records
+@dataclass(frozen=True)
+class Structure:
+    """One labelled structure of a case.
+
+    Attributes
+    ----------
+    name : str
+        Unique name (e.g. ``"facial_nerve"``).
+    kind : str
+        ``"bone"`` (drillable bone), ``"critical"`` (must not be injured) or
+        ``"soft"`` (soft tissue: dura, sinus, ...).
+    label : int or None
+        Integer of this structure in a label map.
+    color : (3,) int or None
+        RGB of this structure in a label stack.
+    display_color : (3,) int
+        RGB used for rendering, 0-255.
+    monitor : bool
+        The nerve monitor (:mod:`bonesim.runtime.monitor`) reports the simulated
+        activity of this structure (nerves such as the facial nerve).
+    color_source : str
+        Where ``display_color`` came from (:data:`bonesim.io.anatomy.COLOR_SOURCES`):
+        only ``"manifest"`` colours are never changed.
+    anatomy : str
+        Anatomical class (a class of ``bonesim/data/anatomy.toml``), ``""``
+        when the name matches none.
+    segment : str or None
+        Segment (name or ID) of a 3D Slicer segmentation.
+    """
+
+    name: str
+    kind: str
+    label: int | None
+    color: tuple[int, int, int] | None
+    display_color: tuple[int, int, int]
+    monitor: bool = False
+    color_source: str = "manifest"
+    anatomy: str = ""
+    segment: str | None = None
+
+    @property
+    def role(self) -> str:
+        """Landmark role of the anatomical class (``""`` for none)."""
+        cls = _anatomy.load_table().classes.get(self.anatomy)
+        return cls.role if cls is not None else ""
+
+
+@dataclass(frozen=True)
+class VolumeSpec:
+    """The ``[volume]`` table, paths resolved against the manifest's folder.
+
+    Attributes
+    ----------
+    format : str
+        One of :data:`CASE_FORMATS`.
+    path : Path or None
+        Volume file / folder (None for the phantom and label-only cases).
+    voxel_mm : float
+        Isotropic voxel edge after loading [mm].
+    bone_threshold_hu : float
+        Bone threshold of intensity formats [HU].
+    labels : Path or None
+        Label map (NRRD / NIfTI, or a Slicer ``.seg.nrrd`` next to a CT).
+    pattern : str
+        Label-stack glob.
+    size_mm : (3,) float or None
+        Label-stack extent along image columns, rows and slices, or phantom
+        extent ``(x, y, z)`` [mm].
+    unknown_colors : str
+        Label-stack policy for stray colours.
+    origin_mm : (3,) float or None
+        Label-stack: case-frame centre of the first slice's top-left pixel [mm].
+    orientation : str or None
+        Label-stack axis code as declared (None: not declared, read as LPS).
+    seed : int
+        Phantom seed.
+    """
+
+    format: str
+    path: Path | None = None
+    voxel_mm: float = DEFAULT_VOXEL_MM
+    bone_threshold_hu: float = DEFAULT_BONE_THRESHOLD_HU
+    labels: Path | None = None
+    pattern: str = DEFAULT_PATTERN
+    size_mm: tuple[float, float, float] | None = None
+    unknown_colors: str = "error"
+    origin_mm: tuple[float, float, float] | None = None
+    orientation: str | None = None
+    seed: int = _phantom.DEFAULT_SEED
+
+    @property
+    def segmentation(self) -> Path | None:
+        """The Slicer segmentation the structures come from, if any."""
+        if self.format == SEG_FORMAT:
+            return self.path
+        if self.labels is not None and self.labels.name.lower().endswith(SEG_SUFFIX):
+            return self.labels
+        return None
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Initial camera in the case frame: eye and focal point [mm], up vector."""
+
+    eye_mm: tuple[float, float, float]
+    focal_mm: tuple[float, float, float]
+    up: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Target:
+    """The procedure's target.
+
+    Attributes
+    ----------
+    description : str
+        Free text (e.g. "cortical mastoidectomy").
+    structures : tuple of str
+        Structures the procedure should expose (identify under a thin plate or
+        uncover) without injuring them.
+    box_min_mm, box_max_mm : (3,) float or None
+        Corners of the box the drilling is expected to stay in [mm].
+    """
+
+    description: str = ""
+    structures: tuple[str, ...] = ()
+    box_min_mm: tuple[float, float, float] | None = None
+    box_max_mm: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Case:
+    """A parsed case manifest.
+
+    Attributes
+    ----------
+    name, description : str
+    side : str
+        ``"left"`` or ``"right"`` ear (for a left ear, lateral is ``+x``).
+    manifest : Path
+        The ``case.toml`` read.
+    volume : VolumeSpec
+    structures : tuple of Structure
+        In label-index order (structure ``s`` has index ``s + 1``).
+    declared_camera : Camera or None
+        The manifest's ``[camera]`` (None: derived from the anatomy, see
+        :attr:`camera`).
+    target : Target or None
+    """
+
+    name: str
+    description: str
+    side: str
+    manifest: Path
+    volume: VolumeSpec
+    structures: tuple[Structure, ...]
+    declared_camera: Camera | None = None
+    target: Target | None = None
+    # what was derived from the volume (the surgical view); not part of the
+    # manifest's identity, never passed in
+    _derived: dict = field(default_factory=dict, init=False, compare=False, repr=False,
+                           hash=False)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Structure names in index order."""
+        return tuple(s.name for s in self.structures)
+
+    def index(self, name: str) -> int:
+        """1-based label index of structure ``name``."""
+        try:
+            return self.names.index(name) + 1
+        except ValueError:
+            raise KeyError(f"case {self.name!r} has no structure {name!r}; "
+                           f"structures: {list(self.names)}") from None
+
+    @property
+    def bone_index(self) -> int:
+        """Index of the first structure of kind ``"bone"``."""
+        return next(i for i, s in enumerate(self.structures, start=1)
+                    if s.kind == "bone")
+
+    @property
+    def lateral(self) -> np.ndarray:
+        """Unit vector pointing laterally for this ear in the case frame."""
+        return np.array([1.0 if self.side == "left" else -1.0, 0.0, 0.0])
+
+    @property
+    def orientation(self) -> tuple[str | None, str]:
+        """``(code, source)``: the volume's axis code and how it is known
+        (:data:`ORIENTATION_SOURCES`; the code is None when the file holds it)."""
+        v = self.volume
+        if v.format == "phantom":
+            return PATIENT_FRAME, "generated"
+        if v.format == "label-stack":
+            return (v.orientation, "declared") if v.orientation else \
+                (PATIENT_FRAME, "assumed")
+        return None, "file"
+
+    # ----------------------------------------------------------- camera
+    @property
+    def camera_source(self) -> str:
+        """``"manifest"`` (a ``[camera]`` table) or ``"anatomy"`` (derived)."""
+        return "manifest" if self.declared_camera is not None else "anatomy"
+
+    @property
+    def camera(self) -> Camera:
+        """The initial camera: the manifest's, else the surgeon's lateral view
+        of the mastoid derived from the volume (loaded once if no volume was
+        loaded through this case yet, then cached)."""
+        if self.declared_camera is not None:
+            return self.declared_camera
+        if "view" not in self._derived:
+            self.load_volume()
+        view = self._derived["view"]
+        return Camera(view.eye_mm, view.focal_mm, view.up)
+
+    @property
+    def surgical_view(self):
+        """The derived :class:`~bonesim.io.surgical_view.SurgicalView` (with its
+        landmarks and notes), computing it as :attr:`camera` does."""
+        if "view" not in self._derived:
+            self.load_volume()
+        return self._derived["view"]
+
+    def _derive_view(self, vol: CaseVolume) -> None:
+        from bonesim.io.surgical_view import surgical_view
+
+        self._derived["view"] = surgical_view(
+            vol.labels, vol.spacing_mm, vol.origin_mm, [s.kind for s in self.structures],
+            [s.role for s in self.structures], self.side, self.names)
+
+    # ----------------------------------------------------------- volume
+    def load_volume(self, progress=None) -> CaseVolume:
+        """Read (or generate) the case's volume on its isotropic grid.
+
+        Parameters
+        ----------
+        progress : callable, optional
+            ``progress(done, total, what)`` while a big volume loads (passed
+            to :func:`bonesim.io.volumes.load_volume`).
+
+        The surgical view of a case without ``[camera]`` is derived from this
+        volume and cached, so :attr:`camera` does not read it again.
+        """
+        v = self.volume
+        names = self.names
+        if v.format == "phantom":
+            size = v.size_mm if v.size_mm is not None else _phantom.DEFAULT_SIZE_MM
+            vol = _phantom.phantom_volume(v.seed, v.voxel_mm, size, names)
+        else:
+            kw = {"progress": progress}
+            kinds = [s.kind for s in self.structures]
+            if v.segmentation is not None:
+                kw["segment_names"] = [s.segment for s in self.structures]
+            if v.format == SEG_FORMAT:
+                vol = load_volume(SEG_FORMAT, v.path, kinds=kinds, voxel_mm=v.voxel_mm,
+                                  **kw)
+            else:
+                if v.format == "label-stack":
+                    kw["orientation"] = v.orientation or PATIENT_FRAME
+                vol = load_volume(
+                    v.format, v.path, kinds=kinds,
+                    label_values=[s.label for s in self.structures],
+                    colors=[s.color for s in self.structures], voxel_mm=v.voxel_mm,
+                    bone_threshold_hu=v.bone_threshold_hu, labels_path=v.labels,
+                    pattern=v.pattern, size_mm=v.size_mm,
+                    unknown_colors=v.unknown_colors, origin_mm=v.origin_mm, **kw)
+        if self.declared_camera is None and "view" not in self._derived:
+            self._derive_view(vol)
+        return vol
+
+    def resolved(self, vol: CaseVolume) -> "Case":
+        """This case with display colours settled for ``vol``.
+
+        Neighbouring structures (within the anatomy table's ``neighbour_mm``
+        in ``vol``) whose colours would look alike get other colours; only
+        colours the manifest did not set change (see
+        :func:`bonesim.io.anatomy.resolve_colors`). The surgical view is derived
+        from ``vol`` too. ``vol`` must be this case's volume.
+        """
+        table = _anatomy.load_table()
+        structs = list(self.structures)
+        if any(s.color_source != "manifest" for s in structs):
+            adj = _anatomy.neighbours(vol.labels, len(structs), vol.spacing_mm,
+                                      table.neighbour_mm)
+            cands = [_color_candidates(s, table) for s in structs]
+            colors = _anatomy.resolve_colors([s.display_color for s in structs],
+                                             [s.color_source for s in structs], cands,
+                                             adj, table.min_delta_e)
+            structs = [dataclasses.replace(s, display_color=c)
+                       for s, c in zip(structs, colors)]
+        out = dataclasses.replace(self, structures=tuple(structs))
+        out._derived.update(self._derived)
+        if out.declared_camera is None:
+            if "view" not in out._derived:
+                out._derive_view(vol)
+            self._derived.setdefault("view", out._derived["view"])
+        return out
+
+
+def _color_candidates(s: Structure, table) -> list:
+    cls = table.classes.get(s.anatomy)
+    own = list(cls.colors) if cls is not None else []
+    return own + list(table.kind_colors[s.kind]) + list(table.fallback)

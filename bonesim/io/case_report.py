@@ -1,0 +1,84 @@
+"""Text output of ``bonesim case-info`` and the load progress bar of the case
+commands."""
+from __future__ import annotations
+
+__all__ = ["LoadProgress", "print_case_info"]
+
+
+def table(rows: list[dict], cols: list[str]) -> None:
+    """Print ``rows`` as left-aligned columns ``cols`` under a header line."""
+    widths = [max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols]
+    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    for r in rows:
+        print("  ".join(str(r.get(c, "")).ljust(w) for c, w in zip(cols, widths)))
+
+
+class LoadProgress:
+    """``progress(done, total, what)`` callback drawing one bar per stage on
+    stderr (:class:`bonesim.progress.ProgressBar`)."""
+
+    def __init__(self, stream=None):
+        self.stream = stream
+        self.bar = None
+        self.what = None
+
+    def __call__(self, done, total, what="loading") -> None:
+        from bonesim.progress import ProgressBar
+
+        if self.bar is None or what != self.what or int(total) != self.bar.total:
+            self.close()
+            self.bar = ProgressBar(int(total), label=str(what), stream=self.stream)
+            self.what = what
+        self.bar.update(int(done))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+_ORIENTATION_TEXT = {
+    "declared": "{code}, declared in the manifest",
+    "file": "read from the file's header",
+    "assumed": "{code}, assumed: the manifest declares none (add orientation = "
+               "\"...\" to [volume] if the stack is not stored in LPS)",
+    "generated": "{code}, generated in the patient frame",
+}
+
+
+def _rgb_text(rgb) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
+
+
+def print_case_info(info: dict) -> None:
+    """Print :func:`bonesim.io.case.case_info`'s summary as text (stdout)."""
+    f = info["frame"]
+    lateral = "+x" if info["side"] == "left" else "-x"
+    print(f"case: {info['name']} ({info['side']} ear)")
+    if info["description"]:
+        print(f"description: {info['description']}")
+    print(f"manifest: {info['manifest']}")
+    print(f"patient frame: {f['name']} [{f['units']}]: +x {f['x']}, +y {f['y']}, "
+          f"+z {f['z']}; lateral for this ear is {lateral}")
+    o = info["orientation"]
+    print("orientation: " + _ORIENTATION_TEXT[o["source"]].format(code=o["code"]))
+    print(f"volume: {info['format']}, {info['source']}")
+    print(f"grid: {' x '.join(map(str, info['grid']))} voxels of {info['voxel_mm']:g} mm, "
+          f"origin {[round(v, 3) for v in info['origin_mm']]} mm, extent "
+          f"{[round(v, 3) for v in info['extent_mm']]} mm")
+    c = info["camera"]
+    how = "derived from the anatomy" if c["source"] == "anatomy" else "from the manifest"
+    print(f"camera ({how}): eye {c['eye_mm']} mm, focal {c['focal_mm']} mm, "
+          f"up {c['up']}")
+    for note in c.get("notes", []):
+        print(f"  {note}")
+    rows = [{"structure": n, "kind": info["kinds"][n], "voxels": info["counts"][n],
+             "colour": f"{_rgb_text(info['colors'][n]['rgb'])} "
+                       f"({info['colors'][n]['source']})",
+             "monitor": "yes" if n in info["monitored"] else ""}
+            for n in info["counts"]]
+    print(f"structures ({info['total']} voxels in all):")
+    table(rows, ["structure", "kind", "voxels", "colour", "monitor"])
+    print("monitored by the nerve monitor: " + (", ".join(info["monitored"]) or "none"))
+    for w in info["warnings"]:
+        print(f"warning: {w}")

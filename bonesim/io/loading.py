@@ -1,0 +1,82 @@
+"""Building a :class:`~bonesim.engine.model.Model` from files: a case and a burr
+on disk (:func:`load_model`), or the small warm-up slab on which the kernels
+compile (:func:`warmup_model`, :func:`warmup`).
+
+This sits on the file side of the engine: the engine itself (:mod:`bonesim.engine.model`)
+builds a model from arrays and reads no case, burr or clearance file.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from bonesim.engine.bodies import split_body
+from bonesim.io.burrs import load_burr
+from bonesim.physics.clearance import Clearance
+from bonesim.engine.device_caps import SCRIPTED, DeviceCaps
+from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE
+from bonesim.engine.model import (DEFAULT_OVERSAMPLE, Model, Sample, clear_touched, make_model, make_state,
+                                  step)
+
+__all__ = ["load_model", "warmup_model", "warmup_sample", "warmup"]
+
+
+def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
+               device: DeviceCaps = SCRIPTED, oversample: int = DEFAULT_OVERSAMPLE,
+               materials: dict | None = None) -> Model:
+    """Load a case and a burr from their files and build the model.
+
+    Parameters
+    ----------
+    case : str
+        Bundled case name or path of a ``case.toml``.
+    burr : str
+        Burr name (``cutting-5mm``) or path of a burr file.
+    device : DeviceCaps
+        The device's limits.
+    oversample : int
+        Burr lattice refinement.
+    """
+    from bonesim.io.case import load_case
+
+    c = load_case(case)
+    b = load_burr(burr) if isinstance(burr, str) else burr
+    vol = c.load_volume()
+    # display colours settled on this volume (neighbours apart); the case keeps
+    # the view derived from it, so nothing reads the volume twice
+    c = c.resolved(vol)
+    model = make_model(vol.labels, vol.spacing_mm, c.structures, b,
+                       origin_mm=vol.origin_mm, materials=materials, device=device,
+                       oversample=oversample, name=c.name, case=c)
+    danger = [s for s, st in enumerate(c.structures, start=1) if st.kind != "bone"]
+    return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
+
+
+def warmup_model(oversample: int = DEFAULT_OVERSAMPLE) -> Model:
+    """A 12³ slab of bone (0.5 mm voxels, the 1 mm cutting burr) on which the
+    warm-ups compile kernels for a real model's array types."""
+    from types import SimpleNamespace
+
+    labels = np.zeros((12, 12, 12), dtype=np.uint8)
+    labels[:, :, :6] = 1
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
+    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"), oversample=oversample)
+
+
+def warmup_sample(model: Model) -> Sample:
+    """A sample of the running drill just under the warm-up slab's top."""
+    return Sample(0.0, np.array([3.0, 3.0, 2.9]), np.array([0.0, 0.0, -1.0]),
+                  True, model.burr.default_speed_rpm, 1)
+
+
+def warmup() -> None:
+    """Compile every kernel :func:`bonesim.engine.model.step` uses (cached on disk after the first run)."""
+    m = warmup_model()
+    s = make_state(m)
+    step(m, s, warmup_sample(m))
+    clear_touched(s, s.touched.read(0)["ijk"])
+    split_body(s, 0, np.array([[0, 0, 0]]))           # a second body: the split kernel
+    step(m, s, warmup_sample(m)._replace(t_s=0.001))
+    m4 = warmup_model(ROWS_MIN_OVERSAMPLE)             # the row kernel of fine stencils
+    step(m4, make_state(m4), warmup_sample(m4))

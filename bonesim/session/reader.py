@@ -1,0 +1,418 @@
+"""Reading session files: the schema check, summaries, and damaged files.
+
+:func:`read_session` reads a file written by :mod:`bonesim.runtime.record` and checks
+it against the schema (``docs/session_schema.md``). It never waits on a file
+that no writer holds and never ends in a raw HDF5 error: a damaged file (cut
+short, zeroed blocks, left open by a writer that died; see
+:mod:`bonesim.session.salvage`) is read up to where it stops being readable,
+every stream cut at the same moment so that replaying its samples gives its
+removals, and the :class:`Session` says what is wrong (:attr:`Session.damage`).
+:func:`repair_session` writes that readable prefix as a clean file.
+
+Files of schema 1 are read too: their removals, injuries, resets and burr
+changes are migrated into the tissue-event stream of schema 2
+(:mod:`bonesim.session.schema_v1`); a repaired copy is written in schema 2.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from bonesim.engine import events
+from bonesim.errors import BonesimError
+from bonesim.runtime.record import (FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, SessionWriter, _h5py,
+                                    compact_session, model_sha256, sessions_folder)
+from bonesim.session.salvage import open_session_file, read_prefix
+from bonesim.session.schema_v1 import GROUPS_V1
+from bonesim.session.schema_v1 import migrate as migrate_v1
+
+__all__ = ["Session", "read_session", "damage_notice", "session_info", "list_sessions",
+           "repair_session"]
+
+#: Per schema: the groups read (name -> columns) and the tissue stream that
+#: must be whole up to the moment a damaged file is cut at.
+_SCHEMAS = {1: ({"samples": GROUPS["samples"], **GROUPS_V1, "camera": GROUPS["camera"],
+                 "events": GROUPS["events"]}, "removals"),
+            2: (GROUPS, "tissue")}
+
+
+@dataclass
+class Session:
+    """A recorded run, read into memory (see ``docs/session_schema.md``).
+
+    Attributes
+    ----------
+    path : Path
+    schema : int
+    header : dict
+    complete : bool
+        The writer closed the file cleanly (False after a crash: the data is
+        complete up to the writer's last flush).
+    samples, tissue, camera : dict of str -> ndarray
+        Columns of equal length per group. ``tissue`` is the tissue-event
+        stream (:mod:`bonesim.engine.events`) with ``visible``; a schema-1 file's
+        removals, injuries, resets and burr changes are migrated into it
+        (:mod:`bonesim.session.schema_v1`).
+    events : list of (t_s, name, value)
+        User-interface events.
+    damage : str or None
+        What is wrong with the file (cut short, unreadable blocks, groups
+        lost), in words; None for a sound file. A damaged session holds the
+        file's readable prefix: every stream up to the same moment.
+    readable : dict of str -> (int, int)
+        Per group of a damaged file: rows kept and rows the file declares.
+    repaired : dict or None
+        For a copy written by :func:`repair_session`: ``from`` (the damaged
+        file) and ``damage`` (what was wrong with it).
+    """
+
+    path: Path
+    schema: int
+    header: dict
+    complete: bool
+    samples: dict
+    tissue: dict
+    camera: dict
+    events: list = field(default_factory=list)
+    damage: str | None = None
+    readable: dict = field(default_factory=dict)
+    repaired: dict | None = None
+
+    @cached_property
+    def removals(self) -> dict:
+        """The removed voxels (:func:`bonesim.engine.events.removals`) with
+        ``visible`` and ``epoch`` (case resets before each removal, from the
+        samples)."""
+        m = self.tissue["kind"] == events.REMOVED
+        rem = events.removals({k: a[m] for k, a in self.tissue.items() if k != "visible"})
+        rem["visible"] = self.tissue["visible"][m]
+        s = self.samples
+        if len(s["t_s"]):
+            idx = np.clip(np.searchsorted(s["t_s"], rem["t_s"]), 0, len(s["t_s"]) - 1)
+            rem["epoch"] = s["epoch"][idx]
+        else:
+            rem["epoch"] = np.zeros(len(rem["t_s"]), np.int32)
+        return rem
+
+    @cached_property
+    def injuries(self) -> dict:
+        """Contacts and injuries (:func:`bonesim.engine.events.injuries`)."""
+        return events.injuries({k: a for k, a in self.tissue.items() if k != "visible"})
+
+    @property
+    def duration_s(self) -> float:
+        t = self.samples["t_s"]
+        return float(t[-1] - t[0]) if len(t) else 0.0
+
+    def burr_models(self, check: bool = True) -> list:
+        """One :class:`~bonesim.engine.model.Model` per burr index, rebuilt from the
+        recorded case and burrs; with ``check``, their physics must hash to
+        what was recorded."""
+        from bonesim.io.burrs import load_burr
+        from bonesim.engine.device_caps import DeviceCaps
+        from bonesim.io.loading import load_model
+
+        h = self.header
+        case = h["case"]
+        src = case.get("path") or case["name"]
+        if case.get("path") and not Path(case["path"]).exists():
+            src = case["name"]
+        dev = h["device"]
+        inf = math.inf
+        caps = DeviceCaps(dev["name"], dev["max_force_n"] or inf,
+                          tuple(x or inf for x in dev["workspace_mm"]),
+                          dev["max_stiffness_n_per_mm"] or inf, dev["rate_hz"])
+        burrs = []
+        for b in h["burrs"]:
+            p = b.get("path")
+            try:
+                burrs.append(load_burr(b["name"]))
+            except Exception:
+                if p is None:
+                    raise
+                burrs.append(load_burr(p))
+        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]))
+        models = [model] + [model.with_burr(b) for b in burrs[1:]]
+        if check:
+            for q, (m, want) in enumerate(zip(models, h["model_sha256"])):
+                if model_sha256(m) != want:
+                    raise BonesimError(
+                        f"{self.path}: burr {q} ({h['burrs'][q]['name']}) on case "
+                        f"{case['name']!r} no longer builds the recorded model (the case, "
+                        "burr or material files changed since the recording)")
+        return models
+
+    def load_model(self, check: bool = True):
+        """The model of burr 0 (see :meth:`burr_models`)."""
+        return self.burr_models(check)[0]
+
+
+def _check_root(f, path: Path) -> tuple[int, dict]:
+    fmt = f.attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode()
+    if fmt != FORMAT:
+        raise BonesimError(f"{path}: not a bonesim session (format attribute is "
+                           f"{fmt!r}, expected {FORMAT!r})")
+    try:
+        schema = int(f.attrs["schema"])
+    except (KeyError, TypeError, ValueError):
+        raise BonesimError(f"{path}: the schema version attribute is missing or not "
+                           "an integer") from None
+    if schema > SCHEMA_VERSION:
+        raise BonesimError(f"{path}: written with session schema {schema}, newer than "
+                           f"this bonesim reads ({SCHEMA_VERSION}); upgrade bonesim")
+    if schema < 1:
+        raise BonesimError(f"{path}: invalid session schema version {schema}")
+    try:
+        header = json.loads(f.attrs["header"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BonesimError(f"{path}: the header attribute is missing or not JSON "
+                           f"({exc})") from None
+    if not isinstance(header, dict):
+        raise BonesimError(f"{path}: the header is not a JSON object")
+    missing = [k for k in HEADER_KEYS if k not in header]
+    if missing:
+        raise BonesimError(f"{path}: header lacks {', '.join(missing)}")
+    return schema, header
+
+
+def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list):
+    """One group's columns, cut to the rows all of them hold; returns the
+    columns and the rows the file declares (rows lost to damage noted)."""
+    empty = {name: np.zeros((0,) + tuple(shape), np.dtype(dt))
+             for name, (dt, shape) in cols.items()}
+    try:
+        grp = f[g]
+        present = set(grp.keys())
+    except KeyError:
+        raise BonesimError(f"{path}: group /{g} is missing") from None
+    except (OSError, RuntimeError) as exc:
+        problems.append(f"/{g} unreadable ({exc})")
+        return empty, None
+    data, declared, lost = {}, 0, False
+    for name, (dt, shape) in cols.items():
+        if name not in present:
+            raise BonesimError(f"{path}: dataset /{g}/{name} is missing")
+        try:
+            ds = grp[name]
+            if ds.shape[1:] != tuple(shape) or ds.dtype != np.dtype(dt):
+                raise BonesimError(
+                    f"{path}: dataset /{g}/{name} has shape {ds.shape} and type "
+                    f"{ds.dtype}; schema {SCHEMA_VERSION} expects (n, "
+                    f"{', '.join(map(str, shape))}) {np.dtype(dt)}".replace("(n, )", "(n,)"))
+            data[name] = read_prefix(ds, real_size)
+            declared = max(declared, int(ds.shape[0]))
+            lost |= len(data[name]) < ds.shape[0]
+        except (OSError, RuntimeError) as exc:
+            problems.append(f"/{g}/{name} unreadable ({exc})")
+            return empty, None
+    if lost:
+        problems.append(f"rows lost in /{g}")
+    # a crash between two columns' resizes leaves them uneven: keep the rows
+    # every column has
+    n = min(len(a) for a in data.values())
+    return {k: a[:n] for k, a in data.items()}, (declared if lost else None)
+
+
+def _cut_to_one_moment(groups: dict, declared: dict, whole: str) -> None:
+    """Cut every stream of a damaged file at the moment its sample or removal
+    stream stops being readable: samples up to the last readable one, and
+    nothing from the step of the last readable removal on (that step's other
+    removals may be lost)."""
+    upto, before = math.inf, math.inf
+    if declared.get("samples") is not None:
+        t = groups["samples"]["t_s"]
+        upto = float(t[-1]) if len(t) else -math.inf
+    if declared.get(whole) is not None:
+        t = groups[whole]["t_s"]
+        before = float(t[-1]) if len(t) else -math.inf
+    if upto == math.inf and before == math.inf:
+        return
+    for g in groups:
+        t = groups[g]["t_s"]
+        keep = np.isnan(t) | ((t <= upto) & (t < before))   # NaN: the writer's notes
+        if not keep.all():
+            groups[g] = {k: a[keep] for k, a in groups[g].items()}
+
+
+def read_session(path) -> Session:
+    """Read and check a session file.
+
+    A damaged file is read up to where it stops being readable (see the
+    module's notes); :attr:`Session.damage` says what is wrong.
+
+    Raises
+    ------
+    BonesimError
+        Naming the file and the problem: missing, empty, not HDF5, not a
+        bonesim session, written by a newer schema, a missing or malformed
+        header field, group or column, or damaged beyond reading.
+    """
+    path = Path(path)
+    f, damage, real_size, view = open_session_file(path, _h5py())
+    problems = [damage] if damage else []
+    try:
+        with f:
+            schema, header = _check_root(f, path)
+            try:
+                repaired = json.loads(f.attrs["repaired"]) if "repaired" in f.attrs \
+                    else None
+            except (TypeError, ValueError):
+                repaired = None
+            spec, whole = _SCHEMAS[schema]
+            groups, declared = {}, {}
+            for g, cols in spec.items():
+                groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems)
+            try:
+                closed = read_prefix(f["closed"], real_size)
+                complete = bool(len(closed) and closed[0] == 1)
+            except (KeyError, OSError, RuntimeError):
+                complete = False
+    except (OSError, RuntimeError, KeyError) as exc:    # the root itself is lost
+        what = f"{damage}: " if damage else ""
+        raise BonesimError(f"{path}: damaged beyond reading ({what}"
+                           f"{str(exc).strip(chr(39))})") from None
+    finally:
+        if view is not None:
+            view.close()
+    readable = {}
+    if problems:
+        rows_before = {g: len(groups[g]["t_s"]) for g in spec}
+        _cut_to_one_moment(groups, declared, whole)
+        for g in spec:
+            if declared[g] is not None or len(groups[g]["t_s"]) < rows_before[g]:
+                total = declared[g] if declared[g] is not None else rows_before[g]
+                readable[g] = (int(len(groups[g]["t_s"])), int(total))
+        complete = False
+    ev = groups["events"]
+    evlist = [(float(t), n.decode(errors="replace"), v.decode(errors="replace"))
+              for t, n, v in zip(ev["t_s"], ev["name"], ev["value"])]
+    if schema == 1:
+        tissue, evlist = migrate_v1(groups["removals"], groups["injuries"], evlist)
+    else:
+        tissue = groups["tissue"]
+    return Session(path, schema, header, complete, groups["samples"], tissue,
+                   groups["camera"], evlist, "; ".join(problems) or None, readable,
+                   repaired)
+
+
+def damage_notice(session: Session) -> str | None:
+    """One line for a damaged session: what is wrong and what is used."""
+    if session.damage is None:
+        return None
+    t = session.samples["t_s"]
+    upto = f"its first {float(t[-1] - t[0]):.1f} s" if len(t) else "no samples"
+    return f"{session.path}: damaged ({session.damage}); using the readable part: {upto}"
+
+
+def repair_session(path, out, overwrite: bool = False) -> Session:
+    """Write the readable part of a (damaged) session as a clean file.
+
+    Parameters
+    ----------
+    path : path
+        The session file to read (:func:`read_session`).
+    out : path
+        New file (compacted, closed; an existing one only with ``overwrite``).
+        Its ``repaired`` root attribute records the source and its damage.
+    overwrite : bool
+
+    Returns
+    -------
+    Session
+        ``out`` read back.
+    """
+    src = read_session(path)
+    out = Path(out)
+    if out.resolve() == Path(path).resolve():
+        raise BonesimError(f"{out}: the repaired copy must be a new file, not the one "
+                           "read")
+    groups = {"samples": src.samples, "tissue": src.tissue, "camera": src.camera}
+    ev = src.events
+    groups["events"] = {"t_s": np.array([e[0] for e in ev], np.float64),
+                        "name": np.array([e[1].encode() for e in ev],
+                                         GROUPS["events"]["name"][0]),
+                        "value": np.array([e[2].encode() for e in ev],
+                                          GROUPS["events"]["value"][0])}
+    with SessionWriter(out, src.header, overwrite=overwrite, compact=False) as w:
+        for g, cols in groups.items():
+            w.append(g, cols)
+    with _h5py().File(out, "r+") as f:           # attributes cannot change under SWMR
+        f.attrs["repaired"] = json.dumps({"from": str(Path(path)), "damage": src.damage})
+    compact_session(out)
+    return read_session(out)
+
+
+def session_info(session: Session) -> dict:
+    """JSON-ready summary of a session (``bonesim sessions info``)."""
+    h = session.header
+    s = session.samples
+    t = s["t_s"]
+    names = {st["label"]: st["name"] for st in h["structures"]}
+    labels, counts = np.unique(session.removals["label"], return_counts=True)
+    dt = np.diff(t)
+    inj = session.injuries
+    vis = session.removals["visible"]
+    n_vis, n_hid = int(np.sum(vis == 1)), int(np.sum(vis == 0))
+    return {
+        "file": str(session.path),
+        "size_bytes": session.path.stat().st_size,
+        "schema": session.schema,
+        "complete": session.complete,
+        "damage": session.damage,
+        "repaired_from": session.repaired,
+        "readable_rows": {g: {"kept": k, "declared": d}
+                          for g, (k, d) in session.readable.items()} or None,
+        "bonesim_version": h["bonesim_version"],
+        "start_time": h["start_time"],
+        "participant": h["participant"], "group": h["group"], "notes": h["notes"],
+        "case": h["case"]["name"],
+        "burrs": [b["name"] for b in h["burrs"]],
+        "device": h["device"]["name"],
+        "voxel_mm": h["voxel_mm"],
+        "duration_s": round(session.duration_s, 3),
+        "samples": int(len(t)),
+        "sample_rate_hz": round(float(1.0 / np.median(dt)), 1) if len(dt) else 0.0,
+        "resets": int(s["epoch"][-1]) if len(t) else 0,
+        "drill_on_s": round(float(np.sum(dt[s["drill"][:-1] > 0])), 3) if len(dt) else 0.0,
+        "max_force_n": round(float(np.linalg.norm(s["force_n"], axis=1).max()), 3)
+        if len(t) else 0.0,
+        "voxels_removed": int(len(session.removals["t_s"])),
+        "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
+                                 for lab, c in zip(labels, counts)},
+        # removals seen from the eye, of those judged (SPEC: voxel visibility)
+        "removals_visible": n_vis, "removals_hidden": n_hid,
+        "removals_visibility_unknown": int(len(vis)) - n_vis - n_hid,
+        "visible_fraction": round(n_vis / (n_vis + n_hid), 4) if n_vis + n_hid else None,
+        "injuries": [{"t_s": round(float(ti), 4),
+                      "structure": names.get(int(lab), str(int(lab))),
+                      "kind": events.INJURY_KINDS[int(k)] if int(k) < 2 else str(int(k))}
+                     for ti, lab, k in zip(inj["t_s"], inj["label"], inj["kind"])],
+        "camera_frames": int(len(session.camera["t_s"])),
+        "events": len(session.events),
+    }
+
+
+def list_sessions(folder=None) -> list[dict]:
+    """One row per ``*.h5`` file in ``folder`` (default :func:`sessions_folder`),
+    newest first; unreadable files are listed with their error."""
+    folder = sessions_folder() if folder is None else Path(folder)
+    if not folder.is_dir():
+        raise BonesimError(f"{folder}: no such sessions folder")
+    rows = []
+    for p in sorted(folder.glob("*.h5"), key=lambda q: q.stat().st_mtime, reverse=True):
+        try:
+            info = session_info(read_session(p))
+            rows.append({k: info[k] for k in ("file", "start_time", "participant", "group",
+                                               "case", "duration_s", "voxels_removed",
+                                               "complete", "damage")}
+                        | {"injuries": len(info["injuries"])})
+        except BonesimError as exc:
+            rows.append({"file": str(p), "error": str(exc)})
+    return rows

@@ -1,0 +1,332 @@
+"""Opening session files that are damaged: cut short, zeroed, or left open.
+
+A session file can be damaged in ways HDF5 handles badly:
+
+* **cut short** (a full disk, a copy that stopped): a plain open refuses it at
+  once (``truncated file: eof = ..., stored_eof = ...``); an open in SWMR mode
+  skips that check and then blocks for a long time retrying metadata that is
+  not there;
+* **left open** by a writer that died (kill, power loss): the superblock still
+  says a writer holds the file, so a plain open refuses it;
+* **zeroed or corrupt blocks**: chunks that no longer decompress.
+
+:func:`open_session_file` never waits on a file that no writer holds: it
+opens a file plainly; only a file whose lock a live writer holds is opened in
+SWMR mode. A cut-short or left-open file is read through
+:class:`RepairedView`, a read-only view of the file as HDF5 would see it
+whole: zeros past the real end and the superblock's "open for writing" flags
+cleared (with its checksum recomputed), the byte-level equivalent of
+``h5clear``. Nothing is written to the file itself.
+
+:func:`read_prefix` then reads the leading rows of a dataset that really lie
+in the file and decode.
+"""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from bonesim.errors import BonesimError
+
+__all__ = ["HDF5_SIGNATURE", "lookup3", "Superblock", "read_superblock", "RepairedView",
+           "open_session_file", "read_prefix"]
+
+#: First eight bytes of an HDF5 file.
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+_M32 = 0xFFFFFFFF
+
+
+def _rot(x: int, k: int) -> int:
+    return ((x << k) | (x >> (32 - k))) & _M32
+
+
+def lookup3(data: bytes, initval: int = 0) -> int:
+    """Bob Jenkins' lookup3 ``hashlittle``, the checksum of HDF5 metadata.
+
+    Parameters
+    ----------
+    data : bytes
+    initval : int
+
+    Returns
+    -------
+    int
+        The 32-bit hash.
+    """
+    n = len(data)
+    a = b = c = (0xDEADBEEF + n + initval) & _M32
+    i = 0
+    while n > 12:
+        a = (a + int.from_bytes(data[i:i + 4], "little")) & _M32
+        b = (b + int.from_bytes(data[i + 4:i + 8], "little")) & _M32
+        c = (c + int.from_bytes(data[i + 8:i + 12], "little")) & _M32
+        a = (a - c) & _M32
+        a ^= _rot(c, 4)
+        c = (c + b) & _M32
+        b = (b - a) & _M32
+        b ^= _rot(a, 6)
+        a = (a + c) & _M32
+        c = (c - b) & _M32
+        c ^= _rot(b, 8)
+        b = (b + a) & _M32
+        a = (a - c) & _M32
+        a ^= _rot(c, 16)
+        c = (c + b) & _M32
+        b = (b - a) & _M32
+        b ^= _rot(a, 19)
+        a = (a + c) & _M32
+        c = (c - b) & _M32
+        c ^= _rot(b, 4)
+        b = (b + a) & _M32
+        n -= 12
+        i += 12
+    if n == 0:
+        return c
+    tail = data[i:i + n] + bytes(12 - n)
+    a = (a + int.from_bytes(tail[0:4], "little")) & _M32
+    b = (b + int.from_bytes(tail[4:8], "little")) & _M32
+    c = (c + int.from_bytes(tail[8:12], "little")) & _M32
+    c ^= b
+    c = (c - _rot(b, 14)) & _M32
+    a ^= c
+    a = (a - _rot(c, 11)) & _M32
+    b ^= a
+    b = (b - _rot(a, 25)) & _M32
+    c ^= b
+    c = (c - _rot(b, 16)) & _M32
+    a ^= c
+    a = (a - _rot(c, 4)) & _M32
+    b ^= a
+    b = (b - _rot(a, 14)) & _M32
+    c ^= b
+    c = (c - _rot(b, 24)) & _M32
+    return c
+
+
+class Superblock:
+    """The fields of an HDF5 superblock (versions 0 to 3) needed here.
+
+    Attributes
+    ----------
+    version : int
+    eof : int
+        End-of-file address the file should reach [bytes].
+    flags : int
+        File consistency flags (versions 2, 3: bit 0 open for writing, bit 2
+        open for SWMR writing).
+    raw : bytes
+        The superblock's bytes (with the checksum for versions 2, 3).
+    """
+
+    def __init__(self, version: int, eof: int, flags: int, raw: bytes):
+        self.version, self.eof, self.flags, self.raw = version, eof, flags, raw
+
+    def cleared(self) -> bytes:
+        """The superblock with its open-for-writing flags cleared (version 2, 3:
+        checksum recomputed); unchanged for older versions."""
+        if self.version < 2:
+            return self.raw
+        body = bytearray(self.raw[:-4])
+        body[11] = 0
+        return bytes(body) + lookup3(bytes(body)).to_bytes(4, "little")
+
+
+def read_superblock(path: Path) -> Superblock | None:
+    """The superblock at the start of ``path`` (None: no HDF5 signature there,
+    or a layout not understood)."""
+    with open(path, "rb") as f:
+        head = f.read(96)
+    if head[:8] != HDF5_SIGNATURE or len(head) < 12:
+        return None
+    version = head[8]
+    if version in (2, 3):
+        off = head[9]
+        end = 12 + 4 * off + 4
+        if len(head) < end or off not in (4, 8):
+            return None
+        eof = int.from_bytes(head[12 + 2 * off:12 + 3 * off], "little")
+        return Superblock(version, eof, head[11], head[:end])
+    if version in (0, 1):
+        off = head[13]
+        start = 24 + (4 if version == 1 else 0)
+        if off not in (4, 8) or len(head) < start + 3 * off:
+            return None
+        eof = int.from_bytes(head[start + 2 * off:start + 3 * off], "little")
+        return Superblock(version, eof, 0, head[:start + 4 * off])
+    return None
+
+
+class RepairedView(io.RawIOBase):
+    """A read-only view of a damaged HDF5 file as HDF5 would see it whole.
+
+    Parameters
+    ----------
+    path : Path
+    length : int
+        Size the view reports [bytes] (the superblock's end of file): reads
+        past the file's real end give zeros.
+    superblock : bytes
+        Replaces the file's first ``len(superblock)`` bytes.
+    """
+
+    def __init__(self, path: Path, length: int, superblock: bytes):
+        super().__init__()
+        self._f = open(path, "rb")
+        self._size = Path(path).stat().st_size
+        self._length = max(int(length), self._size)
+        self._sb = superblock
+        self._pos = 0
+
+    @property
+    def real_size(self) -> int:
+        """Bytes the file really holds."""
+        return self._size
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._length}[whence]
+        self._pos = max(0, base + int(offset))
+        return self._pos
+
+    def readinto(self, buf) -> int:
+        view = memoryview(buf).cast("B")
+        n = max(0, min(len(view), self._length - self._pos))
+        if n == 0:
+            return 0
+        self._f.seek(self._pos)
+        got = self._f.readinto(view[:n]) or 0
+        view[got:n] = bytes(n - got)                     # past the real end: zeros
+        lo, hi = self._pos, self._pos + n
+        if lo < len(self._sb):
+            k = min(hi, len(self._sb))
+            view[:k - lo] = self._sb[lo:k]
+        self._pos = hi
+        return n
+
+    def close(self) -> None:
+        if not self.closed:
+            self._f.close()
+        super().close()
+
+
+def open_session_file(path: Path, h5py):
+    """Open a session file for reading without ever waiting on it.
+
+    Returns
+    -------
+    file : h5py.File
+    damage : str or None
+        What is wrong with the file, in words (None: nothing).
+    real_size : int or None
+        Bytes the file holds when it is read through a :class:`RepairedView`
+        (None otherwise).
+    view : RepairedView or None
+        The view read; close it after the file.
+
+    Raises
+    ------
+    BonesimError
+        Missing, empty, not HDF5, or damaged beyond reading.
+    """
+    if not path.exists():
+        raise BonesimError(f"{path}: no such session file")
+    if not path.is_file():
+        raise BonesimError(f"{path}: not a file")
+    size = path.stat().st_size
+    if size == 0:
+        raise BonesimError(f"{path}: empty file (0 bytes): nothing was recorded in it")
+    with open(path, "rb") as f:
+        if f.read(8) != HDF5_SIGNATURE:
+            raise BonesimError(f"{path}: not an HDF5 file (no HDF5 signature at its start)")
+    try:
+        return h5py.File(path, "r"), None, None, None
+    except OSError as exc:
+        msg = str(exc)
+    low = msg.lower()
+    if "unable to lock" in low or "locking flag" in low:   # a live writer holds it
+        try:
+            return h5py.File(path, "r", swmr=True, locking=False), None, None, None
+        except OSError as exc:
+            raise BonesimError(f"{path}: cannot read the file a writer holds ({exc})") \
+                from None
+    sb = read_superblock(path)
+    if sb is None or ("truncated" not in low and "already open for write" not in low):
+        raise BonesimError(f"{path}: not a readable HDF5 session file ({msg})")
+    damage = []
+    if size < sb.eof:
+        damage.append(f"cut short: it ends at byte {size:,} of {sb.eof:,}")
+    if sb.flags:
+        damage.append("left open by a writer that did not close it")
+    view = RepairedView(path, sb.eof, sb.cleared())
+    try:
+        f = h5py.File(view, "r")
+    except OSError as exc:
+        view.close()
+        raise BonesimError(f"{path}: damaged beyond reading ({'; '.join(damage)}): "
+                           f"{exc}") from None
+    return f, "; ".join(damage) or None, size, view
+
+
+def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
+    """The leading rows of a dataset whose data are in the file and decode.
+
+    Parameters
+    ----------
+    ds : h5py.Dataset
+        Rows along axis 0.
+    real_size : int or None
+        Bytes the file really holds when it is read through a
+        :class:`RepairedView` (None: the whole file is there). A chunk that
+        lies past it, or whose index entry can no longer be read, ends the
+        prefix (a chunk never written reads as its fill value).
+
+    Returns
+    -------
+    ndarray
+        All rows when every row reads (one read); else the rows up to the
+        first chunk that is missing or does not decode.
+    """
+    rows = int(ds.shape[0])
+    step = ds.chunks[0] if ds.chunks else max(rows, 1)
+    if real_size is not None and rows:
+        if ds.chunks:
+            # chunk by chunk through the index (a cut-short index still finds
+            # its early chunks; a walk over all of them would fail at once)
+            r = 0
+            while r < rows:
+                try:
+                    info = ds.id.get_chunk_info_by_coord((r,) + (0,) * (ds.ndim - 1))
+                except (OSError, RuntimeError, ValueError, KeyError):
+                    break                        # this part of the index is lost
+                if info.byte_offset is not None and \
+                        info.byte_offset + info.size > real_size:
+                    break                        # the chunk lies past the end
+                r += step                        # (never written: its fill value)
+            rows = min(rows, r)
+        else:
+            off = ds.id.get_offset()
+            if off is None or off + ds.id.get_storage_size() > real_size:
+                rows = 0
+    try:
+        return ds[:rows]
+    except (OSError, ValueError, RuntimeError):
+        pass
+    parts, r = [], 0                             # up to the first chunk that fails
+    while r < rows:
+        try:
+            parts.append(ds[r:min(r + step, rows)])
+        except (OSError, ValueError, RuntimeError):
+            break
+        r += step
+    return np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)

@@ -1,0 +1,39 @@
+"""The label-stack load benchmark (bonesim.bench.load): its case and its figures."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bonesim.bench import load as B
+from bonesim.io.case import load_case
+from bonesim.io.phantom import phantom_volume
+
+
+def test_bench_stack_case_is_the_phantom_reoriented(tmp_path):
+    B.write_stack_case(tmp_path, (40, 44, 48), "PIR")
+    case = load_case(tmp_path)
+    assert case.orientation == ("PIR", "declared")
+    vol = case.load_volume()
+    native = vol.native_labels
+    # P I R: columns run posterior (y), rows inferior (-z), slices right (-x)
+    assert native.labels.shape == (48, 40, 44)
+    ref = phantom_volume(voxel_mm=0.5)
+    np.testing.assert_allclose(native.spacing_mm * native.labels.shape, ref.extent_mm)
+    # the upsampled anatomy comes back on the 0.5 mm grid close to the phantom:
+    # the same structures, bone within a few percent
+    counts, want = vol.counts(8), ref.counts(8)
+    assert (counts[1:] > 0).all()
+    assert abs(counts[1] - want[1]) / want[1] < 0.05
+
+
+def test_bench_load_figures_registered():
+    from bonesim.bench.suite import BENCHMARKS
+
+    out = BENCHMARKS["load_labelstack_512_s"](quick=True)
+    t, mem = out["load_labelstack_512_s"], out["load_labelstack_512_peak_mb"]
+    assert t["value"] > 0 and t["unit"] == "s" and t["reference_s"] > 0
+    assert t["ratio_load_over_decode"] == pytest.approx(t["value"] / t["reference_s"],
+                                                        rel=0.1)   # figures rounded
+    assert t["stack"] == list(B.QUICK_SHAPE) and t["grid"] == [104, 104, 104]
+    assert mem["unit"] == "MB" and mem["value"] >= mem["before_load_mb"] > 0
+    assert BENCHMARKS["load_labelstack_512_peak_mb"] is BENCHMARKS["load_labelstack_512_s"]

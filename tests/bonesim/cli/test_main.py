@@ -1,0 +1,135 @@
+"""The bonesim command line: help, JSON outputs, headless runs and clear errors."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bonesim.cli.main import build_parser, main
+
+REPO = Path(__file__).resolve().parents[3]
+SUBCOMMANDS = ["cases", "case-info", "case-export", "burrs", "simulate", "trajectory",
+               "demo", "bench"]
+
+
+def run_cli(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("cmd", SUBCOMMANDS)
+def test_every_subcommand_has_help(cmd, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([cmd, "--help"])
+    assert exc.value.code == 0
+    assert "usage: bonesim " + cmd in capsys.readouterr().out
+
+
+def test_parser_lists_all_subcommands():
+    text = build_parser().format_help()
+    for cmd in SUBCOMMANDS:
+        assert cmd in text
+
+
+def test_cases_and_burrs_json(capsys):
+    code, out, _ = run_cli(capsys, "cases", "--json")
+    assert code == 0 and "phantom" in [c["name"] for c in json.loads(out)]
+    code, out, _ = run_cli(capsys, "burrs", "--json")
+    names = [b["name"] for b in json.loads(out)]
+    assert code == 0
+    assert {f"cutting-{d}mm" for d in range(1, 8)} <= set(names)
+    assert {f"diamond-{d}mm" for d in range(1, 6)} <= set(names)
+
+
+def test_case_info_by_name_and_by_path(capsys):
+    code, out, _ = run_cli(capsys, "case-info", "phantom", "--json")
+    info = json.loads(out)
+    assert code == 0 and info["voxel_mm"] == 0.5 and info["counts"]["facial_nerve"] > 0
+    manifest = info["manifest"]
+    code, out2, _ = run_cli(capsys, "case-info", manifest, "--json")
+    assert code == 0 and json.loads(out2)["counts"] == info["counts"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["case-info", "no-such-case"], "no-such-case"),
+    (["simulate", "--trajectory", "/nonexistent/traj.csv"], "traj.csv"),
+    (["simulate", "--burr", "cutting-99mm", "--trajectory", "{traj}"], "cutting-99mm"),
+    (["bench", "--only", "no_such_bench"], "no_such_bench"),
+])
+def test_bad_input_is_one_clear_line(argv, needle, capsys, tmp_path):
+    traj = tmp_path / "t.csv"
+    traj.write_text("t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm\n"
+                    "0,0,0,0,0,0,-1,0,0\n0.01,0,0,0,0,0,-1,0,0\n")
+    argv = [a.replace("{traj}", str(traj)) for a in argv]
+    code, out, err = run_cli(capsys, *argv)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bonesim: error:") and needle in lines[0]
+    assert "Traceback" not in err
+
+
+def test_trajectory_then_simulate_with_check(capsys, tmp_path):
+    traj = tmp_path / "demo.csv"
+    code, out, _ = run_cli(capsys, "trajectory", "--case", "phantom", "--kind",
+                           "demo-mastoidectomy", "--out", str(traj))
+    assert code == 0 and traj.is_file()
+    # keep the first 4 s so the test stays quick
+    lines = traj.read_text().splitlines()
+    keep = [lines[0]] + [ln for ln in lines[1:] if float(ln.split(",")[0]) <= 4.0]
+    short = tmp_path / "short.csv"
+    short.write_text("\n".join(keep) + "\n")
+    code, out, _ = run_cli(capsys, "simulate", "--case", "phantom", "--burr", "cutting-5mm",
+                           "--trajectory", str(short), "--out", str(tmp_path / "run"),
+                           "--check", "--json")
+    s = json.loads(out)
+    assert code == 0
+    for key in ("voxels_removed", "removed_by_structure", "injuries", "vertices",
+                "triangles", "force_n", "haptic_step_us"):
+        assert key in s
+    assert s["surface_consistent"] is True
+    assert s["voxels_removed"] > 0 and s["force_n"]["max"] > 0
+    assert s["haptic_step_us"]["p50"] > 0
+    assert Path(s["mesh"]).is_file() and Path(s["summary"]).is_file()
+
+
+def test_import_is_light():
+    code = ("import sys, bonesim, bonesim.engine.model, bonesim.cli.main; "
+            "bad = [m for m in ('vtk', 'pyvista', 'sounddevice', 'usb', 'hid') "
+            "if m in sys.modules]; print(bad)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=REPO, check=True)
+    assert res.stdout.strip() == "[]"
+
+
+def test_installed_package_ships_its_data(tmp_path):
+    """Outside the source tree, the installed package finds its cases and burrs."""
+    code = ("import bonesim, ct_cases, burrs, metrics, pathlib; "
+            "from bonesim.io.case import load_case; from bonesim.io.burrs import load_burr; "
+            "from bonesim.engine.materials import load_materials; "
+            "c = load_case('phantom'); b = load_burr('diamond-2mm'); load_materials(); "
+            "print(pathlib.Path(bonesim.__file__).parent, c.name, b.name)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    where, case, burr = res.stdout.split()
+    assert (case, burr) == ("phantom", "diamond-2mm")
+    assert not Path(where).resolve().is_relative_to(REPO) or "site-packages" in where
+
+
+def test_simulate_rejects_bad_trajectory_rows(capsys, tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm\n"
+                   "0,0,0,0,0,0,-1,0,0\n0.01,0,0,abc,0,0,-1,0,0\n")
+    code, _, err = run_cli(capsys, "simulate", "--trajectory", str(bad))
+    assert code == 2 and "bad.csv" in err and "z_mm" in err
+
+
+def test_run_records_only_when_asked():
+    p = build_parser()
+    assert p.parse_args(["run"]).record is None
+    assert p.parse_args(["run", "--record"]).record == ""
+    assert p.parse_args(["run", "--record", "x.h5"]).record == "x.h5"

@@ -1,0 +1,86 @@
+"""``bonesim warmup`` compiles every kernel signature a real run needs.
+
+A kernel that meets new argument types (a read-only array where the warm-up
+passed a writable one) compiles again at first use: on a cold cache that
+stalled the haptic loop's first step for 1.8 s and the window's start for
+2 s. So, in a fresh process (whose dispatchers know only what it compiled or
+loaded), the warm-up runs, then the phantom goes through what the loop, the
+surface consumer, the window's buffers and the nerve monitor do, and no
+kernel may gain a signature.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+_CHILD = r"""
+import importlib, json, pickle, pkgutil
+import numpy as np
+from numba.core.registry import CPUDispatcher
+import bonesim, bonesim.render
+W = importlib.import_module("bonesim.cli.warmup")
+
+def signatures():
+    out = {}
+    for pkg in (bonesim, bonesim.render):
+        for info in pkgutil.iter_modules(pkg.__path__):
+            name = pkg.__name__ + "." + info.name
+            if info.ispkg or name in ("bonesim.render.scene", "bonesim.render.window",
+                                      "bonesim.render.gl", "bonesim.render.bench",
+                                      "bonesim.render.hud", "bonesim.render.trace",
+                                      "bonesim.render.playback"):
+                continue                      # VTK modules: no kernels
+            mod = importlib.import_module(name)
+            for k, v in vars(mod).items():
+                if isinstance(v, CPUDispatcher) and v.__module__ == name:
+                    out[name + "." + k] = sorted(map(str, v.signatures))
+    return out
+
+for name, fn in W._parts():
+    if name != "haptic loop":             # its own process: checked below in this one
+        fn()
+before = signatures()
+
+from bonesim.io.case import load_case
+from bonesim.io.toolpath import demo_trajectory
+from bonesim.io.loading import load_model
+from bonesim.engine.model import make_state, step
+from bonesim.runtime.monitor import NerveMonitor
+from bonesim.render.meshbuf import SurfaceBuffers
+from bonesim.engine.replica import TissueReplica
+
+model = load_model("phantom", "cutting-5mm")
+sent = pickle.loads(pickle.dumps(model))        # as the loop's process gets it
+state = make_state(sent)
+consumer = TissueReplica(model, state, surface=True)
+traj = demo_trajectory(load_case("phantom"), "cutting-5mm").resample(1000.0)
+start = int(np.flatnonzero(traj.drill)[0])
+buf = SurfaceBuffers()
+for q, s in enumerate(traj.samples()):
+    if q < start:
+        continue
+    step(sent, state, s)
+    if q % 50 == 0:
+        ch = consumer.drain()
+        buf.sync(consumer.surface, ch.removed, ch.touched)
+    if q > start + 4000:
+        break
+assert state.n_removed > 0
+NerveMonitor(model)
+after = signatures()
+new = {k: sorted(set(v) - set(before.get(k, []))) for k, v in after.items()}
+print(json.dumps({k: v for k, v in new.items() if v}))
+"""
+
+
+def test_warmup_covers_the_types_of_a_real_run():
+    out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    new = json.loads(out.stdout.strip().splitlines()[-1])
+    assert new == {}, f"kernels compiled after the warm-up: {new}"
