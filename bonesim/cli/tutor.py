@@ -12,9 +12,15 @@ import time
 
 import numpy as np
 
-from bonesim.net import packets as net
 from bonesim.errors import BonesimError
-from bonesim.tutoring.tutor import NetworkSource, RecordingSource, Trainee, TutorServer, warmup
+from bonesim.net import packets as net
+from bonesim.tutoring.tutor import (
+    NetworkSource,
+    RecordingSource,
+    Trainee,
+    TutorServer,
+    warmup,
+)
 
 __all__ = ["cmd_keygen", "cmd_serve", "cmd_join", "cmd_playback"]
 
@@ -90,9 +96,9 @@ def cmd_serve(args) -> int:
 def _serve_headless(args, key: bytes, traj) -> int:
     import sys
 
-    from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.io.loading import load_model
     from bonesim.io.loading import warmup as model_warmup
+    from bonesim.runtime.haptic_loop import HapticLoop
 
     model_warmup()
     model = load_model(args.case, args.burr)
@@ -192,7 +198,7 @@ def cmd_join(args) -> int:
     """``bonesim tutor join HOST``: follow an instructor with the simulated hand."""
     import sys
 
-    from bonesim.devices.backends import SimulatedHandDevice
+    from bonesim.devices.simulated_hand import SimulatedHandDevice
 
     key = net.load_key(args.key_file)
     if _window_mode(args):
@@ -220,7 +226,7 @@ def cmd_join(args) -> int:
 
 def cmd_playback(args) -> int:
     """``bonesim tutor playback FILE.h5``: drive the trainee's device from a recording."""
-    from bonesim.devices.backends import SimulatedHandDevice
+    from bonesim.devices.simulated_hand import SimulatedHandDevice
     from bonesim.session.reader import read_session
 
     if _window_mode(args):                        # the servo's process reads the file

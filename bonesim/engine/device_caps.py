@@ -1,6 +1,6 @@
 """What a device can do, in physical units: the record the engine's
 :class:`~bonesim.engine.model.Model` holds, apart from the device backends
-(:mod:`bonesim.devices.backends`) so that the engine needs none of them."""
+(:mod:`bonesim.devices`) so that the engine needs none of them."""
 from __future__ import annotations
 
 import math

@@ -411,7 +411,6 @@ def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis,
                 prev_contact[q] = 0
         return lo0, lo1, lo2, False
     # gather the block's density and labels into dense local scratch
-    nn = n_vox * n_vox
     _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick,
             ldens, llab)
     return lo0, lo1, lo2, True

@@ -44,14 +44,23 @@ import time
 
 import numpy as np
 
-from bonesim.runtime import commands
+from bonesim.devices.interface import DeviceReading
+from bonesim.devices.mouse import SharedInputDevice, VirtualCoupling
+from bonesim.devices.null import NullDevice
+from bonesim.devices.scripted import ScriptedDevice
 from bonesim.engine import events
-from bonesim.runtime.child import ChildProcess
-from bonesim.runtime.commands import CommandQueue, CommandSender, LoopContext, Reset, SetBurr, SetTool
-from bonesim.devices.backends import (DeviceReading, NullDevice, ScriptedDevice, SharedInputDevice,
-                                      VirtualCoupling)
 from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from bonesim.engine.model import Model, Sample, make_state, state_arrays_spec, step
+from bonesim.runtime import commands
+from bonesim.runtime.child import ChildProcess
+from bonesim.runtime.commands import (
+    CommandQueue,
+    CommandSender,
+    LoopContext,
+    Reset,
+    SetBurr,
+    SetTool,
+)
 from bonesim.runtime.shared import SharedArrays
 
 __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",

@@ -24,7 +24,7 @@ class Trainee:
     ----------
     source : Source
     device : Device
-        The trainee's device (e.g. :class:`bonesim.devices.backends.SimulatedHandDevice`).
+        The trainee's device (e.g. :class:`bonesim.devices.simulated_hand.SimulatedHandDevice`).
         A device with a ``place`` method is placed at the instructor's tool
         when the first sample arrives (a simulated hand picks up the stylus).
     kp_n_per_mm : float

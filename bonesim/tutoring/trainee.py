@@ -32,8 +32,8 @@ import time
 import numpy as np
 
 from bonesim.engine import events
-from bonesim.runtime.child import ChildProcess
 from bonesim.errors import BonesimError, ProcessFailed
+from bonesim.runtime.child import ChildProcess
 
 __all__ = ["STATUS", "CHANGES_CAPACITY", "changes_ring", "TraineeProcess"]
 
@@ -137,7 +137,7 @@ def _publisher(status: np.ndarray):
 
 def _run_trainee(child, spec, duration_s: float) -> None:
     """Body of the trainee's process (:meth:`TraineeProcess.run`)."""
-    from bonesim.devices.backends import SimulatedHandDevice
+    from bonesim.devices.simulated_hand import SimulatedHandDevice
     from bonesim.tutoring.tutor import Trainee, warmup
 
     src = trainee = None

@@ -4,12 +4,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.devices.backends import (MOUSE_CAPS, Device, NullDevice, ScriptedDevice,
-                                      SharedInputDevice, VirtualCoupling)
+from bonesim.devices.interface import Device
+from bonesim.devices.mouse import MOUSE_CAPS, SharedInputDevice, VirtualCoupling
+from bonesim.devices.null import NullDevice
+from bonesim.devices.scripted import ScriptedDevice
 from bonesim.engine.device_caps import SCRIPTED, DeviceCaps
 from bonesim.engine.model import Sample, step
 from bonesim.io.trajectory import Trajectory
-
 from tests.bonesim.fakes import FakeBurr, block_model
 
 

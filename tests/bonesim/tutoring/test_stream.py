@@ -10,29 +10,28 @@ import math
 import numpy as np
 import pytest
 
+from bonesim.devices.simulated_hand import SimulatedHandDevice
 from bonesim.engine import events
-from bonesim.net import packets as net
-from bonesim.tutoring import tutor
-from bonesim.runtime.commands import MoveBody, Reset
-from bonesim.devices.backends import SimulatedHandDevice
-from bonesim.errors import BonesimError
 from bonesim.engine.replica import TissueReplica
-
+from bonesim.errors import BonesimError
+from bonesim.net import packets as net
+from bonesim.runtime.commands import MoveBody, Reset
+from bonesim.tutoring import tutor
 from tests.bonesim.fakes import block_model
 from tests.bonesim.tutoring.test_tutor import (
-                          DT,
-                          KEY,
-                          SERVER,
-                          TRAINEE,
-                          Instructor,
-                          MemoryNet,
-                          _occupancy,
-                          _replay_changes,
-                          _run,
-                          _same_tissue,
-                          _session,
-                          _snapshot,
-                          _split_and_move,
+    DT,
+    KEY,
+    SERVER,
+    TRAINEE,
+    Instructor,
+    MemoryNet,
+    _occupancy,
+    _replay_changes,
+    _run,
+    _same_tissue,
+    _session,
+    _snapshot,
+    _split_and_move,
 )
 
 

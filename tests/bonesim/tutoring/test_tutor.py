@@ -19,14 +19,14 @@ import time
 import numpy as np
 import pytest
 
+from bonesim.devices.interface import Device
+from bonesim.devices.simulated_hand import SIM_HAND_CAPS, SimulatedHandDevice
 from bonesim.engine import events
-from bonesim.net import packets as net
-from bonesim.tutoring import tutor
-from bonesim.runtime.commands import LoopContext, MoveBody, Reset, SplitBox
-from bonesim.devices.backends import SIM_HAND_CAPS, Device, SimulatedHandDevice
-from bonesim.runtime.haptic_loop import push_sample
 from bonesim.engine.model import Sample, step
-
+from bonesim.net import packets as net
+from bonesim.runtime.commands import LoopContext, MoveBody, Reset, SplitBox
+from bonesim.runtime.haptic_loop import push_sample
+from bonesim.tutoring import tutor
 from tests.bonesim.fakes import block_model
 
 KEY = bytes(range(100, 132))
