@@ -505,23 +505,24 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
     return 0
 
 
-@njit(cache=True, nogil=True)
-def _suction(keys, vals, dens, bmass, ctr, ip, fp):
-    """Rule 4, in place on the current buffer."""
-    ctr[C_SUCKED_STEP] = 0
-    rad = fp[F_SR]
-    rate = ip[I_SRATE]
-    if ip[I_SUCTION] == 0 or rad <= 0.0 or rate <= 0:
-        return
+@njit(cache=True, nogil=True, inline="always")
+def _take_sphere(keys, vals, den, oth, bmass, cx, cy, cz, rad, fp, rate, out_ijk, out_q):
+    """The one walk over the cells of a sphere (centre ``c`` [mm], radius
+    ``rad`` [mm]) that suction and wetting share: every cell whose centre
+    lies within ``rad`` loses ``min(d, rate)`` of its dust ``d``. A brick
+    left empty has its other buffer cleared. With ``out_q`` of length > 0
+    the cells and amounts taken are listed in ``out_ijk`` / ``out_q`` (which
+    must hold every cell of the sphere's box).
+
+    Returns ``(total taken, cells listed)``."""
     h = fp[F_H]
     r2 = rad * rad
-    i0, i1 = sphere_voxel_range(fp[F_SX], rad, fp[F_OX], h)
-    j0, j1 = sphere_voxel_range(fp[F_SY], rad, fp[F_OY], h)
-    k0, k1 = sphere_voxel_range(fp[F_SZ], rad, fp[F_OZ], h)
-    cur = ctr[C_CUR]
-    den = dens[cur]
-    oth = dens[1 - cur]
+    i0, i1 = sphere_voxel_range(cx, rad, fp[F_OX], h)
+    j0, j1 = sphere_voxel_range(cy, rad, fp[F_OY], h)
+    k0, k1 = sphere_voxel_range(cz, rad, fp[F_OZ], h)
+    listing = out_q.shape[0] > 0
     total = np.int64(0)
+    n = 0
     for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
         for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
             for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
@@ -533,26 +534,46 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
                 z0, z1 = brick_voxel_span(k0, k1, bk)
                 for x in range(x0, x1):
                     ci = (bi << BRICK_SHIFT) + x
-                    dx = (fp[F_OX] + h * ci) - fp[F_SX]
+                    dx = (fp[F_OX] + h * ci) - cx
                     for y in range(y0, y1):
                         cj = (bj << BRICK_SHIFT) + y
-                        dy = (fp[F_OY] + h * cj) - fp[F_SY]
+                        dy = (fp[F_OY] + h * cj) - cy
                         for z in range(z0, z1):
                             ck = (bk << BRICK_SHIFT) + z
                             off = (x << 6) | (y << 3) | z
                             d = np.int64(den[b, off])
                             if d <= 0:
                                 continue
-                            dz = (fp[F_OZ] + h * ck) - fp[F_SZ]
+                            dz = (fp[F_OZ] + h * ck) - cz
                             if dx * dx + dy * dy + dz * dz > r2:
                                 continue
                             f = d if d < rate else rate
                             den[b, off] = d - f
                             bmass[b] -= f
                             total += f
+                            if listing:
+                                out_ijk[n, 0] = ci
+                                out_ijk[n, 1] = cj
+                                out_ijk[n, 2] = ck
+                                out_q[n] = f
+                                n += 1
                 if bmass[b] == 0:
                     for o in range(BRICK_VOXELS):
                         oth[b, o] = 0
+    return total, n
+
+
+@njit(cache=True, nogil=True)
+def _suction(keys, vals, dens, bmass, ctr, ip, fp):
+    """Rule 4, in place on the current buffer."""
+    ctr[C_SUCKED_STEP] = 0
+    rad = fp[F_SR]
+    rate = ip[I_SRATE]
+    if ip[I_SUCTION] == 0 or rad <= 0.0 or rate <= 0:
+        return
+    total, _ = _take_sphere(keys, vals, dens[ctr[C_CUR]], dens[1 - ctr[C_CUR]], bmass,
+                            fp[F_SX], fp[F_SY], fp[F_SZ], rad, fp, rate,
+                            np.empty((0, 3), np.int64), np.empty(0, np.int64))  # no listing
     ctr[C_SUCKED] += total
     ctr[C_SUCKED_STEP] = total
 
@@ -625,49 +646,7 @@ def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, out_ijk, out_q):
     rate = ip[I_WRATE]
     if rad <= 0.0 or rate <= 0:
         return 0
-    h = fp[F_H]
-    r2 = rad * rad
-    i0, i1 = sphere_voxel_range(fp[F_WX], rad, fp[F_OX], h)
-    j0, j1 = sphere_voxel_range(fp[F_WY], rad, fp[F_OY], h)
-    k0, k1 = sphere_voxel_range(fp[F_WZ], rad, fp[F_OZ], h)
-    cur = ctr[C_CUR]
-    den = dens[cur]
-    oth = dens[1 - cur]
-    n = 0
-    for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
-        for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
-            for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
-                b = find_brick(keys, vals, bi, bj, bk)
-                if b < 0 or bmass[b] == 0:
-                    continue
-                x0, x1 = brick_voxel_span(i0, i1, bi)
-                y0, y1 = brick_voxel_span(j0, j1, bj)
-                z0, z1 = brick_voxel_span(k0, k1, bk)
-                for x in range(x0, x1):
-                    ci = (bi << BRICK_SHIFT) + x
-                    dx = (fp[F_OX] + h * ci) - fp[F_WX]
-                    for y in range(y0, y1):
-                        cj = (bj << BRICK_SHIFT) + y
-                        dy = (fp[F_OY] + h * cj) - fp[F_WY]
-                        for z in range(z0, z1):
-                            ck = (bk << BRICK_SHIFT) + z
-                            off = (x << 6) | (y << 3) | z
-                            d = np.int64(den[b, off])
-                            if d <= 0:
-                                continue
-                            dz = (fp[F_OZ] + h * ck) - fp[F_WZ]
-                            if dx * dx + dy * dy + dz * dz > r2:
-                                continue
-                            f = d if d < rate else rate
-                            den[b, off] = d - f
-                            bmass[b] -= f
-                            ctr[C_WETTED] += f
-                            out_ijk[n, 0] = ci
-                            out_ijk[n, 1] = cj
-                            out_ijk[n, 2] = ck
-                            out_q[n] = f
-                            n += 1
-                if bmass[b] == 0:
-                    for o in range(BRICK_VOXELS):
-                        oth[b, o] = 0
+    total, n = _take_sphere(keys, vals, dens[ctr[C_CUR]], dens[1 - ctr[C_CUR]], bmass,
+                            fp[F_WX], fp[F_WY], fp[F_WZ], rad, fp, rate, out_ijk, out_q)
+    ctr[C_WETTED] += total
     return n
