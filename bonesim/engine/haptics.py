@@ -381,9 +381,8 @@ def _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_hea
     ev_head[0] += 1
 
 
-# The per-sample kernel below keeps its own copy of the pass's start and end:
-# calling these two from it cost ~5% of the 2x step. The row kernel
-# (bonesim.engine.haptics_rows) calls them.
+# The start and end of a pass, shared by the per-sample kernel below and the
+# row kernel (bonesim.engine.haptics_rows).
 @njit(cache=True, nogil=True)
 def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis, group,
            gsel, first, last, R, n_vox, lbrick, ldens, llab, contact, prev_contact, lost,
@@ -613,26 +612,12 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         ``(tx, ty, tz)`` [N], normal magnitude ``|F|`` [N], immersed volume
         [mm^3], immersed samples, voxels removed, voxels touched.
     """
-    for q in range(out.shape[0]):
-        out[q] = 0.0
-    if first:
-        for q in range(contact.shape[0]):
-            contact[q] = 0
-            lost[q] = 0
-    tool_frame(axis, R)
-    # local block of voxels around the burr
-    lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, params[P_RADIUS], origin,
-                                            spacing, lbrick)
-    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    lo0, lo1, lo2, any_brick = _begin(keys, vals, density, label, body, origin, spacing,
+                                      params, pos, axis, group, gsel, first, last, R,
+                                      n_vox, lbrick, ldens, llab, contact, prev_contact,
+                                      lost, out)
     if not any_brick:
-        if last:
-            for q in range(prev_contact.shape[0]):
-                prev_contact[q] = 0
         return
-    # gather the block's density and labels into dense local scratch
-    nn = n_vox * n_vox
-    _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick,
-            ldens, llab)
     sux = suy = suz = 0.0
     stx = sty = 0.0
     wsum = 0.0
@@ -674,90 +659,8 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
                     dirty[n_dirty] = li
                     n_dirty += 1
                 acc[li] += a
-    h3 = params[P_H3]
-    volume = wsum * h3
-    max_force = params[P_MAX_FORCE]
-    mag = multi_gain(volume, params[P_K_LOW], params[P_K_HIGH], params[P_V_T])
-    if mag > max_force:
-        mag = max_force
-    # normal force: along minus the summed outward unit vectors, in case frame
-    fx = -(R[0, 0] * sux + R[0, 1] * suy + R[0, 2] * suz)
-    fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
-    fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
-    fn = np.sqrt(fx * fx + fy * fy + fz * fz)
-    if fn > _MIN_DIRECTION * (n_imm + 1):
-        fx *= mag / fn
-        fy *= mag / fn
-        fz *= mag / fn
-    else:
-        fx = fy = fz = 0.0
-    tx = ty = tz = 0.0
-    if drill:
-        g = params[P_K_TAN] * h3 * direction * speed_factor
-        tx = g * (R[0, 0] * stx + R[0, 1] * sty)
-        ty = g * (R[1, 0] * stx + R[1, 1] * sty)
-        tz = g * (R[2, 0] * stx + R[2, 1] * sty)
-    Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
-    Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
-    if Fm > max_force:
-        Fx *= max_force / Fm
-        Fy *= max_force / Fm
-        Fz *= max_force / Fm
-    out[O_FX], out[O_FY], out[O_FZ] = Fx, Fy, Fz
-    out[O_TX], out[O_TY], out[O_TZ] = tx, ty, tz
-    out[O_MAG] = mag
-    out[O_VOLUME] = volume
-    out[O_N_IMMERSED] = n_imm
-    # removal: each immersed sample took lat*m*f*phi*dt of its voxel's share
-    scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
-    n_rem = 0
-    n_tch = 0
-    tcap = tch_ijk.shape[0] - 1
-    for q in range(n_dirty):
-        li = dirty[q]
-        amount = acc[li] * scale
-        acc[li] = 0.0
-        if amount <= 0.0:
-            continue
-        i = lo0 + li // nn
-        j = lo1 + (li // n_vox) % n_vox
-        k = lo2 + li % n_vox
-        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
-        off = voxel_offset(i, j, k)
-        d = density[b, off] - amount
-        if d <= 0.0:
-            density[b, off] = 0.0
-            lab = label[b, off]
-            lost[lab] += 1
-            bod = body[b, off]
-            lab_body[lab] = bod
-            _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                        _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
-            n_rem += 1
-        else:
-            density[b, off] = np.float32(d)
-            if touched_flag[b, off] == 0:
-                touched_flag[b, off] = 1
-                h = tch_head[0] & tcap
-                tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
-                tch_head[0] += 1
-                n_tch += 1
-    out[O_N_REMOVED] = n_rem
-    out[O_N_TOUCHED] = n_tch
-    if not last:
-        return
-    # injuries, once per step over all passes
-    for lab in range(contact.shape[0]):
-        touching = drill and contact[lab] > 0
-        if injury[lab]:
-            if touching and prev_contact[lab] == 0:
-                bod = _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab,
-                                  body, lab)
-                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
-                            ev_head, _EV_CONTACT, bod, lab, t, 0, 0, 0, 0,
-                            case_pos[0], case_pos[1], case_pos[2])
-            if lost[lab] > 0:
-                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
-                            ev_head, _EV_INJURY, lab_body[lab], lab, t, 0, 0, 0, lost[lab],
-                            case_pos[0], case_pos[1], case_pos[2])
-        prev_contact[lab] = 1 if touching else 0
+    _finish(density, label, body, touched_flag, injury, params, drill, direction,
+            speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
+            llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
+            ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+            tch_ijk, tch_head, out, sux, suy, suz, stx, sty, wsum, n_imm)

@@ -30,9 +30,8 @@ row's samples sit exactly ``h`` apart while ``packed`` rounds each offset to
 float32: below 1e-6 voxel).
 
 The pass's start (block gather) and end (force, removal, events) are the
-same as in :func:`bonesim.engine.haptics.haptic_kernel` (``haptics._begin`` and
-``haptics._finish``, which that kernel keeps inlined by hand for its speed at
-2x); only the sum over samples differs,
+same as in :func:`bonesim.engine.haptics.haptic_kernel` (both call
+``haptics._begin`` and ``haptics._finish``); only the sum over samples differs,
 so summation order (and so the last bits) differs from the per-sample kernel:
 the oversampling that recorded sessions use keeps the per-sample kernel (see
 :data:`ROWS_MIN_OVERSAMPLE`). The kernel allocates nothing and is
