@@ -69,3 +69,10 @@ def wait_for(cond, timeout_s: float = 20.0) -> bool:
             return False
         time.sleep(0.01)
     return True
+
+
+def force_tiles(surf, shift: int = 1) -> None:
+    """Tile every update of ``surf`` into windows of ``2**shift`` voxels (the
+    path of removals spread far apart), so tiles meet everywhere."""
+    surf._win_limit = -1
+    surf._tile_shift = shift

@@ -25,6 +25,7 @@ from bonesim.engine.shading import (NORMAL_RADIUS, SHADE_MIN, ShadingParams, ben
                                     stencil_weights, tint_reach, tint_weight)
 from bonesim.engine.surface import Surface
 from bonesim.engine.thickness import BISECT_ITERS, STEP_FRACTION
+from tests.bonesim.fakes import force_tiles
 
 BONE_RGB = (235, 225, 200)
 SINUS_RGB = (60, 80, 220)
@@ -260,7 +261,7 @@ def test_drilling_a_slab_thinner_strengthens_the_tint(tiled):
     grid, top = slab(5, 2, h, width=16)
     surf = Surface.build(grid, COLORS, bone=BONE)
     if tiled:
-        _force_tiles(surf)
+        force_tiles(surf)
     seen = []
     for layer in range(4):                 # 5 -> 1 voxels of bone over the sinus
         k = top - layer
@@ -385,19 +386,12 @@ def test_build_colours_match_the_reference(seed):
 # ---------------------------------------------------------------------------
 # incremental == rebuild, tint included
 # ---------------------------------------------------------------------------
-def _force_tiles(surf, shift=1):
-    """Tile every update of ``surf`` into windows of ``2**shift`` voxels (the
-    path of removals spread far apart), so tiles meet everywhere."""
-    surf._win_limit = -1
-    surf._tile_shift = shift
-
-
 def _run_removals(seed, shape, h, n_batches, max_batch, tiled):
     rng = np.random.default_rng(seed)
     grid = _random_tissue(rng, shape, h)
     surf = Surface.build(grid, COLORS, bone=BONE)
     if tiled:
-        _force_tiles(surf)
+        force_tiles(surf)
     for _ in range(n_batches):
         d, _ = grid.to_dense()
         occ = np.argwhere(d > 0)

@@ -22,6 +22,7 @@ from bonesim.engine.grid import Grid, voxel_offset
 from bonesim.engine.shading import NORMAL_RADIUS, load_shading
 from bonesim.engine.surface import SHADE_MIN, GRAD_EPS, CanonicalSurface, Surface
 from bonesim.engine.surface_window import WINDOW_DEPTH
+from tests.bonesim.fakes import force_tiles
 
 COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dtype=np.uint8)
 CORNERS = [np.array(c) for c in itertools.product((0, 1), repeat=3)]   # lexicographic
@@ -444,13 +445,6 @@ def test_input_validation():
 # ---------------------------------------------------------------------------
 # incremental update == full tessellation
 # ---------------------------------------------------------------------------
-def _force_tiles(surf, shift=1):
-    """Tile every update of ``surf`` into windows of ``2**shift`` voxels (the
-    path of removals spread far apart), so tiles meet everywhere."""
-    surf._win_limit = -1
-    surf._tile_shift = shift
-
-
 def _assert_same_as_rebuild(surf, grid):
     fresh = Surface.build(grid, COLORS).canonical()
     diffs = surf.canonical().differences(fresh)          # exact, normals included
@@ -463,7 +457,7 @@ def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, tiled
     grid = Grid.from_dense(lab, dens, spacing_mm=0.5, origin_mm=(-1.0, 0.5, 2.0))
     surf = Surface.build(grid, COLORS)
     if tiled:
-        _force_tiles(surf)
+        force_tiles(surf)
     for _ in range(n_batches):
         d, _ = grid.to_dense()
         occ = np.argwhere(d > 0)
@@ -521,7 +515,7 @@ def test_incremental_burr_sequence(tiled):
     grid = Grid.from_dense(lab, spacing_mm=0.3)
     surf = Surface.build(grid, COLORS)
     if tiled:
-        _force_tiles(surf)
+        force_tiles(surf)
     g = np.indices((n, n, n)).reshape(3, -1).T
     r = 3.2
     total = 0
@@ -550,7 +544,7 @@ def test_update_grows_capacity():
     grid = Grid.from_dense(lab)
     surf = Surface.build(grid, COLORS)
     tiled = Surface.build(grid, COLORS)
-    _force_tiles(tiled, 2)              # runs out of room part way, then resumes
+    force_tiles(tiled, 2)              # runs out of room part way, then resumes
     vcap, tcap = surf.pos.shape[0], surf.tri.shape[0]
     # drill a grid of holes: much more surface than the box had
     holes = g.reshape(3, -1).T

@@ -10,6 +10,7 @@ import pytest
 from bonesim.bench.tools import ball_offsets, remove_voxels
 from bonesim.io.loading import load_model
 from bonesim.engine.surface import Surface
+from tests.bonesim.fakes import force_tiles
 
 pytestmark = pytest.mark.slow
 
@@ -20,8 +21,7 @@ def test_cumulative_balls_match_rebuild(tiled):
     grid = model.grid.copy()
     surf = Surface.of_model(model, grid)
     if tiled:
-        surf._win_limit = -1                      # tile every update
-        surf._tile_shift = 2
+        force_tiles(surf, 2)                      # tile every update
     rng = np.random.default_rng(11)
     ball = ball_offsets(7.8)
     done = 0
