@@ -42,11 +42,12 @@ from numba import njit
 
 from bonesim.engine.events import POSE, SPLIT, push_event
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.haptics import _push_event
 
 __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spec",
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
-           "split_body", "set_pose", "publish_split", "publish_pose", "body_voxel_counts",
-           "to_case_frame"]
+           "split_body", "set_pose", "publish_split", "publish_split_box", "publish_pose",
+           "body_voxel_counts"]
 
 #: Bodies a model holds unless configured otherwise.
 DEFAULT_MAX_BODIES = 64
@@ -312,6 +313,79 @@ def publish_split(state, src: int, ijk, t_s: float, dst: int | None = None) -> t
     return dst, n
 
 
+@njit(cache=True, nogil=True)
+def _split_box(keys, vals, body, density, lo, hi, src, dst, t, bounds,
+               ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head):
+    # pass 0 counts (every record carries the total), pass 1 moves and publishes
+    n = 0
+    for p in range(2):
+        m = 0
+        for i in range(lo[0], hi[0] + 1):
+            for j in range(lo[1], hi[1] + 1):
+                for k in range(lo[2], hi[2] + 1):
+                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                                   k >> BRICK_SHIFT)
+                    if b < 0:
+                        continue
+                    off = voxel_offset(i, j, k)
+                    if body[b, off] != src or density[b, off] <= 0.0:
+                        continue
+                    if p == 1:
+                        body[b, off] = dst
+                        if m == 0:
+                            bounds[dst, 0], bounds[dst, 1], bounds[dst, 2] = i, j, k
+                            bounds[dst, 3], bounds[dst, 4], bounds[dst, 5] = i, j, k
+                        bounds[dst, 0] = min(bounds[dst, 0], i)
+                        bounds[dst, 1] = min(bounds[dst, 1], j)
+                        bounds[dst, 2] = min(bounds[dst, 2], k)
+                        bounds[dst, 3] = max(bounds[dst, 3], i)
+                        bounds[dst, 4] = max(bounds[dst, 4], j)
+                        bounds[dst, 5] = max(bounds[dst, 5], k)
+                        _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                    ev_head, SPLIT, dst, 0, t, i, j, k, n, float(src), 0.0,
+                                    0.0)
+                    m += 1
+        n = m
+        if n == 0:
+            break
+    return n
+
+
+def publish_split_box(state, src: int, lo, hi, t_s: float) -> tuple[int, int]:
+    """:func:`publish_split` of the voxels of body ``src`` in the box ``lo ..
+    hi`` (voxel indices in its frame, inclusive), walking the box in place:
+    no voxel list is built (the haptic loop runs it between two steps). The
+    records are the same, in the same (sorted) order, as :func:`publish_split`
+    of the box's voxels gives.
+
+    Returns
+    -------
+    dst, n : int
+        The new body (-1 when no voxel could move: nothing is published).
+    """
+    alive = state.alive
+    if not 0 <= src < len(alive) or not alive[src]:
+        raise ValueError(f"split: body {src} does not exist")
+    free = np.flatnonzero(alive == 0)
+    if len(free) == 0:
+        raise ValueError(f"split: all {len(alive)} bodies are in use (max_bodies)")
+    dst = int(free[0])
+    g = state.grid
+    lo = np.maximum(np.asarray(lo, np.int64), 0)
+    hi = np.minimum(np.asarray(hi, np.int64), np.asarray(g.shape, np.int64) - 1)
+    ev = state.tissue.fields
+    n = _split_box(g.keys, g.vals, state.body, g.density, lo, hi, np.uint8(src),
+                   np.uint8(dst), float(t_s), state.bounds, ev["kind"], ev["body"],
+                   ev["label"], ev["t_s"], ev["ijk"], ev["n"], ev["value"], state.tissue.head)
+    if n == 0:
+        return -1, 0
+    state.pose[dst] = state.pose[src]
+    state.pose_m[dst] = state.pose_m[src]
+    alive[dst] = 1
+    state._one_body = False
+    return dst, int(n)
+
+
 def publish_pose(state, body: int, pose, t_s: float) -> None:
     """:func:`set_pose` on a live state, published as a ``POSE`` tissue event."""
     set_pose(state, body, pose)
@@ -332,9 +406,3 @@ def body_voxel_counts(state) -> np.ndarray:
     """Voxels holding material per body id, (max_bodies,) int64."""
     held = state.grid.density > 0.0
     return np.bincount(state.body[held], minlength=len(state.alive))[:len(state.alive)]
-
-
-def to_case_frame(pose_m: np.ndarray, p_mm: np.ndarray) -> np.ndarray:
-    """Points (n, 3) in a body's frame [mm] to the case frame [mm]."""
-    p = np.asarray(p_mm, dtype=np.float64)
-    return p @ pose_m[:, :3].T + pose_m[:, 3]

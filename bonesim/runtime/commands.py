@@ -41,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from bonesim.engine import events
-from bonesim.engine.bodies import publish_pose, publish_split, validate_pose
+from bonesim.engine.bodies import publish_pose, publish_split_box, validate_pose
 from bonesim.errors import BonesimError
 from bonesim.engine.model import reset_state
 
@@ -391,10 +391,8 @@ class SplitBox(Command):
 
     @classmethod
     def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        b = int(args[0])
-        lo, hi = args[1:4].astype(np.int64), args[4:7].astype(np.int64)
-        g = np.mgrid[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1]
-        publish_split(ctx.state, b, g.reshape(3, -1).T, ctx.t_s)
+        publish_split_box(ctx.state, int(args[0]), args[1:4].astype(np.int64),
+                          args[4:7].astype(np.int64), ctx.t_s)
 
 
 class MoveBody(Command):

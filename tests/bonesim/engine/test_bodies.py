@@ -6,8 +6,8 @@ import pytest
 
 from bonesim.engine import events
 from bonesim.engine.bodies import (IDENTITY_POSE, body_voxel_counts, is_identity, plan_passes,
-                                   pose_matrix, publish_pose, publish_split, split_body,
-                                   validate_pose)
+                                   pose_matrix, publish_pose, publish_split, publish_split_box,
+                                   split_body, validate_pose)
 from bonesim.engine.haptics import O_MAG, O_N_IMMERSED
 from bonesim.engine.model import Sample, make_state, reset_state, step
 
@@ -77,6 +77,27 @@ def test_split_takes_only_live_voxels_of_the_source_and_conserves_them():
         publish_split(st, 9, box, 0.8)
     reset_state(m, st)
     assert st.n_bodies == 1 and body_voxel_counts(st)[0] == before
+
+
+def test_a_box_split_walked_in_place_equals_the_split_of_its_voxel_list():
+    m, a = block_model()
+    b = make_state(m)
+    drill = Sample(0.0, np.array([5.0, 5.0, 9.3]), AXIS, True, 60000.0, 1)
+    for st in (a, b):                               # a hole, so the box is ragged
+        for q in range(50):
+            step(m, st, drill._replace(t_s=q * 1e-3))
+    lo, hi = (6, 3, 10), (14, 20, 45)               # reaches past the grid's top
+    box = np.mgrid[6:15, 3:21, 10:46].reshape(3, -1).T
+    ha, hb = a.tissue.count, b.tissue.count
+    assert publish_split(a, 0, box, 0.5) == publish_split_box(b, 0, lo, hi, 0.5)
+    ra, rb = a.tissue.read(ha), b.tissue.read(hb)
+    for f in events.TISSUE_FIELDS:
+        np.testing.assert_array_equal(ra[f], rb[f], err_msg=f)
+    for name in ("body", "pose", "pose_m", "alive", "bounds"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert publish_split_box(b, 0, (30, 30, 30), (35, 35, 35), 0.6) == (-1, 0)  # air
+    with pytest.raises(ValueError, match="body 7 does not exist"):
+        publish_split_box(b, 7, lo, hi, 0.7)
 
 
 def test_poses_are_validated_and_matrices_are_exact_for_the_identity():

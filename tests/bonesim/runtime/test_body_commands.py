@@ -21,6 +21,8 @@ from bonesim.engine.replica import TissueReplica
 from bonesim.session.reader import read_session
 
 
+#: Drilling after the cut [s].
+DRILL_S = 1.0
 #: The hand-made cut is the plane through the burr's centre normal to this axis.
 AXIS_CUT = 1
 
@@ -70,7 +72,10 @@ def split_run(model, tmp_path_factory):
         loop.send(SplitBox, lo=lo, hi=hi, body=0)
         assert _wait(lambda: loop.state.n_bodies == 2)
         n0 = loop.state.n_removed
-        assert _wait(lambda: loop.state.n_removed > n0 + 150)
+        t0 = float(loop.status["t_s"])
+        # at least a second of drilling across the cut
+        assert _wait(lambda: loop.state.n_removed > n0 + 150
+                     and float(loop.status["t_s"]) > t0 + DRILL_S)
         loop.set_drill(False)
         time.sleep(0.05)
         # a replica following the loop holds its tissue
