@@ -354,6 +354,7 @@ class State:
     _one_body: bool = True
     _pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _axis: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _acc_out: np.ndarray = field(default_factory=lambda: np.zeros(N_OUT))
     _bpos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _baxis: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -581,28 +582,48 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
 def _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor, dt,
                  t) -> None:
     """Several kernel passes (bodies at different poses), summed in the case frame."""
-    force = np.zeros(3)
-    tang = np.zeros(3)
-    acc = np.zeros(N_OUT)
+    acc = state._acc_out
+    acc[:] = 0.0
     for q in range(n_pass):
         m = state.pose_m[state._pass_body[q]]
-        rot, tr = m[:, :3], m[:, 3]
-        state._bpos[:] = rot.T @ (pos - tr)
-        state._baxis[:] = rot.T @ ax
+        _to_body_frame(m, pos, ax, state._bpos, state._baxis)
         _kernel(model, state, bi, state._bpos, state._baxis, drill, direction,
                 speed_factor, dt, t, q, q == 0, q == n_pass - 1)
-        force += rot @ state.out[O_FX:O_FZ + 1]
-        tang += rot @ state.out[O_TX:O_TZ + 1]
-        acc += state.out
-    limit = model.burr_params[bi][P_MAX_FORCE]
-    fm = math.sqrt(force @ force)
+        _add_pass(m, state.out, acc)
+    _clamp_total(acc, model.burr_params[bi][P_MAX_FORCE], state.out)
+
+
+@njit(cache=True, nogil=True)
+def _to_body_frame(m, pos, ax, bpos, baxis):
+    # R^T (pos - t) and R^T ax for the body-to-case pose [R | t]
+    for a in range(3):
+        bpos[a] = (m[0, a] * (pos[0] - m[0, 3]) + m[1, a] * (pos[1] - m[1, 3])
+                   + m[2, a] * (pos[2] - m[2, 3]))
+        baxis[a] = m[0, a] * ax[0] + m[1, a] * ax[1] + m[2, a] * ax[2]
+
+
+@njit(cache=True, nogil=True)
+def _add_pass(m, out, acc):
+    # a pass's output into the sum: force and drag turned into the case frame
+    for q in range(out.shape[0]):
+        if not (O_FX <= q <= O_FZ or O_TX <= q <= O_TZ):
+            acc[q] += out[q]
+    for a in range(3):
+        acc[O_FX + a] += m[a, 0] * out[O_FX] + m[a, 1] * out[O_FX + 1] + m[a, 2] * out[O_FZ]
+        acc[O_TX + a] += m[a, 0] * out[O_TX] + m[a, 1] * out[O_TX + 1] + m[a, 2] * out[O_TZ]
+
+
+@njit(cache=True, nogil=True)
+def _clamp_total(acc, limit, out):
+    # the summed force clamped to the limit, written as the step's output
+    fm = np.sqrt(acc[O_FX] ** 2 + acc[O_FX + 1] ** 2 + acc[O_FZ] ** 2)
     if fm > limit:
-        force *= limit / fm
-    out = state.out
-    out[:] = acc
-    out[O_FX:O_FZ + 1] = force
-    out[O_TX:O_TZ + 1] = tang
-    out[O_MAG] = min(acc[O_MAG], limit)
+        for a in range(3):
+            acc[O_FX + a] *= limit / fm
+    if acc[O_MAG] > limit:
+        acc[O_MAG] = limit
+    for q in range(out.shape[0]):
+        out[q] = acc[q]
 
 
 def clear_touched(state: State, ijk: np.ndarray) -> None:

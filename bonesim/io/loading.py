@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from bonesim.engine.bodies import publish_split_box, split_body
+from bonesim.engine.bodies import publish_split_box, set_pose, split_body
 from bonesim.io.burrs import load_burr
 from bonesim.physics.clearance import Clearance
 from bonesim.engine.device_caps import SCRIPTED, DeviceCaps
@@ -78,6 +78,8 @@ def warmup() -> None:
     clear_touched(s, s.touched.read(0)["ijk"])
     split_body(s, 0, np.array([[0, 0, 0]]))           # a second body: the split kernels
     publish_split_box(s, 0, (0, 0, 0), (1, 1, 1), 0.0)
+    set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
+    step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))
     m4 = warmup_model(ROWS_MIN_OVERSAMPLE)             # the row kernel of fine stencils
     step(m4, make_state(m4), warmup_sample(m4))
