@@ -47,7 +47,7 @@ from bonesim.engine.haptics import _push_event
 __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spec",
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
            "split_body", "set_pose", "publish_split", "publish_split_box", "publish_pose",
-           "body_voxel_counts"]
+           "body_voxel_counts", "to_body_frame", "to_case_frame", "posed_bodies"]
 
 #: Bodies a model holds unless configured otherwise.
 DEFAULT_MAX_BODIES = 64
@@ -406,3 +406,47 @@ def body_voxel_counts(state) -> np.ndarray:
     """Voxels holding material per body id, (max_bodies,) int64."""
     held = state.grid.density > 0.0
     return np.bincount(state.body[held], minlength=len(state.alive))[:len(state.alive)]
+
+
+def to_body_frame(pose_m, pts_mm) -> np.ndarray:
+    """Points of the case frame in a body's own frame, ``R^T (p - t)``.
+
+    Parameters
+    ----------
+    pose_m : (3, 4) float64
+        The body's ``[R | t]`` (``state.pose_m[b]``).
+    pts_mm : (3,) or (n, 3) float
+        Points, case frame [mm].
+
+    Returns
+    -------
+    float64 array of the shape of ``pts_mm``, body frame [mm].
+    """
+    m = np.asarray(pose_m, dtype=np.float64)
+    p = np.asarray(pts_mm, dtype=np.float64)
+    return (p - m[:, 3]) @ m[:, :3]
+
+
+def to_case_frame(pose_m, pts_mm) -> np.ndarray:
+    """Points of a body's own frame in the case frame, ``R p + t``.
+
+    Parameters
+    ----------
+    pose_m : (3, 4) float64
+        The body's ``[R | t]``.
+    pts_mm : (3,) or (n, 3) float
+        Points, body frame [mm].
+
+    Returns
+    -------
+    float64 array of the shape of ``pts_mm``, case frame [mm].
+    """
+    m = np.asarray(pose_m, dtype=np.float64)
+    p = np.asarray(pts_mm, dtype=np.float64)
+    return p @ m[:, :3].T + m[:, 3]
+
+
+def posed_bodies(state) -> np.ndarray:
+    """Ids of the living bodies whose pose is not exactly the identity, (n,) int64."""
+    alive = np.flatnonzero(state.alive)
+    return np.array([b for b in alive if not is_identity(state.pose[b])], dtype=np.int64)

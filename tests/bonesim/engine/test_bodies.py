@@ -215,3 +215,19 @@ def test_injuries_name_the_body_and_keep_the_case_frame_position():
     assert len(inj["t_s"]) >= 1 and inj["kind"][0] == events.INJURY_CONTACT
     assert (inj["body"] == 1).all() and (inj["label"] == 2).all()
     np.testing.assert_array_equal(inj["pos_mm"][0], pos)
+
+
+def test_frame_transforms_are_inverse_and_match_the_pose_matrix():
+    from bonesim.engine.bodies import pose_matrix, to_body_frame, to_case_frame
+
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    m = pose_matrix(np.r_[[4.0, -2.5, 7.0], q])
+    pts = rng.normal(size=(20, 3)) * 10
+    case = to_case_frame(m, pts)
+    # naive: one point at a time, homogeneous coordinates
+    for p, c in zip(pts, case):
+        np.testing.assert_allclose(m @ np.r_[p, 1.0], c, atol=1e-12)
+    np.testing.assert_allclose(to_body_frame(m, case), pts, atol=1e-12)
+    np.testing.assert_allclose(to_body_frame(m, case[0]), pts[0], atol=1e-12)
