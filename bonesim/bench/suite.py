@@ -197,6 +197,7 @@ def bench_surface(quick=False) -> dict:
     rng = np.random.default_rng(0)
     ball = ball_offsets(6.2)                   # ~1000 voxels
     per_k = []
+    reshaded = []
     n_blobs = 10 if quick else 60
     pos, _, _, _ = surf.arrays()
     verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
@@ -204,11 +205,20 @@ def bench_surface(quick=False) -> dict:
         c = verts[rng.integers(len(verts))]
         ijk = remove_voxels(grid, c + ball)
         t0 = time.perf_counter()
-        surf.update(grid, ijk)              # always: the voxels are gone either way
+        st = surf.update(grid, ijk)         # always: the voxels are gone either way
         dt = time.perf_counter() - t0
         if len(ijk) >= 200:                 # time only blobs that cut real bone
             per_k.append(dt * 1000.0 / len(ijk))
+            reshaded.append(st["vertices_reshaded"] * 1000.0 / len(ijk))
     per_k = np.array(per_k)
+    # the fixed cost of an update: one voxel removed at a surface vertex
+    one = []
+    for _ in range(20 if quick else 100):
+        ijk = remove_voxels(grid, verts[rng.integers(len(verts))][None])
+        if len(ijk):
+            t0 = time.perf_counter()
+            surf.update(grid, ijk)
+            one.append(time.perf_counter() - t0)
     return {
         "tessellate_phantom_s": {"value": round(t_full, 4), "unit": "s",
                                  "vertices": int(surf.n_vertices),
@@ -219,7 +229,15 @@ def bench_surface(quick=False) -> dict:
         "retessellate_speedup_vs_full": {
             "value": round(t_full / float(np.mean(per_k)), 1), "unit": "x",
             "reference": "Surface.build of the phantom vs incremental update per 1000 "
-                         "removed voxels (mean)"},
+                         "removed voxels (mean)",
+            "vertices_reshaded_per_1000": round(float(np.median(reshaded)), 1),
+            "surface_vertices": int(surf.n_vertices),
+            "what": "bounded by surface_vertices / vertices_reshaded_per_1000 when a "
+                    "refreshed vertex costs what a built one does"},
+        "retessellate_one_voxel_us": {
+            "value": round(_pct(np.array(one), 50) * 1e6, 1), "unit": "us",
+            "what": "p50 of an update removing one surface voxel (the fixed cost of "
+                    "an update: the refresh window's normals box and tint rays)"},
     }
 
 
@@ -448,6 +466,7 @@ BENCHMARKS = {
     "haptic_step_8bodies_vs_1body_p99": bench_haptic_step,
     "retessellate_1000_p99_ms": bench_surface,
     "retessellate_speedup_vs_full": bench_surface,
+    "retessellate_one_voxel_us": bench_surface,
     "tessellate_phantom_s": bench_surface,
     "tessellate_ct512_s": bench_ct512,
     "marching_cubes_ct512_s": bench_ct512,
