@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as hs
 
 from bonesim.engine.grid import Grid
@@ -107,10 +107,19 @@ def test_bad_input():
        pos=hs.tuples(*[hs.floats(-2.0, 9.0)] * 3),
        eye=hs.tuples(*[hs.floats(-15.0, 25.0)] * 3),
        radius=hs.floats(0.0, 2.0))
+@example(seed=0, pos=(0.0, 0.0, -2.220446049250313e-16), eye=(0.0, 1.0, 0.0), radius=0.0)
 def test_matches_a_naive_dense_march(seed, pos, eye, radius):
     rng = np.random.default_rng(seed)
     shape = (14, 12, 16)
     origin = np.array([-1.0, 0.5, -0.25])
+    # A segment that runs along a voxel face, within rounding of it, lies in
+    # both voxels that share the face: either answer is right, and which one
+    # each march takes depends on the last bit. Such segments are excluded
+    # (the example above is one, kept to show it is skipped, not failed).
+    for a in range(3):
+        face = (pos[a] - origin[a]) / H + 0.5
+        if abs(eye[a] - pos[a]) < 1e-6 and abs(face - round(face)) < 1e-6:
+            assume(False)
     lab = (rng.random(shape) < 0.35).astype(np.uint8)
     g = Grid.from_dense(lab, spacing_mm=H, origin_mm=origin)
     dense, _ = g.to_dense(shape=shape)
