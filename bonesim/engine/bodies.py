@@ -49,7 +49,7 @@ __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spe
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
            "split_body", "set_pose", "publish_split", "publish_split_box", "publish_pose",
            "body_voxel_counts", "to_body_frame", "to_case_frame", "posed_bodies",
-           "Bodies", "all_identity", "pose_groups", "voxel_bodies"]
+           "Bodies", "all_identity", "pose_groups", "voxel_bodies", "majority_bodies"]
 
 #: Bodies a model holds unless configured otherwise.
 DEFAULT_MAX_BODIES = 64
@@ -557,4 +557,39 @@ def voxel_bodies(grid, body, ijk) -> np.ndarray:
     ijk = np.ascontiguousarray(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
     out = np.zeros(len(ijk), np.uint8)
     _voxel_bodies(grid.keys, grid.vals, body, ijk, out)
+    return out
+
+
+def majority_bodies(bodies, voxel_sets, density=None, out=None) -> np.ndarray:
+    """The body holding most of each set of voxels (e.g. a structure's).
+
+    Parameters
+    ----------
+    bodies : Bodies or State
+        ``body`` and ``alive`` are read.
+    voxel_sets : list of (bricks, offsets)
+        Each set as index arrays into ``body`` (``np.nonzero`` of a mask
+        laid out like the grid).
+    density : (n_bricks, 512) float32, optional
+        Only voxels with density > 0 vote (default: all).
+    out : (k,) int64, optional
+        The previous answer, updated in place: a set with no voter keeps
+        its body. Default: zeros (body 0).
+
+    Returns
+    -------
+    (k,) int64
+        Ties go to the lowest body id.
+    """
+    out = np.zeros(len(voxel_sets), np.int64) if out is None else out
+    living = np.flatnonzero(bodies.alive)
+    if len(living) == 1:                         # one body holds everything
+        out[:] = living[0]
+        return out
+    for q, (bb, oo) in enumerate(voxel_sets):
+        ids = bodies.body[bb, oo]
+        if density is not None:
+            ids = ids[density[bb, oo] > 0.0]
+        if len(ids):
+            out[q] = int(np.argmax(np.bincount(ids, minlength=len(bodies.alive))))
     return out
