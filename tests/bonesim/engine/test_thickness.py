@@ -246,7 +246,6 @@ def _split_block(pose=None, both=False):
     """The block split at x = 10 mm; body 1 (x >= 10 mm) placed at ``pose``
     (and body 0 too with ``both``)."""
     from bonesim.engine.bodies import publish_split_box, set_pose
-
     from tests.bonesim.fakes import block_model
 
     m, st = block_model(fill_z=_FILL)

@@ -786,7 +786,7 @@ def test_bodies_at_the_identity_step_exactly_as_one_body():
     shape = (21, 19, 23)
     out = []
     for split in (None, "ident", "none"):
-        bone, wall, d = make_case(shape, seed=9, dust_max=1.8)
+        bone, _, d = make_case(shape, seed=9, dust_max=1.8)
         body_dense = np.random.default_rng(2).integers(0, 3, shape).astype(np.uint8)
         bodies = None if split is None else _bodies(bone, body_dense, [IDENT] * 3)
         dust = DustGrid.for_grid(bone, (0.2, 0.3, -1.0),
