@@ -222,6 +222,7 @@ class App:
         return self.burrs[int(self.loop.status["burr"])]
 
     def on_frame(self, scene) -> None:
+        from bonesim.engine.bodies import all_identity, voxel_bodies
         from bonesim.physics.dust import DustGrid
 
         st = self.loop.status
@@ -234,8 +235,11 @@ class App:
         pos = st["pos_mm"].copy()
         axis = st["axis"].copy()
         burr = self.burr
+        bodies = self.consumer.state            # removals and walls per body
         if len(rem):
-            self.dust.add_removed(rem)
+            self.dust.add_removed(rem, body=None if all_identity(bodies) else
+                                  voxel_bodies(self.consumer.grid, bodies.body, rem),
+                                  bodies=bodies)
         dt = 1.0 / self.window.frame_hz
         suction = self.suction_pos if self.suction else None
         self.dust.step(self.consumer.grid, dt, tool_pos_mm=pos, tool_radius_mm=burr.radius_mm,
@@ -243,7 +247,8 @@ class App:
                        suction_radius_mm=SUCTION_RADIUS_MM if suction is not None else 0.0,
                        irrigation_pos_mm=pos if self.irrigation else None,
                        irrigation_radius_mm=(burr.radius_mm + WATER_SPREAD_MM
-                                             if self.irrigation else 0.0))
+                                             if self.irrigation else 0.0),
+                       bodies=bodies)
         scene.set_dust(*self.dust.sprites())
         drill = bool(st["drill"])
         depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],

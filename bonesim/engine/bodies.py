@@ -36,6 +36,7 @@ events (:mod:`bonesim.engine.events`), so every replica applies them in order.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -47,7 +48,8 @@ from bonesim.engine.haptics import _push_event
 __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spec",
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
            "split_body", "set_pose", "publish_split", "publish_split_box", "publish_pose",
-           "body_voxel_counts", "to_body_frame", "to_case_frame", "posed_bodies"]
+           "body_voxel_counts", "to_body_frame", "to_case_frame", "posed_bodies",
+           "Bodies", "all_identity", "pose_groups", "voxel_bodies", "majority_bodies"]
 
 #: Bodies a model holds unless configured otherwise.
 DEFAULT_MAX_BODIES = 64
@@ -450,3 +452,144 @@ def posed_bodies(state) -> np.ndarray:
     """Ids of the living bodies whose pose is not exactly the identity, (n,) int64."""
     alive = np.flatnonzero(state.alive)
     return np.array([b for b in alive if not is_identity(state.pose[b])], dtype=np.int64)
+
+
+class Bodies(NamedTuple):
+    """The body arrays of a state, for consumers that need nothing else.
+
+    ``body`` (n_bricks, 512) uint8, ``pose`` (max_bodies, 7), ``pose_m``
+    (max_bodies, 3, 4), ``alive`` (max_bodies,) uint8, ``bounds``
+    (max_bodies, 6) int32, as in the module docstring. A
+    :class:`~bonesim.engine.model.State` has the same attributes, so either
+    may be passed where a consumer takes ``bodies``.
+    """
+
+    body: np.ndarray
+    pose: np.ndarray
+    pose_m: np.ndarray
+    alive: np.ndarray
+    bounds: np.ndarray
+
+    @classmethod
+    def of(cls, src) -> "Bodies":
+        """The body arrays of a State, a replica's state, or a dict of arrays
+        named as in :func:`body_arrays_spec` (e.g. shared memory)."""
+        if isinstance(src, dict):
+            return cls(*(src[name] for name in cls._fields))
+        return cls(*(getattr(src, name) for name in cls._fields))
+
+
+@njit(cache=True, nogil=True)
+def _all_identity(alive, pose):
+    for b in range(alive.shape[0]):
+        if alive[b] != 0 and not (pose[b, 0] == 0.0 and pose[b, 1] == 0.0
+                                  and pose[b, 2] == 0.0 and pose[b, 3] == 1.0
+                                  and pose[b, 4] == 0.0 and pose[b, 5] == 0.0
+                                  and pose[b, 6] == 0.0):
+            return False
+    return True
+
+
+def all_identity(bodies) -> bool:
+    """True when every living body sits exactly at the identity pose (then
+    every voxel's grid position is its case-frame position: a consumer may
+    ignore bodies). ``bodies``: anything with ``alive`` and ``pose``; None
+    counts as one body at the identity."""
+    if bodies is None:
+        return True
+    return bool(_all_identity(bodies.alive, bodies.pose))
+
+
+@njit(cache=True, nogil=True)
+def _pose_groups(alive, pose, out):
+    for b in range(alive.shape[0]):
+        out[b] = -1
+        if alive[b] == 0:
+            continue
+        out[b] = b
+        for a in range(b):
+            if out[a] == a:
+                same = True
+                for c in range(7):
+                    if pose[a, c] != pose[b, c]:
+                        same = False
+                if same:
+                    out[b] = a
+                    break
+
+
+def pose_groups(bodies, out=None) -> np.ndarray:
+    """For every body, the lowest living body id at exactly the same pose.
+
+    Bodies at the same pose lie in one frame: their voxels may be read
+    together (as :func:`plan_passes` groups them for the haptic step).
+
+    Parameters
+    ----------
+    bodies : Bodies or State
+        ``alive`` and ``pose`` are read.
+    out : (max_bodies,) int32, optional
+        Written in place and returned.
+
+    Returns
+    -------
+    (max_bodies,) int32
+        Group id (a body id) per body; -1 for bodies that do not exist.
+    """
+    if out is None:
+        out = np.empty(len(bodies.alive), np.int32)
+    _pose_groups(bodies.alive, bodies.pose, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _voxel_bodies(keys, vals, body, ijk, out):
+    for q in range(ijk.shape[0]):
+        i, j, k = ijk[q, 0], ijk[q, 1], ijk[q, 2]
+        b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+        out[q] = body[b, voxel_offset(i, j, k)] if b >= 0 else 0
+
+
+def voxel_bodies(grid, body, ijk) -> np.ndarray:
+    """The body of each voxel ``ijk`` (n, 3) int of ``grid`` [(n,) uint8;
+    0 where the grid has no brick]. A removed voxel keeps its body id, so this
+    names the body a removal came from."""
+    ijk = np.ascontiguousarray(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
+    out = np.zeros(len(ijk), np.uint8)
+    _voxel_bodies(grid.keys, grid.vals, body, ijk, out)
+    return out
+
+
+def majority_bodies(bodies, voxel_sets, density=None, out=None) -> np.ndarray:
+    """The body holding most of each set of voxels (e.g. a structure's).
+
+    Parameters
+    ----------
+    bodies : Bodies or State
+        ``body`` and ``alive`` are read.
+    voxel_sets : list of (bricks, offsets)
+        Each set as index arrays into ``body`` (``np.nonzero`` of a mask
+        laid out like the grid).
+    density : (n_bricks, 512) float32, optional
+        Only voxels with density > 0 vote (default: all).
+    out : (k,) int64, optional
+        The previous answer, updated in place: a set with no voter keeps
+        its body. Default: zeros (body 0).
+
+    Returns
+    -------
+    (k,) int64
+        Ties go to the lowest body id.
+    """
+    out = np.zeros(len(voxel_sets), np.int64) if out is None else out
+    living = np.flatnonzero(bodies.alive)
+    if len(living) == 1:                         # one body holds everything
+        out[:] = living[0]
+        return out
+    for q, (bb, oo) in enumerate(voxel_sets):
+        ids = bodies.body[bb, oo]
+        if density is not None:
+            ids = ids[density[bb, oo] > 0.0]
+        if len(ids):
+            out[q] = int(np.argmax(np.bincount(ids, minlength=len(bodies.alive))))
+    return out

@@ -22,6 +22,15 @@ The drill sound rises in pitch as the bone under the burr gets thin (see
    gives ``N * voxel`` exactly.
 4. **Average** over the contacted surface voxels.
 
+Bodies (:mod:`bonesim.engine.bodies`): given the state's body arrays, the
+cast runs once per group of bodies near the burr at one pose (as the haptic
+step's passes, :func:`~bonesim.engine.bodies.plan_passes`): the burr centre
+is transformed into that group's frame, and only the voxels of its bodies
+count as bone (the others read as empty), so the normals and rays live in the
+body's frame. The result is the minimum over the groups. When every body
+sits at the identity pose (one body until fragments exist) the bodies are
+ignored and the figures are exactly those of a single grid.
+
 The march of step 3 is :func:`exit_ray`; with a mask of bone labels it also
 says which structure the ray meets where it leaves the bone, which is how
 :mod:`bonesim.engine.shading` lets thin bone over the sinus, the dura or a nerve
@@ -46,6 +55,7 @@ import math
 import numpy as np
 from numba import njit
 
+from bonesim.engine.bodies import all_identity, plan_passes, to_body_frame
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["STEP_FRACTION", "BISECT_ITERS", "MIN_GRADIENT", "NO_CONTACT",
@@ -177,9 +187,54 @@ def _exit_distance(keys, vals, density, origin, inv_h, px, py, pz, nx, ny, nz, s
 
 
 @njit(cache=True, nogil=True)
-def _gather_box(keys, vals, density, i0, j0, k0, local):
+def _exit_selected(keys, vals, density, body, group, gsel, origin, inv_h, px, py, pz,
+                   nx, ny, nz, step, max_mm):
+    """:func:`_exit_distance` reading only the voxels whose body is in group
+    ``gsel`` (``group[body] == gsel``) as tissue; the others are empty."""
+    if step >= max_mm:
+        return max_mm
+    cbi = cbj = cbk = np.int64(0)
+    cb = np.int64(_NO_BRICK)
+    lo = 0.0
+    hi = step
+    marching = True
+    iters = 0
+    while True:
+        t = hi if marching else 0.5 * (lo + hi)
+        i = int(math.floor((px + t * nx - origin[0]) * inv_h + 0.5))
+        j = int(math.floor((py + t * ny - origin[1]) * inv_h + 0.5))
+        k = int(math.floor((pz + t * nz - origin[2]) * inv_h + 0.5))
+        bi, bj, bk = i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT
+        if bi != cbi or bj != cbj or bk != cbk or cb == _NO_BRICK:
+            cbi, cbj, cbk = bi, bj, bk
+            cb = np.int64(find_brick(keys, vals, bi, bj, bk))
+        inside = False
+        if cb >= 0:
+            o = voxel_offset(i, j, k)
+            inside = density[cb, o] > 0.0 and group[body[cb, o]] == gsel
+        if marching:
+            if inside:
+                lo = hi
+                hi += step
+                if hi >= max_mm:
+                    return max_mm
+            else:
+                marching = False
+        else:
+            if inside:
+                lo = t
+            else:
+                hi = t
+            iters += 1
+            if iters == BISECT_ITERS:
+                return 0.5 * (lo + hi)
+
+
+@njit(cache=True, nogil=True)
+def _gather_box(keys, vals, density, body, group, gsel, i0, j0, k0, local):
     """Copy the densities of the box starting at voxel ``(i0, j0, k0)`` into
-    ``local`` (0 where no brick), one hash lookup per brick."""
+    ``local`` (0 where no brick, and, if ``gsel >= 0``, where the voxel's body
+    is not in group ``gsel``), one hash lookup per brick."""
     n0, n1, n2 = local.shape
     local[:] = 0.0
     for bi in range(i0 >> BRICK_SHIFT, ((i0 + n0 - 1) >> BRICK_SHIFT) + 1):
@@ -194,7 +249,9 @@ def _gather_box(keys, vals, density, i0, j0, k0, local):
                 for i in range(ia, ib):
                     for j in range(ja, jb):
                         for k in range(ka, kb):
-                            local[i - i0, j - j0, k - k0] = density[b, voxel_offset(i, j, k)]
+                            o = voxel_offset(i, j, k)
+                            if gsel < 0 or group[body[b, o]] == gsel:
+                                local[i - i0, j - j0, k - k0] = density[b, o]
 
 
 def box_half_width(radius_mm: float, spacing_mm: float) -> int:
@@ -206,20 +263,27 @@ def box_half_width(radius_mm: float, spacing_mm: float) -> int:
 
 
 @njit(cache=True, nogil=True)
-def thickness_kernel(keys, vals, density, origin, spacing, centre, radius, max_mm,
-                     local, out_ijk, out_normal, out_thick):
+def thickness_kernel(keys, vals, density, body, group, gsel, origin, spacing, centre,
+                     radius, max_mm, local, out_ijk, out_normal, out_thick):
     """Ray-cast thickness at every contacted surface voxel.
 
     Parameters
     ----------
     keys, vals, density
         The grid's hash table and per-brick densities (see :mod:`bonesim.engine.grid`).
+    body : (n_bricks, 512) uint8
+        Body id per voxel (read only if ``gsel >= 0``).
+    group : (max_bodies,) int32
+        Group of each body (read only if ``gsel >= 0``).
+    gsel : int
+        Only voxels whose body's group is ``gsel`` are tissue; -1: every
+        voxel (the bodies are ignored).
     origin : (3,) float64
-        Centre of voxel (0, 0, 0) [mm].
+        Centre of voxel (0, 0, 0) [mm], in the frame of the bodies read.
     spacing : float
         Voxel edge [mm].
     centre : (3,) float64
-        Burr centre [mm].
+        Burr centre [mm], in the frame of the bodies read.
     radius : float
         Burr radius [mm].
     max_mm : float
@@ -250,7 +314,7 @@ def thickness_kernel(keys, vals, density, origin, spacing, centre, radius, max_m
     ck = int(math.floor((centre[2] - origin[2]) * inv_h + 0.5))
     # local[x, y, z] is voxel (ci - m - 1 + x, ...)
     lo_i, lo_j, lo_k = ci - m - 1, cj - m - 1, ck - m - 1
-    _gather_box(keys, vals, density, lo_i, lo_j, lo_k, local)
+    _gather_box(keys, vals, density, body, group, gsel, lo_i, lo_j, lo_k, local)
     count = 0
     for x in range(1, 2 * m + 2):
         i = lo_i + x
@@ -297,10 +361,16 @@ def thickness_kernel(keys, vals, density, origin, spacing, centre, radius, max_m
                         nx, ny, nz = dx / r, dy / r, dz / r
                     else:
                         nx, ny, nz = 0.0, 0.0, 1.0
-                s_out = _exit_distance(keys, vals, density, origin, inv_h, px, py, pz,
-                                       nx, ny, nz, step, max_mm)
-                s_back = _exit_distance(keys, vals, density, origin, inv_h, px, py, pz,
-                                        -nx, -ny, -nz, step, max_mm)
+                if gsel < 0:
+                    s_out = _exit_distance(keys, vals, density, origin, inv_h, px, py, pz,
+                                           nx, ny, nz, step, max_mm)
+                    s_back = _exit_distance(keys, vals, density, origin, inv_h, px, py,
+                                            pz, -nx, -ny, -nz, step, max_mm)
+                else:
+                    s_out = _exit_selected(keys, vals, density, body, group, gsel, origin,
+                                           inv_h, px, py, pz, nx, ny, nz, step, max_mm)
+                    s_back = _exit_selected(keys, vals, density, body, group, gsel, origin,
+                                            inv_h, px, py, pz, -nx, -ny, -nz, step, max_mm)
                 out_ijk[count, 0] = i
                 out_ijk[count, 1] = j
                 out_ijk[count, 2] = k
@@ -332,6 +402,7 @@ class ThicknessBuffers:
     def __init__(self):
         self.half_width = -1
         self.local = self.ijk = self.normal = self.thick = None
+        self.group = self.pass_body = self.pass_ident = None
 
     def fit(self, half_width: int) -> "ThicknessBuffers":
         """Size the buffers for a box of the given half-width [voxels]; return self."""
@@ -345,8 +416,43 @@ class ThicknessBuffers:
                 self.thick = np.zeros(w ** 3)
         return self
 
+    def fit_bodies(self, max_bodies: int) -> "ThicknessBuffers":
+        """Size the per-body pass plan for ``max_bodies`` bodies; return self."""
+        if self.group is None or len(self.group) != max_bodies:
+            self.group = np.zeros(max_bodies, np.int32)
+            self.pass_body = np.zeros(max_bodies, np.int32)
+            self.pass_ident = np.zeros(max_bodies, np.bool_)
+        return self
 
-def contact_thickness(grid, centre_mm, radius_mm: float, max_mm: float = 10.0):
+
+# body and group arrays of the path that ignores bodies (never read)
+_NO_BODY = np.zeros((1, 512), dtype=np.uint8)
+_NO_GROUP = np.zeros(1, dtype=np.int32)
+
+
+def _passes(grid, bodies, c, radius_mm, s):
+    """``(body, group, gsel, centre, R)`` per cast: one with every voxel when
+    all bodies sit at the identity, else one per pose group near the burr
+    (its centre in the group's frame, ``R`` its rotation to the case frame,
+    None for the identity)."""
+    if all_identity(bodies):
+        return [(_NO_BODY, _NO_GROUP, -1, c, None)]
+    s.fit_bodies(len(bodies.alive))
+    n_pass = plan_passes(bodies.alive, bodies.pose, bodies.pose_m, bodies.bounds, c,
+                         radius_mm, np.asarray(grid.origin_mm, np.float64),
+                         grid.spacing_mm, s.group, s.pass_body, s.pass_ident)
+    out = []
+    for q in range(n_pass):
+        if s.pass_ident[q]:
+            out.append((bodies.body, s.group, q, c, None))
+        else:
+            m = bodies.pose_m[s.pass_body[q]]
+            out.append((bodies.body, s.group, q, to_body_frame(m, c), m[:, :3]))
+    return out
+
+
+def contact_thickness(grid, centre_mm, radius_mm: float, max_mm: float = 10.0,
+                      bodies=None):
     """Thickness at each contacted surface voxel.
 
     Parameters
@@ -354,34 +460,46 @@ def contact_thickness(grid, centre_mm, radius_mm: float, max_mm: float = 10.0):
     grid : Grid
         The current tissue (``keys, vals, density, origin_mm, spacing_mm``).
     centre_mm : (3,) array_like
-        Burr centre [mm].
+        Burr centre, case frame [mm].
     radius_mm : float
         Burr radius [mm].
     max_mm : float
         Longest chord measured [mm]; thicker bone reads ``max_mm``.
+    bodies : Bodies or State, optional
+        The body arrays (:class:`bonesim.engine.bodies.Bodies`); None: one
+        body at the identity pose.
 
     Returns
     -------
     ijk : (n, 3) int32
-        Contacted surface voxels (see the module docstring).
+        Contacted surface voxels (see the module docstring), each in its own
+        body's frame (the body is ``bodies.body`` at that voxel).
     normals : (n, 3) float64
-        Unit inward normals used for the rays.
+        Unit inward normals used for the rays, case frame.
     thickness : (n,) float64
         Entry-to-exit chord along each normal [mm].
     """
     c, radius_mm, max_mm, half = _check(grid, centre_mm, radius_mm, max_mm)
     s = ThicknessBuffers().fit(half)
-    n = thickness_kernel(grid.keys, grid.vals, grid.density, grid.origin_mm,
-                         grid.spacing_mm, c, radius_mm, max_mm, s.local, s.ijk, s.normal,
-                         s.thick)
-    return s.ijk[:n].copy(), s.normal[:n].copy(), s.thick[:n].copy()
+    parts = []
+    for body, group, gsel, cb, rot in _passes(grid, bodies, c, radius_mm, s):
+        n = thickness_kernel(grid.keys, grid.vals, grid.density, body, group, gsel,
+                             grid.origin_mm, grid.spacing_mm, cb, radius_mm, max_mm,
+                             s.local, s.ijk, s.normal, s.thick)
+        nrm = s.normal[:n].copy() if rot is None else s.normal[:n] @ rot.T
+        parts.append((s.ijk[:n].copy(), nrm, s.thick[:n].copy()))
+    if not parts:
+        return np.zeros((0, 3), np.int32), np.zeros((0, 3)), np.zeros(0)
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(a) for a in zip(*parts))
 
 
 _SCRATCH = ThicknessBuffers()
 
 
 def bone_thickness_mm(grid, centre_mm, radius_mm: float, max_mm: float = 10.0,
-                      scratch: ThicknessBuffers | None = None) -> float:
+                      scratch: ThicknessBuffers | None = None, bodies=None) -> float:
     """Mean bone thickness under the burr [mm].
 
     Parameters
@@ -389,7 +507,7 @@ def bone_thickness_mm(grid, centre_mm, radius_mm: float, max_mm: float = 10.0,
     grid : Grid
         The current tissue.
     centre_mm : (3,) array_like
-        Burr centre [mm].
+        Burr centre, case frame [mm].
     radius_mm : float
         Burr radius [mm].
     max_mm : float
@@ -398,21 +516,28 @@ def bone_thickness_mm(grid, centre_mm, radius_mm: float, max_mm: float = 10.0,
         Buffers to reuse (:class:`ThicknessBuffers`); by default a
         module-level one, so calls from several threads at once should each
         pass their own.
+    bodies : Bodies or State, optional
+        The body arrays (``body, pose, pose_m, alive, bounds``, see
+        :class:`bonesim.engine.bodies.Bodies`); None or every body at the
+        identity pose: the grid is read as one body.
 
     Returns
     -------
     float
-        Mean chord over the contacted surface voxels [mm], or
+        Mean chord over the contacted surface voxels [mm], the least such
+        mean over the pose groups of bodies near the burr, or
         :data:`NO_CONTACT` (``inf``) when the burr touches no surface voxel.
     """
     c, radius_mm, max_mm, half = _check(grid, centre_mm, radius_mm, max_mm)
     s = (scratch or _SCRATCH).fit(half)
-    n = thickness_kernel(grid.keys, grid.vals, grid.density, grid.origin_mm,
-                         grid.spacing_mm, c, radius_mm, max_mm, s.local, s.ijk, s.normal,
-                         s.thick)
-    if n == 0:
-        return NO_CONTACT
-    return float(s.thick[:n].mean())
+    best = NO_CONTACT
+    for body, group, gsel, cb, _ in _passes(grid, bodies, c, radius_mm, s):
+        n = thickness_kernel(grid.keys, grid.vals, grid.density, body, group, gsel,
+                             grid.origin_mm, grid.spacing_mm, cb, radius_mm, max_mm,
+                             s.local, s.ijk, s.normal, s.thick)
+        if n:
+            best = min(best, float(s.thick[:n].mean()))
+    return best
 
 
 def warmup() -> None:
@@ -423,3 +548,15 @@ def warmup() -> None:
     labels[:, :, :4] = 1
     g = Grid.from_dense(labels, spacing_mm=0.5)
     bone_thickness_mm(g, (2.0, 2.0, 2.2), 1.0)
+    body = np.zeros((g.n_bricks, 512), np.uint8)
+    bone_thickness_mm(g, (2.0, 2.0, 2.2), 1.0, bodies=_warm_bodies(body))
+
+
+def _warm_bodies(body):
+    """Two bodies, one moved: the per-body path of the kernels."""
+    from bonesim.engine.bodies import Bodies, pose_matrix
+
+    pose = np.array([[0.0, 0, 0, 1, 0, 0, 0], [0.1, 0, 0, 1, 0, 0, 0]])
+    pose_m = np.stack([pose_matrix(p) for p in pose])
+    bounds = np.array([[0, 0, 0, 7, 7, 7]] * 2, np.int32)
+    return Bodies(body, pose, pose_m, np.ones(2, np.uint8), bounds)

@@ -51,6 +51,24 @@ one holding bone (bone density > 0 in the bone grid passed to
 :meth:`DustGrid.step`). Rules 1-2 never move dust into a wall, nor out of one
 (dust added to a cell that is still bone stays put until the bone goes).
 
+Bodies
+------
+The lattice is the case frame. The bone's bodies
+(:mod:`bonesim.engine.bodies`) keep their voxels where they were cut, each
+in its own frame, so with the body arrays given (``bodies``):
+
+* a removal of a body at a pose other than the identity becomes dust in the
+  case-frame cell of the voxel's centre, ``round((R c + t - origin) /
+  spacing)`` with ``c`` the centre in the body's frame (dust that would land
+  outside the domain is dropped: a fragment moved out of the volume);
+* walls are the bone voxels of the bodies at the identity pose only. A moved
+  body is **not** a dust wall (its voxels are not resampled onto the
+  lattice): dust passes through a fragment that was moved, and falls where
+  it was cut away.
+
+While every body sits at the identity pose (one body until fragments exist)
+the bodies are ignored: the same kernels run on the same data as before.
+
 One step (:meth:`DustGrid.step`)
 --------------------------------
 Let ``g`` be the unit gravity vector; its *dominant axis* ``a*`` is the axis of
@@ -164,6 +182,8 @@ from bonesim.physics.dust_bricks import (_MAX_RATE_Q, _MIN_GRAVITY_COMPONENT, _N
                                          _refresh_bone_bricks, _rehash)
 from bonesim.physics.dust_rules import _SC_SIZE, _add, _recount, _step_kernel, _wet_out
 from bonesim.engine import events
+from bonesim.engine.bodies import all_identity
+from bonesim.physics.dust_bodies import case_cells, wall_arrays
 from bonesim.physics.dust_params import DustParams
 from bonesim.physics.dust_sprites import DustSprites, _fill, _stamp
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
@@ -562,16 +582,24 @@ class DustGrid:
         return DustSprites(pos, val, self.spacing_mm, age, wet)
 
     # ------------------------------------------------------------ updates
-    def add_removed(self, ijk, amount=None) -> None:
+    def add_removed(self, ijk, amount=None, *, body=None, bodies=None) -> None:
         """Turn removed bone into dust in its cell.
 
         Parameters
         ----------
         ijk : (n, 3) int
-            Removed voxels (e.g. the ``ijk`` column of the ``removed`` ring);
-            repeats add up.
+            Removed voxels (e.g. the ``ijk`` column of the ``removed`` ring),
+            each in its body's frame; repeats add up.
         amount : float or (n,) float, optional
             Dust per voxel [cells] (default ``params.bulking``), in [0, 64].
+        body : (n,) int, optional
+            The body of each removal (the events' ``body`` column); None: the
+            voxels are in the case frame.
+        bodies : Bodies or State, optional
+            The body arrays (``pose_m``, ``pose``, ``alive`` are read). A
+            removal of a body at a pose other than the identity lands in the
+            case-frame cell of its centre; one that lands outside the domain
+            is dropped (see the module docstring).
         """
         ijk = np.asarray(ijk)
         if ijk.size == 0:
@@ -582,27 +610,36 @@ class DustGrid:
         if np.abs(ijk).max() >= (1 << 22):
             raise ValueError("cell coordinates out of range")
         ijk = np.ascontiguousarray(ijk, dtype=np.int64)
+        amt = self.params.bulking if amount is None else amount
+        amt = np.broadcast_to(np.asarray(amt, dtype=np.float64), (len(ijk),))
+        if body is not None and not all_identity(bodies):
+            ijk, amt = case_cells(ijk, amt, body, bodies, self.origin_mm, self.spacing_mm,
+                                  self.bounds if self._bounds_set else None)
+            if len(ijk) == 0:
+                return
         if self._bounds_set:
             lo, hi = self.bounds[:3], self.bounds[3:]
             if ((ijk < lo) | (ijk >= hi)).any():
                 raise ValueError("dust added outside the domain")
-        amt = self.params.bulking if amount is None else amount
-        amt = np.broadcast_to(np.asarray(amt, dtype=np.float64), (len(ijk),))
         if not np.isfinite(amt).all() or (amt < 0).any() or (amt > 64).any():
             raise ValueError("amount must lie in [0, 64] cells per voxel")
         amount_q = np.round(amt * Q).astype(np.int64)
         self._add_q(ijk, amount_q)
 
-    def drain(self, cursor, amount=None) -> int:
+    def drain(self, cursor, amount=None, bodies=None) -> int:
         """Add the dust of every removal a cursor on a tissue-event ring has
-        not seen yet (see :mod:`bonesim.engine.events`); returns how many voxels."""
+        not seen yet (see :mod:`bonesim.engine.events`); returns how many voxels.
+
+        ``bodies`` (the consumer's body arrays, e.g. its replica's state)
+        places the removals of moved bodies in the case frame
+        (:meth:`add_removed`); the poses are those ``bodies`` holds now."""
         rec = events.removals(cursor.drain())
-        self.add_removed(rec["ijk"], amount)
+        self.add_removed(rec["ijk"], amount, body=rec["body"], bodies=bodies)
         return int(len(rec["ijk"]))
 
     def step(self, bone_grid, dt, tool_pos_mm=None, tool_radius_mm=0.0,
              suction_pos_mm=None, suction_radius_mm=0.0, suction_rate=None,
-             irrigation_pos_mm=None, irrigation_radius_mm=0.0) -> float:
+             irrigation_pos_mm=None, irrigation_radius_mm=0.0, bodies=None) -> float:
         """Advance the dust by ``dt``: gravity, spilling, tool push, suction,
         wetting (both species).
 
@@ -628,6 +665,11 @@ class DustGrid:
             Where the irrigation water lands [mm]; no wetting if None.
         irrigation_radius_mm : float
             Radius of the irrigated region [mm].
+        bodies : Bodies or State, optional
+            The bone's body arrays (``body`` laid out like the bone grid's
+            density, ``pose``, ``alive``). Only the bone of bodies at the
+            identity pose is a wall; moved bodies are not (module
+            docstring). None, or every body at the identity: all bone is.
 
         Returns
         -------
@@ -641,14 +683,16 @@ class DustGrid:
             wrad = _nonneg(irrigation_radius_mm, "irrigation_radius_mm")
             if self._is_wet:
                 raise ValueError("the wet species is not irrigated")
+        walls = wall_arrays(bone_grid, bodies)
         sucked = self._step_own(bone_grid, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
-                                suction_radius_mm, suction_rate)
+                                suction_radius_mm, suction_rate, walls)
         if irrigate and wrad > 0:
             self._wet_grid()
             self._irrigate(wpos, wrad, dt)
         if self.wet is not None:
             sucked += self.wet._step_own(bone_grid, dt, tool_pos_mm, tool_radius_mm,
-                                         suction_pos_mm, suction_radius_mm, suction_rate)
+                                         suction_pos_mm, suction_radius_mm, suction_rate,
+                                         walls)
             self.wet.time_s = self.time_s
         return sucked
 
@@ -695,7 +739,7 @@ class DustGrid:
         _add(self.keys, self.vals, self.dens, self.bmass, self._ctr, ijk, amount_q)
 
     def _step_own(self, bone_grid, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
-                  suction_radius_mm, suction_rate) -> float:
+                  suction_radius_mm, suction_rate, walls) -> float:
         """Rules 1-4 on this species alone."""
         if not self._bounds_set:
             if bone_grid is None:
@@ -727,7 +771,7 @@ class DustGrid:
             stage = _step_kernel(stage, self.keys, self.vals, self.bcoord, self.nbr,
                                  self.alive, self.dens, self.bmass, self.bone_b, self.free,
                                  self._ctr, self._bkeys, self._bvals, bone_dens,
-                                 self._active, self.bounds, ip, fp, self._sc,
+                                 walls[0], walls[1], self._active, self.bounds, ip, fp, self._sc,
                                  self._wall, self._elig, self._flux)
             if stage == STAGE_DONE:
                 break

@@ -82,6 +82,11 @@ def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
 # brick, ``sc[19]`` 1 if the whole brick lies in the domain, ``sc[20 + a]`` its
 # first cell along axis ``a``.
 #
+# Bone cells are walls: cells with bone density > 0 whose body ``bone_body``
+# (laid out like ``bone_dens``) has ``wall_body[body] != 0``; an empty
+# ``wall_body`` makes every bone cell a wall without reading ``bone_body``
+# (the one-body path, exactly as before bodies).
+#
 # The rules work brick by brick: a wall mask of the brick (outside the domain
 # or bone), then for each direction the fluxes between cells of the brick in
 # branch-free loops over the 512 cells (so that they vectorize), and the 64
@@ -92,7 +97,7 @@ _SC_SIZE = 24
 
 
 @njit(cache=True, nogil=True)
-def _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall):
+def _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall):
     """Fill ``sc`` for brick ``b`` and its wall mask (1 = outside the domain or
     bone)."""
     inside = 1
@@ -111,10 +116,15 @@ def _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall):
         sc[6 + dd] = bone_b[m] if m >= 0 else -1
         c = sc[20 + a] + (BRICK if dd & 1 else -1)
         sc[12 + dd] = 1 if (m >= 0 and bounds[a] <= c < bounds[3 + a]) else 0
-    if bb >= 0:
+    if bb >= 0 and wall_body.shape[0] == 0:
         bd = bone_dens[bb]
         for off in range(BRICK_VOXELS):
             wall[off] = bd[off] > 0.0
+    elif bb >= 0:
+        bd = bone_dens[bb]
+        bbody = bone_body[bb]
+        for off in range(BRICK_VOXELS):
+            wall[off] = (bd[off] > 0.0) & (wall_body[bbody[off]] != 0)
     else:
         for off in range(BRICK_VOXELS):
             wall[off] = 0
@@ -178,16 +188,17 @@ def _apply_inside(drow, flux, o0, o1, delta):
 
 
 @njit(cache=True, nogil=True)
-def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-             bmass, sc, wall, flux):
+def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, active,
+             n_active, bounds, ip, bmass, sc, wall, flux):
     """Rule 1 (Jacobi, ``src`` -> ``dst``; ``dst`` holds a copy of ``src``)."""
+    allw = wall_body.shape[0] == 0
     rate = ip[I_RATE]
     ng = ip[I_NG]
     if rate <= 0:
         return
     for t in range(n_active):
         b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall)
+        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         srow = src[b]
         drow = dst[b]
         lo_d = np.int64(_FULL_Q)
@@ -224,7 +235,8 @@ def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds,
                 for v in range(BRICK):
                     off = _face_off(a, edge, u, v)
                     noff = off - 7 * delta
-                    if wall[off] or (bbn >= 0 and bone_dens[bbn, noff] > 0.0):
+                    if wall[off] or (bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
+                            allw or wall_body[bone_body[bbn, noff]] != 0)):
                         continue
                     f = _gravity_flux(np.int64(srow[off]), np.int64(src[nb, noff]),
                                       rate, w)
@@ -237,9 +249,10 @@ def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds,
 
 
 @njit(cache=True, nogil=True)
-def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip, bmass,
-           sc, wall, elig, flux):
+def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, active,
+           n_active, bounds, ip, bmass, sc, wall, elig, flux):
     """Rule 2 (Jacobi, ``src`` -> ``dst``; ``dst`` holds a copy of ``src``)."""
+    allw = wall_body.shape[0] == 0
     kq = ip[I_KQ]
     repose = ip[I_REPOSE]
     dom = ip[I_DOM]
@@ -248,7 +261,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
         return
     for t in range(n_active):
         b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, sc, wall)
+        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         srow = src[b]
         drow = dst[b]
         # eligible sources: above the repose, not in a wall, and overfull or
@@ -280,7 +293,8 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
                 noff = off - 7 * delta
                 if wall[off] or srow[off] <= repose:
                     continue
-                if okx == 0 or (bbn >= 0 and bone_dens[bbn, noff] > 0.0) \
+                if okx == 0 or (bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
+                        allw or wall_body[bone_body[bbn, noff]] != 0)) \
                         or src[nb, noff] >= _FULL_Q:
                     elig[off] = 1
         n_elig = 0
@@ -328,7 +342,8 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
                     if elig[off] == 0:
                         continue
                     noff = off - 7 * delta
-                    if bbn >= 0 and bone_dens[bbn, noff] > 0.0:
+                    if bbn >= 0 and bone_dens[bbn, noff] > 0.0 and \
+                            (allw or wall_body[bone_body[bbn, noff]] != 0):
                         continue
                     d = np.int64(srow[off])
                     dn = np.int64(src[nb, noff])
@@ -344,7 +359,8 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, i
 
 @njit(cache=True, nogil=True)
 def _jacobi(rule, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-            bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig, flux):
+            bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, sc, wall, elig,
+            flux):
     """Run rule 1 (``rule == 0``) or 2 as a Jacobi update of the current buffer.
 
     Returns 0, or (changing nothing) the bricks the halo needs."""
@@ -363,11 +379,11 @@ def _jacobi(rule, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr
         for o in range(BRICK_VOXELS):
             dst[b, o] = src[b, o]
     if rule == 0:
-        _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-                 bmass, sc, wall, flux)
+        _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, active,
+                 n_active, bounds, ip, bmass, sc, wall, flux)
     else:
-        _spill(src, dst, nbr, bcoord, bone_b, bone_dens, active, n_active, bounds, ip,
-               bmass, sc, wall, elig, flux)
+        _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, active,
+               n_active, bounds, ip, bmass, sc, wall, elig, flux)
     # keep "no dust => zero in both buffers": bricks emptied by the rule
     for t in range(n_active):
         b = active[t]
@@ -384,13 +400,17 @@ def _cell_ok(ci, cj, ck, lo0, lo1, lo2, hi0, hi1, hi2):
 
 
 @njit(cache=True, nogil=True)
-def _bone_at(bkeys, bvals, bone_dens, i, j, k):
+def _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, i, j, k):
     bb = find_brick(bkeys, bvals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
-    return bb >= 0 and bone_dens[bb, voxel_offset(i, j, k)] > 0.0
+    if bb < 0:
+        return False
+    off = voxel_offset(i, j, k)
+    return bone_dens[bb, off] > 0.0 and (wall_body.shape[0] == 0
+                                         or wall_body[bone_body[bb, off]] != 0)
 
 
 @njit(cache=True, nogil=True)
-def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens):
+def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens, bone_body, wall_body):
     """Cell that the tool pushes the dust of cell ``(ci, cj, ck)`` into (rule
     3); ``ok`` False when no free cell lies within ``search`` cells."""
     px, py, pz, rad = fp[F_TX], fp[F_TY], fp[F_TZ], fp[F_TR]
@@ -417,7 +437,7 @@ def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens):
         if not _cell_ok(ti, tj, tk, bounds[0], bounds[1], bounds[2], bounds[3], bounds[4],
                         bounds[5]):
             continue
-        if _bone_at(bkeys, bvals, bone_dens, ti, tj, tk):
+        if _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, ti, tj, tk):
             continue
         return True, ti, tj, tk
     return False, 0, 0, 0
@@ -425,7 +445,7 @@ def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens):
 
 @njit(cache=True, nogil=True)
 def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-               bkeys, bvals, bone_dens, bounds, ip, fp):
+               bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp):
     """Rule 3, in place on the current buffer.
 
     Returns 0, or (changing nothing) an upper bound on the bricks needed for
@@ -475,7 +495,7 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                                     continue
                                 ok, ti, tj, tk = _push_target(ci, cj, ck, fp, search,
                                                               bounds, bkeys, bvals,
-                                                              bone_dens)
+                                                              bone_dens, bone_body, wall_body)
                                 if not ok:
                                     continue
                                 tb = find_brick(keys, vals, ti >> BRICK_SHIFT,
@@ -580,27 +600,28 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
 
 @njit(cache=True, nogil=True)
 def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                 bkeys, bvals, bone_dens, active, bounds, ip, fp, sc, wall, elig, flux):
+                 bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, fp, sc, wall,
+                 elig, flux):
     """Rules 1-4 from ``stage`` on. Returns :data:`STAGE_DONE`, or the stage to
     resume at after the wrapper has made ``ctr[C_NEED]`` bricks available."""
     ctr[C_NEED] = 0
     if stage <= STAGE_GRAVITY:
         need = _jacobi(0, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                       bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig,
-                       flux)
+                       bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, sc,
+                       wall, elig, flux)
         if need:
             ctr[C_NEED] = need
             return STAGE_GRAVITY
     if stage <= STAGE_SPILL:
         need = _jacobi(1, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                       bkeys, bvals, bone_dens, active, bounds, ip, sc, wall, elig,
-                       flux)
+                       bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, sc,
+                       wall, elig, flux)
         if need:
             ctr[C_NEED] = need
             return STAGE_SPILL
     if stage <= STAGE_TOOL:
         need = _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                          bkeys, bvals, bone_dens, bounds, ip, fp)
+                          bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp)
         if need:
             ctr[C_NEED] = need
             return STAGE_TOOL

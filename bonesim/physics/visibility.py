@@ -11,6 +11,16 @@ DDA) through the hashed grid, so each query costs a few microseconds.
 applied to in order, so each removal is judged against the bone as it was at
 that moment. The recorder uses it to fill the ``visible`` column of a
 session's removals.
+
+Bodies (:mod:`bonesim.engine.bodies`): each removal is judged in its own
+body's frame. The eye and the burr centre are transformed into that frame
+(``R^T (p - t)`` with the body's pose at judging time) and the segment is
+marched through the voxels of the bodies at exactly the same pose as that
+body (one pose group, see :func:`~bonesim.engine.bodies.pose_groups`). Bodies
+at other poses do **not** occlude: a fragment that was moved is not looked
+through, and one moved into the line of sight does not hide a removal. While
+every body sits at the identity pose the bodies are ignored and the judge is
+exactly the one-grid judge.
 """
 from __future__ import annotations
 
@@ -18,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from bonesim.engine import events
+from bonesim.engine.bodies import all_identity, pose_groups, to_body_frame
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.replica import TissueReplica
 
@@ -29,10 +40,11 @@ CONTACT_MARGIN_VOXELS = 1.0
 
 
 @njit(cache=True, nogil=True)
-def _hidden(keys, vals, density, label, occluder, origin, spacing, shape,
-            i0, j0, k0, eye, tool, contact_r2):
+def _hidden(keys, vals, density, label, occluder, body, group, gsel, origin, spacing,
+            shape, i0, j0, k0, eye, tool, contact_r2):
     """1 if an occluding voxel (other than the start voxel and voxels near
-    the tool) lies on the segment from voxel (i0, j0, k0)'s centre to ``eye``."""
+    the tool) lies on the segment from voxel (i0, j0, k0)'s centre to ``eye``;
+    with ``gsel >= 0`` only voxels whose body is in group ``gsel`` occlude."""
     # voxel coordinates in which voxel i spans [i, i + 1)
     p = np.empty(3)
     d = np.empty(3)
@@ -71,6 +83,8 @@ def _hidden(keys, vals, density, label, occluder, origin, spacing, shape,
         o = voxel_offset(i, j, k)
         if density[b, o] <= 0.0 or occluder[label[b, o]] == 0:
             continue
+        if gsel >= 0 and group[body[b, o]] != gsel:
+            continue                      # a body at another pose
         dx = origin[0] + spacing * i - tool[0]
         dy = origin[1] + spacing * j - tool[1]
         dz = origin[2] + spacing * k - tool[2]
@@ -80,14 +94,15 @@ def _hidden(keys, vals, density, label, occluder, origin, spacing, shape,
 
 
 @njit(cache=True, nogil=True)
-def _remove_and_judge(keys, vals, density, label, occluder, origin, spacing, shape,
-                      ijk, eye, tool, contact_r, out):
-    """For each removal in order: judge it, then remove the voxel."""
+def _remove_and_judge(keys, vals, density, label, occluder, body, group, gsel, origin,
+                      spacing, shape, ijk, eye, tool, contact_r, out):
+    """For each removal in order: judge it (in the frame of pose group
+    ``gsel[q]``, -1: every voxel), then remove the voxel."""
     for q in range(ijk.shape[0]):
         i, j, k = ijk[q, 0], ijk[q, 1], ijk[q, 2]
         r2 = contact_r[q] * contact_r[q]
-        out[q] = 1 - _hidden(keys, vals, density, label, occluder, origin, spacing, shape,
-                             i, j, k, eye[q], tool[q], r2)
+        out[q] = 1 - _hidden(keys, vals, density, label, occluder, body, group, gsel[q],
+                             origin, spacing, shape, i, j, k, eye[q], tool[q], r2)
         b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
         if b >= 0:
             density[b, voxel_offset(i, j, k)] = 0.0
@@ -101,7 +116,8 @@ def occluders(structures) -> np.ndarray:
     return out
 
 
-def judge_removals(grid, occluder, ijk, eye_mm, tool_mm, contact_r_mm) -> np.ndarray:
+def judge_removals(grid, occluder, ijk, eye_mm, tool_mm, contact_r_mm, body=None,
+                   bodies=None) -> np.ndarray:
     """Judge removals in order against ``grid``, removing each voxel after.
 
     Parameters
@@ -111,12 +127,20 @@ def judge_removals(grid, occluder, ijk, eye_mm, tool_mm, contact_r_mm) -> np.nda
     occluder : (n_labels + 1,) uint8
         Labels that block the view (:func:`occluders`).
     ijk : (n, 3) int
-        Removed voxels, in the order they were removed.
+        Removed voxels, in the order they were removed, each in its body's
+        frame.
     eye_mm, tool_mm : (n, 3) float
         Eye position and burr centre at each removal [mm], case frame.
     contact_r_mm : (n,) float
         Contact radius around the burr centre [mm] (burr radius plus
         :data:`CONTACT_MARGIN_VOXELS` voxels).
+    body : (n,) int, optional
+        The body of each removal (the events' ``body`` column).
+    bodies : Bodies or State, optional
+        The body arrays (``body`` laid out like ``grid.density``, ``pose``,
+        ``pose_m``, ``alive``): each removal is judged in its body's frame,
+        against the bodies at its body's pose only (module docstring). None,
+        or every body at the identity: against every voxel.
 
     Returns
     -------
@@ -135,10 +159,40 @@ def judge_removals(grid, occluder, ijk, eye_mm, tool_mm, contact_r_mm) -> np.nda
         raise ValueError(f"occluder table has {len(occ)} entries; the grid uses label "
                          f"{int(grid.label.max())}")
     out = np.empty(n, np.int8)
-    _remove_and_judge(grid.keys, grid.vals, grid.density, grid.label, occ,
-                      np.asarray(grid.origin_mm, np.float64), float(grid.spacing_mm),
+    if body is None or all_identity(bodies):
+        vbody, group, gsel = _NO_BODY, _NO_GROUP, np.full(n, -1, np.int32)
+    else:
+        vbody, group, gsel, eye, tool = _in_body_frames(grid, body, bodies, eye, tool)
+    _remove_and_judge(grid.keys, grid.vals, grid.density, grid.label, occ, vbody, group,
+                      gsel, np.asarray(grid.origin_mm, np.float64), float(grid.spacing_mm),
                       np.asarray(grid.shape, np.int64), ijk, eye, tool, r, out)
     return out
+
+
+# body arrays of the judge that ignores bodies (never read)
+_NO_BODY = np.zeros((1, 512), np.uint8)
+_NO_GROUP = np.zeros(1, np.int32)
+
+
+def _in_body_frames(grid, body, bodies, eye, tool):
+    """Pose group of each removal's body and its eye and burr centre in that
+    body's frame [mm]."""
+    n = len(eye)
+    body = np.broadcast_to(np.asarray(body, np.int64), (n,))
+    if n and (body.min() < 0 or body.max() >= len(bodies.alive)
+              or not bodies.alive[body].all()):
+        raise ValueError("a removal names a body that does not exist")
+    if bodies.body.shape != grid.density.shape:
+        raise ValueError(f"bodies.body has shape {bodies.body.shape}, the grid's density "
+                         f"{grid.density.shape}")
+    group = pose_groups(bodies)
+    eye, tool = eye.copy(), tool.copy()
+    for b in np.unique(body):
+        sel = body == b
+        eye[sel] = to_body_frame(bodies.pose_m[b], eye[sel])
+        tool[sel] = to_body_frame(bodies.pose_m[b], tool[sel])
+    return (bodies.body, group, np.ascontiguousarray(group[body], dtype=np.int32),
+            eye, tool)
 
 
 class VisibilityTracker:
@@ -230,4 +284,5 @@ class VisibilityTracker:
             self.eye = self._cam_eye[c[-1]].copy()
             self._cam_t, self._cam_eye = self._cam_t[c[-1]:], self._cam_eye[c[-1]:]
         return judge_removals(self.replica.grid, self.occluder, rem["ijk"], eyes,
-                              self._s_pos[idx], self.contact_r[self._s_burr[idx]])
+                              self._s_pos[idx], self.contact_r[self._s_burr[idx]],
+                              rem["body"], self.replica.state)

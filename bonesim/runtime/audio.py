@@ -6,7 +6,8 @@ not be disturbed. So the synthesizer (:mod:`bonesim.physics.sound`) runs in a sm
 process of its own. It reads the haptic loop's shared status (drill, speed,
 applied force, tool position, burr) at :data:`CONTROL_HZ`, estimates the bone
 thickness under the burr by ray casting (:mod:`bonesim.engine.thickness`) on the
-shared tissue, and hands the four numbers to the synthesizer, whose output
+shared tissue (density and the body arrays: each body near the burr is read in
+its own frame, at the pose the loop holds now), and hands the four numbers to the synthesizer, whose output
 stream (or silent sink, without a sound device) renders blocks in its own
 callback. ``wav`` records exactly what is rendered.
 
@@ -33,6 +34,7 @@ THICKNESS_MAX_MM = 6.0
 
 def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
     """Body of the audio process (:meth:`AudioProcess.run`)."""
+    from bonesim.engine.bodies import Bodies
     from bonesim.engine.grid import Grid
     from bonesim.physics.sound import SoundSynth, WavRecorder, open_output
     from bonesim.physics.sound import warmup as sound_warmup
@@ -45,6 +47,7 @@ def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
     g0 = model.grid
     grid = Grid(g0.spacing_mm, g0.origin_mm, g0.shape, g0.keys, g0.vals, g0.bricks,
                 sh["density"], g0.label)
+    bodies = Bodies.of(sh.arrays)          # body, pose, pose_m, alive, bounds
     all_burrs = [model.burr] + [b for b in burrs if b is not None]
     sound_warmup()
     thickness_warmup()
@@ -78,7 +81,8 @@ def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
             thick = float("inf")
             if drill and force > 0.0:
                 thick = bone_thickness_mm(grid, status["pos_mm"].copy(),
-                                          all_burrs[burr].radius_mm, THICKNESS_MAX_MM)
+                                          all_burrs[burr].radius_mm, THICKNESS_MAX_MM,
+                                          bodies=bodies)
             synth.set_params(drill, float(status["speed_rpm"]), force, thick)
             if clicks is not None:
                 astat["anchors"] += clicks.sync(float(status["t_s"]))

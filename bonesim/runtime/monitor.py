@@ -31,13 +31,22 @@ sub-voxel, 0 inside; minus the burr radius for the burr's surface. One kernel
 call answers every monitored nerve for all the samples of an update. Models
 built from arrays (no ``clearance``) measure on their grid, the same way.
 
+Bodies: the clearance field is static (the initial label map); a nerve is
+measured in the frame of its body (:mod:`bonesim.engine.bodies`), the one
+holding most of its remaining grid voxels (:meth:`NerveMonitor.follow`; body
+0 at the start): the burr centre goes through ``R^T (p - t)`` first. A nerve
+split across bodies is measured whole in its majority body's frame (a
+limitation). Bodies at the identity pose give exactly the one-body distances.
+
 Where it runs
 -------------
 :class:`NerveMonitor` is the model (no processes, no clocks: feed it
 samples). :class:`MonitorProcess` runs it in a process of its own attached to
 a running :class:`bonesim.runtime.haptic_loop.HapticLoop`'s shared memory: it drains
 the loop's per-step ``samples`` ring (or polls its ``status`` array where the
-loop has no ring) at :data:`UPDATE_HZ`, and publishes the current rates and
+loop has no ring) at :data:`UPDATE_HZ`, places the nerves with the loop's
+shared body arrays and density as they are at each update (so the samples of
+one update are all measured at the poses of its end), and publishes the current rates and
 distances, a rate history and the spike times in a small shared block
 (:class:`MonitorView` reads it: the window's trace, the audio process's
 clicks) and, when asked, streams them to remote consoles
@@ -53,6 +62,7 @@ from pathlib import Path
 
 import numpy as np
 from bonesim.engine import events
+from bonesim.engine.bodies import Bodies, is_identity, majority_bodies, to_body_frame
 from bonesim.physics.clearance import Clearance
 from bonesim.errors import BonesimError
 from bonesim.physics.monitor_rings import HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history, shared_rings
@@ -339,9 +349,13 @@ class NerveMonitor:
     colors : (k, 3) uint8
         Display colour of each nerve.
     clearance : Clearance
-        The field answering the distances.
+        The field answering the distances (static: built from the initial
+        label map).
     fields : list of NerveField
         One view of it per nerve.
+    body : (k,) int64
+        The body holding each nerve (:meth:`follow`); its frame is where the
+        nerve is measured.
     rates_hz, distance_mm : (k,) float64
         After the last update.
     t_s : float
@@ -385,6 +399,12 @@ class NerveMonitor:
                                    f"structures[{label - 1}]") from None
         self._groups = None if cl is None else cl.group_mask([[s] for s in self.labels])
         self.radius_mm = float(model.burr.radius_mm)
+        # each nerve's voxels on the engine grid (brick, offset), to find its body
+        lab = model.grid.label
+        self._vox = [np.nonzero(lab == s) for s in self.labels]
+        self.body = np.zeros(self.n, np.int64)
+        self._pose_m = np.zeros((self.n, 3, 4))
+        self._posed = np.zeros(self.n, bool)
         self.reset()
 
     @property
@@ -399,6 +419,23 @@ class NerveMonitor:
         self.rates_hz = np.full(self.n, self.params.baseline_hz)
         self.distance_mm = np.full(self.n, math.inf)
         self.spikes = (np.zeros(0), np.zeros(0, dtype=np.uint8))
+        self.body[:] = 0                         # a new run: one body at the identity
+        self._posed[:] = False
+
+    def follow(self, bodies, density=None) -> None:
+        """Measure each nerve in the frame of the body holding most of its
+        voxels now (:func:`~bonesim.engine.bodies.majority_bodies`).
+
+        ``bodies``: the body arrays (a State, a replica's state, or a dict such
+        as the haptic loop's shared arrays); ``density`` (n_bricks, 512),
+        optional: only voxels still present vote (a nerve with none keeps its
+        body)."""
+        if isinstance(bodies, dict):
+            bodies = Bodies.of(bodies)
+        majority_bodies(bodies, self._vox, density, out=self.body)
+        for q, b in enumerate(self.body):
+            self._posed[q] = not is_identity(bodies.pose[b])
+            self._pose_m[q] = bodies.pose_m[b]
 
     def distances(self, pos_mm, radius_mm=None) -> np.ndarray:
         """Burr surface to each nerve [mm]: centre distance minus the burr radius.
@@ -406,7 +443,8 @@ class NerveMonitor:
         Parameters
         ----------
         pos_mm : (3,) or (n, 3)
-            Burr centres [mm].
+            Burr centres, case frame [mm]; each nerve is measured in its
+            body's frame (:meth:`follow`).
         radius_mm : float or (n,), optional
             Burr radius [mm]; default the model's burr.
 
@@ -418,7 +456,15 @@ class NerveMonitor:
         r = self.radius_mm if radius_mm is None else np.asarray(radius_mm, np.float64)
         if self.n == 0:
             return np.empty((p.shape[0], 0))
-        out = self.clearance.distances(p, self._groups)
+        if not self._posed.any():
+            out = self.clearance.distances(p, self._groups)
+        else:
+            out = np.empty((p.shape[0], self.n))
+            for b in np.unique(self.body):
+                cols = np.flatnonzero(self.body == b)
+                q = cols[0]
+                pb = to_body_frame(self._pose_m[q], p) if self._posed[q] else p
+                out[:, cols] = self.clearance.distances(pb, self._groups[cols])
         out -= np.reshape(r, (-1, 1))
         return out
 
@@ -581,6 +627,8 @@ def _run_monitor(child, loop_handle, model, radii, params, seed, update_hz,
     mstat = child.status
     nm = NerveMonitor(model, params, seed)
     nm.distances(np.zeros((1, 3)))                    # compile (or load) the kernel
+    bodies = Bodies.of(sh.arrays)                     # the loop's body arrays, live
+    density = sh["density"]
     k = nm.n
     hist, spikes = shared_rings(arr)
     status = sh["status"]
@@ -636,6 +684,7 @@ def _run_monitor(child, loop_handle, model, radii, params, seed, update_hz,
             if rec is not None and len(t):
                 if t[-1] < t_last:                          # a new loop clock
                     nm.reset()
+                nm.follow(bodies, density)
                 rates, dist = nm.update_many(t, pos, force, drill, r)
                 t_last = float(t[-1])
                 t0 = min(t0, clock() - float(status["t_s"]))

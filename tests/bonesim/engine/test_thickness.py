@@ -235,3 +235,102 @@ def test_exit_ray_with_bone_labels():
     # without labels the structure is tissue too: the ray runs to the bottom
     d, met = exit_ray(*args, False, g.origin_mm, 2.0, *p, 0.0, 0.0, -1.0, step, 10.0)
     assert met == 0 and d == pytest.approx(8.5 * 0.5, abs=step / 2 ** BISECT_ITERS)
+
+
+# ----------------------------------------------------------------- bodies
+# the fakes' block, 4 mm thick here (top face z = 3.75 mm), split at x = 10 mm
+_FILL = 8
+
+
+def _split_block(pose=None, both=False):
+    """The block split at x = 10 mm; body 1 (x >= 10 mm) placed at ``pose``
+    (and body 0 too with ``both``)."""
+    from bonesim.engine.bodies import publish_split_box, set_pose
+    from tests.bonesim.fakes import block_model
+
+    m, st = block_model(fill_z=_FILL)
+    dst, n = publish_split_box(st, 0, (20, 0, 0), (39, 39, 39), 0.0)
+    assert dst == 1 and n > 0
+    if pose is not None:
+        set_pose(st, 1, pose)
+        if both:
+            set_pose(st, 0, pose)
+    return m, st
+
+
+def _one():
+    from tests.bonesim.fakes import block_model
+
+    return block_model(fill_z=_FILL)[1]
+
+
+# a quarter turn about x, then a lift out of body 0's reach
+_POSE = (1.0, 30.0, 25.0, math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0)
+
+
+def _place(pose, p):
+    from bonesim.engine.bodies import pose_matrix, to_case_frame
+
+    return to_case_frame(pose_matrix(pose), p)
+
+
+def test_one_body_at_the_identity_reads_as_before():
+    from bonesim.engine.bodies import Bodies
+
+    st = _one()
+    _, two = _split_block()                     # two bodies, both at the identity
+    for c in ([15.0, 10.0, 5.0], [10.2, 9.7, 4.6], [3.0, 3.0, 6.5]):
+        ref = bone_thickness_mm(st.grid, c, 1.5)
+        assert bone_thickness_mm(st.grid, c, 1.5, bodies=Bodies.of(st)) == ref
+        assert bone_thickness_mm(two.grid, c, 1.5, bodies=two) == ref
+        a, b = contact_thickness(st.grid, c, 1.5), contact_thickness(two.grid, c, 1.5,
+                                                                    bodies=two)
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("c", [[15.0, 10.0, 5.0], [16.0, 2.0, 4.7]])
+def test_thickness_over_a_moved_body_is_that_of_the_unmoved_block(c):
+    one = _one()
+    ref = bone_thickness_mm(one.grid, c, 1.5)
+    assert 1.0 < ref < 10.0
+    _, st = _split_block(_POSE)
+    got = bone_thickness_mm(st.grid, _place(_POSE, c), 1.5, bodies=st)
+    assert got == pytest.approx(ref, abs=1e-9)
+    # where body 1 was cut, its voxels still lie in the grid: they are not read
+    assert bone_thickness_mm(st.grid, c, 1.5, bodies=st) == NO_CONTACT
+    assert bone_thickness_mm(st.grid, c, 1.5) == ref        # (ignoring bodies would)
+    # normals come back in the case frame: the moved top face's inward normal
+    _, nrm, _ = contact_thickness(st.grid, _place(_POSE, c), 1.5, bodies=st)
+    _, nrm0, _ = contact_thickness(one.grid, c, 1.5)
+    rot = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])      # the quarter turn
+    np.testing.assert_allclose(nrm, nrm0 @ rot.T, atol=1e-12)
+
+
+def test_bodies_at_one_pose_are_read_together_and_the_minimum_is_taken():
+    one = _one()
+    c = np.array([10.1, 10.0, 5.0])                 # straddles the split
+    ref = bone_thickness_mm(one.grid, c, 1.5)
+    _, st = _split_block(_POSE, both=True)
+    assert bone_thickness_mm(st.grid, _place(_POSE, c), 1.5, bodies=st) == \
+        pytest.approx(ref, abs=1e-9)
+    # body 1 sunk by 1 mm beside body 0: the burr touches both; each is read
+    # in its own frame and the thinner reading wins
+    down = (0.0, 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
+    c0 = np.array([10.0, 10.0, 4.2])
+    _, st = _split_block(down)
+    got = bone_thickness_mm(st.grid, c0, 1.5, bodies=st)
+    _, only0 = _split_block((0.0, 0.0, -50.0, 1.0, 0.0, 0.0, 0.0))
+    _, only1 = _split_block(down)
+    from bonesim.engine.bodies import set_pose
+
+    set_pose(only1, 0, (0.0, 0.0, -50.0, 1.0, 0.0, 0.0, 0.0))
+    a = bone_thickness_mm(st.grid, c0, 1.5, bodies=only0)
+    b = bone_thickness_mm(st.grid, c0, 1.5, bodies=only1)
+    assert math.isfinite(a) and math.isfinite(b) and a != b
+    assert got == min(a, b)
+    # body 1 alone, sunk, reads as body 1 alone unmoved with the burr raised 1 mm
+    _, ref1 = _split_block()
+    set_pose(ref1, 0, (0.0, 0.0, -50.0, 1.0, 0.0, 0.0, 0.0))
+    assert b == pytest.approx(bone_thickness_mm(ref1.grid, c0 + [0, 0, 1.0], 1.5,
+                                                bodies=ref1), abs=1e-9)

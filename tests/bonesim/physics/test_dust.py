@@ -730,3 +730,136 @@ def test_inputs_are_validated():
     other = Grid.from_dense(np.ones((4, 4, 4), np.uint8), spacing_mm=0.4)
     with pytest.raises(ValueError):
         dust.step(other, 1e-3)
+
+
+# ------------------------------------------------------------------ bodies
+def _bodies(bone, body_dense, poses):
+    """Body arrays for ``bone``: ``body_dense`` (shape of the grid) laid out
+    like its density, ``poses`` one per body."""
+    from bonesim.engine.bodies import Bodies, pose_matrix
+
+    body = np.zeros(bone.density.shape, np.uint8)
+    for i, j, k in np.argwhere(body_dense > 0):
+        b = bone.brick_index(i, j, k)
+        if b >= 0:
+            body[b, voxel_offset(i, j, k)] = body_dense[i, j, k]
+    pose = np.array(poses, dtype=np.float64)
+    pose_m = np.stack([pose_matrix(p) for p in pose])
+    bounds = np.zeros((len(pose), 6), np.int32)
+    bounds[:, 3:] = np.asarray(bone.shape) - 1
+    return Bodies(body, pose, pose_m, np.ones(len(pose), np.uint8), bounds)
+
+
+IDENT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+#: a quarter turn about z (x -> y, y -> -x) and a shift
+TURN = (6.0, 4.0, 1.0, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))
+
+
+@pytest.mark.parametrize("g", [(0, 0, -1), (0.2, 0.3, -1.0)])
+def test_only_bodies_at_the_identity_are_dust_walls(g):
+    shape = (21, 19, 23)
+    bone, wall, d = make_case(shape, seed=8, dust_max=1.8)
+    # bone split into three bodies by a random pattern; body 1 moved away
+    body_dense = np.random.default_rng(2).integers(0, 3, shape).astype(np.uint8)
+    bodies = _bodies(bone, body_dense, [IDENT, TURN, IDENT])
+    wall = wall & (body_dense != 1)
+    prm = DustParams(settle_rate=120.0, spill_rate=120.0, repose=0.4, suction_rate=90.0)
+    dust = DustGrid.for_grid(bone, g, prm)
+    load(dust, d)
+    dt = 1.5e-3
+    r = rates(prm, dt)
+    gn = np.asarray(g, float) / np.linalg.norm(g)
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        tool = ORIGIN + rng.uniform(2, 8, 3)
+        suck = ORIGIN + rng.uniform(2, 8, 3)
+        dust.step(bone, dt, tool, 1.3, suck, 1.1, bodies=bodies)
+        d = ref_gravity(d, wall, g, r["rate_q"])
+        d = ref_spill(d, wall, g, r["kq"], r["repose_q"])
+        d = ref_tool(d, wall, np.zeros(3, int), tool, 1.3, prm.push_search, tuple(-gn))
+        d, _ = ref_suction(d, np.zeros(3, int), suck, 1.1, r["srate_q"])
+        np.testing.assert_array_equal(dense_q(dust), d)
+    check_mass(dust)
+
+
+def test_bodies_at_the_identity_step_exactly_as_one_body():
+    shape = (21, 19, 23)
+    out = []
+    for split in (None, "ident", "none"):
+        bone, _, d = make_case(shape, seed=9, dust_max=1.8)
+        body_dense = np.random.default_rng(2).integers(0, 3, shape).astype(np.uint8)
+        bodies = None if split is None else _bodies(bone, body_dense, [IDENT] * 3)
+        dust = DustGrid.for_grid(bone, (0.2, 0.3, -1.0),
+                                 DustParams(settle_rate=120.0, spill_rate=120.0))
+        load(dust, d)
+        for q in range(8):
+            dust.step(bone, 1.5e-3, ORIGIN + 4.0 + 0.3 * q, 1.3, ORIGIN + 6.0, 1.1,
+                      irrigation_pos_mm=ORIGIN + 5.0, irrigation_radius_mm=2.0,
+                      bodies=bodies)
+        out.append(dense_q(dust))
+    for o in out[1:]:
+        np.testing.assert_array_equal(o, out[0])
+
+
+def test_dust_falls_through_where_a_moved_body_was_cut():
+    lab = np.zeros((16, 16, 20), np.uint8)
+    lab[:, :, :10] = 1
+    bone = Grid.from_dense(lab, spacing_mm=H, origin_mm=ORIGIN)
+    body_dense = np.zeros(lab.shape, np.uint8)
+    body_dense[6:11, 6:11, 3:10] = 1                      # a plug cut out of the slab
+    prm = DustParams(settle_rate=500.0)
+    got = []
+    for pose in (IDENT, (0.0, 0.0, 30.0, 1.0, 0.0, 0.0, 0.0)):   # in place, lifted away
+        bodies = _bodies(bone, body_dense, [IDENT, pose])
+        dust = DustGrid.for_grid(bone, (0, 0, -1), prm)
+        dust.add_removed(np.array([[8, 8, 10]]), 0.5)
+        for _ in range(100):
+            dust.step(bone, 2e-3, bodies=bodies)
+        got.append(dust.to_dense())
+    assert got[0][8, 8, 10] == 0.5                          # rests on the plug
+    assert got[1][8, 8, 3] == 0.5 and got[1][8, 8, 10] == 0  # the plug is gone
+
+
+def test_removals_of_a_moved_body_land_in_their_case_frame_cell():
+    bone, dust = _floor_case(bulking=1.0)
+    lab = np.ones(bone.shape, np.uint8)
+    bodies = _bodies(bone, lab * 0, [IDENT, TURN])
+    ijk = np.array([[4, 4, 6], [5, 7, 9], [6, 6, 6], [4, 4, 6]])
+    body = np.array([0, 1, 1, 1])
+    dust.add_removed(ijk, body=body, bodies=bodies)
+    # reference: the centre of each voxel of body 1 through R c + t, by hand
+    want = np.zeros(bone.shape)
+    want[4, 4, 6] += 1.0                                    # body 0: its own cell
+    for i, j, k in ijk[1:]:
+        x, y, z = ORIGIN + H * np.array([i, j, k])
+        c = np.array([-y + 6.0, x + 4.0, z + 1.0])          # quarter turn about z, shift
+        cell = np.floor((c - ORIGIN) / H + 0.5).astype(int)
+        assert (cell >= 0).all() and (cell < bone.shape).all()
+        want[tuple(cell)] += 1.0
+    assert want.sum() == 4 and want[4, 4, 6] == 1.0
+    np.testing.assert_allclose(dust.to_dense(), want, atol=1e-6)
+    # through the tissue stream: the events name the body
+    ring = events.tissue_ring(16)
+    cur = events.Cursor(ring)
+    ring.fields["ijk"][:2] = [[5, 7, 9], [4, 4, 6]]
+    ring.fields["body"][:2] = [1, 0]
+    ring.head[0] = 2
+    bone, dust2 = _floor_case(bulking=1.0)
+    assert dust2.drain(cur, bodies=bodies) == 2
+    w2 = np.zeros(bone.shape)
+    w2[4, 4, 6] = 1.0
+    x, y, z = ORIGIN + H * np.array([5, 7, 9])
+    w2[tuple(np.floor((np.array([-y + 6.0, x + 4.0, z + 1.0]) - ORIGIN) / H + 0.5)
+             .astype(int))] += 1.0
+    np.testing.assert_allclose(dust2.to_dense(), w2, atol=1e-6)
+    # a removal carried out of the domain is dropped; at the identity nothing moves
+    far = bodies._replace(pose=np.array([IDENT, (90.0, 0, 0, 1, 0, 0, 0)], float))
+    far.pose_m[1, 0, 3] = 90.0
+    before = dust2.added_cells
+    dust2.add_removed(np.array([[5, 7, 9]]), body=[1], bodies=far)
+    assert dust2.added_cells == before
+    bone, d3 = _floor_case(bulking=1.0)
+    bone, d4 = _floor_case(bulking=1.0)
+    d3.add_removed(ijk)
+    d4.add_removed(ijk, body=body, bodies=_bodies(bone, lab * 0, [IDENT, IDENT]))
+    np.testing.assert_array_equal(d3.to_dense(), d4.to_dense())

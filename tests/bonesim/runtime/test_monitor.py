@@ -200,6 +200,95 @@ def test_burr_surface_distance_subtracts_the_radius(phantom_monitor):
 
 
 # ---------------------------------------------------------------------- spikes
+# ------------------------------------------------------------------ bodies
+_TURN = (4.0, -3.0, 7.5, 0.5, 0.5, -0.5, 0.5)          # a third of a turn, and a shift
+
+
+def _nerve_split(model, label, share=1.0, pose=_TURN):
+    """A state whose first ``share`` of the nerve's voxels (in index order)
+    were split off as body 1 and placed at ``pose``."""
+    from bonesim.engine.bodies import publish_split, set_pose
+    from bonesim.engine.model import make_state
+
+    st = make_state(model)
+    _, lab = model.grid.to_dense()
+    ijk = np.argwhere(lab == label)
+    dst, n = publish_split(st, 0, ijk[:int(round(share * len(ijk)))], 0.0)
+    assert dst == 1 and n > 0
+    set_pose(st, 1, pose)
+    return st
+
+
+def _around(nm, q, n=400, seed=4):
+    f = nm.fields[q]
+    rng = np.random.default_rng(seed)
+    return f.voxels_mm.mean(0) + rng.normal(scale=5.0, size=(n, 3))
+
+
+def test_a_moved_nerve_is_measured_in_its_body_frame(phantom_model):
+    from bonesim.engine.bodies import pose_matrix, to_body_frame, to_case_frame
+
+    ref = NerveMonitor(phantom_model, P)
+    nm = NerveMonitor(phantom_model, P)
+    st = _nerve_split(phantom_model, nm.labels[0])
+    nm.follow(st, st.grid.density)
+    assert nm.body.tolist() == [1, 0]
+    m = pose_matrix(_TURN)
+    p = to_case_frame(m, _around(nm, 0))            # around the moved facial nerve
+    d = nm.distances(p, 1.0)
+    # = the unmoved nerve with the tool moved by the inverse pose
+    np.testing.assert_array_equal(d[:, 0], ref.distances(to_body_frame(m, p), 1.0)[:, 0])
+    np.testing.assert_array_equal(d[:, 1], ref.distances(p, 1.0)[:, 1])    # chorda stays
+    assert d[:, 0].min() < 0.0 < d[:, 0].max()       # the burr reaches into it
+    # the moved nerve is no longer where it was cut
+    p0 = _around(nm, 0)
+    assert (nm.distances(p0, 1.0)[:, 0] > ref.distances(p0, 1.0)[:, 0]).mean() > 0.9
+    # the shared-memory view of the same arrays follows the same way
+    arrays = {k: getattr(st, k) for k in ("body", "pose", "pose_m", "alive", "bounds")}
+    nm2 = NerveMonitor(phantom_model, P)
+    nm2.follow(arrays, st.grid.density)
+    np.testing.assert_array_equal(nm2.distances(p, 1.0), d)
+    nm2.reset()                                      # a new run: one body again
+    np.testing.assert_array_equal(nm2.distances(p, 1.0), ref.distances(p, 1.0))
+
+
+def test_a_split_nerve_is_measured_in_its_majority_body_frame(phantom_model):
+    from bonesim.engine.bodies import pose_matrix, to_body_frame
+
+    ref = NerveMonitor(phantom_model, P)
+    m = pose_matrix(_TURN)
+    for share, body in ((0.7, 1), (0.3, 0)):
+        nm = NerveMonitor(phantom_model, P)
+        st = _nerve_split(phantom_model, nm.labels[0], share)
+        nm.follow(st, st.grid.density)
+        assert nm.body[0] == body
+        p = _around(nm, 0)
+        want = ref.distances(to_body_frame(m, p) if body else p, 1.0)[:, 0]
+        np.testing.assert_array_equal(nm.distances(p, 1.0)[:, 0], want)
+    # only voxels still present vote: body 1's drilled away, body 0 holds it
+    nm = NerveMonitor(phantom_model, P)
+    st = _nerve_split(phantom_model, nm.labels[0], 0.7)
+    density = st.grid.density.copy()
+    density[st.body == 1] = 0.0
+    nm.follow(st, density)
+    assert nm.body[0] == 0
+
+
+def test_one_body_at_the_identity_measures_as_before(phantom_model, phantom_monitor):
+    from bonesim.engine.model import make_state
+
+    nm = NerveMonitor(phantom_model, P)
+    st = make_state(phantom_model)
+    p = _around(nm, 0)
+    want = phantom_monitor.distances(p)
+    nm.follow(st, st.grid.density)
+    assert nm.body.tolist() == [0, 0]
+    np.testing.assert_array_equal(nm.distances(p), want)
+    st2 = _nerve_split(phantom_model, nm.labels[0], 0.5, pose=(0, 0, 0, 1.0, 0, 0, 0))
+    nm.follow(st2, st2.grid.density)                 # split, not moved
+    np.testing.assert_array_equal(nm.distances(p), want)
+
+
 def test_poisson_spikes_counts_times_and_seed():
     edges = np.linspace(0.0, 20.0, 4001)                      # 5 ms intervals
     rates = np.zeros((4000, 3))
