@@ -214,7 +214,7 @@ class Showcase:
         cur = max(self.q - 1, 0)
         ch = self.consumer.drain()
         rem = ch.removed
-        self.scene.update_surface(self.consumer.surface, rem, ch.touched)
+        self.scene.update_bodies(self.consumer, ch.changed, ch.touched)   # bodies at their poses
         if len(rem):
             self.dust.add_removed(rem)
         burr = model.burr

@@ -231,7 +231,7 @@ class App:
             self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
             self.injuries.clear()
         rem, tch = ch.removed, ch.touched
-        scene.update_surface(self.consumer.surface, rem, tch)
+        scene.update_bodies(self.consumer, ch.changed, tch)      # every body at its pose
         pos = st["pos_mm"].copy()
         axis = st["axis"].copy()
         burr = self.burr

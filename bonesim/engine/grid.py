@@ -157,6 +157,18 @@ def _fill_bricks(lab, dens, has_dens, bricks, out_d, out_l):
                         out_l[b, off] = lab[i, j, k]
 
 
+def _brick_table(bricks):
+    """A hash table ``(keys, vals)`` of brick coordinates ``bricks`` (n, 3):
+    power-of-two capacity at least twice the bricks (16 or more)."""
+    cap = 16
+    while cap < 2 * max(len(bricks), 1):
+        cap *= 2
+    keys = np.full(cap, -1, dtype=np.int64)
+    vals = np.full(cap, -1, dtype=np.int32)
+    _insert_all(keys, vals, np.ascontiguousarray(bricks, dtype=np.int32))
+    return keys, vals
+
+
 class Grid:
     """Hashed brick grid of tissue density and structure labels.
 
@@ -236,12 +248,7 @@ class Grid:
         _mark_bricks(lab, dens, has_dens, bmask)
         bricks = (np.argwhere(bmask) - 1).astype(np.int32)      # lexicographic order
         n_b = len(bricks)
-        cap = 16
-        while cap < 2 * max(n_b, 1):
-            cap *= 2
-        keys = np.full(cap, -1, dtype=np.int64)
-        vals = np.full(cap, -1, dtype=np.int32)
-        _insert_all(keys, vals, bricks)
+        keys, vals = _brick_table(bricks)
         bd = np.zeros((n_b, BRICK_VOXELS), dtype=np.float32)
         bl = np.zeros((n_b, BRICK_VOXELS), dtype=np.uint8)
         _fill_bricks(lab, dens, has_dens, bricks, bd, bl)
@@ -251,6 +258,35 @@ class Grid:
         """Deep copy of the mutable per-voxel arrays (the table is shared, read-only)."""
         return Grid(self.spacing_mm, self.origin_mm, self.shape, self.keys, self.vals,
                     self.bricks, self.density.copy(), self.label.copy())
+
+    def sub_grid(self, brick_lo, brick_hi) -> "Grid":
+        """The bricks of this grid inside a box of brick coordinates, as a grid
+        of their own on the same lattice.
+
+        Voxel ``(i, j, k)`` of the result is voxel ``(i, j, k)`` of this grid
+        (same ``origin_mm``, ``spacing_mm`` and ``shape``); it allocates
+        only the selected bricks, with a hash table of its own.
+
+        Parameters
+        ----------
+        brick_lo, brick_hi : (3,) int
+            First and last brick coordinates ``(bi, bj, bk)`` of the box,
+            inclusive (bricks are ``BRICK`` voxels on a side).
+
+        Returns
+        -------
+        Grid
+            With copies of the selected bricks' density and label, in this
+            grid's brick order (the bricks where
+            ``all(brick_lo <= bricks <= brick_hi)``).
+        """
+        lo = np.asarray(brick_lo, dtype=np.int64).reshape(3)
+        hi = np.asarray(brick_hi, dtype=np.int64).reshape(3)
+        sel = np.all((self.bricks >= lo) & (self.bricks <= hi), axis=1)
+        bricks = np.ascontiguousarray(self.bricks[sel])          # stays lexicographic
+        keys, vals = _brick_table(bricks)
+        return Grid(self.spacing_mm, self.origin_mm, self.shape, keys, vals, bricks,
+                    self.density[sel].copy(), self.label[sel].copy())
 
     # ---------------------------------------------------------------- queries
     @property

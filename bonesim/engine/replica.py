@@ -16,6 +16,19 @@ hints: a touched voxel takes the live density, unless that is already 0 (its
 removal is still on its way through the ring). With ``surface=True`` the
 replica keeps a :class:`~bonesim.engine.surface.Surface` in step: incremental
 updates for removals, a rebuild after a reset.
+
+Surfaces per body
+-----------------
+While the case is one body (no ``SPLIT`` since the last reset) the replica
+keeps ONE surface, ``surface``, over its whole grid, as it always did; a
+``POSE`` of body 0 moves it as a whole (:meth:`TissueReplica.body_matrix`).
+From the first split on, every living body has a surface of only its own
+voxels, in its own frame (:mod:`bonesim.engine.body_surfaces`):
+:attr:`TissueReplica.body_surfaces` maps body id -> surface, and
+:meth:`TissueReplica.body_matrix` gives the pose that places each in the case
+frame. ``surface`` is then body 0's: the same object, updated in place (the
+voxels that left body 0 are removed from it), so a window drawing it keeps
+its buffers. A reset goes back to one surface.
 """
 from __future__ import annotations
 
@@ -26,6 +39,7 @@ import numpy as np
 from numba import njit
 
 from bonesim.engine import events
+from bonesim.engine.body_surfaces import BodySurfaces
 from bonesim.engine.bodies import is_identity, set_pose, split_body
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, sync_replica, voxel_offset
 from bonesim.engine.model import Model, clear_touched, make_state, reset_state
@@ -55,6 +69,9 @@ class Changes(NamedTuple):
         Bodies created or moved by the batch.
     n_events : int
         Events applied.
+    split : (s, 3) int32
+        Voxels that ``SPLIT`` events of the batch (since its last reset)
+        moved to another body, in order: they left their body's surface.
     """
 
     removed: np.ndarray
@@ -63,6 +80,15 @@ class Changes(NamedTuple):
     injuries: dict
     bodies: tuple
     n_events: int
+    split: np.ndarray = _NO_IJK
+
+    @property
+    def changed(self) -> np.ndarray:
+        """(n, 3) int32: ``removed`` and ``split`` together, the voxels that
+        left a body's surface (give them to ``Scene.update_bodies``)."""
+        if not len(self.split):
+            return self.removed
+        return np.concatenate((self.removed, self.split))
 
 
 @njit(cache=True, nogil=True)
@@ -105,8 +131,10 @@ class TissueReplica:
     applied : int
         Events applied so far.
     surface : Surface or None
+        The surface of the whole grid while the case is one body; body 0's
+        surface after a split (see :attr:`body_surfaces`).
     update_s : list of float
-        Time each surface update took [s].
+        Time each surface update took [s] (all bodies of a batch together).
     """
 
     def __init__(self, model: Model, source=None, *, surface: bool = False,
@@ -133,6 +161,8 @@ class TissueReplica:
             if snapshot:
                 self._copy_from(source)
         self.surface = None
+        self._bodies: BodySurfaces | None = None   # after a split
+        self._main_rev = 0                         # changes of the one-body surface
         self.update_s: list[float] = []
         if surface:
             self._rebuild_surface()
@@ -151,10 +181,60 @@ class TissueReplica:
         st._one_body = int(st.alive.sum()) == 1 and bool(st.alive[0]) \
             and is_identity(st.pose[0])
 
+    def _several_bodies(self) -> bool:
+        return bool(self.state.alive[1:].any())
+
     def _rebuild_surface(self) -> None:
         from bonesim.engine.surface import Surface
 
-        self.surface = Surface.of_model(self.model, self.grid)   # thin bone shows the tint
+        self._main_rev += 1
+        if self._several_bodies():
+            self._bodies = BodySurfaces.build(self.model, self.state)
+            self.surface = self._bodies.surfaces[0]
+        else:
+            self._bodies = None
+            self.surface = Surface.of_model(self.model, self.grid)   # thin bone shows the tint
+
+    # ------------------------------------------------------------- bodies
+    @property
+    def body_surfaces(self) -> dict:
+        """Body id -> :class:`~bonesim.engine.surface.Surface` of the living bodies.
+
+        Each surface holds only its body's voxels, in the body's own frame
+        (vertex of voxel ``(i, j, k)`` at ``origin + spacing * (i, j, k)``
+        [mm]); :meth:`body_matrix` places it in the case frame. While the
+        case is one body: ``{0: surface}``. Empty without a surface.
+        """
+        if self.surface is None:
+            return {}
+        if self._bodies is None:
+            return {0: self.surface}
+        return dict(self._bodies.surfaces)
+
+    @property
+    def body_grids(self) -> dict:
+        """Body id -> the grid each body's surface was built from (body frame;
+        the replica's lattice). While the case is one body: ``{0: grid}``."""
+        if self._bodies is None:
+            return {0: self.grid} if self.surface is not None else {}
+        return dict(self._bodies.grids)
+
+    @property
+    def body_revisions(self) -> dict:
+        """Body id -> a number that grows whenever that body's surface
+        changes (built or updated), for viewers that redraw only what changed."""
+        if self._bodies is None:
+            return {0: self._main_rev} if self.surface is not None else {}
+        return dict(self._bodies.revision)
+
+    def body_matrix(self, b: int) -> np.ndarray:
+        """Body ``b``'s pose as a (4, 4) float64 matrix ``[[R, t], [0, 1]]``:
+        body frame -> case frame, ``t`` [mm]."""
+        if not 0 <= b < len(self.state.alive) or not self.state.alive[b]:
+            raise ValueError(f"body {b} does not exist")
+        m = np.eye(4)
+        m[:3, :] = self.state.pose_m[b]
+        return m
 
     def reset(self, epoch: int | None = None, surface: bool = True) -> None:
         """Back to the model's initial tissue (one body, identity pose).
@@ -169,6 +249,7 @@ class TissueReplica:
         """
         reset_state(self.model, self.state, rings=False)
         self.epoch = self.epoch + 1 if epoch is None else int(epoch)
+        self._bodies = None
         if self.surface is not None and surface:
             self._rebuild_surface()
 
@@ -200,6 +281,7 @@ class TissueReplica:
         st = self.state
         g = st.grid
         removed, bodies, did_reset, after = [], [], False, 0
+        split_ijk, split_src, grown = [], [], set()
         starts = np.concatenate(([0], np.flatnonzero(np.diff(kinds)) + 1, [n])) if n \
             else np.zeros(1, np.int64)
         for a, b in zip(starts[:-1], starts[1:]):
@@ -212,6 +294,7 @@ class TissueReplica:
                 reset_state(self.model, st, rings=False)
                 self.epoch = int(ev["n"][b - 1])
                 removed, did_reset, after = [], True, b
+                split_ijk, split_src, grown = [], [], set()
             elif k == events.BURR:
                 self.burr = int(ev["n"][b - 1])
             elif k == events.SPLIT:
@@ -220,8 +303,12 @@ class TissueReplica:
                 cuts = np.concatenate(([0], np.flatnonzero(np.diff(dst_col)) + 1,
                                        [b - a])) + a
                 for c0, c1 in zip(cuts[:-1], cuts[1:]):
-                    dst = int(ev["body"][c0])
-                    self._split(int(ev["value"][c0, 0]), dst, ev["ijk"][c0:c1])
+                    dst, src = int(ev["body"][c0]), int(ev["value"][c0, 0])
+                    ijk = np.ascontiguousarray(ev["ijk"][c0:c1], dtype=np.int32)
+                    self._split(src, dst, ijk)
+                    split_ijk.append(ijk)
+                    split_src.append(np.full(len(ijk), src, np.int64))
+                    grown.add(dst)
                     if dst not in bodies:
                         bodies.append(dst)
             elif k == events.POSE:
@@ -236,15 +323,27 @@ class TissueReplica:
             np.ascontiguousarray(touched, dtype=np.int32).reshape(-1, 3)
         if len(tch) and self.source is not None:
             sync_replica(g, self.source.grid, _NO_IJK, tch, check=False)
+        spl = np.concatenate(split_ijk) if split_ijk else _NO_IJK
         if self.surface is not None and surface:
             if did_reset:
                 self._rebuild_surface()
-                if len(rem) or len(tch):
+                if self._bodies is None and (len(rem) or len(tch)):
                     self._update_surface(rem, tch)
+            elif self._bodies is not None or len(spl):
+                t0 = time.perf_counter()
+                if self._bodies is None:                  # the first split
+                    self._bodies = BodySurfaces.take_over(
+                        self.model, st, self.surface, np.concatenate((rem, spl)), tch)
+                else:
+                    self._bodies.update(st, rem, tch, spl,
+                                        np.concatenate(split_src) if split_src else (),
+                                        grown)
+                self.surface = self._bodies.surfaces[0]
+                self.update_s.append(time.perf_counter() - t0)
             elif len(rem) or len(tch):
                 self._update_surface(rem, tch)
         since = {f: a[after:] for f, a in ev.items()}
-        return Changes(rem, tch, did_reset, events.injuries(since), tuple(bodies), n)
+        return Changes(rem, tch, did_reset, events.injuries(since), tuple(bodies), n, spl)
 
     def _split(self, src: int, dst: int, ijk) -> None:
         # a block continuing a body created earlier in the stream grows it
@@ -253,6 +352,7 @@ class TissueReplica:
     def _update_surface(self, rem, tch) -> None:
         t0 = time.perf_counter()
         self.surface.update(self.grid, rem, tch)
+        self._main_rev += 1
         self.update_s.append(time.perf_counter() - t0)
 
     def drain(self) -> Changes:

@@ -33,8 +33,8 @@ Driving it from the app (sketch; the haptic loop and devices are the app's)::
     scene = Scene.from_model(model, consumer.surface, offscreen=False)
 
     def on_frame(scene):                       # main thread, once per frame
-        consumer.drain()                       # TissueReplica: events -> Surface.update
-        scene.update_surface(consumer.surface)
+        ch = consumer.drain()                  # TissueReplica: events -> Surface.update
+        scene.update_bodies(consumer, ch.changed, ch.touched)   # each body at its pose
         depth = depth_below_surface_mm(grid, pos_mm, scene.camera_pose()[0],
                                        model.burr.radius_mm)     # bonesim.physics.sightline
         scene.set_tool(pos_mm, axis, model.burr.radius_mm, drill_on, depth_mm=depth)

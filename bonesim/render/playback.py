@@ -225,11 +225,12 @@ class PlaybackView:
 
     def _sync_surface(self, seek: dict) -> None:
         surf = self.player.surface
+        rep = self.player.replica
         if surf is not self._drawn:
-            self.scene.update_surface(surf)
+            self.scene.update_bodies(rep)              # every body at its pose
             self._drawn = surf
         elif seek["mode"] == "forward":
-            self.scene.update_surface(surf, seek["removed"], None)
+            self.scene.update_bodies(rep, seek["removed"], None)
 
     def show(self, t: float, *, speed: float | None = None, playing: bool | None = None):
         """Bring everything to playback time ``t``; returns the

@@ -13,6 +13,11 @@ elsewhere is the visible-subset computation of
 
 Units: positions in the case frame [mm], as everywhere in bonesim.
 
+Bodies: :meth:`Scene.update_bodies` (:mod:`bonesim.render.bodyview`) draws
+every body of a :class:`~bonesim.engine.replica.TissueReplica` at its pose:
+body 0 is the bone surface below, moved by its pose; fragments get actors
+of their own.
+
 Bone surface
 ------------
 :meth:`Scene.update_surface` draws a :class:`bonesim.engine.surface.Surface` with
@@ -51,6 +56,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOImage import vtkPNGWriter
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkPolyDataMapper, vtkRenderer,
                                          vtkWindowToImageFilter)
+from bonesim.render.bodyview import BodiesMixin
 from bonesim.render.dustview import DustLayer
 from bonesim.render.geometry import polydata_from_arrays, structure_polydata, tool_matrix
 from bonesim.render.gl import make_render_window
@@ -85,7 +91,7 @@ def _point_to(arr, buf: np.ndarray, n_values: int) -> None:
     arr.Modified()
 
 
-class Scene(LayoutMixin, ToolMixin):
+class Scene(LayoutMixin, ToolMixin, BodiesMixin):
     """Everything drawn in one view, with an incremental surface update.
 
     Parameters
@@ -175,6 +181,7 @@ class Scene(LayoutMixin, ToolMixin):
         self.voxel_mm = 0.5
         self._case_camera = None
         self._build_surface_actor()
+        self._build_bodies()
         self._structures: dict = {}
         self._build_tool()
         self._build_dust()
@@ -425,9 +432,10 @@ class Scene(LayoutMixin, ToolMixin):
 
     def _start_job(self):
         c = self.renderer.GetActiveCamera()
+        # the surface's vertices are in body 0's frame (bonesim.render.bodyview)
+        eye, dirn = self._to_main_frame(c.GetPosition(), c.GetDirectionOfProjection())
         self._job = self._buffers.start_visible(
-            self.surface, c.GetPosition(), c.GetDirectionOfProjection(),
-            bool(c.GetParallelProjection()), tag=self._cam_sig)
+            self.surface, eye, dirn, bool(c.GetParallelProjection()), tag=self._cam_sig)
 
     def refresh_visible(self, timeout_s: float = 10.0) -> bool:
         """Build the visible subset for the current camera now and wait for it

@@ -76,7 +76,7 @@ class TraineeView:
         self.replica = TissueReplica(self.model, surface=True)
         self.resets = 0
         self.applied = 0
-        scene.update_surface(self.replica.surface)
+        scene.update_bodies(self.replica)
 
     @property
     def grid(self):
@@ -98,11 +98,11 @@ class TraineeView:
         if ch.reset:                         # a new surface: drawn in full
             self.resets += int(np.count_nonzero(ev["kind"] == events.RESET))
             self.applied = len(rem)
-            self.scene.update_surface(self.replica.surface)
+            self.scene.update_bodies(self.replica)
         else:
             self.applied += len(rem)
-            if len(rem):
-                self.scene.update_surface(self.replica.surface, rem, None)
+            if len(rem) or ch.bodies:        # removals, or bodies split off / moved
+                self.scene.update_bodies(self.replica, ch.changed, None)
         return len(rem)
 
     def hud_info(self) -> dict:

@@ -410,7 +410,7 @@ class Player:
         ev = self.timeline.shape_ev
         ch = self.replica.apply({f: a[lo:hi] for f, a in ev.items()}, surface=surface)
         self.stats["applied"] += len(ch.removed)
-        return ch.removed
+        return ch.changed                     # removed, and split off to other bodies
 
     def _rebuild(self, epoch: int, lo: int, hi: int) -> None:
         self.replica.reset(epoch, surface=False)
@@ -427,8 +427,9 @@ class Player:
         dict
             ``mode``: ``"none"`` (nothing changed), ``"forward"`` (removals
             applied incrementally) or ``"rebuild"`` (new grid and surface);
-            ``removed``: (n, 3) int32 voxels zeroed by a forward seek (pass
-            them to ``Scene.update_surface``); ``t``.
+            ``removed``: (n, 3) int32 voxels a forward seek took out of a
+            body's surface (removed, or split off to another body; pass them
+            to ``Scene.update_bodies``); ``t``.
         """
         t = self.timeline.clamp(t)
         epoch, lo, hi = self.timeline.shape_range(t)

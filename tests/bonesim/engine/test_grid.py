@@ -122,3 +122,19 @@ def test_sync_replica_applies_exactly_the_published_events(seed):
     np.testing.assert_array_equal(replica.to_dense()[0], expect)
     with pytest.raises(ValueError, match="share"):
         sync_replica(Grid.from_dense(labels), live, pub_rem, pub_tch)
+
+
+def test_sub_grid_keeps_the_lattice_and_only_the_boxed_bricks():
+    lab = np.zeros((30, 20, 20), np.uint8)
+    lab[2:28, 3:17, 4:15] = 1
+    g = Grid.from_dense(lab, spacing_mm=0.25, origin_mm=(1.0, -2.0, 3.0))
+    s = g.sub_grid((1, 0, 0), (2, 1, 1))
+    assert s.spacing_mm == g.spacing_mm and s.shape == g.shape
+    np.testing.assert_array_equal(s.origin_mm, g.origin_mm)
+    assert ((s.bricks >= (1, 0, 0)) & (s.bricks <= (2, 1, 1))).all() and s.n_bricks == 8
+    for ijk in [(8, 5, 5), (23, 15, 14), (20, 10, 10), (7, 5, 5), (24, 5, 5)]:
+        inside = 8 <= ijk[0] < 24 and ijk[1] < 16 and ijk[2] < 16
+        assert s.density_at(*ijk) == (g.density_at(*ijk) if inside else 0.0)
+        assert s.label_at(*ijk) == (g.label_at(*ijk) if inside else 0)
+    s.density[:] = 0.0                              # its own copy
+    assert g.density_at(10, 5, 5) == 1.0

@@ -82,6 +82,50 @@ def drilling_dust(grid, removed):
     return dust
 
 
+#: The piece of lateral mastoid :func:`bodies_moved` splits off: voxel box
+#: (inclusive) of about 8 x 10 x 10 mm under the case camera's focus.
+PIECE_LO, PIECE_HI = (78, 44, 40), (94, 63, 59)
+#: It is lifted this far toward the case camera (+x) [mm] ...
+PIECE_LIFT_MM = (8.0, 0.0, 0.0)
+#: ... and turned this much about z through its centre [deg].
+PIECE_TURN_DEG = 30.0
+#: An oblique view that shows both the lifted piece and the hole it left.
+OBLIQUE_EYE = (80.0, -50.0, 30.0)
+OBLIQUE_FOCAL = (16.0, 2.0, -1.0)
+
+
+def bodies_moved(model, **scene_kw):
+    """(scene, replica): the phantom with a box of lateral mastoid split off
+    as body 1 (:data:`PIECE_LO` .. :data:`PIECE_HI`), lifted
+    :data:`PIECE_LIFT_MM` toward the case camera and turned
+    :data:`PIECE_TURN_DEG` about z through its centre, drawn by
+    ``Scene.update_bodies`` from a replica that followed the events, seen
+    from :data:`OBLIQUE_EYE`."""
+    from bonesim.engine.bodies import publish_pose, publish_split_box
+    from bonesim.engine.model import make_state
+    from bonesim.engine.replica import TissueReplica
+    from bonesim.render.scene import Scene
+
+    state = make_state(model)
+    rep = TissueReplica(model, state, surface=True)
+    b, n = publish_split_box(state, 0, PIECE_LO, PIECE_HI, 0.0)
+    g = model.grid
+    centre = g.origin_mm + g.spacing_mm * (np.add(PIECE_LO, PIECE_HI) / 2.0)
+    half = np.radians(PIECE_TURN_DEG) / 2.0
+    q = np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
+    c, s_ = np.cos(2 * half), np.sin(2 * half)
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    t = centre - rot @ centre + np.asarray(PIECE_LIFT_MM)
+    publish_pose(state, b, np.concatenate((t, q)), 0.0)
+    ch = rep.drain()
+    scene_kw.setdefault("size", SIZE)
+    scene = Scene.from_model(model, rep.surface, **scene_kw)
+    scene.update_bodies(rep, ch.changed, ch.touched)
+    scene.set_hud({})
+    scene.set_camera(OBLIQUE_EYE, OBLIQUE_FOCAL, UP)
+    return scene, rep
+
+
 def build(model, which: str, **scene_kw):
     """A Scene of the named reference picture.
 

@@ -1,0 +1,161 @@
+"""Every body of the bone drawn at its pose (part of :class:`~bonesim.render.scene.Scene`).
+
+A case's bone is a set of bodies (:mod:`bonesim.engine.bodies`); after a split
+a :class:`~bonesim.engine.replica.TissueReplica` keeps one surface per body, in
+the body's own frame (:attr:`~bonesim.engine.replica.TissueReplica.body_surfaces`),
+and the body's pose places it in the case frame
+(:meth:`~bonesim.engine.replica.TissueReplica.body_matrix`).
+:meth:`BodiesMixin.update_bodies` draws them:
+
+* body 0 (the main bone) is the scene's surface actor, drawn as before
+  (zero-copy vertex arrays, visible subset; :meth:`Scene.update_surface`),
+  with body 0's pose as the actor's user matrix when it is not the
+  identity. The visible subset is computed in body 0's frame (the camera is
+  taken into it), and a change of body 0's pose counts as a camera move;
+* every other body (a fragment) gets an actor of its own: a copy of its
+  surface's compact arrays, refreshed only when the replica reports that
+  body's surface changed (fragments are small), with the body's pose as
+  user matrix and the bone's material. Actors come and go with the bodies
+  (a reset drops them all).
+
+Units: positions [mm], case frame after the user matrix.
+"""
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.util import numpy_support
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkCommonMath import vtkMatrix4x4
+from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+
+__all__ = ["BodiesMixin", "vtk_matrix", "surface_polydata"]
+
+_IDENTITY = np.eye(4)
+
+
+def vtk_matrix(m) -> vtkMatrix4x4:
+    """A ``vtkMatrix4x4`` of a (4, 4) array_like (row-major, [mm] translation)."""
+    a = np.asarray(m, dtype=np.float64).reshape(4, 4)
+    out = vtkMatrix4x4()
+    for r in range(4):
+        for c in range(4):
+            out.SetElement(r, c, float(a[r, c]))
+    return out
+
+
+def surface_polydata(surface) -> vtkPolyData:
+    """A deep copy of a :class:`~bonesim.engine.surface.Surface` as polydata:
+    points [mm], its normals and RGBA colours as point data, its triangles."""
+    pos, nrm, col, tri = surface.arrays()
+    pd = vtkPolyData()
+    pts = vtkPoints()
+    pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(pos), deep=True))
+    pd.SetPoints(pts)
+    n = numpy_support.numpy_to_vtk(np.ascontiguousarray(nrm), deep=True)
+    n.SetName("Normals")
+    pd.GetPointData().SetNormals(n)
+    c = numpy_support.numpy_to_vtk(np.ascontiguousarray(col), deep=True,
+                                   array_type=numpy_support.get_vtk_array_type(np.uint8))
+    c.SetName("Colors")
+    pd.GetPointData().SetScalars(c)
+    cells = vtkCellArray()
+    conn = numpy_support.numpy_to_vtkIdTypeArray(
+        np.ascontiguousarray(tri, dtype=np.int64).ravel(), deep=True)
+    offs = numpy_support.numpy_to_vtkIdTypeArray(
+        np.arange(0, 3 * len(tri) + 1, 3, dtype=np.int64), deep=True)
+    cells.SetData(offs, conn)
+    pd.SetPolys(cells)
+    return pd
+
+
+class BodiesMixin:
+    """Bodies at their poses (see the module docstring). Mixed into
+    :class:`~bonesim.render.scene.Scene`, which provides ``renderer``,
+    ``surface_actor`` and :meth:`update_surface`."""
+
+    def _build_bodies(self) -> None:
+        self._body_actors: dict = {}      # body id -> (actor, surface, revision)
+        self._main_pose = None            # body 0's (4, 4) pose, None for the identity
+
+    @property
+    def body_actors(self) -> dict:
+        """Body id -> the ``vtkActor`` of each drawn body other than 0."""
+        return {b: a for b, (a, _, _) in self._body_actors.items()}
+
+    def update_bodies(self, replica, removed=None, touched=None) -> dict:
+        """Draw every body of ``replica`` at its pose (call after each
+        ``replica.apply`` / ``drain``, instead of :meth:`update_surface`).
+
+        Parameters
+        ----------
+        replica : bonesim.engine.replica.TissueReplica
+            With a surface.
+        removed, touched : (n, 3) int array_like, optional
+            For body 0's visible subset, as for :meth:`update_surface`: every
+            voxel given to a surface update since the previous call, i.e.
+            ``Changes.changed`` (removed and split off) and
+            ``Changes.touched``; None if unknown.
+
+        Returns
+        -------
+        dict
+            :meth:`update_surface`'s, plus ``bodies`` (bodies drawn) and
+            ``rebuilt`` (fragment actors refreshed by this call).
+        """
+        surfaces = replica.body_surfaces
+        if 0 not in surfaces:
+            raise ValueError("the replica keeps no surface (make it with surface=True)")
+        self._set_main_pose(replica.body_matrix(0))
+        out = self.update_surface(surfaces[0], removed, touched)
+        revs = replica.body_revisions
+        for b in [b for b in self._body_actors if b not in surfaces or b == 0]:
+            self.renderer.RemoveActor(self._body_actors.pop(b)[0])
+        rebuilt = 0
+        for b, surf in surfaces.items():
+            if b == 0:
+                continue
+            rebuilt += self._draw_body(b, surf, revs.get(b), replica.body_matrix(b))
+        out["bodies"] = len(surfaces)
+        out["rebuilt"] = rebuilt
+        return out
+
+    def _set_main_pose(self, m) -> None:
+        m = np.asarray(m, dtype=np.float64)
+        pose = None if np.array_equal(m, _IDENTITY) else m.copy()
+        old = self._main_pose
+        if (pose is None) == (old is None) and (pose is None or np.array_equal(pose, old)):
+            return
+        self._main_pose = pose
+        self.surface_actor.SetUserMatrix(None if pose is None else vtk_matrix(pose))
+        self._cam_sig = None              # the view of body 0 changed: like a camera move
+
+    def _to_main_frame(self, eye, direction):
+        """Camera eye [mm] and view direction, case frame -> body 0's frame."""
+        if self._main_pose is None:
+            return eye, direction
+        r, t = self._main_pose[:3, :3], self._main_pose[:3, 3]
+        return (tuple((np.asarray(eye) - t) @ r), tuple(np.asarray(direction) @ r))
+
+    def _draw_body(self, b: int, surf, revision, matrix) -> int:
+        """Create or refresh body ``b``'s actor; returns 1 if its geometry was
+        copied again."""
+        entry = self._body_actors.get(b)
+        fresh = entry is None or entry[1] is not surf or entry[2] != revision
+        if entry is None:
+            mapper = vtkPolyDataMapper()
+            mapper.SetColorModeToDirectScalars()
+            mapper.SetScalarModeToUsePointData()
+            mapper.ScalarVisibilityOn()
+            actor = vtkActor()
+            actor.SetMapper(mapper)
+            actor.ForceOpaqueOn()
+            actor.SetProperty(self.surface_actor.GetProperty())     # the bone's material
+            self.renderer.AddActor(actor)
+        else:
+            actor = entry[0]
+        if fresh:
+            actor.GetMapper().SetInputData(surface_polydata(surf))
+        actor.SetUserMatrix(vtk_matrix(matrix))
+        self._body_actors[b] = (actor, surf, revision)
+        return int(fresh)
