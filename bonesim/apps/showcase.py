@@ -116,7 +116,8 @@ class Showcase:
 
     # ------------------------------------------------------------ monitor
     def _start_monitor(self) -> None:
-        from bonesim.runtime.monitor import HISTORY_CAP, SPIKE_CAP, NerveMonitor, monitored_structures
+        from bonesim.runtime.monitor import (HISTORY_CAP, SPIKE_CAP, NerveMonitor,
+                                             monitored_structures)
 
         if not monitored_structures(self.model):
             return

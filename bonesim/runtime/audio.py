@@ -7,9 +7,9 @@ process of its own. It reads the haptic loop's shared status (drill, speed,
 applied force, tool position, burr) at :data:`CONTROL_HZ`, estimates the bone
 thickness under the burr by ray casting (:mod:`bonesim.engine.thickness`) on the
 shared tissue (density and the body arrays: each body near the burr is read in
-its own frame, at the pose the loop holds now), and hands the four numbers to the synthesizer, whose output
-stream (or silent sink, without a sound device) renders blocks in its own
-callback. ``wav`` records exactly what is rendered.
+its own frame, at the pose the loop holds now), and hands the four numbers to
+the synthesizer, whose output stream (or silent sink, without a sound
+device) renders blocks in its own callback. ``wav`` records exactly what is rendered.
 
 With a nerve monitor (:class:`bonesim.runtime.monitor.MonitorProcess`) the same
 process also drains the monitor's spikes and mixes a click per spike into the
