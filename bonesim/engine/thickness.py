@@ -44,8 +44,8 @@ voxels on a 2-core machine shared with other jobs: 7 mm burr pressed 1 mm
 into bone, 60 to 110 us on a 2 mm plate and 110 to 140 us on thick bone
 (rays run to ``max_mm`` = 10 mm); a 5 mm burr at first contact, 15 to 30 us.
 Passing ``max_mm`` just above the burr's ``thin_bone_mm`` (all the sound
-needs) shortens the rays in thick bone. That is affordable every haptic step but more than the sound needs:
-calling it every few milliseconds is plenty. It reads the grid without
+needs) shortens the rays in thick bone. That is affordable every haptic step
+but more than the sound needs: calling it every few milliseconds is plenty. It reads the grid without
 locks; a voxel removed meanwhile changes one sample, never crashes.
 """
 from __future__ import annotations

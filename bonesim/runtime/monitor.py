@@ -54,7 +54,8 @@ from bonesim.engine import events
 from bonesim.engine.bodies import Bodies, is_identity, majority_bodies, to_body_frame
 from bonesim.physics.clearance import Clearance
 from bonesim.errors import BonesimError
-from bonesim.physics.monitor_rings import HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history, shared_rings
+from bonesim.physics.monitor_rings import (HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history,
+                                           shared_rings)
 from bonesim.runtime.child import ChildProcess
 from bonesim.runtime.shared import SharedArrays
 from bonesim.physics.nerve_activity import (ActivityParams, activity, default_activity_params,
