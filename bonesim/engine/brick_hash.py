@@ -15,13 +15,16 @@ moves.
 
 Sphere over voxels
 ------------------
-Voxel ``(i, j, k)`` has its centre at ``origin + h * (i, j, k)`` [mm]. A
-kernel that visits the voxels whose centres lie within a radius ``r`` of a
-point ``c`` takes, per axis, the range :func:`sphere_voxel_range` (which
-holds every such voxel), walks the bricks that range touches, and in each
-brick the voxels of :func:`brick_voxel_span`; the distance test (inclusive
-or strict, as its rule says) is its own. All helpers are inlined into the
-caller (``inline="always"``), so a hot loop pays no call.
+Voxel ``(i, j, k)`` has its centre at ``origin + h * (i, j, k)`` [mm].
+:func:`sphere_cells` lists, into a caller's scratch, the voxels of the
+occupied bricks whose centres lie within a radius ``r`` of a point ``c``
+(``|x - c| <= r`` inclusive, or ``< r`` strict, as the caller's rule says),
+in one fixed order: bricks by ``(bi, bj, bk)``, voxels by ``(x, y, z)``
+inside each. Every rule that works on a sphere of cells (the dust's tool
+push, suction and wetting) walks that list, so there is one walk. Its bounds
+come from :func:`sphere_voxel_range` (per axis, a range that holds every
+such voxel) and :func:`brick_voxel_span`; :func:`sphere_cells_bound` is the
+scratch a radius needs.
 """
 from __future__ import annotations
 
@@ -32,7 +35,13 @@ from numba import njit
 
 __all__ = ["BRICK", "BRICK_SHIFT", "BRICK_MASK", "BRICK_VOXELS", "EMPTY_KEY",
            "pack_brick_key", "find_brick", "table_insert", "table_remove",
-           "sphere_voxel_range", "brick_voxel_span"]
+           "sphere_voxel_range", "brick_voxel_span", "sphere_cells", "sphere_cells_bound",
+           "SC_BRICK", "SC_OFF", "SC_I", "SC_J", "SC_K", "SC_WIDTH"]
+
+#: Columns of a :func:`sphere_cells` row: brick index, voxel offset in the
+#: brick, voxel coordinates ``i, j, k``.
+SC_BRICK, SC_OFF, SC_I, SC_J, SC_K = range(5)
+SC_WIDTH = 5
 
 BRICK = 8
 BRICK_SHIFT = 3
@@ -136,3 +145,72 @@ def brick_voxel_span(lo, hi, bc):
     that lie in the voxel range ``[lo, hi)``; empty when ``x1 <= x0``."""
     first = bc << BRICK_SHIFT
     return max(lo - first, 0), min(hi - first, BRICK)
+
+
+def sphere_cells_bound(radius_mm: float, spacing_mm: float) -> int:
+    """Rows of scratch :func:`sphere_cells` may fill for a sphere of
+    ``radius_mm`` [mm] on voxels of ``spacing_mm`` [mm] (the voxels of the
+    ranges :func:`sphere_voxel_range` gives, whatever the centre)."""
+    n = int(math.floor(2.0 * float(radius_mm) / float(spacing_mm))) + 4
+    return n * n * n
+
+
+@njit(cache=True, nogil=True)
+def sphere_cells(keys, vals, occupied, cx, cy, cz, rad, ox, oy, oz, h, inclusive, out):
+    """List the voxels of a sphere (see the module docstring).
+
+    Parameters
+    ----------
+    keys, vals : hash table of the bricks
+    occupied : (n_bricks,) int array
+        Bricks whose entry is 0 are skipped (e.g. the dust's brick masses).
+    cx, cy, cz, rad : float
+        Centre and radius [mm].
+    ox, oy, oz, h : float
+        Centre of voxel (0, 0, 0) and voxel edge [mm].
+    inclusive : bool
+        Voxels at exactly ``rad`` count (``<=``) or not (``<``).
+    out : (m, SC_WIDTH) int64
+        Rows ``(brick, offset, i, j, k)``; ``m`` at least
+        :func:`sphere_cells_bound` of ``rad``.
+
+    Returns
+    -------
+    int
+        Rows written (brick by brick, in the module docstring's order).
+    """
+    r2 = rad * rad
+    i0, i1 = sphere_voxel_range(cx, rad, ox, h)
+    j0, j1 = sphere_voxel_range(cy, rad, oy, h)
+    k0, k1 = sphere_voxel_range(cz, rad, oz, h)
+    if (i1 - i0) * (j1 - j0) * (k1 - k0) > out.shape[0]:
+        raise ValueError("sphere_cells: scratch smaller than sphere_cells_bound")
+    n = 0
+    for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
+        for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
+            for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
+                b = find_brick(keys, vals, bi, bj, bk)
+                if b < 0 or occupied[b] == 0:
+                    continue
+                x0, x1 = brick_voxel_span(i0, i1, bi)
+                y0, y1 = brick_voxel_span(j0, j1, bj)
+                z0, z1 = brick_voxel_span(k0, k1, bk)
+                for x in range(x0, x1):
+                    ci = (bi << BRICK_SHIFT) + x
+                    dx = (ox + h * ci) - cx
+                    for y in range(y0, y1):
+                        cj = (bj << BRICK_SHIFT) + y
+                        dy = (oy + h * cj) - cy
+                        for z in range(z0, z1):
+                            ck = (bk << BRICK_SHIFT) + z
+                            dz = (oz + h * ck) - cz
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 > r2 or (d2 == r2 and not inclusive):
+                                continue
+                            out[n, 0] = b
+                            out[n, 1] = (x << 6) | (y << 3) | z
+                            out[n, 2] = ci
+                            out[n, 3] = cj
+                            out[n, 4] = ck
+                            n += 1
+    return n

@@ -185,7 +185,8 @@ from bonesim.engine import events
 from bonesim.engine.bodies import all_identity
 from bonesim.physics.dust_bodies import case_cells, wall_arrays
 from bonesim.physics.dust_params import DustParams
-from bonesim.physics.dust_sprites import DustSprites, _fill, _stamp
+from bonesim.physics.dust_sprites import DustSprites, gather_sprites
+from bonesim.engine.brick_hash import SC_WIDTH, sphere_cells_bound
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
 
 __all__ = ["DustGrid", "DustParams", "DustSprites", "Q", "Q_SHIFT", "FULL",
@@ -275,6 +276,7 @@ class DustGrid:
         self._ip = np.zeros(_N_IP, dtype=np.int64)
         self._fp = np.zeros(_N_FP, dtype=np.float64)
         self._sc = np.zeros(_SC_SIZE, dtype=np.int64)
+        self._cells = np.zeros((0, SC_WIDTH), dtype=np.int64)   # sphere_cells scratch
         self._wall = np.zeros(BRICK_VOXELS, dtype=np.uint8)
         self._elig = np.zeros(BRICK_VOXELS, dtype=np.uint8)
         self._flux = np.zeros(BRICK_VOXELS, dtype=np.int64)
@@ -556,30 +558,9 @@ class DustGrid:
             raise ValueError(f"jitter must lie in [0, 0.5] cell edges, got {jit}")
         tq = int(math.floor(thr * Q))
         cover = int(math.floor(p.sprite_cover * Q))
-        top = bool(top_only)
-        ip = self._ip
-        dom, dsgn = int(ip[I_DOM]), int(ip[I_DSGN])
-        up = -dsgn
-        up_dd = 2 * dom + (1 if up > 0 else 0)
-        now = float(self.time_s)
-        counts = []
-        for g in self._species():
-            counts.append(int(_stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, tq,
-                                     g.bcoord, g.nbr, g._seen, g._seen_key, now, dom, up,
-                                     up_dd, top, cover)))
-        n = sum(counts)
-        pos = np.empty((n, 3), dtype=np.float32)
-        val = np.empty(n, dtype=np.float32)
-        age = np.empty(n, dtype=np.float32)
-        wet = np.zeros(n, dtype=np.uint8)
-        start = 0
-        for salt, (g, c) in enumerate(zip(self._species(), counts)):
-            end = _fill(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, tq, g.bcoord,
-                        g.nbr, g._seen, now, dom, up, up_dd, top, cover, self.origin_mm,
-                        self.spacing_mm, jit, salt, pos, val, age, start)
-            wet[start:end] = salt
-            start = end
-        return DustSprites(pos, val, self.spacing_mm, age, wet)
+        return gather_sprites(self._species(), tq, cover, int(self._ip[I_DOM]),
+                              int(self._ip[I_DSGN]), bool(top_only), float(self.time_s),
+                              self.origin_mm, self.spacing_mm, jit)
 
     # ------------------------------------------------------------ updates
     def add_removed(self, ijk, amount=None, *, body=None, bodies=None) -> None:
@@ -712,8 +693,7 @@ class DustGrid:
 
     def _irrigate(self, pos, rad, dt) -> None:
         """Rule 5: move dry dust within ``rad`` of ``pos`` to the wet species."""
-        h = self.spacing_mm
-        n_box = int(math.ceil(2 * rad / h) + 4) ** 3
+        n_box = self._sphere_scratch(rad)
         if self._wet_out[1].shape[0] < n_box:
             self._wet_out = (np.zeros((n_box, 3), np.int64), np.zeros(n_box, np.int64))
         ip, fp = self._ip, self._fp
@@ -722,9 +702,17 @@ class DustGrid:
         fp[F_WR] = rad
         out_ijk, out_q = self._wet_out
         n = int(_wet_out(self.keys, self.vals, self.dens, self.bmass, self._ctr, ip, fp,
-                         out_ijk, out_q))
+                         self._cells, out_ijk, out_q))
         if n:
             self.wet._add_q(out_ijk[:n], out_q[:n])
+
+    def _sphere_scratch(self, *radii_mm) -> int:
+        """Grow the scratch of the sphere walk for spheres of these radii
+        [mm]; returns the rows one may fill."""
+        n = max(sphere_cells_bound(r, self.spacing_mm) for r in radii_mm)
+        if self._cells.shape[0] < n:
+            self._cells = np.zeros((n, SC_WIDTH), dtype=np.int64)
+        return n
 
     def _add_q(self, ijk, amount_q) -> None:
         """Add ``amount_q`` [1/Q cells] to cells ``ijk`` (n, 3) int64 (valid)."""
@@ -766,13 +754,15 @@ class DustGrid:
             fp[F_SR] = _nonneg(suction_radius_mm, "suction_radius_mm")
         fp[F_OX:F_OZ + 1] = self.origin_mm
         fp[F_H] = self.spacing_mm
+        self._sphere_scratch(fp[F_TR] if ip[I_TOOL] else 0.0,
+                             fp[F_SR] if ip[I_SUCTION] else 0.0)
         stage = STAGE_GRAVITY
         while True:
             stage = _step_kernel(stage, self.keys, self.vals, self.bcoord, self.nbr,
                                  self.alive, self.dens, self.bmass, self.bone_b, self.free,
                                  self._ctr, self._bkeys, self._bvals, bone_dens,
                                  walls[0], walls[1], self._active, self.bounds, ip, fp, self._sc,
-                                 self._wall, self._elig, self._flux)
+                                 self._wall, self._elig, self._flux, self._cells)
             if stage == STAGE_DONE:
                 break
             self._reserve(int(self._ctr[C_NEED]))

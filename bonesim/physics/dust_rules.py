@@ -19,7 +19,7 @@ from bonesim.physics.dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_SHIFT, C_ADDED
                                          I_GWQ, I_KQ, I_LAT0, I_LAT1, I_NG, I_RATE, I_REPOSE, I_SEARCH,
                                          I_SRATE, I_SUCTION, I_TOOL, I_WRATE, STAGE_DONE, STAGE_GRAVITY,
                                          STAGE_SPILL, STAGE_TOOL, _brick_in_domain, _insert_brick)
-from bonesim.engine.brick_hash import brick_voxel_span, sphere_voxel_range
+from bonesim.engine.brick_hash import SC_BRICK, SC_I, SC_J, SC_K, SC_OFF, sphere_cells
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
 
 __all__ = []
@@ -445,7 +445,7 @@ def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens, bone_b
 
 @njit(cache=True, nogil=True)
 def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-               bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp):
+               bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp, cells):
     """Rule 3, in place on the current buffer.
 
     Returns 0, or (changing nothing) an upper bound on the bricks needed for
@@ -454,137 +454,93 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
     ctr[C_PUSHED] = 0
     if ip[I_TOOL] == 0 or rad <= 0.0:
         return 0
-    h = fp[F_H]
-    r2 = rad * rad
     search = ip[I_SEARCH]
-    i0, i1 = sphere_voxel_range(fp[F_TX], rad, fp[F_OX], h)
-    j0, j1 = sphere_voxel_range(fp[F_TY], rad, fp[F_OY], h)
-    k0, k1 = sphere_voxel_range(fp[F_TZ], rad, fp[F_OZ], h)
+    m = sphere_cells(keys, vals, bmass, fp[F_TX], fp[F_TY], fp[F_TZ], rad, fp[F_OX],
+                     fp[F_OY], fp[F_OZ], fp[F_H], False, cells)
     cur = ctr[C_CUR]
     den = dens[cur]
     oth = dens[1 - cur]
-    # pass 0: count missing target bricks, pass 1: allocate them, pass 2: move
+    # pass 0: count missing target bricks, pass 1: allocate them, pass 2: move.
+    # Targets lie outside the sphere, so no pass moves dust into a listed cell.
     need = 0
     for mode in range(3):
         if mode == 1 and need == 0:
             continue                      # every target brick exists
         need = 0
-        for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
-            for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
-                for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
-                    b = find_brick(keys, vals, bi, bj, bk)
-                    if b < 0 or bmass[b] == 0:
-                        continue
-                    x0, x1 = brick_voxel_span(i0, i1, bi)
-                    y0, y1 = brick_voxel_span(j0, j1, bj)
-                    z0, z1 = brick_voxel_span(k0, k1, bk)
-                    for x in range(x0, x1):
-                        ci = (bi << BRICK_SHIFT) + x
-                        dx = (fp[F_OX] + h * ci) - fp[F_TX]
-                        for y in range(y0, y1):
-                            cj = (bj << BRICK_SHIFT) + y
-                            dy = (fp[F_OY] + h * cj) - fp[F_TY]
-                            for z in range(z0, z1):
-                                ck = (bk << BRICK_SHIFT) + z
-                                off = (x << 6) | (y << 3) | z
-                                d = np.int64(den[b, off])
-                                if d <= 0:
-                                    continue
-                                dz = (fp[F_OZ] + h * ck) - fp[F_TZ]
-                                if dx * dx + dy * dy + dz * dz >= r2:
-                                    continue
-                                ok, ti, tj, tk = _push_target(ci, cj, ck, fp, search,
-                                                              bounds, bkeys, bvals,
-                                                              bone_dens, bone_body, wall_body)
-                                if not ok:
-                                    continue
-                                tb = find_brick(keys, vals, ti >> BRICK_SHIFT,
-                                                tj >> BRICK_SHIFT, tk >> BRICK_SHIFT)
-                                if mode == 0:
-                                    if tb < 0:
-                                        need += 1
-                                elif mode == 1:
-                                    if tb < 0:
-                                        _insert_brick(keys, vals, bcoord, nbr, alive, dens,
-                                                      bmass, bone_b, free, ctr, bkeys,
-                                                      bvals, ti >> BRICK_SHIFT,
-                                                      tj >> BRICK_SHIFT, tk >> BRICK_SHIFT)
-                                else:
-                                    toff = voxel_offset(ti, tj, tk)
-                                    den[b, off] = 0
-                                    den[tb, toff] += d
-                                    ctr[C_PUSHED] += d
-                                    if tb != b:
-                                        bmass[b] -= d
-                                        bmass[tb] += d
-                                        if bmass[b] == 0:
-                                            for o in range(BRICK_VOXELS):
-                                                oth[b, o] = 0
+        for q in range(m):
+            b = cells[q, SC_BRICK]
+            off = cells[q, SC_OFF]
+            d = np.int64(den[b, off])
+            if d <= 0:
+                continue
+            ok, ti, tj, tk = _push_target(cells[q, SC_I], cells[q, SC_J], cells[q, SC_K], fp,
+                                          search, bounds, bkeys, bvals, bone_dens, bone_body,
+                                          wall_body)
+            if not ok:
+                continue
+            tb = find_brick(keys, vals, ti >> BRICK_SHIFT, tj >> BRICK_SHIFT, tk >> BRICK_SHIFT)
+            if mode == 0:
+                if tb < 0:
+                    need += 1
+            elif mode == 1:
+                if tb < 0:
+                    _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
+                                  ctr, bkeys, bvals, ti >> BRICK_SHIFT, tj >> BRICK_SHIFT,
+                                  tk >> BRICK_SHIFT)
+            else:
+                toff = voxel_offset(ti, tj, tk)
+                den[b, off] = 0
+                den[tb, toff] += d
+                ctr[C_PUSHED] += d
+                if tb != b:
+                    bmass[b] -= d
+                    bmass[tb] += d
+                    if bmass[b] == 0:
+                        for o in range(BRICK_VOXELS):
+                            oth[b, o] = 0
         if mode == 0 and need > ctr[C_NFREE]:
             return need
     return 0
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _take_sphere(keys, vals, den, oth, bmass, cx, cy, cz, rad, fp, rate, out_ijk, out_q):
-    """The one walk over the cells of a sphere (centre ``c`` [mm], radius
-    ``rad`` [mm]) that suction and wetting share: every cell whose centre
-    lies within ``rad`` loses ``min(d, rate)`` of its dust ``d``. A brick
-    left empty has its other buffer cleared. With ``out_q`` of length > 0
-    the cells and amounts taken are listed in ``out_ijk`` / ``out_q`` (which
-    must hold every cell of the sphere's box).
+def _take_sphere(keys, vals, den, oth, bmass, cx, cy, cz, rad, fp, rate, cells, out_ijk, out_q):
+    """Suction's and wetting's rule on the cells of a sphere (centre ``c``
+    [mm], radius ``rad`` [mm], listed by :func:`sphere_cells` into ``cells``):
+    every cell whose centre lies within ``rad`` loses ``min(d, rate)`` of its
+    dust ``d``. A brick left empty has its other buffer cleared. With
+    ``out_q`` of length > 0 the cells and amounts taken are listed in
+    ``out_ijk`` / ``out_q`` (which must hold every cell of the sphere).
 
     Returns ``(total taken, cells listed)``."""
-    h = fp[F_H]
-    r2 = rad * rad
-    i0, i1 = sphere_voxel_range(cx, rad, fp[F_OX], h)
-    j0, j1 = sphere_voxel_range(cy, rad, fp[F_OY], h)
-    k0, k1 = sphere_voxel_range(cz, rad, fp[F_OZ], h)
+    m = sphere_cells(keys, vals, bmass, cx, cy, cz, rad, fp[F_OX], fp[F_OY], fp[F_OZ],
+                     fp[F_H], True, cells)
     listing = out_q.shape[0] > 0
     total = np.int64(0)
     n = 0
-    for bi in range(i0 >> BRICK_SHIFT, ((i1 - 1) >> BRICK_SHIFT) + 1):
-        for bj in range(j0 >> BRICK_SHIFT, ((j1 - 1) >> BRICK_SHIFT) + 1):
-            for bk in range(k0 >> BRICK_SHIFT, ((k1 - 1) >> BRICK_SHIFT) + 1):
-                b = find_brick(keys, vals, bi, bj, bk)
-                if b < 0 or bmass[b] == 0:
-                    continue
-                x0, x1 = brick_voxel_span(i0, i1, bi)
-                y0, y1 = brick_voxel_span(j0, j1, bj)
-                z0, z1 = brick_voxel_span(k0, k1, bk)
-                for x in range(x0, x1):
-                    ci = (bi << BRICK_SHIFT) + x
-                    dx = (fp[F_OX] + h * ci) - cx
-                    for y in range(y0, y1):
-                        cj = (bj << BRICK_SHIFT) + y
-                        dy = (fp[F_OY] + h * cj) - cy
-                        for z in range(z0, z1):
-                            ck = (bk << BRICK_SHIFT) + z
-                            off = (x << 6) | (y << 3) | z
-                            d = np.int64(den[b, off])
-                            if d <= 0:
-                                continue
-                            dz = (fp[F_OZ] + h * ck) - cz
-                            if dx * dx + dy * dy + dz * dz > r2:
-                                continue
-                            f = d if d < rate else rate
-                            den[b, off] = d - f
-                            bmass[b] -= f
-                            total += f
-                            if listing:
-                                out_ijk[n, 0] = ci
-                                out_ijk[n, 1] = cj
-                                out_ijk[n, 2] = ck
-                                out_q[n] = f
-                                n += 1
-                if bmass[b] == 0:
-                    for o in range(BRICK_VOXELS):
-                        oth[b, o] = 0
+    for q in range(m):
+        b = cells[q, SC_BRICK]
+        off = cells[q, SC_OFF]
+        d = np.int64(den[b, off])
+        if d > 0:
+            f = d if d < rate else rate
+            den[b, off] = d - f
+            bmass[b] -= f
+            total += f
+            if listing:
+                out_ijk[n, 0] = cells[q, SC_I]
+                out_ijk[n, 1] = cells[q, SC_J]
+                out_ijk[n, 2] = cells[q, SC_K]
+                out_q[n] = f
+                n += 1
+        if (q == m - 1 or cells[q + 1, SC_BRICK] != b) and bmass[b] == 0:
+            for o in range(BRICK_VOXELS):     # the brick's last listed cell
+                oth[b, o] = 0
     return total, n
 
 
 @njit(cache=True, nogil=True)
-def _suction(keys, vals, dens, bmass, ctr, ip, fp):
+def _suction(keys, vals, dens, bmass, ctr, ip, fp, cells):
     """Rule 4, in place on the current buffer."""
     ctr[C_SUCKED_STEP] = 0
     rad = fp[F_SR]
@@ -592,7 +548,7 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
     if ip[I_SUCTION] == 0 or rad <= 0.0 or rate <= 0:
         return
     total, _ = _take_sphere(keys, vals, dens[ctr[C_CUR]], dens[1 - ctr[C_CUR]], bmass,
-                            fp[F_SX], fp[F_SY], fp[F_SZ], rad, fp, rate,
+                            fp[F_SX], fp[F_SY], fp[F_SZ], rad, fp, rate, cells,
                             np.empty((0, 3), np.int64), np.empty(0, np.int64))  # no listing
     ctr[C_SUCKED] += total
     ctr[C_SUCKED_STEP] = total
@@ -601,9 +557,10 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp):
 @njit(cache=True, nogil=True)
 def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                  bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, fp, sc, wall,
-                 elig, flux):
+                 elig, flux, cells):
     """Rules 1-4 from ``stage`` on. Returns :data:`STAGE_DONE`, or the stage to
-    resume at after the wrapper has made ``ctr[C_NEED]`` bricks available."""
+    resume at after the wrapper has made ``ctr[C_NEED]`` bricks available.
+    ``cells``: scratch of :func:`sphere_cells` for the tool and suction radii."""
     ctr[C_NEED] = 0
     if stage <= STAGE_GRAVITY:
         need = _jacobi(0, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
@@ -621,11 +578,11 @@ def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, fre
             return STAGE_SPILL
     if stage <= STAGE_TOOL:
         need = _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
-                          bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp)
+                          bkeys, bvals, bone_dens, bone_body, wall_body, bounds, ip, fp, cells)
         if need:
             ctr[C_NEED] = need
             return STAGE_TOOL
-    _suction(keys, vals, dens, bmass, ctr, ip, fp)
+    _suction(keys, vals, dens, bmass, ctr, ip, fp, cells)
     return STAGE_DONE
 
 
@@ -655,7 +612,7 @@ def _recount(alive, hw, den):
 
 
 @njit(cache=True, nogil=True)
-def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, out_ijk, out_q):
+def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, cells, out_ijk, out_q):
     """Rule 5 (wetting), in place on the current buffer: every cell whose
     centre lies within the irrigation radius of its centre loses
     ``min(d, wet_rate)``; the cells and amounts are written to ``out_ijk``
@@ -668,6 +625,7 @@ def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, out_ijk, out_q):
     if rad <= 0.0 or rate <= 0:
         return 0
     total, n = _take_sphere(keys, vals, dens[ctr[C_CUR]], dens[1 - ctr[C_CUR]], bmass,
-                            fp[F_WX], fp[F_WY], fp[F_WZ], rad, fp, rate, out_ijk, out_q)
+                            fp[F_WX], fp[F_WY], fp[F_WZ], rad, fp, rate, cells, out_ijk,
+                            out_q)
     ctr[C_WETTED] += total
     return n

@@ -25,10 +25,10 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from bonesim.physics.dust_bricks import _FULL_Q
+from bonesim.physics.dust_bricks import _FULL_Q, C_HW
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, pack_brick_key
 
-__all__ = ["DustSprites", "cell_jitter"]
+__all__ = ["DustSprites", "cell_jitter", "gather_sprites"]
 
 # splitmix64 constants (a well-mixed integer hash)
 _M1 = np.uint64(0x9E3779B97F4A7C15)
@@ -166,3 +166,46 @@ def _fill(alive, bmass, hw, den, thr, bcoord, nbr, seen, now, dom, up, up_dd, to
             age[n] = now - seen[b, o]
             n += 1
     return n
+
+
+def gather_sprites(species, thr_q, cover_q, dom, dsgn, top_only, now, origin_mm, spacing_mm,
+                   jitter) -> DustSprites:
+    """The sprites of dust species (:meth:`bonesim.physics.dust.DustGrid.sprites`).
+
+    Parameters
+    ----------
+    species : sequence of DustGrid
+        Dry first, then wet (a sprite's ``wet`` is its species' index).
+    thr_q, cover_q : int
+        Sprite threshold and cover [1/Q cells].
+    dom, dsgn : int
+        Gravity's dominant axis and its sign.
+    top_only : bool
+        Only the top layer (see :func:`_visible`).
+    now : float
+        Simulated time [s] stamped on newly seen cells.
+    origin_mm : (3,) float
+        Centre of cell (0, 0, 0) [mm].
+    spacing_mm : float
+        Cell edge [mm].
+    jitter : float
+        Largest offset from a cell centre per axis [cell edges].
+    """
+    up = -dsgn
+    up_dd = 2 * dom + (1 if up > 0 else 0)
+    counts = [int(_stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord,
+                         g.nbr, g._seen, g._seen_key, now, dom, up, up_dd, top_only, cover_q))
+              for g in species]
+    n = sum(counts)
+    pos = np.empty((n, 3), dtype=np.float32)
+    val = np.empty(n, dtype=np.float32)
+    age = np.empty(n, dtype=np.float32)
+    wet = np.zeros(n, dtype=np.uint8)
+    start = 0
+    for salt, g in enumerate(species):
+        end = _fill(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord, g.nbr,
+                    g._seen, now, dom, up, up_dd, top_only, cover_q, origin_mm, spacing_mm,
+                    jitter, salt, pos, val, age, start)
+        wet[start:end] = salt
+        start = end
+    return DustSprites(pos, val, spacing_mm, age, wet)

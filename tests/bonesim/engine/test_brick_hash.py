@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bonesim.engine.brick_hash import (BRICK, EMPTY_KEY, brick_voxel_span, find_brick,
-                                       pack_brick_key, sphere_voxel_range, table_insert,
-                                       table_remove)
+                                       pack_brick_key, sphere_cells, sphere_cells_bound,
+                                       sphere_voxel_range, table_insert, table_remove)
 
 _COORD = st.integers(-40, 40)
 
@@ -66,3 +66,37 @@ def test_brick_span_is_the_range_inside_the_brick(lo, n, bc):
     x0, x1 = brick_voxel_span(lo, hi, bc)
     want = [x for x in range(BRICK) if lo <= bc * BRICK + x < hi]
     assert list(range(x0, x1)) == want
+
+
+@settings(max_examples=60, deadline=None)
+@given(c=st.tuples(*[st.floats(-6.0, 6.0)] * 3), r=st.floats(0.0, 4.0),
+       h=st.sampled_from([0.25, 0.5, 0.7]), inclusive=st.booleans(),
+       seed=st.integers(0, 2**31 - 1))
+def test_sphere_cells_lists_exactly_the_voxels_within_reach(c, r, h, inclusive, seed):
+    rng = np.random.default_rng(seed)
+    o = np.array([-0.3, 0.1, 0.2])
+    # bricks around the sphere; some missing, some present but unoccupied
+    coords = [(bi, bj, bk) for bi in range(-3, 3) for bj in range(-3, 3) for bk in range(-3, 3)]
+    keep = [q for q in coords if rng.random() < 0.7]
+    keys = np.full(1024, EMPTY_KEY, dtype=np.int64)
+    vals = np.full(1024, -1, dtype=np.int32)
+    for n, (bi, bj, bk) in enumerate(keep):
+        table_insert(keys, vals, pack_brick_key(bi, bj, bk), n)
+    occupied = (rng.random(len(keep)) < 0.8).astype(np.int64)
+    out = np.zeros((sphere_cells_bound(r, h), 5), np.int64)
+    n = sphere_cells(keys, vals, occupied, c[0], c[1], c[2], r, o[0], o[1], o[2], h,
+                     inclusive, out)
+    # brute force: every voxel of every occupied brick, in brick then voxel order
+    want = []
+    for b, (bi, bj, bk) in sorted(enumerate(keep), key=lambda t: t[1]):
+        if not occupied[b]:
+            continue
+        for x in range(BRICK):
+            for y in range(BRICK):
+                for z in range(BRICK):
+                    ijk = (bi * BRICK + x, bj * BRICK + y, bk * BRICK + z)
+                    d = [(o[a] + h * ijk[a]) - c[a] for a in range(3)]
+                    d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                    if d2 < r * r or (inclusive and d2 == r * r):
+                        want.append((b, (x << 6) | (y << 3) | z, *ijk))
+    assert [tuple(row) for row in out[:n].tolist()] == want
