@@ -543,20 +543,38 @@ def pose_groups(bodies, out=None) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _voxel_bodies(keys, vals, body, ijk, out):
+def _voxel_bodies(keys, vals, body, ijk, none, out):
     for q in range(ijk.shape[0]):
         i, j, k = ijk[q, 0], ijk[q, 1], ijk[q, 2]
         b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
-        out[q] = body[b, voxel_offset(i, j, k)] if b >= 0 else 0
+        out[q] = body[b, voxel_offset(i, j, k)] if b >= 0 else none
 
 
-def voxel_bodies(grid, body, ijk) -> np.ndarray:
-    """The body of each voxel ``ijk`` (n, 3) int of ``grid`` [(n,) uint8;
-    0 where the grid has no brick]. A removed voxel keeps its body id, so this
-    names the body a removal came from."""
+def voxel_bodies(grid, body, ijk, none: int = 0) -> np.ndarray:
+    """The body of each voxel.
+
+    A removed voxel keeps its body id, so this names the body a removal came
+    from.
+
+    Parameters
+    ----------
+    grid : Grid
+        Its brick table is read.
+    body : (n_bricks, 512) uint8
+        Body id per voxel (a state's ``body``).
+    ijk : (n, 3) int
+        Voxels, grid coordinates.
+    none : int
+        The id given to voxels outside the grid's bricks (default 0, the
+        main body; :data:`BODY_LIMIT` to tell them apart).
+
+    Returns
+    -------
+    (n,) int32
+    """
     ijk = np.ascontiguousarray(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
-    out = np.zeros(len(ijk), np.uint8)
-    _voxel_bodies(grid.keys, grid.vals, body, ijk, out)
+    out = np.zeros(len(ijk), np.int32)
+    _voxel_bodies(grid.keys, grid.vals, body, ijk, int(none), out)
     return out
 
 

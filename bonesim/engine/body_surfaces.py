@@ -53,14 +53,14 @@ import math
 import numpy as np
 from numba import njit
 
-from bonesim.engine.bodies import BODY_LIMIT
+from bonesim.engine.bodies import BODY_LIMIT, voxel_bodies
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, Grid, find_brick, voxel_offset
 from bonesim.engine.normals import NORMAL_RADIUS
 from bonesim.engine.shading import load_shading
 from bonesim.engine.surface import Surface
 from bonesim.engine.thin_bone import tint_reach
 
-__all__ = ["BodySurfaces", "margin_bricks", "masked_density", "body_ids"]
+__all__ = ["BodySurfaces", "margin_bricks", "masked_density"]
 
 _NO_IJK = np.zeros((0, 3), np.int32)
 
@@ -81,39 +81,8 @@ def _sync_body(keys, vals, density, body, bid, bkeys, bvals, bdensity, ijk):
         bdensity[bb, off] = d
 
 
-@njit(cache=True, nogil=True)
-def _body_ids(keys, vals, body, ijk, none, out):
-    for q in range(ijk.shape[0]):
-        i, j, k = ijk[q, 0], ijk[q, 1], ijk[q, 2]
-        g = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
-        out[q] = none if g < 0 else body[g, voxel_offset(i, j, k)]
-
-
 def _ijk(a) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(a, dtype=np.int32).reshape(-1, 3))
-
-
-def body_ids(state, ijk) -> np.ndarray:
-    """The body id of each voxel.
-
-    Parameters
-    ----------
-    state : State
-        Its ``grid`` (brick table) and ``body`` ids.
-    ijk : (n, 3) int
-        Voxels (grid coordinates).
-
-    Returns
-    -------
-    (n,) int32
-        Body ids; :data:`bonesim.engine.bodies.BODY_LIMIT` for voxels outside the
-        allocated bricks.
-    """
-    ijk = _ijk(ijk)
-    out = np.empty(len(ijk), np.int32)
-    g = state.grid
-    _body_ids(g.keys, g.vals, state.body, ijk, BODY_LIMIT, out)
-    return out
 
 
 def masked_density(state, b: int, sel=None) -> np.ndarray:
@@ -293,7 +262,8 @@ class BodySurfaces:
         removed, touched, split_ijk = _ijk(removed), _ijk(touched), _ijk(split_ijk)
         split_src = np.asarray(split_src, dtype=np.int64).reshape(-1)
         built = set(int(b) for b in built)
-        rid, tid = body_ids(state, removed), body_ids(state, touched)
+        rid = voxel_bodies(g, state.body, removed, none=BODY_LIMIT)
+        tid = voxel_bodies(g, state.body, touched, none=BODY_LIMIT)
         out = {}
         for b in list(self.surfaces):
             if b in built:

@@ -78,6 +78,63 @@ _SOBEL = (1.0, 2.0, 1.0)
 _NO_BRICK = -2
 
 
+_NO_LABELS = np.zeros((1, 1), dtype=np.uint8)    # label / bone arrays of the tissue-only ray
+_ALL_BONE = np.ones(1, dtype=np.uint8)
+
+
+@njit(cache=True, nogil=True)
+def _march(keys, vals, density, label, bone, use_bone, body, group, gsel, origin, inv_h, px,
+           py, pz, nx, ny, nz, step, max_mm, structures_only):
+    # exit_ray; with gsel >= 0 only voxels whose body is in group gsel
+    # (group[body] == gsel) are tissue, the others empty
+    if step >= max_mm:
+        return max_mm, 0
+    cbi = cbj = cbk = np.int64(0)
+    cb = np.int64(_NO_BRICK)
+    lo = 0.0
+    hi = step
+    marching = True
+    met = 0
+    iters = 0
+    while True:
+        t = hi if marching else 0.5 * (lo + hi)
+        i = int(math.floor((px + t * nx - origin[0]) * inv_h + 0.5))
+        j = int(math.floor((py + t * ny - origin[1]) * inv_h + 0.5))
+        k = int(math.floor((pz + t * nz - origin[2]) * inv_h + 0.5))
+        bi, bj, bk = i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT
+        if bi != cbi or bj != cbj or bk != cbk or cb == _NO_BRICK:
+            cbi, cbj, cbk = bi, bj, bk
+            cb = np.int64(find_brick(keys, vals, bi, bj, bk))
+        inside = False
+        lab = 0
+        if cb >= 0:
+            o = voxel_offset(i, j, k)
+            if density[cb, o] > 0.0 and (gsel < 0 or group[body[cb, o]] == gsel):
+                inside = True
+                if use_bone:
+                    lab = np.int64(label[cb, o])
+                    inside = bone[lab] != 0
+        if marching:
+            if inside:
+                lo = hi
+                hi += step
+                if hi >= max_mm:
+                    return max_mm, 0
+            else:
+                if structures_only and lab == 0:
+                    return max_mm, 0
+                marching = False
+                met = lab
+        else:
+            if inside:
+                lo = t
+            else:
+                hi = t
+            iters += 1
+            if iters == BISECT_ITERS:
+                return 0.5 * (lo + hi), met
+
+
 @njit(cache=True, nogil=True)
 def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, pz,
              nx, ny, nz, step, max_mm, structures_only=False):
@@ -123,56 +180,8 @@ def exit_ray(keys, vals, density, label, bone, use_bone, origin, inv_h, px, py, 
         occupied (density > 0), else 0 (empty space, or no exit before
         ``max_mm``).
     """
-    if step >= max_mm:
-        return max_mm, 0
-    cbi = cbj = cbk = np.int64(0)
-    cb = np.int64(_NO_BRICK)
-    lo = 0.0
-    hi = step
-    marching = True
-    met = 0
-    iters = 0
-    while True:
-        t = hi if marching else 0.5 * (lo + hi)
-        i = int(math.floor((px + t * nx - origin[0]) * inv_h + 0.5))
-        j = int(math.floor((py + t * ny - origin[1]) * inv_h + 0.5))
-        k = int(math.floor((pz + t * nz - origin[2]) * inv_h + 0.5))
-        bi, bj, bk = i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT
-        if bi != cbi or bj != cbj or bk != cbk or cb == _NO_BRICK:
-            cbi, cbj, cbk = bi, bj, bk
-            cb = np.int64(find_brick(keys, vals, bi, bj, bk))
-        inside = False
-        lab = 0
-        if cb >= 0:
-            o = voxel_offset(i, j, k)
-            if density[cb, o] > 0.0:
-                inside = True
-                if use_bone:
-                    lab = np.int64(label[cb, o])
-                    inside = bone[lab] != 0
-        if marching:
-            if inside:
-                lo = hi
-                hi += step
-                if hi >= max_mm:
-                    return max_mm, 0
-            else:
-                if structures_only and lab == 0:
-                    return max_mm, 0
-                marching = False
-                met = lab
-        else:
-            if inside:
-                lo = t
-            else:
-                hi = t
-            iters += 1
-            if iters == BISECT_ITERS:
-                return 0.5 * (lo + hi), met
-
-
-_NO_LABELS = np.zeros((1, 1), dtype=np.uint8)    # label / bone arrays of the tissue-only ray
-_ALL_BONE = np.ones(1, dtype=np.uint8)
+    return _march(keys, vals, density, label, bone, use_bone, _NO_BODY, _NO_GROUP, -1, origin,
+                  inv_h, px, py, pz, nx, ny, nz, step, max_mm, structures_only)
 
 
 @njit(cache=True, nogil=True)
@@ -191,43 +200,9 @@ def _exit_selected(keys, vals, density, body, group, gsel, origin, inv_h, px, py
                    nx, ny, nz, step, max_mm):
     """:func:`_exit_distance` reading only the voxels whose body is in group
     ``gsel`` (``group[body] == gsel``) as tissue; the others are empty."""
-    if step >= max_mm:
-        return max_mm
-    cbi = cbj = cbk = np.int64(0)
-    cb = np.int64(_NO_BRICK)
-    lo = 0.0
-    hi = step
-    marching = True
-    iters = 0
-    while True:
-        t = hi if marching else 0.5 * (lo + hi)
-        i = int(math.floor((px + t * nx - origin[0]) * inv_h + 0.5))
-        j = int(math.floor((py + t * ny - origin[1]) * inv_h + 0.5))
-        k = int(math.floor((pz + t * nz - origin[2]) * inv_h + 0.5))
-        bi, bj, bk = i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT
-        if bi != cbi or bj != cbj or bk != cbk or cb == _NO_BRICK:
-            cbi, cbj, cbk = bi, bj, bk
-            cb = np.int64(find_brick(keys, vals, bi, bj, bk))
-        inside = False
-        if cb >= 0:
-            o = voxel_offset(i, j, k)
-            inside = density[cb, o] > 0.0 and group[body[cb, o]] == gsel
-        if marching:
-            if inside:
-                lo = hi
-                hi += step
-                if hi >= max_mm:
-                    return max_mm
-            else:
-                marching = False
-        else:
-            if inside:
-                lo = t
-            else:
-                hi = t
-            iters += 1
-            if iters == BISECT_ITERS:
-                return 0.5 * (lo + hi)
+    d, _ = _march(keys, vals, density, _NO_LABELS, _ALL_BONE, False, body, group, gsel, origin,
+                  inv_h, px, py, pz, nx, ny, nz, step, max_mm, False)
+    return d
 
 
 @njit(cache=True, nogil=True)

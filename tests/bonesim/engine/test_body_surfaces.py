@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from bonesim.engine import events
-from bonesim.engine.bodies import publish_pose, publish_split, publish_split_box
-from bonesim.engine.body_surfaces import BodySurfaces, body_ids, margin_bricks
+from bonesim.engine.bodies import publish_pose, publish_split, publish_split_box, voxel_bodies
+from bonesim.engine.body_surfaces import BodySurfaces, margin_bricks
 from bonesim.engine.grid import BRICK
 from bonesim.engine.model import Sample, reset_state, step
 from bonesim.engine.replica import TissueReplica
@@ -53,7 +53,7 @@ def _check(model, rep):
         occ = np.argwhere(g.density > 0)
         ijk = (g.bricks[occ[:, 0]].astype(np.int64) << 3) + np.stack(
             [(occ[:, 1] >> 6) & 7, (occ[:, 1] >> 3) & 7, occ[:, 1] & 7], axis=1)
-        assert (body_ids(st, ijk) == b).all()
+        assert (voxel_bodies(st.grid, st.body, ijk) == b).all()
     assert total == rep.grid.occupied_count()
 
 
