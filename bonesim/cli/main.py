@@ -727,6 +727,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     _tutor_parser(sub)
 
+    s = sub.add_parser("cohort", help="research cohorts of recorded runs")
+    csub = s.add_subparsers(dest="cohort_cmd", metavar="ACTION", required=True)
+    cs = csub.add_parser("synth", help="record a synthetic cohort of expert-like and "
+                         "novice-like scripted runs (test data) and its participants.csv")
+    cs.add_argument("--experts", type=int, default=6, metavar="N", help="expert-like runs")
+    cs.add_argument("--novices", type=int, default=6, metavar="M", help="novice-like runs")
+    cs.add_argument("--out", required=True, metavar="DIR", help="an empty folder")
+    cs.add_argument("--seed", type=int, default=0, help="seed of every draw")
+    cs.add_argument("--duration", type=float, default=180.0, metavar="S",
+                    help="length of each run [s] (default 180)")
+    cs.add_argument("--case", default="phantom", help="case name or case.toml path")
+    cs.add_argument("--json", action="store_true", help="print JSON")
+    cs.set_defaults(func=_lazy("metrics.cli", "cmd_cohort_synth"))
+
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")
     s.add_argument("--json", action="store_true", help="print seconds per part as JSON")

@@ -1,0 +1,116 @@
+"""Synthetic cohorts: reproducible participants and runs, behaviour that
+differs by group the way the metrics look for, and the files a study needs."""
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from bonesim.engine import events
+from bonesim.errors import BonesimError
+from bonesim.io.loading import load_model
+from bonesim.session.reader import read_session
+from metrics.synth import (PARTICIPANTS_CSV, SCORE_RANGE, ExpertModel, NoviceModel,
+                           draw_participants, expert_trajectory, novice_trajectory,
+                           synth_cohort)
+
+#: Short runs keep the tests quick; the behaviours show within them.
+RUN_S = 20.0
+
+
+@pytest.fixture(scope="module")
+def models():
+    return {"expert": load_model("phantom", ExpertModel().burr),
+            "novice": load_model("phantom", NoviceModel().burr)}
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cohort")
+    return out, synth_cohort(out, 2, 2, seed=5, duration_s=RUN_S)
+
+
+def test_participants_are_reproducible_and_scored_by_group():
+    a = draw_participants(4, 5, seed=11)
+    assert a == draw_participants(4, 5, seed=11)
+    assert a != draw_participants(4, 5, seed=12)
+    assert [p.id for p in a] == ["E01", "E02", "E03", "E04", "N01", "N02", "N03", "N04", "N05"]
+    assert all(SCORE_RANGE[0] <= p.instructor_score <= SCORE_RANGE[1] for p in a)
+    big = draw_participants(200, 200, seed=1)
+    ex = np.mean([p.instructor_score for p in big if p.group == "expert"])
+    no = np.mean([p.instructor_score for p in big if p.group == "novice"])
+    assert ex - no > 1.2                      # the reference study's gap, roughly
+    with pytest.raises(ValueError, match="at least one run"):
+        draw_participants(0, 0)
+    with pytest.raises(ValueError, match="novices >= 0"):
+        draw_participants(2, -1)
+
+
+def test_trajectories_are_reproducible_and_keep_their_margins(models):
+    e, n = [p for p in draw_participants(1, 1, seed=2)]
+    me, mn = models["expert"], models["novice"]
+    t1 = expert_trajectory(me.case, me.clearance, e, duration_s=RUN_S)
+    t2 = expert_trajectory(me.case, me.clearance, e, duration_s=RUN_S)
+    np.testing.assert_array_equal(t1.pos_mm, t2.pos_mm)
+    np.testing.assert_array_equal(t1.t_s, t2.t_s)
+    assert t1.end_s <= RUN_S
+    n1 = novice_trajectory(mn.case, mn.grid, mn.clearance, n, duration_s=RUN_S)
+    n2 = novice_trajectory(mn.case, mn.grid, mn.clearance, n, duration_s=RUN_S)
+    np.testing.assert_array_equal(n1.pos_mm, n2.pos_mm)
+    # the expert's burr keeps at least half its (noisy, >= 0.5 mm) margin from
+    # every structure that is not bone; the novice comes much closer
+    danger = [k for k, st in enumerate(me.case.structures, start=1) if st.kind != "bone"]
+    g = me.clearance.group_mask([danger])
+    gap_e = me.clearance.distances(t1.pos_mm[t1.drill], g)[:, 0] - me.burr.radius_mm
+    gap_n = mn.clearance.distances(n1.pos_mm[n1.drill], g)[:, 0] - mn.burr.radius_mm
+    assert gap_e.min() > 0.25 and gap_n.min() < gap_e.min()
+
+
+def test_the_expert_slows_down_near_structures(models):
+    """The feed of a drilling step falls with the gap to the structures."""
+    e = draw_participants(1, 0, seed=3)[0]
+    m = models["expert"]
+    t = expert_trajectory(m.case, m.clearance, e)
+    danger = [k for k, st in enumerate(m.case.structures, start=1) if st.kind != "bone"]
+    gap = m.clearance.distances(t.pos_mm, m.clearance.group_mask([danger]))[:, 0]
+    step = np.linalg.norm(np.diff(t.pos_mm, axis=0), axis=1)
+    speed = step / np.diff(t.t_s)
+    cut = t.drill[1:] & (step > 1e-6)
+    near = cut & (gap[1:] < np.percentile(gap[1:][cut], 10))
+    far = cut & (gap[1:] > np.percentile(gap[1:][cut], 90))
+    assert np.median(speed[near]) < 0.7 * np.median(speed[far])
+
+
+def test_a_cohort_is_recorded_with_its_participants_table(cohort, models):
+    out, paths = cohort
+    assert [p.name for p in paths] == ["E01.h5", "E02.h5", "N01.h5", "N02.h5"]
+    rows = list(csv.DictReader(open(out / PARTICIPANTS_CSV)))
+    assert [r["id"] for r in rows] == ["E01", "E02", "N01", "N02"]
+    assert [r["group"] for r in rows] == ["expert"] * 2 + ["novice"] * 2
+    assert "synthetic" in (out / "README.txt").read_text().lower()
+    vis = {}
+    for p in paths:
+        s = read_session(p)
+        assert s.header["participant"] == p.stem and s.header["group"] == ""
+        assert "synthetic" in s.header["notes"]
+        assert s.samples["t_s"][-1] <= RUN_S + 1e-9
+        rem = s.tissue["kind"] == events.REMOVED
+        assert rem.sum() > 50
+        vis[p.stem] = float((s.tissue["visible"][rem] == 1).mean())
+    # the expert keeps the burr in view; the novice undercuts
+    assert min(vis["E01"], vis["E02"]) > max(vis["N01"], vis["N02"])
+    # the same seed records the same runs
+    again = synth_cohort(out / "again", 2, 2, seed=5, duration_s=RUN_S)
+    for a, b in zip(paths, again):
+        sa, sb = read_session(a), read_session(b)
+        np.testing.assert_array_equal(sa.tissue["ijk"], sb.tissue["ijk"])
+        np.testing.assert_array_equal(sa.samples["force_n"], sb.samples["force_n"])
+
+
+def test_a_folder_with_sessions_is_refused(cohort):
+    out, _ = cohort
+    with pytest.raises(BonesimError, match="already holds session files"):
+        synth_cohort(out, 1, 1, duration_s=1.0)
+    with pytest.raises(ValueError, match="duration_s"):
+        synth_cohort(out / "new", 1, 1, duration_s=0.0)
