@@ -254,8 +254,8 @@ def test_table_of_a_recorded_run(recorded):
     tb = force_vs_distance(sess, model=model)
     rem, s = sess.removals, sess.samples
     assert 0 < len(tb) <= len(rem["t_s"]) and tb.group == "novice"
-    label = [st["label"] for st in sess.header["structures"]
-             if st["name"] == "chorda_tympani"][0]
+    label = next(st["label"] for st in sess.header["structures"]
+                 if st["name"] == "chorda_tympani")
     centres = model.grid.voxel_centers(rem["ijk"])
     d = model.clearance.distance(centres, [label])
     keep = d <= MAX_DISTANCE_MM

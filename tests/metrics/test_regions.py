@@ -132,7 +132,7 @@ def test_loo_records_the_training_runs_and_names_a_fold_without_a_group():
 
 
 def test_experts_region_scores_above_novices():
-    ex = [_run(range(0, 10), EXPERT, f"e{q}") for q in range(3)]
+    ex = [_run(range(10), EXPERT, f"e{q}") for q in range(3)]
     nv = [_run(range(20, 30), NOVICE, f"n{q}") for q in range(3)]
     got = loo_scores(ex + nv)
     assert (got.scores[:3] > 0).all() and (got.scores[3:] < 0).all()
