@@ -1,0 +1,624 @@
+"""Safe forces: force and speed against the distance to a structure.
+
+After the thesis's section 3.5.2 (SPEC "Safe forces"): at every removal of a
+voxel near a sensitive structure (default the chorda tympani, within 30 mm)
+the force applied at that haptic step and the burr's speed are recorded
+against the distance from the **removed voxel** to the structure (the
+thesis sorts the samples by the removed voxel's distance from the nerve).
+Samples are binned by distance (2 mm bins), summarized per group with a mean
+and a t-distribution confidence interval, and per-bin limits learned from
+expert runs flag where a trainee pressed harder or drilled faster than the
+experts did.
+
+Definitions
+-----------
+Row
+    One per removed voxel within ``max_distance_mm`` of the structure (a
+    step that removes several voxels gives several rows with that step's
+    force and speed, each at its own voxel's distance).
+Distance [mm]
+    From the removed voxel's centre to the structure's voxels: the exact
+    Euclidean distance to the union of the structure's voxel boxes on the
+    case's source-resolution label map (:class:`bonesim.physics.clearance.Clearance`),
+    0 for a voxel inside the structure. The voxel's centre is
+    ``origin_mm + voxel_mm * ijk`` in the case's initial frame: the
+    anatomical place, which a body split off and moved does not change.
+Force [N]
+    :data:`FORCES` names the choices; the default ``"applied"`` is the
+    magnitude of the force rendered to the hand without the synthesized
+    vibration, ``|force_n - vibration_n|`` (the vibration is a display cue,
+    not a force the user pushes against on average).
+Speed [rpm]
+    The spindle speed of the step (``speed_rpm``).
+Bins
+    Bin ``b`` holds distances in ``[b w, (b + 1) w)`` for width ``w``
+    (default :data:`BIN_MM`); the last bin also holds ``max_distance_mm``.
+Group statistics
+    Per group and bin, the rows of all the group's runs are pooled (as the
+    thesis does): mean, sample standard deviation and the
+    ``confidence`` interval ``mean +- t_{(1+c)/2, n-1} sd / sqrt(n)``
+    (:func:`scipy.stats.t`). Rows of one run are not independent, so the
+    interval is narrower than a per-run analysis would give.
+Limits
+    Per bin, the :data:`LIMIT_PERCENTILE`-th percentile of the pooled expert
+    rows (force and speed separately; linear interpolation): a high
+    percentile rather than mean + k sd because forces are non-negative and
+    skewed. Bins with fewer than :data:`MIN_LIMIT_SAMPLES` expert rows have no
+    limit (NaN) and flag nothing.
+Exceedance
+    A row whose force (speed) is above its bin's limit; per haptic step and
+    quantity only the row with the largest excess is kept (one report per
+    moment, not one per voxel removed in it).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+__all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "CONFIDENCE", "FORCES",
+           "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "QUANTITIES",
+           "ForceTable", "BinStats", "Limits", "Exceedances", "bin_edges", "bin_index",
+           "structure_label", "force_vs_distance", "group_bins", "learn_limits",
+           "exceedances"]
+
+#: Structure the forces are measured against by default.
+DEFAULT_STRUCTURE = "chorda_tympani"
+#: Removals farther than this from the structure are not recorded [mm].
+MAX_DISTANCE_MM = 30.0
+#: Width of a distance bin [mm].
+BIN_MM = 2.0
+#: Confidence level of the per-bin intervals.
+CONFIDENCE = 0.95
+#: What "force" means: name -> description (see the module notes).
+FORCES = {
+    "applied": "|force_n - vibration_n|: rendered to the hand, vibration removed [N]",
+    "device": "|force_n|: sent to the device, vibration included [N]",
+    "normal": "mag_n: the multi-gain normal contact force [N]",
+}
+#: The default :data:`FORCES` entry.
+DEFAULT_FORCE = "applied"
+#: Percentile of the expert rows that is a bin's limit.
+LIMIT_PERCENTILE = 95.0
+#: Expert rows a bin needs to get a limit.
+MIN_LIMIT_SAMPLES = 5
+#: The quantities limited: a table column and its unit.
+QUANTITIES = ("force_n", "speed_rpm")
+
+
+# ------------------------------------------------------------------ bins
+def _positive(value, name: str) -> float:
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    return v
+
+
+def bin_edges(bin_mm: float = BIN_MM, max_distance_mm: float = MAX_DISTANCE_MM) -> np.ndarray:
+    """Bin edges [mm], ``(b + 1,)``: ``0, w, 2w, ...`` up to the first edge at or
+    beyond ``max_distance_mm``.
+
+    Raises
+    ------
+    ValueError
+        If ``bin_mm`` or ``max_distance_mm`` is not a positive number.
+    """
+    w = _positive(bin_mm, "bin_mm")
+    d = _positive(max_distance_mm, "max_distance_mm")
+    nb = max(1, math.ceil(d / w - 1e-9))
+    return w * np.arange(nb + 1, dtype=np.float64)
+
+
+def bin_index(distance_mm, edges) -> np.ndarray:
+    """Bin of each distance [mm] (``-1`` beyond the last edge or NaN)."""
+    d = np.asarray(distance_mm, dtype=np.float64)
+    edges = np.asarray(edges, dtype=np.float64)
+    nb = len(edges) - 1
+    with np.errstate(invalid="ignore"):
+        idx = np.floor(np.nan_to_num(d, nan=-1.0, posinf=-1.0) / (edges[1] - edges[0]))
+    idx = idx.astype(np.int64)
+    idx = np.where(idx == nb, nb - 1, idx)            # the last edge closes the last bin
+    return np.where((d >= 0) & (d <= edges[-1]) & (idx < nb), idx, -1)
+
+
+# ------------------------------------------------------------------ the table
+@dataclass(frozen=True)
+class ForceTable:
+    """Force and speed at each removal near a structure (one row per voxel).
+
+    Attributes
+    ----------
+    t_s : (n,) float64
+        Step time [s] (haptic-loop clock).
+    voxel_mm : (n, 3) float64
+        Removed voxel's centre, case's initial frame [mm].
+    pos_mm : (n, 3) float64
+        Burr centre at the step, case frame [mm].
+    distance_mm : (n,) float64
+        Voxel to structure [mm].
+    force_n : (n,) float64
+        Force magnitude at the step [N] (``force``, see :data:`FORCES`).
+    speed_rpm : (n,) float64
+        Spindle speed at the step [rpm].
+    epoch : (n,) int32
+        Case resets before the step.
+    structure : str
+    max_distance_mm : float
+    force : str
+        Key of :data:`FORCES`.
+    group, participant, case, name : str
+        From the session header (``name``: the file).
+    """
+
+    t_s: np.ndarray
+    voxel_mm: np.ndarray
+    pos_mm: np.ndarray
+    distance_mm: np.ndarray
+    force_n: np.ndarray
+    speed_rpm: np.ndarray
+    epoch: np.ndarray
+    structure: str = DEFAULT_STRUCTURE
+    max_distance_mm: float = MAX_DISTANCE_MM
+    force: str = DEFAULT_FORCE
+    group: str = ""
+    participant: str = ""
+    case: str = ""
+    name: str = ""
+
+    def __post_init__(self):
+        n = len(self.t_s)
+        for col in ("voxel_mm", "pos_mm"):
+            a = np.asarray(getattr(self, col), dtype=np.float64).reshape(-1, 3)
+            if len(a) != n:
+                raise ValueError(f"{col} has {len(a)} rows, t_s {n}")
+            object.__setattr__(self, col, a)
+        for col, dt in (("t_s", np.float64), ("distance_mm", np.float64),
+                        ("force_n", np.float64), ("speed_rpm", np.float64),
+                        ("epoch", np.int32)):
+            a = np.asarray(getattr(self, col), dtype=dt).reshape(-1)
+            if len(a) != n:
+                raise ValueError(f"{col} has {len(a)} rows, t_s {n}")
+            object.__setattr__(self, col, a)
+        if self.force not in FORCES:
+            raise ValueError(f"force must be one of {sorted(FORCES)}, got {self.force!r}")
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def structure_label(structures, name: str, case: str = "") -> int:
+    """The label of structure ``name`` in a header's ``structures`` list
+    (``{"label", "name", "kind"}`` records, or objects with ``name`` whose
+    label is their position + 1).
+
+    Raises
+    ------
+    ValueError
+        Naming the structure, the case and the structures it has.
+    """
+    names = []
+    for q, st in enumerate(structures):
+        nm = st["name"] if isinstance(st, dict) else st.name
+        lab = int(st["label"]) if isinstance(st, dict) else q + 1
+        names.append(nm)
+        if nm == name:
+            return lab
+    raise ValueError(f"structure: {name!r} is not a structure of case {case!r} (it has "
+                     f"{', '.join(names) or 'none'})")
+
+
+def _force_column(samples: dict, force: str) -> np.ndarray:
+    if force == "applied":
+        return np.linalg.norm(samples["force_n"] - samples["vibration_n"], axis=1)
+    if force == "device":
+        return np.linalg.norm(samples["force_n"], axis=1)
+    if force == "normal":
+        return np.asarray(samples["mag_n"], dtype=np.float64)
+    raise ValueError(f"force must be one of {sorted(FORCES)}, got {force!r}")
+
+
+def _distance_field(session, label: int, model, clearance):
+    """An object with ``distance(points, [label])`` that holds ``label``."""
+    if clearance is not None:
+        if label not in clearance.structures:
+            raise ValueError(f"clearance: it holds structures {list(clearance.structures)}, "
+                             f"not {label}")
+        return clearance
+    if model is None:
+        model = session.load_model()
+    if model.clearance is not None and label in model.clearance.structures:
+        return model.clearance
+    # a structure the model's clearance does not hold (bone, or a model built
+    # from arrays): the engine grid's own label map
+    from bonesim.physics.clearance import Clearance
+
+    _, lab = model.grid.to_dense()
+    return Clearance(lab, model.grid.spacing_mm, model.grid.origin_mm, [label])
+
+
+def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
+                      max_distance_mm: float = MAX_DISTANCE_MM, force: str = DEFAULT_FORCE,
+                      model=None, clearance=None) -> ForceTable:
+    """Force and speed at every removal within ``max_distance_mm`` of ``structure``.
+
+    Parameters
+    ----------
+    session : bonesim.session.reader.Session
+        Uses ``header`` (``structures``, ``voxel_mm``, ``origin_mm``, ``case``,
+        ``group``, ``participant``), ``removals`` and ``samples``.
+    structure : str
+        A structure of the session's case, by name.
+    max_distance_mm : float
+        Farthest removal recorded [mm].
+    force : str
+        A key of :data:`FORCES`.
+    model : bonesim.engine.model.Model, optional
+        The session's model (default rebuilt: ``session.load_model()``); pass
+        it to score many runs of one case without rebuilding it each time.
+    clearance : Clearance, optional
+        Distances to use instead of the model's (it must hold the structure).
+
+    Returns
+    -------
+    ForceTable
+        Rows in removal order.
+
+    Raises
+    ------
+    ValueError
+        On an unknown structure (naming the case's structures), a bad
+        ``max_distance_mm`` or ``force``, or a removal without a sample at its
+        time.
+    """
+    d_max = _positive(max_distance_mm, "max_distance_mm")
+    if force not in FORCES:
+        raise ValueError(f"force must be one of {sorted(FORCES)}, got {force!r}")
+    h = session.header
+    case = h.get("case", {}).get("name", "")
+    label = structure_label(h["structures"], structure, case)
+    field = _distance_field(session, label, model, clearance)
+    rem = session.removals
+    s = session.samples
+    t = s["t_s"]
+    idx = np.clip(np.searchsorted(t, rem["t_s"]), 0, max(len(t) - 1, 0))
+    if len(rem["t_s"]) and (len(t) == 0 or np.any(t[idx] != rem["t_s"])):
+        q = int(np.flatnonzero((t[idx] != rem["t_s"]) if len(t) else
+                               np.ones(len(idx), bool))[0])
+        raise ValueError(f"session: the removal at t = {rem['t_s'][q]} s has no sample at "
+                         "its time")
+    centre = np.asarray(h["origin_mm"], np.float64) + float(h["voxel_mm"]) * \
+        np.asarray(rem["ijk"], np.float64).reshape(-1, 3)
+    dist = field.distance(centre, [label]) if len(centre) else np.zeros(0)
+    keep = dist <= d_max
+    idx = idx[keep]
+    return ForceTable(np.asarray(rem["t_s"])[keep], centre[keep], s["pos_mm"][idx], dist[keep],
+                      _force_column(s, force)[idx], s["speed_rpm"][idx], s["epoch"][idx],
+                      structure, d_max, force, str(h.get("group", "")).strip().lower(),
+                      str(h.get("participant", "")), case,
+                      str(getattr(session, "path", "") or ""))
+
+
+def _check_tables(tables, what: str) -> list:
+    tables = list(tables)
+    if not tables:
+        raise ValueError(f"{what}: no tables given")
+    for q, tb in enumerate(tables):
+        if not isinstance(tb, ForceTable):
+            raise ValueError(f"{what}: entry {q} is a {type(tb).__name__}, not a ForceTable")
+    kinds = {(tb.structure, tb.force) for tb in tables}
+    if len(kinds) > 1:
+        raise ValueError(f"{what}: tables measure different structures or forces "
+                         f"{sorted(kinds)}")
+    return tables
+
+
+# ------------------------------------------------------------------ statistics
+@dataclass(frozen=True)
+class BinStats:
+    """Per group and distance bin: counts, means and confidence intervals.
+
+    Attributes
+    ----------
+    groups : tuple of str
+        Row order of every array (sorted).
+    edges_mm : (b + 1,) float64
+        Bin edges [mm].
+    n : (g, b) int64
+        Rows per group and bin.
+    force_mean, force_sd, force_lo, force_hi : (g, b) float64
+        Mean, sample standard deviation and interval bounds of the force [N]
+        (NaN: mean without rows; sd and interval with fewer than two).
+    speed_mean, speed_sd, speed_lo, speed_hi : (g, b) float64
+        The same for the speed [rpm].
+    confidence : float
+    structure, force : str
+    """
+
+    groups: tuple
+    edges_mm: np.ndarray
+    n: np.ndarray
+    force_mean: np.ndarray
+    force_sd: np.ndarray
+    force_lo: np.ndarray
+    force_hi: np.ndarray
+    speed_mean: np.ndarray
+    speed_sd: np.ndarray
+    speed_lo: np.ndarray
+    speed_hi: np.ndarray
+    confidence: float
+    structure: str
+    force: str
+
+    @property
+    def centers_mm(self) -> np.ndarray:
+        """Bin centres [mm], ``(b,)``."""
+        return 0.5 * (self.edges_mm[:-1] + self.edges_mm[1:])
+
+
+def _mean_ci(values, bins, nb, confidence):
+    """Per bin: n, mean, sd (ddof 1), interval bounds."""
+    n = np.bincount(bins, minlength=nb).astype(np.int64)
+    tot = np.bincount(bins, weights=values, minlength=nb)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, tot / np.maximum(n, 1), np.nan)
+        dev = values - mean[bins]
+        ss = np.bincount(bins, weights=dev * dev, minlength=nb)
+        sd = np.where(n > 1, np.sqrt(ss / np.maximum(n - 1, 1)), np.nan)
+        tq = stats.t.ppf(0.5 * (1.0 + confidence), np.maximum(n - 1, 1))
+        half = np.where(n > 1, tq * sd / np.sqrt(np.maximum(n, 1)), np.nan)
+    return n, mean, sd, mean - half, mean + half
+
+
+def group_bins(tables, groups=None, *, bin_mm: float = BIN_MM,
+               max_distance_mm: float | None = None,
+               confidence: float = CONFIDENCE) -> BinStats:
+    """Per-group mean and confidence interval of force and speed per distance bin.
+
+    Parameters
+    ----------
+    tables : sequence of ForceTable
+        One per run, all of one structure and force definition.
+    groups : sequence of str, optional
+        Each table's group (default the tables' own ``group``).
+    bin_mm : float
+        Bin width [mm].
+    max_distance_mm : float, optional
+        Last bin edge [mm] (default the largest of the tables').
+    confidence : float
+        Interval level, in (0, 1).
+
+    Returns
+    -------
+    BinStats
+
+    Raises
+    ------
+    ValueError
+        On no tables, tables of different structures or forces, ``groups``
+        not matching the tables or blank, a bad ``bin_mm``,
+        ``max_distance_mm`` or ``confidence``.
+    """
+    tables = _check_tables(tables, "tables")
+    c = float(confidence)
+    if not 0.0 < c < 1.0:
+        raise ValueError(f"confidence must lie in (0, 1), got {confidence!r}")
+    if groups is None:
+        groups = [tb.group for tb in tables]
+    groups = [str(g).strip().lower() for g in groups]
+    if len(groups) != len(tables):
+        raise ValueError(f"groups has {len(groups)} entries for {len(tables)} tables")
+    if any(not g for g in groups):
+        raise ValueError("groups: every table needs a group")
+    if max_distance_mm is None:
+        max_distance_mm = max(tb.max_distance_mm for tb in tables)
+    edges = bin_edges(bin_mm, max_distance_mm)
+    nb = len(edges) - 1
+    names = tuple(sorted(set(groups)))
+    out = {k: np.full((len(names), nb), np.nan) for k in
+           ("force_mean", "force_sd", "force_lo", "force_hi",
+            "speed_mean", "speed_sd", "speed_lo", "speed_hi")}
+    n = np.zeros((len(names), nb), np.int64)
+    for gi, g in enumerate(names):
+        mine = [tb for tb, gg in zip(tables, groups) if gg == g]
+        d = np.concatenate([tb.distance_mm for tb in mine])
+        b = bin_index(d, edges)
+        ok = b >= 0
+        for q in ("force", "speed"):
+            col = "force_n" if q == "force" else "speed_rpm"
+            v = np.concatenate([getattr(tb, col) for tb in mine])[ok]
+            cnt, mean, sd, lo, hi = _mean_ci(v, b[ok], nb, c)
+            n[gi] = cnt
+            out[f"{q}_mean"][gi], out[f"{q}_sd"][gi] = mean, sd
+            out[f"{q}_lo"][gi], out[f"{q}_hi"][gi] = lo, hi
+    return BinStats(names, edges, n, confidence=c, structure=tables[0].structure,
+                    force=tables[0].force, **out)
+
+
+# ------------------------------------------------------------------ limits
+@dataclass(frozen=True)
+class Limits:
+    """Per-bin force and speed limits learned from expert runs.
+
+    Attributes
+    ----------
+    edges_mm : (b + 1,) float64
+        Bin edges [mm].
+    force_n : (b,) float64
+        Force limit per bin [N] (NaN: no limit).
+    speed_rpm : (b,) float64
+        Speed limit per bin [rpm] (NaN: no limit).
+    n : (b,) int64
+        Expert rows per bin.
+    percentile : float
+    structure, force : str
+    max_distance_mm : float
+    """
+
+    edges_mm: np.ndarray
+    force_n: np.ndarray
+    speed_rpm: np.ndarray
+    n: np.ndarray
+    percentile: float
+    structure: str
+    force: str
+    max_distance_mm: float
+
+
+def learn_limits(expert_tables, *, percentile: float = LIMIT_PERCENTILE,
+                 bin_mm: float = BIN_MM, max_distance_mm: float | None = None,
+                 min_samples: int = MIN_LIMIT_SAMPLES) -> Limits:
+    """Per-bin limits: a high percentile of the pooled expert rows.
+
+    Parameters
+    ----------
+    expert_tables : sequence of ForceTable
+        Expert runs (a table whose ``group`` says novice is refused).
+    percentile : float
+        In (0, 100].
+    bin_mm : float
+        Bin width [mm].
+    max_distance_mm : float, optional
+        Last bin edge [mm] (default the largest of the tables').
+    min_samples : int
+        Expert rows a bin needs to get a limit (>= 1).
+
+    Returns
+    -------
+    Limits
+
+    Raises
+    ------
+    ValueError
+        On no tables, a novice's table, mixed structures or forces, or a
+        bad ``percentile``, ``bin_mm``, ``max_distance_mm`` or ``min_samples``.
+    """
+    tables = _check_tables(expert_tables, "expert_tables")
+    for tb in tables:
+        if tb.group and tb.group != "expert":
+            raise ValueError(f"expert_tables: {tb.name or 'a table'} is a {tb.group!r} run")
+    p = float(percentile)
+    if not 0.0 < p <= 100.0:
+        raise ValueError(f"percentile must lie in (0, 100], got {percentile!r}")
+    if int(min_samples) < 1:
+        raise ValueError(f"min_samples must be at least 1, got {min_samples!r}")
+    if max_distance_mm is None:
+        max_distance_mm = max(tb.max_distance_mm for tb in tables)
+    edges = bin_edges(bin_mm, max_distance_mm)
+    nb = len(edges) - 1
+    b = bin_index(np.concatenate([tb.distance_mm for tb in tables]), edges)
+    f = np.concatenate([tb.force_n for tb in tables])
+    v = np.concatenate([tb.speed_rpm for tb in tables])
+    n = np.bincount(b[b >= 0], minlength=nb).astype(np.int64)
+    lim_f = np.full(nb, np.nan)
+    lim_v = np.full(nb, np.nan)
+    for q in np.flatnonzero(n >= int(min_samples)):
+        m = b == q
+        lim_f[q] = np.percentile(f[m], p)
+        lim_v[q] = np.percentile(v[m], p)
+    return Limits(edges, lim_f, lim_v, n, p, tables[0].structure, tables[0].force,
+                  float(max_distance_mm))
+
+
+# ------------------------------------------------------------------ exceedances
+@dataclass(frozen=True)
+class Exceedances:
+    """Moments a run went above the experts' limits, in time order.
+
+    Attributes
+    ----------
+    t_s : (m,) float64
+        Step time [s].
+    pos_mm : (m, 3) float64
+        Burr centre, case frame [mm].
+    voxel_mm : (m, 3) float64
+        The removed voxel's centre [mm] (the row with the largest excess).
+    distance_mm : (m,) float64
+        Its distance to the structure [mm].
+    bin : (m,) int64
+        Its distance bin.
+    quantity : (m,) str
+        ``"force_n"`` [N] or ``"speed_rpm"`` [rpm] (:data:`QUANTITIES`).
+    value, limit, excess : (m,) float64
+        What was applied, the bin's limit, and ``value - limit`` (> 0), in
+        the quantity's unit.
+    """
+
+    t_s: np.ndarray
+    pos_mm: np.ndarray
+    voxel_mm: np.ndarray
+    distance_mm: np.ndarray
+    bin: np.ndarray
+    quantity: np.ndarray
+    value: np.ndarray
+    limit: np.ndarray
+    excess: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def exceedances(session_or_table, limits: Limits, *, model=None,
+                clearance=None) -> Exceedances:
+    """Where a run's force or speed exceeded the limits of its distance bin.
+
+    Parameters
+    ----------
+    session_or_table : Session or ForceTable
+        A session is first turned into its table (:func:`force_vs_distance`
+        with the limits' structure, force and range; ``model`` and
+        ``clearance`` are passed on).
+    limits : Limits
+        From :func:`learn_limits`.
+
+    Returns
+    -------
+    Exceedances
+        Per haptic step and quantity, the row with the largest excess.
+
+    Raises
+    ------
+    ValueError
+        If the table measures another structure or force than the limits.
+    """
+    if not isinstance(limits, Limits):
+        raise ValueError(f"limits must be a Limits (learn_limits), got "
+                         f"{type(limits).__name__}")
+    tb = session_or_table
+    if not isinstance(tb, ForceTable):
+        tb = force_vs_distance(tb, limits.structure, max_distance_mm=limits.max_distance_mm,
+                               force=limits.force, model=model, clearance=clearance)
+    if (tb.structure, tb.force) != (limits.structure, limits.force):
+        raise ValueError(f"session_or_table: measures {tb.force} force against "
+                         f"{tb.structure!r}, the limits {limits.force} force against "
+                         f"{limits.structure!r}")
+    b = bin_index(tb.distance_mm, limits.edges_mm)
+    parts = []
+    for qn, lim in (("force_n", limits.force_n), ("speed_rpm", limits.speed_rpm)):
+        val = getattr(tb, qn)
+        lim_row = np.where(b >= 0, lim[np.maximum(b, 0)], np.nan)
+        with np.errstate(invalid="ignore"):
+            over = np.flatnonzero(val > lim_row)           # NaN limits flag nothing
+        if not len(over):
+            continue
+        exc = val[over] - lim_row[over]
+        # per step: the row of the largest excess (first on ties)
+        order = np.lexsort((-exc, tb.t_s[over]))
+        rows = over[order]
+        first = np.ones(len(rows), bool)
+        first[1:] = tb.t_s[rows[1:]] != tb.t_s[rows[:-1]]
+        rows = rows[first]
+        parts.append((rows, qn, val[rows], lim_row[rows]))
+    if not parts:
+        z = np.zeros(0)
+        return Exceedances(z, np.zeros((0, 3)), np.zeros((0, 3)), z, np.zeros(0, np.int64),
+                           np.zeros(0, "<U9"), z, z, z)
+    rows = np.concatenate([p[0] for p in parts])
+    qty = np.concatenate([np.full(len(p[0]), p[1], "<U9") for p in parts])
+    val = np.concatenate([p[2] for p in parts])
+    lim = np.concatenate([p[3] for p in parts])
+    order = np.lexsort((qty, tb.t_s[rows]))
+    rows, qty, val, lim = rows[order], qty[order], val[order], lim[order]
+    return Exceedances(tb.t_s[rows], tb.pos_mm[rows], tb.voxel_mm[rows], tb.distance_mm[rows],
+                       b[rows], qty, val, lim, val - lim)

@@ -1,0 +1,271 @@
+"""Safe forces: the table, the per-group bins, the expert limits and the
+exceedances, each against a plain loop; an analytic check of the interval;
+and the table of a recorded run."""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from bonesim.physics.clearance import Clearance
+from metrics.forces import (BIN_MM, MAX_DISTANCE_MM, ForceTable, bin_edges, bin_index,
+                            exceedances, force_vs_distance, group_bins, learn_limits)
+
+
+def _table(d, f, v=None, t=None, group="expert", structure="chorda_tympani"):
+    n = len(d)
+    t = np.arange(n) * 1e-3 if t is None else t
+    v = np.full(n, 80000.0) if v is None else v
+    pos = np.column_stack([t, t, t])
+    return ForceTable(t, pos + 1.0, pos, d, f, v, np.zeros(n), structure, MAX_DISTANCE_MM,
+                      group=group)
+
+
+def _naive_bin(d, w=BIN_MM, dmax=MAX_DISTANCE_MM):
+    nb = math.ceil(dmax / w)
+    if not 0 <= d <= dmax:
+        return -1
+    return min(int(d // w), nb - 1)
+
+
+rows = st.lists(st.tuples(st.floats(0, 32), st.floats(0, 3), st.floats(0, 1e5)),
+                min_size=0, max_size=40)
+
+
+# ------------------------------------------------------------------ bins
+def test_bin_edges_and_index():
+    e = bin_edges()
+    assert e[0] == 0 and e[-1] == 30.0 and len(e) == 16
+    assert bin_index([0.0, 1.99, 2.0, 29.9, 30.0, 30.1, -1, np.nan], e).tolist() == \
+        [0, 0, 1, 14, 14, -1, -1, -1]
+    assert bin_edges(3.0, 10.0).tolist() == [0, 3, 6, 9, 12]
+    with pytest.raises(ValueError, match="bin_mm"):
+        bin_edges(0.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(rows, min_size=1, max_size=4), st.lists(st.sampled_from(["expert", "novice"]),
+                                                        min_size=4, max_size=4))
+def test_group_bins_match_a_loop(tables, groups):
+    tbs = [_table([r[0] for r in rs], [r[1] for r in rs], [r[2] for r in rs]) for rs in tables]
+    groups = groups[:len(tbs)]
+    got = group_bins(tbs, groups)
+    for gi, g in enumerate(got.groups):
+        per_bin = {}
+        for rs, gg in zip(tables, groups):
+            if gg != g:
+                continue
+            for d, f, v in rs:
+                b = _naive_bin(d)
+                if b >= 0:
+                    per_bin.setdefault(b, []).append((f, v))
+        for b in range(len(got.edges_mm) - 1):
+            vals = per_bin.get(b, [])
+            assert got.n[gi, b] == len(vals)
+            for k, col in ((0, "force"), (1, "speed")):
+                x = [r[k] for r in vals]
+                mean = getattr(got, f"{col}_mean")[gi, b]
+                if not x:
+                    assert np.isnan(mean)
+                    continue
+                assert mean == pytest.approx(sum(x) / len(x), rel=1e-9, abs=1e-9)
+                lo, hi = getattr(got, f"{col}_lo")[gi, b], getattr(got, f"{col}_hi")[gi, b]
+                if len(x) < 2:
+                    assert np.isnan(lo) and np.isnan(hi)
+                    continue
+                m = sum(x) / len(x)
+                sd = math.sqrt(sum((xi - m) ** 2 for xi in x) / (len(x) - 1))
+                half = stats.t.ppf(0.975, len(x) - 1) * sd / math.sqrt(len(x))
+                assert lo == pytest.approx(m - half, rel=1e-7, abs=1e-7)
+                assert hi == pytest.approx(m + half, rel=1e-7, abs=1e-7)
+
+
+def test_constant_force_has_that_mean_and_no_spread():
+    d = np.linspace(0, 30, 301)
+    got = group_bins([_table(d, np.full(301, 0.25)), _table(d, np.full(301, 0.25))])
+    assert got.groups == ("expert",)
+    np.testing.assert_allclose(got.force_mean[0], 0.25)
+    np.testing.assert_allclose(got.force_lo[0], 0.25)
+    np.testing.assert_allclose(got.force_hi[0], 0.25)
+    assert got.n[0].sum() == 602
+
+
+def test_interval_equals_scipys():
+    rng = np.random.default_rng(3)
+    f = rng.gamma(2.0, 0.1, 50)
+    got = group_bins([_table(np.full(50, 5.0), f)], confidence=0.9)
+    lo, hi = stats.t.interval(0.9, 49, loc=f.mean(), scale=stats.sem(f))
+    assert got.force_lo[0, 2] == pytest.approx(lo) and got.force_hi[0, 2] == pytest.approx(hi)
+    assert got.n[0, 2] == 50 and got.n[0].sum() == 50
+
+
+# ------------------------------------------------------------------ limits
+@settings(max_examples=50, deadline=None)
+@given(st.lists(rows, min_size=1, max_size=3), st.sampled_from([50.0, 95.0, 100.0]),
+       st.integers(1, 4))
+def test_limits_are_the_expert_percentile_per_bin(tables, pct, min_n):
+    tbs = [_table([r[0] for r in rs], [r[1] for r in rs], [r[2] for r in rs]) for rs in tables]
+    lim = learn_limits(tbs, percentile=pct, min_samples=min_n)
+    pooled = [r for rs in tables for r in rs]
+    for b in range(15):
+        f = [r[1] for r in pooled if _naive_bin(r[0]) == b]
+        v = [r[2] for r in pooled if _naive_bin(r[0]) == b]
+        assert lim.n[b] == len(f)
+        if len(f) < min_n:
+            assert np.isnan(lim.force_n[b]) and np.isnan(lim.speed_rpm[b])
+        else:
+            assert lim.force_n[b] == pytest.approx(np.percentile(f, pct))
+            assert lim.speed_rpm[b] == pytest.approx(np.percentile(v, pct))
+
+
+def test_limits_refuse_a_novice_table_and_bad_arguments():
+    with pytest.raises(ValueError, match="expert_tables: .*'novice' run"):
+        learn_limits([_table([1.0], [1.0], group="novice")])
+    with pytest.raises(ValueError, match="percentile"):
+        learn_limits([_table([1.0], [1.0])], percentile=0)
+    with pytest.raises(ValueError, match="different structures"):
+        learn_limits([_table([1.0], [1.0]), _table([1.0], [1.0], structure="facial_nerve")])
+
+
+# ------------------------------------------------------------------ exceedances
+def naive_exceedances(tb, lim):
+    best = {}
+    for q in range(len(tb)):
+        b = _naive_bin(tb.distance_mm[q])
+        if b < 0:
+            continue
+        for name, vals, limits in (("force_n", tb.force_n, lim.force_n),
+                                   ("speed_rpm", tb.speed_rpm, lim.speed_rpm)):
+            if not np.isnan(limits[b]) and vals[q] > limits[b]:
+                key = (tb.t_s[q], name)
+                exc = vals[q] - limits[b]
+                if key not in best or exc > best[key][0]:
+                    best[key] = (exc, q, b)
+    return [(t, name, q, b, exc) for (t, name), (exc, q, b) in sorted(best.items())]
+
+
+@settings(max_examples=50, deadline=None)
+@given(rows, rows, st.integers(1, 3))
+def test_exceedances_match_a_loop(expert, trainee, per_step):
+    lim = learn_limits([_table([r[0] for r in expert], [r[1] for r in expert],
+                               [r[2] for r in expert])], percentile=90.0, min_samples=2)
+    t = np.arange(len(trainee)) // per_step * 1e-3      # several voxels per step
+    tb = _table([r[0] for r in trainee], [r[1] for r in trainee], [r[2] for r in trainee], t,
+                group="novice")
+    got = exceedances(tb, lim)
+    want = naive_exceedances(tb, lim)
+    assert len(got) == len(want)
+    for k, (t_s, name, q, b, exc) in enumerate(want):
+        assert got.t_s[k] == t_s and got.quantity[k] == name and got.bin[k] == b
+        assert got.excess[k] == pytest.approx(exc) and got.excess[k] > 0
+        np.testing.assert_array_equal(got.pos_mm[k], tb.pos_mm[q])
+        assert got.value[k] - got.limit[k] == pytest.approx(got.excess[k])
+
+
+def test_an_expert_run_under_its_own_maximum_exceeds_nothing():
+    rng = np.random.default_rng(0)
+    tb = _table(rng.uniform(0, 30, 500), rng.uniform(0, 1, 500))
+    assert len(exceedances(tb, learn_limits([tb], percentile=100.0, min_samples=1))) == 0
+
+
+# ------------------------------------------------------------------ the table
+def _toy_session():
+    """A 10x6x6 grid of 1 mm voxels; structure 2 ("nerve") is the column
+    i = 9; ten removals of bone along i in three steps."""
+    labels = np.ones((10, 6, 6), np.uint8)
+    labels[9] = 2
+    ijk = np.array([[i, 2, 3] for i in range(10)], np.int32)
+    t_samples = np.array([0.0, 0.001, 0.002, 0.003])
+    t_rem = np.array([0.001] * 4 + [0.002] * 3 + [0.003] * 3)
+    force = np.array([[0, 0, 0.0], [0.3, 0.4, 0.0], [1.0, 0, 0], [0, 2.0, 0]])
+    vib = np.array([[0, 0, 0.0], [0.0, 0.0, 0.0], [0.5, 0, 0], [0, 0.0, 0]])
+    header = {"structures": [{"label": 1, "name": "bone", "kind": "bone"},
+                             {"label": 2, "name": "nerve", "kind": "critical"}],
+              "voxel_mm": 1.0, "origin_mm": [-2.0, 0.0, 0.0], "case": {"name": "toy"},
+              "group": "Expert", "participant": "p1"}
+    sess = SimpleNamespace(
+        header=header, path="toy.h5",
+        removals={"ijk": ijk, "t_s": t_rem, "epoch": np.zeros(10, np.int32),
+                  "label": labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]},
+        samples={"t_s": t_samples, "pos_mm": np.arange(12.0).reshape(4, 3),
+                 "force_n": force, "vibration_n": vib, "mag_n": np.array([0, 1, 2, 3.0]),
+                 "speed_rpm": np.array([0, 1e4, 2e4, 3e4]), "epoch": np.zeros(4, np.int32)})
+    return sess, Clearance(labels, 1.0, (-2.0, 0.0, 0.0), [2])
+
+
+def test_table_of_a_hand_made_session_matches_a_loop():
+    sess, clear = _toy_session()
+    tb = force_vs_distance(sess, "nerve", max_distance_mm=5.0, clearance=clear)
+    # the nerve's boxes span x in [6.5, 7.5] (voxel 9 at -2 + 9); a voxel
+    # i < 9 at x = i - 2 is 8.5 - i from it
+    want = []
+    for q, (i, _, _) in enumerate(sess.removals["ijk"]):
+        d = max(0.0, 8.5 - i) if i < 9 else 0.0
+        if d <= 5.0:
+            s = int(round(sess.removals["t_s"][q] * 1000))
+            f = math.dist(sess.samples["force_n"][s], sess.samples["vibration_n"][s])
+            want.append((d, f, sess.samples["speed_rpm"][s], sess.samples["pos_mm"][s]))
+    assert len(tb) == len(want) == 6
+    for q, (d, f, v, p) in enumerate(want):
+        assert tb.distance_mm[q] == pytest.approx(d)
+        assert tb.force_n[q] == pytest.approx(f) and tb.speed_rpm[q] == v
+        np.testing.assert_array_equal(tb.pos_mm[q], p)
+    assert tb.group == "expert" and tb.case == "toy" and tb.structure == "nerve"
+    dev = force_vs_distance(sess, "nerve", max_distance_mm=5.0, clearance=clear, force="device")
+    assert dev.force_n[-1] == pytest.approx(2.0) and dev.force_n[-4] == pytest.approx(1.0)
+
+
+def test_unknown_structure_names_the_case_structures():
+    sess, clear = _toy_session()
+    with pytest.raises(ValueError, match=r"'chorda_tympani' is not a structure of case 'toy' "
+                                         r"\(it has bone, nerve\)"):
+        force_vs_distance(sess, clearance=clear)
+    with pytest.raises(ValueError, match="force must be"):
+        force_vs_distance(sess, "nerve", clearance=clear, force="peak")
+
+
+# ------------------------------------------------------------------ a recorded run
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """3 s of the planned demo from its first drilling sample, recorded."""
+    from bonesim.io.case import load_case
+    from bonesim.io.loading import load_model
+    from bonesim.io.toolpath import demo_trajectory
+    from bonesim.runtime.record import make_header
+    from bonesim.runtime.simulate import run_trajectory
+    from bonesim.session.reader import read_session
+
+    model = load_model("phantom", "cutting-5mm")
+    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(t.drill)[0])
+    path = tmp_path_factory.mktemp("forces") / "run.h5"
+    run_trajectory(model, t.at_times(t.t_s[start:start + 300]), surface=False, record=path,
+                   header=make_header(model, participant="p1", group="novice"))
+    return read_session(path), model
+
+
+def test_table_of_a_recorded_run(recorded):
+    sess, model = recorded
+    tb = force_vs_distance(sess, model=model)
+    rem, s = sess.removals, sess.samples
+    assert 0 < len(tb) <= len(rem["t_s"]) and tb.group == "novice"
+    label = next(st["label"] for st in sess.header["structures"]
+                 if st["name"] == "chorda_tympani")
+    centres = model.grid.voxel_centers(rem["ijk"])
+    d = model.clearance.distance(centres, [label])
+    keep = d <= MAX_DISTANCE_MM
+    np.testing.assert_allclose(tb.distance_mm, d[keep])
+    for q, t in zip(np.flatnonzero(keep)[:50], tb.t_s[:50]):
+        k = int(np.flatnonzero(s["t_s"] == rem["t_s"][q])[0])
+        assert t == s["t_s"][k]
+        f = np.linalg.norm(s["force_n"][k] - s["vibration_n"][k])
+        assert tb.force_n[list(tb.t_s).index(t)] == pytest.approx(f)
+    # a structure the clearance does not hold (bone): from the grid's labels;
+    # every removed voxel was bone, at distance 0
+    bone = force_vs_distance(sess, "bone", model=model)
+    assert len(bone) == len(rem["t_s"]) and np.all(bone.distance_mm == 0)
