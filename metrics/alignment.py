@@ -43,11 +43,45 @@ Method
 Defaults and the evidence for them
 ----------------------------------
 The thesis leaves the weights and the penalty open. They were chosen with
-``python -m metrics.studies.alignment_sensitivity`` (synthetic drilling
-force curves: plateaus of 0 to 3.3 N joined by 0.1 to 0.6 s ramps, 1 kHz
-noise, known smooth time warps of up to about +-0.6 s, trainee levels off by up to 15 %
-per plateau; 12 curves per setting). See :data:`DEFAULT_W_SLOPE` and
-:data:`DEFAULT_PENALTY` for the figures.
+``python -m metrics.studies.alignment_sensitivity`` on synthetic drilling
+force curves at 100 Hz: 10 s of plateaus (0 to 3.3 N) joined by 0.1 to
+0.6 s ramps, warped by known smooth monotone time warps that move events by
+up to 0.6 s and stretch the run by up to 10 %, the trainee's plateau levels
+off by up to 15 %, white noise of 0.1 N at 1 kHz; 12 trials per setting, a
+clean target (``pattern``, the thesis' setting) and a noisy recorded one
+(``recorded``, both filtered). Figures: RMS error of the recovered time
+offset on the target's ramps (where a warp is identifiable) [ms], mean and
+worst trial, and the RMS offset found on an unwarped control (spurious
+distortion) [ms]. Ramp columns: mean over the trials with seed 0 (seed 1
+in brackets), then the worst trial of seed 0; control: pattern, recorded.
+
+====================  =============  ===============  =========
+w_slope, penalty      pattern ramp   recorded ramp    control
+====================  =============  ===============  =========
+0, 0.1 (force only)   49 (55), 84    65 (46), 171     0.2, 0
+0.01, 0.03            26 (37), 56    53 (31), 155     6.9, 1.1
+**0.03, 0.1**         26 (31), 51    47 (25), 109     6.9, 0.9
+0.1, 0.3              26 (30), 48    46 (24), 111     7.9, 1.0
+0.1, 0.03             26 (30), 45    53 (32), 155     15.6, 30
+0.03, 0 (no penalty)  28, 56         60, 187          38, 81
+====================  =============  ===============  =========
+
+* The slope term matters: with the force alone the best penalty still
+  leaves about twice the ramp error, and its worst trial misses by 0.17 s.
+* The penalty matters: without it noise alone warps an unwarped curve by
+  tens of milliseconds; too high a penalty (1 N^2) stops the path from
+  following real warps (ramp errors of 64 and 95 ms at ``w_slope`` 0.03).
+* Good settings lie on a ridge where ``penalty`` is about three times
+  ``w_slope`` (in N^2 and s^2; at one time the control picks up 10 ms); ``w_slope = 0.03 s^2`` with
+  ``penalty = 0.1 N^2`` (:data:`DEFAULT_W_SLOPE`, :data:`DEFAULT_PENALTY`)
+  sits in its middle: ramp errors of 25 to 50 ms (2.5 to 5 samples) against
+  warps of up to 600 ms, under 1 ms of spurious offset on a recorded target
+  and under one sample on a clean one, and the residual after alignment
+  falls from 0.6 to 0.9 N (unaligned) to about 0.12 N (the noise and the
+  level errors).
+
+The penalty and the summed cell costs both count samples, so the defaults
+hold for the default rate; at another ``rate_hz`` rerun the study.
 
 Public API
 ----------
@@ -76,10 +110,12 @@ DEFAULT_RATE_HZ = 100.0
 DEFAULT_WINDOW_S = 0.1
 #: Weight of the squared force difference [1].
 DEFAULT_W_FORCE = 1.0
-#: Weight of the squared slope difference [s^2] (see the module docstring).
-DEFAULT_W_SLOPE = 1e-3
-#: Cost of one vertical or horizontal DP move [N^2] (see the module docstring).
-DEFAULT_PENALTY = 0.01
+#: Weight of the squared slope difference [s^2] (from the sensitivity study
+#: in the module docstring).
+DEFAULT_W_SLOPE = 0.03
+#: Cost of one vertical or horizontal DP move [N^2] (from the sensitivity
+#: study in the module docstring).
+DEFAULT_PENALTY = 0.1
 #: Largest DP table allowed (cells of the path-direction table, one byte
 #: each); lower ``rate_hz`` or set ``band_s`` for longer curves.
 MAX_CELLS = 64_000_000
