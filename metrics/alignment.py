@@ -75,7 +75,7 @@ w_slope, penalty      pattern ramp   recorded ramp    control
   ``w_slope`` (in N^2 and s^2; at one time the control picks up 10 ms); ``w_slope = 0.03 s^2`` with
   ``penalty = 0.1 N^2`` (:data:`DEFAULT_W_SLOPE`, :data:`DEFAULT_PENALTY`)
   sits in its middle: ramp errors of 25 to 50 ms (2.5 to 5 samples) against
-  warps of up to 600 ms, under 1 ms of spurious offset on a recorded target
+  true offsets of up to about 1 s, under 1 ms of spurious offset on a recorded target
   and under one sample on a clean one, and the residual after alignment
   falls from 0.6 to 0.9 N (unaligned) to about 0.12 N (the noise and the
   level errors).
