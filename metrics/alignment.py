@@ -133,6 +133,10 @@ MOVE_DIAGONAL = 1
 MOVE_VERTICAL = 2
 MOVE_HORIZONTAL = 3
 
+#: Rounding tolerance: a duration this close to a whole number of samples
+#: counts as whole, and times this close to a curve's ends [s] as inside.
+_ROUNDING_S = 1e-9
+
 
 # ------------------------------------------------------------------ kernel
 @njit(cache=True, nogil=True)
@@ -241,7 +245,7 @@ def _curve(name_t: str, name_f: str, t, f) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _time_base(t: np.ndarray, rate_hz: float) -> np.ndarray:
-    n = int(math.floor((t[-1] - t[0]) * rate_hz + 1e-9)) + 1
+    n = int(math.floor((t[-1] - t[0]) * rate_hz + _ROUNDING_S)) + 1
     return t[0] + np.arange(n) / rate_hz
 
 
@@ -305,7 +309,7 @@ def box_filter(t, f, at, window_s: float = DEFAULT_WINDOW_S) -> np.ndarray:
     at = np.asarray(at, dtype=np.float64)
     if at.ndim != 1 or not np.isfinite(at).all():
         raise ValueError("at must be a one-dimensional array of finite times")
-    if len(at) and (at.min() < t[0] - 1e-9 or at.max() > t[-1] + 1e-9):
+    if len(at) and (at.min() < t[0] - _ROUNDING_S or at.max() > t[-1] + _ROUNDING_S):
         raise ValueError(f"at must lie within [{t[0]}, {t[-1]}] s")
     if window_s == 0:
         return np.interp(at, t, f)
@@ -412,7 +416,7 @@ def dp_align(target, applied, target_slope, applied_slope, *, w_force: float = D
 
 
 # ------------------------------------------------------------------ result
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Alignment:
     """A force-trajectory alignment (:func:`align`).
 

@@ -43,9 +43,10 @@ import numpy as np
 
 from metrics.alignment import DEFAULT_RATE_HZ, align
 
-__all__ = ["RAW_RATE_HZ", "DURATION_S", "MAX_FORCE_N", "NOISE_N", "LEVEL_ERROR", "WARP_S",
-           "MIN_WARP_RATE", "W_SLOPES", "PENALTIES", "drilling_pattern", "smooth_warp",
-           "make_trial", "score_trial", "run_study", "main"]
+__all__ = ["RAW_RATE_HZ", "DURATION_S", "MAX_FORCE_N", "PLATEAU_S", "RAMP_S", "MIN_STEP_N",
+           "ZERO_SHARE", "NOISE_N", "LEVEL_ERROR", "WARP_S", "STRETCH", "MIN_WARP_RATE",
+           "W_SLOPES", "PENALTIES", "drilling_pattern", "smooth_warp", "make_trial",
+           "score_trial", "run_study", "main"]
 
 #: Rate of the synthetic recordings [Hz] (the haptic rate).
 RAW_RATE_HZ = 1000.0
