@@ -489,6 +489,8 @@ BENCHMARKS = {
     "monitor_loopback_loss_fraction": bench_monitor,
     "load_labelstack_512_s": bench_load,
     "load_labelstack_512_peak_mb": bench_load,
+    "dp_align_1000_ms": lambda quick=False: __import__(
+        "bonesim.bench.metrics_alignment", fromlist=["_"]).bench_dp_align(quick=quick),
 }
 
 
