@@ -292,8 +292,9 @@ def _names(session, models) -> dict:
 def _windows(t, vis, t0, t1, window_s):
     m = max(1, int(math.ceil((t1 - t0) / window_s - 1e-9)))
     start = t0 + window_s * np.arange(m)
-    w = np.clip(np.floor((t - t0) / window_s).astype(np.int64), 0, m - 1) if len(t) \
-        else np.zeros(0, np.int64)
+    # window w: start[w] <= t < start[w + 1] (the first and last take what
+    # lies before or after them)
+    w = np.clip(np.searchsorted(start, t, side="right") - 1, 0, m - 1)
     n_w = np.bincount(w, minlength=m)
     v_w = np.bincount(w, weights=(vis == 1).astype(np.float64), minlength=m).astype(np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
