@@ -489,6 +489,9 @@ BENCHMARKS = {
     "monitor_loopback_loss_fraction": bench_monitor,
     "load_labelstack_512_s": bench_load,
     "load_labelstack_512_peak_mb": bench_load,
+    "visibility_offline_removals_per_s": lambda quick=False: __import__(
+        "bonesim.bench.metrics_visibility",
+        fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
 }
 
 
