@@ -320,3 +320,43 @@ def test_bad_input_raises_value_errors_naming_the_problem():
         recompute_visible(s, models=[])
     with pytest.raises(ValueError, match="samples"):
         visibility(SimpleNamespace(samples=None, tissue={}, camera={}))
+
+
+# --------------------------------------------------------------------- view
+IMAGES = Path(__file__).parent / "images"
+
+
+def test_render_matches_the_reference_image(moving, tmp_path):
+    """The view of the moving-camera run (400 x 300) against the stored
+    reference; regenerate after an intended change with
+    ``BONESIM_UPDATE_IMAGES=1`` (the test then writes it and skips)."""
+    import os
+
+    from bonesim.render.gl import select_backend
+    from bonesim.render.imagecmp import compare_images, diff_image, read_png, write_png
+    from metrics.visibility import HIDDEN_RGB, render_visibility
+
+    select_backend(offscreen=True)
+    out = render_visibility(moving, tmp_path / "vis.png", size=(400, 300))
+    img = read_png(out)
+    assert img.shape == (300, 400, 3)
+    # red hidden voxels are drawn (the run has some), and text
+    red = np.all(np.abs(img.astype(int) - HIDDEN_RGB) < 40, axis=-1)
+    assert red.sum() > 10
+    ref_path = IMAGES / "visibility.png"
+    if os.environ.get("BONESIM_UPDATE_IMAGES") == "1":
+        write_png(ref_path, img)
+        pytest.skip(f"wrote {ref_path}")
+    ref = read_png(ref_path)
+    res = compare_images(img, ref)
+    if not res:
+        write_png(tmp_path / "visibility-diff.png", diff_image(img, ref))
+    assert res, f"{res.reason} (actual and diff images in {tmp_path})"
+    # only the chosen structures are meshed; unknown names are refused
+    with pytest.raises(ValueError, match="structures"):
+        render_visibility(moving, tmp_path / "x.png", structures=["spleen"])
+    with pytest.raises(ValueError, match="size"):
+        render_visibility(moving, tmp_path / "x.png", size=(0, 10))
+    nerve = read_png(render_visibility(moving, tmp_path / "nerve.png", size=(400, 300),
+                                       structures=["facial_nerve"]))
+    assert not compare_images(nerve, img)
