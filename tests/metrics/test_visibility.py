@@ -360,3 +360,45 @@ def test_render_matches_the_reference_image(moving, tmp_path):
     nerve = read_png(render_visibility(moving, tmp_path / "nerve.png", size=(400, 300),
                                        structures=["facial_nerve"]))
     assert not compare_images(nerve, img)
+
+
+@pytest.mark.slow
+def test_offline_equals_live_on_a_live_loop_recording_with_a_moving_camera(tmp_path):
+    """The haptic loop and the recorder's writer process, the window's camera
+    logged at 120 Hz while it swings +-80 degrees about the case camera's up
+    axis: every live verdict is recomputed from the file."""
+    import time
+
+    from bonesim.io.case import load_case
+    from bonesim.io.loading import load_model
+    from bonesim.runtime.haptic_loop import HapticLoop
+    from bonesim.runtime.record import Recorder, make_header
+
+    model = load_model("phantom", "cutting-5mm")
+    cam = load_case("phantom").camera
+    focal, eye0 = np.asarray(cam.focal_mm, float), np.asarray(cam.eye_mm, float)
+    view = (focal - eye0) / np.linalg.norm(focal - eye0)
+    path = tmp_path / "live.h5"
+    loop = HapticLoop(model)
+    rec = Recorder(loop, path, make_header(model, input_device="mouse"))
+    try:
+        rec.start()
+        loop.start()
+        loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
+        loop.set_drill(True, speed_rpm=60000.0)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 5.0:
+            a = math.radians(80.0) * math.sin(2.0 * (time.monotonic() - t0))
+            rec.camera(focal + _rotate(eye0 - focal, cam.up, a), focal, cam.up)
+            time.sleep(1 / 120)
+        loop.set_drill(False)
+        time.sleep(0.1)
+        rec.close()
+    finally:
+        loop.close()
+    s = read_session(path)
+    rem = s.tissue["kind"] == events.REMOVED
+    assert rem.sum() > 100 and len(s.camera["t_s"]) > 100
+    live = s.tissue["visible"]
+    assert (live[rem] == 0).any() and (live[rem] == 1).any()
+    np.testing.assert_array_equal(recompute_visible(s), live)
