@@ -23,11 +23,11 @@ few Python calls per reset, split or pose, not per removal.
 On a recorded run the recomputed verdicts equal the ``visible`` column the
 recorder wrote, removal for removal (tests/metrics/test_visibility.py).
 :attr:`VisibilityResult.live_mismatches` counts any disagreement. One way a
-live recording could disagree (possible by the code, not seen in the tests): the window's recorder stamps a camera
-pose with the loop time it reads, and a pose stamped at or before a removal
-that reaches the writer only after that removal was judged was not seen by
-the live judge; the recomputation (which sees the whole camera stream) uses
-it.
+live recording could disagree (possible by the code, not seen in the
+tests): the window's recorder stamps a camera pose with the loop time it
+reads, and a pose stamped at or before a removal that reaches the writer
+only after that removal was judged was not seen by the live judge; the
+recomputation (which sees the whole camera stream) uses it.
 
 Results
 -------
