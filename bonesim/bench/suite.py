@@ -491,6 +491,9 @@ BENCHMARKS = {
     "load_labelstack_512_peak_mb": bench_load,
     "dp_align_1000_ms": lambda quick=False: __import__(
         "bonesim.bench.metrics_alignment", fromlist=["_"]).bench_dp_align(quick=quick),
+    "visibility_offline_removals_per_s": lambda quick=False: __import__(
+        "bonesim.bench.metrics_visibility",
+        fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
 }
 
 
