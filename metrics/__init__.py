@@ -1,7 +1,37 @@
-"""Research metrics over recorded bonesim runs.
+"""Research metrics over recorded bonesim runs (``SPEC.md``, "Metrics").
 
-Planned here (see ``SPEC.md``, "Metrics"): voxel visibility at removal,
-Naive Bayes drilled-region correctness, force versus distance to critical
-structures, force-trajectory alignment and construct-validity statistics.
-They need the session recordings of a later issue; nothing is implemented yet.
+Pure functions of session files (:func:`bonesim.session.reader.read_session`);
+each module says what it measures and how, with units:
+
+:mod:`metrics.visibility`
+    Voxel visibility at removal, recomputed exactly from the file; the
+    green/red view.
+:mod:`metrics.forces`
+    Safe forces: force and speed against the distance to a structure, per
+    2 mm bin, group means with confidence intervals, limits learned from
+    experts and a trainee's exceedances.
+:mod:`metrics.regions`
+    Naive Bayes drilled regions, scored leave-one-participant-out.
+:mod:`metrics.alignment`
+    Force-trajectory alignment (dynamic programming) against an expert's
+    force profile; :mod:`metrics.studies.alignment_sensitivity` chose its
+    defaults.
+:mod:`metrics.exposure`
+    How much of each structure is left under thin bone ("skeletonized").
+:mod:`metrics.conduct`
+    Strokes, excessive force, time near and contacts with structures,
+    drilled volume, burr choice.
+:mod:`metrics.final_product`
+    The drilled cavity against a panel of expert runs.
+:mod:`metrics.validity`
+    t-test, Mann-Whitney U, effect sizes, correlations.
+:mod:`metrics.run`
+    Every metric of one run (``bonesim metrics run``).
+:mod:`metrics.synth`
+    Synthetic cohorts of scripted expert-like and novice-like runs (test
+    data; ``bonesim cohort synth``).
+
+Importing :mod:`metrics` imports none of them (they load numba kernels,
+scipy and the engine); import the module you need.
 """
+__all__: list = []

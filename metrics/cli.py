@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import sys
 
-__all__ = ["cmd_cohort_synth"]
+__all__ = ["cmd_cohort_synth", "cmd_metrics_run"]
 
 
 def cmd_cohort_synth(args) -> int:
@@ -35,4 +35,54 @@ def cmd_cohort_synth(args) -> int:
         print(f"{len(paths)} synthetic runs ({args.experts} expert-like, {args.novices} "
               f"novice-like, {args.duration:g} s each) in {paths[0].parent}; participants "
               f"in {out['participants']}", file=sys.stdout)
+    return 0
+
+
+def _fmt(x, unit="", digits=3):
+    return "n/a" if x is None else f"{x:.{digits}g}{unit}"
+
+
+def cmd_metrics_run(args) -> int:
+    """``bonesim metrics run``: every metric of one run (:mod:`metrics.run`)."""
+    from bonesim.session.reader import damage_notice, read_session
+    from metrics.run import run_metrics
+
+    s = read_session(args.file)
+    line = damage_notice(s)
+    if line:
+        print(line, file=sys.stderr)
+    res = run_metrics(s, experts=args.expert or (), force_profile=args.force_profile,
+                      structure=args.structure)
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    r, v, c = res["run"], res["visibility"], res["conduct"]
+    print(f"{r['file']}: {r['participant'] or '(no participant)'}, case {r['case']}, "
+          f"{r['duration_s']:.1f} s, {r['removed_voxels']} voxels removed")
+    print(f"visibility: {_fmt(v['visible_fraction'])} of removals visible "
+          f"({v['hidden']} hidden)")
+    f = res["forces"]
+    if "skipped" in f:
+        print(f"forces: {f['skipped']}")
+    else:
+        print(f"forces near {f['structure']}: {f['rows']} removals within 30 mm, mean "
+              f"{_fmt(f['mean_force_n'], ' N')}")
+    for name, e in res["exposure"].items():
+        print(f"exposure {name}: " + ", ".join(f"{_fmt(val)} {k.replace('_', ' ')}"
+                                               for k, val in e.items() if k.startswith("under")))
+    st = c["strokes"]
+    print(f"strokes: {st['strokes']}, plunge {_fmt(st['mean_plunge'])}, straightness "
+          f"{_fmt(st['mean_straightness'])}")
+    hurt = {n: v for n, v in c["contacts"].items() if v["injuries"] or v["contacts"]}
+    print("contacts: " + (", ".join(f"{n} {v['contacts']} contact(s) {v['injuries']} "
+                                    f"injur{'y' if v['injuries'] == 1 else 'ies'}"
+                                    for n, v in hurt.items()) or "none"))
+    if "final_product" in res:
+        m = res["final_product"]["mean"]
+        print(f"final product vs {len(res['final_product']['per_expert'])} expert run(s): "
+              f"Dice {_fmt(m['dice'])}, mean distance {_fmt(m['mean_mm'], ' mm')}")
+    if "alignment" in res:
+        a = res["alignment"]
+        print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
+              f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
     return 0

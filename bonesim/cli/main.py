@@ -741,6 +741,19 @@ def build_parser() -> argparse.ArgumentParser:
     cs.add_argument("--json", action="store_true", help="print JSON")
     cs.set_defaults(func=_lazy("metrics.cli", "cmd_cohort_synth"))
 
+    s = sub.add_parser("metrics", help="research metrics of recorded runs")
+    msub = s.add_subparsers(dest="metrics_cmd", metavar="ACTION", required=True)
+    mr = msub.add_parser("run", help="every metric of one run")
+    mr.add_argument("file", help="session file (.h5)")
+    mr.add_argument("--expert", action="append", metavar="FILE.h5",
+                    help="an expert run of the same case for the final product (repeatable)")
+    mr.add_argument("--force-profile", metavar="FILE.h5",
+                    help="an expert run whose force is the target profile to align to")
+    mr.add_argument("--structure", help="structure of the force-versus-distance table "
+                    "(default chorda_tympani)")
+    mr.add_argument("--json", action="store_true", help="print JSON")
+    mr.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_run"))
+
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")
     s.add_argument("--json", action="store_true", help="print seconds per part as JSON")
