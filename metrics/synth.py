@@ -437,13 +437,13 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
     from bonesim.runtime.record import make_header
     from bonesim.runtime.simulate import run_trajectory
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if any(out.glob("*.h5")):
-        raise BonesimError(f"{out} already holds session files: give an empty folder")
     if not duration_s > 0:
         raise ValueError(f"duration_s must be > 0, got {duration_s}")
     people = draw_participants(experts, novices, seed, expert, novice)
+    out = Path(out_dir)
+    if out.is_dir() and any(out.glob("*.h5")):
+        raise BonesimError(f"{out} already holds session files: give an empty folder")
+    out.mkdir(parents=True, exist_ok=True)
     models = {g: load_model(case, m.burr) for g, m in (("expert", expert),
                                                        ("novice", novice))}
     paths = []
