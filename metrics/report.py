@@ -534,7 +534,8 @@ def _stats_table(result, groups) -> str:
            f"(expert minus novice, pooled sd) with its confidence interval, Spearman's rho "
            f"and Pearson's R against the instructor score. p &lt; {ALPHA:g} highlighted; "
            f"n/a: not defined or not computed.</p><table><tr>")]
-    out += [f"<th{' class=l' if q == 0 else ''}>{_esc(h)}</th>" for q, h in enumerate(head)]
+    left = ' class="l"'
+    out += [f"<th{left if q == 0 else ''}>{_esc(h)}</th>" for q, h in enumerate(head)]
     out.append("</tr>")
     for m, (unit, better) in METRIC_COLUMNS.items():
         row = _stats_row(result, m)
@@ -546,7 +547,10 @@ def _stats_table(result, groups) -> str:
         cells.append(_cell(_esc(_num(row.get("t")))))
         cells.append(_cell(_esc(_p(row.get("p_t"))), sig=_sig(row.get("p_t"))))
         cells.append(_cell(_esc(_num(row.get("u")))))
-        cells.append(_cell(_esc(_p(row.get("p_u"))), sig=_sig(row.get("p_u"))))
+        pu = _cell(_esc(_p(row.get("p_u"))), sig=_sig(row.get("p_u")))
+        if row.get("u_method") and not _isnan(row.get("u_method")):
+            pu = pu.replace("<td", f"<td title=\"{_esc(row['u_method'])}\"", 1)
+        cells.append(pu)
         d = _num(row.get("d"))
         if d != NA:
             d += f" [{_num(row.get('d_lo'))}, {_num(row.get('d_hi'))}]"
