@@ -25,6 +25,10 @@ each module says what it measures and how, with units:
     The drilled cavity against a panel of expert runs.
 :mod:`metrics.validity`
     t-test, Mann-Whitney U, effect sizes, correlations.
+:mod:`metrics.report`
+    A scored cohort (:class:`metrics.cohort_result.CohortResult`) as one
+    self-contained HTML page: plots by group, against instructor scores,
+    force against distance, visibility views, every metric's statistics.
 :mod:`metrics.run`
     Every metric of one run (``bonesim metrics run``).
 :mod:`metrics.synth`

@@ -25,6 +25,12 @@ thesis' figures 18 to 21 and ``SPEC.md``, "Metrics"):
    highlighted), the per-run table and the Naive Bayes training sets (both
    collapsible).
 
+Reading the result: the per-group columns of ``stats`` are taken as
+``<group>_<n|mean|sd>`` (``expert_mean``; ``mean_expert`` is accepted too);
+the runs are synthetic when ``meta["synthetic"]`` is true or a ``notes``
+column of ``table`` (the session headers' notes) or ``meta["notes"]`` says
+"synthetic"; a file's group is its ``table`` row's, else its force table's.
+
 Every string from the data is escaped (:func:`html.escape`); a missing or
 undefined number (NaN) reads "n/a". Plots use matplotlib's Agg backend.
 """
