@@ -265,6 +265,9 @@ def _group_plot(result, metric, groups, big: bool):
         if len(v):
             ax.scatter(q + rng.uniform(-JITTER, JITTER, len(v)), v, s=22, color=c,
                        alpha=0.7, zorder=3, edgecolor="none")
+        else:
+            ax.text(q, 0.5, "no values", ha="center", va="center", color=c,
+                    transform=ax.get_xaxis_transform())
         m, lo, hi = _mean_ci(v)
         if not _isnan(m):
             err = None if _isnan(lo) else [[m - lo], [hi - m]]
