@@ -294,12 +294,15 @@ def _score_file(path, structure, case):
 def _client(scheduler, workers):
     """``(client, cluster or None, label)``: connect to ``scheduler`` or start a
     local cluster of ``workers`` single-threaded processes."""
+    import logging
+
     from distributed import Client, LocalCluster
 
     if scheduler:
         return Client(scheduler, set_as_default=False), None, str(scheduler)
     cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                           dashboard_address=None, host="127.0.0.1")
+                           dashboard_address=None, host="127.0.0.1",
+                           silence_logs=logging.ERROR)
     try:
         return Client(cluster, set_as_default=False), cluster, "LocalCluster"
     except Exception:
