@@ -30,7 +30,9 @@ Centrally, in the client
 Runs whose participant is not in the table are scored where they can be
 (group empty) and left out of everything that needs a group; participants
 of the table with no run, and salvaged (damaged) files, each give one line in
-``errors`` too.
+``errors`` too. A salvaged file is scored on its readable part (its row has
+no ``error``; ``meta["damaged"]`` lists it); one with no readable sample
+fails.
 """
 from __future__ import annotations
 
@@ -249,6 +251,8 @@ def _score_file(path, structure, case):
     if case is not None and mine != case:
         return {"file": str(path), "error": f"{path}: case {mine!r} is not the cohort's "
                 f"case {case!r}"}
+    if s.damage is not None and not len(s.samples["t_s"]):
+        return {"file": str(path), "error": f"{damage_notice(s)}; nothing to score"}
     models = _models(s)
     model = models[0]
     names = [st.name for st in model.structures]
