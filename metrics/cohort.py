@@ -173,8 +173,15 @@ def _peek_case(path) -> str | None:
     try:
         import h5py
 
-        with h5py.File(path, "r") as f:
-            return str(json.loads(f.attrs["header"])["case"]["name"])
+        from bonesim.session.salvage import open_session_file
+
+        f, _, _, view = open_session_file(Path(path), h5py)     # salvaged files too
+        try:
+            with f:
+                return str(json.loads(f.attrs["header"])["case"]["name"])
+        finally:
+            if view is not None:
+                view.close()
     except Exception:                       # the task reports the real problem
         return None
 
@@ -470,8 +477,9 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     -------
     CohortResult
         As :mod:`metrics.cohort_result` documents it; ``meta`` also holds
-        ``case`` (the cohort's) and ``damaged`` (files salvaged and scored
-        on their readable part).
+        ``case`` (the cohort's), ``damaged`` (files salvaged and scored
+        on their readable part) and ``central_s`` (wall time of the steps
+        after the per-run tasks [s]).
 
     Raises
     ------
@@ -490,6 +498,7 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     cases = Counter(c for c in map(_peek_case, paths) if c is not None)
     case = min(cases, key=lambda c: (-cases[c], c)) if cases else None
     runs, label, n_workers = _run_tasks(paths, structure, case, scheduler, workers, progress)
+    t_tasks = time.perf_counter()
 
     errors = []
     table = []
@@ -535,7 +544,8 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         meta={"scheduler": label, "workers": n_workers,
               "wall_s": time.perf_counter() - t0, "participants_file": str(participants),
               "sessions": [str(p) for p in paths], "case": case,
-              "damaged": [r["file"] for r in runs if r.get("damage")]})
+              "damaged": [r["file"] for r in runs if r.get("damage")],
+              "central_s": time.perf_counter() - t_tasks})
 
 
 def write_table(result: CohortResult, path) -> Path:
