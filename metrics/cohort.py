@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import csv
 import glob as _glob
+import io
 import json
 import math
 import time
@@ -89,46 +90,45 @@ def read_participants(path) -> dict:
 
     path = Path(path)
     try:
-        f = open(path, newline="", encoding="utf-8-sig")
-    except OSError as exc:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
         raise BonesimError(f"{path}: cannot read the participants table "
-                           f"({exc.strerror or exc})") from None
+                           f"({getattr(exc, 'strerror', None) or exc})") from None
     out = {}
-    with f:
-        rd = csv.reader(f)
-        head = next(rd, None)
-        if head is None:
-            raise BonesimError(f"{path}: line 1: empty file; expected the columns "
-                               f"{', '.join(_COLUMNS)}")
-        head = [h.strip().lower() for h in head]
-        for c in _COLUMNS:
-            if c not in head:
-                raise BonesimError(f"{path}: line 1: column {c!r} is missing (the header "
-                                   f"names {', '.join(repr(h) for h in head)})")
-        col = {c: head.index(c) for c in _COLUMNS}
-        for row in rd:
-            line = rd.line_num
-            if not any(x.strip() for x in row):
-                continue
-            cell = {c: (row[k].strip() if k < len(row) else "") for c, k in col.items()}
-            if not cell["id"]:
-                raise BonesimError(f"{path}: line {line}, column 'id': empty participant id")
-            if cell["id"] in out:
-                raise BonesimError(f"{path}: line {line}, column 'id': participant "
-                                   f"{cell['id']!r} is listed twice")
-            g = cell["group"].lower()
-            if g not in ("expert", "novice"):
-                raise BonesimError(f"{path}: line {line}, column 'group': {cell['group']!r} "
-                                   "is not 'expert' or 'novice'")
-            s = cell["instructor_score"]
-            try:
-                score = float(s) if s else math.nan
-            except ValueError:
-                score = None
-            if score is None or math.isinf(score):
-                raise BonesimError(f"{path}: line {line}, column 'instructor_score': "
-                                   f"{s!r} is not a number")
-            out[cell["id"]] = {"group": g, "instructor_score": score}
+    rd = csv.reader(io.StringIO(text, newline=""))
+    head = next(rd, None)
+    if head is None:
+        raise BonesimError(f"{path}: line 1: empty file; expected the columns "
+                           f"{', '.join(_COLUMNS)}")
+    head = [h.strip().lower() for h in head]
+    for c in _COLUMNS:
+        if c not in head:
+            raise BonesimError(f"{path}: line 1: column {c!r} is missing (the header "
+                               f"names {', '.join(repr(h) for h in head)})")
+    col = {c: head.index(c) for c in _COLUMNS}
+    for row in rd:
+        line = rd.line_num
+        if not any(x.strip() for x in row):
+            continue
+        cell = {c: (row[k].strip() if k < len(row) else "") for c, k in col.items()}
+        if not cell["id"]:
+            raise BonesimError(f"{path}: line {line}, column 'id': empty participant id")
+        if cell["id"] in out:
+            raise BonesimError(f"{path}: line {line}, column 'id': participant "
+                               f"{cell['id']!r} is listed twice")
+        g = cell["group"].lower()
+        if g not in ("expert", "novice"):
+            raise BonesimError(f"{path}: line {line}, column 'group': {cell['group']!r} "
+                               "is not 'expert' or 'novice'")
+        s = cell["instructor_score"]
+        try:
+            score = float(s) if s else math.nan
+        except ValueError:
+            score = None
+        if score is None or math.isinf(score):
+            raise BonesimError(f"{path}: line {line}, column 'instructor_score': "
+                               f"{s!r} is not a number")
+        out[cell["id"]] = {"group": g, "instructor_score": score}
     return out
 
 
@@ -310,7 +310,13 @@ def _client(scheduler, workers):
     from distributed import Client, LocalCluster
 
     if scheduler:
-        return Client(scheduler, set_as_default=False), None, str(scheduler)
+        try:
+            return Client(scheduler, set_as_default=False, timeout="20s"), None, str(scheduler)
+        except (OSError, TimeoutError) as exc:
+            from bonesim.errors import BonesimError
+
+            raise BonesimError(f"cannot reach the Dask scheduler {scheduler} "
+                               f"({' '.join(str(exc).split()) or type(exc).__name__})") from None
     cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                            dashboard_address=None, host="127.0.0.1",
                            silence_logs=logging.ERROR)
@@ -331,14 +337,12 @@ def _run_tasks(paths, structure, case, scheduler, workers, progress):
         where = {f.key: q for q, f in enumerate(futs)}
         out = [None] * len(futs)
         n_workers = len(client.scheduler_info().get("workers", {}))
-        done = 0
-        for fut in as_completed(futs, loop=client.loop):
+        for done, fut in enumerate(as_completed(futs, loop=client.loop), start=1):
             q = where[fut.key]
             try:
                 out[q] = fut.result()
             except Exception as exc:        # a worker died, the task was lost ...
                 out[q] = {"file": str(paths[q]), "error": f"{paths[q]}: {_one_line(exc)}"}
-            done += 1
             if progress is not None:
                 progress(done, len(futs))
         return out, label, n_workers
