@@ -31,6 +31,10 @@ each module says what it measures and how, with units:
     force against distance, visibility views, every metric's statistics.
 :mod:`metrics.run`
     Every metric of one run (``bonesim metrics run``).
+:mod:`metrics.cohort`
+    Every run of a cohort scored on a Dask cluster, with the group
+    statistics (``bonesim metrics cohort``; the record it fills is
+    :mod:`metrics.cohort_result`).
 :mod:`metrics.synth`
     Synthetic cohorts of scripted expert-like and novice-like runs (test
     data; ``bonesim cohort synth``).

@@ -2,14 +2,15 @@
 
 ``bonesim``'s command line (:mod:`bonesim.cli.main`) names these handlers by
 module path and imports them only when run, so the simulator never imports
-the metrics.
+the metrics; it imports this module (standard library only at import) to
+build the ``metrics cohort`` arguments (:func:`add_cohort_parser`).
 """
 from __future__ import annotations
 
 import json
 import sys
 
-__all__ = ["cmd_cohort_synth", "cmd_metrics_run"]
+__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "add_cohort_parser", "cmd_metrics_cohort"]
 
 
 def cmd_cohort_synth(args) -> int:
@@ -86,3 +87,88 @@ def cmd_metrics_run(args) -> int:
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
               f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
     return 0
+
+
+def add_cohort_parser(msub):
+    """Add ``bonesim metrics cohort`` to the ``metrics`` subcommands ``msub``
+    and return its parser (:mod:`bonesim.cli.main` sets its handler lazily)."""
+    mc = msub.add_parser("cohort", help="score a cohort of runs on a Dask cluster: a table "
+                         "of every metric per run and the group statistics")
+    mc.add_argument("sessions", metavar="DIR_OR_GLOB",
+                    help="a folder of session files (*.h5) or a glob pattern")
+    mc.add_argument("--participants", required=True, metavar="CSV",
+                    help="participants table: id, group (expert/novice), instructor_score")
+    mc.add_argument("--out", metavar="FILE", help="write the table (.parquet or .csv)")
+    mc.add_argument("--report", metavar="FILE.html", help="write the HTML report")
+    mc.add_argument("--scheduler", metavar="ADDRESS",
+                    help="a running Dask scheduler (default: a local cluster)")
+    mc.add_argument("--workers", type=int, default=2, metavar="N",
+                    help="worker processes of the local cluster (default 2)")
+    mc.add_argument("--structure", default="chorda_tympani",
+                    help="structure of the force tables (default chorda_tympani)")
+    mc.add_argument("--json", action="store_true", help="print the summary as JSON")
+    mc.set_defaults(func=cmd_metrics_cohort)
+    return mc
+
+
+def _write_report(result, path) -> str:
+    try:
+        from metrics.report import write_report
+    except ImportError:
+        return "report: metrics.report is not available"
+    write_report(result, path)
+    return f"report: {path}"
+
+
+def cmd_metrics_cohort(args) -> int:
+    """``bonesim metrics cohort``: score a cohort (:mod:`metrics.cohort`)."""
+    from bonesim.progress import ProgressBar
+    from metrics.cohort import find_sessions, score_cohort, write_table
+
+    n = len(find_sessions(args.sessions))
+    bar = ProgressBar(n, "scoring")
+    res = score_cohort(args.sessions, args.participants, scheduler=args.scheduler,
+                       workers=args.workers, structure=args.structure,
+                       progress=lambda done, _n: bar.update(done))
+    bar.close()
+    for line in res.errors:
+        print(line, file=sys.stderr)
+    out = {}
+    if args.out:
+        out["table"] = str(write_table(res, args.out))
+    if args.report:
+        out["report"] = _write_report(res, args.report)
+    tb, st = res.table, res.stats
+    sig = st[st["p_t"] < 0.05] if len(st) else st
+    summary = {"runs": int(len(tb)), "scored": int((tb["error"] == "").sum()),
+               "failed": int((tb["error"] != "").sum()), "errors": list(res.errors),
+               "case": res.meta.get("case"), "scheduler": res.meta["scheduler"],
+               "workers": res.meta["workers"], "wall_s": round(res.meta["wall_s"], 2),
+               "significant": [{"metric": r.metric, "expert_mean": _num(r.expert_mean),
+                                "novice_mean": _num(r.novice_mean), "p_t": _num(r.p_t),
+                                "d": _num(r.d)} for r in sig.itertuples()], **out}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"{summary['scored']} of {summary['runs']} runs scored ({summary['failed']} "
+          f"failed) on case {summary['case']}, {res.meta['scheduler']} with "
+          f"{res.meta['workers']} worker(s), {summary['wall_s']:.1f} s")
+    if summary["significant"]:
+        print("metrics that differ between experts and novices (t-test p < 0.05):")
+        for r in summary["significant"]:
+            print(f"  {r['metric']}: expert {_fmt(r['expert_mean'])}, novice "
+                  f"{_fmt(r['novice_mean'])}, p {_fmt(r['p_t'], digits=2)}, d "
+                  f"{_fmt(r['d'])}")
+    else:
+        print("no metric differs between experts and novices at p < 0.05")
+    for k in ("table", "report"):
+        if k in out:
+            print(out[k] if k == "report" else f"table: {out[k]}")
+    return 0
+
+
+def _num(x):
+    import math
+
+    x = float(x)
+    return None if math.isnan(x) else x

@@ -494,6 +494,8 @@ BENCHMARKS = {
     "visibility_offline_removals_per_s": lambda quick=False: __import__(
         "bonesim.bench.metrics_visibility",
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
+    **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
+        "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
 }
 
 

@@ -753,6 +753,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default chorda_tympani)")
     mr.add_argument("--json", action="store_true", help="print JSON")
     mr.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_run"))
+    mc = __import__("metrics.cli", fromlist=["_"]).add_cohort_parser(msub)
+    mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
 
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")

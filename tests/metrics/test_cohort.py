@@ -1,0 +1,204 @@
+"""Scoring a cohort on Dask (metrics.cohort, ``bonesim metrics cohort``): on a
+synthetic cohort of 3 + 3 short runs, the table matches the direct per-run
+functions and a serial leave-one-participant-out Naive Bayes; broken inputs
+each give one line and the rest is scored; an existing cluster is used and
+left running."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    from metrics.synth import PARTICIPANTS_CSV, synth_cohort
+
+    d = tmp_path_factory.mktemp("cohort")
+    paths = synth_cohort(d, 3, 3, seed=3, duration_s=8.0)
+    return d, paths, d / PARTICIPANTS_CSV
+
+
+@pytest.fixture(scope="module")
+def clean(cohort):
+    from metrics.cohort import score_cohort
+
+    d, _, csv_path = cohort
+    seen = []
+    res = score_cohort(d, csv_path, workers=2, progress=lambda done, n: seen.append((done, n)))
+    return res, seen
+
+
+def _edit_header(path, **change):
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        h = json.loads(f.attrs["header"])
+        for k, v in change.items():
+            if k == "case":
+                h["case"]["name"] = v
+            else:
+                h[k] = v
+        f.attrs["header"] = json.dumps(h)
+
+
+def test_table_has_a_row_per_file_and_matches_the_direct_functions(cohort, clean):
+    from bonesim.session.reader import read_session
+    from metrics.regions import loo_scores, region_run
+    from metrics.visibility import visible_fraction
+
+    _, paths, csv_path = cohort
+    res, seen = clean
+    tb = res.table
+    assert list(tb.columns) == [*RUN_COLUMNS, *METRIC_COLUMNS]
+    assert list(tb["file"]) == sorted(str(p) for p in paths)
+    assert (tb["error"] == "").all() and res.errors == []
+    assert seen[-1] == (6, 6) and [s[0] for s in seen] == list(range(1, 7))
+    with open(csv_path) as f:
+        groups = {r["id"]: r["group"] for r in csv.DictReader(f)}
+    assert list(tb["group"]) == [groups[p] for p in tb["participant"]]
+    sessions = [read_session(f) for f in tb["file"]]
+    serial = loo_scores([region_run(s, group=groups[s.header["participant"]])
+                         for s in sessions])
+    np.testing.assert_allclose(tb["nb_score"], serial.scores, rtol=1e-12)
+    vf = visible_fraction(sessions[0])
+    assert tb["visible_fraction"].iloc[0] == pytest.approx(vf, rel=1e-12)
+    for f, trained in res.nb_trained_on.items():
+        assert f not in trained and len(trained) == 5
+    assert set(res.force_tables) == set(tb["file"])
+    for name in ("duration_s", "removed_voxels", "visible_fraction", "nb_score",
+                 "final_dice", "final_mean_mm", "exceedances"):
+        assert np.isfinite(tb[name]).all(), name
+    st = res.stats
+    assert {"metric", "unit", "better", "expert_n", "novice_mean", "t", "p_t", "u", "p_u",
+            "u_method", "d", "d_lo", "d_hi", "rho", "p_rho", "r", "p_r"} <= set(st.columns)
+    assert "nb_score" in set(st["metric"])
+    assert res.meta["scheduler"] == "LocalCluster" and res.meta["workers"] == 2
+
+
+def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_path):
+    """Random bytes, a copy cut at half its size, a file of another case, a
+    run whose participant is not in the table and a participant with no run:
+    one line each, the rest scored. The cluster passed by address stays up."""
+    import pandas as pd
+    from distributed import Client, LocalCluster
+
+    from metrics.cohort import score_cohort
+
+    _, paths, csv_path = cohort
+    for p in paths:
+        shutil.copy(p, tmp_path / p.name)
+    (tmp_path / "corrupt.h5").write_bytes(np.random.default_rng(0).bytes(4096))
+    cut = tmp_path / "cut.h5"
+    shutil.copy(paths[3], cut)
+    os.truncate(cut, cut.stat().st_size // 2)
+    shutil.copy(paths[1], tmp_path / "other_case.h5")
+    _edit_header(tmp_path / "other_case.h5", case="otherbone")
+    shutil.copy(paths[2], tmp_path / "stranger.h5")
+    _edit_header(tmp_path / "stranger.h5", participant="X99")
+    table = tmp_path / "people.csv"
+    table.write_text(csv_path.read_text() + "E99,expert,4.0\n")
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None, host="127.0.0.1") as cluster:
+        res = score_cohort(str(tmp_path / "*.h5"), table, scheduler=cluster.scheduler_address)
+        with Client(cluster.scheduler_address) as c:        # still running
+            assert c.submit(lambda: 41 + 1).result() == 42
+    tb = res.table.set_index(res.table["file"].map(lambda f: os.path.basename(f)))
+    assert len(tb) == len(paths) + 4
+    assert res.meta["scheduler"] == cluster.scheduler_address
+    err = res.errors
+
+    def one(*words):
+        return [e for e in err if all(w in e for w in words)]
+
+    assert len(one("corrupt.h5", "not an HDF5 file")) == 1
+    assert len(one("cut.h5", "damaged")) == 1
+    assert len(one("other_case.h5", "case 'otherbone' is not the cohort's case 'phantom'")) == 1
+    assert len(one("stranger.h5", "'X99'", "not in")) == 1
+    assert len(one("'E99'", "has no run")) == 1
+    assert len(err) == 5, err
+    assert all("\n" not in e for e in err)
+    for f in ("corrupt.h5", "other_case.h5"):
+        assert tb.loc[f, "error"] and np.isnan(tb.loc[f, "visible_fraction"])
+    # cut at half (or anywhere: an 8 s file keeps its samples in one chunk at
+    # its end), the file keeps no sample: it fails with its damage line
+    assert "damaged" in tb.loc["cut.h5", "error"]
+    s = tb.loc["stranger.h5"]
+    assert s["error"] == "" and pd.isna(s["group"]) and np.isfinite(s["visible_fraction"])
+    assert np.isnan(s["nb_score"])                          # no group: not scored
+    good = tb.loc[[p.name for p in paths]]
+    assert (good["error"] == "").all() and np.isfinite(good["nb_score"]).all()
+    assert set(res.stats["expert_n"]) <= {3}
+
+
+def test_bad_participants_table_names_file_line_and_column(tmp_path):
+    from bonesim.errors import BonesimError
+    from metrics.cohort import read_participants
+
+    p = tmp_path / "p.csv"
+    p.write_text("id,group\nA,expert\n")
+    with pytest.raises(BonesimError, match=r"p\.csv: line 1: column 'instructor_score'"):
+        read_participants(p)
+    p.write_text("id,group,instructor_score\nA,expert,3\nB,resident,2\n")
+    with pytest.raises(BonesimError, match=r"line 3, column 'group': 'resident'"):
+        read_participants(p)
+    p.write_text("id,group,instructor_score\nA,expert,good\n")
+    with pytest.raises(BonesimError, match=r"line 2, column 'instructor_score': 'good'"):
+        read_participants(p)
+    p.write_text("id,group,instructor_score\nA,Expert,\nB,novice,2.5\n")
+    out = read_participants(p)
+    assert out["A"]["group"] == "expert" and np.isnan(out["A"]["instructor_score"])
+    assert out["B"]["instructor_score"] == 2.5
+
+
+def test_cli_writes_parquet_and_prints_json(cohort, tmp_path, capsys):
+    import pandas as pd
+
+    from bonesim.cli.main import main
+
+    d, _, csv_path = cohort
+    out = tmp_path / "x.parquet"
+    rc = main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--out",
+               str(out), "--workers", "1", "--json"])
+    assert rc == 0
+    cap = capsys.readouterr()
+    summary = json.loads(cap.out)
+    assert summary["runs"] == 6 and summary["scored"] == 6 and summary["failed"] == 0
+    assert summary["table"] == str(out)
+    assert any(s["metric"] == "nb_score" for s in summary["significant"])
+    tb = pd.read_parquet(out)
+    assert list(tb.columns) == [*RUN_COLUMNS, *METRIC_COLUMNS] and len(tb) == 6
+    assert "scoring" in cap.err
+
+
+def test_cli_text_summary_failed_runs_and_missing_report(cohort, tmp_path, capsys,
+                                                         monkeypatch):
+    import sys
+
+    import pandas as pd
+
+    from bonesim.cli.main import main
+
+    _, paths, csv_path = cohort
+    for p in paths:
+        shutil.copy(p, tmp_path / p.name)
+    (tmp_path / "junk.h5").write_bytes(b"not a session at all")
+    monkeypatch.setitem(sys.modules, "metrics.report", None)     # import fails
+    out = tmp_path / "t.csv"
+    rc = main(["metrics", "cohort", str(tmp_path / "*.h5"), "--participants", str(csv_path),
+               "--out", str(out), "--report", str(tmp_path / "r.html"), "--workers", "1"])
+    assert rc == 0
+    cap = capsys.readouterr()
+    assert "6 of 7 runs scored (1 failed) on case phantom" in cap.out
+    assert "nb_score" in cap.out and "report: metrics.report is not available" in cap.out
+    bad = [ln for ln in cap.err.splitlines() if "junk.h5" in ln]
+    assert len(bad) == 1 and "not an HDF5 file" in bad[0]
+    tb = pd.read_csv(out)
+    assert len(tb) == 7 and tb["error"].notna().sum() == 1
