@@ -1,16 +1,15 @@
 """Handlers of the research commands of ``bonesim`` (``bonesim cohort ...``).
 
-``bonesim``'s command line (:mod:`bonesim.cli.main`) names these handlers by
-module path and imports them only when run, so the simulator never imports
-the metrics; it imports this module (standard library only at import) to
-build the ``metrics cohort`` arguments (:func:`add_cohort_parser`).
+``bonesim``'s command line (:mod:`bonesim.cli.research` builds the arguments)
+names these handlers by module path and imports them only when run, so the
+simulator never imports the metrics.
 """
 from __future__ import annotations
 
 import json
 import sys
 
-__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "add_cohort_parser", "cmd_metrics_cohort"]
+__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort"]
 
 
 def cmd_cohort_synth(args) -> int:
@@ -87,28 +86,6 @@ def cmd_metrics_run(args) -> int:
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
               f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
     return 0
-
-
-def add_cohort_parser(msub):
-    """Add ``bonesim metrics cohort`` to the ``metrics`` subcommands ``msub``
-    and return its parser (:mod:`bonesim.cli.main` sets its handler lazily)."""
-    mc = msub.add_parser("cohort", help="score a cohort of runs on a Dask cluster: a table "
-                         "of every metric per run and the group statistics")
-    mc.add_argument("sessions", metavar="DIR_OR_GLOB",
-                    help="a folder of session files (*.h5) or a glob pattern")
-    mc.add_argument("--participants", required=True, metavar="CSV",
-                    help="participants table: id, group (expert/novice), instructor_score")
-    mc.add_argument("--out", metavar="FILE", help="write the table (.parquet or .csv)")
-    mc.add_argument("--report", metavar="FILE.html", help="write the HTML report")
-    mc.add_argument("--scheduler", metavar="ADDRESS",
-                    help="a running Dask scheduler (default: a local cluster)")
-    mc.add_argument("--workers", type=int, default=2, metavar="N",
-                    help="worker processes of the local cluster (default 2)")
-    mc.add_argument("--structure", default="chorda_tympani",
-                    help="structure of the force tables (default chorda_tympani)")
-    mc.add_argument("--json", action="store_true", help="print the summary as JSON")
-    mc.set_defaults(func=cmd_metrics_cohort)
-    return mc
 
 
 def _write_report(result, path) -> str:

@@ -297,6 +297,7 @@ def _score_file(path, structure, case):
     region = region_run(s, group="expert")          # the group is set centrally
     return {"file": str(path), "participant": str(h.get("participant", "") or ""),
             "case": mine, "damage": damage_notice(s), "shape": tuple(h["shape"]),
+            "notes": str(h.get("notes", "") or ""),
             "voxel_mm": float(h["voxel_mm"]), "metrics": m, "force_table": table,
             "region": region.voxels, "drilled": drilled_set(s)}
 
@@ -549,6 +550,8 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
               "wall_s": time.perf_counter() - t0, "participants_file": str(participants),
               "sessions": [str(p) for p in paths], "case": case,
               "damaged": [r["file"] for r in runs if r.get("damage")],
+              # the report flags synthetic test data (bonesim cohort synth says so)
+              "synthetic": any("synthetic" in r.get("notes", "").lower() for r in runs),
               "central_s": time.perf_counter() - t_tasks})
 
 

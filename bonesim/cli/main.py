@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.cli.research import research_parsers
 from bonesim.errors import BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
@@ -727,34 +728,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     _tutor_parser(sub)
 
-    s = sub.add_parser("cohort", help="research cohorts of recorded runs")
-    csub = s.add_subparsers(dest="cohort_cmd", metavar="ACTION", required=True)
-    cs = csub.add_parser("synth", help="record a synthetic cohort of expert-like and "
-                         "novice-like scripted runs (test data) and its participants.csv")
-    cs.add_argument("--experts", type=int, default=6, metavar="N", help="expert-like runs")
-    cs.add_argument("--novices", type=int, default=6, metavar="M", help="novice-like runs")
-    cs.add_argument("--out", required=True, metavar="DIR", help="an empty folder")
-    cs.add_argument("--seed", type=int, default=0, help="seed of every draw")
-    cs.add_argument("--duration", type=float, default=180.0, metavar="S",
-                    help="length of each run [s] (default 180)")
-    cs.add_argument("--case", default="phantom", help="case name or case.toml path")
-    cs.add_argument("--json", action="store_true", help="print JSON")
-    cs.set_defaults(func=_lazy("metrics.cli", "cmd_cohort_synth"))
-
-    s = sub.add_parser("metrics", help="research metrics of recorded runs")
-    msub = s.add_subparsers(dest="metrics_cmd", metavar="ACTION", required=True)
-    mr = msub.add_parser("run", help="every metric of one run")
-    mr.add_argument("file", help="session file (.h5)")
-    mr.add_argument("--expert", action="append", metavar="FILE.h5",
-                    help="an expert run of the same case for the final product (repeatable)")
-    mr.add_argument("--force-profile", metavar="FILE.h5",
-                    help="an expert run whose force is the target profile to align to")
-    mr.add_argument("--structure", help="structure of the force-versus-distance table "
-                    "(default chorda_tympani)")
-    mr.add_argument("--json", action="store_true", help="print JSON")
-    mr.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_run"))
-    mc = __import__("metrics.cli", fromlist=["_"]).add_cohort_parser(msub)
-    mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
+    research_parsers(sub, _lazy)
 
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")

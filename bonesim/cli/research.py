@@ -1,0 +1,58 @@
+"""The research commands' arguments: ``bonesim cohort synth``, ``bonesim
+metrics run`` and ``bonesim metrics cohort``.
+
+Their handlers live with the research metrics (:mod:`metrics.cli`, beside the
+package) and are named here by module path only: the simulator never imports
+the metrics, and a machine that only drills never loads scipy's statistics,
+Dask or pandas.
+"""
+from __future__ import annotations
+
+__all__ = ["research_parsers"]
+
+
+def research_parsers(sub, _lazy) -> None:
+    """Add the research commands to the ``bonesim`` subcommands ``sub``;
+    ``_lazy(module, name)`` makes a handler imported only when run."""
+    s = sub.add_parser("cohort", help="research cohorts of recorded runs")
+    csub = s.add_subparsers(dest="cohort_cmd", metavar="ACTION", required=True)
+    cs = csub.add_parser("synth", help="record a synthetic cohort of expert-like and "
+                         "novice-like scripted runs (test data) and its participants.csv")
+    cs.add_argument("--experts", type=int, default=6, metavar="N", help="expert-like runs")
+    cs.add_argument("--novices", type=int, default=6, metavar="M", help="novice-like runs")
+    cs.add_argument("--out", required=True, metavar="DIR", help="an empty folder")
+    cs.add_argument("--seed", type=int, default=0, help="seed of every draw")
+    cs.add_argument("--duration", type=float, default=180.0, metavar="S",
+                    help="length of each run [s] (default 180)")
+    cs.add_argument("--case", default="phantom", help="case name or case.toml path")
+    cs.add_argument("--json", action="store_true", help="print JSON")
+    cs.set_defaults(func=_lazy("metrics.cli", "cmd_cohort_synth"))
+
+    s = sub.add_parser("metrics", help="research metrics of recorded runs")
+    msub = s.add_subparsers(dest="metrics_cmd", metavar="ACTION", required=True)
+    mr = msub.add_parser("run", help="every metric of one run")
+    mr.add_argument("file", help="session file (.h5)")
+    mr.add_argument("--expert", action="append", metavar="FILE.h5",
+                    help="an expert run of the same case for the final product (repeatable)")
+    mr.add_argument("--force-profile", metavar="FILE.h5",
+                    help="an expert run whose force is the target profile to align to")
+    mr.add_argument("--structure", help="structure of the force-versus-distance table "
+                    "(default chorda_tympani)")
+    mr.add_argument("--json", action="store_true", help="print JSON")
+    mr.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_run"))
+    mc = msub.add_parser("cohort", help="score a cohort of runs on a Dask cluster: a table "
+                         "of every metric per run and the group statistics")
+    mc.add_argument("sessions", metavar="DIR_OR_GLOB",
+                    help="a folder of session files (*.h5) or a glob pattern")
+    mc.add_argument("--participants", required=True, metavar="CSV",
+                    help="participants table: id, group (expert/novice), instructor_score")
+    mc.add_argument("--out", metavar="FILE", help="write the table (.parquet or .csv)")
+    mc.add_argument("--report", metavar="FILE.html", help="write the HTML report")
+    mc.add_argument("--scheduler", metavar="ADDRESS",
+                    help="a running Dask scheduler (default: a local cluster)")
+    mc.add_argument("--workers", type=int, default=2, metavar="N",
+                    help="worker processes of the local cluster (default 2)")
+    mc.add_argument("--structure", default="chorda_tympani",
+                    help="structure of the force tables (default chorda_tympani)")
+    mc.add_argument("--json", action="store_true", help="print the summary as JSON")
+    mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
