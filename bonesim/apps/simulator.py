@@ -277,11 +277,20 @@ class App:
             "haptic_hz": self._rates.get("rate_hz", 0.0),
             "elapsed_s": time.perf_counter() - self.t_start,
             "injuries": list(self.injuries),
+            "visible": self._visible(),
             "message": "; ".join(self.notices) if self.notices else None,
         })
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
         self.frames += 1
+
+    def _visible(self):
+        """``(visible, judged)`` removals since the case reset, as the
+        recorder's visibility judge counts them (None without a recording)."""
+        if self.recorder is None:
+            return None
+        st = self.recorder.status
+        return int(st["visible"]), int(st["visible"]) + int(st["hidden"])
 
     def on_mouse(self, world_mm, buttons) -> None:
         if self.scripted:

@@ -25,6 +25,10 @@ keys (all optional; units in the names):
 ``frame_hz``         frame rate [Hz] (default: measured by the scene)
 ``elapsed_s``        run time [s]
 ``injuries``         count, list of structure names, or text
+``visible``          ``(visible, judged)``: removals the eye could see since the
+                     case reset, of those judged (the recorder's voxel
+                     visibility, :mod:`bonesim.physics.visibility`); shown as a
+                     percentage once any is judged; None: not shown
 ``message``          free text (status, warnings), one paragraph a line,
                      wrapped (continuations indented by two spaces)
 ===================  ====================================================
@@ -40,7 +44,7 @@ __all__ = ["KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "forma
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
          "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
-         "injuries", "message")
+         "injuries", "visible", "message")
 #: Width of the label column [characters].
 LABEL_W = 7
 #: Messages wrap at this many characters; continuation lines are indented.
@@ -151,6 +155,9 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
         lines.append(_line("time", _num(info["elapsed_s"], ".1f") + " s"))
     if "injuries" in info:
         lines.append(_line("injury", _injuries(info["injuries"])))
+    seen = info.get("visible")
+    if seen is not None and seen[1] > 0:
+        lines.append(_line("seen", f"{100.0 * seen[0] / seen[1]:.0f} % of {seen[1]:,}"))
     for k, v in info.items():
         if k not in KNOWN:
             lines.append(f"{k}: {v}")

@@ -375,10 +375,13 @@ class ChildProcess:
             self._conn = None
 
     def close(self) -> None:
-        """Stop the child and free the shared memory; idempotent."""
+        """Stop the child and free the shared memory; idempotent. The
+        status keeps its final values (a private copy: reading a view of the
+        freed memory would crash the process)."""
         self.stop()
         if self._sh is not None:
             self.rings = {}
+            self.status = self.status.copy()
             self._sh.close()
             self._sh = None
 

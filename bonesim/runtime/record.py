@@ -398,6 +398,12 @@ class Drainer:
         Cursors start at record 0: the rings must not have wrapped yet.
     visibility : bonesim.physics.visibility.VisibilityTracker, optional
         Fills the removals' ``visible`` column (else -1, unknown).
+
+    Attributes
+    ----------
+    visible, hidden : int
+        Removals judged visible / hidden since the last case reset (the
+        running visible fraction the window shows).
     """
 
     #: ring name -> file group, in drain order (samples before what follows them)
@@ -414,6 +420,16 @@ class Drainer:
         self.last_t = -math.inf if "samples" in rings else math.inf
         self.rows = 0
         self.overflows = 0
+        self.visible = self.hidden = 0
+
+    def _count(self, kind, vis) -> None:
+        """Add a batch's verdicts to the running counts (from 0 after a reset)."""
+        resets = np.flatnonzero(kind == events.RESET)
+        if len(resets):
+            self.visible = self.hidden = 0
+            vis = vis[resets[-1] + 1:]
+        self.visible += int(np.count_nonzero(vis == 1))
+        self.hidden += int(np.count_nonzero(vis == 0))
 
     def _take(self, name: str, cur) -> dict:
         try:
@@ -451,6 +467,7 @@ class Drainer:
             r = recs["tissue"]
             r["visible"] = np.full(len(r["t_s"]), -1, np.int8) if self.visibility is None \
                 else self.visibility.judge(r)
+            self._count(np.asarray(r["kind"]), r["visible"])
         n = sum(self.writer.append(self.TARGET[name], r) for name, r in recs.items())
         self.rows += n
         return n
@@ -494,9 +511,13 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
             status["flushes"] = writer.flushes
             status["overflows"] = drainer.overflows
             status["last_flush"] = time.time()
+            status["visible"] = drainer.visible
+            status["hidden"] = drainer.hidden
             time.sleep(max(0.0, flush_s - (time.monotonic() - t0)))
         drainer.drain()
         status["rows"] = drainer.rows
+        status["visible"] = drainer.visible
+        status["hidden"] = drainer.hidden
     finally:
         writer.close()
         status["flushes"] = writer.flushes
@@ -531,12 +552,13 @@ class Recorder(ChildProcess):
     ----------
     status : ndarray
         ``rows`` written, ``flushes``, ring ``overflows``, ``last_flush``
-        (wall clock [s]).
+        (wall clock [s]); ``visible`` and ``hidden``: removals judged since
+        the last case reset (:class:`Drainer`).
     """
 
     NAME = "bonesim-recorder"
     STATUS = (("rows", np.int64), ("flushes", np.int64), ("overflows", np.int64),
-              ("last_flush", np.float64))
+              ("last_flush", np.float64), ("visible", np.int64), ("hidden", np.int64))
     RINGS = ("camera", "ui")
     TERM_QUITS = True               # SIGTERM: drain the rings and close the file
 

@@ -47,3 +47,10 @@ def test_help_lists_every_action_once():
         assert sum(line.strip().endswith(action.replace("_", " "))
                    for line in text.splitlines()) == 1
     assert "Space" in text and "Esc" in text and "orbit" in text
+
+
+def test_hud_shows_the_running_visible_share_once_any_removal_is_judged():
+    assert "seen   87 % of 1,234" in format_hud({"visible": (1074, 1234)}).splitlines()
+    assert not any(ln.startswith("seen") for ln in format_hud({"visible": (0, 0)}).splitlines())
+    assert not any(ln.startswith("seen")
+                   for ln in format_hud({"visible": None}).splitlines())

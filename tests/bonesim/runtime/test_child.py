@@ -78,7 +78,10 @@ def test_a_new_child_is_one_small_class_ready_status_ring_quit_and_messages():
         assert not c.running and c.status["done"] and not c.status["failed"]
         assert c.messages == [{"total": int(c.status["count"])}]
         c.stop()                                 # idempotent
+        final = int(c.status["count"])
     c.close()                                    # so is close
+    # the final status stays readable once the shared memory is freed
+    assert c.status["done"] and int(c.status["count"]) == final
 
 
 def test_a_start_up_error_reaches_the_parent_as_one_error_type_with_the_message():

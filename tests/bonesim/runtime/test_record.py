@@ -293,12 +293,16 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
         loop.set_drill(False)
         time.sleep(0.1)
         rec.close()
+        seen = (int(rec.status["visible"]), int(rec.status["hidden"]))
         ev = loop.state.tissue.read(0)
         n_removed = int((ev["kind"] == events.REMOVED).sum())
     finally:
         loop.close()
     s = read_session(path)
     assert len(s.removals["t_s"]) == n_removed
+    # the running counts the window shows: the verdicts since the reset
+    vis = s.removals["visible"][s.removals["epoch"] == 1]
+    assert seen == (int((vis == 1).sum()), int((vis == 0).sum())) and sum(seen) > 20
     assert set(np.unique(s.removals["epoch"])) == {0, 1}
     assert set(np.unique(s.samples["burr"])) == {0, 1}
     # the loop published the burr change and the reset as tissue events, at
