@@ -81,6 +81,17 @@ def cmd_metrics_run(args) -> int:
         m = res["final_product"]["mean"]
         print(f"final product vs {len(res['final_product']['per_expert'])} expert run(s): "
               f"Dice {_fmt(m['dice'])}, mean distance {_fmt(m['mean_mm'], ' mm')}")
+    if "exceedances" in res:
+        e = res["exceedances"]
+        print(f"above the experts' limits near {e['structure']} ({e['percentile']:g}th "
+              f"percentile per 2 mm bin): force {e['count']['force_n']} time(s), speed "
+              f"{e['count']['speed_rpm']} time(s)")
+        for w in e["worst"]:
+            unit, f = (" N", ".3f") if w["quantity"] == "force_n" else (" rpm", ",.0f")
+            print(f"  at {w['t_s']:.3f} s, {w['distance_mm']:.1f} mm away, burr at "
+                  f"({', '.join(f'{v:.1f}' for v in w['pos_mm'])}) mm: "
+                  f"{w['value']:{f}}{unit} against {w['limit']:{f}}{unit} "
+                  f"(+{w['excess']:{f}}{unit})")
     if "alignment" in res:
         a = res["alignment"]
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "

@@ -46,7 +46,10 @@ Limits
     skewed. Bins with fewer than :data:`MIN_LIMIT_SAMPLES` expert rows have no
     limit (NaN) and flag nothing.
 Exceedance
-    A row whose force (speed) is above its bin's limit; per haptic step and
+    A row whose force (speed) is above its bin's limit by more than
+    :data:`AT_LIMIT_RTOL` of it (a force clamped at the device's maximum
+    equals an expert's clamped force up to rounding: that is at the limit,
+    not above it); per haptic step and
     quantity only the row with the largest excess is kept (one report per
     moment, not one per voxel removed in it).
 """
@@ -59,7 +62,7 @@ import numpy as np
 from scipy import stats
 
 __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "CONFIDENCE", "FORCES",
-           "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "QUANTITIES",
+           "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "AT_LIMIT_RTOL", "QUANTITIES",
            "ForceTable", "BinStats", "Limits", "Exceedances", "bin_edges", "bin_index",
            "structure_label", "force_vs_distance", "group_bins", "learn_limits",
            "exceedances"]
@@ -84,6 +87,8 @@ DEFAULT_FORCE = "applied"
 LIMIT_PERCENTILE = 95.0
 #: Expert rows a bin needs to get a limit.
 MIN_LIMIT_SAMPLES = 5
+#: A value within this share of its limit is at the limit, not above it.
+AT_LIMIT_RTOL = 1e-9
 #: The quantities limited: a table column and its unit.
 QUANTITIES = ("force_n", "speed_rpm")
 
@@ -598,8 +603,8 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
     for qn, lim in (("force_n", limits.force_n), ("speed_rpm", limits.speed_rpm)):
         val = getattr(tb, qn)
         lim_row = np.where(b >= 0, lim[np.maximum(b, 0)], np.nan)
-        with np.errstate(invalid="ignore"):
-            over = np.flatnonzero(val > lim_row)           # NaN limits flag nothing
+        with np.errstate(invalid="ignore"):                # NaN limits flag nothing
+            over = np.flatnonzero(val > lim_row + AT_LIMIT_RTOL * np.abs(lim_row))
         if not len(over):
             continue
         exc = val[over] - lim_row[over]

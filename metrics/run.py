@@ -21,6 +21,12 @@ gathers, JSON-ready:
     contacts with each structure, drilled volume, burrs.
 ``final_product`` (with expert runs)
     :func:`metrics.final_product.compare_to_experts`.
+``exceedances`` (with expert runs)
+    Where this run's force or speed went above the per-bin limits learned
+    from the expert runs' force tables (:func:`metrics.forces.learn_limits`,
+    :func:`metrics.forces.exceedances`): how many, and the
+    :data:`WORST_SHOWN` largest by excess with time [s], burr position [mm],
+    distance [mm], value, limit and excess.
 ``alignment`` (with an expert run for the force profile)
     :func:`metrics.alignment.align_sessions` of this run's force against
     the expert's, summarized.
@@ -34,7 +40,10 @@ import math
 
 import numpy as np
 
-__all__ = ["run_metrics"]
+__all__ = ["WORST_SHOWN", "run_metrics"]
+
+#: Exceedances listed one by one (the largest excesses).
+WORST_SHOWN = 5
 
 
 def _clean(x):
@@ -52,10 +61,10 @@ def _clean(x):
     return x
 
 
-def _forces(session, structure, model):
+def _forces(session, structure, model, tab=None):
     from metrics.forces import bin_edges, bin_index, force_vs_distance
 
-    tab = force_vs_distance(session, structure, model=model)
+    tab = force_vs_distance(session, structure, model=model) if tab is None else tab
     edges = bin_edges()
     b = bin_index(tab.distance_mm, edges)
     bins = []
@@ -68,6 +77,23 @@ def _forces(session, structure, model):
     return {"structure": structure, "rows": len(tab), "force": tab.force,
             "mean_force_n": float(tab.force_n.mean()) if len(tab) else float("nan"),
             "bins": bins}
+
+
+def _exceedances(run_table, expert_tables):
+    from metrics.forces import exceedances, learn_limits
+
+    lim = learn_limits(expert_tables)
+    ex = exceedances(run_table, lim)
+    out = {"structure": lim.structure, "percentile": lim.percentile,
+           "limited_bins": int(np.count_nonzero(~np.isnan(lim.force_n))),
+           "count": {q: int(np.count_nonzero(ex.quantity == q))
+                     for q in ("force_n", "speed_rpm")}, "worst": []}
+    for q in np.argsort(-ex.excess, kind="stable")[:WORST_SHOWN]:
+        out["worst"].append({"t_s": float(ex.t_s[q]), "pos_mm": ex.pos_mm[q].tolist(),
+                             "distance_mm": float(ex.distance_mm[q]),
+                             "quantity": str(ex.quantity[q]), "value": float(ex.value[q]),
+                             "limit": float(ex.limit[q]), "excess": float(ex.excess[q])})
+    return out
 
 
 def run_metrics(session, *, experts=(), force_profile=None, structure: str | None = None,
@@ -118,8 +144,12 @@ def run_metrics(session, *, experts=(), force_profile=None, structure: str | Non
                    "damaged": getattr(s, "damage", None) is not None}}
     out["visibility"] = visibility(s, models=models).summary()
     structure = DEFAULT_STRUCTURE if structure is None else structure
+    run_table = None
     if structure in names:
-        out["forces"] = _forces(s, structure, model)
+        from metrics.forces import force_vs_distance
+
+        run_table = force_vs_distance(s, structure, model=model)
+        out["forces"] = _forces(s, structure, model, run_table)
     else:
         out["forces"] = {"structure": structure, "skipped": f"case {model.name!r} has no "
                          f"structure {structure!r}"}
@@ -133,7 +163,13 @@ def run_metrics(session, *, experts=(), force_profile=None, structure: str | Non
     if experts:
         from metrics.final_product import compare_to_experts
 
-        out["final_product"] = compare_to_experts(s, [load(e) for e in experts], model=model)
+        panel = [load(e) for e in experts]
+        out["final_product"] = compare_to_experts(s, panel, model=model)
+        if run_table is not None:
+            from metrics.forces import force_vs_distance
+
+            out["exceedances"] = _exceedances(
+                run_table, [force_vs_distance(e, structure, model=model) for e in panel])
     if force_profile is not None:
         from metrics.alignment import align_sessions
 

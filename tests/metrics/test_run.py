@@ -28,6 +28,17 @@ def test_every_metric_of_a_run_is_json_and_consistent(runs):
     assert sum(b["rows"] for b in res["forces"]["bins"]) == res["forces"]["rows"]
     assert set(res["exposure"]) <= {st.name for st in s.burr_models()[0].structures}
     assert len(res["final_product"]["per_expert"]) == 2
+    # exceedances against limits learned from the two experts: as the
+    # functions give them, the largest first
+    from metrics.forces import exceedances, force_vs_distance, learn_limits
+
+    model = s.burr_models()[0]
+    ex = exceedances(force_vs_distance(s, model=model),
+                     learn_limits([force_vs_distance(read_session(e), model=model)
+                                   for e in (e1, e2)]))
+    got = res["exceedances"]
+    assert sum(got["count"].values()) == len(ex)
+    assert [w["excess"] for w in got["worst"]] == sorted(ex.excess, reverse=True)[:5]
     assert res["alignment"]["rms_n"] <= res["alignment"]["unaligned_rms_n"] + 1e-9
     # an expert against itself: a perfect final product
     same = run_metrics(e1, experts=[e1])
