@@ -202,3 +202,27 @@ def test_cli_text_summary_failed_runs_and_missing_report(cohort, tmp_path, capsy
     assert len(bad) == 1 and "not an HDF5 file" in bad[0]
     tb = pd.read_csv(out)
     assert len(tb) == 7 and tb["error"].notna().sum() == 1
+
+
+def test_a_file_cut_short_is_scored_on_its_readable_part(tmp_path):
+    """A run of 30 s cut at 70 % of its size keeps its first samples (the file
+    is written in time order, 8,192-row chunks): it is scored on them (no
+    error), its damage line travels with it, and the scores are those of the
+    readable part (fewer removals than the whole)."""
+    from bonesim.session.reader import read_session
+    from metrics.cohort import score_file
+    from metrics.synth import synth_cohort
+
+    (whole,) = synth_cohort(tmp_path / "run", 0, 1, seed=7, duration_s=30.0)
+    cut = tmp_path / "cut.h5"
+    shutil.copy(whole, cut)
+    os.truncate(cut, int(cut.stat().st_size * 0.7))
+    full, part = score_file(whole), score_file(cut)
+    assert "error" not in part, part.get("error")
+    assert part["damage"] and "cut.h5" in part["damage"] and full["damage"] is None
+    s = read_session(cut)
+    kept, total = len(s.samples["t_s"]), len(read_session(whole).samples["t_s"])
+    assert s.damage is not None and 0 < kept < total
+    assert 0 < part["metrics"]["removed_voxels"] < full["metrics"]["removed_voxels"]
+    assert part["metrics"]["duration_s"] < full["metrics"]["duration_s"]
+    assert np.isfinite(part["metrics"]["visible_fraction"])
