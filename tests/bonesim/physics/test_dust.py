@@ -226,27 +226,32 @@ def test_tool_push_and_suction_match_reference():
     assert dust.suctioned_cells > 0
 
 
-@pytest.mark.parametrize("g", [(0, 0, -1), (0.2, 0.3, -1.0)])
-def test_full_step_matches_reference(g):
-    shape = (21, 19, 23)
-    bone, wall, d = make_case(shape, seed=7, dust_max=1.8)
+def steps_match_reference(bone, wall, d, g, seed, bodies=None):
+    """Ten full steps (gravity, spill, tool push, suction) against the
+    references, ``wall`` the cells the references treat as walls."""
     prm = DustParams(settle_rate=120.0, spill_rate=120.0, repose=0.4, suction_rate=90.0)
     dust = DustGrid.for_grid(bone, g, prm)
     load(dust, d)
     dt = 1.5e-3
     r = rates(prm, dt)
     gn = np.asarray(g, float) / np.linalg.norm(g)
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     for _ in range(10):
         tool = ORIGIN + rng.uniform(2, 8, 3)
         suck = ORIGIN + rng.uniform(2, 8, 3)
-        dust.step(bone, dt, tool, 1.3, suck, 1.1)
+        dust.step(bone, dt, tool, 1.3, suck, 1.1, bodies=bodies)
         d = ref_gravity(d, wall, g, r["rate_q"])
         d = ref_spill(d, wall, g, r["kq"], r["repose_q"])
         d = ref_tool(d, wall, np.zeros(3, int), tool, 1.3, prm.push_search, tuple(-gn))
         d, _ = ref_suction(d, np.zeros(3, int), suck, 1.1, r["srate_q"])
         np.testing.assert_array_equal(dense_q(dust), d)
     check_mass(dust)
+
+
+@pytest.mark.parametrize("g", [(0, 0, -1), (0.2, 0.3, -1.0)])
+def test_full_step_matches_reference(g):
+    bone, wall, d = make_case((21, 19, 23), seed=7, dust_max=1.8)
+    steps_match_reference(bone, wall, d, g, seed=1)
 
 
 # ------------------------------------------------------------ conservation
@@ -762,24 +767,7 @@ def test_only_bodies_at_the_identity_are_dust_walls(g):
     # bone split into three bodies by a random pattern; body 1 moved away
     body_dense = np.random.default_rng(2).integers(0, 3, shape).astype(np.uint8)
     bodies = _bodies(bone, body_dense, [IDENT, TURN, IDENT])
-    wall = wall & (body_dense != 1)
-    prm = DustParams(settle_rate=120.0, spill_rate=120.0, repose=0.4, suction_rate=90.0)
-    dust = DustGrid.for_grid(bone, g, prm)
-    load(dust, d)
-    dt = 1.5e-3
-    r = rates(prm, dt)
-    gn = np.asarray(g, float) / np.linalg.norm(g)
-    rng = np.random.default_rng(4)
-    for _ in range(10):
-        tool = ORIGIN + rng.uniform(2, 8, 3)
-        suck = ORIGIN + rng.uniform(2, 8, 3)
-        dust.step(bone, dt, tool, 1.3, suck, 1.1, bodies=bodies)
-        d = ref_gravity(d, wall, g, r["rate_q"])
-        d = ref_spill(d, wall, g, r["kq"], r["repose_q"])
-        d = ref_tool(d, wall, np.zeros(3, int), tool, 1.3, prm.push_search, tuple(-gn))
-        d, _ = ref_suction(d, np.zeros(3, int), suck, 1.1, r["srate_q"])
-        np.testing.assert_array_equal(dense_q(dust), d)
-    check_mass(dust)
+    steps_match_reference(bone, wall & (body_dense != 1), d, g, seed=4, bodies=bodies)
 
 
 def test_bodies_at_the_identity_step_exactly_as_one_body():
