@@ -48,6 +48,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from metrics.regions import final_epoch
+
 __all__ = ["MIN_STROKE_S", "MIN_EVENT_S", "EXCESSIVE_SHARE", "NEAR_MM", "BANDS_MM",
            "N_STAGES", "NEAR_BURR_MM", "last_epoch", "drilling_mask", "strokes",
            "stroke_summary", "excessive_force_events", "burr_gaps", "time_near",
@@ -73,9 +75,8 @@ def last_epoch(session):
     """``(samples, removals)`` of the session's last epoch (dicts of columns)."""
     s = session.samples
     r = session.removals
-    ep = s["epoch"]
-    last = int(ep[-1]) if len(ep) else 0
-    ks = ep == last
+    last = final_epoch(session)
+    ks = s["epoch"] == last
     kr = r["epoch"] == last
     return {k: v[ks] for k, v in s.items()}, {k: v[kr] for k, v in r.items()}
 
@@ -314,11 +315,10 @@ def injuries_by_structure(session, names) -> dict:
     """``{structure name: {"contacts": n, "injuries": n}}`` over the last epoch."""
     inj = session.injuries
     out = {n: {"contacts": 0, "injuries": 0} for n in names}
-    ep = session.samples["epoch"]
-    last = int(ep[-1]) if len(ep) else 0
-    # an event's epoch: the resets published before it
     from bonesim.engine import events
 
+    last = final_epoch(session)
+    # an event's epoch: the resets published before it
     tis = session.tissue
     resets = np.sort(tis["t_s"][tis["kind"] == events.RESET])
     e_of = np.searchsorted(resets, inj["t_s"], side="right")

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from metrics.forces import structure_label
-from metrics.regions import drilled_voxels
+from metrics.regions import drilled_voxels, final_epoch
 
 __all__ = ["DEFAULT_STRUCTURES", "THRESHOLDS_MM", "Exposure", "structure_surface",
            "cover_mm", "exposure"]
@@ -162,8 +162,7 @@ def exposure(session, structures=DEFAULT_STRUCTURES, *, thresholds_mm=THRESHOLDS
         raise ValueError(f"labels has shape {labels.shape}, the session's grid {shape}")
     bone = [int(st["label"]) for st in h["structures"] if st.get("kind") == "bone"]
     rem = session.removals
-    ep = session.samples["epoch"]
-    last = int(ep[-1]) if len(ep) else 0
+    last = final_epoch(session)
     flat = drilled_voxels(rem["ijk"][rem["epoch"] == last], last, shape)
     drilled = np.column_stack(np.unravel_index(flat, shape)) if len(flat) else \
         np.zeros((0, 3), np.int64)

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["ALPHA", "EXPERT", "NOVICE", "GROUPS", "RegionRun", "RegionModel", "LooScores",
-           "drilled_voxels", "region_run", "fit_regions", "loo_scores"]
+           "final_epoch", "drilled_voxels", "region_run", "fit_regions", "loo_scores"]
 
 #: Default Laplace smoothing: a Beta(1, 1) (uniform) prior on each voxel's rate.
 ALPHA = 1.0
@@ -165,6 +165,17 @@ class RegionRun:
         object.__setattr__(self, "voxels", v)
 
 
+def final_epoch(session) -> int:
+    """The epoch (case resets before it) a run ended in: its last sample's,
+    else (no samples) its last removal's, else 0. Every metric of "what the
+    run left" reads this epoch's removals."""
+    ep = session.samples.get("epoch", np.zeros(0, np.int32))
+    if len(ep):
+        return int(ep[-1])
+    rep = session.removals["epoch"]
+    return int(rep.max()) if len(rep) else 0
+
+
 def region_run(session, *, group: str | None = None, participant: str | None = None
                ) -> RegionRun:
     """A session's drilled region (:class:`RegionRun`).
@@ -184,8 +195,7 @@ def region_run(session, *, group: str | None = None, participant: str | None = N
     """
     h = session.header
     rem = session.removals
-    ep = session.samples.get("epoch", np.zeros(0, np.int32))
-    last = int(ep[-1]) if len(ep) else (int(rem["epoch"].max()) if len(rem["epoch"]) else 0)
+    last = final_epoch(session)
     keep = rem["epoch"] == last
     voxels = drilled_voxels(rem["ijk"][keep], last, h["shape"])
     name = str(getattr(session, "path", "") or "")
