@@ -11,9 +11,10 @@ Per run, on the cluster
     with its mean force [N] and speed [rpm], the share of each skeletonized
     structure's surface under less than 1 mm of bone
     (:func:`metrics.exposure.exposure`), the conduct scalars
-    (:func:`metrics.conduct.conduct`), and the drilled region and set that
-    the central steps need. A task never raises: a file that cannot be read,
-    or is of another case than the cohort's (the majority case of the
+    (:func:`metrics.conduct.conduct`), and the drilled set (the voxels
+    removed in the run's final epoch) the central steps need. A task never
+    raises: a file that cannot be read, or is of another case than the
+    cohort's (the majority case of the
     files), gives its one-line message instead. Each worker keeps the
     models it rebuilt (per recorded case, burrs and model hash), so a
     cohort of one case rebuilds them once per worker.
@@ -227,10 +228,10 @@ def score_file(path, structure: str = "chorda_tympani", case: str | None = None)
         ``damage`` (the damage notice or None), ``shape``, ``voxel_mm``,
         ``metrics`` (the per-run columns of
         :data:`metrics.cohort_result.METRIC_COLUMNS`), ``force_table``
-        (:class:`metrics.forces.ForceTable` or None), ``region`` (flat
-        voxel indices of the Naive Bayes drilled region) and ``drilled``
-        (the final-product drilled set); for one that did not, ``error``
-        (one line). Never raises.
+        (:class:`metrics.forces.ForceTable` or None) and ``drilled`` (flat
+        voxel indices removed in the final epoch: the Naive Bayes region and
+        the final product's set); for one that did not, ``error`` (one
+        line). Never raises.
     """
     path = Path(path)
     try:
@@ -249,7 +250,6 @@ def _score_file(path, structure, case):
     from metrics.exposure import exposure
     from metrics.final_product import drilled_set
     from metrics.forces import force_vs_distance
-    from metrics.regions import region_run
     from metrics.visibility import visibility
 
     s = read_session(path)
@@ -294,12 +294,11 @@ def _score_file(path, structure, case):
         key = f"< {NEAR_MM:g} mm"
         m["time_near_critical_1mm_s"] = float(sum(v[key] for v in c["time_near_s"].values()))
     m["injuries"] = float(sum(v["injuries"] for v in c["contacts"].values()))
-    region = region_run(s, group="expert")          # the group is set centrally
     return {"file": str(path), "participant": str(h.get("participant", "") or ""),
             "case": mine, "damage": damage_notice(s), "shape": tuple(h["shape"]),
             "notes": str(h.get("notes", "") or ""),
             "voxel_mm": float(h["voxel_mm"]), "metrics": m, "force_table": table,
-            "region": region.voxels, "drilled": drilled_set(s)}
+            "drilled": drilled_set(s)}
 
 
 # --------------------------------------------------------------- cluster
@@ -366,7 +365,7 @@ def _naive_bayes(runs, table, errors, trained_on):
     idx = [q for q, r in enumerate(runs) if r.get("group")]
     if not idx:
         return
-    rr = [RegionRun(runs[q]["region"], runs[q]["shape"], runs[q]["group"],
+    rr = [RegionRun(runs[q]["drilled"], runs[q]["shape"], runs[q]["group"],
                     runs[q]["participant"], runs[q]["case"], runs[q]["file"]) for q in idx]
     try:
         loo = loo_scores(rr)
