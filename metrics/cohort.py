@@ -14,8 +14,8 @@ Per run, on the cluster
     (:func:`metrics.conduct.conduct`), and the drilled set (the voxels
     removed in the run's final epoch) the central steps need. A task never
     raises: a file that cannot be read, or is of another case than the
-    cohort's (the majority case of the
-    files), gives its one-line message instead. Each worker keeps the
+    cohort's (the majority case of the files), gives its one-line message
+    instead. Each worker keeps the
     models it rebuilt (per recorded case, burrs and model hash), so a
     cohort of one case rebuilds them once per worker.
 Centrally, in the client
