@@ -9,7 +9,9 @@ from __future__ import annotations
 import json
 import sys
 
-__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort"]
+import numpy as np
+
+__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits"]
 
 
 def cmd_cohort_synth(args) -> int:
@@ -96,6 +98,35 @@ def cmd_metrics_run(args) -> int:
         a = res["alignment"]
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
               f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
+    return 0
+
+
+def cmd_metrics_limits(args) -> int:
+    """``bonesim metrics limits``: learn force limits from expert runs and write
+    them for the window's live warnings (:func:`metrics.forces.expert_limits`)."""
+    from bonesim.errors import BonesimError
+    from bonesim.physics.force_limits import save_limits
+    from metrics.cohort import find_sessions, read_participants
+    from metrics.forces import expert_limits
+
+    paths = find_sessions(args.sessions)
+    table = read_participants(args.participants) if args.participants else None
+    try:
+        lim = expert_limits(paths, table, structure=args.structure,
+                            percentile=args.percentile)
+    except ValueError as exc:
+        raise BonesimError(f"metrics limits: {exc}") from None
+    save_limits(args.out, lim)
+    have = int(np.count_nonzero(np.isfinite(lim.force_n)))
+    out = {"limits": str(args.out), "structure": lim.structure, "case": lim.case,
+           "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n)}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"{args.out}: force and speed limits near {lim.structure} ({lim.percentile:g}th "
+              f"percentile, {have} of {len(lim.force_n)} bins of "
+              f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm) from {len(lim.source)} expert "
+              f"run(s) of case {lim.case!r}; use it with bonesim run --force-limits")
     return 0
 
 

@@ -52,80 +52,39 @@ Exceedance
     not above it); per haptic step and
     quantity only the row with the largest excess is kept (one report per
     moment, not one per voxel removed in it).
+
+The distance, force, bin and over-the-limit definitions are the simulator's
+(:mod:`bonesim.physics.force_limits`), so that the window's live warnings and
+these exceedances are one law.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import stats
+
+from bonesim.physics.force_limits import (AT_LIMIT_RTOL, BIN_MM, DEFAULT_FORCE,
+                                          DEFAULT_STRUCTURE, FORCES, MAX_DISTANCE_MM,
+                                          QUANTITIES, ForceLimits, bin_edges, bin_index,
+                                          force_magnitude, limit_rows, over_limit,
+                                          structure_label)
 
 __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "CONFIDENCE", "FORCES",
            "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "AT_LIMIT_RTOL", "QUANTITIES",
            "ForceTable", "BinStats", "Limits", "Exceedances", "bin_edges", "bin_index",
            "structure_label", "force_vs_distance", "group_bins", "learn_limits",
-           "exceedances"]
+           "exceedances", "expert_limits"]
 
-#: Structure the forces are measured against by default.
-DEFAULT_STRUCTURE = "chorda_tympani"
-#: Removals farther than this from the structure are not recorded [mm].
-MAX_DISTANCE_MM = 30.0
-#: Width of a distance bin [mm].
-BIN_MM = 2.0
 #: Confidence level of the per-bin intervals.
 CONFIDENCE = 0.95
-#: What "force" means: name -> description (see the module notes).
-FORCES = {
-    "applied": "|force_n - vibration_n|: rendered to the hand, vibration removed [N]",
-    "device": "|force_n|: sent to the device, vibration included [N]",
-    "normal": "mag_n: the multi-gain normal contact force [N]",
-}
-#: The default :data:`FORCES` entry.
-DEFAULT_FORCE = "applied"
 #: Percentile of the expert rows that is a bin's limit.
 LIMIT_PERCENTILE = 95.0
 #: Expert rows a bin needs to get a limit.
 MIN_LIMIT_SAMPLES = 5
-#: A value within this share of its limit is at the limit, not above it.
-AT_LIMIT_RTOL = 1e-9
-#: The quantities limited: a table column and its unit.
-QUANTITIES = ("force_n", "speed_rpm")
-
-
-# ------------------------------------------------------------------ bins
-def _positive(value, name: str) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive number, got {value!r}")
-    return v
-
-
-def bin_edges(bin_mm: float = BIN_MM, max_distance_mm: float = MAX_DISTANCE_MM) -> np.ndarray:
-    """Bin edges [mm], ``(b + 1,)``: ``0, w, 2w, ...`` up to the first edge at or
-    beyond ``max_distance_mm``.
-
-    Raises
-    ------
-    ValueError
-        If ``bin_mm`` or ``max_distance_mm`` is not a positive number.
-    """
-    w = _positive(bin_mm, "bin_mm")
-    d = _positive(max_distance_mm, "max_distance_mm")
-    nb = max(1, math.ceil(d / w - 1e-9))
-    return w * np.arange(nb + 1, dtype=np.float64)
-
-
-def bin_index(distance_mm, edges) -> np.ndarray:
-    """Bin of each distance [mm] (``-1`` beyond the last edge or NaN)."""
-    d = np.asarray(distance_mm, dtype=np.float64)
-    edges = np.asarray(edges, dtype=np.float64)
-    nb = len(edges) - 1
-    with np.errstate(invalid="ignore"):
-        idx = np.floor(np.nan_to_num(d, nan=-1.0, posinf=-1.0) / (edges[1] - edges[0]))
-    idx = idx.astype(np.int64)
-    idx = np.where(idx == nb, nb - 1, idx)            # the last edge closes the last bin
-    return np.where((d >= 0) & (d <= edges[-1]) & (idx < nb), idx, -1)
+#: Limits learned from expert runs (the live window checks against the same record).
+Limits = ForceLimits
 
 
 # ------------------------------------------------------------------ the table
@@ -193,37 +152,6 @@ class ForceTable:
         return len(self.t_s)
 
 
-def structure_label(structures, name: str, case: str = "") -> int:
-    """The label of structure ``name`` in a header's ``structures`` list
-    (``{"label", "name", "kind"}`` records, or objects with ``name`` whose
-    label is their position + 1).
-
-    Raises
-    ------
-    ValueError
-        Naming the structure, the case and the structures it has.
-    """
-    names = []
-    for q, st in enumerate(structures):
-        nm = st["name"] if isinstance(st, dict) else st.name
-        lab = int(st["label"]) if isinstance(st, dict) else q + 1
-        names.append(nm)
-        if nm == name:
-            return lab
-    raise ValueError(f"structure: {name!r} is not a structure of case {case!r} (it has "
-                     f"{', '.join(names) or 'none'})")
-
-
-def _force_column(samples: dict, force: str) -> np.ndarray:
-    if force == "applied":
-        return np.linalg.norm(samples["force_n"] - samples["vibration_n"], axis=1)
-    if force == "device":
-        return np.linalg.norm(samples["force_n"], axis=1)
-    if force == "normal":
-        return np.asarray(samples["mag_n"], dtype=np.float64)
-    raise ValueError(f"force must be one of {sorted(FORCES)}, got {force!r}")
-
-
 def _distance_field(session, label: int, model, clearance):
     """An object with ``distance(points, [label])`` that holds ``label``."""
     if clearance is not None:
@@ -277,7 +205,9 @@ def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
         ``max_distance_mm`` or ``force``, or a removal without a sample at its
         time.
     """
-    d_max = _positive(max_distance_mm, "max_distance_mm")
+    d_max = float(max_distance_mm)
+    if not (math.isfinite(d_max) and d_max > 0):
+        raise ValueError(f"max_distance_mm must be a positive number, got {max_distance_mm!r}")
     if force not in FORCES:
         raise ValueError(f"force must be one of {sorted(FORCES)}, got {force!r}")
     h = session.header
@@ -299,7 +229,7 @@ def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
     keep = dist <= d_max
     idx = idx[keep]
     return ForceTable(np.asarray(rem["t_s"])[keep], centre[keep], s["pos_mm"][idx], dist[keep],
-                      _force_column(s, force)[idx], s["speed_rpm"][idx], s["epoch"][idx],
+                      force_magnitude(s, force)[idx], s["speed_rpm"][idx], s["epoch"][idx],
                       structure, d_max, force, str(h.get("group", "")).strip().lower(),
                       str(h.get("participant", "")), case,
                       str(getattr(session, "path", "") or ""))
@@ -442,35 +372,6 @@ def group_bins(tables, groups=None, *, bin_mm: float = BIN_MM,
 
 
 # ------------------------------------------------------------------ limits
-@dataclass(frozen=True)
-class Limits:
-    """Per-bin force and speed limits learned from expert runs.
-
-    Attributes
-    ----------
-    edges_mm : (b + 1,) float64
-        Bin edges [mm].
-    force_n : (b,) float64
-        Force limit per bin [N] (NaN: no limit).
-    speed_rpm : (b,) float64
-        Speed limit per bin [rpm] (NaN: no limit).
-    n : (b,) int64
-        Expert rows per bin.
-    percentile : float
-    structure, force : str
-    max_distance_mm : float
-    """
-
-    edges_mm: np.ndarray
-    force_n: np.ndarray
-    speed_rpm: np.ndarray
-    n: np.ndarray
-    percentile: float
-    structure: str
-    force: str
-    max_distance_mm: float
-
-
 def learn_limits(expert_tables, *, percentile: float = LIMIT_PERCENTILE,
                  bin_mm: float = BIN_MM, max_distance_mm: float | None = None,
                  min_samples: int = MIN_LIMIT_SAMPLES) -> Limits:
@@ -523,7 +424,8 @@ def learn_limits(expert_tables, *, percentile: float = LIMIT_PERCENTILE,
         lim_f[q] = np.percentile(f[m], p)
         lim_v[q] = np.percentile(v[m], p)
     return Limits(edges, lim_f, lim_v, n, p, tables[0].structure, tables[0].force,
-                  float(max_distance_mm))
+                  float(max_distance_mm), case=tables[0].case,
+                  source=tuple(tb.name for tb in tables))
 
 
 # ------------------------------------------------------------------ exceedances
@@ -602,9 +504,8 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
     parts = []
     for qn, lim in (("force_n", limits.force_n), ("speed_rpm", limits.speed_rpm)):
         val = getattr(tb, qn)
-        lim_row = np.where(b >= 0, lim[np.maximum(b, 0)], np.nan)
-        with np.errstate(invalid="ignore"):                # NaN limits flag nothing
-            over = np.flatnonzero(val > lim_row + AT_LIMIT_RTOL * np.abs(lim_row))
+        lim_row = limit_rows(b, lim)
+        over = np.flatnonzero(over_limit(val, lim_row))    # NaN limits flag nothing
         if not len(over):
             continue
         exc = val[over] - lim_row[over]
@@ -627,3 +528,57 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
     rows, qty, val, lim = rows[order], qty[order], val[order], lim[order]
     return Exceedances(tb.t_s[rows], tb.pos_mm[rows], tb.voxel_mm[rows], tb.distance_mm[rows],
                        b[rows], qty, val, lim, val - lim)
+
+
+def expert_limits(paths, participants=None, *, structure: str = DEFAULT_STRUCTURE,
+                  percentile: float = LIMIT_PERCENTILE, min_samples: int = MIN_LIMIT_SAMPLES,
+                  force: str = DEFAULT_FORCE) -> Limits:
+    """Limits learned from the expert runs among recorded session files.
+
+    Parameters
+    ----------
+    paths : sequence of path
+        Session files of one case.
+    participants : dict, optional
+        ``id -> {"group", ...}`` (:func:`metrics.cohort.read_participants`);
+        a run's group is its participant's. Without it, the group each
+        session's header records.
+    structure, percentile, min_samples, force
+        As :func:`force_vs_distance` and :func:`learn_limits`.
+
+    Returns
+    -------
+    Limits
+        With ``source`` naming the runs that trained them.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: a run of another case, a participant missing from
+        the table; or no expert run among ``paths``.
+    """
+    from bonesim.session.reader import read_session
+
+    tables, model, case = [], None, None
+    for p in paths:
+        s = read_session(p)
+        h = s.header
+        who = str(h.get("participant", ""))
+        if participants is not None:
+            if who not in participants:
+                raise ValueError(f"{p}: participant {who!r} is not in the participants table")
+            group = participants[who]["group"]
+        else:
+            group = str(h.get("group", "")).strip().lower()
+        if group != "expert":
+            continue
+        name = h.get("case", {}).get("name", "")
+        if case is None:
+            case, model = name, s.load_model()
+        elif name != case:
+            raise ValueError(f"{p}: a run of case {name!r}, not {case!r}")
+        tb = force_vs_distance(s, structure, force=force, model=model)
+        tables.append(replace(tb, group="expert"))
+    if not tables:
+        raise ValueError("no expert run among the sessions given")
+    return learn_limits(tables, percentile=percentile, min_samples=min_samples)

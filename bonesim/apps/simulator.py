@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bonesim.errors import BonesimError
 from bonesim.physics.sightline import depth_below_surface_mm
 from bonesim.runtime.haptic_loop import HapticLoop
 
@@ -91,7 +92,7 @@ class App:
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
-                 eye_separation_mm: float | None = None):
+                 eye_separation_mm: float | None = None, force_limits=None):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -141,6 +142,20 @@ class App:
             raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
                              "serve (set monitor = true on a nerve in its case.toml)")
         self.monitor_serve = monitor_serve
+        self.watch = None                      # force-near-structure warnings
+        if force_limits is not None:
+            from bonesim.physics.force_limits import ForceWatch, load_limits
+
+            lim = force_limits if not isinstance(force_limits, (str, Path)) else \
+                load_limits(force_limits)
+            try:
+                self.watch = ForceWatch(self.model, lim)
+            except ValueError as exc:
+                raise BonesimError(str(exc), path=force_limits if isinstance(
+                    force_limits, (str, Path)) else None, field="structure") from None
+            if lim.case and lim.case != self.model.name:
+                self.notices.append(f"force limits learned on case {lim.case!r}, not "
+                                    f"{self.model.name!r}")
 
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
@@ -181,6 +196,11 @@ class App:
                 self.notices.append("no audio device: sound muted"
                                     + (f", recorded to {self.wav}" if self.wav else ""))
         self._fresh_consumers()
+        if self.watch is not None:          # from the loop's first record, as the recorder
+            from bonesim.engine import events
+
+            self._watch_in = (events.Cursor(self.loop.state.tissue, 0),
+                              events.Cursor(self.loop.samples, 0))
         self.scene = Scene.from_model(self.model, self.consumer.surface,
                                       offscreen=self.offscreen, size=self.size,
                                       stereo_capable=self.stereo == "quad-buffer")
@@ -278,11 +298,33 @@ class App:
             "elapsed_s": time.perf_counter() - self.t_start,
             "injuries": list(self.injuries),
             "visible": self._visible(),
+            "force_limit": self._force_limit(float(st["t_s"])),
             "message": "; ".join(self.notices) if self.notices else None,
         })
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
         self.frames += 1
+
+    def _force_limit(self, now_s: float):
+        """The HUD's force-near-structure line: what the :class:`ForceWatch`
+        found in the loop's new removals and samples (None without limits)."""
+        if self.watch is None:
+            return None
+        from bonesim.engine.events import RingOverflow
+        from bonesim.physics.force_limits import WARN_HOLD_S
+
+        new = []
+        for cur in self._watch_in:
+            try:
+                new.append(cur.drain())
+            except RingOverflow:        # the window stalled a whole ring: go on from now
+                cur.pos = cur.ring.count
+                new.append(None)
+        self.watch.feed(*new)
+        last = self.watch.last
+        active = last is not None and now_s - last.t_s <= WARN_HOLD_S
+        return {"structure": self.watch.limits.structure, "count": sum(self.watch.count.values()),
+                "warning": last if active else None}
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the

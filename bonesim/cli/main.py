@@ -220,6 +220,10 @@ def cmd_run(args) -> int:
         raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
                            "--no-monitor", field="--monitor-port")
     if offscreen and script is None and frames is None:
+        if args.force_limits:
+            raise BonesimError("the headless main job drills the planned path and shows no "
+                               "warnings; force limits are for the live window (or "
+                               "offscreen with --script or --frames)", field="--force-limits")
         return _run_showcase(args)
     if args.video != "bonesim-run.mp4":
         raise BonesimError("--video is the headless main job's time-lapse; the live "
@@ -250,7 +254,7 @@ def cmd_run(args) -> int:
               sound=not args.no_sound, wav=args.wav,
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
-              eye_separation_mm=args.eye_separation_mm)
+              eye_separation_mm=args.eye_separation_mm, force_limits=args.force_limits)
     try:
         app.start()
         if serve is not None:
@@ -644,6 +648,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--monitor-host", default="0.0.0.0",
                    help="address the monitor server listens on (default all)")
     s.add_argument("--key-file", metavar="FILE", help="with --monitor-port: " + KEY_HELP)
+    s.add_argument("--force-limits", metavar="FILE.toml",
+                   help="warn in the HUD when force or speed near a structure goes above "
+                        "these per-distance limits ('bonesim metrics limits' learns them "
+                        "from expert runs)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     s.set_defaults(func=cmd_run)
 

@@ -1,5 +1,5 @@
 """The research commands' arguments: ``bonesim cohort synth``, ``bonesim
-metrics run`` and ``bonesim metrics cohort``.
+metrics run``, ``bonesim metrics cohort`` and ``bonesim metrics limits``.
 
 Their handlers live with the research metrics (:mod:`metrics.cli`, beside the
 package) and are named here by module path only: the simulator never imports
@@ -56,3 +56,17 @@ def research_parsers(sub, _lazy) -> None:
                     help="structure of the force tables (default chorda_tympani)")
     mc.add_argument("--json", action="store_true", help="print the summary as JSON")
     mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
+    ml = msub.add_parser("limits", help="learn per-distance force and speed limits from "
+                         "expert runs, for the window's live warnings (run --force-limits)")
+    ml.add_argument("sessions", metavar="DIR_OR_GLOB",
+                    help="a folder of session files (*.h5) or a glob pattern")
+    ml.add_argument("--participants", metavar="CSV",
+                    help="participants table choosing the experts (default: each "
+                    "session's recorded group)")
+    ml.add_argument("--out", required=True, metavar="FILE.toml", help="limits file to write")
+    ml.add_argument("--structure", default="chorda_tympani",
+                    help="structure the distances are measured to (default chorda_tympani)")
+    ml.add_argument("--percentile", type=float, default=95.0,
+                    help="of the expert rows per bin (default 95)")
+    ml.add_argument("--json", action="store_true", help="print JSON")
+    ml.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_limits"))

@@ -29,6 +29,11 @@ keys (all optional; units in the names):
                      case reset, of those judged (the recorder's voxel
                      visibility, :mod:`bonesim.physics.visibility`); shown as a
                      percentage once any is judged; None: not shown
+``force_limit``      ``{"structure", "count", "warning"}``: the live force
+                     limits near a structure (:class:`bonesim.physics.force_limits.ForceWatch`):
+                     steps over a limit so far, and the latest
+                     :class:`~bonesim.physics.force_limits.LimitWarning` while it
+                     is recent (else None); None: not shown
 ``message``          free text (status, warnings), one paragraph a line,
                      wrapped (continuations indented by two spaces)
 ===================  ====================================================
@@ -44,7 +49,7 @@ __all__ = ["KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "forma
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
          "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
-         "injuries", "visible", "message")
+         "injuries", "visible", "force_limit", "message")
 #: Width of the label column [characters].
 LABEL_W = 7
 #: Messages wrap at this many characters; continuation lines are indented.
@@ -109,6 +114,20 @@ def _depth(v) -> str:
     return "in view" if d <= 0 else f"{d:.1f} mm under bone"
 
 
+def _force_limit(v: dict) -> list:
+    name = str(v.get("structure", "")).replace("_", " ")
+    w = v.get("warning")
+    if w is None:
+        n = int(v.get("count", 0))
+        state = "ok" if n == 0 else f"{n:,} over"
+        return [_line("limit", f"{name}: {state}")]
+    if w.quantity == "force_n":
+        text = f"{w.value:.2f} > {w.limit:.2f} N"
+    else:
+        text = f"{w.value:,.0f} > {w.limit:,.0f} rpm"
+    return [_line("LIMIT!", text), f"{WRAP_INDENT}{w.distance_mm:.1f} mm from {name}"]
+
+
 def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     """Lines of the HUD for ``info`` (see the module docstring).
 
@@ -158,6 +177,8 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     seen = info.get("visible")
     if seen is not None and seen[1] > 0:
         lines.append(_line("seen", f"{100.0 * seen[0] / seen[1]:.0f} % of {seen[1]:,}"))
+    if info.get("force_limit") is not None:
+        lines += _force_limit(info["force_limit"])
     for k, v in info.items():
         if k not in KNOWN:
             lines.append(f"{k}: {v}")

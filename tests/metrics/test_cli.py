@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from bonesim.cli.main import main
 
 
@@ -38,3 +40,34 @@ def test_metrics_run_prints_a_summary_and_json(tmp_path, capsys):
     assert main(["metrics", "run", str(bad)]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and len(err.strip().splitlines()) == 1
+
+
+def test_metrics_limits_learns_from_the_experts_and_writes_a_file_the_window_reads(
+        tmp_path, capsys):
+    from bonesim.physics.force_limits import load_limits
+    from metrics.forces import force_vs_distance, learn_limits
+    from bonesim.session.reader import read_session
+    from metrics.synth import synth_cohort
+
+    paths = synth_cohort(tmp_path / "c", 2, 1, seed=2, duration_s=6.0)
+    out = tmp_path / "limits.toml"
+    # synthetic runs record no group: the participants table says who is an expert
+    assert main(["metrics", "limits", str(tmp_path / "c"), "--out", str(out), "--json"]) == 2
+    assert "no expert run" in capsys.readouterr().err
+    assert main(["metrics", "limits", str(tmp_path / "c"), "--out", str(out), "--json",
+                 "--participants", str(tmp_path / "c" / "participants.csv")]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["experts"] == 2 and res["structure"] == "chorda_tympani"
+    lim = load_limits(out)
+    s = [read_session(p) for p in paths[:2]]
+    model = s[0].load_model()
+    want = learn_limits([force_vs_distance(x, model=model) for x in s])
+    assert np.array_equal(lim.force_n, want.force_n, equal_nan=True)
+    assert np.array_equal(lim.speed_rpm, want.speed_rpm, equal_nan=True)
+    assert [p.rsplit("/", 1)[-1] for p in lim.source] == [p.name for p in paths[:2]]
+    # the participants table decides who is an expert: here nobody is
+    csv = tmp_path / "p.csv"
+    csv.write_text("id,group,instructor_score\nE01,novice,\nE02,novice,\nN01,novice,\n")
+    assert main(["metrics", "limits", str(tmp_path / "c"), "--participants", str(csv),
+                 "--out", str(tmp_path / "none.toml")]) == 2
+    assert "no expert run" in capsys.readouterr().err

@@ -278,3 +278,57 @@ def test_table_of_a_recorded_run(recorded):
     # every removed voxel was bone, at distance 0
     bone = force_vs_distance(sess, "bone", model=model)
     assert len(bone) == len(rem["t_s"]) and np.all(bone.distance_mm == 0)
+
+
+@pytest.fixture(scope="module")
+def recorded_4s(tmp_path_factory):
+    """4 s of the planned demo from its first drilling sample (about 9,600
+    removals within 30 mm of the chorda, over 9 distance bins), recorded."""
+    from bonesim.io.case import load_case
+    from bonesim.io.loading import load_model
+    from bonesim.io.toolpath import demo_trajectory
+    from bonesim.runtime.record import make_header
+    from bonesim.runtime.simulate import run_trajectory
+    from bonesim.session.reader import read_session
+
+    model = load_model("phantom", "cutting-5mm")
+    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
+    start = int(np.flatnonzero(t.drill)[0])
+    path = tmp_path_factory.mktemp("forces") / "run4.h5"
+    run_trajectory(model, t.at_times(t.t_s[start:start + 4000]), surface=False, record=path,
+                   header=make_header(model, participant="p1", group="novice"))
+    return read_session(path), model
+
+
+def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_4s):
+    """The window's ForceWatch, fed the recorded streams as the window drains
+    them (tissue before samples, in frame-sized batches), warns at the same
+    steps, with the same values, as the offline exceedances."""
+    from bonesim.physics.force_limits import ForceWatch
+
+    sess, model = recorded_4s
+    tb = force_vs_distance(sess, model=model)
+    assert len(tb) > 1000 and len(np.unique(bin_index(tb.distance_mm, bin_edges()))) > 3
+    # this run's forces sit mostly at the device's 3.3 N clamp: limits just
+    # under its own median leave the clamped steps above, the others not
+    from dataclasses import replace
+
+    lim = learn_limits([replace(tb, group="expert")], percentile=50.0, min_samples=1)
+    lim = replace(lim, force_n=0.99 * lim.force_n)
+    want = exceedances(sess, lim, model=model)
+    assert 0 < len(want) < len(np.unique(tb.t_s)) * 2
+    watch = ForceWatch(model, lim)
+    got = []
+    tis, s = sess.tissue, sess.samples
+    edges = np.arange(0.0, s["t_s"][-1] + 2 / 30, 1 / 30)          # 30 frames a second
+    for a, b in zip(edges[:-1], edges[1:]):
+        ti = (tis["t_s"] >= a) & (tis["t_s"] < b)
+        si = (s["t_s"] >= a) & (s["t_s"] < b)
+        got += watch.feed({k: v[ti] for k, v in tis.items()},
+                          {k: v[si] for k, v in s.items()})
+    got += watch.feed()
+    assert [w.t_s for w in got] == want.t_s.tolist()
+    assert [w.quantity for w in got] == want.quantity.tolist()
+    np.testing.assert_array_equal([w.value for w in got], want.value)
+    np.testing.assert_array_equal([w.limit for w in got], want.limit)
+    np.testing.assert_array_equal([w.distance_mm for w in got], want.distance_mm)

@@ -42,10 +42,17 @@ def _bonesim(args, env_update=None, drop=(), timeout=240):
 def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     from bonesim.apps.simulator import App
 
+    from bonesim.physics.force_limits import ForceLimits, ForceWatch, bin_edges, save_limits
+
     traj, _ = script
+    e = bin_edges()                   # a force limit of 0.5 N at every distance
+    save_limits(tmp_path / "lim.toml", ForceLimits(e, np.full(len(e) - 1, 0.5),
+                                                   np.full(len(e) - 1, np.nan),
+                                                   np.full(len(e) - 1, 9), 95.0,
+                                                   "chorda_tympani", "applied", 30.0))
     app = App("phantom", "cutting-5mm", script=traj, offscreen=True, size=(320, 240),
               sound=False, record=tmp_path / "app.h5", who={"participant": "t1"},
-              stereo="anaglyph", eye_separation_mm=60.0)
+              stereo="anaglyph", eye_separation_mm=60.0, force_limits=tmp_path / "lim.toml")
     try:
         app.start()
         assert app.scene.stereo_mode == "anaglyph" and app.scene.eye_separation_mm == 60.0
@@ -53,6 +60,9 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         out = app.run(frames=90, screenshot=tmp_path / "shot.png")
         hud = app.scene.hud_text
         assert re.search(r"depth\s+(in view|\d+\.\d mm under bone)", hud), hud
+        assert re.search(r"LIMIT! \d\.\d\d > 0\.50 N\n  \d+\.\d mm from chorda tympani",
+                         hud), hud
+        live = dict(app.watch.count)
         app.window.press("irrigation")                # w: the water wets the dust
         app.window.run_offscreen(10, realtime=True)
         assert app.irrigation and "water  on" in app.scene.hud_text
@@ -91,6 +101,11 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     assert len(s.camera["t_s"]) == 110 and ("key", "reset_case") in [e[1:] for e in s.events]
     assert s.samples["epoch"][-1] == 1 and len(s.removals["t_s"]) >= out["voxels_removed"]
     assert set(np.unique(s.removals["visible"])) <= {0, 1}     # judged from the camera
+    # the live warnings are the recording's, up to the frame the window last read
+    again = ForceWatch(app.model, app.watch.limits)
+    again.feed(s.tissue, s.samples)
+    again.feed()
+    assert 0 < live["force_n"] <= again.count["force_n"] and live["speed_rpm"] == 0
 
 
 def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):

@@ -54,3 +54,21 @@ def test_hud_shows_the_running_visible_share_once_any_removal_is_judged():
     assert not any(ln.startswith("seen") for ln in format_hud({"visible": (0, 0)}).splitlines())
     assert not any(ln.startswith("seen")
                    for ln in format_hud({"visible": None}).splitlines())
+
+
+def test_hud_force_limit_line_ok_over_and_warning():
+    from bonesim.physics.force_limits import LimitWarning
+
+    assert format_hud({"force_limit": None}) == ""
+    assert format_hud({"force_limit": {"structure": "chorda_tympani", "count": 0,
+                                       "warning": None}}) == "limit  chorda tympani: ok"
+    assert format_hud({"force_limit": {"structure": "chorda_tympani", "count": 1234,
+                                       "warning": None}}) == \
+        "limit  chorda tympani: 1,234 over"
+    w = LimitWarning(1.0, "force_n", 3.3, 2.456, 3.04)
+    assert format_hud({"force_limit": {"structure": "facial_nerve", "count": 1,
+                                       "warning": w}}).splitlines() == \
+        ["LIMIT! 3.30 > 2.46 N", "  3.0 mm from facial nerve"]
+    w = LimitWarning(1.0, "speed_rpm", 80000.0, 60000.0, 12.0)
+    assert format_hud({"force_limit": {"structure": "x", "count": 1, "warning": w}}
+                      ).splitlines()[0] == "LIMIT! 80,000 > 60,000 rpm"
