@@ -11,7 +11,8 @@ import sys
 
 import numpy as np
 
-__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits"]
+__all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits",
+           "cmd_metrics_view"]
 
 
 def cmd_cohort_synth(args) -> int:
@@ -127,6 +128,43 @@ def cmd_metrics_limits(args) -> int:
               f"percentile, {have} of {len(lim.force_n)} bins of "
               f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm) from {len(lim.source)} expert "
               f"run(s) of case {lim.case!r}; use it with bonesim run --force-limits")
+    return 0
+
+
+def cmd_metrics_view(args) -> int:
+    """``bonesim metrics view``: a run's removals coloured by visibility, in a
+    window to turn about (or to a PNG without a display or with ``--png``)."""
+    import os
+
+    from bonesim.session.reader import damage_notice, read_session
+    from metrics.visibility import render_visibility, show_visibility
+
+    s = read_session(args.file)
+    line = damage_notice(s)
+    if line:
+        print(line, file=sys.stderr)
+    size = tuple(args.size) if args.size else (1024, 768)
+    structures = args.structure or None
+    display = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if args.png or not display:
+        png = args.png or "visibility.png"
+        if not display and not args.png:
+            print(f"bonesim: no display found; writing the view to {png} instead",
+                  file=sys.stderr)
+        try:
+            out = render_visibility(s, png, structures, size)
+        except ValueError as exc:
+            from bonesim.errors import BonesimError
+
+            raise BonesimError(f"metrics view: {exc}") from None
+        print(f"wrote {out}")
+        return 0
+    try:
+        show_visibility(s, structures, size, frames=args.frames)
+    except ValueError as exc:
+        from bonesim.errors import BonesimError
+
+        raise BonesimError(f"metrics view: {exc}") from None
     return 0
 
 

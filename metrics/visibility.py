@@ -46,26 +46,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 
 import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.bodies import to_case_frame
+from bonesim.render.visibility_view import (HIDDEN_RGB, VISIBLE_OPACITY, VISIBLE_RGB,
+                                            visibility_scene)
+from bonesim.render.visibility_view import show_visibility as show_visibility_window
 
 __all__ = ["WINDOW_S", "VISIBLE_RGB", "HIDDEN_RGB", "VISIBLE_OPACITY", "StructureVisibility",
            "VisibilityResult", "recompute_visible", "visibility", "visible_fraction",
-           "render_visibility"]
+           "render_visibility", "show_visibility"]
 
 #: Default length of the windows of the over-time fraction [s].
 WINDOW_S = 5.0
-#: Colour of removals that were visible (0-255 RGB).
-VISIBLE_RGB = (40, 200, 60)
-#: Colour of removals that were hidden (0-255 RGB).
-HIDDEN_RGB = (230, 40, 30)
-#: Opacity of the visible removals' cubes in the view: the hidden ones,
-#: usually deeper, show through them.
-VISIBLE_OPACITY = 0.3
 
 
 @dataclass(frozen=True)
@@ -419,6 +414,20 @@ def _legend(result, session):
     return title, lines
 
 
+def _scene(session, structures, size, result, view, models, offscreen):
+    sz = tuple(int(v) for v in np.asarray(size).ravel()) if np.size(size) == 2 else ()
+    if len(sz) != 2 or min(sz) < 16 or max(sz) > 8192:
+        raise ValueError(f"size must be (width, height) in pixels, 16..8192, got {size!r}")
+    models = session.burr_models() if models is None else list(models)
+    if not models:
+        raise ValueError("models: need at least one model")
+    chosen = _chosen(models, structures)
+    res = visibility(session, models=models) if result is None else result
+    title, lines = _legend(res, session)
+    return visibility_scene(models[0], res.centre_mm, res.visible, chosen, title, lines,
+                            size=sz, offscreen=offscreen, view=view)
+
+
 def render_visibility(session, path, structures=None, size=(1024, 768), *, result=None,
                       view=None, models=None):
     """Draw a run's removed voxels coloured by visibility to a PNG, offscreen.
@@ -426,7 +435,8 @@ def render_visibility(session, path, structures=None, size=(1024, 768), *, resul
     The removed voxels are small cubes at their case-frame centres (each
     moved with its body's pose at its removal), green when the voxel was
     visible at its removal and red when it was hidden; the bone is not
-    drawn, the chosen structures are, seen from the case camera. Text gives
+    drawn, the chosen structures are, seen from the case camera
+    (:func:`bonesim.render.visibility_view.visibility_scene`). Text gives
     the visible fraction overall and per structure and the colour key.
 
     Parameters
@@ -460,100 +470,31 @@ def render_visibility(session, path, structures=None, size=(1024, 768), *, resul
     """
     from pathlib import Path
 
-    sz = tuple(int(v) for v in np.asarray(size).ravel()) if np.size(size) == 2 else ()
-    if len(sz) != 2 or min(sz) < 16 or max(sz) > 8192:
-        raise ValueError(f"size must be (width, height) in pixels, 16..8192, got {size!r}")
-    models = session.burr_models() if models is None else list(models)
-    if not models:
-        raise ValueError("models: need at least one model")
-    chosen = _chosen(models, structures)
-    res = visibility(session, models=models) if result is None else result
-    return _draw(models[0], res, chosen, session, Path(path), sz, view)
-
-
-def _draw(model, res, chosen, session, path, size, view):
-    import vtkmodules.vtkRenderingFreeType  # noqa: F401  (text rendering)
-    import vtkmodules.vtkRenderingOpenGL2  # noqa: F401  (OpenGL factories)
-    from vtkmodules.vtkRenderingCore import vtkTextActor
-
-    from bonesim.render.scene import Scene
-
-    scene = Scene(size=size, offscreen=True, visible_subset=False, panel=False)
+    scene = _scene(session, structures, size, result, view, models, offscreen=True)
     try:
-        scene.set_hint("")
-        scene.voxel_mm = float(model.spacing_mm)
-        sts = [st if st.name in chosen else
-               SimpleNamespace(name=st.name, kind="_hidden", display_color=(0, 0, 0))
-               for st in model.structures]
-        scene.add_structures(model.grid, sts, skip_kinds=("_hidden",))
-        e = 0.9 * float(model.spacing_mm)
-        for sel, rgb, opacity in ((res.visible == 1, VISIBLE_RGB, VISIBLE_OPACITY),
-                                  (res.visible != 1, HIDDEN_RGB, 1.0)):
-            if sel.any():
-                scene.renderer.AddActor(_cubes(res.centre_mm[sel], e, rgb, opacity))
-        cam = getattr(getattr(model, "case", None), "camera", None)
-        if view is not None:
-            scene.set_camera(*view)
-        elif cam is not None:
-            scene.set_case_camera(cam.eye_mm, cam.focal_mm, cam.up)
-        else:
-            scene.fit_camera()
-        title, lines = _legend(res, session)
-        fs = max(10, int(round(size[1] / 48)))
-        y = size[1] - 8
-        texts = [(title, (1.0, 1.0, 1.0), fs + 2)] + \
-            [(ln, (0.92, 0.92, 0.88), fs) for ln in lines] + \
-            [("green: visible when removed", np.array(VISIBLE_RGB) / 255, fs),
-             ("red: hidden when removed (undercut)", np.array(HIDDEN_RGB) / 255, fs)] + \
-            [(st.name, np.array(st.display_color[:3]) / 255, fs)
-             for st in model.structures if st.name in chosen]
-        for text, rgb, s in texts:
-            a = vtkTextActor()
-            a.SetInput(text)
-            tp = a.GetTextProperty()
-            tp.SetFontSize(s)
-            tp.SetColor(*map(float, rgb))
-            tp.SetVerticalJustificationToTop()
-            tp.SetBackgroundColor(0.0, 0.0, 0.0)
-            tp.SetBackgroundOpacity(0.45)
-            a.SetDisplayPosition(10, y)
-            a.PickableOff()
-            scene.renderer.AddViewProp(a)
-            y -= int(s * 1.35)
-        scene.screenshot(path)
+        scene.screenshot(Path(path))
     finally:
         scene.close()
-    return path
+    return Path(path)
 
 
-def _cubes(centre_mm, edge_mm, rgb, opacity):
-    """One actor of cubes of edge ``edge_mm`` at ``centre_mm`` (n, 3) [mm]."""
-    from vtkmodules.util import numpy_support
-    from vtkmodules.vtkCommonCore import vtkPoints
-    from vtkmodules.vtkCommonDataModel import vtkPolyData
-    from vtkmodules.vtkFiltersSources import vtkCubeSource
-    from vtkmodules.vtkRenderingCore import vtkActor, vtkGlyph3DMapper
+def show_visibility(session, structures=None, size=(1024, 768), *, result=None, view=None,
+                    models=None, frames=None, screenshot=None) -> dict:
+    """Open the visibility view of :func:`render_visibility` in a window to
+    turn it about with the mouse (left drag orbits, the wheel zooms, ``c``
+    saves a picture, ``v`` goes back to the case camera, ``q`` closes).
 
-    pts = vtkPoints()
-    pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(centre_mm, np.float32),
-                                           deep=True))
-    pd = vtkPolyData()
-    pd.SetPoints(pts)
-    cube = vtkCubeSource()
-    cube.SetXLength(edge_mm)
-    cube.SetYLength(edge_mm)
-    cube.SetZLength(edge_mm)
-    gm = vtkGlyph3DMapper()
-    gm.SetInputData(pd)
-    gm.SetSourceConnection(cube.GetOutputPort())
-    gm.ScalingOff()
-    gm.OrientOff()
-    gm.ScalarVisibilityOff()
-    a = vtkActor()
-    a.SetMapper(gm)
-    p = a.GetProperty()
-    p.SetColor(*(np.asarray(rgb, float) / 255.0))
-    p.SetOpacity(float(opacity))
-    p.SetAmbient(0.35)
-    p.SetDiffuse(0.75)
-    return a
+    Parameters are :func:`render_visibility`'s, and ``frames`` (stop after
+    this many) and ``screenshot`` (save the last frame). Returns the window's
+    summary.
+
+    Raises
+    ------
+    bonesim.render.gl.RenderUnavailable
+        No display (use :func:`render_visibility` for a picture).
+    """
+    scene = _scene(session, structures, size, result, view, models, offscreen=False)
+    try:
+        return show_visibility_window(scene, frames=frames, screenshot=screenshot)
+    finally:
+        scene.close()

@@ -1,5 +1,6 @@
 """The research commands' arguments: ``bonesim cohort synth``, ``bonesim
-metrics run``, ``bonesim metrics cohort`` and ``bonesim metrics limits``.
+metrics run``, ``bonesim metrics cohort``, ``bonesim metrics limits`` and
+``bonesim metrics view``.
 
 Their handlers live with the research metrics (:mod:`metrics.cli`, beside the
 package) and are named here by module path only: the simulator never imports
@@ -70,3 +71,15 @@ def research_parsers(sub, _lazy) -> None:
                     help="of the expert rows per bin (default 95)")
     ml.add_argument("--json", action="store_true", help="print JSON")
     ml.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_limits"))
+    mv = msub.add_parser("view", help="a run's removals coloured by visibility (green "
+                         "seen, red hidden) with chosen structures, in a window to turn "
+                         "about; a PNG without a display or with --png")
+    mv.add_argument("file", help="session file (.h5)")
+    mv.add_argument("--structure", action="append", metavar="NAME",
+                    help="structure to show (repeatable; default every non-bone one)")
+    mv.add_argument("--png", metavar="FILE.png", help="write the view to this picture")
+    mv.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
+                    help="window or picture size [px] (default 1024 768)")
+    mv.add_argument("--frames", type=int, metavar="N",
+                    help="close the window after N frames (default: when you quit)")
+    mv.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_view"))

@@ -37,6 +37,9 @@ Ctrl + left drag          orbit;  Ctrl + Shift + left: pan
 Ctrl + wheel              zoom
 ========================  =============================================
 
+A window without ``on_mouse`` drives no tool (a viewer): there a left drag
+orbits (Shift + left pans) and the wheel zooms.
+
 Default keys: :data:`DEFAULT_KEYS` (shown by the help overlay, ``h``).
 """
 from __future__ import annotations
@@ -352,7 +355,7 @@ class Window:
 
     def _left_down(self, *_):
         iren = self.interactor
-        if iren.GetControlKey():
+        if iren.GetControlKey() or self.on_mouse is None:
             self._start(_PAN if iren.GetShiftKey() else _ROTATE)
             return
         self.buttons |= LEFT
@@ -381,13 +384,13 @@ class Window:
         self._end_camera()
 
     def _wheel_fwd(self, *_):
-        if self.interactor.GetControlKey():
+        if self.interactor.GetControlKey() or self.on_mouse is None:
             self.style.OnMouseWheelForward()
         else:
             self.press("depth_in")
 
     def _wheel_back(self, *_):
-        if self.interactor.GetControlKey():
+        if self.interactor.GetControlKey() or self.on_mouse is None:
             self.style.OnMouseWheelBackward()
         else:
             self.press("depth_out")

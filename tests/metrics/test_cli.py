@@ -71,3 +71,30 @@ def test_metrics_limits_learns_from_the_experts_and_writes_a_file_the_window_rea
     assert main(["metrics", "limits", str(tmp_path / "c"), "--participants", str(csv),
                  "--out", str(tmp_path / "none.toml")]) == 2
     assert "no expert run" in capsys.readouterr().err
+
+
+def test_metrics_view_writes_a_png_or_opens_a_window(tmp_path, capsys, xdisplay):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from bonesim.render.imagecmp import read_png
+    from metrics.synth import synth_cohort
+
+    (n,) = synth_cohort(tmp_path / "c", 0, 1, seed=3, duration_s=5.0)
+    png = tmp_path / "v.png"
+    assert main(["metrics", "view", str(n), "--png", str(png), "--size", "400", "300",
+                 "--structure", "facial_nerve"]) == 0
+    assert read_png(png).shape[:2] == (300, 400)
+    assert main(["metrics", "view", str(n), "--png", str(png), "--structure", "spleen"]) == 2
+    assert "unknown ['spleen']" in capsys.readouterr().err
+    # with a display: the window, closed after a few frames
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "DISPLAY": xdisplay,
+           "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run([sys.executable, "-m", "bonesim.cli", "metrics", "view", str(n),
+                        "--frames", "5", "--size", "320", "240"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stderr
+    assert not (tmp_path / "visibility.png").exists()          # it showed, wrote nothing
