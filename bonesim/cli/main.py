@@ -485,6 +485,10 @@ def _tutor_parser(sub) -> None:
     b.add_argument("--start", type=float, default=0.0, metavar="S",
                    help="start S seconds into the recording")
     b.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    b.add_argument("--score", metavar="RUN.h5",
+                   help="the trainee's own recorded run of the case: score its force "
+                        "against this recording's force profile (force-trajectory "
+                        "alignment: residual after and before warping time)")
     _trainee_window_args(b)
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
     b.set_defaults(func=_tutor("cmd_playback"))

@@ -229,10 +229,14 @@ def cmd_playback(args) -> int:
     from bonesim.devices.simulated_hand import SimulatedHandDevice
     from bonesim.session.reader import read_session
 
+    recall = _recall(args.file, args.score) if args.score else None    # before: fail early
     if _window_mode(args):                        # the servo's process reads the file
         s = _trainee_window(args, ("recording", str(args.file), args.speed, args.start))
         s["file"] = str(args.file)
-        _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s))
+        if recall is not None:
+            s["recall"] = recall
+        _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s)
+               + _recall_lines(recall))
         return 0
     warmup()
     src = RecordingSource(read_session(args.file), speed=args.speed, start_s=args.start)
@@ -242,8 +246,39 @@ def cmd_playback(args) -> int:
         s["file"] = str(args.file)
     finally:
         trainee.close()
-    _print(s, args.json, _playback_lines(s, args.file))
+    if recall is not None:
+        s["recall"] = recall
+    _print(s, args.json, _playback_lines(s, args.file) + _recall_lines(recall))
     return 0
+
+
+def _recall(expert, trainee) -> dict:
+    """The trainee's run scored against the played-back run's force profile:
+    force-trajectory alignment (:func:`metrics.alignment.align_sessions`,
+    imported by name when asked: the simulator does not depend on the
+    research metrics)."""
+    import importlib
+
+    from bonesim.errors import BonesimError
+
+    try:
+        align = importlib.import_module("metrics.alignment").align_sessions
+    except ImportError as exc:                      # a simulator installed without them
+        raise BonesimError(f"--score needs the research metrics ({exc})") from None
+    try:
+        out = align(str(expert), str(trainee)).summary()
+    except ValueError as exc:
+        raise BonesimError(f"--score: {exc}", path=trainee) from None
+    out["trainee"] = str(trainee)
+    return out
+
+
+def _recall_lines(recall) -> list:
+    if recall is None:
+        return []
+    return [f"{recall['trainee']} against this run's force profile: residual "
+            f"{recall['rms_n']:.3f} N after alignment ({recall['unaligned_rms_n']:.3f} N "
+            f"before; time warped by up to {recall['max_abs_offset_s']:.2f} s)"]
 
 
 def _playback_lines(s: dict, path) -> list:

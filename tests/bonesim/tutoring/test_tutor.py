@@ -742,6 +742,37 @@ def test_cli_playback_headless_json(tmp_path, capsys):
     assert s["done"] and s["link_lost"] and s["hud"] == "PLAYBACK ENDED"
     assert s["ticks"] > 0.5 * s["duration_s"] * 1000
     assert s["force_n"]["max"] > 0 and s["tracking_error_mm"]["n"] > 0
+    # the trainee's own run of a longer stretch, its timing warped (a smooth
+    # time warp of up to 15 %), scored against the expert's force profile as
+    # the research metrics align them
+    import dataclasses
+
+    full = demo_trajectory(load_case("phantom"), "cutting-5mm")
+    full = full.at_times(full.t_s[start:start + 300])
+    t = full.t_s - full.t_s[0]
+    warped = dataclasses.replace(full, t_s=full.t_s[0] + t + 0.15 * t[-1]
+                                 * np.sin(np.pi * t / t[-1]))
+    h5, mine = tmp_path / "expert.h5", tmp_path / "mine.h5"
+    for tr, out_h5 in ((full, h5), (warped, mine)):
+        write_trajectory(csv, tr)
+        assert _cli(["simulate", "--trajectory", str(csv), "--record", str(out_h5)],
+                    capsys)[0] == 0
+    rc, out, err = _cli(["tutor", "playback", str(h5), "--headless", "--json", "--duration",
+                         "0.2", "--score", str(mine)], capsys)
+    assert rc == 0, err
+    rec = json.loads(out)["recall"]
+    from metrics.alignment import align_sessions
+
+    want = align_sessions(h5, mine).summary()
+    assert rec["rms_n"] == want["rms_n"] and rec["unaligned_rms_n"] == want["unaligned_rms_n"]
+    assert rec["rms_n"] < 0.3 * rec["unaligned_rms_n"] and rec["trainee"] == str(mine)
+    rc, out, err = _cli(["tutor", "playback", str(h5), "--headless", "--duration", "0.2",
+                         "--score", str(mine)], capsys)
+    assert rc == 0 and "residual" in out and "after alignment" in out
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"nope")
+    rc, _, err = _cli(["tutor", "playback", str(h5), "--headless", "--score", str(bad)], capsys)
+    assert rc == 2 and str(bad) in err and err.count("\n") == 1
 
 
 @pytest.mark.slow
