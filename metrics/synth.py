@@ -16,8 +16,9 @@ Expert-like (:class:`ExpertModel`)
     The layered saucerizing mastoidectomy of :mod:`bonesim.io.toolpath`
     (broad raster passes over the cortex, one layer deeper per pass, along
     the surgeon's line of sight, so the burr stays in view) with a large
-    cutting burr, a margin kept from every structure, and per-participant
-    region, layer depth, feed and margin.
+    cutting burr, changed for a smaller diamond burr on the passes that come
+    near a structure, a margin kept from every structure, a slower feed near
+    them, and per-participant region, layer depth, feed and margin.
 Novice-like (:class:`NoviceModel`)
     Deep narrow holes with a smaller burr: a plunge along the line of sight
     at a steady fast feed down to a small margin from the structures beneath
@@ -83,6 +84,14 @@ class ExpertModel:
     slow_share : float
         ... linearly, to this share of the feed at the margin (a slower feed
         cuts less bone per second: less force).
+    fine_burr : str
+        The smaller burr of the passes near structures (burr 1 of the run;
+        ``burr`` is burr 0) ...
+    fine_within_mm : float
+        ... used for every drilling pass whose burr surface lies, at the
+        median of the pass, within this much of the margin from a structure
+        (the deep layers); it goes in, at its own default speed, while the
+        drill rests before the pass.
     score, score_sd : float
         Instructor score mean and spread.
     """
@@ -99,6 +108,8 @@ class ExpertModel:
     centre_sd_mm: float = 0.8
     slow_within_mm: float = 12.0
     slow_share: float = 0.15
+    fine_burr: str = "diamond-4mm"
+    fine_within_mm: float = 3.0
     score: float = 4.06
     score_sd: float = 0.35
 
@@ -300,13 +311,17 @@ def expert_trajectory(case, clearance, participant: Participant,
 
 
 def _slow_near_structures(traj, case, clearance, margin_mm, model):
-    """``traj`` retimed: each drilling step takes ``1 / f`` as long, ``f``
-    falling linearly from 1 (burr surface ``margin + slow_within_mm`` from a
-    structure) to ``slow_share`` (at the margin)."""
+    """``traj`` retimed and with its burr stages: each drilling step takes
+    ``1 / f`` as long, ``f`` falling linearly from 1 (burr surface
+    ``margin + slow_within_mm`` from a structure) to ``slow_share`` (at the
+    margin); a drilling pass that comes within ``fine_within_mm`` of the
+    margin uses the fine burr (burr 1), changed while the drill rests before
+    it."""
     from bonesim.io.burrs import load_burr
     from bonesim.io.trajectory import Trajectory
 
-    r = float(load_burr(model.burr).radius_mm)
+    big, fine = load_burr(model.burr), load_burr(model.fine_burr)
+    r = float(big.radius_mm)
     danger = [k for k, st in enumerate(case.structures, start=1) if st.kind != "bone"]
     gap = clearance.distances(traj.pos_mm, clearance.group_mask([danger]))[:, 0] - r
     f = np.clip((gap - margin_mm) / model.slow_within_mm, 0.0, 1.0)
@@ -314,8 +329,30 @@ def _slow_near_structures(traj, case, clearance, margin_mm, model):
     f = np.where(traj.drill, f, 1.0)
     dt = np.diff(traj.t_s) / f[1:]
     t = np.concatenate(([traj.t_s[0]], traj.t_s[0] + np.cumsum(dt)))
-    return Trajectory(t, traj.pos_mm, traj.axis, traj.drill, traj.speed_rpm, traj.direction,
-                      traj.suction, traj.irrigation)
+    burr = _burr_stages(traj.drill, gap - margin_mm, model.fine_within_mm)
+    speed = np.where(burr == 1, fine.default_speed_rpm, big.default_speed_rpm)
+    return Trajectory(t, traj.pos_mm, traj.axis, traj.drill, speed, traj.direction,
+                      traj.suction, traj.irrigation, burr)
+
+
+def _burr_stages(drill, gap_mm, within_mm: float) -> np.ndarray:
+    """Burr per sample: 1 for each drilling pass (a run of ``drill``) whose
+    median ``gap_mm`` [mm] is at most ``within_mm``, else 0; the samples
+    before a pass (drill resting) take the pass's burr, so every change
+    happens with the drill off."""
+    drill = np.asarray(drill, bool)
+    gap_mm = np.asarray(gap_mm, np.float64)
+    n = len(drill)
+    burr = np.zeros(n, np.uint8)
+    starts = np.flatnonzero(drill & ~np.r_[False, drill[:-1]])
+    ends = np.flatnonzero(drill & ~np.r_[drill[1:], False]) + 1
+    prev_end = 0
+    for a, b in zip(starts, ends):
+        burr[prev_end:b] = 1 if np.median(gap_mm[a:b]) <= within_mm else 0
+        prev_end = b
+    if prev_end < n:
+        burr[prev_end:] = burr[prev_end - 1] if prev_end else 0
+    return burr
 
 
 def novice_trajectory(case, grid, clearance, participant: Participant,
@@ -433,6 +470,7 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
         The session files, in participant order.
     """
     from bonesim.errors import BonesimError
+    from bonesim.io.burrs import load_burr
     from bonesim.io.loading import load_model
     from bonesim.runtime.record import make_header
     from bonesim.runtime.simulate import run_trajectory
@@ -455,8 +493,10 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
             traj = novice_trajectory(model.case, model.grid, model.clearance, p, novice,
                                      duration_s)
         path = out / f"{p.id}.h5"
-        run_trajectory(model, traj, surface=False, record=path,
-                       header=make_header(model, participant=p.id, input_device="scripted",
+        extra = [load_burr(expert.fine_burr)] if p.group == "expert" else []
+        run_trajectory(model, traj, surface=False, record=path, burrs=extra,
+                       header=make_header(model, extra, participant=p.id,
+                                          input_device="scripted",
                                           notes="synthetic test data (bonesim cohort synth)"))
         paths.append(path)
         if progress is not None:

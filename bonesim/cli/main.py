@@ -119,19 +119,27 @@ def _who(args) -> dict:
 
 
 def _run(case, burr, traj, args) -> dict:
+    from bonesim.io.burrs import load_burr
     from bonesim.io.loading import load_model, warmup
     from bonesim.runtime.simulate import run_trajectory
 
     warmup()
     model = load_model(case, burr, oversample=args.oversample)
+    extra = [load_burr(b) for b in (getattr(args, "extra_burr", None) or ())]
+    used = int(traj.burr.max())
+    if used > len(extra):
+        raise BonesimError(f"the trajectory's burr column goes up to {used}, but the run has "
+                           f"burrs 0..{len(extra)} (name burrs 1, 2, ... with --extra-burr)",
+                           field="--extra-burr")
     record = getattr(args, "record", None)
     header = None
     if record is not None:
         from bonesim.runtime.record import make_header
 
-        header = make_header(model, input_device="scripted", **_who(args))
+        header = make_header(model, extra, input_device="scripted", **_who(args))
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
-                          mesh_format=args.mesh_format, record=record, header=header)
+                          mesh_format=args.mesh_format, record=record, header=header,
+                          burrs=extra)
 
 
 def cmd_simulate(args) -> int:
@@ -583,6 +591,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="drill a scripted trajectory headless at 1 kHz")
     s.add_argument("--record", metavar="FILE.h5", help="record the session to this file")
+    s.add_argument("--extra-burr", action="append", metavar="NAME",
+                   help="burr 1, 2, ... (repeatable) that the trajectory's burr column "
+                        "switches to; --burr is burr 0")
     who_opts(s)
     run_opts(s, True)
     s.add_argument("--out", help="folder for the final mesh and summary.json")

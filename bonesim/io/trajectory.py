@@ -6,7 +6,7 @@ ignored)::
 
     t_s, x_mm, y_mm, z_mm, axis_x, axis_y, axis_z, drill, speed_rpm
 
-plus, optionally, ``direction``, ``suction`` and ``irrigation``:
+plus, optionally, ``direction``, ``suction``, ``irrigation`` and ``burr``:
 
 ``t_s``
     Time [s], strictly increasing (it may start anywhere).
@@ -25,6 +25,13 @@ plus, optionally, ``direction``, ``suction`` and ``irrigation``:
     ``1`` while the suction is on, else ``0``; ``0`` when the column is absent.
 ``irrigation``
     ``1`` while the irrigation runs, else ``0``; ``0`` when the column is absent.
+``burr``
+    Index of the burr in use in the run's burr table (0: the run's first
+    burr; ``bonesim simulate --burr A --burr B`` makes ``A`` 0 and ``B`` 1);
+    ``0`` when the column is absent. In ``bonesim simulate`` (and the
+    synthetic cohorts) a change is a burr change in the recording, as a key
+    press is in the window; the live window's scripted device does not
+    change burrs (the keys do).
 
 Suction and irrigation: on a sample with either set, the tool position
 stands for the tip of the suction (irrigation) cannula, and the drill must be
@@ -40,7 +47,7 @@ an editor shows it) and the column.
 
 Between samples, :meth:`Trajectory.sample_at` interpolates the position
 linearly and the axis by normalized linear interpolation, and holds the
-previous sample's drill state, speed, direction, suction and irrigation.
+previous sample's drill state, speed, direction, suction, irrigation and burr.
 """
 from __future__ import annotations
 
@@ -63,13 +70,15 @@ __all__ = ["COLUMNS", "OPTIONAL_COLUMNS", "Trajectory", "TrajectorySample",
 COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "axis_x", "axis_y", "axis_z", "drill",
            "speed_rpm")
 #: Columns a trajectory file may add.
-OPTIONAL_COLUMNS = ("direction", "suction", "irrigation")
+OPTIONAL_COLUMNS = ("direction", "suction", "irrigation", "burr")
 _ALL_COLUMNS = COLUMNS + OPTIONAL_COLUMNS
 _AXIS_COLUMNS = ("axis_x", "axis_y", "axis_z")
 _POS_COLUMNS = ("x_mm", "y_mm", "z_mm")
 _DELIMITER = ","
 _FORWARD, _REVERSE = 1, -1
 _DRILL_VALUES = (0.0, 1.0)
+#: Largest burr index (the recording stores it as uint8).
+_MAX_BURR = 255
 #: Columns holding 0/1 states.
 _FLAG_COLUMNS = ("drill", "suction", "irrigation")
 
@@ -102,6 +111,8 @@ class TrajectorySample(NamedTuple):
         Suction on (the position is the suction tip).
     irrigation : bool
         Irrigation running (the position is the irrigation tip).
+    burr : int
+        Index of the burr in use in the run's burr table.
     """
 
     t_s: float
@@ -112,6 +123,7 @@ class TrajectorySample(NamedTuple):
     direction: int = 1
     suction: bool = False
     irrigation: bool = False
+    burr: int = 0
 
     def device_sample(self) -> Sample:
         """The device sample alone (without the rinse states)."""
@@ -144,6 +156,9 @@ class Trajectory:
     suction, irrigation : (n,) array_like of bool, optional
         Suction on / irrigation running (the position is then that tip and
         the drill must be off); all off by default.
+    burr : (n,) array_like of int, optional
+        Index of the burr in use in the run's burr table, >= 0; all 0 by
+        default.
 
     Raises
     ------
@@ -164,6 +179,7 @@ class Trajectory:
     direction: np.ndarray = field(default=None)
     suction: np.ndarray = field(default=None)
     irrigation: np.ndarray = field(default=None)
+    burr: np.ndarray = field(default=None)
 
     def __post_init__(self):
         t = np.array(self.t_s, dtype=np.float64).reshape(-1)
@@ -180,11 +196,12 @@ class Trajectory:
             direction = np.array(self.direction)
         suction, irrigation = (np.zeros(n, dtype=bool) if v is None else np.array(v)
                                for v in (self.suction, self.irrigation))
+        burr = np.zeros(n, np.int64) if self.burr is None else np.array(self.burr)
         for label, arr, shape in (("pos_mm", pos, (n, 3)), ("axis", axis, (n, 3)),
                                   ("drill", drill, (n,)), ("speed_rpm", speed, (n,)),
                                   ("direction", direction, (n,)),
                                   ("suction", suction, (n,)),
-                                  ("irrigation", irrigation, (n,))):
+                                  ("irrigation", irrigation, (n,)), ("burr", burr, (n,))):
             if arr.shape != shape:
                 raise ValueError(f"{label} has shape {arr.shape}, expected {shape}")
         for label, arr in (("t_s", t), ("pos_mm", pos), ("axis", axis),
@@ -204,6 +221,9 @@ class Trajectory:
                              "position is then their tip)")
         if not np.all(np.isin(direction, (_FORWARD, _REVERSE))):
             raise ValueError("direction must hold only +1 or -1")
+        if burr.size and not (np.all(np.isfinite(burr)) and np.all(burr == np.round(burr))
+                              and burr.min() >= 0 and burr.max() <= _MAX_BURR):
+            raise ValueError(f"burr must hold burr indices 0..{_MAX_BURR}")
         norm = np.linalg.norm(axis, axis=1)
         if np.any(norm == 0) or not np.all(np.isfinite(axis / norm[:, None])):
             raise ValueError("axis holds a zero (or unnormalizable) vector")
@@ -216,6 +236,7 @@ class Trajectory:
         set_(self, "direction", _frozen(direction.astype(np.int8)))
         set_(self, "suction", _frozen(suction.astype(bool)))
         set_(self, "irrigation", _frozen(irrigation.astype(bool)))
+        set_(self, "burr", _frozen(burr.astype(np.uint8)))
 
     def __len__(self) -> int:
         return self.t_s.shape[0]
@@ -240,7 +261,8 @@ class Trajectory:
         return TrajectorySample(float(self.t_s[i]), self.pos_mm[i].copy(),
                                 self.axis[i].copy(), bool(self.drill[i]),
                                 float(self.speed_rpm[i]), int(self.direction[i]),
-                                bool(self.suction[i]), bool(self.irrigation[i]))
+                                bool(self.suction[i]), bool(self.irrigation[i]),
+                                int(self.burr[i]))
 
     def samples(self) -> Iterator[TrajectorySample]:
         """Iterate over the stored samples, in time order."""
@@ -263,7 +285,7 @@ class Trajectory:
         axis = np.where(degenerate[:, None], self.axis[i],
                         blend / np.where(degenerate, 1.0, norm)[:, None])
         return (tq, pos, axis, self.drill[i], self.speed_rpm[i], self.direction[i],
-                self.suction[i], self.irrigation[i])
+                self.suction[i], self.irrigation[i], self.burr[i])
 
     def sample_at(self, t_s: float) -> TrajectorySample:
         """The tool state at time ``t_s``.
@@ -278,15 +300,15 @@ class Trajectory:
         -------
         TrajectorySample
             Position linearly interpolated, axis normalized-lerped, drill,
-            speed, direction, suction and irrigation held from the last
+            speed, direction, suction, irrigation and burr held from the last
             sample at or before ``t_s``. The returned ``t_s`` is the clamped
             time.
         """
-        tq, pos, axis, drill, speed, direction, suction, irrigation = self._interpolate(
-            np.array([t_s], dtype=np.float64))
+        tq, pos, axis, drill, speed, direction, suction, irrigation, burr = \
+            self._interpolate(np.array([t_s], dtype=np.float64))
         return TrajectorySample(float(tq[0]), pos[0], axis[0], bool(drill[0]),
                                 float(speed[0]), int(direction[0]), bool(suction[0]),
-                                bool(irrigation[0]))
+                                bool(irrigation[0]), int(burr[0]))
 
     def at_times(self, times_s) -> "Trajectory":
         """The trajectory sampled at given times.
@@ -437,7 +459,8 @@ def read_trajectory(path: str | Path) -> Trajectory:
         Naming the file, line and column: missing or unreadable file, empty
         file, missing, unknown or repeated columns, a row with the wrong
         number of cells, a non-numeric or non-finite cell, time not strictly
-        increasing, a zero axis, drill, suction or irrigation not 0/1, suction
+        increasing, a zero axis, drill, suction or irrigation not 0/1, a burr
+        that is not an index 0..255, suction
         or irrigation with the drill running, a negative speed, a direction
         not +1/-1, or a header without samples.
     """
@@ -487,6 +510,10 @@ def read_trajectory(path: str | Path) -> Trajectory:
     if "direction" in col:
         checks.append((~np.isin(col["direction"], (_FORWARD, _REVERSE)), "direction",
                        "direction must be +1 or -1, got {cell}"))
+    if "burr" in col:
+        b = col["burr"]
+        checks.append(((b != np.round(b)) | (b < 0) | (b > _MAX_BURR), "burr",
+                       f"burr must be a burr index 0..{_MAX_BURR}, got {{cell}}"))
     _first_failure(path, rows, names, checks)
 
     pos = np.column_stack([col[c] for c in _POS_COLUMNS])
@@ -494,7 +521,8 @@ def read_trajectory(path: str | Path) -> Trajectory:
     flags = [col[name] == _DRILL_VALUES[1] if name in col else None
              for name in ("suction", "irrigation")]
     try:
-        return Trajectory(t, pos, axis, running, col["speed_rpm"], direction, *flags)
+        return Trajectory(t, pos, axis, running, col["speed_rpm"], direction, *flags,
+                          col.get("burr"))
     except ValueError as exc:  # e.g. an axis too small to normalize
         raise BonesimError(str(exc), path) from None
 
@@ -532,7 +560,8 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> None:
                  repr(float(traj.speed_rpm[i])),
                  str(int(traj.direction[i])),
                  "1" if traj.suction[i] else "0",
-                 "1" if traj.irrigation[i] else "0"]
+                 "1" if traj.irrigation[i] else "0",
+                 str(int(traj.burr[i]))]
         out.write(_DELIMITER.join(cells) + "\n")
     try:
         path.write_text(out.getvalue(), encoding="utf-8")

@@ -52,7 +52,8 @@ def warmup() -> None:
 
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
                    mesh_format: str = "ply", surface: bool = True,
-                   progress=None, record=None, header: dict | None = None) -> dict:
+                   progress=None, record=None, header: dict | None = None,
+                   burrs=()) -> dict:
     """Drill ``traj`` into ``model`` and summarize the run.
 
     Parameters
@@ -74,7 +75,12 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     record : path, optional
         Record the run to this new session file (:mod:`bonesim.runtime.record`).
     header : dict, optional
-        The recording's header (default :func:`bonesim.runtime.record.make_header`).
+        The recording's header (default :func:`bonesim.runtime.record.make_header`
+        of ``model`` and ``burrs``).
+    burrs : sequence of Burr
+        Burrs 1, 2, ... the trajectory's ``burr`` column may switch to (0 is
+        the model's); each switch is a burr change in the tissue events, as
+        the haptic loop publishes one.
 
     Returns
     -------
@@ -84,6 +90,16 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     wall0 = time.perf_counter()
     rate = model.haptic_rate_hz
     samples = traj.resample(rate)
+    burrs = list(burrs)
+    if int(samples.burr.max()) > len(burrs):
+        raise ValueError(f"the trajectory uses burr {int(samples.burr.max())}; the run has "
+                         f"burrs 0..{len(burrs)}")
+    if header is None and record is not None:
+        from bonesim.runtime.record import make_header
+
+        header = make_header(model, burrs, input_device="scripted")
+    if burrs:
+        model = model.with_burrs(burrs)
     state = make_state(model)
     consumer = TissueReplica(model, state, surface=True) if surface else None
     injuries = []
@@ -95,10 +111,15 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     perf = time.perf_counter_ns
     pos, axis = samples.pos_mm, samples.axis
     rec = _Recording(model, state, record, header) if record is not None else None
+    burr = samples.burr
+    cur = 0
     try:
         for q in range(n):
+            if burr[q] != cur:             # between steps, as the loop's SetBurr
+                cur = int(burr[q])
+                events.push_event(state.tissue, events.BURR, float(samples.t_s[q]), n=cur)
             smp = Sample(samples.t_s[q], pos[q], axis[q], bool(samples.drill[q]),
-                         float(samples.speed_rpm[q]), int(samples.direction[q]))
+                         float(samples.speed_rpm[q]), int(samples.direction[q]), cur)
             t0 = perf()
             f = step(model, state, smp)
             step_ns[q] = perf() - t0
@@ -167,7 +188,8 @@ class _Recording:
         if cam is not None:                # judged from the case camera's eye
             from bonesim.physics.visibility import VisibilityTracker
 
-            vis = VisibilityTracker([model], cam.eye_mm)
+            vis = VisibilityTracker([model] + [model.with_burr(b) for b in model.burrs[1:]],
+                                    cam.eye_mm)
         self.drainer = Drainer(self.writer, {"samples": self.ring, "tissue": state.tissue},
                                vis)
         self.zero = np.zeros(3)
@@ -176,7 +198,7 @@ class _Recording:
         from bonesim.runtime.haptic_loop import push_sample
 
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
-                    smp.speed_rpm, smp.direction, 0, 0, 0, f, self.zero)
+                    smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
         if self.ring.count - self.drainer.cursors["samples"].pos >= self.ring.capacity // 2:
             self.drainer.drain()
             self.writer.flush()

@@ -114,3 +114,53 @@ def test_a_folder_with_sessions_is_refused(cohort):
         synth_cohort(out, 1, 1, duration_s=1.0)
     with pytest.raises(ValueError, match="duration_s"):
         synth_cohort(out / "new", 1, 1, duration_s=0.0)
+
+
+def test_burr_stages_change_with_the_drill_resting():
+    from metrics.synth import _burr_stages
+
+    drill = np.array([0, 1, 1, 0, 0, 1, 1, 1, 0, 1, 1, 0], bool)
+    gap = np.array([9, 9, 9, 9, 9, 1, 1, 9, 9, 9, 9, 9], float)
+    assert _burr_stages(drill, gap, 2.0).tolist() == [0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
+    assert _burr_stages(drill, gap, 0.5).tolist() == [0] * 12
+    assert _burr_stages(drill, gap, 9.0).tolist() == [1] * 12
+    b = _burr_stages(drill, gap, 2.0)
+    changes = np.flatnonzero(np.diff(b.astype(int))) + 1
+    assert not drill[changes].any()                     # never while drilling
+
+
+def test_the_expert_takes_the_fine_burr_for_the_deep_passes(models, tmp_path):
+    """The passes near the structures (the deep layers) use the smaller
+    diamond burr at its own speed, the early ones the large cutting burr;
+    recorded, the change is a burr change in the session, and the run
+    replays bit for bit."""
+    from bonesim.io.burrs import load_burr
+    from bonesim.runtime.record import make_header
+    from bonesim.runtime.simulate import run_trajectory
+    from bonesim.session.replay import verify
+
+    e = draw_participants(1, 0, seed=3)[0]
+    m = models["expert"]
+    em = ExpertModel()
+    t = expert_trajectory(m.case, m.clearance, e)
+    danger = [k for k, st in enumerate(m.case.structures, start=1) if st.kind != "bone"]
+    gap = m.clearance.distances(t.pos_mm, m.clearance.group_mask([danger]))[:, 0] \
+        - m.burr.radius_mm
+    assert t.burr[t.drill][0] == 0 and t.burr[t.drill][-1] == 1      # large first, fine last
+    assert np.median(gap[t.drill & (t.burr == 1)]) < np.median(gap[t.drill & (t.burr == 0)])
+    fine = load_burr(em.fine_burr)
+    assert fine.diameter_mm < m.burr.diameter_mm
+    assert np.all(t.speed_rpm[t.burr == 1] == fine.default_speed_rpm)
+    # record two seconds around the change
+    q = int(np.flatnonzero(np.diff(t.burr.astype(int)))[0]) + 1
+    cut = t.at_times(t.t_s[(t.t_s >= t.t_s[q] - 1.0) & (t.t_s <= t.t_s[q] + 1.0)])
+    while not cut.drill[cut.burr == 1].any():           # reach into the fine pass
+        cut = t.at_times(t.t_s[(t.t_s >= cut.t_s[0]) & (t.t_s <= cut.end_s + 1.0)])
+    path = tmp_path / "change.h5"
+    run_trajectory(m, cut, surface=False, record=path, burrs=[fine],
+                   header=make_header(m, [fine], input_device="scripted"))
+    s = read_session(path)
+    assert [b["name"] for b in s.header["burrs"]] == ["cutting-5mm", em.fine_burr]
+    assert s.tissue["n"][s.tissue["kind"] == events.BURR].tolist() == [1]
+    assert set(np.unique(s.samples["burr"]).tolist()) == {0, 1}
+    assert verify(s)["ok"]

@@ -59,12 +59,16 @@ def test_case_info_by_name_and_by_path(capsys):
     (["simulate", "--trajectory", "/nonexistent/traj.csv"], "traj.csv"),
     (["simulate", "--burr", "cutting-99mm", "--trajectory", "{traj}"], "cutting-99mm"),
     (["bench", "--only", "no_such_bench"], "no_such_bench"),
+    (["simulate", "--trajectory", "{traj_burr}"], "--extra-burr"),
 ])
 def test_bad_input_is_one_clear_line(argv, needle, capsys, tmp_path):
     traj = tmp_path / "t.csv"
     traj.write_text("t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm\n"
                     "0,0,0,0,0,0,-1,0,0\n0.01,0,0,0,0,0,-1,0,0\n")
-    argv = [a.replace("{traj}", str(traj)) for a in argv]
+    burr = tmp_path / "b.csv"
+    burr.write_text("t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm,burr\n"
+                    "0,0,0,0,0,0,-1,0,0,0\n0.01,0,0,0,0,0,-1,0,0,2\n")
+    argv = [a.replace("{traj}", str(traj)).replace("{traj_burr}", str(burr)) for a in argv]
     code, out, err = run_cli(capsys, *argv)
     assert code == 2
     lines = err.strip().splitlines()
@@ -94,6 +98,27 @@ def test_trajectory_then_simulate_with_check(capsys, tmp_path):
     assert s["voxels_removed"] > 0 and s["force_n"]["max"] > 0
     assert s["haptic_step_us"]["p50"] > 0
     assert Path(s["mesh"]).is_file() and Path(s["summary"]).is_file()
+    # the same path with a burr change half-way, recorded: replays bit for bit
+    import dataclasses
+
+    import numpy as np
+
+    from bonesim.io.trajectory import read_trajectory, write_trajectory
+
+    tr = read_trajectory(short)
+    write_trajectory(tmp_path / "two.csv", dataclasses.replace(
+        tr, burr=(np.arange(len(tr)) >= len(tr) // 2).astype(np.uint8)))
+    h5 = tmp_path / "two.h5"
+    code, out, err = run_cli(capsys, "simulate", "--trajectory", str(tmp_path / "two.csv"),
+                             "--extra-burr", "diamond-3mm", "--record", str(h5))
+    assert code == 0, err
+    from bonesim.session.reader import read_session
+
+    rec = read_session(h5)
+    assert [b["name"] for b in rec.header["burrs"]] == ["cutting-5mm", "diamond-3mm"]
+    assert rec.samples["burr"][0] == 0 and rec.samples["burr"][-1] == 1
+    code, out, err = run_cli(capsys, "replay", str(h5), "--verify")
+    assert code == 0, err
 
 
 def test_import_is_light():

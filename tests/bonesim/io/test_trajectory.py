@@ -245,7 +245,8 @@ def trajectories(draw):
     direction = draw(hnp.arrays(np.int8, n, elements=st.sampled_from([1, -1])))
     suction = draw(hnp.arrays(bool, n)) & ~drill
     irrigation = draw(hnp.arrays(bool, n)) & ~drill
-    return Trajectory(t, pos, axis, drill, speed, direction, suction, irrigation)
+    burr = draw(hnp.arrays(np.uint8, n, elements=st.integers(0, 255)))
+    return Trajectory(t, pos, axis, drill, speed, direction, suction, irrigation, burr)
 
 
 @settings(max_examples=60, deadline=None,
@@ -263,6 +264,7 @@ def test_round_trip(tmp_path, traj):
     np.testing.assert_array_equal(back.direction, traj.direction)
     np.testing.assert_array_equal(back.suction, traj.suction)
     np.testing.assert_array_equal(back.irrigation, traj.irrigation)
+    np.testing.assert_array_equal(back.burr, traj.burr)
 
 
 @settings(max_examples=40, deadline=None)
@@ -279,13 +281,28 @@ def test_interpolation_stays_between_neighbours(traj, frac):
     assert abs(np.linalg.norm(s.axis) - 1) < 1e-12
     assert s.drill == traj.drill[i] and s.direction == traj.direction[i]
     assert s.suction == traj.suction[i] and s.irrigation == traj.irrigation[i]
+    assert s.burr == traj.burr[i]
 
 
 def test_written_header_is_exact(tmp_path):
     path = tmp_path / "w.csv"
     write_trajectory(path, simple())
     assert path.read_text().splitlines()[0] == ",".join(COLUMNS + OPTIONAL_COLUMNS)
-    assert OPTIONAL_COLUMNS == ("direction", "suction", "irrigation")
+    assert OPTIONAL_COLUMNS == ("direction", "suction", "irrigation", "burr")
+
+
+def test_burr_column_is_held_and_checked(tmp_path):
+    rows = [HEADER + ", burr", "0, 0, 0, 0, 0, 0, 1, 1, 60000, 0",
+            "1, 1, 0, 0, 0, 0, 1, 0, 0, 1", "2, 2, 0, 0, 0, 0, 1, 1, 40000, 1"]
+    traj = read_trajectory(write(tmp_path, rows))
+    assert traj.burr.tolist() == [0, 1, 1] and traj.sample_at(0.5).burr == 0
+    assert read_trajectory(write(tmp_path, rows[:2], "b.csv")).burr.tolist() == [0]
+    assert simple().burr.tolist() == [0] * len(simple())
+    for bad in ("1.5", "-1", "256"):
+        p = write(tmp_path, [HEADER + ", burr", "0, 0, 0, 0, 0, 0, 1, 1, 60000, " + bad],
+                  "bad.csv")
+        with pytest.raises(BonesimError, match="column 'burr'.*burr index 0..255"):
+            read_trajectory(p)
 
 
 def test_write_to_missing_folder(tmp_path):
