@@ -85,13 +85,17 @@ class App:
     eye_separation_mm : float, optional
         Distance between the eyes for stereo [mm] (default from
         ``render.toml``).
+    fragments : bool
+        Split off bone that drilling cuts free (a background
+        :class:`~bonesim.runtime.fragment_finder.FragmentFinder` thread; its
+        commands are sent from the frame callback). Default on.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
-                 eye_separation_mm: float | None = None):
+                 eye_separation_mm: float | None = None, fragments: bool = True):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -141,6 +145,8 @@ class App:
             raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
                              "serve (set monitor = true on a nerve in its case.toml)")
         self.monitor_serve = monitor_serve
+        self.want_fragments = bool(fragments)
+        self.fragments = None
 
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
@@ -181,6 +187,11 @@ class App:
                 self.notices.append("no audio device: sound muted"
                                     + (f", recorded to {self.wav}" if self.wav else ""))
         self._fresh_consumers()
+        if self.want_fragments:
+            from bonesim.runtime.fragment_finder import FragmentFinder
+
+            self.fragments = FragmentFinder(self.model, self.loop.state,
+                                            self.loop.status).start()
         self.scene = Scene.from_model(self.model, self.consumer.surface,
                                       offscreen=self.offscreen, size=self.size,
                                       stereo_capable=self.stereo == "quad-buffer")
@@ -197,6 +208,9 @@ class App:
         return self
 
     def close(self) -> None:
+        if self.fragments is not None:
+            self.fragments.close()
+            self.fragments = None
         if self.recorder is not None:
             self.recording = self.recorder.close()
             self.recorder = None
@@ -226,6 +240,8 @@ class App:
         from bonesim.physics.dust import DustGrid
 
         st = self.loop.status
+        if self.fragments is not None:        # the finder's splits: this thread sends
+            self.fragments.pump(self.loop.send)
         ch = self.consumer.drain()
         if ch.reset:                                   # the case was reset
             self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
@@ -354,6 +370,10 @@ class App:
             "injuries": list(self.injuries),
             "notices": list(self.notices),
         })
+        if self.fragments is not None:
+            fs = self.fragments.stats
+            out["fragments"] = {"split": fs["split"], "shed": fs["shed"],
+                                "bodies": int(self.loop.state.n_bodies)}
         if self.monitor is not None:
             out["monitor"] = self.monitor.stats()
             out["monitor"]["nerves"] = list(self.monitor.names)

@@ -250,7 +250,8 @@ def cmd_run(args) -> int:
               sound=not args.no_sound, wav=args.wav,
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
-              eye_separation_mm=args.eye_separation_mm)
+              eye_separation_mm=args.eye_separation_mm,
+              fragments=not getattr(args, "no_fragments", False))
     try:
         app.start()
         if serve is not None:
@@ -645,6 +646,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="address the monitor server listens on (default all)")
     s.add_argument("--key-file", metavar="FILE", help="with --monitor-port: " + KEY_HELP)
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.add_argument("--no-fragments", action="store_true",
+                   help="do not split off bone that drilling cuts free (default: split "
+                        "it into its own body; specks become dust)")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(
