@@ -177,6 +177,48 @@ def _limits(state, b: int) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(bd[:3], 0, top), np.clip(bd[3:], 0, top)
 
 
+@njit(cache=True, nogil=True)
+def _stats(lab, counts, boxes, seeds):
+    # per label: voxels, box (i0, j0, k0, i1, j1, k1) and first voxel in
+    # (i, j, k) order (the scan's order)
+    nx, ny, nz = lab.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                c = lab[i, j, k]
+                if c == 0:
+                    continue
+                if counts[c] == 0:
+                    seeds[c, 0], seeds[c, 1], seeds[c, 2] = i, j, k
+                    boxes[c, 0], boxes[c, 1], boxes[c, 2] = i, j, k
+                    boxes[c, 3], boxes[c, 4], boxes[c, 5] = i, j, k
+                counts[c] += 1
+                boxes[c, 1] = min(boxes[c, 1], j)
+                boxes[c, 2] = min(boxes[c, 2], k)
+                boxes[c, 3] = i
+                boxes[c, 4] = max(boxes[c, 4], j)
+                boxes[c, 5] = max(boxes[c, 5], k)
+
+
+@njit(cache=True, nogil=True)
+def _near(lab, dirty, near):
+    # labels 26-adjacent to (or at) the removed voxels
+    nx, ny, nz = lab.shape
+    for q in range(dirty.shape[0]):
+        for di in range(-1, 2):
+            x = dirty[q, 0] + di
+            if x < 0 or x >= nx:
+                continue
+            for dj in range(-1, 2):
+                y = dirty[q, 1] + dj
+                if y < 0 or y >= ny:
+                    continue
+                for dk in range(-1, 2):
+                    z = dirty[q, 2] + dk
+                    if 0 <= z < nz:
+                        near[lab[x, y, z]] = True
+
+
 def _faces(lab, sel) -> list:
     """Labels on each of the six faces of ``lab`` (only faces where ``sel``)."""
     out = []
@@ -192,20 +234,13 @@ def _faces(lab, sel) -> list:
 def _decide(state, b, lo, hi, dirty, speck_voxels):
     """Label body ``b`` in the box ``lo .. hi``; the parts that leave, or
     None when the box cannot decide (see the module docstring)."""
-    import cc3d
-
     mask = body_mask(state, b, lo, hi)
     lab, n = label_parts(mask)
     if n <= 1:
         return []
     # candidates: labels 26-adjacent to a removed voxel (dirty: box-local ijk)
     near = np.zeros(n + 1, np.bool_)
-    shp = np.array(mask.shape)
-    for d in np.argwhere(np.ones((3, 3, 3), np.bool_)) - 1:
-        q = dirty + d
-        ok = ((q >= 0) & (q < shp)).all(axis=1)
-        q = q[ok]
-        near[lab[q[:, 0], q[:, 1], q[:, 2]]] = True
+    _near(lab, np.ascontiguousarray(dirty, np.int64), near)
     near[0] = False
     cand = np.flatnonzero(near)
     if len(cand) <= 1:
@@ -222,9 +257,10 @@ def _decide(state, b, lo, hi, dirty, speck_voxels):
     on_case = np.zeros(n + 1, np.bool_)
     for f in _faces(lab, case_sel):
         on_case[f] = True
-    stats = cc3d.statistics(lab, no_slice_conversion=True)
-    counts = np.asarray(stats["voxel_counts"], np.int64)
-    boxes = np.asarray(stats["bounding_boxes"], np.int64)    # xmin, xmax, ymin, ...
+    counts = np.zeros(n + 1, np.int64)
+    boxes = np.zeros((n + 1, 6), np.int64)
+    seeds = np.zeros((n + 1, 3), np.int64)
+    _stats(lab, counts, boxes, seeds)
     opened = cand[is_open[cand]]
     closed = cand[~is_open[cand]]
     if len(opened) > 1:
@@ -241,10 +277,7 @@ def _decide(state, b, lo, hi, dirty, speck_voxels):
     parts = {}
     for c in closed:
         c = int(c)
-        bx = boxes[c]
-        sub = lab[bx[0]:bx[1] + 1, bx[2]:bx[3] + 1, bx[4]:bx[5] + 1] == c
-        seed = np.array(np.unravel_index(int(np.argmax(sub)), sub.shape)) + bx[[0, 2, 4]] + lo
-        parts[c] = Part(b, seed, bx[[0, 2, 4]] + lo, bx[[1, 3, 5]] + lo, counts[c],
+        parts[c] = Part(b, seeds[c] + lo, boxes[c, :3] + lo, boxes[c, 3:] + lo, counts[c],
                         counts[c] < speck_voxels)
     if keeper is None:
         # the largest candidate on the case boundary, else the largest; ties:
