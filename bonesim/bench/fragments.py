@@ -15,6 +15,11 @@
     boolean array, in the same run: the field's reference labeller.
 ``fragment_global_vs_scipy``
     The ratio of the two.
+``fragment_split_8000_ms``
+    What the haptic loop spends, between two steps, on one
+    :class:`~bonesim.runtime.commands.SplitPart` of a 20^3 (8000-voxel)
+    fragment: the flood fill and the ``SPLIT`` records
+    (:func:`~bonesim.engine.fragments.publish_part`).
 
 Figures are wall-clock on whatever machine runs them; inputs are seeded.
 """
@@ -25,7 +30,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-__all__ = ["GLOBAL_EDGE", "BURST_RADIUS_MM", "bench_fragments"]
+__all__ = ["GLOBAL_EDGE", "BURST_RADIUS_MM", "SPLIT_EDGE", "bench_fragments"]
 
 #: Edge of the global pass's case [voxels].
 GLOBAL_EDGE = 256
@@ -156,10 +161,40 @@ def _global(quick: bool) -> dict:
     }
 
 
+#: Edge of the split benchmark's fragment [voxels].
+SPLIT_EDGE = 20
+
+
+def _split(quick: bool) -> dict:
+    from bonesim.engine.fragments import publish_part
+    from bonesim.engine.model import make_model, make_state
+    from bonesim.io.burrs import load_burr
+
+    e = SPLIT_EDGE
+    lab = np.zeros((e + 8,) * 3, np.uint8)
+    lab[4:4 + e, 4:4 + e, 4:4 + e] = 1
+    bone = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
+    model = make_model(lab, 0.5, [bone], load_burr("cutting-1mm"))
+    args = ((4, 4, 4), (3, 3, 3), (e + 4,) * 3, e ** 3)
+    publish_part(make_state(model), 0, *args, 0.0)      # compile outside the timing
+    ms = []
+    for _ in range(5 if quick else 30):
+        st = make_state(model)
+        t0 = time.perf_counter()
+        publish_part(st, 0, *args, 0.0)
+        ms.append((time.perf_counter() - t0) * 1e3)
+    return {"fragment_split_8000_ms": {
+        "value": round(float(np.median(ms)), 3), "unit": "ms",
+        "max_ms": round(float(np.max(ms)), 3), "voxels": e ** 3,
+        "scenario": f"SplitPart of a {e}^3 cube of bone (flood fill + SPLIT records), "
+                    "as the haptic loop runs it between two steps"}}
+
+
 def bench_fragments(quick=False) -> dict:
     """All the fragment figures (module docstring)."""
     out = _local(quick)
     out.update(_global(quick))
+    out.update(_split(quick))
     return out
 
 

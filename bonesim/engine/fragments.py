@@ -47,8 +47,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from bonesim.engine.bodies import publish_split
-from bonesim.engine.events import REMOVED, REMOVED_SHED
+from bonesim.engine.bodies import split_body
+from bonesim.engine.events import REMOVED, REMOVED_SHED, SPLIT
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["DEFAULT_SPECK_VOXELS", "DEFAULT_MARGIN_VOXELS", "CONNECTIVITY", "Part",
@@ -392,7 +392,7 @@ def _flood(keys, vals, density, body, src, seed, lo, hi, seen, out):
     off = voxel_offset(i, j, k)
     if body[br, off] != src or density[br, off] <= 0.0:
         return 0
-    seen[i - lo[0], j - lo[1], k - lo[2]] = 1
+    seen[i - lo[0], j - lo[1], k - lo[2]] = 2          # 2: a member, 1: looked at
     out[0, 0], out[0, 1], out[0, 2] = i, j, k
     n = 1
     q = 0
@@ -423,8 +423,17 @@ def _flood(keys, vals, density, body, src, seed, lo, hi, seen, out):
                         continue
                     if n == n_max:
                         return -1
+                    seen[x - lo[0], y - lo[1], z - lo[2]] = 2
                     out[n, 0], out[n, 1], out[n, 2] = x, y, z
                     n += 1
+    # the members again, in (i, j, k) order
+    m = 0
+    for x in range(seen.shape[0]):
+        for y in range(seen.shape[1]):
+            for z in range(seen.shape[2]):
+                if seen[x, y, z] == 2:
+                    out[m, 0], out[m, 1], out[m, 2] = x + lo[0], y + lo[1], z + lo[2]
+                    m += 1
     return n
 
 
@@ -471,8 +480,7 @@ def component_voxels(state, src: int, seed, lo, hi, n_max: int) -> np.ndarray:
     if n < 0:
         raise ValueError(f"part of body {src} at {seed.tolist()} holds more than {n_max} "
                          "voxels: the tissue is not the one it was found in")
-    ijk = out[:n]
-    return ijk[np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))]
+    return out[:n]
 
 
 def shed_voxels(state, src: int, ijk, t_s: float) -> int:
@@ -529,4 +537,13 @@ def publish_part(state, src: int, seed, lo, hi, n_max: int, t_s: float,
         return -1, 0
     if shed:
         return -1, shed_voxels(state, src, ijk, t_s)
-    return publish_split(state, src, ijk, t_s)
+    # the records publish_split gives for these voxels (sorted, each once, all
+    # of src with material), without its checks of that
+    dst, n = split_body(state, src, ijk)
+    if n != len(ijk):
+        raise RuntimeError(f"part of body {src}: {n} of {len(ijk)} voxels moved")
+    state.tissue.append(kind=np.full(n, SPLIT, np.uint8), body=np.full(n, dst, np.uint8),
+                        label=np.zeros(n, np.uint8), t_s=np.full(n, float(t_s)), ijk=ijk,
+                        n=np.full(n, n, np.int32),
+                        value=np.pad(np.full((n, 1), float(src)), ((0, 0), (0, 6))))
+    return dst, n
