@@ -228,8 +228,11 @@ def fragment_run(model, tmp_path_factory):
         sent["src"] = int(new)
         sent["dst"], = np.flatnonzero(loop.state.alive & ~alive)
         n0 = loop.state.n_removed
-        loop.set_target(target + 2.0 * view, view)         # on, deeper
-        assert _wait(lambda: loop.state.n_removed > n0 + 100)
+        for depth in np.arange(1.0, 8.0, 0.5):            # on, deeper, until it cuts
+            loop.set_target(target + depth * view, view)
+            if _wait(lambda: loop.state.n_removed > n0 + 100, 1.0):
+                break
+        assert loop.state.n_removed > n0 + 100
         for _ in range(5):
             finder.poll(loop.send)
             time.sleep(0.02)
