@@ -372,7 +372,7 @@ class App:
         })
         if self.fragments is not None:
             fs = self.fragments.stats
-            out["fragments"] = {"split": fs["split"], "shed": fs["shed"],
+            out["fragments"] = {"rounds": fs["rounds"], "split": fs["split"], "shed": fs["shed"],
                                 "bodies": int(self.loop.state.n_bodies)}
         if self.monitor is not None:
             out["monitor"] = self.monitor.stats()
