@@ -292,3 +292,34 @@ def test_a_part_publishes_what_publish_split_of_its_voxels_does(model):
         np.testing.assert_array_equal(ev[f], got[f], err_msg=f)
     for name in ("body", "alive", "bounds", "pose"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@pytest.mark.parametrize("layout", ["large_closed", "closed_on_boundary"])
+def test_local_pass_grows_when_the_box_cannot_tell_the_keeper(model, layout):
+    """A closed part the box holds whole and an open part that leaves the box:
+    the box alone cannot say which keeps the body, the grown box can."""
+    st = make_state(model)
+    solid = np.zeros(SHAPE, bool)
+    if layout == "large_closed":
+        # a 5^3 blob (125 voxels) and a bar of 9 beyond the cut: the blob keeps
+        solid[8:13, 5:10, 5:10] = True
+        solid[13:23, 7, 7] = True
+        cut_x, margin, keeper = 13, 6, (10, 7, 7)
+    else:
+        # a 2x2x2 blob on the grid's face x = 0 and a longer bar (20), more
+        # of it in the first box than the blob has: the blob touches the case
+        # boundary and keeps, though it is smaller
+        solid[0:2, 6:8, 6:8] = True
+        solid[2:23, 7, 7] = True
+        cut_x, margin, keeper = 2, 9, (1, 7, 7)
+    _set(st, solid)
+    ijk, bod = _cut(st, np.argwhere(solid & (np.arange(SHAPE[0])[:, None, None] == cut_x)))
+    stats = {}
+    parts = find_parts(st, ijk, bod, margin=margin, stats=stats)
+    assert stats["boxes"] > 1                       # the first box could not decide
+    assert parts == find_parts_global(st, 0, ijk)
+    ref = _reference(st, 0, ijk)
+    assert [(tuple(p.seed.tolist()), p.n, p.shed) for p in parts] == [r[:3] for r in ref]
+    assert len(parts) == 1 and tuple(parts[0].seed.tolist()) != keeper
+    _apply(st, parts)
+    assert _dense(st, st.body)[keeper] == 0
