@@ -42,7 +42,6 @@ against :func:`scipy.ndimage.label`.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
