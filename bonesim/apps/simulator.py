@@ -241,7 +241,12 @@ class App:
 
         st = self.loop.status
         if self.fragments is not None:        # the finder's splits: this thread sends
-            self.fragments.pump(self.loop.send)
+            try:
+                self.fragments.pump(self.loop.send)
+            except RuntimeError as exc:       # its thread failed: say so, drill on
+                self.notices.append(f"fragments off ({exc})")
+                self.fragments.close()
+                self.fragments = None
         ch = self.consumer.drain()
         if ch.reset:                                   # the case was reset
             self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)

@@ -32,7 +32,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.engine.fragments import DEFAULT_MARGIN_VOXELS, DEFAULT_SPECK_VOXELS, find_parts
 from bonesim.engine.replica import TissueReplica
-from bonesim.runtime.commands import ShedPart, SplitPart
+from bonesim.runtime.commands import CommandOverflow, ShedPart, SplitPart
 
 __all__ = ["POLL_S", "FragmentFinder", "speck_voxels_of"]
 
@@ -88,6 +88,7 @@ class FragmentFinder:
         self._queued = 0                    # rounds queued by the thread
         self._pumped = 0                    # ... and sent by pump()
         self._out: queue.Queue = queue.Queue()
+        self._batch: list = []              # a round being sent by pump()
         self._thread = None
         self._stop = threading.Event()
         self.error: BaseException | None = None
@@ -180,7 +181,8 @@ class FragmentFinder:
 
     def pump(self, send) -> int:
         """Send the commands the thread queued (call from the thread that owns
-        the loop's command sender); returns how many were sent.
+        the loop's command sender); returns how many were sent. When the
+        command ring is full, the rest waits for the next call.
 
         Raises
         ------
@@ -192,12 +194,18 @@ class FragmentFinder:
             raise RuntimeError(f"the fragment finder stopped: {err}") from err
         n = 0
         while True:
-            try:
-                cmds = self._out.get_nowait()
-            except queue.Empty:
-                return n
-            for cls, params in cmds:
-                self._wait_seq = send(cls, **params)
+            if not self._batch:
+                try:
+                    self._batch = list(self._out.get_nowait())
+                except queue.Empty:
+                    return n
+            while self._batch:
+                cls, params = self._batch[0]
+                try:
+                    self._wait_seq = send(cls, **params)
+                except CommandOverflow:
+                    return n                # the loop is behind: the rest next time
+                self._batch.pop(0)
                 n += 1
             self._pumped += 1
 

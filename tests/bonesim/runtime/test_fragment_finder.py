@@ -282,3 +282,28 @@ def test_shed_specks_are_not_drilled_volume(fragment_run):
     shed = s.removals["ijk"][s.removals["shed"]]
     flat = np.ravel_multi_index(shed.T.astype(np.int64), tuple(s.header["shape"]))
     assert not np.isin(flat, run.voxels).any()
+
+
+def test_pump_keeps_what_a_full_ring_refused_and_reports_a_failed_thread():
+    from bonesim.runtime.commands import CommandOverflow
+
+    m = _bar_model()
+    st = make_state(m)
+    finder = FragmentFinder(m, st, snapshot=False)
+    send, sent = _sender(st)
+    _drill(st, _slab(6), 0.1)
+    _drill(st, _slab(12), 0.2)
+    finder._out.put(finder.commands())            # a round, as the thread queues it
+    finder._queued += 1
+    full = {"left": 1}
+
+    def flaky(cls, **params):                      # the ring takes one, then is full
+        if full["left"] == 0:
+            raise CommandOverflow("full")
+        full["left"] -= 1
+        return send(cls, **params)
+    assert finder.pump(flaky) == 1 and st.n_bodies == 2 and finder._busy()
+    assert finder.pump(send) == 1 and st.n_bodies == 3 and not finder._busy()
+    finder.error = ValueError("boom")
+    with pytest.raises(RuntimeError, match="fragment finder stopped: boom"):
+        finder.pump(send)
