@@ -72,12 +72,15 @@ NEAR_BURR_MM = 3.0
 
 
 def last_epoch(session):
-    """``(samples, removals)`` of the session's last epoch (dicts of columns)."""
+    """``(samples, removals)`` of the session's last epoch (dicts of columns);
+    the removals are the drilled ones (specks shed as dust are left out)."""
     s = session.samples
     r = session.removals
     last = final_epoch(session)
     ks = s["epoch"] == last
-    kr = r["epoch"] == last
+    # a speck shed as dust with a cut-off fragment is not drilled (events.REMOVED_SHED)
+    kr = (r["epoch"] == last) & ~np.asarray(r.get("shed", np.zeros(len(r["epoch"]), bool)),
+                                            bool)
     return {k: v[ks] for k, v in s.items()}, {k: v[kr] for k, v in r.items()}
 
 

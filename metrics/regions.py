@@ -9,14 +9,17 @@ novice to remove what the run removed.
 Voxels
 ------
 A run's **drilled region** is the set of voxels its tissue lacked at the end
-of the run: the voxels removed during its *last epoch* (the samples' ``epoch``
+of the run: the voxels drilled during its *last epoch* (the samples' ``epoch``
 column counts case resets; a reset puts the tissue back, so what was drilled
 before the last reset is not part of the final region). A run that ends
 right after a reset has an empty region. Voxels are named by their flat index
 ``np.ravel_multi_index(ijk, shape)`` over the case's grid (``header["shape"]``,
 voxels along x, y, z). A removal's ``ijk`` is in its body's own frame, which
 is the grid's own lattice (a body's voxels never move in the grid), so split
-and moved bodies keep their anatomical index.
+and moved bodies keep their anatomical index. A fragment cut off is not
+drilled: its voxels moved to another body (``SPLIT`` events, not removals),
+and the specks shed as dust (removals marked ``shed``,
+:data:`bonesim.engine.events.REMOVED_SHED`) are left out.
 
 Estimator
 ---------
@@ -196,7 +199,9 @@ def region_run(session, *, group: str | None = None, participant: str | None = N
     h = session.header
     rem = session.removals
     last = final_epoch(session)
-    keep = rem["epoch"] == last
+    # drilled removals only: specks shed as dust with a fragment were not drilled
+    shed = np.asarray(rem.get("shed", np.zeros(len(rem["epoch"]), bool)), bool)
+    keep = (rem["epoch"] == last) & ~shed
     voxels = drilled_voxels(rem["ijk"][keep], last, h["shape"])
     name = str(getattr(session, "path", "") or "")
     return RegionRun(voxels, tuple(h["shape"]), h.get("group", "") if group is None else group,

@@ -86,13 +86,23 @@ class App:
     eye_separation_mm : float, optional
         Distance between the eyes for stereo [mm] (default from
         ``render.toml``).
+    force_limits : path or ForceLimits, optional
+        Per-distance force and speed limits near a structure
+        (:mod:`bonesim.physics.force_limits`; ``bonesim metrics limits``
+        writes them): the HUD warns when a removal near the structure goes
+        above them.
+    fragments : bool
+        Split off bone that drilling cuts free (a background
+        :class:`~bonesim.runtime.fragment_finder.FragmentFinder` thread; its
+        commands are sent from the frame callback). Default on.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
-                 eye_separation_mm: float | None = None, force_limits=None):
+                 eye_separation_mm: float | None = None, force_limits=None,
+                 fragments: bool = True):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -156,6 +166,8 @@ class App:
             if lim.case and lim.case != self.model.name:
                 self.notices.append(f"force limits learned on case {lim.case!r}, not "
                                     f"{self.model.name!r}")
+        self.want_fragments = bool(fragments)
+        self.fragments = None
 
     # -------------------------------------------------------------- set-up
     def _fresh_consumers(self):
@@ -201,6 +213,11 @@ class App:
 
             self._watch_in = (events.Cursor(self.loop.state.tissue, 0),
                               events.Cursor(self.loop.samples, 0))
+        if self.want_fragments:
+            from bonesim.runtime.fragment_finder import FragmentFinder
+
+            self.fragments = FragmentFinder(self.model, self.loop.state,
+                                            self.loop.status).start()
         self.scene = Scene.from_model(self.model, self.consumer.surface,
                                       offscreen=self.offscreen, size=self.size,
                                       stereo_capable=self.stereo == "quad-buffer")
@@ -217,6 +234,9 @@ class App:
         return self
 
     def close(self) -> None:
+        if self.fragments is not None:
+            self.fragments.close()
+            self.fragments = None
         if self.recorder is not None:
             self.recording = self.recorder.close()
             self.recorder = None
@@ -246,6 +266,13 @@ class App:
         from bonesim.physics.dust import DustGrid
 
         st = self.loop.status
+        if self.fragments is not None:        # the finder's splits: this thread sends
+            try:
+                self.fragments.pump(self.loop.send)
+            except RuntimeError as exc:       # its thread failed: say so, drill on
+                self.notices.append(f"fragments off ({exc})")
+                self.fragments.close()
+                self.fragments = None
         ch = self.consumer.drain()
         if ch.reset:                                   # the case was reset
             self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
@@ -396,6 +423,10 @@ class App:
             "injuries": list(self.injuries),
             "notices": list(self.notices),
         })
+        if self.fragments is not None:
+            fs = self.fragments.stats
+            out["fragments"] = {"rounds": fs["rounds"], "split": fs["split"], "shed": fs["shed"],
+                                "bodies": int(self.loop.state.n_bodies)}
         if self.monitor is not None:
             out["monitor"] = self.monitor.stats()
             out["monitor"]["nerves"] = list(self.monitor.names)

@@ -496,6 +496,11 @@ BENCHMARKS = {
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
     **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
+    **dict.fromkeys(("fragment_local_ms", "fragment_global_256_ms",
+                     "fragment_global_256_scipy_ms", "fragment_global_vs_scipy",
+                     "fragment_split_8000_ms"),
+                    lambda quick=False: __import__(
+                        "bonesim.bench.fragments", fromlist=["_"]).bench_fragments(quick=quick)),
 }
 
 

@@ -262,7 +262,8 @@ def cmd_run(args) -> int:
               sound=not args.no_sound, wav=args.wav,
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
-              eye_separation_mm=args.eye_separation_mm, force_limits=args.force_limits)
+              eye_separation_mm=args.eye_separation_mm, force_limits=args.force_limits,
+              fragments=not getattr(args, "no_fragments", False))
     try:
         app.start()
         if serve is not None:
@@ -668,6 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "these per-distance limits ('bonesim metrics limits' learns them "
                         "from expert runs)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.add_argument("--no-fragments", action="store_true",
+                   help="do not split off bone that drilling cuts free (default: split "
+                        "it into its own body; specks become dust)")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(

@@ -264,9 +264,11 @@ def concat(parts) -> dict:
 
 def removals(ev: dict) -> dict:
     """Removed voxels of a tissue-event batch: ``ijk`` (n, 3) int32 (body
-    frame), ``label`` (n,) uint8, ``body`` (n,) uint8, ``t_s`` (n,) [s]."""
+    frame), ``label`` (n,) uint8, ``body`` (n,) uint8, ``t_s`` (n,) [s],
+    ``shed`` (n,) bool (a speck shed as dust, not drilled: :data:`REMOVED_SHED`)."""
     r = select(ev, REMOVED)
-    return {"ijk": r["ijk"], "label": r["label"], "body": r["body"], "t_s": r["t_s"]}
+    return {"ijk": r["ijk"], "label": r["label"], "body": r["body"], "t_s": r["t_s"],
+            "shed": r["n"] == REMOVED_SHED}
 
 
 def injuries(ev: dict) -> dict:
@@ -278,3 +280,18 @@ def injuries(ev: dict) -> dict:
     return {"label": r["label"], "kind": kind, "t_s": r["t_s"],
             "pos_mm": np.ascontiguousarray(r["value"][:, :3]), "voxels": r["n"],
             "body": r["body"]}
+
+
+#: A ``REMOVED`` record's ``n`` says why the voxel went: 0 (``REMOVED_DRILLED``)
+#: for the tool's removals, :data:`REMOVED_SHED` for a speck of bone cut off
+#: and shed as dust (:mod:`bonesim.engine.fragments`): a removal for dust,
+#: replicas and surfaces, but not drilled volume for the metrics.
+REMOVED_DRILLED = 0
+REMOVED_SHED = 1
+__all__ += ["REMOVED_DRILLED", "REMOVED_SHED", "drilled"]
+
+
+def drilled(ev: dict) -> np.ndarray:
+    """(n,) bool: the records of a tissue-event batch that are drilled
+    removals (``REMOVED`` and not :data:`REMOVED_SHED`)."""
+    return (np.asarray(ev["kind"]) == REMOVED) & (np.asarray(ev["n"]) != REMOVED_SHED)

@@ -46,6 +46,10 @@ Manifest
     structures = ["sigmoid_sinus"]    # structures the procedure should expose
     box_mm = [[5, -8, -14], [20, 14, 11]]   # region expected to be drilled
 
+    [fragments]                       # optional
+    speck_voxels = 8                  # bone cut off in parts of fewer voxels
+                                      # becomes dust, not a body (default 8)
+
 For NRRD and NIfTI, ``path`` may be left out when ``labels`` alone gives all
 structures (a label-only case). For the phantom, structure names must be
 phantom parts (:data:`bonesim.io.phantom.PARTS`); parts not listed stay empty.

@@ -5,6 +5,7 @@ and ``docs/cases.md``; :func:`bonesim.io.case.parse_case` is the public entry.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from bonesim.io.case_records import (CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU, DE
                                      DEFAULT_VOXEL_MM, KINDS, MAX_LABEL, MAX_VOXEL_MM,
                                      MIN_VOXEL_MM, SEG_FORMAT, SIDES, Camera, Case, Structure,
                                      Target, VolumeSpec)
+from bonesim.io.case_records import Fragments
 from bonesim.errors import BonesimError
 from bonesim.io.orientation import parse_orientation
 from bonesim.io.segmentation import SEG_SUFFIX, read_seg_segments, segment_keys
@@ -45,6 +47,8 @@ _STRUCTURE_KEYS = ("name", "kind", "label", "color", "display_color", "monitor",
                    "segment", "anatomy")
 _CAMERA_KEYS = ("eye_mm", "focal_mm", "up")
 _TARGET_KEYS = ("description", "structures", "box_mm")
+_TOP_KEYS += ("fragments",)
+_FRAGMENTS_KEYS = ("speck_voxels",)
 
 
 def _rgb(table: dict, key: str, path: Path, where: str) -> tuple[int, int, int]:
@@ -344,4 +348,19 @@ def parse_manifest(path: str | Path) -> Case:
     camera = _parse_camera(doc["camera"], path) if "camera" in doc else None
     target = (_parse_target(doc["target"], path, [s.name for s in structures])
               if "target" in doc else None)
-    return Case(name, desc, side, path, volume, structures, camera, target)
+    case = Case(name, desc, side, path, volume, structures, camera, target)
+    if "fragments" in doc:
+        case = dataclasses.replace(case, fragments=_parse_fragments(doc["fragments"], path))
+    return case
+
+
+def _parse_fragments(tab, path: Path) -> Fragments:
+    """``[fragments]``: ``speck_voxels``, a positive integer (parts cut off
+    with fewer voxels become dust)."""
+    where = "fragments"
+    if not isinstance(tab, dict):
+        raise BonesimError("'fragments' must be a table", path, "top level")
+    check_keys(tab, _FRAGMENTS_KEYS, path, where)
+    n = get_number(tab, "speck_voxels", path, where, default=Fragments.speck_voxels,
+                   minimum=1, integer=True)
+    return Fragments(int(n))

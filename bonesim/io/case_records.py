@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bonesim.engine.fragments import DEFAULT_SPECK_VOXELS
 from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.orientation import PATIENT_FRAME
@@ -25,7 +26,7 @@ from bonesim.io.volumes import FORMATS, CaseVolume, load_volume
 __all__ = ["CASE_FILE", "SIDES", "KINDS", "SEG_FORMAT", "CASE_FORMATS", "DEFAULT_VOXEL_MM",
            "DEFAULT_BONE_THRESHOLD_HU", "DEFAULT_PATTERN", "MIN_VOXEL_MM", "MAX_VOXEL_MM",
            "MAX_LABEL", "ORIENTATION_SOURCES", "Structure", "VolumeSpec", "Camera", "Target",
-           "Case"]
+           "Case", "Fragments"]
 
 CASE_FILE = "case.toml"
 SIDES = ("left", "right")
@@ -177,6 +178,21 @@ class Target:
 
 
 @dataclass(frozen=True)
+class Fragments:
+    """How cut-off bone is handled (``[fragments]``; :mod:`bonesim.engine.fragments`).
+
+    Attributes
+    ----------
+    speck_voxels : int
+        Parts cut off with fewer voxels than this are removed as dust instead
+        of becoming bodies (default
+        :data:`bonesim.engine.fragments.DEFAULT_SPECK_VOXELS`).
+    """
+
+    speck_voxels: int = DEFAULT_SPECK_VOXELS
+
+
+@dataclass(frozen=True)
 class Case:
     """A parsed case manifest.
 
@@ -194,6 +210,8 @@ class Case:
         The manifest's ``[camera]`` (None: derived from the anatomy, see
         :attr:`camera`).
     target : Target or None
+    fragments : Fragments
+        The manifest's ``[fragments]`` (defaults without it).
     """
 
     name: str
@@ -204,6 +222,7 @@ class Case:
     structures: tuple[Structure, ...]
     declared_camera: Camera | None = None
     target: Target | None = None
+    fragments: Fragments = Fragments()
     # what was derived from the volume (the surgical view); not part of the
     # manifest's identity, never passed in
     _derived: dict = field(default_factory=dict, init=False, compare=False, repr=False,

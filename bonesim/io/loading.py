@@ -78,6 +78,10 @@ def warmup() -> None:
     clear_touched(s, s.touched.read(0)["ijk"])
     split_body(s, 0, np.array([[0, 0, 0]]))           # a second body: the split kernels
     publish_split_box(s, 0, (0, 0, 0), (1, 1, 1), 0.0)
+    from bonesim.engine.fragments import publish_part       # the fragment finder's commands
+
+    publish_part(s, 0, (3, 3, 0), (3, 3, 0), (3, 3, 0), 1, 0.0)
+    publish_part(s, 0, (4, 4, 0), (4, 4, 0), (4, 4, 0), 1, 0.0, shed=True)
     set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
     step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))

@@ -410,3 +410,54 @@ class MoveBody(Command):
     @classmethod
     def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
         publish_pose(ctx.state, int(args[0]), args[1:8].copy(), ctx.t_s)
+
+
+class SplitPart(Command):
+    """Make one part of body ``body`` a new body (the fragment finder's split,
+    :mod:`bonesim.engine.fragments`): the 26-connected voxels of ``body``
+    with material that hold voxel ``seed``, flood-filled inside the box ``lo
+    .. hi`` (body frame, inclusive). The part was found on a replica of the
+    loop's tissue; since then material can only have gone, so the loop's
+    part is that part or a piece of it. The loop publishes the voxels it
+    moved as ``SPLIT`` events (in ``(i, j, k)`` order, as
+    :func:`~bonesim.engine.bodies.publish_split` does): replicas and replay
+    move exactly those. A command of an earlier epoch (a reset came between)
+    does nothing; a part larger than ``n`` voxels is refused."""
+
+    kind, name = 30, "split_part"
+    shed = False
+
+    @classmethod
+    def encode(cls, body: int, seed, lo, hi, n: int, epoch: int) -> np.ndarray:
+        seed, lo, hi = (np.asarray(v, np.int64) for v in (seed, lo, hi))
+        if seed.shape != (3,) or lo.shape != (3,) or hi.shape != (3,) or (hi < lo).any() \
+                or (seed < lo).any() or (seed > hi).any():
+            raise ValueError(f"{cls.name}: seed {seed.tolist()} must lie in the box "
+                             f"{lo.tolist()}..{hi.tolist()} (three voxel indices each)")
+        for what, v in (("body", body), ("n", n), ("epoch", epoch)):
+            if int(v) != v or v < (1 if what == "n" else 0):
+                raise ValueError(f"{cls.name}: {what} must be a "
+                                 f"{'positive' if what == 'n' else 'non-negative'} integer, "
+                                 f"got {v!r}")
+        return cls.pack(body, seed, lo, hi, n, epoch)
+
+    @classmethod
+    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
+        from bonesim.engine.fragments import publish_part
+
+        if int(args[11]) != ctx.epoch:
+            return                          # found before a reset: nothing of it is left
+        a = args[:11].astype(np.int64)
+        publish_part(ctx.state, int(a[0]), a[1:4], a[4:7], a[7:10], int(a[10]), ctx.t_s,
+                     shed=cls.shed)
+
+
+class ShedPart(SplitPart):
+    """As :class:`SplitPart`, but the part (a speck) is removed as dust:
+    ``REMOVED`` events marked :data:`~bonesim.engine.events.REMOVED_SHED`."""
+
+    kind, name = 31, "shed_part"
+    shed = True
+
+
+__all__ += ["SplitPart", "ShedPart"]

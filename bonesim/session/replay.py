@@ -2,7 +2,8 @@
 
 A session's samples, stepped again from the case's initial tissue with the
 recorded burrs, must give the recorded tissue events and forces exactly
-(``bonesim replay --verify``). The recorded body splits and poses are inputs
+(``bonesim replay --verify``). The recorded body splits and poses, and the
+specks shed as dust with a fragment (removals marked ``REMOVED_SHED``), are inputs
 too (commands the haptic loop applied between two steps): the replay applies
 them again before the step of their time. A damaged file is replayed over its readable
 part (:func:`bonesim.session.reader.read_session` cuts every stream at the
@@ -83,17 +84,32 @@ def replay(session: Session, models=None, progress=None) -> dict:
 
 
 def _body_commands(tissue: dict) -> list:
-    """The recorded splits and poses as ``(t_s, apply(state))``, in order."""
+    """The recorded splits, poses and shed specks as ``(t_s, apply(state))``, in order."""
     from bonesim.engine.bodies import publish_pose, publish_split
+    from bonesim.engine.fragments import shed_voxels
 
     kind = tissue["kind"]
-    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE))
+    shed = (kind == events.REMOVED) & (tissue["n"] == events.REMOVED_SHED)
+    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE) | shed)
     out = []
     q = 0
     while q < len(idx):
         i = idx[q]
         t = float(tissue["t_s"][i])
         body = int(tissue["body"][i])
+        if shed[i]:
+            # specks shed as dust with a fragment (bonesim.engine.fragments):
+            # consecutive records of one body and time, in (i, j, k) order
+            # (each speck is published sorted; a step down starts the next)
+            e = q + 1
+            while e < len(idx) and idx[e] == i + (e - q) and shed[idx[e]] \
+                    and int(tissue["body"][idx[e]]) == body and tissue["t_s"][idx[e]] == t \
+                    and tuple(tissue["ijk"][idx[e]]) > tuple(tissue["ijk"][idx[e - 1]]):
+                e += 1
+            ijk = tissue["ijk"][idx[q:e]].copy()
+            out.append((t, lambda st, b=body, v=ijk, t=t: shed_voxels(st, b, v, t)))
+            q = e
+            continue
         if kind[i] == events.POSE:
             pose = tissue["value"][i].copy()
             out.append((t, lambda st, b=body, p=pose, t=t: publish_pose(st, b, p, t)))

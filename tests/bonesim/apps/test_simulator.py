@@ -60,8 +60,10 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         out = app.run(frames=90, screenshot=tmp_path / "shot.png")
         hud = app.scene.hud_text
         assert re.search(r"depth\s+(in view|\d+\.\d mm under bone)", hud), hud
-        assert re.search(r"LIMIT! \d\.\d\d > 0\.50 N\n  \d+\.\d mm from chorda tympani",
-                         hud), hud
+        # the HUD shows the warning while it is recent, else the count (a
+        # loaded machine may end the 90 frames after the burr stopped cutting)
+        assert re.search(r"LIMIT! \d\.\d\d > 0\.50 N\n  \d+\.\d mm from chorda tympani|"
+                         r"limit  chorda tympani: [\d,]+ over", hud), hud
         live = dict(app.watch.count)
         app.window.press("irrigation")                # w: the water wets the dust
         app.window.run_offscreen(10, realtime=True)
@@ -106,6 +108,12 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     again.feed(s.tissue, s.samples)
     again.feed()
     assert 0 < live["force_n"] <= again.count["force_n"] and live["speed_rpm"] == 0
+    # the fragment finder ran behind the loop (on by default); whatever it
+    # split or shed replays bit for bit
+    assert out["fragments"]["rounds"] > 0 and app.fragments is None
+    from bonesim.session.replay import verify
+
+    assert verify(s)["ok"]
 
 
 def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
