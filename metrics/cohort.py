@@ -267,7 +267,8 @@ def _score_file(path, structure, case):
     m = {k: nan for k in METRIC_COLUMNS}
     t = s.samples["t_s"]
     m["duration_s"] = float(t[-1] - t[0]) if len(t) else 0.0
-    m["removed_voxels"] = float(np.count_nonzero(s.tissue["kind"] == events.REMOVED))
+    # drilled removals: specks shed as dust with a cut-off fragment are not
+    m["removed_voxels"] = float(np.count_nonzero(events.drilled(s.tissue)))
     m["visible_fraction"] = float(visibility(s, models=models).fraction)
     table = None
     if structure in names:

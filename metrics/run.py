@@ -140,6 +140,8 @@ def run_metrics(session, *, experts=(), force_profile=None, structure: str | Non
                    "duration_s": float(s.samples["t_s"][-1] - s.samples["t_s"][0])
                    if len(s.samples["t_s"]) else 0.0,
                    "removed_voxels": int(rem.sum()),
+                   # of which shed as dust with a cut-off fragment, not drilled
+                   "shed_voxels": int(np.count_nonzero(rem & ~events.drilled(s.tissue))),
                    "resets": int(np.count_nonzero(s.tissue["kind"] == events.RESET)),
                    "damaged": getattr(s, "damage", None) is not None}}
     out["visibility"] = visibility(s, models=models).summary()
