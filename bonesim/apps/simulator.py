@@ -279,10 +279,26 @@ class App:
             "injuries": list(self.injuries),
             "visible": self._visible(),
             "message": "; ".join(self.notices) if self.notices else None,
+            "device": self._device_status(),
         })
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
         self.frames += 1
+
+    def _device_status(self):
+        """``(name, state, rejected)`` of a real device (None for the mouse or a
+        script); a change of state is noted in the recording as a UI event."""
+        if self.loop.device[0] != "device":
+            return None
+        from bonesim.devices.safety import STATES
+
+        st = self.loop.status
+        state = STATES[int(st["device_state"])]
+        if state != getattr(self, "_device_state", None):
+            self._device_state = state
+            if self.recorder is not None:
+                self.recorder.event("device", state)
+        return getattr(self, "device_name", "device"), state, int(st["device_rejected"])
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the

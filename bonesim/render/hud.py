@@ -29,6 +29,10 @@ keys (all optional; units in the names):
                      case reset, of those judged (the recorder's voxel
                      visibility, :mod:`bonesim.physics.visibility`); shown as a
                      percentage once any is judged; None: not shown
+``device``           ``(name, state)`` or ``(name, state, rejected)`` of a
+                     real device behind the safety layer; ``state`` one of
+                     :data:`DEVICE_STATE_TEXT`'s keys (``unplugged``: the mouse
+                     drives); ``rejected``: bad samples so far
 ``message``          free text (status, warnings), one paragraph a line,
                      wrapped (continuations indented by two spaces)
 ===================  ====================================================
@@ -39,12 +43,15 @@ from __future__ import annotations
 
 import textwrap
 
-__all__ = ["KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
+__all__ = ["DEVICE_STATE_TEXT", "KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
 
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
          "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
-         "injuries", "visible", "message")
+         "injuries", "visible", "message", "device")
+#: How each device state (:data:`bonesim.devices.safety.STATES`) reads on the HUD.
+DEVICE_STATE_TEXT = {"active": "", "waiting": "hold still", "ramping": "forces in",
+                     "unplugged": "UNPLUGGED - mouse"}
 #: Width of the label column [characters].
 LABEL_W = 7
 #: Messages wrap at this many characters; continuation lines are indented.
@@ -109,6 +116,17 @@ def _depth(v) -> str:
     return "in view" if d <= 0 else f"{d:.1f} mm under bone"
 
 
+def _device(v) -> str:
+    if isinstance(v, str):
+        return v
+    name, state = str(v[0]), str(v[1])
+    text = DEVICE_STATE_TEXT.get(state, state)
+    out = f"{name} {text}".strip()
+    if len(v) > 2 and int(v[2]) > 0:
+        out += f" ({int(v[2])} bad)"
+    return out
+
+
 def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     """Lines of the HUD for ``info`` (see the module docstring).
 
@@ -127,6 +145,8 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     lines = []
     if "case" in info:
         lines.append(_line("case", str(info["case"])))
+    if info.get("device") is not None:
+        lines.append(_line("device", _device(info["device"])))
     if str(info.get("tool", "burr")) != "burr":
         lines.append(_line("tool", str(info["tool"])))
     if info.get("irrigation"):

@@ -89,6 +89,9 @@ STATUS = (
     ("commands_applied", np.int64),
     ("commands_rejected", np.int64),
     ("command_error", f"S{commands.ERROR_TEXT_BYTES}"),   # the last rejection
+    ("device_state", np.uint8),             # bonesim.devices.safety.STATES index
+    ("device_rejected", np.int64),          # device samples rejected (NaN, jump, stale)
+    ("device_unplugs", np.int64),           # times the device went away
 )
 #: The window's continuous inputs (window -> loop), after the process base's.
 CONTROL = (
@@ -175,7 +178,23 @@ def _make_device(spec, control):
         return ScriptedDevice(spec[1], loop=bool(spec[2]) if len(spec) > 2 else False)
     if kind == "null":
         return NullDevice(*spec[1:])
+    if kind == "device":               # a real backend, behind the safety layer
+        return _safe_device(spec, control)
     raise ValueError(f"unknown device backend {kind!r}")
+
+
+def _safe_device(spec, control):
+    """``("device", backend[, settings])``: ``backend`` an instance or a
+    registered name (:mod:`bonesim.devices.registry`); the mouse takes over
+    while it is unplugged."""
+    from bonesim.devices.safety import SafeDevice
+
+    dev = spec[1]
+    if isinstance(dev, str):
+        from bonesim.devices.registry import make_device
+
+        dev = make_device(dev, spec[2] if len(spec) > 2 else None)
+    return SafeDevice(dev, fallback=SharedInputDevice(control["target_mm"], control["axis"]))
 
 
 def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
@@ -196,6 +215,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     device = _make_device(device_spec, control)
     coupling = VirtualCoupling() if not math.isfinite(device.caps.max_force_n) \
         and isinstance(device, SharedInputDevice) else None
+    safe = device if device_spec[0] == "device" else None
+    if safe is not None:
+        coupling = VirtualCoupling()       # for the mouse while the device is away
     ctx = LoopContext(m, state, device, coupling, status)
     queue = CommandQueue(child.rings["commands"], known)
     warmup()
@@ -218,6 +240,8 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             status[k] for k in ("t_s", "pos_mm", "axis", "force_n", "mag_n", "volume_mm3",
                                 "immersed", "drill", "speed_rpm", "direction", "burr",
                                 "steps", "overruns", "hand_force_n"))
+        st_dev, st_rej, st_unplugs = (status[k] for k in
+                                      ("device_state", "device_rejected", "device_unplugs"))
         # everything the loop needs exists now; no collector pauses from here on
         gc.collect()
         gc.freeze()
@@ -244,7 +268,11 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             burr = ctx.burr
             r: DeviceReading = device.read(t)
             pos = r.pos_mm
-            if coupling is not None:
+            if safe is not None and not safe.coupled:
+                coupling.pos = None            # re-seeded where the tool is at a hand-over
+            elif coupling is not None:
+                if coupling.pos is None and safe is not None and state.n_steps > 0:
+                    coupling.reset(state.pos_mm)
                 dt = period if math.isnan(state.t_s) else t - state.t_s
                 pos = coupling.update(pos, state.force_n, dt)
             drill = bool(drill_in) if r.drill is None else r.drill
@@ -263,6 +291,11 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                     out_f *= m.device.max_force_n / norm
                 f = out_f
             device.write_force(f)
+            if safe is not None:
+                f = safe.sent_n                # what the device renders, after the limits
+                st_dev[...] = safe.state
+                st_rej[...] = safe.n_rejected
+                st_unplugs[...] = safe.unplugs
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
                         ctx.epoch, r.buttons, f, fv)
             st_t[...] = t
@@ -277,7 +310,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             st_dir[...] = direction
             st_burr[...] = burr
             st_steps[...] = state.n_steps
-            if coupling is not None:
+            if coupling is not None and coupling.pos is not None:
                 st_hand[...] = coupling.hand_force_n(r.pos_mm)
             deadline += period
             rest = deadline - clock()
@@ -305,7 +338,10 @@ class HapticLoop(ChildProcess):
     device : tuple
         ``("mouse",)`` (the window writes the target pose; a virtual coupling
         keeps the tool on the bone), ``("scripted", trajectory[, loop])`` or
-        ``("null", pos_mm, axis)``.
+        ``("null", pos_mm, axis)``, or ``("device", backend[, settings])``: a
+        real device (an instance, or a name in :mod:`bonesim.devices.registry`)
+        behind :class:`bonesim.devices.safety.SafeDevice`, the mouse taking
+        over while it is unplugged (``status["device_state"]``).
     rate_hz : float
         Servo rate [Hz].
     run_s : float, optional

@@ -54,3 +54,12 @@ def test_hud_shows_the_running_visible_share_once_any_removal_is_judged():
     assert not any(ln.startswith("seen") for ln in format_hud({"visible": (0, 0)}).splitlines())
     assert not any(ln.startswith("seen")
                    for ln in format_hud({"visible": None}).splitlines())
+
+
+def test_device_state_line_says_when_the_mouse_has_taken_over():
+    from bonesim.render.hud import format_hud
+
+    assert "device touch UNPLUGGED - mouse" in format_hud({"device": ("touch", "unplugged")})
+    text = format_hud({"device": ("touch", "waiting", 3)})
+    assert "touch hold still (3 bad)" in text
+    assert "device" not in format_hud({"device": None, "case": "x"})
