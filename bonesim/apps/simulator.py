@@ -85,13 +85,17 @@ class App:
     eye_separation_mm : float, optional
         Distance between the eyes for stereo [mm] (default from
         ``render.toml``).
+    device : str, optional
+        A device backend (:mod:`bonesim.devices.registry`) instead of the
+        mouse, with the user's settings and calibration; it runs behind the
+        safety layer and the mouse takes over while it is unplugged.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
-                 eye_separation_mm: float | None = None):
+                 eye_separation_mm: float | None = None, device: str | None = None):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -103,11 +107,29 @@ class App:
             names.insert(0, chosen.name)
         i0 = names.index(chosen.name)
         self.burrs = table[i0:] + table[:i0]          # index 0 = the chosen burr
-        self.model = load_model(case, chosen)
+        self.device_name = device
+        self.device_record = None
+        if device is not None:
+            from bonesim.errors import BonesimError
+            from bonesim.io.case import load_case
+
+            if script is not None:
+                raise BonesimError("--device and --script both drive the tool; choose one",
+                                   field="--device")
+            cam = load_case(case).camera
+            view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+            start = np.asarray(cam.focal_mm, float) \
+                - START_STANDOFF_MM * view / np.linalg.norm(view)
+            backend = self._make_backend(device, start)
+            self.model = load_model(case, chosen, device=backend.caps)
+        else:
+            self.model = load_model(case, chosen)
         cam = self.model.case.camera
         view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
         self.view = view / np.linalg.norm(view)
         device = ("mouse",) if script is None else ("scripted", script)
+        if self.device_name is not None:
+            device = ("device", backend)
         self.scripted = script is not None
         self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device)
         self.loop.set_target(np.asarray(cam.focal_mm, float)
@@ -143,6 +165,13 @@ class App:
         self.monitor_serve = monitor_serve
 
     # -------------------------------------------------------------- set-up
+    def _make_backend(self, name: str, start_mm):
+        from bonesim.devices.registry import device_record, make_device
+
+        backend = make_device(name, start_mm=start_mm)
+        self.device_record = device_record(name, backend)
+        return backend
+
     def _fresh_consumers(self):
         from bonesim.physics.dust import DustGrid
         from bonesim.engine.replica import TissueReplica
@@ -161,8 +190,9 @@ class App:
             from bonesim.runtime.record import Recorder, make_header
 
             header = make_header(self.model, self.burrs[1:],
-                                 input_device="scripted" if self.scripted else "mouse",
-                                 **self.who)
+                                 input_device=self.device_name or (
+                                     "scripted" if self.scripted else "mouse"),
+                                 device_record=self.device_record, **self.who)
             # the writer reads the loop's rings from record 0, so it may start
             # while the loop warms up
             self.recorder = Recorder(self.loop, self.record, header).start()
@@ -294,11 +324,14 @@ class App:
 
         st = self.loop.status
         state = STATES[int(st["device_state"])]
-        if state != getattr(self, "_device_state", None):
-            self._device_state = state
+        seen = (state, int(st["device_unplugs"]))
+        if seen != getattr(self, "_device_seen", None):
             if self.recorder is not None:
+                if seen[1] != getattr(self, "_device_seen", (None, 0))[1]:
+                    self.recorder.event("device", "unplugged")   # however short
                 self.recorder.event("device", state)
-        return getattr(self, "device_name", "device"), state, int(st["device_rejected"])
+            self._device_seen = seen
+        return self.device_name, state, int(st["device_rejected"])
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
 from bonesim.errors import BonesimError
 
@@ -226,7 +227,7 @@ def cmd_run(args) -> int:
                            "simulator records with --record (bonesim video makes a video "
                            "of a recording)", field="--video")
     if offscreen:
-        if script is None:                 # a glimpse of the planned mastoidectomy
+        if script is None and args.device == "mouse":   # a glimpse of the plan
             traj = _plan(load_case(args.case), args.burr)
             import numpy as np
 
@@ -250,7 +251,8 @@ def cmd_run(args) -> int:
               sound=not args.no_sound, wav=args.wav,
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
-              eye_separation_mm=args.eye_separation_mm)
+              eye_separation_mm=args.eye_separation_mm,
+              device=None if args.device == "mouse" else args.device)
     try:
         app.start()
         if serve is not None:
@@ -285,7 +287,7 @@ def _run_showcase(args) -> int:
 
     for flag, given in (("--record", args.record is not None), ("--wav", args.wav),
                         ("--monitor-port", args.monitor_port is not None),
-                        ("--stereo", args.stereo)):
+                        ("--stereo", args.stereo), ("--device", args.device != "mouse")):
         if given:
             raise BonesimError(f"{flag} needs the live simulator: add --frames N (offscreen) "
                                "or run on a display; the headless main job only drills the "
@@ -645,6 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="address the monitor server listens on (default all)")
     s.add_argument("--key-file", metavar="FILE", help="with --monitor-port: " + KEY_HELP)
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    device_option(s)
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(
@@ -729,6 +732,7 @@ def build_parser() -> argparse.ArgumentParser:
     _tutor_parser(sub)
 
     research_parsers(sub, _lazy)
+    device_parsers(sub)
 
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")
