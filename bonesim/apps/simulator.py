@@ -89,13 +89,16 @@ class App:
         A device backend (:mod:`bonesim.devices.registry`) instead of the
         mouse, with the user's settings and calibration; it runs behind the
         safety layer and the mouse takes over while it is unplugged.
+    pedal : str, optional
+        A foot pedal backend (``pedal``) for drill on/off and speed.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
                  size=(1024, 768), sound: bool = True, wav=None, record=None,
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
-                 eye_separation_mm: float | None = None, device: str | None = None):
+                 eye_separation_mm: float | None = None, device: str | None = None,
+                 pedal: str | None = None):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -120,7 +123,10 @@ class App:
             view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
             start = np.asarray(cam.focal_mm, float) \
                 - START_STANDOFF_MM * view / np.linalg.norm(view)
-            backend = self._make_backend(device, start)
+            back = -view / np.linalg.norm(view)
+            right = np.cross(-back, cam.up)
+            right /= np.linalg.norm(right)
+            backend = self._make_backend(device, start, (right, np.cross(back, right), back))
             self.model = load_model(case, chosen, device=backend.caps)
         else:
             self.model = load_model(case, chosen)
@@ -131,7 +137,15 @@ class App:
         if self.device_name is not None:
             device = ("device", backend)
         self.scripted = script is not None
-        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device)
+        pedal_dev = None
+        if pedal is not None:
+            from bonesim.devices.registry import device_record, make_device
+
+            pedal_dev = make_device(pedal, pedal_ok=True)
+            self.device_record = dict(self.device_record or {"backend": "mouse"},
+                                      pedal=device_record(pedal, pedal_dev))
+        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device,
+                               pedal=pedal_dev)
         self.loop.set_target(np.asarray(cam.focal_mm, float)
                              - START_STANDOFF_MM * self.view, self.view)
         self.press_mm = 0.0
@@ -165,10 +179,10 @@ class App:
         self.monitor_serve = monitor_serve
 
     # -------------------------------------------------------------- set-up
-    def _make_backend(self, name: str, start_mm):
+    def _make_backend(self, name: str, start_mm, view):
         from bonesim.devices.registry import device_record, make_device
 
-        backend = make_device(name, start_mm=start_mm)
+        backend = make_device(name, start_mm=start_mm, view=view)
         self.device_record = device_record(name, backend)
         return backend
 
@@ -288,6 +302,7 @@ class App:
             scene.set_suction(suction, self.view, SUCTION_RADIUS_MM)
         else:
             scene.set_suction(None)
+        self._device_camera(scene, dt)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
         inj = ch.injuries
@@ -314,6 +329,28 @@ class App:
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
         self.frames += 1
+
+    def _device_camera(self, scene, dt: float) -> None:
+        """A rate device in camera mode pans [mm/s] and orbits [deg/s] the view."""
+        if self.loop.device[0] != "device":
+            return
+        rate = self.loop.status["camera_rate"]
+        if not rate.any():
+            return
+        eye, focal, up = (np.asarray(x, float) for x in scene.camera_pose())
+        shift = rate[:3] * dt
+        w = np.radians(rate[3:]) * dt
+        a = float(np.linalg.norm(w))
+        if a > 0:
+            k = w / a
+
+            def turn(v):
+                return v * np.cos(a) + np.cross(k, v) * np.sin(a) \
+                    + k * float(k @ v) * (1 - np.cos(a))
+            eye = focal + turn(eye - focal)
+            up = turn(up)
+        scene.set_camera(eye + shift, focal + shift, up,
+                         view_angle_deg=scene.camera.GetViewAngle())
 
     def _device_status(self):
         """``(name, state, rejected)`` of a real device (None for the mouse or a

@@ -42,3 +42,6 @@ def device_option(s) -> None:
     s.add_argument("--device", default=DEFAULT_DEVICE, metavar="NAME",
                    help=f"input device backend (default {DEFAULT_DEVICE}; "
                         "'bonesim devices' lists them)")
+    s.add_argument("--pedal", action="store_true",
+                   help="drill on/off and speed from a USB foot pedal ([devices.pedal] in "
+                        "the device config)")

@@ -252,7 +252,8 @@ def cmd_run(args) -> int:
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
               eye_separation_mm=args.eye_separation_mm,
-              device=None if args.device == "mouse" else args.device)
+              device=None if args.device == "mouse" else args.device,
+              pedal="pedal" if args.pedal else None)
     try:
         app.start()
         if serve is not None:

@@ -29,7 +29,7 @@ import math
 from bonesim.devices import config as _config
 from bonesim.errors import BonesimError
 
-__all__ = ["DEFAULT_DEVICE", "BACKENDS", "backend_names", "backend_module", "describe",
+__all__ = ["DEFAULT_DEVICE", "BACKENDS", "AUXILIARY", "backend_names", "backend_module", "describe",
            "make_device", "device_caps", "device_record"]
 
 #: The device ``bonesim run`` uses unless told otherwise.
@@ -39,7 +39,13 @@ BACKENDS = {
     "mouse": (None, "mouse and keyboard (the default; the window drives the tool)"),
     "simulated-hand": ("bonesim.devices.simulated_backend",
                        "a simulated passive hand on a Touch-class arm (no hardware)"),
+    "spacemouse": ("bonesim.devices.spacemouse",
+                   "3Dconnexion SpaceMouse: 6-DOF rate input for the tool (button 1: camera)"),
+    "pedal": ("bonesim.devices.pedal",
+              "USB foot pedal: drill on/off and speed (bonesim run --pedal)"),
 }
+#: Backends that are no pose device (they go with one: ``--pedal``).
+AUXILIARY = ("pedal",)
 
 
 def backend_names() -> list[str]:
@@ -79,13 +85,20 @@ def describe(name: str) -> dict:
 
 
 def make_device(name: str, settings: dict | None = None, calibration: dict | None = None,
-                device_id: str = "default", start_mm=None):
+                device_id: str = "default", start_mm=None, view=None,
+                pedal_ok: bool = False):
     """A backend instance with ``settings`` (default: the user's
     ``[devices.NAME]``) and ``calibration`` (default: the stored one).
     ``start_mm``: where the tool starts (case frame [mm]), given to backends
     that place their pose (module attribute ``START_KEY``, a settings key)
-    unless the settings place it."""
+    unless the settings place it. ``pedal_ok``: allow an auxiliary backend
+    (:data:`AUXILIARY`). ``view``: 3 rows, the case-frame directions
+    of the screen's right, up and toward the eye, given to backends that map
+    their axes to the view (``FRAME_KEY``) unless the settings map them."""
     m = backend_module(name)
+    if name in AUXILIARY and not pedal_ok:
+        raise BonesimError(f"{name!r} is no pose device; it goes with one "
+                           f"(bonesim run --{name})", field="--device")
     if settings is None or calibration is None:
         cfg = _config.load_config()
         if settings is None:
@@ -98,6 +111,9 @@ def make_device(name: str, settings: dict | None = None, calibration: dict | Non
     key = getattr(m, "START_KEY", None)
     if start_mm is not None and key is not None and key not in settings:
         settings = {**settings, key: [float(x) for x in start_mm]}
+    key = getattr(m, "FRAME_KEY", None)
+    if view is not None and key is not None and key not in settings:
+        settings = {**settings, key: [[float(x) for x in row] for row in view]}
     return m.DEVICE(dict(settings), calibration)
 
 
@@ -119,11 +135,14 @@ def _finite(x):
 def device_record(name: str, device=None) -> dict:
     """What a session header keeps of the input device: backend name, its
     capability record in units, settings and calibration (JSON-ready)."""
-    caps = device.caps if device is not None else device_caps(name)
+    caps = getattr(device, "caps", None)
+    if caps is None and name not in AUXILIARY:
+        caps = device_caps(name)
     return {"backend": name,
-            "caps": {"name": caps.name, "max_force_n": _finite(caps.max_force_n),
-                     "workspace_mm": [_finite(x) for x in caps.workspace_mm],
-                     "max_stiffness_n_per_mm": _finite(caps.max_stiffness_n_per_mm),
-                     "rate_hz": float(caps.rate_hz)},
+            "caps": None if caps is None else {
+                "name": caps.name, "max_force_n": _finite(caps.max_force_n),
+                "workspace_mm": [_finite(x) for x in caps.workspace_mm],
+                "max_stiffness_n_per_mm": _finite(caps.max_stiffness_n_per_mm),
+                "rate_hz": float(caps.rate_hz)},
             "settings": dict(getattr(device, "settings", {}) or {}),
             "calibration": getattr(device, "calibration", None)}

@@ -160,9 +160,15 @@ class SafeDevice:
         return STATES[self.state]
 
     @property
+    def renders(self) -> bool:
+        """The device renders force (a finite ``caps.max_force_n``)."""
+        return math.isfinite(self.caps.max_force_n)
+
+    @property
     def coupled(self) -> bool:
-        """The fallback drives: its reading is a target for a virtual coupling."""
-        return self.state == UNPLUGGED and self.fallback is not None
+        """The reading is a target for the loop's virtual coupling: the
+        fallback drives, or the device renders no force (a rate device)."""
+        return (self.state == UNPLUGGED and self.fallback is not None) or not self.renders
 
     @property
     def n_rejected(self) -> int:
@@ -175,8 +181,9 @@ class SafeDevice:
         return ev
 
     def _restart(self, t: float) -> None:
-        """Forces off; wait for a still hand, then ramp."""
-        self.state = WAITING
+        """Forces off; wait for a still hand, then ramp (a device that
+        renders no force is active at once)."""
+        self.state = WAITING if self.renders else ACTIVE
         self.gain = 0.0
         self._still_since = t
         self._ramp_from = math.nan
@@ -310,6 +317,11 @@ class SafeDevice:
         if not math.isfinite(mag):
             fx = fy = fz = mag = 0.0
         caps = self.caps
+        if not self.renders:                   # nothing to limit: the force for the record
+            out[0], out[1], out[2] = fx, fy, fz
+            self.gain = 1.0
+            self.device.write_force(out)
+            return
         prev = math.sqrt(lim[0] ** 2 + lim[1] ** 2 + lim[2] ** 2)
         allowed = prev + caps.max_stiffness_n_per_mm * self._dx_mm \
             + self.limits.slew_n_per_s * self._dt_s
