@@ -253,7 +253,7 @@ def cmd_run(args) -> int:
               monitor_serve=serve, stereo=args.stereo,
               eye_separation_mm=args.eye_separation_mm,
               device=None if args.device == "mouse" else args.device,
-              pedal="pedal" if args.pedal else None)
+              pedal=args.pedal)
     try:
         app.start()
         if serve is not None:

@@ -43,9 +43,12 @@ BACKENDS = {
                    "3Dconnexion SpaceMouse: 6-DOF rate input for the tool (button 1: camera)"),
     "pedal": ("bonesim.devices.pedal",
               "USB foot pedal: drill on/off and speed (bonesim run --pedal)"),
+    "adu100-handle": ("bonesim.devices.adu100",
+                      "instrumented handle on an Ontrak ADU100: the lever drives the drill "
+                      "(bonesim run --pedal adu100-handle)"),
 }
 #: Backends that are no pose device (they go with one: ``--pedal``).
-AUXILIARY = ("pedal",)
+AUXILIARY = ("pedal", "adu100-handle")
 
 
 def backend_names() -> list[str]:
@@ -104,6 +107,7 @@ def make_device(name: str, settings: dict | None = None, calibration: dict | Non
         if settings is None:
             settings = _config.device_settings(name, cfg)
         if calibration is None:
+            device_id = str(settings.get("serial") or device_id)
             calibration = _config.calibration(name, device_id, cfg)
     missing = m.library_missing()
     if missing:
