@@ -41,6 +41,8 @@ BACKENDS = {
                        "a simulated passive hand on a Touch-class arm (no hardware)"),
     "spacemouse": ("bonesim.devices.spacemouse",
                    "3Dconnexion SpaceMouse: 6-DOF rate input for the tool (button 1: camera)"),
+    "touch": ("bonesim.devices.openhaptics",
+              "3D Systems Touch / Phantom Omni through OpenHaptics: pose in, force out"),
     "pedal": ("bonesim.devices.pedal",
               "USB foot pedal: drill on/off and speed (bonesim run --pedal)"),
     "adu100-handle": ("bonesim.devices.adu100",

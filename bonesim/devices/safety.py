@@ -114,8 +114,6 @@ class SafeDevice:
 
     Attributes
     ----------
-    caps : DeviceCaps
-        The backend's.
     state : int
         One of :data:`STATES` (index).
     rejected : dict of str -> int
@@ -132,7 +130,6 @@ class SafeDevice:
         self.device = device
         self.fallback = fallback
         self.limits = limits
-        self.caps = device.caps
         self.state = WAITING
         self.rejected = {k: 0 for k in REJECT_REASONS}
         self.unplugs = 0
@@ -151,10 +148,13 @@ class SafeDevice:
         self._ramp_from = math.nan
         self._retry_at = 0.0
         self._events: list = []
-        ws = np.asarray(self.caps.workspace_mm, float)
-        self._jump_mm = ws
 
     # -------------------------------------------------------------- state
+    @property
+    def caps(self):
+        """The backend's record (a device may read its own when opened)."""
+        return self.device.caps
+
     @property
     def state_name(self) -> str:
         return STATES[self.state]
@@ -298,7 +298,7 @@ class SafeDevice:
                                   or r.t_s < t_s - self.limits.stale_s):
             return "stale"
         if self._held is not None:
-            q, w = self._held.pos_mm, self._jump_mm
+            q, w = self._held.pos_mm, self.caps.workspace_mm
             if abs(p[0] - q[0]) > w[0] or abs(p[1] - q[1]) > w[1] or abs(p[2] - q[2]) > w[2]:
                 self._jumps += 1
                 return "jump"

@@ -5,6 +5,7 @@ the virtual coupling, step the engine, write the force."""
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -18,12 +19,14 @@ __all__ = ["drive"]
 
 def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
           before=None, drill: bool = False, speed_rpm: float = 60000.0, pedal=None,
-          run=None):
+          run=None, realtime: bool = False, limits=None):
     """Step ``n`` ticks; ``before(k, t)`` runs before each (queue reports,
     unplug). Returns a dict of per-tick arrays and the run objects; pass
-    ``run`` (a previous result) to continue it."""
+    ``run`` (a previous result) to continue it. ``realtime``: tick on the
+    wall clock (for devices that run their own clock)."""
     if run is None:
-        safe = SafeDevice(backend, fallback=NullDevice((0.0, 0.0, 80.0)))
+        kw = {} if limits is None else {"limits": limits}
+        safe = SafeDevice(backend, fallback=NullDevice((0.0, 0.0, 80.0)), **kw)
         safe.open()
         run = {"safe": safe, "state": make_state(model), "coupling": VirtualCoupling(),
                "pedal": pedal}
@@ -32,8 +35,13 @@ def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
     safe, state, coupling = run["safe"], run["state"], run["coupling"]
     out = {k: [] for k in ("t", "hand", "pos", "axis", "force", "drill", "speed", "state",
                            "buttons")}
+    wall0 = time.perf_counter() - t0
     for k in range(n):
         t = t0 + k / rate_hz
+        if realtime:                   # sleeping: the device's own threads get the GIL
+            rest = t - (time.perf_counter() - wall0)
+            if rest > 0:
+                time.sleep(rest)
         if before is not None:
             before(k, t)
         r = safe.read(t)
