@@ -496,6 +496,10 @@ BENCHMARKS = {
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
     **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
+    **dict.fromkeys(tuple(f"device_overhead_us_{b}" for b in (
+        "simulated_hand", "spacemouse", "pedal", "adu100_handle", "touch")),
+        lambda quick=False: __import__(
+            "bonesim.bench.devices", fromlist=["_"]).bench_devices(quick=quick)),
 }
 
 

@@ -23,6 +23,8 @@ default record (:data:`CAPS`, a Touch's).
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import time
 
@@ -136,7 +138,9 @@ class OpenHapticsDevice:
         for _ in range(MAX_STALE_ERRORS):      # errors left from before (an unplug)
             if hd._get_error().errorCode == d.HD_SUCCESS:
                 break
-        hid = hd.init_device(self.name)
+        quiet = contextlib.redirect_stdout(io.StringIO())      # the binding prints
+        with quiet:
+            hid = hd.init_device(self.name)
         # the binding's get_error() has no entry for some codes (HD_COMM_ERROR):
         # read the code itself
         if hid is None or hid in (d.HD_INVALID_HANDLE, d.HD_BAD_HANDLE) \
@@ -167,7 +171,8 @@ class OpenHapticsDevice:
 
         self._cb = hd_callback.hd_callback(servo)      # kept: the library holds a pointer
         self._last_tick = time.perf_counter()
-        hd.enable_force()
+        with contextlib.redirect_stdout(io.StringIO()):
+            hd.enable_force()
         hd.start_scheduler()
         hd_callback.hdAsyncSheduler(self._cb)
 

@@ -13,7 +13,7 @@ from bonesim.devices import adu100
 from bonesim.devices.adu100 import ADU100Handle
 from bonesim.devices.config import CONFIG_ENV, calibration, load_config
 from bonesim.errors import BonesimError
-from tests.bonesim.devices.fake_usb import FakeADU100, FakeUsbBackend
+from bonesim.devices.standins.adu100_usb import FakeADU100, FakeUsbBackend
 
 
 @pytest.fixture(autouse=True)

@@ -6,7 +6,6 @@ vendor library is missing."""
 from __future__ import annotations
 
 import ctypes
-import shutil
 import subprocess
 import sys
 import time
@@ -17,7 +16,6 @@ import pytest
 
 from bonesim.devices.safety import ACTIVE, UNPLUGGED, WAITING, SafetyLimits
 
-STUB = Path(__file__).with_name("hd_stub.c")
 ROOT = Path(__file__).resolve().parents[3]
 
 
@@ -32,20 +30,9 @@ def test_without_the_vendor_library_one_line_names_what_to_install():
 
 @pytest.fixture(scope="module")
 def stub(tmp_path_factory):
-    gcc = shutil.which("gcc") or shutil.which("cc")
-    assert gcc, "a C compiler is needed to build the HD library stub"
-    d = tmp_path_factory.mktemp("hd")
-    so = d / "libHD.so"
-    subprocess.run([gcc, "-shared", "-fPIC", "-O1", "-Wl,-soname,libHD.so", "-o", str(so),
-                    str(STUB), "-lpthread", "-lm"], check=True)
-    # loaded first under its soname: the binding's CDLL("libHD.so") finds it
-    lib = ctypes.CDLL(str(so), mode=ctypes.RTLD_GLOBAL)
-    lib.stub_place.argtypes = [ctypes.c_double] * 3
-    lib.stub_unplug.argtypes = [ctypes.c_int]
-    lib.stub_rendered.argtypes = [ctypes.POINTER(ctypes.c_double)]
-    lib.stub_position.argtypes = [ctypes.POINTER(ctypes.c_double)]
-    lib.stub_frames.restype = ctypes.c_long
-    return lib
+    from bonesim.devices.standins.hd_library import load
+
+    return load(tmp_path_factory.mktemp("hd"))
 
 
 def _rendered(lib):

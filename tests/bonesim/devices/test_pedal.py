@@ -11,7 +11,7 @@ from bonesim.devices import pedal as pedal_mod
 from bonesim.devices.pedal import FootPedal, PedalGuard
 from bonesim.errors import BonesimError
 from tests.bonesim.devices.drive import drive
-from tests.bonesim.devices.fake_hid import install
+from bonesim.devices.standins.hid_bus import install
 
 IN_USB_2 = (0x05F3, 0x00FF)
 PATH = b"/dev/hidraw5"

@@ -10,7 +10,7 @@ from bonesim.devices import spacemouse
 from bonesim.devices.safety import ACTIVE, UNPLUGGED
 from bonesim.errors import BonesimError
 from tests.bonesim.devices.drive import drive
-from tests.bonesim.devices.fake_hid import install
+from bonesim.devices.standins.hid_bus import install
 
 COMPACT = (0x256F, 0xC635)
 WIRELESS = (0x256F, 0xC62E)

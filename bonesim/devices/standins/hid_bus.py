@@ -13,8 +13,9 @@ from __future__ import annotations
 import sys
 import types
 from collections import deque
+from contextlib import contextmanager
 
-__all__ = ["FakeBus", "install"]
+__all__ = ["FakeBus", "install", "installed"]
 
 
 class FakeDev:
@@ -133,7 +134,23 @@ class FakeBus:
 
 
 def install(monkeypatch) -> FakeBus:
-    """Put a fresh fake bus's ``hid`` module in ``sys.modules``."""
+    """Put a fresh fake bus's ``hid`` module in ``sys.modules`` (a pytest
+    ``monkeypatch`` undoes it)."""
     bus = FakeBus()
     monkeypatch.setitem(sys.modules, "hid", bus.module())
     return bus
+
+
+@contextmanager
+def installed():
+    """A fresh fake bus's ``hid`` module in ``sys.modules`` while in the block."""
+    bus = FakeBus()
+    before = sys.modules.get("hid")
+    sys.modules["hid"] = bus.module()
+    try:
+        yield bus
+    finally:
+        if before is None:
+            sys.modules.pop("hid", None)
+        else:
+            sys.modules["hid"] = before
