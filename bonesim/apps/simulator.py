@@ -139,8 +139,12 @@ class App:
         self.scripted = script is not None
         pedal_dev = None
         if pedal is not None:
-            from bonesim.devices.registry import device_record, make_device
+            from bonesim.devices.registry import AUXILIARY, device_record, make_device
+            from bonesim.errors import BonesimError
 
+            if pedal not in AUXILIARY:
+                raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
+                                   f"{', '.join(AUXILIARY)}", field="--pedal")
             pedal_dev = make_device(pedal, pedal_ok=True)
             self.device_record = dict(self.device_record or {"backend": "mouse"},
                                       pedal=device_record(pedal, pedal_dev))

@@ -37,9 +37,15 @@ def cmd_calibrate(args) -> int:
                            f"the others: {known})", field="DEVICE")
     from bonesim.devices.adu100 import run_calibration
 
+    def ask(prompt: str) -> None:
+        try:
+            input(prompt + " ")
+        except EOFError:
+            raise BonesimError("calibration asks you to move the handle: run it in a "
+                               "terminal", field="DEVICE") from None
+
     handle = make_device(args.device, pedal_ok=True)
-    cal = run_calibration(handle, lambda prompt: input(prompt + " "),
-                          open_deg=args.open_deg, closed_deg=args.closed_deg)
+    cal = run_calibration(handle, ask, open_deg=args.open_deg, closed_deg=args.closed_deg)
     for ch, o, c, od, cd in zip(cal["channels"], cal["open"], cal["closed"],
                                 cal["open_deg"], cal["closed_deg"]):
         print(f"analog input {ch}: {o:.0f} counts = {od:g} deg, {c:.0f} counts = {cd:g} deg")

@@ -14,22 +14,28 @@ from bonesim.devices.null import NullDevice
 from bonesim.devices.safety import SafeDevice
 from bonesim.engine.model import Sample, make_state, step
 
-__all__ = ["drive"]
+__all__ = ["drive", "finish"]
 
 
 def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
           before=None, drill: bool = False, speed_rpm: float = 60000.0, pedal=None,
-          run=None, realtime: bool = False, limits=None):
+          run=None, realtime: bool = False, limits=None, record=None, header=None):
     """Step ``n`` ticks; ``before(k, t)`` runs before each (queue reports,
     unplug). Returns a dict of per-tick arrays and the run objects; pass
     ``run`` (a previous result) to continue it. ``realtime``: tick on the
-    wall clock (for devices that run their own clock)."""
+    wall clock (for devices that run their own clock). ``record``: a session
+    file the run is recorded to (with ``header``), as the recorder would;
+    :func:`finish` closes it."""
     if run is None:
         kw = {} if limits is None else {"limits": limits}
         safe = SafeDevice(backend, fallback=NullDevice((0.0, 0.0, 80.0)), **kw)
         safe.open()
         run = {"safe": safe, "state": make_state(model), "coupling": VirtualCoupling(),
-               "pedal": pedal}
+               "pedal": pedal, "recording": None}
+        if record is not None:
+            from bonesim.runtime.simulate import _Recording
+
+            run["recording"] = _Recording(model, run["state"], record, header)
         if pedal is not None:
             pedal.open()
     safe, state, coupling = run["safe"], run["state"], run["coupling"]
@@ -56,8 +62,11 @@ def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
         d, s = drill, speed_rpm
         if run["pedal"] is not None:
             d, s = run["pedal"].apply(t, d, s)
-        f = step(model, state, Sample(t, pos, r.axis, d, s, 1, 0))
+        smp = Sample(t, pos, r.axis, d, s, 1, 0)
+        f = step(model, state, smp)
         safe.write_force(f)
+        if run["recording"] is not None:
+            run["recording"].push(smp, safe.sent_n)
         for key, v in (("t", t), ("hand", r.pos_mm.copy()), ("pos", state.pos_mm.copy()),
                        ("axis", state.axis.copy()), ("force", safe.sent_n.copy()),
                        ("drill", d), ("speed", s), ("state", safe.state),
@@ -65,3 +74,11 @@ def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
             out[key].append(v)
     run["out"] = {k: np.array(v) for k, v in out.items()}
     return run
+
+
+def finish(run) -> None:
+    """Close the run's device (and its recording)."""
+    if run.get("recording") is not None:
+        run["recording"].close()
+        run["recording"] = None
+    run["safe"].close()

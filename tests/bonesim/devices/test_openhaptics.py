@@ -84,10 +84,15 @@ def model():
 # table lacks the code); the exception ends the callback inside ctypes, which
 # is what an unplug should do, and pytest reports it as unraisable
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-def test_full_run_pose_in_force_out_unplug_and_replug(stub, model):
+def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     from bonesim.devices.openhaptics import OpenHapticsDevice
+    from bonesim.devices.registry import device_record
     from bonesim.io.case import load_case
-    from tests.bonesim.devices.drive import drive
+    from bonesim.runtime.record import make_header
+    from bonesim.session.playback import Player
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import verify
+    from tests.bonesim.devices.drive import drive, finish
 
     cam = load_case("phantom").camera
     view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
@@ -97,7 +102,9 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model):
     dev = OpenHapticsDevice({"origin_mm": list(start), "lost_s": 0.05})
     stub.stub_place(0.0, 0.0, 0.0)
     lim = SafetyLimits(still_for_s=0.1, ramp_s=0.1, reconnect_s=0.1)
-    run = drive(model, dev, 300, realtime=True, limits=lim)
+    header = make_header(model, input_device="touch", device_record=device_record("touch", dev))
+    path = tmp_path / "touch.h5"
+    run = drive(model, dev, 300, realtime=True, limits=lim, record=path, header=header)
     safe = run["safe"]
     assert safe.state == ACTIVE, safe.take_events() and safe.caps.max_force_n == pytest.approx(0.88)
     np.testing.assert_allclose(run["out"]["hand"][-1], start, atol=1e-9)
@@ -132,4 +139,13 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model):
     back = np.flatnonzero(o["state"] != UNPLUGGED)[0]
     assert o["state"][back] == WAITING and o["state"][-1] == ACTIVE
     np.testing.assert_allclose(o["hand"][-1], start, atol=1e-6)
-    dev.close()
+    finish(run)
+    # the run (unplug included) replays bit for bit and plays back
+    s = read_session(path)
+    assert s.header["input"] == "touch" and s.header["device_record"]["backend"] == "touch"
+    assert len(s.removals["t_s"]) == run["state"].n_removed > 0
+    report = verify(s)
+    assert report["ok"], report
+    p = Player(s, surface=False)
+    p.seek(s.duration_s)
+    np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)

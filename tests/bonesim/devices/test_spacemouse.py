@@ -189,3 +189,33 @@ def test_a_hung_report_stream_stops_the_tool(monkeypatch, model):
     o = run["out"]
     travel = (o["hand"][-1] - start) @ right
     assert travel == pytest.approx(40.0 * 0.25, abs=0.05)   # report_timeout_s of motion
+
+
+def test_a_recorded_spacemouse_run_replays_and_plays_back(monkeypatch, model, tmp_path):
+    from bonesim.devices.registry import device_record
+    from bonesim.runtime.record import make_header
+    from bonesim.session.playback import Player
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import verify
+    from tests.bonesim.devices.drive import finish
+
+    bus, sm, right, view, start = _setup(monkeypatch, translation_mm_s=20.0)
+    header = make_header(model, input_device="spacemouse",
+                         device_record=device_record("spacemouse", sm))
+
+    def reports(k, t):
+        if k % 16 == 0:
+            bus.send(PATH, t_report(0, 0, 350))
+
+    path = tmp_path / "sm.h5"
+    run = drive(model, sm, 1500, before=reports, drill=True, record=path, header=header)
+    finish(run)
+    s = read_session(path)
+    assert s.header["device_record"]["backend"] == "spacemouse"
+    assert s.header["device_record"]["settings"]["translation_mm_s"] == 20.0
+    assert len(s.removals["t_s"]) == run["state"].n_removed > 0
+    report = verify(s)
+    assert report["ok"], report
+    p = Player(s, surface=False)
+    p.seek(s.duration_s)
+    np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)
