@@ -329,6 +329,7 @@ class App:
             "visible": self._visible(),
             "message": "; ".join(self.notices) if self.notices else None,
             "device": self._device_status(),
+            **self._pedal_status(),
         })
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
@@ -355,6 +356,18 @@ class App:
             up = turn(up)
         scene.set_camera(eye + shift, focal + shift, up,
                          view_angle_deg=scene.camera.GetViewAngle())
+
+    def _pedal_status(self) -> dict:
+        """``{"pedal": text}`` for the HUD while a foot pedal (or handle) is
+        unplugged (the drill is off); changes are noted in the recording."""
+        if self.loop.pedal is None:
+            return {}
+        gone = int(self.loop.status["pedal"]) == 2
+        if gone != getattr(self, "_pedal_gone", False):
+            self._pedal_gone = gone
+            if self.recorder is not None:
+                self.recorder.event("pedal", "unplugged" if gone else "connected")
+        return {"pedal": "UNPLUGGED - drill off"} if gone else {}
 
     def _device_status(self):
         """``(name, state, rejected)`` of a real device (None for the mouse or a

@@ -29,7 +29,6 @@ from __future__ import annotations
 import errno
 import math
 import threading
-import time
 
 import numpy as np
 

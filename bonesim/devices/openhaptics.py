@@ -35,7 +35,8 @@ from bonesim.devices.simulated_hand import TOUCH_CAPS
 from bonesim.errors import BonesimError
 
 __all__ = ["CAPS", "NEEDS", "SETTINGS", "START_KEY", "FRAME_KEY", "INSTALL_BINDING",
-           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "library_missing", "connected", "OpenHapticsDevice", "DEVICE"]
+           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "library_missing", "connected",
+           "OpenHapticsDevice", "DEVICE"]
 
 CAPS = DeviceCaps("touch", TOUCH_CAPS.max_force_n, TOUCH_CAPS.workspace_mm,
                   TOUCH_CAPS.max_stiffness_n_per_mm)
