@@ -19,6 +19,11 @@ if command -v apt-get >/dev/null 2>&1; then
     libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libglx-mesa0 libosmesa6 \
     libx11-6 libxcursor1 libxrender1 libxt6 xvfb xauth \
     libportaudio2 >/dev/null
+  # the tests build a stub of the OpenHaptics HD library (tests/bonesim/devices)
+  if [ -n "${extras}" ]; then
+    $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+      gcc libc6-dev >/dev/null
+  fi
 fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip

@@ -95,6 +95,12 @@ class App:
         Split off bone that drilling cuts free (a background
         :class:`~bonesim.runtime.fragment_finder.FragmentFinder` thread; its
         commands are sent from the frame callback). Default on.
+    device : str, optional
+        A device backend (:mod:`bonesim.devices.registry`) instead of the
+        mouse, with the user's settings and calibration; it runs behind the
+        safety layer and the mouse takes over while it is unplugged.
+    pedal : str, optional
+        A foot pedal backend (``pedal``) for drill on/off and speed.
     """
 
     def __init__(self, case: str, burr: str, *, script=None, offscreen: bool = False,
@@ -102,7 +108,8 @@ class App:
                  who: dict | None = None, monitor: bool = True,
                  monitor_serve: dict | None = None, stereo: str | None = None,
                  eye_separation_mm: float | None = None, force_limits=None,
-                 fragments: bool = True):
+                 fragments: bool = True, device: str | None = None,
+                 pedal: str | None = None):
         from bonesim.io.burrs import list_burrs, load_burr
         from bonesim.io.loading import load_model
 
@@ -114,13 +121,46 @@ class App:
             names.insert(0, chosen.name)
         i0 = names.index(chosen.name)
         self.burrs = table[i0:] + table[:i0]          # index 0 = the chosen burr
-        self.model = load_model(case, chosen)
+        self.device_name = device
+        self.device_record = None
+        if device is not None:
+            from bonesim.errors import BonesimError
+            from bonesim.io.case import load_case
+
+            if script is not None:
+                raise BonesimError("--device and --script both drive the tool; choose one",
+                                   field="--device")
+            cam = load_case(case).camera
+            view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
+            start = np.asarray(cam.focal_mm, float) \
+                - START_STANDOFF_MM * view / np.linalg.norm(view)
+            back = -view / np.linalg.norm(view)
+            right = np.cross(-back, cam.up)
+            right /= np.linalg.norm(right)
+            backend = self._make_backend(device, start, (right, np.cross(back, right), back))
+            self.model = load_model(case, chosen, device=backend.caps)
+        else:
+            self.model = load_model(case, chosen)
         cam = self.model.case.camera
         view = np.subtract(cam.focal_mm, cam.eye_mm).astype(float)
         self.view = view / np.linalg.norm(view)
         device = ("mouse",) if script is None else ("scripted", script)
+        if self.device_name is not None:
+            device = ("device", backend)
         self.scripted = script is not None
-        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device)
+        pedal_dev = None
+        if pedal is not None:
+            from bonesim.devices.registry import AUXILIARY, device_record, make_device
+            from bonesim.errors import BonesimError
+
+            if pedal not in AUXILIARY:
+                raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
+                                   f"{', '.join(AUXILIARY)}", field="--pedal")
+            pedal_dev = make_device(pedal, pedal_ok=True)
+            self.device_record = dict(self.device_record or {"backend": "mouse"},
+                                      pedal=device_record(pedal, pedal_dev))
+        self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device,
+                               pedal=pedal_dev)
         self.loop.set_target(np.asarray(cam.focal_mm, float)
                              - START_STANDOFF_MM * self.view, self.view)
         self.press_mm = 0.0
@@ -170,6 +210,13 @@ class App:
         self.fragments = None
 
     # -------------------------------------------------------------- set-up
+    def _make_backend(self, name: str, start_mm, view):
+        from bonesim.devices.registry import device_record, make_device
+
+        backend = make_device(name, start_mm=start_mm, view=view)
+        self.device_record = device_record(name, backend)
+        return backend
+
     def _fresh_consumers(self):
         from bonesim.physics.dust import DustGrid
         from bonesim.engine.replica import TissueReplica
@@ -188,8 +235,9 @@ class App:
             from bonesim.runtime.record import Recorder, make_header
 
             header = make_header(self.model, self.burrs[1:],
-                                 input_device="scripted" if self.scripted else "mouse",
-                                 **self.who)
+                                 input_device=self.device_name or (
+                                     "scripted" if self.scripted else "mouse"),
+                                 device_record=self.device_record, **self.who)
             # the writer reads the loop's rings from record 0, so it may start
             # while the loop warms up
             self.recorder = Recorder(self.loop, self.record, header).start()
@@ -305,6 +353,7 @@ class App:
             scene.set_suction(suction, self.view, SUCTION_RADIUS_MM)
         else:
             scene.set_suction(None)
+        self._device_camera(scene, dt)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
         inj = ch.injuries
@@ -327,6 +376,8 @@ class App:
             "visible": self._visible(),
             "force_limit": self._force_limit(float(st["t_s"])),
             "message": "; ".join(self.notices) if self.notices else None,
+            "device": self._device_status(),
+            **self._pedal_status(),
         })
         if self.trace is not None:          # after the HUD: the panel keeps clear of it
             self.trace.update(self.monitor.view.history(self.trace.window_s))
@@ -352,6 +403,57 @@ class App:
         active = last is not None and now_s - last.t_s <= WARN_HOLD_S
         return {"structure": self.watch.limits.structure, "count": sum(self.watch.count.values()),
                 "warning": last if active else None}
+    def _device_camera(self, scene, dt: float) -> None:
+        """A rate device in camera mode pans [mm/s] and orbits [deg/s] the view."""
+        if self.loop.device[0] != "device":
+            return
+        rate = self.loop.status["camera_rate"]
+        if not rate.any():
+            return
+        eye, focal, up = (np.asarray(x, float) for x in scene.camera_pose())
+        shift = rate[:3] * dt
+        w = np.radians(rate[3:]) * dt
+        a = float(np.linalg.norm(w))
+        if a > 0:
+            k = w / a
+
+            def turn(v):
+                return v * np.cos(a) + np.cross(k, v) * np.sin(a) \
+                    + k * float(k @ v) * (1 - np.cos(a))
+            eye = focal + turn(eye - focal)
+            up = turn(up)
+        scene.set_camera(eye + shift, focal + shift, up,
+                         view_angle_deg=scene.camera.GetViewAngle())
+
+    def _pedal_status(self) -> dict:
+        """``{"pedal": text}`` for the HUD while a foot pedal (or handle) is
+        unplugged (the drill is off); changes are noted in the recording."""
+        if self.loop.pedal is None:
+            return {}
+        gone = int(self.loop.status["pedal"]) == 2
+        if gone != getattr(self, "_pedal_gone", False):
+            self._pedal_gone = gone
+            if self.recorder is not None:
+                self.recorder.event("pedal", "unplugged" if gone else "connected")
+        return {"pedal": "UNPLUGGED - drill off"} if gone else {}
+
+    def _device_status(self):
+        """``(name, state, rejected)`` of a real device (None for the mouse or a
+        script); a change of state is noted in the recording as a UI event."""
+        if self.loop.device[0] != "device":
+            return None
+        from bonesim.devices.safety import STATES
+
+        st = self.loop.status
+        state = STATES[int(st["device_state"])]
+        seen = (state, int(st["device_unplugs"]))
+        if seen != getattr(self, "_device_seen", None):
+            if self.recorder is not None:
+                if seen[1] != getattr(self, "_device_seen", (None, 0))[1]:
+                    self.recorder.event("device", "unplugged")   # however short
+                self.recorder.event("device", state)
+            self._device_seen = seen
+        return self.device_name, state, int(st["device_rejected"])
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the

@@ -501,6 +501,10 @@ BENCHMARKS = {
                      "fragment_split_8000_ms"),
                     lambda quick=False: __import__(
                         "bonesim.bench.fragments", fromlist=["_"]).bench_fragments(quick=quick)),
+    **dict.fromkeys(tuple(f"device_overhead_us_{b}" for b in (
+        "simulated_hand", "spacemouse", "pedal", "adu100_handle", "touch")),
+        lambda quick=False: __import__(
+            "bonesim.bench.devices", fromlist=["_"]).bench_devices(quick=quick)),
 }
 
 

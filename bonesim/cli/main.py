@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
 from bonesim.errors import BonesimError
 
@@ -238,7 +239,7 @@ def cmd_run(args) -> int:
                            "simulator records with --record (bonesim video makes a video "
                            "of a recording)", field="--video")
     if offscreen:
-        if script is None:                 # a glimpse of the planned mastoidectomy
+        if script is None and args.device == "mouse":   # a glimpse of the plan
             traj = _plan(load_case(args.case), args.burr)
             import numpy as np
 
@@ -263,7 +264,9 @@ def cmd_run(args) -> int:
               record=record, who=_who(args), monitor=not args.no_monitor,
               monitor_serve=serve, stereo=args.stereo,
               eye_separation_mm=args.eye_separation_mm, force_limits=args.force_limits,
-              fragments=not getattr(args, "no_fragments", False))
+              fragments=not getattr(args, "no_fragments", False),
+              device=None if args.device == "mouse" else args.device,
+              pedal=args.pedal)
     try:
         app.start()
         if serve is not None:
@@ -298,7 +301,7 @@ def _run_showcase(args) -> int:
 
     for flag, given in (("--record", args.record is not None), ("--wav", args.wav),
                         ("--monitor-port", args.monitor_port is not None),
-                        ("--stereo", args.stereo)):
+                        ("--stereo", args.stereo), ("--device", args.device != "mouse")):
         if given:
             raise BonesimError(f"{flag} needs the live simulator: add --frames N (offscreen) "
                                "or run on a display; the headless main job only drills the "
@@ -672,6 +675,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-fragments", action="store_true",
                    help="do not split off bone that drilling cuts free (default: split "
                         "it into its own body; specks become dust)")
+    device_option(s)
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(
@@ -756,6 +760,7 @@ def build_parser() -> argparse.ArgumentParser:
     _tutor_parser(sub)
 
     research_parsers(sub, _lazy)
+    device_parsers(sub)
 
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")

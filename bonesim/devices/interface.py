@@ -14,8 +14,10 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 
 from bonesim.engine.device_caps import SCRIPTED, DeviceCaps
+from bonesim.errors import BonesimError
 
-__all__ = ["DeviceCaps", "SCRIPTED", "DeviceReading", "Device", "unit_axis"]
+__all__ = ["DeviceCaps", "SCRIPTED", "DeviceReading", "DeviceDisconnected", "Device",
+           "unit_axis"]
 
 
 class DeviceReading(NamedTuple):
@@ -34,6 +36,11 @@ class DeviceReading(NamedTuple):
     drill, speed_rpm, direction :
         Drill state when the device itself carries it (a scripted
         trajectory, a foot pedal); ``None`` to take it from the user interface.
+    t_s : float, optional
+        When the device measured this pose, on the loop's clock [s]; ``None``
+        for backends that measure at the moment they are read. A pose older
+        than the safety layer's limit is stale
+        (:class:`~bonesim.devices.safety.SafeDevice`).
     """
 
     pos_mm: np.ndarray
@@ -42,6 +49,16 @@ class DeviceReading(NamedTuple):
     drill: bool | None = None
     speed_rpm: float | None = None
     direction: int | None = None
+    t_s: float | None = None
+
+
+class DeviceDisconnected(BonesimError):
+    """The device went away (unplugged, powered off, its link broken).
+
+    Backends raise it from ``read`` or ``write_force``;
+    :class:`bonesim.devices.safety.SafeDevice` catches it, zeroes the force,
+    hands over to the mouse and tries to reconnect.
+    """
 
 
 @runtime_checkable

@@ -34,6 +34,10 @@ keys (all optional; units in the names):
                      steps over a limit so far, and the latest
                      :class:`~bonesim.physics.force_limits.LimitWarning` while it
                      is recent (else None); None: not shown
+``device``           ``(name, state)`` or ``(name, state, rejected)`` of a
+                     real device behind the safety layer; ``state`` one of
+                     :data:`DEVICE_STATE_TEXT`'s keys (``unplugged``: the mouse
+                     drives); ``rejected``: bad samples so far
 ``message``          free text (status, warnings), one paragraph a line,
                      wrapped (continuations indented by two spaces)
 ===================  ====================================================
@@ -44,12 +48,15 @@ from __future__ import annotations
 
 import textwrap
 
-__all__ = ["KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
+__all__ = ["DEVICE_STATE_TEXT", "KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
 
 KNOWN = ("case", "burr", "burr_kind", "burr_diameter_mm", "tool", "irrigation", "drill",
          "direction",
          "speed_rpm", "force_n", "depth_mm", "haptic_hz", "frame_hz", "elapsed_s",
-         "injuries", "visible", "force_limit", "message")
+         "injuries", "visible", "force_limit", "message", "device")
+#: How each device state (:data:`bonesim.devices.safety.STATES`) reads on the HUD.
+DEVICE_STATE_TEXT = {"active": "", "waiting": "hold still", "ramping": "forces in",
+                     "unplugged": "UNPLUGGED - mouse"}
 #: Width of the label column [characters].
 LABEL_W = 7
 #: Messages wrap at this many characters; continuation lines are indented.
@@ -126,6 +133,15 @@ def _force_limit(v: dict) -> list:
     else:
         text = f"{w.value:,.0f} > {w.limit:,.0f} rpm"
     return [_line("LIMIT!", text), f"{WRAP_INDENT}{w.distance_mm:.1f} mm from {name}"]
+def _device(v) -> str:
+    if isinstance(v, str):
+        return v
+    name, state = str(v[0]), str(v[1])
+    text = DEVICE_STATE_TEXT.get(state, state)
+    out = f"{name} {text}".strip()
+    if len(v) > 2 and int(v[2]) > 0:
+        out += f" ({int(v[2])} bad)"
+    return out
 
 
 def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
@@ -146,6 +162,8 @@ def format_hud(info: dict, measured_frame_hz: float | None = None) -> str:
     lines = []
     if "case" in info:
         lines.append(_line("case", str(info["case"])))
+    if info.get("device") is not None:
+        lines.append(_line("device", _device(info["device"])))
     if str(info.get("tool", "burr")) != "burr":
         lines.append(_line("tool", str(info["tool"])))
     if info.get("irrigation"):

@@ -47,6 +47,7 @@ import numpy as np
 from bonesim.devices.interface import DeviceReading
 from bonesim.devices.mouse import SharedInputDevice, VirtualCoupling
 from bonesim.devices.null import NullDevice
+from bonesim.devices.safety import UNPLUGGED
 from bonesim.devices.scripted import ScriptedDevice
 from bonesim.engine import events
 from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
@@ -89,6 +90,11 @@ STATUS = (
     ("commands_applied", np.int64),
     ("commands_rejected", np.int64),
     ("command_error", f"S{commands.ERROR_TEXT_BYTES}"),   # the last rejection
+    ("device_state", np.uint8),             # bonesim.devices.safety.STATES index
+    ("device_rejected", np.int64),          # device samples rejected (NaN, jump, stale)
+    ("device_unplugs", np.int64),           # times the device went away
+    ("camera_rate", np.float64, (6,)),      # rate device, camera mode: pan [mm/s], orbit [deg/s]
+    ("pedal", np.uint8),                    # foot pedal: 0 none, 1 connected, 2 unplugged
 )
 #: The window's continuous inputs (window -> loop), after the process base's.
 CONTROL = (
@@ -175,11 +181,27 @@ def _make_device(spec, control):
         return ScriptedDevice(spec[1], loop=bool(spec[2]) if len(spec) > 2 else False)
     if kind == "null":
         return NullDevice(*spec[1:])
+    if kind == "device":               # a real backend, behind the safety layer
+        return _safe_device(spec, control)
     raise ValueError(f"unknown device backend {kind!r}")
 
 
+def _safe_device(spec, control):
+    """``("device", backend[, settings])``: ``backend`` an instance or a
+    registered name (:mod:`bonesim.devices.registry`); the mouse takes over
+    while it is unplugged."""
+    from bonesim.devices.safety import SafeDevice
+
+    dev = spec[1]
+    if isinstance(dev, str):
+        from bonesim.devices.registry import make_device
+
+        dev = make_device(dev, spec[2] if len(spec) > 2 else None)
+    return SafeDevice(dev, fallback=SharedInputDevice(control["target_mm"], control["axis"]))
+
+
 def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
-              run_s: float | None, vibration: bool, known: tuple) -> None:
+              run_s: float | None, vibration: bool, known: tuple, pedal=None) -> None:
     """Body of the haptic process (:meth:`HapticLoop.run`)."""
     from bonesim.io.loading import warmup
     from bonesim.physics.vibration import Vibration
@@ -196,6 +218,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     device = _make_device(device_spec, control)
     coupling = VirtualCoupling() if not math.isfinite(device.caps.max_force_n) \
         and isinstance(device, SharedInputDevice) else None
+    safe = device if device_spec[0] == "device" else None
+    if safe is not None:
+        coupling = VirtualCoupling()       # for the mouse while the device is away
     ctx = LoopContext(m, state, device, coupling, status)
     queue = CommandQueue(child.rings["commands"], known)
     warmup()
@@ -206,6 +231,15 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
         for v in vibs:                     # first calls out of the timed loop
             v.sample(0.0, np.array([0.0, 0.0, -1.0]), False, False, 0.0, 0.0)
             v.reset()
+    if pedal is not None:                  # drill on/off and speed from a foot pedal
+        from bonesim.devices.pedal import PedalGuard
+
+        if isinstance(pedal, str):
+            from bonesim.devices.registry import make_device
+
+            pedal = make_device(pedal, pedal_ok=True)
+        pedal = PedalGuard(pedal)
+        pedal.open()
     device.open()
     try:
         device.read(0.0)
@@ -218,6 +252,10 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             status[k] for k in ("t_s", "pos_mm", "axis", "force_n", "mag_n", "volume_mm3",
                                 "immersed", "drill", "speed_rpm", "direction", "burr",
                                 "steps", "overruns", "hand_force_n"))
+        st_dev, st_rej, st_unplugs, st_cam = (status[k] for k in (
+            "device_state", "device_rejected", "device_unplugs", "camera_rate"))
+        st_pedal = status["pedal"]
+        cam_rate = getattr(safe.device, "camera_rate", None) if safe is not None else None
         # everything the loop needs exists now; no collector pauses from here on
         gc.collect()
         gc.freeze()
@@ -244,12 +282,19 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             burr = ctx.burr
             r: DeviceReading = device.read(t)
             pos = r.pos_mm
-            if coupling is not None:
+            if safe is not None and not safe.coupled:
+                coupling.pos = None            # re-seeded where the tool is at a hand-over
+            elif coupling is not None:
+                if coupling.pos is None and safe is not None and state.n_steps > 0:
+                    coupling.reset(state.pos_mm)
                 dt = period if math.isnan(state.t_s) else t - state.t_s
                 pos = coupling.update(pos, state.force_n, dt)
             drill = bool(drill_in) if r.drill is None else r.drill
             speed = float(speed_in) if r.speed_rpm is None else r.speed_rpm
             direction = (1 if dir_in >= 0 else -1) if r.direction is None else r.direction
+            if pedal is not None:
+                drill, speed = pedal.apply(t, drill, speed)
+                st_pedal[...] = 1 if pedal.connected else 2
             f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction, burr))
             fv = no_vib
             if vibs[burr] is not None:
@@ -263,6 +308,13 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                     out_f *= m.device.max_force_n / norm
                 f = out_f
             device.write_force(f)
+            if safe is not None:
+                f = safe.sent_n                # what the device renders, after the limits
+                st_dev[...] = safe.state
+                st_rej[...] = safe.n_rejected
+                st_unplugs[...] = safe.unplugs
+                if cam_rate is not None:
+                    st_cam[...] = 0.0 if safe.state == UNPLUGGED else cam_rate
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
                         ctx.epoch, r.buttons, f, fv)
             st_t[...] = t
@@ -277,7 +329,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             st_dir[...] = direction
             st_burr[...] = burr
             st_steps[...] = state.n_steps
-            if coupling is not None:
+            if coupling is not None and coupling.pos is not None:
                 st_hand[...] = coupling.hand_force_n(r.pos_mm)
             deadline += period
             rest = deadline - clock()
@@ -291,6 +343,8 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                 deadline = clock()
     finally:
         device.close()
+        if pedal is not None:
+            pedal.close()
 
 
 class HapticLoop(ChildProcess):
@@ -305,13 +359,19 @@ class HapticLoop(ChildProcess):
     device : tuple
         ``("mouse",)`` (the window writes the target pose; a virtual coupling
         keeps the tool on the bone), ``("scripted", trajectory[, loop])`` or
-        ``("null", pos_mm, axis)``.
+        ``("null", pos_mm, axis)``, or ``("device", backend[, settings])``: a
+        real device (an instance, or a name in :mod:`bonesim.devices.registry`)
+        behind :class:`bonesim.devices.safety.SafeDevice`, the mouse taking
+        over while it is unplugged (``status["device_state"]``).
     rate_hz : float
         Servo rate [Hz].
     run_s : float, optional
         Stop by itself after this long [s] (benchmarks, scripted runs).
     vibration : bool
         Add the burr's synthesized vibration to the force sent to the device.
+    pedal : FootPedal or str, optional
+        A foot pedal (:mod:`bonesim.devices.pedal`; an instance or a
+        registered name) giving drill on/off and speed (``status["pedal"]``).
 
     Attributes
     ----------
@@ -334,13 +394,14 @@ class HapticLoop(ChildProcess):
     START_TIMEOUT_S = START_TIMEOUT_S
 
     def __init__(self, model: Model, burrs=(), device=("mouse",), rate_hz: float = 1000.0,
-                 run_s: float | None = None, vibration: bool = True):
+                 run_s: float | None = None, vibration: bool = True, pedal=None):
         self.model = model
         self.burrs = [None] + list(burrs)
         self.device = tuple(device)
         self.rate_hz = float(rate_hz)
         self.run_s = run_s
         self.vibration = bool(vibration)
+        self.pedal = pedal
         super().__init__()
         self.state = make_state(model, self.arrays)
         self._periods = events.Ring({"period": self.arrays["periods"]},
@@ -365,7 +426,7 @@ class HapticLoop(ChildProcess):
                             if "<locals>" not in c.__qualname__)
         return {"model": self.model, "burrs": list(self.burrs), "device_spec": self.device,
                 "rate_hz": self.rate_hz, "run_s": self.run_s, "vibration": self.vibration,
-                "known": self._known}
+                "known": self._known, "pedal": self.pedal}
 
     @classmethod
     def run(cls, child, **kwargs) -> None:

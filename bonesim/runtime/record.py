@@ -134,7 +134,7 @@ def _finite(x):
 
 def make_header(model, burrs=(), *, participant: str = "", group: str = "",
                 notes: str = "", rate_hz: float | None = None,
-                input_device: str = "") -> dict:
+                input_device: str = "", device_record: dict | None = None) -> dict:
     """The header of a session of ``model`` (burr 0) and further ``burrs``.
 
     Parameters
@@ -149,6 +149,10 @@ def make_header(model, burrs=(), *, participant: str = "", group: str = "",
         Haptic rate [Hz] (default the model's).
     input_device : str
         Name of the input backend (``mouse``, ``scripted``, a haptic device).
+    device_record : dict, optional
+        A real device's backend, capability record, settings and calibration
+        (:func:`bonesim.devices.registry.device_record`), kept as the
+        header's ``device_record``.
 
     The header's ``device`` is ``model.device``, the limits the physics was
     built with, so that a replay rebuilds the same model.
@@ -163,7 +167,7 @@ def make_header(model, burrs=(), *, participant: str = "", group: str = "",
     dev = model.device
     all_burrs = [model.burr] + list(burrs)
     models = [model] + [model.with_burr(b) for b in burrs]
-    return {
+    head = {
         "bonesim_version": __version__,
         "case": {"name": model.name,
                  "path": str(Path(case.manifest).resolve()) if case is not None else None,
@@ -189,6 +193,9 @@ def make_header(model, burrs=(), *, participant: str = "", group: str = "",
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
                     "numpy": np.__version__, "numba": numba.__version__},
     }
+    if device_record is not None:
+        head["device_record"] = json.loads(json.dumps(device_record))   # JSON-ready now
+    return head
 
 
 def sessions_folder() -> Path:

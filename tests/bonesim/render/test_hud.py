@@ -72,3 +72,10 @@ def test_hud_force_limit_line_ok_over_and_warning():
     w = LimitWarning(1.0, "speed_rpm", 80000.0, 60000.0, 12.0)
     assert format_hud({"force_limit": {"structure": "x", "count": 1, "warning": w}}
                       ).splitlines()[0] == "LIMIT! 80,000 > 60,000 rpm"
+def test_device_state_line_says_when_the_mouse_has_taken_over():
+    from bonesim.render.hud import format_hud
+
+    assert "device touch UNPLUGGED - mouse" in format_hud({"device": ("touch", "unplugged")})
+    text = format_hud({"device": ("touch", "waiting", 3)})
+    assert "touch hold still (3 bad)" in text
+    assert "device" not in format_hud({"device": None, "case": "x"})

@@ -1,0 +1,47 @@
+"""Build and load ``hd_stub.c``, a stub of the OpenHaptics HD library's C
+functions over a simulated Touch-class arm, as ``libHD.so``.
+
+Loaded first under its soname (``RTLD_GLOBAL``), it is what the
+pyopenhaptics binding's ``CDLL("libHD.so")`` then finds, so the binding's
+real Python code runs over it. Test controls: ``stub_place(x, y, z)`` puts
+the hand holding the stylus at rest there [mm], ``stub_unplug(1/0)``,
+``stub_rendered(double[3])`` (the force the arm renders [N]),
+``stub_position(double[3])``, ``stub_frames()``, ``stub_running()``.
+"""
+from __future__ import annotations
+
+import ctypes
+import shutil
+import subprocess
+from pathlib import Path
+
+from bonesim.errors import BonesimError
+
+__all__ = ["SOURCE", "build", "load"]
+
+#: The stub's C source.
+SOURCE = Path(__file__).with_name("hd_stub.c")
+
+
+def build(folder) -> Path:
+    """Compile the stub into ``folder/libHD.so`` (soname ``libHD.so``)."""
+    cc = shutil.which("gcc") or shutil.which("cc")
+    if cc is None:
+        raise BonesimError("building the HD library stub needs a C compiler (apt-get install "
+                           "gcc)")
+    out = Path(folder) / "libHD.so"
+    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-Wl,-soname,libHD.so", "-o", str(out),
+                    str(SOURCE), "-lpthread", "-lm"], check=True, capture_output=True)
+    return out
+
+
+def load(folder):
+    """Build the stub in ``folder`` and load it globally; returns the
+    ``ctypes.CDLL`` with the test controls' signatures set."""
+    lib = ctypes.CDLL(str(build(folder)), mode=ctypes.RTLD_GLOBAL)
+    lib.stub_place.argtypes = [ctypes.c_double] * 3
+    lib.stub_unplug.argtypes = [ctypes.c_int]
+    lib.stub_rendered.argtypes = [ctypes.POINTER(ctypes.c_double)]
+    lib.stub_position.argtypes = [ctypes.POINTER(ctypes.c_double)]
+    lib.stub_frames.restype = ctypes.c_long
+    return lib
