@@ -55,7 +55,7 @@ def replay(session: Session, models=None, progress=None) -> dict:
     t_col, pos, axis = s["t_s"], s["pos_mm"], s["axis"]
     drill, speed, direc = s["drill"], s["speed_rpm"], s["direction"]
     burr, ep = s["burr"], s["epoch"]
-    commands = _body_commands(session.tissue)
+    commands = _body_commands(session.tissue, model.injury)
     c = 0
     for q in range(n):
         t = float(t_col[q])
@@ -82,18 +82,26 @@ def replay(session: Session, models=None, progress=None) -> dict:
             "state": state}
 
 
-def _body_commands(tissue: dict) -> list:
-    """The recorded splits and poses as ``(t_s, apply(state))``, in order."""
+def _body_commands(tissue: dict, injury=None) -> list:
+    """The recorded splits, poses and cut-plane strokes (``CUT`` records,
+    :mod:`bonesim.engine.cut_plane`; ``injury`` the model's) as ``(t_s,
+    apply(state))``, in order."""
     from bonesim.engine.bodies import publish_pose, publish_split
+    from bonesim.engine.cut_plane import publish_cut_record
 
     kind = tissue["kind"]
-    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE))
+    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE) | (kind == events.CUT))
     out = []
     q = 0
     while q < len(idx):
         i = idx[q]
         t = float(tissue["t_s"][i])
         body = int(tissue["body"][i])
+        if kind[i] == events.CUT:
+            out.append((t, lambda st, v=tissue["ijk"][i].copy(), p=tissue["value"][i].copy(),
+                        t=t: publish_cut_record(st, injury, v, p, t)))
+            q += 1
+            continue
         if kind[i] == events.POSE:
             pose = tissue["value"][i].copy()
             out.append((t, lambda st, b=body, p=pose, t=t: publish_pose(st, b, p, t)))
