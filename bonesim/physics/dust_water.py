@@ -27,7 +27,9 @@ constants in :class:`~bonesim.physics.dust_params.DustParams`:
    floor(room(n) / 5))`` to each free lateral neighbour ``n`` with less
    water, ``k = min(water_spread_rate * dt, 0.2)``. With every move of
    ``f`` water out of a cell holding ``w`` water and ``s`` wet dust, the
-   dust ``floor(s f / w)`` goes along: the dust moves with the water.
+   dust ``floor(s f / w)`` goes along, up to the dust's room in the target
+   (``1 - s_n``; a fifth of it in (b)): the dust moves with the water and
+   settles out where it cannot go on.
 8. **Tool push and suction of water** (``water_suction_rate`` [cells/s]):
    rules 3 and 4 of the dust, applied to the water.
 9. **Soaking** (``wetting_rate`` [cells/s]). Dry dust in a cell holding at
@@ -204,6 +206,13 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, wkeys, wvals, wa
                 if s > 0:
                     fd = (s * f) // w
                     wn_b = wb[6] if nb == b else wb[d]
+                    # the dust goes as far as its room lets it (one source
+                    # below, five at most beside): the rest settles out
+                    room = _FULL_Q - np.int64(wsrc[wn_b, noff]) if wn_b >= 0 else np.int64(0)
+                    if stage == 1:
+                        room = (room * _ROOM_SHARE) >> _W_SHIFT
+                    if fd > room:
+                        fd = room
                     if fd > 0 and wn_b >= 0:
                         wdst[wb[6], off] -= fd
                         wdst[wn_b, noff] += fd
