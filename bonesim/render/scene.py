@@ -539,6 +539,18 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         self.dust = DustLayer(self.renderer, self.style.dust)
         self.dust_actor = self.dust.actor
 
+    def set_water(self, positions, density, cell_mm: float | None = None, *_) -> None:
+        """Show the irrigation water's top layer (pool surfaces) as a pale
+        translucent sheet (:mod:`bonesim.render.waterview`);
+        ``scene.set_water(*dust_water.water_sprites(dust))`` passes everything.
+        ``density``: water in each cell [cells]."""
+        if getattr(self, "water", None) is None:
+            from bonesim.render.waterview import WaterLayer
+
+            self.water = WaterLayer(self.renderer)
+        self.water.set(positions, density,
+                       float(self.voxel_mm if cell_mm is None else cell_mm))
+
     def set_dust(self, positions, density, cell_mm: float | None = None, age_s=None,
                  wet=None) -> None:
         """Show bone dust as soft translucent sprites (see
