@@ -496,6 +496,10 @@ BENCHMARKS = {
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
     **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
+    "cut_plane_stroke_ms": lambda quick=False: __import__(
+        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_cut_plane(quick=quick),
+    "dust_irrigated_step_64_ms": lambda quick=False: __import__(
+        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_irrigated_dust(quick=quick),
 }
 
 

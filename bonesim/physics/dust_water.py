@@ -57,7 +57,8 @@ from bonesim.physics.dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_ONE, _W_SHIFT,
                                          I_SUCTION, I_TOOL, MAX_SPILL_FRACTION, Q,
                                          STAGE_DONE, STAGE_TOOL, _brick_in_domain,
                                          _insert_brick)
-from bonesim.physics.dust_rules import _bone_at, _collect_active, _halo, _step_kernel
+from bonesim.physics.dust_rules import (_bone_at, _collect_active, _halo, _load_brick,
+                                        _step_kernel)
 from bonesim.physics.dust_sprites import DustSprites, gather_sprites
 
 __all__ = ["POUR_SEARCH", "step_water", "water_totals_q", "water_cells", "water_sprites"]
@@ -116,13 +117,32 @@ def _neighbour(b, off, d, nbr):
     return nbr[b, d], off + ((BRICK - 1) << sh)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _free(b, off, d, nb, noff, wall, sc, bone_dens, bone_body, wall_body):
+    """Whether the face neighbour ``d`` (brick ``nb``, offset ``noff``) of
+    cell ``off`` of brick ``b`` may take water: allocated, inside the domain
+    and not bone (``wall``/``sc`` as :func:`_load_brick` fills them for ``b``)."""
+    if nb < 0:
+        return False
+    if nb == b:
+        return wall[noff] == 0
+    if sc[12 + d] == 0:
+        return False
+    bbn = sc[6 + d]
+    if bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
+            wall_body.shape[0] == 0 or wall_body[bone_body[bbn, noff]] != 0):
+        return False
+    return True
+
+
 @njit(cache=True, nogil=True)
-def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, wkeys, wvals, walive,
-           wdens, wbmass, wctr, wactive, bounds, bkeys, bvals, bone_dens, bone_body,
-           wall_body, ip, rate, kq, wb):
+def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, wvals, walive,
+           wdens, wbmass, wctr, wactive, bounds, bone_dens, bone_body, wall_body, ip, rate,
+           kq, wb, sc, wall):
     """Rule 7 (a) (``stage`` 0) or (b) as one Jacobi update of the water and
     the wet dust (``wb``: (7,) scratch for the wet bricks of a brick and its
-    face neighbours). The bricks must be allocated (halo, :func:`_ensure_wet`)."""
+    face neighbours; ``sc``, ``wall``: the scratch of :func:`_load_brick`).
+    The bricks must be allocated (halo, :func:`_ensure_wet`)."""
     n = _collect_active(alive, bmass, ctr[C_HW], active)
     nw = _collect_active(walive, wbmass, wctr[C_HW], wactive)
     cur = ctr[C_CUR]
@@ -144,9 +164,7 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, wkeys, wvals, wa
     lat0, lat1 = ip[I_LAT0], ip[I_LAT1]
     for t in range(n):
         b = active[t]
-        x0 = np.int64(bcoord[b, 0]) << BRICK_SHIFT
-        y0 = np.int64(bcoord[b, 1]) << BRICK_SHIFT
-        z0 = np.int64(bcoord[b, 2]) << BRICK_SHIFT
+        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         wb[6] = find_brick(wkeys, wvals, bcoord[b, 0], bcoord[b, 1], bcoord[b, 2])
         for d in range(6):
             m = nbr[b, d]
@@ -156,38 +174,22 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, wkeys, wvals, wa
             w = np.int64(src[b, off])
             if w <= 0:
                 continue
-            ci, cj, ck = x0 + (off >> 6), y0 + ((off >> 3) & 7), z0 + (off & 7)
             s = np.int64(wsrc[wb[6], off]) if wb[6] >= 0 else np.int64(0)
-            for q in range(5 if stage == 1 else 1):
+            if stage == 1:
+                # spreads only when supported: below a wall or a full cell of water
+                nb, noff = _neighbour(b, off, down, nbr)
+                if _free(b, off, down, nb, noff, wall, sc, bone_dens, bone_body, wall_body) \
+                        and src[nb, noff] < _FULL_Q:
+                    continue
+            for q in range(4 if stage == 1 else 1):
                 if stage == 0:
                     d = down
-                elif q == 0:
-                    # supported: the cell below is a wall or full of water
-                    nb, noff = _neighbour(b, off, down, nbr)
-                    ni = ci + (1 if down == 1 else (-1 if down == 0 else 0))
-                    nj = cj + (1 if down == 3 else (-1 if down == 2 else 0))
-                    nk = ck + (1 if down == 5 else (-1 if down == 4 else 0))
-                    free = nb >= 0 and bounds[0] <= ni < bounds[3] and \
-                        bounds[1] <= nj < bounds[4] and bounds[2] <= nk < bounds[5] and \
-                        not _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, ni, nj, nk)
-                    if free and src[nb, noff] < _FULL_Q:
-                        break
-                    continue
+                elif q < 2:
+                    d = 2 * lat0 + q
                 else:
-                    a = lat0 if q <= 2 else lat1
-                    d = 2 * a + (q & 1 if q <= 2 else (q - 2) & 1)
+                    d = 2 * lat1 + q - 2
                 nb, noff = _neighbour(b, off, d, nbr)
-                if nb < 0:
-                    continue
-                a = d >> 1
-                sg = 1 if d & 1 else -1
-                ni = ci + (sg if a == 0 else 0)
-                nj = cj + (sg if a == 1 else 0)
-                nk = ck + (sg if a == 2 else 0)
-                if not (bounds[0] <= ni < bounds[3] and bounds[1] <= nj < bounds[4]
-                        and bounds[2] <= nk < bounds[5]):
-                    continue
-                if _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, ni, nj, nk):
+                if not _free(b, off, d, nb, noff, wall, sc, bone_dens, bone_body, wall_body):
                     continue
                 wn = np.int64(src[nb, noff])
                 if stage == 0:
@@ -373,9 +375,9 @@ def step_water(dust, bone_grid, walls, dt, irrigation_pos_mm, tool_pos_mm, tool_
         if len(wet._active) < wet.pool_size:
             wet._active = np.zeros(wet.pool_size, np.int32)
         _carry(stage, water.bcoord, water.nbr, water.alive, water.dens, water.bmass,
-               water._ctr, water._active, wet.keys, wet.vals, wet.alive, wet.dens, wet.bmass,
-               wet._ctr, wet._active, water.bounds, water._bkeys, water._bvals, bone_dens,
-               walls[0], walls[1], water._ip, rate, kq, _scratch(water))
+               water._ctr, water._active, water.bone_b, wet.keys, wet.vals, wet.alive,
+               wet.dens, wet.bmass, wet._ctr, wet._active, water.bounds, bone_dens, walls[0],
+               walls[1], water._ip, rate, kq, _scratch(water), water._sc, water._wall)
     # rules 3-4 on the water (the dust's kernel from its tool stage on)
     _push_and_suck(water, bone_dens, walls, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
                    suction_radius_mm)
