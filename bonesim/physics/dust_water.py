@@ -102,37 +102,20 @@ def _ensure_wet(bcoord, alive, bmass, hw, active, bounds, wkeys, wvals, wbcoord,
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _neighbour(b, off, d, nbr):
-    """Brick and offset of the face neighbour ``d`` (-x, +x, -y, +y, -z, +z)
-    of cell ``off`` of brick ``b`` (brick -1 if not allocated)."""
+def _across(off, d):
+    """For the face neighbour ``d`` (-x, +x, -y, +y, -z, +z) of cell ``off``:
+    whether it lies in the next brick, and its offset. (No array arguments:
+    an inlined helper taking arrays costs reference counting per call.)"""
     a = d >> 1
     sh = 6 - 3 * a
     loc = (off >> sh) & 7
     if d & 1:
         if loc < BRICK - 1:
-            return b, off + (1 << sh)
-        return nbr[b, d], off - ((BRICK - 1) << sh)
+            return False, off + (1 << sh)
+        return True, off - ((BRICK - 1) << sh)
     if loc > 0:
-        return b, off - (1 << sh)
-    return nbr[b, d], off + ((BRICK - 1) << sh)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _free(b, off, d, nb, noff, wall, sc, bone_dens, bone_body, wall_body):
-    """Whether the face neighbour ``d`` (brick ``nb``, offset ``noff``) of
-    cell ``off`` of brick ``b`` may take water: allocated, inside the domain
-    and not bone (``wall``/``sc`` as :func:`_load_brick` fills them for ``b``)."""
-    if nb < 0:
-        return False
-    if nb == b:
-        return wall[noff] == 0
-    if sc[12 + d] == 0:
-        return False
-    bbn = sc[6 + d]
-    if bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
-            wall_body.shape[0] == 0 or wall_body[bone_body[bbn, noff]] != 0):
-        return False
-    return True
+        return False, off - (1 << sh)
+    return True, off + ((BRICK - 1) << sh)
 
 
 @njit(cache=True, nogil=True)
@@ -170,17 +153,29 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
             m = nbr[b, d]
             wb[d] = find_brick(wkeys, wvals, bcoord[m, 0], bcoord[m, 1], bcoord[m, 2]) \
                 if m >= 0 else -1
+        allw = wall_body.shape[0] == 0
+        wself = wb[6]
         for off in range(BRICK_VOXELS):
             w = np.int64(src[b, off])
             if w <= 0:
                 continue
-            s = np.int64(wsrc[wb[6], off]) if wb[6] >= 0 else np.int64(0)
             if stage == 1:
                 # spreads only when supported: below a wall or a full cell of water
-                nb, noff = _neighbour(b, off, down, nbr)
-                if _free(b, off, down, nb, noff, wall, sc, bone_dens, bone_body, wall_body) \
-                        and src[nb, noff] < _FULL_Q:
+                far, noff = _across(off, down)
+                if far:
+                    nb = np.int64(nbr[b, down])
+                    free = nb >= 0 and sc[12 + down] != 0
+                    if free:
+                        bbn = sc[6 + down]
+                        free = not (bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
+                            allw or wall_body[bone_body[bbn, noff]] != 0))
+                else:
+                    nb = b
+                    free = wall[noff] == 0
+                if free and src[nb, noff] < _FULL_Q:
                     continue
+            s = np.int64(wsrc[wself, off]) if wself >= 0 else np.int64(0)
+            left = s
             for q in range(4 if stage == 1 else 1):
                 if stage == 0:
                     d = down
@@ -188,9 +183,21 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
                     d = 2 * lat0 + q
                 else:
                     d = 2 * lat1 + q - 2
-                nb, noff = _neighbour(b, off, d, nbr)
-                if not _free(b, off, d, nb, noff, wall, sc, bone_dens, bone_body, wall_body):
-                    continue
+                far, noff = _across(off, d)
+                if far:
+                    nb = np.int64(nbr[b, d])
+                    if nb < 0 or sc[12 + d] == 0:
+                        continue
+                    bbn = sc[6 + d]
+                    if bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
+                            allw or wall_body[bone_body[bbn, noff]] != 0):
+                        continue
+                    wn_b = wb[d]
+                else:
+                    nb = b
+                    if wall[noff] != 0:
+                        continue
+                    wn_b = wself
                 wn = np.int64(src[nb, noff])
                 if stage == 0:
                     f = min(w, rate, _FULL_Q - wn)
@@ -205,20 +212,20 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
                 dst[nb, noff] += f
                 bmass[b] -= f
                 bmass[nb] += f
-                if s > 0:
+                if left > 0 and wn_b >= 0:
                     fd = (s * f) // w
-                    wn_b = wb[6] if nb == b else wb[d]
+
                     # the dust goes as far as its room lets it (one source
                     # below, five at most beside): the rest settles out
-                    room = _FULL_Q - np.int64(wsrc[wn_b, noff]) if wn_b >= 0 else np.int64(0)
+                    room = _FULL_Q - np.int64(wsrc[wn_b, noff])
                     if stage == 1:
                         room = (room * _ROOM_SHARE) >> _W_SHIFT
-                    if fd > room:
-                        fd = room
-                    if fd > 0 and wn_b >= 0:
-                        wdst[wb[6], off] -= fd
+                    fd = min(fd, room, left)
+                    if fd > 0:
+                        left -= fd
+                        wdst[wself, off] -= fd
                         wdst[wn_b, noff] += fd
-                        wbmass[wb[6]] -= fd
+                        wbmass[wself] -= fd
                         wbmass[wn_b] += fd
     # "no amount => zero in both buffers" for bricks the update emptied
     for t in range(n):
