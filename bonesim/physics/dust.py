@@ -645,7 +645,7 @@ class DustGrid:
             Dust removed per second from each cell in reach [cells/s]
             (default ``params.suction_rate``).
         irrigation_pos_mm : (3,) float, optional
-            Where the irrigation water lands [mm]; no wetting if None.
+            Where the irrigation water lands and pours [mm]; none if None.
         irrigation_radius_mm : float
             Radius of the irrigated region [mm].
         bodies : Bodies or State, optional

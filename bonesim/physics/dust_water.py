@@ -28,8 +28,8 @@ constants in :class:`~bonesim.physics.dust_params.DustParams`:
    water, ``k = min(water_spread_rate * dt, 0.2)``. With every move of
    ``f`` water out of a cell holding ``w`` water and ``s`` wet dust, the
    dust ``floor(s f / w)`` goes along, up to the dust's room in the target
-   (``1 - s_n``; a fifth of it in (b)): the dust moves with the water and
-   settles out where it cannot go on.
+   (``1 - s_n``; a fifth of it in (b)) and to the dust still in the cell:
+   the dust moves with the water and settles out where it cannot go on.
 8. **Tool push and suction of water** (``water_suction_rate`` [cells/s]):
    rules 3 and 4 of the dust, applied to the water.
 9. **Soaking** (``wetting_rate`` [cells/s]). Dry dust in a cell holding at
