@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hs
 
-from bonesim.engine.grid import Grid
+from bonesim.engine.grid import Grid, density_at
 from bonesim.physics.dust import DustGrid, DustParams, Q
 from bonesim.physics.dust_water import (_water_grid, water_cells, water_sprites,
                                         water_totals_q)
@@ -56,15 +56,22 @@ step_args = hs.tuples(maybe_cell, maybe_cell, maybe_cell, hs.floats(1e-3, 0.05))
 @settings(max_examples=30, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=hs.integers(0, 2 ** 31), dust=hs.lists(cell, min_size=1, max_size=60),
+       water=hs.lists(hs.tuples(cell, hs.floats(0.0, 1.0)), max_size=60),
        steps=hs.lists(step_args, min_size=1, max_size=25),
        gravity=hs.sampled_from([(0, 0, -1), (1, 0, -0.2), (0.3, -1, 0.1)]))
-def test_water_and_dust_are_conserved_exactly(seed, dust, steps, gravity):
-    """Whatever is poured, pushed, soaked and carried: ``total == added -
-    suctioned`` for the dust and for the water, as integers, after every step;
-    no amount negative."""
+def test_water_and_dust_are_conserved_exactly(seed, dust, water, steps, gravity):
+    """From any dust and water, whatever is poured, pushed, soaked and
+    carried: ``total == added - suctioned`` for the dust and for the water,
+    as integers, after every step; no amount negative."""
     g = _bone(seed=seed % 1000)
     d = DustGrid.for_grid(g, gravity)
     d.add_removed(np.array(dust))
+    if water:                       # water standing anywhere (bone cells excepted)
+        ijk = np.array([c for c, _ in water], np.int64)
+        amt = np.array([int(a * Q) for _, a in water], np.int64)
+        free = np.array([density_at(g.keys, g.vals, g.density, *c) == 0 for c in ijk])
+        if free.any():
+            _water_grid(d)._add_q(ijk[free], amt[free])
     for irr, suc, tool, dt in steps:
         d.step(g, dt, irrigation_pos_mm=None if irr is None else _mm(irr),
                irrigation_radius_mm=1.0,
