@@ -103,3 +103,13 @@ def test_bad_strokes_are_refused_where_sent():
                         depth_mm=1.0)
     with pytest.raises(ValueError, match="unknown tool"):
         SetTool.encode(tool="laser")
+
+
+def test_a_run_with_strokes_plays_back(cut_run, model):
+    from bonesim.session.playback import Player
+
+    s = cut_run[0]
+    p = Player(s, model, [model.burr])
+    p.seek(p.timeline.duration)
+    out = replay(s)["state"]
+    np.testing.assert_array_equal(p.replica.grid.density == 0, out.grid.density == 0)
