@@ -22,6 +22,9 @@ Mouse and keys: the mouse moves the tool in the view plane; the wheel (or
 Up/Down) sets how hard the hand presses along the view, in millimetres of
 coupling-spring stretch (1 mm = 1 N with the default coupling): at 0 the burr
 hovers, above 0 it sinks until it rests on bone and drills its way in.
+``k`` makes the cut plane the tool (drill off): the mouse moves its
+rectangle, facing the view, through the view plane; Return cuts a stroke
+(:class:`bonesim.runtime.commands.CutPlane`); ``k`` again gives the burr back.
 """
 from __future__ import annotations
 
@@ -31,11 +34,15 @@ from pathlib import Path
 import numpy as np
 
 from bonesim.errors import BonesimError
+from bonesim.engine.cut_plane import plane_pose
+from bonesim.physics.dust_water import water_sprites
 from bonesim.physics.sightline import depth_below_surface_mm
+from bonesim.runtime.commands import CutPlane
 from bonesim.runtime.haptic_loop import HapticLoop
 
 __all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
-           "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "App"]
+           "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "CUT_WIDTH_MM", "CUT_HEIGHT_MM",
+           "CUT_DEPTH_MM", "CUT_STANDOFF_MM", "App"]
 
 #: Press depth change per wheel click or Up/Down key [mm] (1 mm = 1 N).
 PRESS_STEP_MM = 0.5
@@ -50,6 +57,11 @@ SUCTION_RADIUS_MM = 1.5
 #: How far past the burr's surface the irrigation water wets the dust [mm]
 #: (the burr pushes dust out of its own sphere, so the water must reach past it).
 WATER_SPREAD_MM = 2.0
+#: The cut plane's stroke (``k`` the tool, Return a stroke): width and height
+#: of its rectangle, facing the view, and how deep its rays go [mm] ...
+CUT_WIDTH_MM, CUT_HEIGHT_MM, CUT_DEPTH_MM = 10.0, 0.5, 4.0
+#: ... starting this far in front of the view plane through the tool [mm].
+CUT_STANDOFF_MM = 1.0
 
 
 class App:
@@ -167,6 +179,7 @@ class App:
         self.suction = False
         self.suction_pos = None
         self.irrigation = False
+        self.cut_pose = None                  # the cut plane's pose while it is the tool
         self.stereo = stereo
         self.eye_separation_mm = eye_separation_mm
         self.offscreen = offscreen
@@ -345,10 +358,13 @@ class App:
                                              if self.irrigation else 0.0),
                        bodies=bodies)
         scene.set_dust(*self.dust.sprites())
+        if self.dust.water is not None:                # irrigation water, pooled
+            scene.set_water(*water_sprites(self.dust))
         drill = bool(st["drill"])
         depth = depth_below_surface_mm(self.consumer.grid, pos, scene.camera_pose()[0],
                                        burr.radius_mm)
         scene.set_tool(pos, axis, burr.radius_mm, drill, depth_mm=depth)
+        scene.set_cut_plane(self.cut_pose, CUT_WIDTH_MM, CUT_HEIGHT_MM, CUT_DEPTH_MM)
         if suction is not None:                   # the suction tip where the mouse is
             scene.set_suction(suction, self.view, SUCTION_RADIUS_MM)
         else:
@@ -366,7 +382,8 @@ class App:
         scene.set_hud({
             "case": self.model.name, "burr": burr.name, "burr_kind": burr.kind,
             "burr_diameter_mm": burr.diameter_mm,
-            "tool": "suction" if self.suction else "burr",
+            "tool": "suction" if self.suction else "cut plane" if self.cut_pose is not None
+            else "burr",
             "irrigation": self.irrigation, "depth_mm": depth,
             "drill": drill, "direction": int(st["direction"]), "speed_rpm": float(st["speed_rpm"]),
             "force_n": float(np.linalg.norm(st["force_n"])),
@@ -469,8 +486,16 @@ class App:
         if self.suction:
             self.suction_pos = np.asarray(world_mm, float)
             return
+        if self.cut_pose is not None:             # the plane faces the view, into the bone
+            self.cut_pose = plane_pose(np.asarray(world_mm, float) - CUT_STANDOFF_MM
+                                       * self.view, self.view, self.cut_pose_u())
+            return
         self.loop.set_target(np.asarray(world_mm, float) + self.press_mm * self.view,
                              self.view)
+
+    def cut_pose_u(self):
+        """The cut plane's width axis: the screen's horizontal."""
+        return np.cross(self.view, self.scene.camera_pose()[2])
 
     def on_key(self, action: str) -> bool:
         if self.recorder is not None:
@@ -494,6 +519,19 @@ class App:
             self.irrigation = not self.irrigation
         elif action == "reset_case":
             loop.reset()
+        elif action == "cut_plane":
+            on = self.cut_pose is None
+            loop.set_tool("cutplane" if on else "drill")
+            if on:
+                loop.set_drill(False)
+                self.cut_pose = plane_pose(np.asarray(st["pos_mm"], float) - CUT_STANDOFF_MM
+                                           * self.view, self.view, self.cut_pose_u())
+            else:
+                self.cut_pose = None
+        elif action == "cut_stroke":
+            if self.cut_pose is not None:
+                loop.send(CutPlane, pose=self.cut_pose, width_mm=CUT_WIDTH_MM,
+                          height_mm=CUT_HEIGHT_MM, depth_mm=CUT_DEPTH_MM)
         elif action == "nerve_monitor":
             if self.trace is not None:
                 self.trace.set_visible(not self.trace.visible)

@@ -505,6 +505,10 @@ BENCHMARKS = {
         "simulated_hand", "spacemouse", "pedal", "adu100_handle", "touch")),
         lambda quick=False: __import__(
             "bonesim.bench.devices", fromlist=["_"]).bench_devices(quick=quick)),
+    "cut_plane_stroke_ms": lambda quick=False: __import__(
+        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_cut_plane(quick=quick),
+    "dust_irrigated_step_64_ms": lambda quick=False: __import__(
+        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_irrigated_dust(quick=quick),
 }
 
 

@@ -17,7 +17,8 @@ tissue changes. A record is
 
 ``kind`` (uint8)
     :data:`REMOVED`, :data:`CONTACT`, :data:`INJURY`, :data:`RESET`,
-    :data:`BURR`, :data:`SPLIT` or :data:`POSE` (names in :data:`KIND_NAMES`);
+    :data:`BURR`, :data:`SPLIT`, :data:`POSE` or :data:`CUT` (names in
+    :data:`KIND_NAMES`);
 ``body`` (uint8)
     the body it concerns (see :mod:`bonesim.engine.bodies`);
 ``label`` (uint8)
@@ -54,13 +55,17 @@ __all__ = ["TISSUE_EVENT_VERSION", "REMOVED", "CONTACT", "INJURY", "RESET", "BUR
            "INJURY_KINDS", "RingOverflow", "Ring", "Cursor", "RINGS", "COMMAND_ARGS",
            "OTHER_RINGS", "TISSUE_FIELDS", "ring_arrays_spec", "ring_from_arrays",
            "tissue_ring", "push_event", "empty_events", "removals", "injuries", "select",
-           "concat"]
+           "concat", "CUT"]
 
 #: Version of the tissue-event record (session schema 2 stores it as is).
 TISSUE_EVENT_VERSION = 2
 # tissue-event kinds
 REMOVED, CONTACT, INJURY, RESET, BURR, SPLIT, POSE = range(7)
 KIND_NAMES = ("removed", "contact", "injury", "reset", "burr", "split", "pose")
+# a cut-plane stroke (bonesim.engine.cut_plane): ``ijk`` its width, height and
+# depth [um], ``n`` the voxels it removed, ``value`` its pose; after its removals
+CUT = 7
+KIND_NAMES = KIND_NAMES + ("cut",)
 #: Floats in a record's ``value`` column.
 N_VALUE = 7
 

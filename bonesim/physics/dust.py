@@ -149,7 +149,8 @@ do not limit each other's room (water fills the pores of dry dust).
    wet species in the same cell (run after rules 1-4 of the dry species and
    before the wet species' step). Wet dust never dries in this model.
 
-The tool pushes (rule 3) and suction takes (rule 4) both species.
+The tool pushes (rule 3) and suction takes (rule 4) both species. Water
+(rules 6-9, :mod:`bonesim.physics.dust_water`) carries the wet dust.
 Conservation holds for the pair: ``total == added - suctioned`` with
 ``total`` and ``suctioned`` summed over both (:meth:`DustGrid.totals_q`),
 as an exact integer identity.
@@ -186,6 +187,7 @@ from bonesim.engine.bodies import all_identity
 from bonesim.physics.dust_bodies import case_cells, wall_arrays
 from bonesim.physics.dust_params import DustParams
 from bonesim.physics.dust_sprites import DustSprites, gather_sprites
+from bonesim.physics.dust_water import step_water
 from bonesim.engine.brick_hash import SC_WIDTH, sphere_cells_bound
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
 
@@ -270,7 +272,7 @@ class DustGrid:
             raise TypeError("params must be a DustParams")
         self.bounds = np.zeros(6, dtype=np.int64)
         self._bounds_set = False
-        self.wet = None
+        self.wet = self.water = None        # species: wet dust, irrigation water
         if bounds_vox is not None:
             self.set_bounds(*bounds_vox)
         self._ip = np.zeros(_N_IP, dtype=np.int64)
@@ -643,7 +645,7 @@ class DustGrid:
             Dust removed per second from each cell in reach [cells/s]
             (default ``params.suction_rate``).
         irrigation_pos_mm : (3,) float, optional
-            Where the irrigation water lands [mm]; no wetting if None.
+            Where the irrigation water lands and pours [mm]; none if None.
         irrigation_radius_mm : float
             Radius of the irrigated region [mm].
         bodies : Bodies or State, optional
@@ -670,6 +672,8 @@ class DustGrid:
         if irrigate and wrad > 0:
             self._wet_grid()
             self._irrigate(wpos, wrad, dt)
+        step_water(self, bone_grid, walls, dt, wpos if irrigate else None, tool_pos_mm,
+                   tool_radius_mm, suction_pos_mm, suction_radius_mm)   # rules 6-9
         if self.wet is not None:
             sucked += self.wet._step_own(bone_grid, dt, tool_pos_mm, tool_radius_mm,
                                          suction_pos_mm, suction_radius_mm, suction_rate,

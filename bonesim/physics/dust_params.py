@@ -58,6 +58,18 @@ class DustParams:
         radius [cells/s].
     initial_bricks : int
         Size of the brick pool at construction (it grows as needed).
+    water_flow_mm3_s : float
+        Irrigation water poured per second [mm^3/s] (about 0.9 mL/min;
+        :mod:`bonesim.physics.dust_water`).
+    water_settle_rate : float
+        Most water gravity moves across one cell face per second [cells/s].
+    water_spread_rate : float
+        Fraction of the water-level difference a supported cell passes to a
+        lateral neighbour per second [1/s] (at most 0.2 per step).
+    water_suction_rate : float
+        Water suction takes per second from each cell in reach [cells/s].
+    soak_water : float
+        Water a cell must hold for its dry dust to soak [cells].
     """
 
     bulking: float = 1.6
@@ -75,11 +87,18 @@ class DustParams:
     wet_repose: float = 0.0
     wetting_rate: float = 50.0
     initial_bricks: int = 64
+    water_flow_mm3_s: float = 15.0
+    water_settle_rate: float = 400.0
+    water_spread_rate: float = 100.0
+    water_suction_rate: float = 600.0
+    soak_water: float = 0.05
 
     def __post_init__(self):
         for name in ("bulking", "settle_rate", "spill_rate", "suction_rate",
                      "sprite_threshold", "sprite_cover", "wet_settle_rate",
-                     "wet_spill_rate", "wetting_rate"):
+                     "wet_spill_rate", "wetting_rate", "water_flow_mm3_s",
+                     "water_settle_rate", "water_spread_rate", "water_suction_rate",
+                     "soak_water"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"DustParams.{name} must be finite and >= 0, got {v}")

@@ -539,6 +539,31 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         self.dust = DustLayer(self.renderer, self.style.dust)
         self.dust_actor = self.dust.actor
 
+    def set_cut_plane(self, pose, width_mm: float = 0.0, height_mm: float = 0.0,
+                      depth_mm: float = 0.0) -> None:
+        """Outline the cut plane's next stroke (:mod:`bonesim.render.cutplaneview`):
+        the rectangle at ``pose`` ``(cx, cy, cz [mm], qw, qx, qy, qz)`` and a
+        tick ``depth_mm`` along its normal; None hides it."""
+        if getattr(self, "cut_plane", None) is None:
+            if pose is None:
+                return
+            from bonesim.render.cutplaneview import CutPlaneOutline
+
+            self.cut_plane = CutPlaneOutline(self.renderer)
+        self.cut_plane.set(pose, width_mm, height_mm, depth_mm)
+
+    def set_water(self, positions, density, cell_mm: float | None = None, *_) -> None:
+        """Show the irrigation water's top layer (pool surfaces) as a pale
+        translucent sheet (:mod:`bonesim.render.waterview`);
+        ``scene.set_water(*dust_water.water_sprites(dust))`` passes everything.
+        ``density``: water in each cell [cells]."""
+        if getattr(self, "water", None) is None:
+            from bonesim.render.waterview import WaterLayer
+
+            self.water = WaterLayer(self.renderer)
+        self.water.set(positions, density,
+                       float(self.voxel_mm if cell_mm is None else cell_mm))
+
     def set_dust(self, positions, density, cell_mm: float | None = None, age_s=None,
                  wet=None) -> None:
         """Show bone dust as soft translucent sprites (see

@@ -62,7 +62,7 @@ LEFT, MIDDLE, RIGHT = 1, 2, 4
 #: Every action a key or the wheel can produce.
 ACTIONS = ("next_burr", "previous_burr", "drill_toggle", "reverse", "speed_up",
            "speed_down", "suction", "irrigation", "reset_case", "screenshot", "help", "quit",
-           "depth_in", "depth_out", "reset_view", "nerve_monitor",
+           "depth_in", "depth_out", "reset_view", "nerve_monitor", "cut_plane", "cut_stroke",
            # session playback (bonesim.render.playback)
            "play_pause", "seek_back_1s", "seek_forward_1s", "seek_back_10s",
            "seek_forward_10s", "seek_start", "seek_end")
@@ -82,6 +82,7 @@ DEFAULT_KEYS = {
     "Up": "depth_in", "Down": "depth_out",
     "v": "reset_view", "Home": "reset_view",
     "m": "nerve_monitor",
+    "k": "cut_plane", "Return": "cut_stroke",
     "q": "quit", "Escape": "quit",
 }
 

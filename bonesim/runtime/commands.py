@@ -42,20 +42,22 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.bodies import publish_pose, publish_split_box, validate_pose
+from bonesim.engine.cut_plane import publish_cut_record, quantize_size
 from bonesim.errors import BonesimError
 from bonesim.engine.model import reset_state
 
 __all__ = ["N_ARGS", "MAX_KIND", "TOOLS", "ERROR_TEXT_BYTES", "UnknownCommand",
            "CommandOverflow", "Command", "command_class", "registered", "LoopContext",
            "CommandSender", "CommandQueue", "Reset", "SetBurr", "SetTool", "SplitBox",
-           "MoveBody"]
+           "MoveBody", "CutPlane"]
 
 #: Arguments per command record.
 N_ARGS = events.COMMAND_ARGS
 #: Largest command kind (the ring stores it as uint16); 0 is never a kind.
 MAX_KIND = (1 << 16) - 1
-#: Tools the loop knows (:class:`SetTool`); only the drill exists so far.
-TOOLS = ("drill",)
+#: Tools the loop knows (:class:`SetTool`): the drill, and the cut plane
+#: (:class:`CutPlane`; the tool's pose is the plane's, a key applies a stroke).
+TOOLS = ("drill", "cutplane")
 #: Size of the loop's ``command_error`` status field [bytes].
 ERROR_TEXT_BYTES = 160
 
@@ -461,3 +463,22 @@ class ShedPart(SplitPart):
 
 
 __all__ += ["SplitPart", "ShedPart"]
+class CutPlane(Command):
+    """One stroke of the cut plane (:mod:`bonesim.engine.cut_plane`): a
+    rectangle at ``pose`` ``(cx, cy, cz [mm], qw, qx, qy, qz)`` (case frame;
+    :func:`~bonesim.engine.cut_plane.plane_pose` builds one from a centre and a
+    normal), ``width_mm`` x ``height_mm``, whose rays go ``depth_mm`` along
+    its normal and remove every voxel they pass, in every body. Published as
+    removals and a ``CUT`` record, so replay repeats it."""
+
+    kind, name = 21, "cut_plane"
+
+    @classmethod
+    def encode(cls, pose, width_mm: float, height_mm: float, depth_mm: float) -> np.ndarray:
+        um = quantize_size(width_mm, height_mm, depth_mm)
+        return cls.pack(validate_pose(pose), um)
+
+    @classmethod
+    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
+        publish_cut_record(ctx.state, ctx.model.injury, args[7:10].astype(np.int64),
+                           args[0:7].copy(), ctx.t_s)

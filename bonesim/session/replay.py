@@ -56,7 +56,7 @@ def replay(session: Session, models=None, progress=None) -> dict:
     t_col, pos, axis = s["t_s"], s["pos_mm"], s["axis"]
     drill, speed, direc = s["drill"], s["speed_rpm"], s["direction"]
     burr, ep = s["burr"], s["epoch"]
-    commands = _body_commands(session.tissue)
+    commands = _body_commands(session.tissue, model.injury)
     c = 0
     for q in range(n):
         t = float(t_col[q])
@@ -83,14 +83,18 @@ def replay(session: Session, models=None, progress=None) -> dict:
             "state": state}
 
 
-def _body_commands(tissue: dict) -> list:
-    """The recorded splits, poses and shed specks as ``(t_s, apply(state))``, in order."""
+def _body_commands(tissue: dict, injury=None) -> list:
+    """The recorded splits, poses, shed specks and cut-plane strokes (``CUT``
+    records, :mod:`bonesim.engine.cut_plane`; ``injury`` the model's) as
+    ``(t_s, apply(state))``, in order."""
     from bonesim.engine.bodies import publish_pose, publish_split
+    from bonesim.engine.cut_plane import publish_cut_record
     from bonesim.engine.fragments import shed_voxels
 
     kind = tissue["kind"]
     shed = (kind == events.REMOVED) & (tissue["n"] == events.REMOVED_SHED)
-    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE) | shed)
+    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE) | (kind == events.CUT)
+                         | shed)
     out = []
     q = 0
     while q < len(idx):
@@ -109,6 +113,11 @@ def _body_commands(tissue: dict) -> list:
             ijk = tissue["ijk"][idx[q:e]].copy()
             out.append((t, lambda st, b=body, v=ijk, t=t: shed_voxels(st, b, v, t)))
             q = e
+            continue
+        if kind[i] == events.CUT:
+            out.append((t, lambda st, v=tissue["ijk"][i].copy(), p=tissue["value"][i].copy(),
+                        t=t: publish_cut_record(st, injury, v, p, t)))
+            q += 1
             continue
         if kind[i] == events.POSE:
             pose = tissue["value"][i].copy()

@@ -580,7 +580,8 @@ def test_wetting_matches_reference():
     shape = (22, 20, 24)
     bone, wall, d = make_case(shape, seed=21, dust_max=1.5)
     prm = DustParams(settle_rate=0.0, spill_rate=0.0, wet_settle_rate=0.0,
-                     wet_spill_rate=0.0, wetting_rate=30.0)
+                     wet_spill_rate=0.0, wetting_rate=30.0,
+                     water_flow_mm3_s=0.0)        # the spray's wetting alone, no water poured
     dust = DustGrid.for_grid(bone, (0, 0, -1), prm)
     load(dust, d)
     dt = 4e-3
@@ -606,7 +607,8 @@ def test_wetting_matches_reference():
 
 def test_wetting_moves_dry_dust_to_wet_in_the_same_cell():
     bone, dust = _floor_case(settle_rate=0.0, spill_rate=0.0, wet_settle_rate=0.0,
-                             wet_spill_rate=0.0, wetting_rate=1e4)
+                             wet_spill_rate=0.0, wetting_rate=1e4,
+                             water_flow_mm3_s=0.0)   # the spray's wetting alone
     dust.add_removed(np.array([[6, 6, 4], [6, 7, 4], [15, 15, 4]]), 0.7)
     before = dust.to_dense()
     dust.step(bone, 0.01, irrigation_pos_mm=ORIGIN + H * np.array([6, 6.5, 4]),
