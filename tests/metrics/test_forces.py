@@ -239,9 +239,9 @@ def test_unknown_structure_names_the_case_structures():
 
 
 # ------------------------------------------------------------------ a recorded run
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """3 s of the planned demo from its first drilling sample, recorded."""
+def _record_demo(folder, steps: int):
+    """``steps`` points of the planned demo from its first drilling sample,
+    recorded: ``(session, model)``."""
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.io.toolpath import demo_trajectory
@@ -252,10 +252,16 @@ def recorded(tmp_path_factory):
     model = load_model("phantom", "cutting-5mm")
     t = demo_trajectory(load_case("phantom"), "cutting-5mm")
     start = int(np.flatnonzero(t.drill)[0])
-    path = tmp_path_factory.mktemp("forces") / "run.h5"
-    run_trajectory(model, t.at_times(t.t_s[start:start + 300]), surface=False, record=path,
+    path = folder / "run.h5"
+    run_trajectory(model, t.at_times(t.t_s[start:start + steps]), surface=False, record=path,
                    header=make_header(model, participant="p1", group="novice"))
     return read_session(path), model
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """3 s of the planned demo from its first drilling sample, recorded."""
+    return _record_demo(tmp_path_factory.mktemp("forces"), 300)
 
 
 def test_table_of_a_recorded_run(recorded):
@@ -284,20 +290,7 @@ def test_table_of_a_recorded_run(recorded):
 def recorded_4s(tmp_path_factory):
     """4 s of the planned demo from its first drilling sample (about 9,600
     removals within 30 mm of the chorda, over 9 distance bins), recorded."""
-    from bonesim.io.case import load_case
-    from bonesim.io.loading import load_model
-    from bonesim.io.toolpath import demo_trajectory
-    from bonesim.runtime.record import make_header
-    from bonesim.runtime.simulate import run_trajectory
-    from bonesim.session.reader import read_session
-
-    model = load_model("phantom", "cutting-5mm")
-    t = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    start = int(np.flatnonzero(t.drill)[0])
-    path = tmp_path_factory.mktemp("forces") / "run4.h5"
-    run_trajectory(model, t.at_times(t.t_s[start:start + 4000]), surface=False, record=path,
-                   header=make_header(model, participant="p1", group="novice"))
-    return read_session(path), model
+    return _record_demo(tmp_path_factory.mktemp("forces4"), 4000)
 
 
 def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_4s):
