@@ -287,19 +287,19 @@ def test_table_of_a_recorded_run(recorded):
 
 
 @pytest.fixture(scope="module")
-def recorded_4s(tmp_path_factory):
-    """4 s of the planned demo from its first drilling sample (about 9,600
+def recorded_40s(tmp_path_factory):
+    """40 s of the planned demo from its first drilling sample (about 9,600
     removals within 30 mm of the chorda, over 9 distance bins), recorded."""
     return _record_demo(tmp_path_factory.mktemp("forces4"), 4000)
 
 
-def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_4s):
+def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
     """The window's ForceWatch, fed the recorded streams as the window drains
     them (tissue before samples, in frame-sized batches), warns at the same
     steps, with the same values, as the offline exceedances."""
     from bonesim.physics.force_limits import ForceWatch
 
-    sess, model = recorded_4s
+    sess, model = recorded_40s
     tb = force_vs_distance(sess, model=model)
     assert len(tb) > 1000 and len(np.unique(bin_index(tb.distance_mm, bin_edges()))) > 3
     # this run's forces sit mostly at the device's 3.3 N clamp: limits just
