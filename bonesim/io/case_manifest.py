@@ -24,7 +24,7 @@ from bonesim.io.volumes import MAX_STRUCTURES, UNKNOWN_COLOR_MODES
 
 __all__ = ["parse_manifest"]
 
-_TOP_KEYS = ("case", "volume", "structures", "camera", "target")
+_TOP_KEYS = ("case", "volume", "structures", "camera", "target", "physics")
 _CASE_KEYS = ("name", "description", "side")
 _VOLUME_COMMON = ("format", "voxel_mm")
 _VOLUME_KEYS = {
@@ -344,4 +344,19 @@ def parse_manifest(path: str | Path) -> Case:
     camera = _parse_camera(doc["camera"], path) if "camera" in doc else None
     target = (_parse_target(doc["target"], path, [s.name for s in structures])
               if "target" in doc else None)
-    return Case(name, desc, side, path, volume, structures, camera, target)
+    gravity = _parse_physics(doc["physics"], path) if "physics" in doc else None
+    return Case(name, desc, side, path, volume, structures, camera, target, gravity)
+
+
+def _parse_physics(tab, path: Path):
+    """``[physics] gravity = [x, y, z]``: a finite non-zero direction, case
+    frame (its length does not matter). Returns the tuple, or None."""
+    where = "physics"
+    check_keys(tab, ("gravity",), path, where)
+    if "gravity" not in tab:
+        return None
+    g = np.array(get_vector(tab, "gravity", path, where), dtype=float)
+    if not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 0:
+        raise BonesimError(f"'gravity' must be a finite non-zero direction, got "
+                           f"{g.tolist()}", path, where)
+    return tuple(float(v) for v in g)
