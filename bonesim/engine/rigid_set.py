@@ -22,7 +22,8 @@ from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_
                                   SUBSTEPS, _MAX_CAND, _compose, _pose_m, _solid, _tool_push,
                                   advance_kernel)
 
-__all__ = ["body_samples", "mesh_samples", "mass_properties", "RigidSet"]
+__all__ = ["body_samples", "mesh_samples", "mass_properties", "RigidSet", "publish_plate",
+           "track_plates"]
 
 # ------------------------------------------------------------------ samples
 @njit(cache=True, nogil=True)
@@ -247,6 +248,8 @@ class RigidSet:
         self.push = np.zeros((int(max_bodies), 7))
         self.body_slot = np.full(int(max_bodies), -1, np.int32)
         self._pushed = False
+        self._any = False                        # some slot holds a rigid
+        self.last_plate = -1                     # the plate placed last
         self.tool = np.zeros(3)
         self._cand = np.zeros(_MAX_CAND, np.int32)
         self._cout = np.zeros(7)
@@ -264,6 +267,8 @@ class RigidSet:
         self.push[:] = 0.0
         self.body_slot[:] = -1
         self._pushed = False
+        self._any = False
+        self.last_plate = -1
 
     @property
     def active(self) -> bool:
@@ -298,6 +303,7 @@ class RigidSet:
         self.calm[s] = 0
         self.host[s] = -1
         self.tag[s] = -1
+        self._any = True
 
     def wake_body(self, state, b: int) -> int:
         """Let fragment ``b`` move (gravity, contact, the tool); returns its slot.
@@ -322,7 +328,8 @@ class RigidSet:
         return s
 
     def add_plate(self, pos, nrm, offset_mm: float, mass_kg: float, stiffness_n_mm: float,
-                  pose, catalog: int = 0, axis=(1.0, 0.0, 0.0)) -> int:
+                  pose, catalog: int = 0, axis=(1.0, 0.0, 0.0),
+                  samples: int | None = None) -> int:
         """A plate (or distractor) mesh at ``pose`` (mesh-to-case), free to
         fall and rest on the bone; returns its slot.
 
@@ -339,11 +346,14 @@ class RigidSet:
         axis : (3,) float
             A distractor's axis, mesh frame (which footplate holds which body
             and the direction :meth:`distract` moves the second body).
+        samples : int, optional
+            Contact samples kept (default and at most the set's ``max_samples``).
         """
         if not mass_kg > 0 or not stiffness_n_mm > 0:
             raise ValueError(f"plate: mass {mass_kg} kg and stiffness {stiffness_n_mm} "
                              "N/mm must be positive")
-        d = mesh_samples(pos, nrm, offset_mm, self.max_samples)
+        keep = self.max_samples if samples is None else min(int(samples), self.max_samples)
+        d = mesh_samples(pos, nrm, offset_mm, keep)
         pts = np.asarray(pos, np.float64).reshape(-1, 3)
         mass, com, inertia = mass_properties(pts, np.full(len(pts), mass_kg / len(pts)),
                                              max(offset_mm, 0.1))
@@ -356,6 +366,7 @@ class RigidSet:
         self.axis[s] = a / np.linalg.norm(a)
         self.rpose[s] = _unit_pose(pose)
         self.mode[s] = DYNAMIC
+        self.last_plate = s
         return s
 
     def grab(self, state, s: int, tool_mm) -> None:
@@ -466,6 +477,9 @@ class RigidSet:
         if self.mode[s] != AFFIXED or self.tag[s] < 0:
             raise ValueError(f"rigid: slot {s} is not a distractor affixed across two "
                              "bodies")
+        if self.tag[s] == 0:
+            raise ValueError("rigid: the distractor's second footplate is on body 0, "
+                             "which never moves (affix it the other way round)")
         m = np.zeros((3, 4))
         _pose_m(self.rpose[s], m)
         out = self.base[s].copy()
@@ -489,7 +503,7 @@ class RigidSet:
             Poses published.
         """
         many = not state._one_body
-        if not many and not self.active:
+        if not many and not self._any:
             return 0
         self.tool[:] = tool_mm
         g = state.grid
@@ -537,3 +551,43 @@ def _invert(pose) -> np.ndarray:
     m = np.zeros((3, 4))
     _pose_m(np.r_[0.0, 0.0, 0.0, q], m)
     return np.r_[-(m[:, :3] @ p[:3]), q]
+
+
+def publish_plate(state, rs: RigidSet, s: int, t_s: float) -> None:
+    """Publish plate slot ``s``'s present pose and attachment as a
+    :data:`~bonesim.engine.events.PLATE` tissue event (placing, affixing;
+    :meth:`RigidSet.advance` publishes its motion itself)."""
+    from bonesim.engine.events import PLATE, push_event
+
+    push_event(state.tissue, PLATE, float(t_s), body=s, label=int(rs.host[s]) + 1
+               if rs.mode[s] == AFFIXED else 0, ijk=(int(rs.tag[s]) + 1, int(rs.mode[s]), 0),
+               n=int(rs.cat[s]), value=rs.rpose[s])
+
+
+def track_plates(ev: dict, plates: dict) -> bool:
+    """Follow the plates in a batch of tissue events, in place.
+
+    Parameters
+    ----------
+    ev : dict
+        Tissue-event columns (:data:`bonesim.engine.events.TISSUE_FIELDS`).
+    plates : dict
+        Slot -> ``(catalogue index, (7,) pose, host body or -1)``; a
+        ``RESET`` empties it.
+
+    Returns
+    -------
+    bool
+        Whether anything changed.
+    """
+    from bonesim.engine.events import PLATE, RESET
+
+    kinds = np.asarray(ev["kind"])
+    hit = np.flatnonzero((kinds == PLATE) | (kinds == RESET))
+    for q in hit:
+        if kinds[q] == RESET:
+            plates.clear()
+        else:
+            plates[int(ev["body"][q])] = (int(ev["n"][q]), np.array(ev["value"][q, :7]),
+                                          int(ev["label"][q]) - 1)
+    return len(hit) > 0

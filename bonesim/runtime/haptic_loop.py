@@ -62,6 +62,7 @@ from bonesim.runtime.commands import (
     SetTool,
 )
 from bonesim.runtime.shared import SharedArrays
+from bonesim.runtime.rigid_commands import attach_rigid, rigid_step, warmup_rigid
 
 __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",
            "attach", "push_sample", "HapticLoop"]
@@ -199,6 +200,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     ctx = LoopContext(m, state, device, coupling, status)
     queue = CommandQueue(child.rings["commands"], known)
     warmup()
+    # fragments and plates in motion (bonesim.runtime.rigid_commands)
+    attach_rigid(ctx, m, rate_hz)
+    warmup_rigid()
     if vibration:
         from bonesim.physics.vibration import warmup as vibration_warmup
 
@@ -250,6 +254,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             drill = bool(drill_in) if r.drill is None else r.drill
             speed = float(speed_in) if r.speed_rpm is None else r.speed_rpm
             direction = (1 if dir_in >= 0 else -1) if r.direction is None else r.direction
+            rigid_step(ctx, t, pos, drill, burr)   # poses published before the step
             f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction, burr))
             fv = no_vib
             if vibs[burr] is not None:

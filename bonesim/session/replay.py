@@ -2,8 +2,8 @@
 
 A session's samples, stepped again from the case's initial tissue with the
 recorded burrs, must give the recorded tissue events and forces exactly
-(``bonesim replay --verify``). The recorded body splits and poses are inputs
-too (commands the haptic loop applied between two steps): the replay applies
+(``bonesim replay --verify``). The recorded body splits and poses (and plate
+poses) are inputs too (commands the haptic loop applied between two steps): the replay applies
 them again before the step of their time. A damaged file is replayed over its readable
 part (:func:`bonesim.session.reader.read_session` cuts every stream at the
 same moment).
@@ -87,13 +87,20 @@ def _body_commands(tissue: dict) -> list:
     from bonesim.engine.bodies import publish_pose, publish_split
 
     kind = tissue["kind"]
-    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE))
+    idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE)
+                         | (kind == events.PLATE))
     out = []
     q = 0
     while q < len(idx):
         i = idx[q]
         t = float(tissue["t_s"][i])
         body = int(tissue["body"][i])
+        if kind[i] == events.PLATE:
+            # a plate's pose touches no tissue: the record again, as it was
+            rec = {f: tissue[f][i:i + 1].copy() for f in events.TISSUE_FIELDS}
+            out.append((t, lambda st, r=rec: st.tissue.append(**r)))
+            q += 1
+            continue
         if kind[i] == events.POSE:
             pose = tissue["value"][i].copy()
             out.append((t, lambda st, b=body, p=pose, t=t: publish_pose(st, b, p, t)))
