@@ -22,12 +22,18 @@ Contact force (:func:`contact`)
     ``d`` [mm] (at most :data:`MAX_DEPTH_VOXELS` voxels). The sample feels
     ``(k d + c v_n) m`` along the bone's outward normal ``m`` there (the
     occupancy gradient of that body's voxels around it; ``-n`` where it has
-    none), and ``-c v_t`` against its sliding (``k`` [N/mm] per sample,
-    ``c`` a damping per sample, ``v_n`` and ``v_t`` the sample's speed into
-    the bone and along it; never pulling), at the sample point; forces and
-    torques about the centre of mass are summed. (Pushing along the bone's
-    normal rather than the sample's lets a fragment landing on an edge tip
-    over onto a face instead of sliding away on its bevelled samples.)
+    none; ``k`` [N/mm] per sample, ``c`` a damping per sample, ``v_n`` the
+    sample's speed into the bone; never pulling), at the sample point;
+    forces and torques about the centre of mass are summed. (Pushing along
+    the bone's normal rather than the sample's lets a fragment landing on an
+    edge tip over onto a face instead of sliding away on its bevelled
+    samples.)
+Friction
+    Coulomb friction at the rigid's level, integrated implicitly: with
+    ``N`` the summed contact force, the velocity across it and the spin about
+    it lose at most what ``FRICTION_COEFF |N|`` (and its torque over half the
+    rigid's radius) takes in a substep; a rigid that this stops sticks (it
+    rests on slopes up to ``atan(FRICTION_COEFF)``), a harder push slides it.
 Motion (:meth:`bonesim.engine.rigid_set.RigidSet.advance`)
     Gravity ``m g`` along the case's gravity direction
     (:data:`GRAVITY_MM_S2`), viscous drag (:data:`DRAG_TIME_S`), contact, the
@@ -35,9 +41,10 @@ Motion (:meth:`bonesim.engine.rigid_set.RigidSet.advance`)
     :func:`tool_push`) and, for a grabbed rigid, a critically damped spring
     toward the tool (:data:`GRAB_HZ`). Semi-implicit Euler with
     :data:`SUBSTEPS` fixed substeps per haptic step; the quaternion is
-    renormalized every substep. A rigid whose speed stays below
-    :data:`SLEEP_MM_S` for :data:`SLEEP_STEPS` steps sleeps (costs nothing)
-    until the tool touches or grabs it again. Gyroscopic terms are left out
+    renormalized every substep. A rigid whose centre stays within
+    :data:`SLEEP_MM` of where it was for :data:`SLEEP_STEPS` steps sleeps
+    (costs nothing) until the tool touches or grabs it again (a voxel
+    surface makes a resting rigid tremble by far less than that). Gyroscopic terms are left out
     (the drag dominates at these sizes).
 
 Units inside the kernels: mm, kg, s; force kg mm/s^2 (= 1e-3 N); public
@@ -64,8 +71,8 @@ from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["GRAVITY_MM_S2", "DEFAULT_GRAVITY_DIR", "BONE_DENSITY_KG_MM3", "N_TO_INTERNAL",
            "MAX_SAMPLES", "MAX_DEPTH_VOXELS", "SUBSTEPS", "DRAG_TIME_S", "GRAB_HZ",
-           "SLEEP_MM_S", "SLEEP_STEPS", "MAX_SPEED_MM_S", "FRAGMENT_STIFFNESS_N_MM_PER_KG",
-           "DAMPING_RATIO", "CONTACT_SHARE",
+           "SLEEP_MM", "SLEEP_STEPS", "MAX_SPEED_MM_S", "FRAGMENT_STIFFNESS_N_MM_PER_KG",
+           "DAMPING_RATIO", "CONTACT_SHARE", "FRICTION_COEFF",
            "FREE", "ASLEEP", "DYNAMIC", "GRABBED", "AFFIXED", "KIND_FRAGMENT", "KIND_PLATE",
            "gravity_direction", "pose_matrix_into", "contact", "tool_push", "advance_kernel"]
 
@@ -89,8 +96,8 @@ SUBSTEPS = 4
 DRAG_TIME_S = 0.02
 #: Natural frequency of the spring that pulls a grabbed rigid to the tool [Hz].
 GRAB_HZ = 25.0
-#: Below this speed [mm/s] (and 1/10 of it in rad/s) a rigid counts as calm.
-SLEEP_MM_S = 0.5
+#: A rigid whose centre stays this close [mm] to where it was is calm.
+SLEEP_MM = 0.01
 #: Calm steps after which a rigid sleeps.
 SLEEP_STEPS = 200
 #: A fragment's contact stiffness per sample per kg of its mass [N/mm/kg]:
@@ -101,6 +108,9 @@ FRAGMENT_STIFFNESS_N_MM_PER_KG = 60.0
 DAMPING_RATIO = 1.0
 #: The share of a rigid's samples expected to touch at rest (one face).
 CONTACT_SHARE = 0.125
+#: Coulomb friction coefficient of a rigid on bone (a fragment, a titanium
+#: plate: both rest on slopes up to 31 degrees).
+FRICTION_COEFF = 0.6
 #: Fastest a rigid moves [mm/s] (and turns, [rad/s] per mm of its bounding
 #: radius): a safety net against a rigid started deep inside bone.
 MAX_SPEED_MM_S = 500.0
@@ -296,10 +306,10 @@ def _contact(keys, vals, body, density, alive, pose_m, bounds, origin, spacing,
             f = k * d + c * vn
             if f <= 0.0:
                 continue
-            # pushed out along the bone's normal; sliding damped as much
-            fx = f * mx - c * (vx + vn * mx)
-            fy = f * my - c * (vy + vn * my)
-            fz = f * mz - c * (vz + vn * mz)
+            # pushed out along the bone's normal (friction: see _advance)
+            fx = f * mx
+            fy = f * my
+            fz = f * mz
             out[0] += fx
             out[1] += fy
             out[2] += fz
@@ -505,10 +515,41 @@ def _compose(a, b, out):
 
 
 @njit(cache=True, nogil=True)
+def _friction(cout, v, w, pm, ib_inv, m, radius, mu, h):
+    """Coulomb friction of one substep on velocity ``v`` and spin ``w`` (in
+    place), about the summed contact force ``cout[:3]``."""
+    nf = math.sqrt(cout[0] * cout[0] + cout[1] * cout[1] + cout[2] * cout[2])
+    if nf <= 0.0:
+        return
+    nx, ny, nz = cout[0] / nf, cout[1] / nf, cout[2] / nf
+    vn = v[0] * nx + v[1] * ny + v[2] * nz
+    tx, ty, tz = v[0] - vn * nx, v[1] - vn * ny, v[2] - vn * nz
+    vt = math.sqrt(tx * tx + ty * ty + tz * tz)
+    dv = mu * nf * h / m
+    f = 1.0 if vt <= dv else dv / vt
+    v[0] -= f * tx
+    v[1] -= f * ty
+    v[2] -= f * tz
+    # spin about the normal: the same force's torque over half the radius
+    a0 = pm[0, 0] * nx + pm[1, 0] * ny + pm[2, 0] * nz
+    a1 = pm[0, 1] * nx + pm[1, 1] * ny + pm[2, 1] * nz
+    a2 = pm[0, 2] * nx + pm[1, 2] * ny + pm[2, 2] * nz
+    inv_n = (a0 * (ib_inv[0, 0] * a0 + ib_inv[0, 1] * a1 + ib_inv[0, 2] * a2)
+             + a1 * (ib_inv[1, 0] * a0 + ib_inv[1, 1] * a1 + ib_inv[1, 2] * a2)
+             + a2 * (ib_inv[2, 0] * a0 + ib_inv[2, 1] * a1 + ib_inv[2, 2] * a2))
+    wn = w[0] * nx + w[1] * ny + w[2] * nz
+    dw = mu * nf * h * 0.5 * radius * inv_n
+    g = wn if abs(wn) <= dw else (dw if wn > 0 else -dw)
+    w[0] -= g * nx
+    w[1] -= g * ny
+    w[2] -= g * nz
+
+
+@njit(cache=True, nogil=True)
 def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spacing,
              mode, kind, owner, host, cat, tag, rpose, rel, vel, omg, mass, ib_inv, com_b,
-             k, c, radius, smp, nrm, n_smp, calm, grab_off, push, tool, gvec, h, nsub,
-             drag_s, grab_w, sleep_v, sleep_n, max_v, t,
+             k, c, radius, smp, nrm, n_smp, calm, anchor, grab_off, push, tool, gvec, h, nsub,
+             drag_s, fric, grab_w, sleep_mm, sleep_n, max_v, t,
              ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
              cand, cout, pm, cur, com_w):
     n_moved = 0
@@ -584,6 +625,7 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
             for a in range(3):
                 omg[s, a] = (omg[s, a] + h * (pm[a, 0] * a0 + pm[a, 1] * a1
                                               + pm[a, 2] * a2)) / damp
+            _friction(cout, vel[s], omg[s], pm, ib_inv[s], m, radius[s], fric, h)
             sp = math.sqrt(vel[s, 0] ** 2 + vel[s, 1] ** 2 + vel[s, 2] ** 2)
             if sp > max_v:
                 for a in range(3):
@@ -608,9 +650,9 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
                 cur[a] = com_w[a] - (pm[a, 0] * com_b[s, 0] + pm[a, 1] * com_b[s, 1]
                                      + pm[a, 2] * com_b[s, 2])
                 pm[a, 3] = cur[a]
-        sp = math.sqrt(vel[s, 0] ** 2 + vel[s, 1] ** 2 + vel[s, 2] ** 2)
-        sw = math.sqrt(omg[s, 0] ** 2 + omg[s, 1] ** 2 + omg[s, 2] ** 2)
-        if md == DYNAMIC and sp < sleep_v and sw < 0.1 * sleep_v:
+        dd = math.sqrt((com_w[0] - anchor[s, 0]) ** 2 + (com_w[1] - anchor[s, 1]) ** 2
+                       + (com_w[2] - anchor[s, 2]) ** 2)
+        if md == DYNAMIC and dd < sleep_mm:
             calm[s] += 1
             if calm[s] >= sleep_n:
                 mode[s] = ASLEEP
@@ -619,6 +661,8 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
                     omg[s, a] = 0.0
         else:
             calm[s] = 0
+            for a in range(3):
+                anchor[s, a] = com_w[a]
         if frag:
             same = True
             for q in range(7):

@@ -16,9 +16,10 @@ from numba import njit
 from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_SHARE,
                                   DAMPING_RATIO,
                                   DEFAULT_GRAVITY_DIR, DRAG_TIME_S, DYNAMIC,
-                                  FRAGMENT_STIFFNESS_N_MM_PER_KG, FREE, GRAB_HZ, GRABBED,
+                                  FRAGMENT_STIFFNESS_N_MM_PER_KG, FREE, FRICTION_COEFF, GRAB_HZ,
+                                  GRABBED,
                                   GRAVITY_MM_S2, KIND_FRAGMENT, KIND_PLATE, MAX_SAMPLES,
-                                  MAX_SPEED_MM_S, N_TO_INTERNAL, SLEEP_MM_S, SLEEP_STEPS,
+                                  MAX_SPEED_MM_S, N_TO_INTERNAL, SLEEP_MM, SLEEP_STEPS,
                                   SUBSTEPS, _MAX_CAND, _compose, _pose_m, _solid, _tool_push,
                                   advance_kernel)
 
@@ -242,6 +243,7 @@ class RigidSet:
         self.nrm = np.zeros((S, M, 3))
         self.n_smp = np.zeros(S, np.int32)
         self.calm = np.zeros(S, np.int32)
+        self.anchor = np.zeros((S, 3))           # where a slot's calm began [mm]
         self.grab_off = np.zeros((S, 3))
         self.axis = np.zeros((S, 3))             # a distractor's axis, mesh frame
         self.base = np.zeros((S, 7))             # its second body's pose when affixed
@@ -530,11 +532,11 @@ class RigidSet:
             state.bounds, g.origin_mm, g.spacing_mm, self.mode, self.kind, self.owner,
             self.host, self.cat, self.tag, self.rpose, self.rel, self.vel, self.omg,
             self.mass, self.ib_inv, self.com_b, self.k, self.c, self.radius, self.smp,
-            self.nrm, self.n_smp, self.calm, self.grab_off, self.push, self.tool, self.gvec,
-            self.h, SUBSTEPS, DRAG_TIME_S, 2 * math.pi * GRAB_HZ, SLEEP_MM_S, SLEEP_STEPS,
-            MAX_SPEED_MM_S, float(t_s), ev["kind"], ev["body"], ev["label"], ev["t_s"],
-            ev["ijk"], ev["n"], ev["value"], state.tissue.head, self._cand, self._cout,
-            self._pm, self._cur, self._com))
+            self.nrm, self.n_smp, self.calm, self.anchor, self.grab_off, self.push,
+            self.tool, self.gvec, self.h, SUBSTEPS, DRAG_TIME_S, FRICTION_COEFF,
+            2 * math.pi * GRAB_HZ, SLEEP_MM, SLEEP_STEPS, MAX_SPEED_MM_S, float(t_s),
+            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"], ev["value"],
+            state.tissue.head, self._cand, self._cout, self._pm, self._cur, self._com))
 
 
 def _unit_pose(pose) -> np.ndarray:
