@@ -24,7 +24,7 @@ from bonesim.io.meshes import write_ply  # noqa: E402
 
 OUT = ROOT / "bonesim" / "data" / "tools"
 #: Cell of the outline grid [mm].
-CELL = 0.5
+CELL = 0.25
 #: Titanium [g/mm^3].
 TITANIUM_G_MM3 = 4.5e-3
 #: Plate thickness [mm].
@@ -114,7 +114,7 @@ def distractor():
         m, x0, y0 = outline((7.0, 6.0), [(-1.8, 0.0), (1.8, 0.0)], hole_r=0.9)
         parts.append(slab(m, CELL, -THICK / 2, THICK / 2, x0 + sx * 11.5, y0))
         mass += _mass_g(m, THICK)
-    rod = np.ones((int(26.0 / CELL), 3), bool)
+    rod = np.ones((int(26.0 / CELL), int(1.5 / CELL)), bool)
     parts.append(slab(rod, CELL, THICK / 2, THICK / 2 + 1.5, -13.0, -0.75))
     mass += _mass_g(rod, 1.5)
     pos, tris, nrm = [], [], []
