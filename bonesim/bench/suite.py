@@ -496,6 +496,10 @@ BENCHMARKS = {
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
     **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
+    # the loop's period while a fragment moves, and still, in one run
+    **dict.fromkeys(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
+                    lambda quick=False: __import__("bonesim.bench.rigid", fromlist=["_"])
+                    .bench_rigid_loop(quick=quick)),
 }
 
 
