@@ -381,6 +381,15 @@ class RigidSet:
         self.mode[s] = GRABBED
         self.calm[s] = 0
 
+    def hold(self, b: int) -> None:
+        """Fragment ``b`` was placed by hand (a ``MoveBody``): it stays where it
+        was put (asleep, at rest) until the tool touches or grabs it again."""
+        s = self.slot_of(b)
+        if s >= 0 and self.mode[s] in (DYNAMIC, GRABBED):
+            self.mode[s] = ASLEEP
+            self.vel[s] = 0.0
+            self.omg[s] = 0.0
+
     def release(self) -> int:
         """Every grabbed slot moves freely again; returns how many."""
         g = self.mode == GRABBED
