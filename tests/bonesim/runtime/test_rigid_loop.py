@@ -85,3 +85,23 @@ def test_the_recorded_run_replays_bit_for_bit(run):
     # the replay ends with the fragment where the recording last saw it
     last = s.tissue["value"][np.flatnonzero(s.tissue["kind"] == events.POSE)[-1]]
     np.testing.assert_array_equal(replay(s)["state"].pose[1], last)
+
+
+def test_playback_shows_the_fragment_and_the_plate_where_the_run_left_them(run):
+    from bonesim.session.playback import Player
+
+    model, s, _, _, _ = run
+    p = Player(s, model, [model.burr], surface=False)
+    half = p.timeline.duration / 2
+    p.seek(p.timeline.duration)
+    rep = p.replica
+    k = s.tissue["kind"]
+    last_pose = s.tissue["value"][np.flatnonzero(k == events.POSE)[-1]]
+    np.testing.assert_array_equal(rep.state.pose[1], last_pose)
+    plates = np.flatnonzero(k == events.PLATE)
+    (slot, (cat, pose, host)), = rep.plates.items()
+    assert slot == s.tissue["body"][plates[-1]] and cat == 0 and host >= 0
+    np.testing.assert_array_equal(pose, s.tissue["value"][plates[-1]])
+    # seeking back before the plate was placed shows none
+    p.seek(min(half, float(s.tissue["t_s"][plates[0]]) - p.timeline.t0 - 0.01))
+    assert p.replica.plates == {}
