@@ -282,9 +282,16 @@ class RigidSet:
         return int(self.body_slot[b]) if 0 <= b < len(self.body_slot) else -1
 
     def _free_slot(self) -> int:
+        """A free slot; when all are taken, the first sleeping fragment's (it
+        keeps its pose and takes a slot again when next woken)."""
         free = np.flatnonzero(self.mode == FREE)
         if len(free) == 0:
-            raise ValueError(f"rigid: all {self.capacity} rigid slots are in use")
+            free = np.flatnonzero((self.mode == ASLEEP) & (self.kind == KIND_FRAGMENT))
+            if len(free) == 0:
+                raise ValueError(f"rigid: all {self.capacity} rigid slots are in use")
+            self.body_slot[self.owner[free[0]]] = -1
+            self.mode[free[0]] = FREE
+            self.owner[free[0]] = -1
         return int(free[0])
 
     def _fill(self, s, smp, nrm, mass, com, inertia, k_n_mm) -> None:
@@ -529,7 +536,10 @@ class RigidSet:
                     if self.push[b, 6] > 0.0:
                         s = self.body_slot[b]
                         if s < 0 or self.mode[s] == ASLEEP:
-                            self.wake_body(state, b)
+                            try:
+                                self.wake_body(state, b)
+                            except ValueError:     # no slot left, or no bone: stays put
+                                pass
         elif self._pushed:
             self.push[:] = 0.0
             self._pushed = False

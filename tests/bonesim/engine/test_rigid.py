@@ -238,7 +238,7 @@ def _lowest_z(s, ijk):
     return float((c @ pose_matrix(s.pose[1])[:, :3].T + s.pose[1][:3])[:, 2].min())
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
 @given(drop=st.floats(0.0, 4.0), rot=st.tuples(*[st.floats(-0.6, 0.6)] * 3))
 def test_a_dropped_fragment_stops_on_the_bone_and_never_passes_through(drop, rot):
     m, s, ijk = _cube_model()
@@ -310,3 +310,20 @@ def test_a_grabbed_fragment_follows_the_tool_and_drops_when_released():
     assert rs.release() == 1
     _run(rs, s, 2000, t0=3.0)
     assert rs.centre(slot, s)[2] - c0[2] == pytest.approx(0.0, abs=0.05)   # back on the face
+
+
+def test_a_full_set_lends_a_sleeping_fragments_slot_and_never_raises_in_the_step():
+    m, s, _ = _cube_model(lo=(16, 16, 20), edge=4)
+    split_body(s, 0, np.argwhere(np.ones((4, 4, 4), bool)) + [4, 4, 16])    # body 2
+    rs = RigidSet(m.max_bodies, capacity=1)
+    a = rs.wake_body(s, 1)
+    with pytest.raises(ValueError, match="in use"):
+        rs.wake_body(s, 2)                       # the only slot moves body 1
+    rs.hold(1)
+    assert rs.wake_body(s, 2) == a and rs.slot_of(1) == -1 and rs.slot_of(2) == a
+    # a tool touching body 1 while body 2 holds the slot and moves: no error
+    rs.mode[a] = 2
+    centre = s.grid.origin_mm + SP * np.array([17.5, 17.5, 21.5])
+    rs.advance(s, 0.0, centre - [1.6, 0.0, 0.0], False, 1.5, 1.0)
+    assert rs.push[1, 6] > 0                     # it touched body 1, which found no slot
+    assert rs.slot_of(1) == -1 and rs.slot_of(2) == a
