@@ -2,7 +2,8 @@
 
 A **rigid** is either a voxel body other than body 0 (a fragment, see
 :mod:`bonesim.engine.bodies`) or a plate / distractor mesh. It lives in a
-slot of a :class:`~bonesim.engine.rigid_set.RigidSet` (fixed capacity, arrays allocated once). Its
+slot of a :class:`~bonesim.engine.rigid_set.RigidSet` (fixed capacity,
+arrays allocated once). Body 0, the anchored case, never moves. Its
 *rigid frame* is the body's own frame (fragment) or the mesh's frame
 (plate); its pose ``(tx, ty, tz [mm], qw, qx, qy, qz)`` maps that frame to
 the case frame, exactly like a body pose.
@@ -44,8 +45,12 @@ Motion (:meth:`bonesim.engine.rigid_set.RigidSet.advance`)
     renormalized every substep. A rigid whose centre stays within
     :data:`SLEEP_MM` of where it was for :data:`SLEEP_STEPS` steps sleeps
     (costs nothing) until the tool touches or grabs it again (a voxel
-    surface makes a resting rigid tremble by far less than that). Gyroscopic terms are left out
-    (the drag dominates at these sizes).
+    surface makes a resting rigid tremble by far less than that). A
+    fragment wakes when the stopped tool first touches it or it is grabbed:
+    a piece just cut free stays where it was cut until then. Gyroscopic
+    terms are left out (the drag dominates at these sizes); a fragment's
+    samples and mass are taken when it first wakes (later drilling of it
+    does not change them).
 
 Units inside the kernels: mm, kg, s; force kg mm/s^2 (= 1e-3 N); public
 parameters are in N/mm and N.
@@ -53,8 +58,8 @@ parameters are in N/mm and N.
 Every pose change is published as a tissue event from the kernel:
 ``POSE`` for a fragment (the body's pose, so every replica, the recorder
 and replay apply it), :data:`~bonesim.engine.events.PLATE` for a plate.
-:meth:`~bonesim.engine.rigid_set.RigidSet.advance` runs between two haptic steps, at the time of the
-step that follows (as commands do), so re-stepping a recording with its
+:meth:`~bonesim.engine.rigid_set.RigidSet.advance` runs between two haptic
+steps, at the time of the step that follows (as commands do), so re-stepping a recording with its
 recorded poses reproduces it bit for bit. Building a rigid's samples
 (waking a fragment for the first time, placing a plate) allocates; the
 per-step path does not.
