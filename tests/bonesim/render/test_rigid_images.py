@@ -26,14 +26,13 @@ DROP_MM = 2.0
 
 
 def _camera_hit(model, eye, focal):
-    """The first bone voxel centre on the ray eye -> focal [mm]."""
+    """The first bone voxel centre on the ray eye -> focal [mm], and the
+    ray's unit direction."""
+    from bonesim.engine.grid import find_brick, voxel_offset
+
     g = model.grid
     d = np.subtract(focal, eye)
     d /= np.linalg.norm(d)
-    dens = g.to_dense_density() if hasattr(g, "to_dense_density") else None
-    from bonesim.engine.bodies import voxel_bodies  # noqa: F401 (grid helpers)
-    from bonesim.engine.grid import find_brick, voxel_offset
-
     for s in np.arange(0.0, 200.0, 0.1):
         p = np.asarray(eye) + s * d
         ijk = np.rint((p - g.origin_mm) / g.spacing_mm).astype(int)
@@ -42,7 +41,6 @@ def _camera_hit(model, eye, focal):
         b = find_brick(g.keys, g.vals, ijk[0] >> 3, ijk[1] >> 3, ijk[2] >> 3)
         if b >= 0 and g.density[b, voxel_offset(*ijk)] > 0:
             return p, d
-    del dens
     raise AssertionError("the camera ray hits no bone")
 
 

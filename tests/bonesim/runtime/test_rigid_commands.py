@@ -3,7 +3,6 @@
 block, and one recorded run of the real haptic loop replayed bit for bit."""
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
