@@ -67,8 +67,10 @@ KIND_NAMES = ("removed", "contact", "injury", "reset", "burr", "split", "pose")
 #: is affixed to plus one (0: free), ``ijk`` (second body of a distractor plus
 #: one, slot mode, 0), ``value`` its mesh-to-case pose. No replica's tissue
 #: changes; replay applies them as recorded.
-PLATE = 7
-KIND_NAMES = KIND_NAMES + ("plate",)
+#: (Kind 7 is the cut plane's ``CUT``, issue 13; the names are padded so
+#: that ``KIND_NAMES[PLATE]`` holds whichever lands first.)
+PLATE = 8
+KIND_NAMES = KIND_NAMES + ("",) * (PLATE - len(KIND_NAMES)) + ("plate",)
 #: Floats in a record's ``value`` column.
 N_VALUE = 7
 
