@@ -42,12 +42,17 @@ from bonesim.runtime.haptic_loop import HapticLoop
 
 __all__ = ["PRESS_STEP_MM", "SPEED_STEP_RPM", "START_STANDOFF_MM", "RATE_EVERY_FRAMES",
            "SUCTION_RADIUS_MM", "WATER_SPREAD_MM", "CUT_WIDTH_MM", "CUT_HEIGHT_MM",
-           "CUT_DEPTH_MM", "CUT_STANDOFF_MM", "App"]
+           "CUT_DEPTH_MM", "CUT_STANDOFF_MM", "App", "DISTRACT_STEP_MM", "RIGID_ACTIONS"]
 
 #: Press depth change per wheel click or Up/Down key [mm] (1 mm = 1 N).
 PRESS_STEP_MM = 0.5
 #: Spindle speed change per key press [rpm].
 SPEED_STEP_RPM = 5000.0
+#: Distractor length change per key press [mm].
+DISTRACT_STEP_MM = 0.5
+#: Window actions for fragments and plates (:meth:`App._rigid_key`).
+RIGID_ACTIONS = ("grab_toggle", "place_plate", "affix_plate", "distract_more",
+                 "distract_less")
 #: Where the tool starts: this far from the case's focal point toward the eye [mm].
 START_STANDOFF_MM = 10.0
 #: How often the HUD's haptic-rate statistics are recomputed [frames].
@@ -537,9 +542,37 @@ class App:
                 self.trace.set_visible(not self.trace.visible)
         elif action in ("depth_in", "depth_out"):
             self.press_mm += PRESS_STEP_MM if action == "depth_in" else -PRESS_STEP_MM
+        elif action in RIGID_ACTIONS:
+            self._rigid_key(action)
         else:
             return False                               # help, screenshot, quit, view
         return True
+
+    def _rigid_key(self, action: str) -> None:
+        """Fragments and plates: grab / let go of what the tool touches, the
+        next catalogue plate at the tool, affix it, lengthen or shorten the
+        distractor (:mod:`bonesim.runtime.rigid_commands`); a refusal shows
+        in the loop's ``command_error``."""
+        from bonesim.runtime import rigid_commands as rc
+
+        st = getattr(self, "_rigid_ui", None)
+        if st is None:
+            st = self._rigid_ui = {"grabbed": False, "plate": 0, "length_mm": 0.0}
+        if action == "grab_toggle":
+            self.loop.send(rc.ReleaseBody if st["grabbed"] else rc.GrabBody)
+            st["grabbed"] = not st["grabbed"]
+        elif action == "place_plate":
+            from bonesim.io.plates import default_plates
+
+            self.loop.send(rc.PlacePlate, plate=st["plate"])
+            st["plate"] = (st["plate"] + 1) % len(default_plates())
+            st["length_mm"] = 0.0
+        elif action == "affix_plate":
+            self.loop.send(rc.AffixPlate)
+        else:
+            st["length_mm"] += DISTRACT_STEP_MM if action == "distract_more" \
+                else -DISTRACT_STEP_MM
+            self.loop.send(rc.Distract, length_mm=st["length_mm"])
 
     # ----------------------------------------------------------------- run
     def run(self, frames: int | None = None, screenshot=None) -> dict:

@@ -509,6 +509,10 @@ BENCHMARKS = {
         "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_cut_plane(quick=quick),
     "dust_irrigated_step_64_ms": lambda quick=False: __import__(
         "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_irrigated_dust(quick=quick),
+    # the loop's period while a fragment moves, and still, in one run
+    **dict.fromkeys(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
+                    lambda quick=False: __import__("bonesim.bench.rigid", fromlist=["_"])
+                    .bench_rigid_loop(quick=quick)),
 }
 
 

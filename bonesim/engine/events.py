@@ -17,7 +17,7 @@ tissue changes. A record is
 
 ``kind`` (uint8)
     :data:`REMOVED`, :data:`CONTACT`, :data:`INJURY`, :data:`RESET`,
-    :data:`BURR`, :data:`SPLIT`, :data:`POSE` or :data:`CUT` (names in
+    :data:`BURR`, :data:`SPLIT`, :data:`POSE`, :data:`CUT` or :data:`PLATE` (names in
     :data:`KIND_NAMES`);
 ``body`` (uint8)
     the body it concerns (see :mod:`bonesim.engine.bodies`);
@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["TISSUE_EVENT_VERSION", "REMOVED", "CONTACT", "INJURY", "RESET", "BURR",
-           "SPLIT", "POSE", "KIND_NAMES", "N_VALUE", "INJURY_CONTACT", "INJURY_REMOVAL",
+           "SPLIT", "POSE", "PLATE", "KIND_NAMES", "N_VALUE", "INJURY_CONTACT", "INJURY_REMOVAL",
            "INJURY_KINDS", "RingOverflow", "Ring", "Cursor", "RINGS", "COMMAND_ARGS",
            "OTHER_RINGS", "TISSUE_FIELDS", "ring_arrays_spec", "ring_from_arrays",
            "tissue_ring", "push_event", "empty_events", "removals", "injuries", "select",
@@ -66,6 +66,15 @@ KIND_NAMES = ("removed", "contact", "injury", "reset", "burr", "split", "pose")
 # depth [um], ``n`` the voxels it removed, ``value`` its pose; after its removals
 CUT = 7
 KIND_NAMES = KIND_NAMES + ("cut",)
+#: A plate's or distractor's pose (:mod:`bonesim.engine.rigid`): ``body`` the
+#: plate's slot, ``n`` its index in the plate catalogue, ``label`` the body it
+#: is affixed to plus one (0: free), ``ijk`` (second body of a distractor plus
+#: one, slot mode, 0), ``value`` its mesh-to-case pose. No replica's tissue
+#: changes; replay applies them as recorded.
+#: (Kind 7 is the cut plane's ``CUT``, issue 13; the names are padded so
+#: that ``KIND_NAMES[PLATE]`` holds whichever lands first.)
+PLATE = 8
+KIND_NAMES = KIND_NAMES + ("",) * (PLATE - len(KIND_NAMES)) + ("plate",)
 #: Floats in a record's ``value`` column.
 N_VALUE = 7
 

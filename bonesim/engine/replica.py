@@ -43,6 +43,7 @@ from bonesim.engine.body_surfaces import BodySurfaces
 from bonesim.engine.bodies import is_identity, set_pose, split_body
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, sync_replica, voxel_offset
 from bonesim.engine.model import Model, clear_touched, make_state, reset_state
+from bonesim.engine.rigid_set import track_plates
 
 __all__ = ["REPLICA_RING_CAPACITY", "Changes", "TissueReplica"]
 
@@ -146,6 +147,9 @@ class TissueReplica:
         self.burr = 0
         self.applied = 0
         self.cursor = self.touched = None
+        #: plates and distractors: slot -> (catalogue index, pose, host body or
+        #: -1), from ``PLATE`` events (:func:`bonesim.engine.rigid_set.track_plates`)
+        self.plates = {}
         if source is not None:
             # cursors first, then the snapshot: whatever the haptic side
             # changes after the cursors were set is drained later (applying a
@@ -250,6 +254,7 @@ class TissueReplica:
         reset_state(self.model, self.state, rings=False)
         self.epoch = self.epoch + 1 if epoch is None else int(epoch)
         self._bodies = None
+        self.plates.clear()
         if self.surface is not None and surface:
             self._rebuild_surface()
 
@@ -292,6 +297,7 @@ class TissueReplica:
                 removed.append(ijk)
             elif k == events.RESET:
                 reset_state(self.model, st, rings=False)
+                self.plates.clear()
                 self.epoch = int(ev["n"][b - 1])
                 removed, did_reset, after = [], True, b
                 split_ijk, split_src, grown = [], [], set()
@@ -311,6 +317,9 @@ class TissueReplica:
                     grown.add(dst)
                     if dst not in bodies:
                         bodies.append(dst)
+            elif k == events.PLATE:
+                track_plates({f: ev[f][a:b] for f in ("kind", "body", "n", "value", "label")},
+                             self.plates)
             elif k == events.POSE:
                 for q in range(a, b):
                     bod = int(ev["body"][q])

@@ -41,6 +41,10 @@ Manifest
     focal_mm = [15, 0, 0]
     up = [0, 0, 1]
 
+    [physics]                         # optional
+    gravity = [-1, 0, 0]              # direction fragments and plates fall
+                                      # (default: the camera's view direction)
+
     [target]                          # optional
     description = "cortical mastoidectomy"
     structures = ["sigmoid_sinus"]    # structures the procedure should expose

@@ -26,7 +26,7 @@ from bonesim.io.volumes import MAX_STRUCTURES, UNKNOWN_COLOR_MODES
 
 __all__ = ["parse_manifest"]
 
-_TOP_KEYS = ("case", "volume", "structures", "camera", "target")
+_TOP_KEYS = ("case", "volume", "structures", "camera", "target", "physics")
 _CASE_KEYS = ("name", "description", "side")
 _VOLUME_COMMON = ("format", "voxel_mm")
 _VOLUME_KEYS = {
@@ -351,6 +351,8 @@ def parse_manifest(path: str | Path) -> Case:
     case = Case(name, desc, side, path, volume, structures, camera, target)
     if "fragments" in doc:
         case = dataclasses.replace(case, fragments=_parse_fragments(doc["fragments"], path))
+    if "physics" in doc:
+        case = dataclasses.replace(case, gravity=_parse_physics(doc["physics"], path))
     return case
 
 
@@ -364,3 +366,17 @@ def _parse_fragments(tab, path: Path) -> Fragments:
     n = get_number(tab, "speck_voxels", path, where, default=Fragments.speck_voxels,
                    minimum=1, integer=True)
     return Fragments(int(n))
+
+
+def _parse_physics(tab, path: Path):
+    """``[physics] gravity = [x, y, z]``: a finite non-zero direction, case
+    frame (its length does not matter). Returns the tuple, or None."""
+    where = "physics"
+    check_keys(tab, ("gravity",), path, where)
+    if "gravity" not in tab:
+        return None
+    g = np.array(get_vector(tab, "gravity", path, where), dtype=float)
+    if not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 0:
+        raise BonesimError(f"'gravity' must be a finite non-zero direction, got "
+                           f"{g.tolist()}", path, where)
+    return tuple(float(v) for v in g)

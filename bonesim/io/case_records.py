@@ -212,6 +212,9 @@ class Case:
     target : Target or None
     fragments : Fragments
         The manifest's ``[fragments]`` (defaults without it).
+    gravity : (3,) float or None
+        The manifest's ``[physics] gravity`` direction, case frame (None:
+        the camera's viewing direction, see :attr:`gravity_dir`).
     """
 
     name: str
@@ -223,6 +226,7 @@ class Case:
     declared_camera: Camera | None = None
     target: Target | None = None
     fragments: Fragments = Fragments()
+    gravity: tuple | None = None
     # what was derived from the volume (the surgical view); not part of the
     # manifest's identity, never passed in
     _derived: dict = field(default_factory=dict, init=False, compare=False, repr=False,
@@ -263,6 +267,19 @@ class Case:
             return (v.orientation, "declared") if v.orientation else \
                 (PATIENT_FRAME, "assumed")
         return None, "file"
+
+    @property
+    def gravity_dir(self) -> tuple:
+        """Unit direction of gravity, case frame: the manifest's
+        ``[physics] gravity``, else the initial camera's viewing direction
+        (the surgeon looks down into the mastoid; the same choice as the
+        bone dust's). Fragments and plates fall along it."""
+        if self.gravity is not None:
+            g = np.asarray(self.gravity, dtype=float)
+        else:
+            cam = self.camera
+            g = np.asarray(cam.focal_mm, dtype=float) - np.asarray(cam.eye_mm, dtype=float)
+        return tuple(float(v) for v in g / np.linalg.norm(g))
 
     # ----------------------------------------------------------- camera
     @property

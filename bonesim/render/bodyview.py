@@ -15,8 +15,12 @@ and the body's pose places it in the case frame
 * every other body (a fragment) gets an actor of its own: a copy of its
   surface's compact arrays, refreshed only when the replica reports that
   body's surface changed (fragments are small), with the body's pose as
-  user matrix and the bone's material. Actors come and go with the bodies
-  (a reset drops them all).
+  user matrix and the bone's material, its colours tinted by
+  :func:`fragment_tint` so that each fragment reads as a piece of its own.
+  Actors come and go with the bodies (a reset drops them all);
+* plates and distractors (the replica's ``plates``, from ``PLATE`` events,
+  :mod:`bonesim.engine.rigid_set`) are drawn from the catalogue's meshes
+  (:mod:`bonesim.io.plates`) at their poses, in titanium grey.
 
 Units: positions [mm], case frame after the user matrix.
 """
@@ -29,9 +33,23 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
-__all__ = ["BodiesMixin", "vtk_matrix", "surface_polydata"]
+__all__ = ["BodiesMixin", "vtk_matrix", "surface_polydata", "FRAGMENT_TINTS",
+           "fragment_tint", "PLATE_COLOR", "mesh_polydata"]
 
 _IDENTITY = np.eye(4)
+#: Per-channel factors on a fragment's colours, by body id (body 1 the first,
+#: repeating): warm orange, sky blue, leaf green, rose, straw. Strong enough
+#: to tell a fragment from the bone around it, weak enough to keep the bone's
+#: shading and the structures' colours readable.
+FRAGMENT_TINTS = ((1.0, 0.72, 0.45), (0.55, 0.78, 1.0), (0.62, 1.0, 0.55),
+                  (1.0, 0.6, 0.8), (1.0, 0.95, 0.45))
+#: Colour of plates and distractors (titanium), RGB 0-1.
+PLATE_COLOR = (0.66, 0.69, 0.74)
+
+
+def fragment_tint(b: int) -> tuple:
+    """The tint of body ``b`` (None for body 0, the main bone)."""
+    return None if b == 0 else FRAGMENT_TINTS[(b - 1) % len(FRAGMENT_TINTS)]
 
 
 def vtk_matrix(m) -> vtkMatrix4x4:
@@ -44,10 +62,20 @@ def vtk_matrix(m) -> vtkMatrix4x4:
     return out
 
 
-def surface_polydata(surface) -> vtkPolyData:
+def surface_polydata(surface, tint=None) -> vtkPolyData:
     """A deep copy of a :class:`~bonesim.engine.surface.Surface` as polydata:
-    points [mm], its normals and RGBA colours as point data, its triangles."""
+    points [mm], its normals and RGBA colours as point data, its triangles.
+    ``tint`` (3 factors 0-1) scales the colours' RGB."""
     pos, nrm, col, tri = surface.arrays()
+    if tint is not None:
+        col = np.array(col, copy=True)
+        col[:, :3] = np.clip(col[:, :3] * np.asarray(tint, float), 0, 255).astype(np.uint8)
+    return mesh_polydata(pos, tri, nrm, col)
+
+
+def mesh_polydata(pos, tri, nrm, col=None) -> vtkPolyData:
+    """Polydata of a triangle mesh: points [mm], normals, optional RGBA
+    colours (n, 4) uint8, triangles (m, 3)."""
     pd = vtkPolyData()
     pts = vtkPoints()
     pts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(pos), deep=True))
@@ -55,10 +83,11 @@ def surface_polydata(surface) -> vtkPolyData:
     n = numpy_support.numpy_to_vtk(np.ascontiguousarray(nrm), deep=True)
     n.SetName("Normals")
     pd.GetPointData().SetNormals(n)
-    c = numpy_support.numpy_to_vtk(np.ascontiguousarray(col), deep=True,
-                                   array_type=numpy_support.get_vtk_array_type(np.uint8))
-    c.SetName("Colors")
-    pd.GetPointData().SetScalars(c)
+    if col is not None:
+        c = numpy_support.numpy_to_vtk(np.ascontiguousarray(col), deep=True,
+                                       array_type=numpy_support.get_vtk_array_type(np.uint8))
+        c.SetName("Colors")
+        pd.GetPointData().SetScalars(c)
     cells = vtkCellArray()
     conn = numpy_support.numpy_to_vtkIdTypeArray(
         np.ascontiguousarray(tri, dtype=np.int64).ravel(), deep=True)
@@ -76,6 +105,7 @@ class BodiesMixin:
 
     def _build_bodies(self) -> None:
         self._body_actors: dict = {}      # body id -> (actor, surface, revision)
+        self._plate_actors: dict = {}     # plate slot -> (actor, catalogue index)
         self._main_pose = None            # body 0's (4, 4) pose, None for the identity
 
     @property
@@ -118,7 +148,45 @@ class BodiesMixin:
             rebuilt += self._draw_body(b, surf, revs.get(b), replica.body_matrix(b))
         out["bodies"] = len(surfaces)
         out["rebuilt"] = rebuilt
+        out["plates"] = self.update_plates(getattr(replica, "plates", None) or {})
         return out
+
+    @property
+    def plate_actors(self) -> dict:
+        """Plate slot -> the ``vtkActor`` of each drawn plate or distractor."""
+        return {s: a for s, (a, _) in self._plate_actors.items()}
+
+    def update_plates(self, plates: dict) -> int:
+        """Draw the plates ``slot -> (catalogue index, (7,) pose, host)`` at
+        their poses (mesh-to-case); returns how many are drawn."""
+        from bonesim.engine.bodies import pose_matrix
+        from bonesim.io.plates import default_plates
+
+        for s in [s for s in self._plate_actors if s not in plates]:
+            self.renderer.RemoveActor(self._plate_actors.pop(s)[0])
+        for s, (cat, pose, _) in plates.items():
+            entry = self._plate_actors.get(s)
+            if entry is None or entry[1] != cat:
+                if entry is not None:
+                    self.renderer.RemoveActor(entry[0])
+                spec = default_plates()[cat]
+                mapper = vtkPolyDataMapper()
+                mapper.SetInputData(mesh_polydata(spec.pos, spec.tris, spec.nrm))
+                mapper.ScalarVisibilityOff()
+                actor = vtkActor()
+                actor.SetMapper(mapper)
+                prop = actor.GetProperty()
+                prop.SetColor(*PLATE_COLOR)
+                prop.SetSpecular(0.6)
+                prop.SetSpecularPower(40.0)
+                prop.SetDiffuse(0.8)
+                prop.SetAmbient(0.2)
+                self.renderer.AddActor(actor)
+                self._plate_actors[s] = entry = (actor, cat)
+            m = np.eye(4)
+            m[:3] = pose_matrix(pose)
+            entry[0].SetUserMatrix(vtk_matrix(m))
+        return len(self._plate_actors)
 
     def _set_main_pose(self, m) -> None:
         m = np.asarray(m, dtype=np.float64)
@@ -155,7 +223,7 @@ class BodiesMixin:
         else:
             actor = entry[0]
         if fresh:
-            actor.GetMapper().SetInputData(surface_polydata(surf))
+            actor.GetMapper().SetInputData(surface_polydata(surf, fragment_tint(b)))
         actor.SetUserMatrix(vtk_matrix(matrix))
         self._body_actors[b] = (actor, surf, revision)
         return int(fresh)

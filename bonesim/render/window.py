@@ -65,7 +65,9 @@ ACTIONS = ("next_burr", "previous_burr", "drill_toggle", "reverse", "speed_up",
            "depth_in", "depth_out", "reset_view", "nerve_monitor", "cut_plane", "cut_stroke",
            # session playback (bonesim.render.playback)
            "play_pause", "seek_back_1s", "seek_forward_1s", "seek_back_10s",
-           "seek_forward_10s", "seek_start", "seek_end")
+           "seek_forward_10s", "seek_start", "seek_end",
+           # fragments and plates (bonesim.runtime.rigid_commands)
+           "grab_toggle", "place_plate", "affix_plate", "distract_more", "distract_less")
 
 #: Default key map: VTK key symbol -> action.
 DEFAULT_KEYS = {
@@ -84,6 +86,8 @@ DEFAULT_KEYS = {
     "m": "nerve_monitor",
     "k": "cut_plane", "Return": "cut_stroke",
     "q": "quit", "Escape": "quit",
+    "g": "grab_toggle", "b": "place_plate", "a": "affix_plate",
+    "bracketright": "distract_more", "bracketleft": "distract_less",
 }
 
 MOUSE_HELP = (

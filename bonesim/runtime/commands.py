@@ -412,6 +412,9 @@ class MoveBody(Command):
     @classmethod
     def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
         publish_pose(ctx.state, int(args[0]), args[1:8].copy(), ctx.t_s)
+        rigid = getattr(ctx, "rigid", None)        # placed by hand: it stays put
+        if rigid is not None:
+            rigid.hold(int(args[0]))
 
 
 class SplitPart(Command):

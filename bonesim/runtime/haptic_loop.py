@@ -63,6 +63,7 @@ from bonesim.runtime.commands import (
     SetTool,
 )
 from bonesim.runtime.shared import SharedArrays
+from bonesim.runtime.rigid_commands import attach_rigid, rigid_step, warmup_rigid
 
 __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",
            "attach", "push_sample", "HapticLoop"]
@@ -224,6 +225,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     ctx = LoopContext(m, state, device, coupling, status)
     queue = CommandQueue(child.rings["commands"], known)
     warmup()
+    # fragments and plates in motion (bonesim.runtime.rigid_commands)
+    attach_rigid(ctx, m, rate_hz)
+    warmup_rigid()
     if vibration:
         from bonesim.physics.vibration import warmup as vibration_warmup
 
@@ -295,6 +299,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             if pedal is not None:
                 drill, speed = pedal.apply(t, drill, speed)
                 st_pedal[...] = 1 if pedal.connected else 2
+            rigid_step(ctx, t, pos, drill, burr)   # poses published before the step
             f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction, burr))
             fv = no_vib
             if vibs[burr] is not None:

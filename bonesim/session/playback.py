@@ -174,7 +174,7 @@ class Timeline:
             ev["t_s"][:], ev["ijk"][:], ev["label"][:] = rt, self.rem_ijk, lab
         else:
             ev = events.select({f: tissue[f] for f in events.TISSUE_FIELDS},
-                               events.REMOVED, events.SPLIT, events.POSE)
+                               events.REMOVED, events.SPLIT, events.POSE, events.PLATE)
             order = np.argsort(ev["t_s"], kind="stable")
             ev = {f: a[order] for f, a in ev.items()}
         self.shape_ev = ev

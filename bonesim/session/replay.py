@@ -2,9 +2,10 @@
 
 A session's samples, stepped again from the case's initial tissue with the
 recorded burrs, must give the recorded tissue events and forces exactly
-(``bonesim replay --verify``). The recorded body splits and poses, and the
-specks shed as dust with a fragment (removals marked ``REMOVED_SHED``), are inputs
-too (commands the haptic loop applied between two steps): the replay applies
+(``bonesim replay --verify``). The recorded body splits and poses, the
+specks shed as dust with a fragment (removals marked ``REMOVED_SHED``) and the
+plates' poses are inputs too (commands the haptic loop applied between two
+steps): the replay applies
 them again before the step of their time. A damaged file is replayed over its readable
 part (:func:`bonesim.session.reader.read_session` cuts every stream at the
 same moment).
@@ -94,7 +95,7 @@ def _body_commands(tissue: dict, injury=None) -> list:
     kind = tissue["kind"]
     shed = (kind == events.REMOVED) & (tissue["n"] == events.REMOVED_SHED)
     idx = np.flatnonzero((kind == events.SPLIT) | (kind == events.POSE) | (kind == events.CUT)
-                         | shed)
+                         | (kind == events.PLATE) | shed)
     out = []
     q = 0
     while q < len(idx):
@@ -117,6 +118,12 @@ def _body_commands(tissue: dict, injury=None) -> list:
         if kind[i] == events.CUT:
             out.append((t, lambda st, v=tissue["ijk"][i].copy(), p=tissue["value"][i].copy(),
                         t=t: publish_cut_record(st, injury, v, p, t)))
+            q += 1
+            continue
+        if kind[i] == events.PLATE:
+            # a plate's pose touches no tissue: the record again, as it was
+            rec = {f: tissue[f][i:i + 1].copy() for f in events.TISSUE_FIELDS}
+            out.append((t, lambda st, r=rec: st.tissue.append(**r)))
             q += 1
             continue
         if kind[i] == events.POSE:

@@ -76,6 +76,10 @@ def split_run(model, tmp_path_factory):
         # at least a second of drilling across the cut
         assert _wait(lambda: loop.state.n_removed > n0 + 150
                      and float(loop.status["t_s"]) > t0 + DRILL_S)
+        # the tool off the bone before the drill stops (a stopped tool would
+        # push the split-off body: bonesim.runtime.rigid_commands)
+        loop.set_target(target - 20.0 * view, view)
+        assert _wait(lambda: np.linalg.norm(np.asarray(loop.status["pos_mm"]) - target) > 15.0)
         loop.set_drill(False)
         time.sleep(0.05)
         # a replica following the loop holds its tissue
