@@ -466,6 +466,8 @@ class ShedPart(SplitPart):
 
 
 __all__ += ["SplitPart", "ShedPart"]
+
+
 class CutPlane(Command):
     """One stroke of the cut plane (:mod:`bonesim.engine.cut_plane`): a
     rectangle at ``pose`` ``(cx, cy, cz [mm], qw, qx, qy, qz)`` (case frame;
