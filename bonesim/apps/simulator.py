@@ -211,9 +211,10 @@ class App:
 
     # -------------------------------------------------------------- set-up
     def _make_backend(self, name: str, start_mm, view):
-        from bonesim.devices.registry import device_record, make_device
+        from bonesim.devices.registry import device_record, make_device, probe
 
         backend = make_device(name, start_mm=start_mm, view=view)
+        probe(name, backend)               # the device's own limits, for model and header
         self.device_record = device_record(name, backend)
         return backend
 

@@ -95,6 +95,9 @@ STATUS = (
     ("device_unplugs", np.int64),           # times the device went away
     ("camera_rate", np.float64, (6,)),      # rate device, camera mode: pan [mm/s], orbit [deg/s]
     ("pedal", np.uint8),                    # foot pedal: 0 none, 1 connected, 2 unplugged
+    # a real device's record as opened (and re-opened): max force [N], workspace
+    # x, y, z [mm], max stiffness [N/mm]; NaN before (see _publish_caps)
+    ("device_caps", np.float64, (5,)),
 )
 #: The window's continuous inputs (window -> loop), after the process base's.
 CONTROL = (
@@ -200,6 +203,11 @@ def _safe_device(spec, control):
     return SafeDevice(dev, fallback=SharedInputDevice(control["target_mm"], control["axis"]))
 
 
+def _publish_caps(status, caps) -> None:
+    """The record a device opened with, into ``status["device_caps"]``."""
+    status["device_caps"] = (caps.max_force_n, *caps.workspace_mm, caps.max_stiffness_n_per_mm)
+
+
 def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
               run_s: float | None, vibration: bool, known: tuple, pedal=None) -> None:
     """Body of the haptic process (:meth:`HapticLoop.run`)."""
@@ -240,7 +248,11 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             pedal = make_device(pedal, pedal_ok=True)
         pedal = PedalGuard(pedal)
         pedal.open()
+    status["device_caps"] = math.nan
     device.open()
+    replugs = 0
+    if safe is not None:
+        _publish_caps(status, safe.caps)
     try:
         device.read(0.0)
         status["realtime"] = 1 if _ask_realtime() else 0
@@ -313,6 +325,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                 st_dev[...] = safe.state
                 st_rej[...] = safe.n_rejected
                 st_unplugs[...] = safe.unplugs
+                if safe.replugs != replugs:    # re-opened: maybe another arm
+                    replugs = safe.replugs
+                    _publish_caps(status, safe.caps)
                 if cam_rate is not None:
                     st_cam[...] = 0.0 if safe.state == UNPLUGGED else cam_rate
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
