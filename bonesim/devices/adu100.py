@@ -359,6 +359,21 @@ class ADU100Handle:
             return np.full(len(self.channels), math.nan)
         return angles_deg(self.calibration, self.counts)
 
+    def readings_into(self, angles, counts) -> None:
+        """The latest counts and their angles [deg] (as :attr:`angles`) written
+        into ``angles`` and ``counts`` (equal length arrays; entries past the
+        channels, and angles without a calibration, are NaN), allocating no
+        array (the haptic loop records them: :mod:`bonesim.runtime.handle_stream`)."""
+        angles[:] = math.nan
+        counts[:] = math.nan
+        cal = self.calibration
+        for i in range(min(len(self.channels), len(counts))):
+            c = float(self.counts[i])
+            counts[i] = c
+            if cal is not None:
+                o, od = cal["open"][i], cal["open_deg"][i]
+                angles[i] = od + (c - o) / (cal["closed"][i] - o) * (cal["closed_deg"][i] - od)
+
     def lever_fraction(self) -> float:
         """How far the lever is closed: 0 open, 1 closed (clipped)."""
         if self.calibration is None or not self.counts[0] == self.counts[0]:

@@ -54,6 +54,7 @@ from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from bonesim.engine.model import Model, Sample, make_state, state_arrays_spec, step
 from bonesim.runtime import commands
 from bonesim.runtime.child import ChildProcess
+from bonesim.runtime.handle_stream import HandleTap, handle_of
 from bonesim.runtime.commands import (
     CommandQueue,
     CommandSender,
@@ -138,11 +139,13 @@ def attach(handle) -> tuple:
     shared : SharedArrays
         Keep it alive while the rings are used; ``close()`` it after.
     rings : dict of str -> events.Ring
-        ``samples``, ``tissue`` and ``touched``.
+        ``samples``, ``tissue`` and ``touched``; ``handle`` (an
+        instrumented handle's angles, :mod:`bonesim.runtime.handle_stream`).
     """
     sh = SharedArrays.attach(handle)
     rings = {name: events.ring_from_arrays(name, sh.arrays)
              for name in ("samples", "tissue", "touched")}
+    rings["handle"] = events.ring_from_arrays("handle", sh.arrays)
     return sh, rings
 
 
@@ -248,6 +251,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             pedal = make_device(pedal, pedal_ok=True)
         pedal = PedalGuard(pedal)
         pedal.open()
+    tap = None                             # an instrumented handle's angles, recorded
+    if pedal is not None and handle_of(pedal) is not None:
+        tap = HandleTap(child.rings["handle"], handle_of(pedal))
     status["device_caps"] = math.nan
     device.open()
     replugs = 0
@@ -332,6 +338,8 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                     st_cam[...] = 0.0 if safe.state == UNPLUGGED else cam_rate
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
                         ctx.epoch, r.buttons, f, fv)
+            if tap is not None:
+                tap(t)
             st_t[...] = t
             st_pos[...] = state.pos_mm
             st_axis[...] = state.axis
@@ -405,7 +413,7 @@ class HapticLoop(ChildProcess):
     NAME = "bonesim-haptic"
     STATUS = STATUS
     CONTROL = CONTROL
-    RINGS = ("samples", "commands")
+    RINGS = ("samples", "commands", "handle")
     START_TIMEOUT_S = START_TIMEOUT_S
 
     def __init__(self, model: Model, burrs=(), device=("mouse",), rate_hz: float = 1000.0,
