@@ -157,6 +157,9 @@ class App:
                 raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
                                    f"{', '.join(AUXILIARY)}", field="--pedal")
             pedal_dev = make_device(pedal, pedal_ok=True)
+            from bonesim.devices.registry import probe
+
+            probe(pedal, pedal_dev)        # the handle's own calibration, for the header
             self.device_record = dict(self.device_record or {"backend": "mouse"},
                                       pedal=device_record(pedal, pedal_dev))
         self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device,

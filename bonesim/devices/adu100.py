@@ -38,7 +38,7 @@ from bonesim.errors import BonesimError
 __all__ = ["VENDOR_ID", "PRODUCT_ID", "EP_OUT", "EP_IN", "PACKET", "MAX_COUNTS", "NEEDS",
            "SETTINGS", "DEFAULT_OPEN_DEG", "DEFAULT_CLOSED_DEG", "CAL_SAMPLES",
            "encode_command", "decode_answer", "calibrate", "angles_deg", "run_calibration",
-           "library_missing", "connected", "ADU100Handle", "DEVICE"]
+           "library_missing", "connected", "READS_OWN_RECORD", "ADU100Handle", "DEVICE"]
 
 VENDOR_ID = 0x0A07
 PRODUCT_ID = 0x0064            # 100
@@ -72,6 +72,9 @@ DEFAULT_CLOSED_DEG = (0.0, 180.0)
 CAL_SAMPLES = 20
 #: Calibration keys, per channel lists.
 CAL_KEYS = ("channels", "open", "closed", "open_deg", "closed_deg")
+#: Opening finds the box's own calibration (by its serial number)
+#: (:func:`bonesim.devices.registry.probe`).
+READS_OWN_RECORD = True
 
 
 def encode_command(text: str) -> bytes:

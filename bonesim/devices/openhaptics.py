@@ -35,7 +35,7 @@ from bonesim.devices.simulated_hand import TOUCH_CAPS
 from bonesim.errors import BonesimError
 
 __all__ = ["CAPS", "NEEDS", "SETTINGS", "START_KEY", "FRAME_KEY", "INSTALL_BINDING",
-           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "READS_CAPS", "library_missing",
+           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "READS_OWN_RECORD", "library_missing",
            "connected",
            "OpenHapticsDevice", "DEVICE"]
 
@@ -59,7 +59,7 @@ START_KEY = "origin_mm"
 FRAME_KEY = "frame"
 #: The device reports its own limits when opened
 #: (:func:`bonesim.devices.registry.probe`).
-READS_CAPS = True
+READS_OWN_RECORD = True
 #: Most errors cleared from the HD library's error stack before opening.
 MAX_STALE_ERRORS = 64
 

@@ -16,9 +16,9 @@ backend module provides:
     the devices of its kind plugged in now (empty without the library);
 ``DEVICE``
     the class, constructed as ``DEVICE(settings: dict, calibration: dict | None)``;
-``READS_CAPS`` (optional)
-    True if the device replaces ``CAPS`` with its own record when opened
-    (:func:`probe` reads it before a run).
+``READS_OWN_RECORD`` (optional)
+    True if the device replaces ``CAPS`` (or its calibration) with its own
+    when opened (:func:`probe` reads them before a run).
 
 :func:`make_device` builds a backend with the user's settings and
 calibration (:mod:`bonesim.devices.config`); :func:`device_record` is what a
@@ -158,17 +158,18 @@ def device_record(name: str, device=None) -> dict:
 
 
 def probe(name: str, device) -> bool:
-    """Give ``device`` the capability record the hardware reports, before a run.
+    """Give ``device`` the record the hardware reports, before a run.
 
-    A backend whose device reads its own limits when opened (module
-    attribute ``READS_CAPS``, e.g. the Touch's maximum continuous force,
-    stiffness and workspace) is opened once here, through a twin built from
-    the same settings and calibration, and closed again; ``device.caps``
-    becomes the twin's. The haptic loop opens ``device`` itself later, in its
-    own process, after the session header and the model (whose limits the
-    physics is built with) must exist: probing first puts the record the run
-    uses in both. The loop publishes the record it opened with
-    (``status["device_caps"]``) to check this.
+    A backend whose device reads its own record when opened (module
+    attribute ``READS_OWN_RECORD``: the Touch's maximum continuous force,
+    stiffness and workspace; the ADU100 handle's calibration, stored under
+    the box's serial number) is opened once here, through a twin built from
+    the same settings and calibration, and closed again; ``device.caps`` and
+    ``device.calibration`` become the twin's. The haptic loop opens
+    ``device`` itself later, in its own process, after the session header
+    and the model (whose limits the physics is built with) must exist:
+    probing first puts the record the run uses in both. The loop publishes
+    the capability record it opened with (``status["device_caps"]``).
 
     Returns
     -------
@@ -181,13 +182,15 @@ def probe(name: str, device) -> bool:
         The device is not there (its backend's message).
     """
     if BACKENDS.get(name, (None,))[0] is None or \
-            not getattr(backend_module(name), "READS_CAPS", False):
+            not getattr(backend_module(name), "READS_OWN_RECORD", False):
         return False
     twin = type(device)(dict(getattr(device, "settings", {}) or {}),
                         getattr(device, "calibration", None))
     twin.open()
     try:
-        device.caps = twin.caps
+        if hasattr(twin, "caps"):
+            device.caps = twin.caps
+        device.calibration = twin.calibration
     finally:
         twin.close()
     return True

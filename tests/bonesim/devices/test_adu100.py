@@ -252,7 +252,8 @@ def test_files_without_the_handle_group_still_read(model, tmp_path):
 
 class CountingHandle:
     """A handle for the haptic loop's process (the USB stand-in's poller
-    thread cannot be pickled there; the handle's own readings_into runs): each poll is a new reading whose lever
+    thread cannot be pickled there; the handle's own readings_into runs): each
+    poll is a new reading whose lever
     count is the number of polls, calibrated as ``CAL``; squeezed, so the
     drill runs."""
 
@@ -315,3 +316,31 @@ def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
     np.testing.assert_array_equal(a[:, :2], adu100.angles_deg(CountingHandle.CAL, c[:, :2]))
     np.testing.assert_allclose(a[:, 1], 90.0)
     assert s.samples["drill"].all()
+
+
+def test_probing_puts_the_boxs_own_calibration_in_the_header_record(cfg, monkeypatch):
+    """As ``bonesim run --pedal adu100-handle`` does before the header is made:
+    the handle made from the config holds the ``default`` calibration; the box
+    plugged in is B07777, calibrated on its own, and probing it (pyusb's
+    find() over the stand-in as its libusb-1.0 backend) gives that one."""
+    import usb.backend.libusb1 as libusb1
+
+    from bonesim.devices import registry
+    from bonesim.devices.config import set_calibration
+
+    box = FakeADU100(serial="B07777")
+    be = FakeUsbBackend(box)
+    monkeypatch.setattr(libusb1, "get_backend", lambda *a, **k: be)
+    other = adu100.calibrate([1000, 0], [51000, 60000], [30.0, 0.0], [0.0, 180.0])
+    mine = adu100.calibrate([3000, 100], [43000, 50100], [25.0, 0.0], [0.0, 90.0])
+    set_calibration("adu100-handle", "default", {**other, "serial": "B00001"})
+    set_calibration("adu100-handle", "B07777", {**mine, "serial": "B07777"})
+    h = registry.make_device("adu100-handle", pedal_ok=True)
+    assert h.calibration["open"] == other["open"]
+    assert registry.probe("adu100-handle", h)
+    assert h.calibration["serial"] == "B07777" and h.calibration["open"] == mine["open"]
+    assert h._dev is None and h._thread is None            # the run opens it itself
+    assert box.commands[-2:] == ["RUN10", "RUN20"]           # the twin read the box
+    rec = registry.device_record("adu100-handle", h)
+    assert rec["caps"] is None and rec["calibration"]["closed_deg"] == [0.0, 90.0]
+    assert not registry.probe("pedal", object())           # a pedal has nothing to read
