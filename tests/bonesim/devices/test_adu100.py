@@ -219,6 +219,10 @@ def test_a_recorded_handle_run_keeps_its_angles_replays_and_plays_back(model, tm
     p = Player(s, surface=False)
     p.seek(s.duration_s)
     np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)
+    assert p.frame().handle_deg == tuple(a[-1, :2])        # playback shows the angles
+    mid = t[len(t) // 2] - s.samples["t_s"][0]
+    assert p.frame(mid).handle_deg == tuple(a[len(t) // 2, :2])
+    assert p.frame(0.0).handle_deg == (30.0, 90.0)
 
 
 def test_files_without_the_handle_group_still_read(model, tmp_path):

@@ -1,6 +1,5 @@
 """Runs recorded with every device backend replay bit for bit and play back
-drawn offscreen: the
-simulated hand, the SpaceMouse and the foot pedal (hidapi stand-in), the
+drawn offscreen: the simulated hand, the SpaceMouse and the foot pedal (hidapi stand-in), the
 ADU100 handle (pyusb backend stand-in) and the Touch (HD library stub). The
 runs go through the in-process servo driver of the device tests
 (``tests/bonesim/devices/drive.py``): the stand-ins live in this process.
@@ -73,7 +72,7 @@ def _run(name, model, path, tmp):
             from bonesim.devices.standins.adu100_usb import FakeADU100, FakeUsbBackend
 
             box = FakeADU100()
-            box.analog.update({1: 52000, 2: 0})                   # squeezed shut
+            box.analog.update({1: 52000, 2: 30000})               # squeezed; wheel 90 deg
             cal = adu100.calibrate([2000, 0], [52000, 60000], [30.0, 0.0], [0.0, 180.0])
             pedal = adu100.ADU100Handle({}, cal, usb_backend=FakeUsbBackend(box))
             rec = {"backend": "null", "pedal": device_record(name, pedal)}
@@ -148,5 +147,9 @@ def test_a_run_made_with_each_backend_plays_back_drawn(sessions, name):
         assert scene.surface is player.surface
         assert scene._buffers.n_full == player.surface.n_triangles != before
         assert scene.image().std() > 0                     # something was drawn
+        if name == "adu100-handle":                        # the handle's angles, shown
+            assert "handle: 0.0 / 90.0 deg" in scene.hud_text, scene.hud_text
+        else:
+            assert "handle" not in scene.hud_text
     finally:
         scene.close()
