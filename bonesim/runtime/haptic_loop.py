@@ -28,7 +28,9 @@ which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99,
 and one record per step into the ``samples`` ring (device reading, stepped
 pose, drill state, forces; see :data:`bonesim.engine.events.OTHER_RINGS`): the
 recorder and the tutoring server drain it from their own processes
-(:func:`attach`), so the loop itself never touches a disk or a socket.
+(:func:`attach`), so the loop itself never touches a disk or a socket. With
+an instrumented handle (``pedal``) the loop also writes the handle's angles
+into the ``handle`` ring (:mod:`bonesim.runtime.handle_stream`).
 
 The loop process asks for real-time scheduling (``SCHED_FIFO``) and runs with
 Python's garbage collector frozen; ``status["realtime"]`` says whether the
@@ -145,7 +147,8 @@ def attach(handle) -> tuple:
     sh = SharedArrays.attach(handle)
     rings = {name: events.ring_from_arrays(name, sh.arrays)
              for name in ("samples", "tissue", "touched")}
-    rings["handle"] = events.ring_from_arrays("handle", sh.arrays)
+    if "handle.head" in sh.arrays:         # a loop with an instrumented handle's ring
+        rings["handle"] = events.ring_from_arrays("handle", sh.arrays)
     return sh, rings
 
 

@@ -501,7 +501,7 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
         pass
     rings = {"samples": rings["samples"], "tissue": rings["tissue"],
              "camera": child.rings["camera"], "ui": child.rings["ui"],
-             "handle": rings["handle"]}
+             **({"handle": rings["handle"]} if "handle" in rings else {})}
     vis = None
     if models is not None:
         from bonesim.physics.visibility import VisibilityTracker
