@@ -56,7 +56,6 @@ from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
 from bonesim.engine.model import Model, Sample, make_state, state_arrays_spec, step
 from bonesim.runtime import commands
 from bonesim.runtime.child import ChildProcess
-from bonesim.runtime.handle_stream import HandleTap, handle_of
 from bonesim.runtime.commands import (
     CommandQueue,
     CommandSender,
@@ -65,6 +64,7 @@ from bonesim.runtime.commands import (
     SetBurr,
     SetTool,
 )
+from bonesim.runtime.handle_stream import HandleTap, handle_of
 from bonesim.runtime.shared import SharedArrays
 
 __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",
