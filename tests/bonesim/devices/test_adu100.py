@@ -320,6 +320,10 @@ def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
     np.testing.assert_array_equal(a[:, :2], adu100.angles_deg(CountingHandle.CAL, c[:, :2]))
     np.testing.assert_allclose(a[:, 1], 90.0)
     assert s.samples["drill"].all()
+    from bonesim.session.replay import verify
+
+    report = verify(s)                                      # the loop's run replays
+    assert report["ok"], report
 
 
 def test_probing_puts_the_boxs_own_calibration_in_the_header_record(cfg, monkeypatch):

@@ -86,7 +86,7 @@ def model():
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     from bonesim.devices.openhaptics import OpenHapticsDevice
-    from bonesim.devices.registry import device_record
+    from bonesim.devices.registry import device_record, probe
     from bonesim.io.case import load_case
     from bonesim.runtime.record import make_header
     from bonesim.session.playback import Player
@@ -102,6 +102,7 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     dev = OpenHapticsDevice({"origin_mm": list(start), "lost_s": 0.05})
     stub.stub_place(0.0, 0.0, 0.0)
     lim = SafetyLimits(still_for_s=0.1, ramp_s=0.1, reconnect_s=0.1)
+    probe("touch", dev)                    # as the app does: the device's own record
     header = make_header(model, input_device="touch", device_record=device_record("touch", dev))
     path = tmp_path / "touch.h5"
     run = drive(model, dev, 300, realtime=True, limits=lim, record=path, header=header)
@@ -143,6 +144,7 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     # the run (unplug included) replays bit for bit and plays back
     s = read_session(path)
     assert s.header["input"] == "touch" and s.header["device_record"]["backend"] == "touch"
+    assert s.header["device_record"]["caps"]["max_force_n"] == pytest.approx(0.88)
     assert len(s.removals["t_s"]) == run["state"].n_removed > 0
     report = verify(s)
     assert report["ok"], report
