@@ -439,7 +439,13 @@ class App:
             self._pedal_gone = gone
             if self.recorder is not None:
                 self.recorder.event("pedal", "unplugged" if gone else "connected")
-        return {"pedal": "UNPLUGGED - drill off"} if gone else {}
+        out = {"pedal": "UNPLUGGED - drill off"} if gone else {}
+        from bonesim.runtime.handle_stream import handle_text
+
+        angles = handle_text(self.loop.status["handle_deg"])   # an instrumented handle's
+        if angles is not None:
+            out["handle"] = angles
+        return out
 
     def _device_status(self):
         """``(name, state, rejected)`` of a real device (None for the mouse or a

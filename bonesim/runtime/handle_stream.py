@@ -14,11 +14,18 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["HANDLE_RECORD_S", "HandleTap", "handle_of"]
+__all__ = ["HANDLE_RECORD_S", "HandleTap", "handle_of", "handle_text"]
 
 #: Shortest interval between two recorded handle readings [s] (100 Hz: the
 #: box answers one channel per USB round trip of a few milliseconds).
 HANDLE_RECORD_S = 0.01
+
+
+def handle_text(angles_deg) -> str | None:
+    """The HUD's ``handle`` line: the angles with a value [deg], e.g.
+    ``"7.5 / 90.0 deg"``; None if none has one."""
+    a = [float(x) for x in angles_deg if x == x]
+    return " / ".join(f"{x:.1f}" for x in a) + " deg" if a else None
 
 
 def handle_of(pedal):
@@ -37,11 +44,15 @@ class HandleTap:
         The ``handle`` ring.
     handle : ADU100Handle
         Has ``reads`` (complete polls so far) and ``readings_into(angles, counts)``.
+    latest : ndarray, optional
+        Also gets each recorded record's angles (the loop's
+        ``status["handle_deg"]``, for the window's HUD).
     """
 
-    def __init__(self, ring, handle):
+    def __init__(self, ring, handle, latest=None):
         self.ring = ring
         self.handle = handle
+        self.latest = latest
         self._reads = -1
         self._next = -math.inf
 
@@ -58,4 +69,6 @@ class HandleTap:
         f["t_s"][q] = t_s
         h.readings_into(f["angles_deg"][q], f["counts"][q])
         self.ring.head[0] += 1          # publish after the record is complete
+        if self.latest is not None:
+            self.latest[...] = f["angles_deg"][q]
         return True

@@ -101,6 +101,8 @@ STATUS = (
     # a real device's record as opened (and re-opened): max force [N], workspace
     # x, y, z [mm], max stiffness [N/mm]; NaN before (see _publish_caps)
     ("device_caps", np.float64, (5,)),
+    # an instrumented handle's angles last recorded [deg] (NaN: none)
+    ("handle_deg", np.float64, (events.HANDLE_CHANNELS,)),
 )
 #: The window's continuous inputs (window -> loop), after the process base's.
 CONTROL = (
@@ -256,8 +258,9 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
         pedal.open()
     tap = None                             # an instrumented handle's angles, recorded
     if pedal is not None and handle_of(pedal) is not None:
-        tap = HandleTap(child.rings["handle"], handle_of(pedal))
+        tap = HandleTap(child.rings["handle"], handle_of(pedal), status["handle_deg"])
     status["device_caps"] = math.nan
+    status["handle_deg"] = math.nan
     device.open()
     replugs = 0
     if safe is not None:

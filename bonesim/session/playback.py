@@ -526,7 +526,9 @@ def hud_info(frame: Frame, model, *, speed: float | None = None,
         removed += f" since reset {frame.epoch}"
     info["removed"] = removed
     if frame.handle_deg is not None:
-        info["handle"] = " / ".join(f"{a:.1f}" for a in frame.handle_deg) + " deg"
+        from bonesim.runtime.handle_stream import handle_text
+
+        info["handle"] = handle_text(frame.handle_deg)
     lines = [f"INJURY {r}" for r in frame.recent] + [str(n) for n in notices]
     if lines:
         info["message"] = "\n".join(lines)

@@ -292,7 +292,7 @@ class CountingHandle:
 def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
     """Through the loop's process and the recorder's: the ``handle`` ring
     into ``/handle`` at HANDLE_RECORD_S, each row the reading of its step."""
-    from bonesim.runtime.handle_stream import HANDLE_RECORD_S
+    from bonesim.runtime.handle_stream import HANDLE_RECORD_S, handle_text
     from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.runtime.record import Recorder, make_header
     from bonesim.session.reader import read_session
@@ -306,10 +306,14 @@ def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
         loop.start()
         assert loop.wait(30.0)
         rec.close()
+        latest = loop.status["handle_deg"].copy()
     finally:
         loop.close()
     s = read_session(path)
     t, a, c = s.handle["t_s"], s.handle["angles_deg"], s.handle["counts"]
+    # the window's HUD reads the angles last recorded from the loop's status
+    np.testing.assert_array_equal(latest, a[-1])
+    assert handle_text(latest) == f"{a[-1, 0]:.1f} / 90.0 deg"
     steps = len(s.samples["t_s"])
     assert steps > 100 and np.isin(t, s.samples["t_s"]).all()
     assert (np.diff(t) >= HANDLE_RECORD_S - 1e-12).all()
