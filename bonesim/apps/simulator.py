@@ -443,7 +443,7 @@ class App:
         from bonesim.runtime.handle_stream import handle_text
 
         angles = handle_text(self.loop.status["handle_deg"])   # an instrumented handle's
-        if angles is not None:
+        if angles is not None and not gone:                      # (stale while away)
             out["handle"] = angles
         return out
 
