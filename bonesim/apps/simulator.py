@@ -174,6 +174,9 @@ class App:
                 raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
                                    f"{', '.join(AUXILIARY)}", field="--pedal")
             pedal_dev = make_device(pedal, pedal_ok=True)
+            from bonesim.devices.registry import probe
+
+            probe(pedal, pedal_dev)        # the handle's own calibration, for the header
             self.device_record = dict(self.device_record or {"backend": "mouse"},
                                       pedal=device_record(pedal, pedal_dev))
         self.loop = HapticLoop(self.model, burrs=self.burrs[1:], device=device,
@@ -229,9 +232,10 @@ class App:
 
     # -------------------------------------------------------------- set-up
     def _make_backend(self, name: str, start_mm, view):
-        from bonesim.devices.registry import device_record, make_device
+        from bonesim.devices.registry import device_record, make_device, probe
 
         backend = make_device(name, start_mm=start_mm, view=view)
+        probe(name, backend)               # the device's own limits, for model and header
         self.device_record = device_record(name, backend)
         return backend
 
@@ -457,7 +461,13 @@ class App:
             self._pedal_gone = gone
             if self.recorder is not None:
                 self.recorder.event("pedal", "unplugged" if gone else "connected")
-        return {"pedal": "UNPLUGGED - drill off"} if gone else {}
+        out = {"pedal": "UNPLUGGED - drill off"} if gone else {}
+        from bonesim.runtime.handle_stream import handle_text
+
+        angles = handle_text(self.loop.status["handle_deg"])   # an instrumented handle's
+        if angles is not None and not gone:                      # (stale while away)
+            out["handle"] = angles
+        return out
 
     def _device_status(self):
         """``(name, state, rejected)`` of a real device (None for the mouse or a

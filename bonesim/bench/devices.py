@@ -54,6 +54,15 @@ def _time_pose(safe, n: int, before=None) -> np.ndarray:
 
 
 def _time_aux(guard, n: int, before=None) -> np.ndarray:
+    """The pedal guard's ``apply`` per step, and for a handle the loop's
+    recording of its angles (:class:`bonesim.runtime.handle_stream.HandleTap`)."""
+    from bonesim.engine import events
+    from bonesim.runtime.handle_stream import HandleTap, handle_of
+
+    tap = None
+    if handle_of(guard) is not None:
+        tap = HandleTap(events.Ring.create(1 << 12, **events.OTHER_RINGS["handle"][1]),
+                        handle_of(guard))
     perf = time.perf_counter_ns
     ns = np.empty(n, np.int64)
     for k in range(n):
@@ -61,6 +70,8 @@ def _time_aux(guard, n: int, before=None) -> np.ndarray:
             before(k)
         t0 = perf()
         guard.apply(k * 1e-3, False, 60000.0)
+        if tap is not None:
+            tap(k * 1e-3)
         ns[k] = perf() - t0
     return ns
 
@@ -128,7 +139,8 @@ def _adu100(n):
         ns = _time_aux(guard, n)
     finally:
         guard.close()
-    return _figure(ns, "adu100-handle", "pyusb over a backend stand-in, poller thread running")
+    return _figure(ns, "adu100-handle", "pyusb over a backend stand-in, poller thread "
+                   "running; angles recorded")
 
 
 def _touch(n):

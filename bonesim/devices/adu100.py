@@ -38,7 +38,7 @@ from bonesim.errors import BonesimError
 __all__ = ["VENDOR_ID", "PRODUCT_ID", "EP_OUT", "EP_IN", "PACKET", "MAX_COUNTS", "NEEDS",
            "SETTINGS", "DEFAULT_OPEN_DEG", "DEFAULT_CLOSED_DEG", "CAL_SAMPLES",
            "encode_command", "decode_answer", "calibrate", "angles_deg", "run_calibration",
-           "library_missing", "connected", "ADU100Handle", "DEVICE"]
+           "library_missing", "connected", "READS_OWN_RECORD", "ADU100Handle", "DEVICE"]
 
 VENDOR_ID = 0x0A07
 PRODUCT_ID = 0x0064            # 100
@@ -72,6 +72,9 @@ DEFAULT_CLOSED_DEG = (0.0, 180.0)
 CAL_SAMPLES = 20
 #: Calibration keys, per channel lists.
 CAL_KEYS = ("channels", "open", "closed", "open_deg", "closed_deg")
+#: Opening finds the box's own calibration (by its serial number)
+#: (:func:`bonesim.devices.registry.probe`).
+READS_OWN_RECORD = True
 
 
 def encode_command(text: str) -> bytes:
@@ -358,6 +361,21 @@ class ADU100Handle:
         if self.calibration is None:
             return np.full(len(self.channels), math.nan)
         return angles_deg(self.calibration, self.counts)
+
+    def readings_into(self, angles, counts) -> None:
+        """The latest counts and their angles [deg] (as :attr:`angles`) written
+        into ``angles`` and ``counts`` (equal length arrays; entries past the
+        channels, and angles without a calibration, are NaN), allocating no
+        array (the haptic loop records them: :mod:`bonesim.runtime.handle_stream`)."""
+        angles[:] = math.nan
+        counts[:] = math.nan
+        cal = self.calibration
+        for i in range(min(len(self.channels), len(counts))):
+            c = float(self.counts[i])
+            counts[i] = c
+            if cal is not None:
+                o, od = cal["open"][i], cal["open_deg"][i]
+                angles[i] = od + (c - o) / (cal["closed"][i] - o) * (cal["closed_deg"][i] - od)
 
     def lever_fraction(self) -> float:
         """How far the lever is closed: 0 open, 1 closed (clipped)."""

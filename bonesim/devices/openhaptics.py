@@ -35,7 +35,8 @@ from bonesim.devices.simulated_hand import TOUCH_CAPS
 from bonesim.errors import BonesimError
 
 __all__ = ["CAPS", "NEEDS", "SETTINGS", "START_KEY", "FRAME_KEY", "INSTALL_BINDING",
-           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "library_missing", "connected",
+           "INSTALL_LIBRARY", "MAX_STALE_ERRORS", "READS_OWN_RECORD", "library_missing",
+           "connected",
            "OpenHapticsDevice", "DEVICE"]
 
 CAPS = DeviceCaps("touch", TOUCH_CAPS.max_force_n, TOUCH_CAPS.workspace_mm,
@@ -56,6 +57,9 @@ SETTINGS = {
 }
 START_KEY = "origin_mm"
 FRAME_KEY = "frame"
+#: The device reports its own limits when opened
+#: (:func:`bonesim.devices.registry.probe`).
+READS_OWN_RECORD = True
 #: Most errors cleared from the HD library's error stack before opening.
 MAX_STALE_ERRORS = 64
 

@@ -15,7 +15,10 @@ backend module provides:
 ``connected() -> list of str``
     the devices of its kind plugged in now (empty without the library);
 ``DEVICE``
-    the class, constructed as ``DEVICE(settings: dict, calibration: dict | None)``.
+    the class, constructed as ``DEVICE(settings: dict, calibration: dict | None)``;
+``READS_OWN_RECORD`` (optional)
+    True if the device replaces ``CAPS`` (or its calibration) with its own
+    when opened (:func:`probe` reads them before a run).
 
 :func:`make_device` builds a backend with the user's settings and
 calibration (:mod:`bonesim.devices.config`); :func:`device_record` is what a
@@ -30,7 +33,7 @@ from bonesim.devices import config as _config
 from bonesim.errors import BonesimError
 
 __all__ = ["DEFAULT_DEVICE", "BACKENDS", "AUXILIARY", "backend_names", "backend_module", "describe",
-           "make_device", "device_caps", "device_record"]
+           "make_device", "device_caps", "device_record", "probe"]
 
 #: The device ``bonesim run`` uses unless told otherwise.
 DEFAULT_DEVICE = "mouse"
@@ -152,3 +155,42 @@ def device_record(name: str, device=None) -> dict:
                 "rate_hz": float(caps.rate_hz)},
             "settings": dict(getattr(device, "settings", {}) or {}),
             "calibration": getattr(device, "calibration", None)}
+
+
+def probe(name: str, device) -> bool:
+    """Give ``device`` the record the hardware reports, before a run.
+
+    A backend whose device reads its own record when opened (module
+    attribute ``READS_OWN_RECORD``: the Touch's maximum continuous force,
+    stiffness and workspace; the ADU100 handle's calibration, stored under
+    the box's serial number) is opened once here, through a twin built from
+    the same settings and calibration, and closed again; ``device.caps`` and
+    ``device.calibration`` become the twin's. The haptic loop opens
+    ``device`` itself later, in its own process, after the session header
+    and the model (whose limits the physics is built with) must exist:
+    probing first puts the record the run uses in both. The loop publishes
+    the capability record it opened with (``status["device_caps"]``).
+
+    Returns
+    -------
+    bool
+        Whether the device was probed (False for backends with a fixed record).
+
+    Raises
+    ------
+    BonesimError
+        The device is not there (its backend's message).
+    """
+    if BACKENDS.get(name, (None,))[0] is None or \
+            not getattr(backend_module(name), "READS_OWN_RECORD", False):
+        return False
+    twin = type(device)(dict(getattr(device, "settings", {}) or {}),
+                        getattr(device, "calibration", None))
+    twin.open()
+    try:
+        if hasattr(twin, "caps"):
+            device.caps = twin.caps
+        device.calibration = twin.calibration
+    finally:
+        twin.close()
+    return True

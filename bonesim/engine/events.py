@@ -220,6 +220,15 @@ OTHER_RINGS = {
                           "args": (np.float64, (COMMAND_ARGS,))}),
 }
 
+__all__ += ["HANDLE_CHANNELS"]
+#: Channels an instrumented handle's record holds (unused ones NaN).
+HANDLE_CHANNELS = 4
+# an instrumented handle's readings (bonesim.runtime.handle_stream): loop time
+# [s], calibrated angles [deg] (NaN without a calibration) and raw counts
+OTHER_RINGS["handle"] = (1 << 12, {"t_s": (np.float64, ()),
+                                   "angles_deg": (np.float64, (HANDLE_CHANNELS,)),
+                                   "counts": (np.float64, (HANDLE_CHANNELS,))})
+
 
 def _ring_spec(name: str) -> tuple:
     return RINGS[name] if name in RINGS else OTHER_RINGS[name]

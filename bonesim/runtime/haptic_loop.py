@@ -28,7 +28,9 @@ which :meth:`HapticLoop.rate_stats` computes the loop rate and its p50/p99,
 and one record per step into the ``samples`` ring (device reading, stepped
 pose, drill state, forces; see :data:`bonesim.engine.events.OTHER_RINGS`): the
 recorder and the tutoring server drain it from their own processes
-(:func:`attach`), so the loop itself never touches a disk or a socket.
+(:func:`attach`), so the loop itself never touches a disk or a socket. With
+an instrumented handle (``pedal``) the loop also writes the handle's angles
+into the ``handle`` ring (:mod:`bonesim.runtime.handle_stream`).
 
 The loop process asks for real-time scheduling (``SCHED_FIFO``) and runs with
 Python's garbage collector frozen; ``status["realtime"]`` says whether the
@@ -62,6 +64,7 @@ from bonesim.runtime.commands import (
     SetBurr,
     SetTool,
 )
+from bonesim.runtime.handle_stream import HandleTap, handle_of
 from bonesim.runtime.shared import SharedArrays
 from bonesim.runtime.rigid_commands import attach_rigid, rigid_step, warmup_rigid
 
@@ -96,6 +99,11 @@ STATUS = (
     ("device_unplugs", np.int64),           # times the device went away
     ("camera_rate", np.float64, (6,)),      # rate device, camera mode: pan [mm/s], orbit [deg/s]
     ("pedal", np.uint8),                    # foot pedal: 0 none, 1 connected, 2 unplugged
+    # a real device's record as opened (and re-opened): max force [N], workspace
+    # x, y, z [mm], max stiffness [N/mm]; NaN before (see _publish_caps)
+    ("device_caps", np.float64, (5,)),
+    # an instrumented handle's angles last recorded [deg] (NaN: none)
+    ("handle_deg", np.float64, (events.HANDLE_CHANNELS,)),
 )
 #: The window's continuous inputs (window -> loop), after the process base's.
 CONTROL = (
@@ -136,11 +144,14 @@ def attach(handle) -> tuple:
     shared : SharedArrays
         Keep it alive while the rings are used; ``close()`` it after.
     rings : dict of str -> events.Ring
-        ``samples``, ``tissue`` and ``touched``.
+        ``samples``, ``tissue`` and ``touched``; ``handle`` (an
+        instrumented handle's angles, :mod:`bonesim.runtime.handle_stream`).
     """
     sh = SharedArrays.attach(handle)
     rings = {name: events.ring_from_arrays(name, sh.arrays)
              for name in ("samples", "tissue", "touched")}
+    if "handle.head" in sh.arrays:         # a loop with an instrumented handle's ring
+        rings["handle"] = events.ring_from_arrays("handle", sh.arrays)
     return sh, rings
 
 
@@ -201,6 +212,11 @@ def _safe_device(spec, control):
     return SafeDevice(dev, fallback=SharedInputDevice(control["target_mm"], control["axis"]))
 
 
+def _publish_caps(status, caps) -> None:
+    """The record a device opened with, into ``status["device_caps"]``."""
+    status["device_caps"] = (caps.max_force_n, *caps.workspace_mm, caps.max_stiffness_n_per_mm)
+
+
 def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
               run_s: float | None, vibration: bool, known: tuple, pedal=None) -> None:
     """Body of the haptic process (:meth:`HapticLoop.run`)."""
@@ -244,7 +260,15 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             pedal = make_device(pedal, pedal_ok=True)
         pedal = PedalGuard(pedal)
         pedal.open()
+    tap = None                             # an instrumented handle's angles, recorded
+    if pedal is not None and handle_of(pedal) is not None:
+        tap = HandleTap(child.rings["handle"], handle_of(pedal), status["handle_deg"])
+    status["device_caps"] = math.nan
+    status["handle_deg"] = math.nan
     device.open()
+    replugs = 0
+    if safe is not None:
+        _publish_caps(status, safe.caps)
     try:
         device.read(0.0)
         status["realtime"] = 1 if _ask_realtime() else 0
@@ -318,10 +342,15 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                 st_dev[...] = safe.state
                 st_rej[...] = safe.n_rejected
                 st_unplugs[...] = safe.unplugs
+                if safe.replugs != replugs:    # re-opened: maybe another arm
+                    replugs = safe.replugs
+                    _publish_caps(status, safe.caps)
                 if cam_rate is not None:
                     st_cam[...] = 0.0 if safe.state == UNPLUGGED else cam_rate
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
                         ctx.epoch, r.buttons, f, fv)
+            if tap is not None:
+                tap(t)
             st_t[...] = t
             st_pos[...] = state.pos_mm
             st_axis[...] = state.axis
@@ -395,7 +424,7 @@ class HapticLoop(ChildProcess):
     NAME = "bonesim-haptic"
     STATUS = STATUS
     CONTROL = CONTROL
-    RINGS = ("samples", "commands")
+    RINGS = ("samples", "commands", "handle")
     START_TIMEOUT_S = START_TIMEOUT_S
 
     def __init__(self, model: Model, burrs=(), device=("mouse",), rate_hz: float = 1000.0,

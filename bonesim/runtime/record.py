@@ -36,7 +36,8 @@ from bonesim.errors import BonesimError
 from bonesim.runtime.child import ChildProcess
 
 __all__ = ["SCHEMA_VERSION", "FORMAT", "FLUSH_S", "WRITER_NICE", "CHUNK_ROWS",
-           "COMPACT_GZIP_LEVEL", "COMPACT_CHUNK_ROWS", "GROUPS", "HEADER_KEYS",
+           "COMPACT_GZIP_LEVEL", "COMPACT_CHUNK_ROWS", "GROUPS", "OPTIONAL_GROUPS",
+           "HEADER_KEYS",
            "case_sha256", "burr_sha256", "model_sha256", "make_header",
            "sessions_folder", "default_session_path", "SessionWriter",
            "compact_session", "Drainer", "Recorder"]
@@ -53,6 +54,7 @@ FLUSH_S = 0.05
 WRITER_NICE = 10
 #: Rows per HDF5 chunk, per group, while a file is written.
 CHUNK_ROWS = {"samples": 4096, "tissue": 8192, "camera": 1024, "events": 256}
+CHUNK_ROWS["handle"] = 1024
 #: A closed session is rewritten compressed (:func:`compact_session`): gzip
 #: at this level with byte shuffling (level 4 comes within 5% of level 9's
 #: size in half its time; a 3-minute run shrinks about 9x) ...
@@ -71,6 +73,11 @@ GROUPS = {
     "camera": events.OTHER_RINGS["camera"][1],
     "events": events.OTHER_RINGS["ui"][1],
 }
+#: Optional groups (a file may lack them; :func:`read_session` then gives
+#: them no rows): ``handle``, an instrumented handle's readings
+#: (:mod:`bonesim.runtime.handle_stream`).
+GROUPS["handle"] = events.OTHER_RINGS["handle"][1]
+OPTIONAL_GROUPS = ("handle",)
 #: Header keys every file must carry.
 HEADER_KEYS = ("bonesim_version", "case", "burrs", "oversample", "voxel_mm", "structures",
                "device", "rate_hz", "start_time", "participant", "group", "notes",
@@ -414,9 +421,10 @@ class Drainer:
     """
 
     #: ring name -> file group, in drain order (samples before what follows them)
-    TARGET = {"samples": "samples", "camera": "camera", "tissue": "tissue", "ui": "events"}
+    TARGET = {"samples": "samples", "camera": "camera", "tissue": "tissue", "ui": "events",
+              "handle": "handle"}
     #: rings held back until the samples of their steps are in
-    HELD = ("tissue",)
+    HELD = ("tissue", "handle")
 
     def __init__(self, writer: SessionWriter, rings: dict, visibility=None):
         self.writer = writer
@@ -492,7 +500,8 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
     except (OSError, AttributeError):
         pass
     rings = {"samples": rings["samples"], "tissue": rings["tissue"],
-             "camera": child.rings["camera"], "ui": child.rings["ui"]}
+             "camera": child.rings["camera"], "ui": child.rings["ui"],
+             **({"handle": rings["handle"]} if "handle" in rings else {})}
     vis = None
     if models is not None:
         from bonesim.physics.visibility import VisibilityTracker

@@ -174,9 +174,11 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
 
 class _Recording:
     """Feeds a session file from an in-process run (the haptic loop's
-    ``samples`` ring plus the state's rings, drained every half ring)."""
+    ``samples`` ring plus the state's rings, drained every half ring;
+    ``handle``: an instrumented handle whose angles are recorded as the loop
+    records them, :mod:`bonesim.runtime.handle_stream`)."""
 
-    def __init__(self, model, state, path, header):
+    def __init__(self, model, state, path, header, handle=None):
         from bonesim.runtime.record import Drainer, SessionWriter, make_header
 
         self.state = state
@@ -190,8 +192,14 @@ class _Recording:
 
             vis = VisibilityTracker([model] + [model.with_burr(b) for b in model.burrs[1:]],
                                     cam.eye_mm)
-        self.drainer = Drainer(self.writer, {"samples": self.ring, "tissue": state.tissue},
-                               vis)
+        rings = {"samples": self.ring, "tissue": state.tissue}
+        self.tap = None
+        if handle is not None:
+            from bonesim.runtime.handle_stream import HandleTap
+
+            rings["handle"] = events.Ring.create(1 << 12, **events.OTHER_RINGS["handle"][1])
+            self.tap = HandleTap(rings["handle"], handle)
+        self.drainer = Drainer(self.writer, rings, vis)
         self.zero = np.zeros(3)
 
     def push(self, smp, f) -> None:
@@ -199,6 +207,8 @@ class _Recording:
 
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
                     smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
+        if self.tap is not None:
+            self.tap(smp.t_s)
         if self.ring.count - self.drainer.cursors["samples"].pos >= self.ring.capacity // 2:
             self.drainer.drain()
             self.writer.flush()

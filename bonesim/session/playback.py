@@ -316,6 +316,9 @@ class Frame:
         as ``"<structure> (<kind>) at <time>"``.
     camera : tuple or None
         ``(eye_mm, focal_mm, up)`` of the recorded camera.
+    handle_deg : tuple of float or None
+        An instrumented handle's angles [deg] last recorded at or before the
+        sample (``session.handle``, channels with an angle); None without.
     """
 
     t_s: float
@@ -335,6 +338,20 @@ class Frame:
     injuries: list = field(default_factory=list)
     recent: list = field(default_factory=list)
     camera: tuple | None = None
+    handle_deg: tuple | None = None
+
+
+def _handle_at(session, t_s: float):
+    """The handle's angles [deg] last recorded at or before ``t_s`` (absolute
+    loop time), without the NaN channels; None if there are none."""
+    h = getattr(session, "handle", None)
+    if h is None or not len(h["t_s"]):
+        return None
+    q = int(np.searchsorted(h["t_s"], t_s, side="right")) - 1
+    if q < 0:
+        return None
+    a = tuple(float(x) for x in h["angles_deg"][q] if x == x)
+    return a or None
 
 
 class Player:
@@ -472,7 +489,8 @@ class Player:
                      burr=self.burrs[b], force_n=float(np.linalg.norm(s["force_n"][i])),
                      epoch=epoch, voxels_removed=hi - lo,
                      volume_removed_mm3=(hi - lo) * self.model.spacing_mm ** 3,
-                     injuries=names, recent=recent, camera=tl.camera_at(t))
+                     injuries=names, recent=recent, camera=tl.camera_at(t),
+                     handle_deg=_handle_at(self.session, float(s["t_s"][i])))
 
 
 def hud_info(frame: Frame, model, *, speed: float | None = None,
@@ -507,6 +525,10 @@ def hud_info(frame: Frame, model, *, speed: float | None = None,
     if frame.epoch:
         removed += f" since reset {frame.epoch}"
     info["removed"] = removed
+    if frame.handle_deg is not None:
+        from bonesim.runtime.handle_stream import handle_text
+
+        info["handle"] = handle_text(frame.handle_deg)
     lines = [f"INJURY {r}" for r in frame.recent] + [str(n) for n in notices]
     if lines:
         info["message"] = "\n".join(lines)

@@ -25,6 +25,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
+from bonesim.runtime.record import OPTIONAL_GROUPS
 from bonesim.runtime.record import (FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, SessionWriter, _h5py,
                                     compact_session, model_sha256, sessions_folder)
 from bonesim.session.salvage import open_session_file, read_prefix
@@ -69,6 +70,10 @@ class Session:
     repaired : dict or None
         For a copy written by :func:`repair_session`: ``from`` (the damaged
         file) and ``damage`` (what was wrong with it).
+    handle : dict of str -> ndarray
+        An instrumented handle's readings (``t_s``, ``angles_deg``,
+        ``counts``; :mod:`bonesim.runtime.handle_stream`): no rows for runs
+        without one and for files written before the group existed.
     """
 
     path: Path
@@ -82,6 +87,7 @@ class Session:
     damage: str | None = None
     readable: dict = field(default_factory=dict)
     repaired: dict | None = None
+    handle: dict = field(default_factory=lambda: _no_rows(GROUPS["handle"]))
 
     @cached_property
     def removals(self) -> dict:
@@ -150,6 +156,12 @@ class Session:
     def load_model(self, check: bool = True):
         """The model of burr 0 (see :meth:`burr_models`)."""
         return self.burr_models(check)[0]
+
+
+def _no_rows(cols: dict) -> dict:
+    """Columns of no rows, of the schema's dtypes and shapes."""
+    return {name: np.zeros((0,) + tuple(shape), np.dtype(dt))
+            for name, (dt, shape) in cols.items()}
 
 
 def _check_root(f, path: Path) -> tuple[int, dict]:
@@ -268,6 +280,9 @@ def read_session(path) -> Session:
             spec, whole = _SCHEMAS[schema]
             groups, declared = {}, {}
             for g, cols in spec.items():
+                if g in OPTIONAL_GROUPS and g not in f:      # written before it existed
+                    groups[g], declared[g] = _no_rows(cols), None
+                    continue
                 groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems)
             try:
                 closed = read_prefix(f["closed"], real_size)
@@ -299,7 +314,7 @@ def read_session(path) -> Session:
         tissue = groups["tissue"]
     return Session(path, schema, header, complete, groups["samples"], tissue,
                    groups["camera"], evlist, "; ".join(problems) or None, readable,
-                   repaired)
+                   repaired, groups.get("handle", _no_rows(GROUPS["handle"])))
 
 
 def damage_notice(session: Session) -> str | None:
@@ -333,7 +348,8 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     if out.resolve() == Path(path).resolve():
         raise BonesimError(f"{out}: the repaired copy must be a new file, not the one "
                            "read")
-    groups = {"samples": src.samples, "tissue": src.tissue, "camera": src.camera}
+    groups = {"samples": src.samples, "tissue": src.tissue, "camera": src.camera,
+              "handle": src.handle}
     ev = src.events
     groups["events"] = {"t_s": np.array([e[0] for e in ev], np.float64),
                         "name": np.array([e[1].encode() for e in ev],

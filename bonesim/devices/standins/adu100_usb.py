@@ -14,6 +14,7 @@ unplugged box fails every transfer with ENODEV, as libusb's backend does.
 from __future__ import annotations
 
 import errno
+import threading
 from collections import deque
 from types import SimpleNamespace
 
@@ -33,10 +34,25 @@ class FakeADU100:
         self.serial = serial
         self.bus, self.address = bus, address
         self.analog = {0: 0, 1: 0, 2: 0}
-        self.plugged = True
         self.answers: deque = deque()
+        self.lock = threading.Lock()
+        self._plugged = True
         self.commands: list = []
         self.claimed = False
+
+    @property
+    def plugged(self) -> bool:
+        """Connected; pulling it out loses the answers it held (a box plugged
+        back in starts empty, powered up anew)."""
+        return self._plugged
+
+    @plugged.setter
+    def plugged(self, on: bool) -> None:
+        with self.lock:                          # not between a command and its answer
+            self._plugged = bool(on)
+            if not on:
+                self.answers.clear()
+                self.claimed = False
 
     def value(self, ch: int) -> int:
         v = self.analog[ch]
@@ -148,6 +164,10 @@ class FakeUsbBackend(usb.backend.IBackend):
         raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
 
     def intr_write(self, dev_handle, ep, intf, data, timeout):
+        with dev_handle.lock:
+            return self._intr_write(dev_handle, ep, intf, data)
+
+    def _intr_write(self, dev_handle, ep, intf, data):
         if not dev_handle.plugged:
             raise _gone()
         if ep != 0x01 or intf != 0 or not dev_handle.claimed:

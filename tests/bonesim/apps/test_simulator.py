@@ -146,3 +146,24 @@ def test_no_display_and_no_audio_fall_back_with_clear_messages(tmp_path):
     out = json.loads(res.stdout)
     assert out["frames"] == 20 and Path(out["screenshot"]).is_file()
     assert wav.is_file() and wav.stat().st_size > 1000
+
+
+def test_the_hud_shows_the_pedal_state_and_a_handles_angles():
+    """What the window adds to its HUD from the loop's status for a pedal
+    or an instrumented handle (``status["pedal"]``, ``status["handle_deg"]``)."""
+    from types import SimpleNamespace
+
+    from bonesim.apps.simulator import App
+    from bonesim.runtime.haptic_loop import STATUS
+
+    status = np.zeros((), [f[:2] if len(f) == 2 else (f[0], f[1], f[2]) for f in STATUS])
+    status["pedal"] = 1
+    status["handle_deg"] = np.nan
+    app = SimpleNamespace(loop=SimpleNamespace(pedal=object(), status=status), recorder=None)
+    assert App._pedal_status(app) == {}                 # a foot pedal: no angles
+    status["handle_deg"][:2] = (7.5, 90.0)
+    assert App._pedal_status(app) == {"handle": "7.5 / 90.0 deg"}
+    status["pedal"] = 2
+    assert App._pedal_status(app) == {"pedal": "UNPLUGGED - drill off"}   # not stale ones
+    app.loop.pedal = None
+    assert App._pedal_status(app) == {}

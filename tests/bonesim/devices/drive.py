@@ -33,9 +33,11 @@ def drive(model, backend, n: int, rate_hz: float = 1000.0, *, t0: float = 0.0,
         run = {"safe": safe, "state": make_state(model), "coupling": VirtualCoupling(),
                "pedal": pedal, "recording": None}
         if record is not None:
+            from bonesim.runtime.handle_stream import handle_of
             from bonesim.runtime.simulate import _Recording
 
-            run["recording"] = _Recording(model, run["state"], record, header)
+            run["recording"] = _Recording(model, run["state"], record, header,
+                                          handle_of(pedal) if pedal is not None else None)
         if pedal is not None:
             pedal.open()
     safe, state, coupling = run["safe"], run["state"], run["coupling"]

@@ -154,3 +154,205 @@ def test_lever_drives_the_drill_in_a_full_run_and_an_unplug_stops_it(model):
     assert run["out"]["drill"].all()
     np.testing.assert_allclose(run["out"]["speed"], 80000.0)
     h.close()
+
+
+def test_a_recorded_handle_run_keeps_its_angles_replays_and_plays_back(model, tmp_path):
+    """The handle's calibrated angles go into the session's ``/handle``
+    group (at most every HANDLE_RECORD_S, each a read of the box), its
+    record and calibration into the header; the run replays bit for bit and
+    plays back."""
+    from bonesim.devices.null import NullDevice
+    from bonesim.devices.pedal import PedalGuard
+    from bonesim.devices.registry import device_record
+    from bonesim.engine.events import HANDLE_CHANNELS
+    from bonesim.io.case import load_case
+    from bonesim.runtime.handle_stream import HANDLE_RECORD_S
+    from bonesim.runtime.record import make_header
+    from bonesim.session.playback import Player
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import verify
+    from tests.bonesim.devices.drive import drive, finish
+
+    box = FakeADU100(serial="B01234")
+    cal = adu100.calibrate([2000, 0], [52000, 60000], [30.0, 0.0], [0.0, 180.0])
+    h = ADU100Handle({"max_speed_rpm": 80000.0}, cal, usb_backend=FakeUsbBackend(box))
+    box.analog.update({1: 2000, 2: 30000})                  # open; the wheel half way
+    cam = load_case("phantom").camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm)
+    view /= np.linalg.norm(view)
+    into_bone = NullDevice(np.array([23.0, 3.0, -2.0]) + 5.0 * view, view)
+    header = make_header(model, input_device="null", device_record={
+        "backend": "null", "pedal": device_record("adu100-handle", h)})
+    path = tmp_path / "handle.h5"
+    run = drive(model, into_bone, 100, pedal=PedalGuard(h), record=path, header=header)
+    box.analog[1] = 2000 + 0.75 * 50000                     # squeezed three quarters
+    assert _wait(lambda: h.lever_fraction() == pytest.approx(0.75))
+    drive(model, into_bone, 300, t0=0.1, run=run)
+    box.analog[1] = 52000                                   # fully closed
+    assert _wait(lambda: h.lever_fraction() == 1.0)
+    drive(model, into_bone, 300, t0=0.4, run=run)
+    finish(run)
+    h.close()
+    s = read_session(path)
+    rec = s.header["device_record"]["pedal"]
+    assert rec["backend"] == "adu100-handle" and rec["calibration"]["closed"] == [52000.0,
+                                                                                 60000.0]
+    a, c, t = s.handle["angles_deg"], s.handle["counts"], s.handle["t_s"]
+    assert a.shape[1] == HANDLE_CHANNELS and len(t) > 3
+    assert (np.diff(t) >= HANDLE_RECORD_S - 1e-12).all() and len(t) <= 0.7 / HANDLE_RECORD_S + 1
+    assert np.isin(t, s.samples["t_s"]).all()               # stamped with their steps
+    np.testing.assert_array_equal(a[:, :2], adu100.angles_deg(cal, c[:, :2]))
+    assert np.isnan(a[:, 2:]).all() and np.isnan(c[:, 2:]).all()
+    np.testing.assert_allclose(a[:, 1], 90.0)               # the wheel stayed
+    lever = a[:, 0]                                         # 30 deg open .. 0 closed
+    assert lever[0] == 30.0 and lever[-1] == 0.0 and np.any(np.isclose(lever, 7.5))
+    assert (np.diff(lever) <= 0).all()
+    # the drill ran while the lever was squeezed, as recorded (the angles are
+    # a sample of the readings every HANDLE_RECORD_S at most)
+    on = s.samples["drill"].astype(bool)
+    first = t[np.flatnonzero(lever < 30.0)[0]]
+    assert not on[s.samples["t_s"] < first - HANDLE_RECORD_S].any() and on[-1]
+    assert on[s.samples["t_s"] >= first].all()
+    assert len(s.removals["t_s"]) == run["state"].n_removed > 0
+    report = verify(s)
+    assert report["ok"], report
+    p = Player(s, surface=False)
+    p.seek(s.duration_s)
+    np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)
+    assert p.frame().handle_deg == tuple(a[-1, :2])        # playback shows the angles
+    mid = t[len(t) // 2] - s.samples["t_s"][0]
+    assert p.frame(mid).handle_deg == tuple(a[len(t) // 2, :2])
+    assert p.frame(0.0).handle_deg == (30.0, 90.0)
+
+
+def test_files_without_the_handle_group_still_read(model, tmp_path):
+    """A schema-2 file written before ``/handle`` existed reads with no
+    handle rows and replays."""
+    import h5py
+
+    from bonesim.io.trajectory import Trajectory
+    from bonesim.runtime.simulate import run_trajectory
+    from bonesim.session.reader import read_session, repair_session
+    from bonesim.session.replay import verify
+
+    n = 200
+    t = np.arange(n) / 1000.0
+    pos = np.tile([23.0, 3.0, 8.0], (n, 1))
+    traj = Trajectory(t_s=t, pos_mm=pos, axis=np.tile([0, 0, -1.0], (n, 1)),
+                      drill=np.ones(n, bool), speed_rpm=np.full(n, 60000.0),
+                      direction=np.ones(n, np.int8))
+    path = tmp_path / "old.h5"
+    run_trajectory(model, traj, surface=False, record=path)
+    with h5py.File(path, "r+") as f:
+        assert "handle" in f and f["handle/t_s"].shape == (0,)
+        del f["handle"]                                     # as an older recorder wrote it
+    s = read_session(path)
+    assert s.complete and s.handle["t_s"].shape == (0,)
+    assert s.handle["angles_deg"].shape[1:] == s.handle["counts"].shape[1:] == (4,)
+    assert len(s.samples["t_s"]) == n and verify(s)["ok"]
+    again = repair_session(path, tmp_path / "again.h5")     # written with the group
+    assert again.handle["t_s"].shape == (0,) and len(again.samples["t_s"]) == n
+
+
+class CountingHandle:
+    """A handle for the haptic loop's process (the USB stand-in's poller
+    thread cannot be pickled there; the handle's own readings_into runs): each
+    poll is a new reading whose lever
+    count is the number of polls, calibrated as ``CAL``; squeezed, so the
+    drill runs."""
+
+    reconnect_s = 0.1
+    CAL = adu100.calibrate([0, 0], [100000, 50000], [30.0, 0.0], [0.0, 180.0])
+
+    def __init__(self):
+        self.handle = None                 # made in the loop's process (it holds a lock)
+        self.released = False
+
+    @property
+    def reads(self):
+        return self.handle.reads
+
+    def open(self):
+        self.handle = ADU100Handle({}, self.CAL)
+
+    def poll(self, t_s):
+        h = self.handle
+        h.reads += 1
+        h.counts[:] = (h.reads, 25000.0)
+        return True, 50000.0
+
+    def readings_into(self, angles, counts):
+        self.handle.readings_into(angles, counts)
+
+    def close(self):
+        pass
+
+
+@pytest.mark.slow
+def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
+    """Through the loop's process and the recorder's: the ``handle`` ring
+    into ``/handle`` at HANDLE_RECORD_S, each row the reading of its step."""
+    from bonesim.runtime.handle_stream import HANDLE_RECORD_S, handle_text
+    from bonesim.runtime.haptic_loop import HapticLoop
+    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.session.reader import read_session
+
+    loop = HapticLoop(model, device=("null", (0.0, 0.0, 60.0), (0.0, 0.0, -1.0)),
+                      run_s=1.0, vibration=False, pedal=CountingHandle())
+    path = tmp_path / "loop-handle.h5"
+    rec = Recorder(loop, path, make_header(model, input_device="null"), visibility=False)
+    try:
+        rec.start()
+        loop.start()
+        assert loop.wait(30.0)
+        rec.close()
+        latest = loop.status["handle_deg"].copy()
+    finally:
+        loop.close()
+    s = read_session(path)
+    t, a, c = s.handle["t_s"], s.handle["angles_deg"], s.handle["counts"]
+    # the window's HUD reads the angles last recorded from the loop's status
+    np.testing.assert_array_equal(latest, a[-1])
+    assert handle_text(latest) == f"{a[-1, 0]:.1f} / 90.0 deg"
+    steps = len(s.samples["t_s"])
+    assert steps > 100 and np.isin(t, s.samples["t_s"]).all()
+    assert (np.diff(t) >= HANDLE_RECORD_S - 1e-12).all()
+    assert 0.5 * s.duration_s / HANDLE_RECORD_S < len(t) <= s.duration_s / HANDLE_RECORD_S + 1
+    # one poll per step: the count is the step's number (from 1)
+    k = np.searchsorted(s.samples["t_s"], t)
+    np.testing.assert_array_equal(c[:, 0], k + 1)
+    np.testing.assert_array_equal(a[:, :2], adu100.angles_deg(CountingHandle.CAL, c[:, :2]))
+    np.testing.assert_allclose(a[:, 1], 90.0)
+    assert s.samples["drill"].all()
+    from bonesim.session.replay import verify
+
+    report = verify(s)                                      # the loop's run replays
+    assert report["ok"], report
+
+
+def test_probing_puts_the_boxs_own_calibration_in_the_header_record(cfg, monkeypatch):
+    """As ``bonesim run --pedal adu100-handle`` does before the header is made:
+    the handle made from the config holds the ``default`` calibration; the box
+    plugged in is B07777, calibrated on its own, and probing it (pyusb's
+    find() over the stand-in as its libusb-1.0 backend) gives that one."""
+    import usb.backend.libusb1 as libusb1
+
+    from bonesim.devices import registry
+    from bonesim.devices.config import set_calibration
+
+    box = FakeADU100(serial="B07777")
+    be = FakeUsbBackend(box)
+    monkeypatch.setattr(libusb1, "get_backend", lambda *a, **k: be)
+    other = adu100.calibrate([1000, 0], [51000, 60000], [30.0, 0.0], [0.0, 180.0])
+    mine = adu100.calibrate([3000, 100], [43000, 50100], [25.0, 0.0], [0.0, 90.0])
+    set_calibration("adu100-handle", "default", {**other, "serial": "B00001"})
+    set_calibration("adu100-handle", "B07777", {**mine, "serial": "B07777"})
+    h = registry.make_device("adu100-handle", pedal_ok=True)
+    assert h.calibration["open"] == other["open"]
+    assert registry.probe("adu100-handle", h)
+    assert h.calibration["serial"] == "B07777" and h.calibration["open"] == mine["open"]
+    assert h._dev is None and h._thread is None            # the run opens it itself
+    assert box.commands[-2:] == ["RUN10", "RUN20"]           # the twin read the box
+    rec = registry.device_record("adu100-handle", h)
+    assert rec["caps"] is None and rec["calibration"]["closed_deg"] == [0.0, 90.0]
+    assert not registry.probe("pedal", object())           # a pedal has nothing to read

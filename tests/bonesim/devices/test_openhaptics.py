@@ -86,7 +86,7 @@ def model():
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     from bonesim.devices.openhaptics import OpenHapticsDevice
-    from bonesim.devices.registry import device_record
+    from bonesim.devices.registry import device_record, probe
     from bonesim.io.case import load_case
     from bonesim.runtime.record import make_header
     from bonesim.session.playback import Player
@@ -102,6 +102,7 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     dev = OpenHapticsDevice({"origin_mm": list(start), "lost_s": 0.05})
     stub.stub_place(0.0, 0.0, 0.0)
     lim = SafetyLimits(still_for_s=0.1, ramp_s=0.1, reconnect_s=0.1)
+    probe("touch", dev)                    # as the app does: the device's own record
     header = make_header(model, input_device="touch", device_record=device_record("touch", dev))
     path = tmp_path / "touch.h5"
     run = drive(model, dev, 300, realtime=True, limits=lim, record=path, header=header)
@@ -143,9 +144,80 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     # the run (unplug included) replays bit for bit and plays back
     s = read_session(path)
     assert s.header["input"] == "touch" and s.header["device_record"]["backend"] == "touch"
+    assert s.header["device_record"]["caps"]["max_force_n"] == pytest.approx(0.88)
     assert len(s.removals["t_s"]) == run["state"].n_removed > 0
     report = verify(s)
     assert report["ok"], report
     p = Player(s, surface=False)
     p.seek(s.duration_s)
     np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)
+
+
+@pytest.mark.slow
+def test_a_run_through_the_haptic_loop_records_the_devices_own_limits(stub, tmp_path,
+                                                                      monkeypatch):
+    """The App's path: the backend is probed in this process (the stub's
+    limits, not the Touch defaults, go into the model and the header), then
+    the haptic loop's own process opens the stub again (found there through
+    LD_LIBRARY_PATH) and publishes the record it opened with; the run
+    replays bit for bit and plays back."""
+    import os
+
+    from bonesim.devices import registry
+    from bonesim.devices.config import CONFIG_ENV
+    from bonesim.devices.openhaptics import CAPS
+    from bonesim.io.case import load_case
+    from bonesim.io.loading import load_model
+    from bonesim.runtime.haptic_loop import HapticLoop
+    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.session.playback import Player
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import verify
+
+    monkeypatch.setenv(CONFIG_ENV, str(tmp_path / "devices.toml"))
+    folder = str(Path(stub._name).parent)
+    monkeypatch.setenv("LD_LIBRARY_PATH",
+                       folder + os.pathsep + os.environ.get("LD_LIBRARY_PATH", ""))
+    cam = load_case("phantom").camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm)
+    view /= np.linalg.norm(view)
+    rest = np.array([23.0, 3.0, -2.0]) + 3.0 * view             # the stylus in the cortex
+    dev = registry.make_device("touch", {"origin_mm": list(rest)})
+    assert dev.caps == CAPS and CAPS.max_force_n == pytest.approx(3.3)
+    assert registry.probe("touch", dev)
+    assert dev._id is None and stub.stub_running() == 0          # closed again
+    own = (0.88, 160.0, 120.0, 70.0, 0.39)            # hd_stub.c's continuous force
+    assert (dev.caps.max_force_n, *dev.caps.workspace_mm, dev.caps.max_stiffness_n_per_mm) \
+        == pytest.approx(own)
+    assert not registry.probe("simulated-hand", registry.make_device("simulated-hand"))
+    model = load_model("phantom", "cutting-5mm", device=dev.caps)
+    header = make_header(model, input_device="touch",
+                         device_record=registry.device_record("touch", dev))
+    path = tmp_path / "touch-loop.h5"
+    loop = HapticLoop(model, device=("device", dev), run_s=1.5, vibration=False)
+    rec = Recorder(loop, path, header)
+    try:
+        rec.start()
+        loop.set_drill(True, speed_rpm=60000.0)
+        loop.start()
+        assert loop.wait(30.0)
+        rec.close()
+        opened = loop.status["device_caps"].copy()
+        n_removed = loop.state.n_removed
+    finally:
+        loop.close()
+    s = read_session(path)
+    c = s.header["device_record"]["caps"]
+    assert (c["max_force_n"], *c["workspace_mm"], c["max_stiffness_n_per_mm"]) \
+        == pytest.approx(own)
+    assert s.header["device"]["max_force_n"] == pytest.approx(0.88)
+    # the loop's process opened the device with the record the header holds
+    np.testing.assert_allclose(opened, [c["max_force_n"], *c["workspace_mm"],
+                                        c["max_stiffness_n_per_mm"]])
+    assert n_removed > 0 and len(s.removals["t_s"]) == n_removed
+    assert np.linalg.norm(s.samples["force_n"], axis=1).max() <= 0.88 + 1e-12
+    report = verify(s)
+    assert report["ok"], report
+    p = Player(s, surface=False)
+    p.seek(s.duration_s)
+    assert not np.array_equal(p.grid.density, model.grid.density)

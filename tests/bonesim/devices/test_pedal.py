@@ -95,6 +95,56 @@ def test_pedal_drills_stops_at_an_unplug_and_rearms_after_the_return(monkeypatch
     assert run["state"].n_removed > 0
 
 
+def test_a_recorded_pedal_run_replays_and_plays_back(monkeypatch, model, tmp_path):
+    """A run whose drill the pedal drove (an unplug included) replays bit for
+    bit and plays back; a pedal has no angles, so ``/handle`` stays empty."""
+    from bonesim.devices.null import NullDevice
+    from bonesim.devices.registry import device_record
+    from bonesim.io.case import load_case
+    from bonesim.runtime.record import make_header
+    from bonesim.session.playback import Player
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import verify
+    from tests.bonesim.devices.drive import finish
+
+    bus = install(monkeypatch)
+    bus.plug(PATH, *IN_USB_2)
+    cam = load_case("phantom").camera
+    view = np.subtract(cam.focal_mm, cam.eye_mm)
+    view /= np.linalg.norm(view)
+    into_bone = NullDevice(np.array([23.0, 3.0, -2.0]) + 5.0 * view, view)
+    pedal = FootPedal({"reconnect_s": 0.1})
+    header = make_header(model, input_device="null", device_record={
+        "backend": "null", "pedal": device_record("pedal", pedal)})
+
+    def foot(k, t):
+        if k == 10:
+            bus.send(PATH, MIDDLE_RIGHT)                    # drill, one step faster
+        if k == 300:
+            bus.unplug(PATH)
+        if k == 450:
+            bus.plug(PATH, *IN_USB_2)
+            bus.send(PATH, RELEASED, MIDDLE)
+
+    path = tmp_path / "pedal.h5"
+    run = drive(model, into_bone, 700, before=foot, pedal=PedalGuard(pedal), record=path,
+                header=header)
+    finish(run)
+    s = read_session(path)
+    assert s.header["device_record"]["pedal"]["backend"] == "pedal"
+    on = s.samples["drill"].astype(bool)
+    np.testing.assert_array_equal(on, run["out"]["drill"])
+    assert on[10:300].all() and not on[300:450].any() and on[-1]
+    assert (s.samples["speed_rpm"][on] == 65000.0).all()
+    assert len(s.handle["t_s"]) == 0
+    assert len(s.removals["t_s"]) == run["state"].n_removed > 0
+    report = verify(s)
+    assert report["ok"], report
+    p = Player(s, surface=False)
+    p.seek(s.duration_s)
+    np.testing.assert_array_equal(p.grid.density > 0, run["state"].grid.density > 0)
+
+
 class WallClockPedal:
     """A pedal held down from its opening, unplugged after ``gone_s`` of wall
     clock (for the haptic loop's process)."""

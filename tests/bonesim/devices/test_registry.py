@@ -144,3 +144,47 @@ def test_a_run_with_a_device_backend_records_it_replays_and_plays_back(cfg_file,
     p.seek(s.duration_s)
     assert int((p.grid.density == 0).sum()) >= int((model.grid.density == 0).sum())
     assert not np.array_equal(p.grid.density, model.grid.density)
+
+
+def test_devices_json_follows_the_stand_ins_plugged_and_unplugged(cfg_file, capsys,
+                                                                  monkeypatch):
+    """``bonesim devices --json`` over the hidapi stand-in (a SpaceMouse and a
+    foot pedal) and pyusb's own find() over the ADU100 backend stand-in (as
+    pyusb's libusb-1.0 backend): what is listed follows the plugs."""
+    import usb.backend.libusb1 as libusb1
+
+    from bonesim.cli.main import main
+    from bonesim.devices.standins.adu100_usb import FakeADU100, FakeUsbBackend
+    from bonesim.devices.standins.hid_bus import install
+
+    bus = install(monkeypatch)
+    box = FakeADU100()
+    usb_backend = FakeUsbBackend(box)
+    monkeypatch.setattr(libusb1, "get_backend", lambda *a, **k: usb_backend)
+
+    def listing():
+        assert main(["devices", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["config"] == str(cfg_file)
+        return {b["name"]: b for b in out["backends"]}
+
+    aux = ("spacemouse", "pedal", "adu100-handle")
+    box.plugged = False
+    out = listing()
+    for name in aux:
+        assert out[name]["library"] == "ok" and out[name]["connected"] == [], out[name]
+    assert out["mouse"]["connected"] == ["always"]
+    assert out["simulated-hand"]["connected"] == ["simulated hand"]
+    bus.plug(b"/dev/hidraw3", 0x256F, 0xC635)                # SpaceMouse Compact
+    bus.plug(b"/dev/hidraw5", 0x05F3, 0x00FF)                # Infinity IN-USB-2
+    bus.plug(b"/dev/hidraw6", 0x046D, 0xC077)                # a mouse: no backend's
+    box.plugged = True
+    out = listing()
+    assert out["spacemouse"]["connected"] == ["SpaceMouse Compact (256f:c635)"]
+    assert out["pedal"]["connected"] == ["Infinity IN-USB-2 (05f3:00ff)"]
+    assert out["adu100-handle"]["connected"] == ["ADU100 (bus 1 address 17)"]
+    bus.unplug(b"/dev/hidraw3")
+    box.plugged = False
+    out = listing()
+    assert out["spacemouse"]["connected"] == [] and out["adu100-handle"]["connected"] == []
+    assert out["pedal"]["connected"] == ["Infinity IN-USB-2 (05f3:00ff)"]
