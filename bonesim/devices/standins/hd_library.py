@@ -35,13 +35,31 @@ def build(folder) -> Path:
     return out
 
 
+#: The stub this process loaded (:func:`load`).
+_LOADED = None
+
+
 def load(folder):
-    """Build the stub in ``folder`` and load it globally; returns the
-    ``ctypes.CDLL`` with the test controls' signatures set."""
-    lib = ctypes.CDLL(str(build(folder)), mode=ctypes.RTLD_GLOBAL)
-    lib.stub_place.argtypes = [ctypes.c_double] * 3
-    lib.stub_unplug.argtypes = [ctypes.c_int]
-    lib.stub_rendered.argtypes = [ctypes.POINTER(ctypes.c_double)]
-    lib.stub_position.argtypes = [ctypes.POINTER(ctypes.c_double)]
-    lib.stub_frames.restype = ctypes.c_long
+    """Build the stub in ``folder`` and load it globally, once per process;
+    returns the ``ctypes.CDLL`` with the test controls' signatures set, its
+    arm put back (plugged in, no buttons, at the origin).
+
+    Once per process because the binding opens ``libHD.so`` by name and
+    keeps the first one loaded: a second copy from another folder would be
+    a second arm the binding never reads.
+    """
+    global _LOADED
+    if _LOADED is None:
+        lib = ctypes.CDLL(str(build(folder)), mode=ctypes.RTLD_GLOBAL)
+        lib.stub_place.argtypes = [ctypes.c_double] * 3
+        lib.stub_unplug.argtypes = [ctypes.c_int]
+        lib.stub_set_buttons.argtypes = [ctypes.c_int]
+        lib.stub_rendered.argtypes = [ctypes.POINTER(ctypes.c_double)]
+        lib.stub_position.argtypes = [ctypes.POINTER(ctypes.c_double)]
+        lib.stub_frames.restype = ctypes.c_long
+        _LOADED = lib
+    lib = _LOADED
+    lib.stub_unplug(0)
+    lib.stub_set_buttons(0)
+    lib.stub_place(0.0, 0.0, 0.0)
     return lib
