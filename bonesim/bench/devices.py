@@ -14,7 +14,6 @@ the real driver; a real device adds its driver's and the bus's latency.
 """
 from __future__ import annotations
 
-import tempfile
 import time
 
 import numpy as np
@@ -148,15 +147,14 @@ def _touch(n):
     from bonesim.devices.safety import SafeDevice
     from bonesim.devices.standins.hd_library import load
 
-    with tempfile.TemporaryDirectory() as d:
-        load(d)
-        dev = OpenHapticsDevice({"lost_s": 5.0})
-        safe = SafeDevice(dev)
-        safe.open()
-        try:
-            ns = _time_pose(safe, n)
-        finally:
-            safe.close()
+    load()
+    dev = OpenHapticsDevice({"lost_s": 5.0})
+    safe = SafeDevice(dev)
+    safe.open()
+    try:
+        ns = _time_pose(safe, n)
+    finally:
+        safe.close()
     return _figure(ns, "touch", "pyopenhaptics over the HD library stub, its 1 kHz servo "
                    "thread running")
 

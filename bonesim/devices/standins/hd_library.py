@@ -10,9 +10,11 @@ the hand holding the stylus at rest there [mm], ``stub_unplug(1/0)``,
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 from bonesim.errors import BonesimError
@@ -39,10 +41,12 @@ def build(folder) -> Path:
 _LOADED = None
 
 
-def load(folder):
-    """Build the stub in ``folder`` and load it globally, once per process;
-    returns the ``ctypes.CDLL`` with the test controls' signatures set, its
-    arm put back (plugged in, no buttons, at the origin).
+def load():
+    """Build the stub and load it globally, once per process; returns the
+    ``ctypes.CDLL`` with the test controls' signatures set, its arm put back
+    (plugged in, no buttons, at the origin). ``Path(lib._name).parent`` is
+    the folder holding ``libHD.so`` (put it on ``LD_LIBRARY_PATH`` for a
+    child process), kept until this process exits.
 
     Once per process because the binding opens ``libHD.so`` by name and
     keeps the first one loaded: a second copy from another folder would be
@@ -50,6 +54,8 @@ def load(folder):
     """
     global _LOADED
     if _LOADED is None:
+        folder = tempfile.mkdtemp(prefix="bonesim-hd-")
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
         lib = ctypes.CDLL(str(build(folder)), mode=ctypes.RTLD_GLOBAL)
         lib.stub_place.argtypes = [ctypes.c_double] * 3
         lib.stub_unplug.argtypes = [ctypes.c_int]

@@ -29,10 +29,10 @@ def test_without_the_vendor_library_one_line_names_what_to_install():
 
 
 @pytest.fixture(scope="module")
-def stub(tmp_path_factory):
+def stub():
     from bonesim.devices.standins.hd_library import load
 
-    return load(tmp_path_factory.mktemp("hd"))
+    return load()
 
 
 def _rendered(lib):

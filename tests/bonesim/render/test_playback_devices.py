@@ -81,7 +81,7 @@ def _run(name, model, path, tmp):
             from bonesim.devices.registry import probe
             from bonesim.devices.standins.hd_library import load
 
-            lib = load(tmp)
+            lib = load()
             lib.stub_place(0.0, 0.0, 0.0)
             dev = OpenHapticsDevice({"origin_mm": list(cortex + 3.0 * view)})
             probe(name, dev)
