@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from bonesim.engine.fragments import DEFAULT_SPECK_VOXELS
 from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.orientation import PATIENT_FRAME
@@ -189,7 +188,10 @@ class Fragments:
         :data:`bonesim.engine.fragments.DEFAULT_SPECK_VOXELS`).
     """
 
-    speck_voxels: int = DEFAULT_SPECK_VOXELS
+    # the engine's DEFAULT_SPECK_VOXELS, written out: importing the fragment
+    # kernels here would load numba and scipy.ndimage with every case file
+    # (tests/bonesim/io/test_case_physics.py checks the two agree)
+    speck_voxels: int = 8
 
 
 @dataclass(frozen=True)

@@ -55,3 +55,21 @@ def test_a_bad_gravity_names_the_table_and_key(tmp_path, bad, msg):
 def test_an_unknown_physics_key_is_refused(tmp_path):
     with pytest.raises(BonesimError, match="friction"):
         _case(tmp_path, "\n[physics]\nfriction = 0.3\n")
+
+
+def test_the_case_default_speck_size_is_the_engines():
+    from bonesim.engine.fragments import DEFAULT_SPECK_VOXELS
+    from bonesim.io.case_records import Fragments
+
+    assert Fragments().speck_voxels == DEFAULT_SPECK_VOXELS
+
+
+def test_reading_a_case_does_not_load_the_kernels():
+    import subprocess
+    import sys
+
+    code = ("import sys; from bonesim.io.case import load_case; "
+            "print(sorted(m for m in ('numba', 'cc3d') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "[]"
