@@ -7,17 +7,13 @@ Regenerate after an intended change of the picture with::
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bonesim.render.imagecmp import compare_images, diff_image, read_png, write_png
+from bonesim.render.imagecmp import compare_images
 from tests.bonesim.render import cut_water_scenes as cws
-
-IMAGES = Path(__file__).parent / "images"
-UPDATE = os.environ.get("BONESIM_UPDATE_IMAGES") == "1"
+from tests.bonesim.render.test_images import check
 
 
 @pytest.fixture(scope="module")
@@ -45,19 +41,6 @@ def rendered(phantom):
     out["dust"] = dust
     sc.close()
     return out
-
-
-def check(name, img, tmp_path):
-    ref_path = IMAGES / f"{name}.png"
-    if UPDATE:
-        write_png(ref_path, img)
-        pytest.skip(f"wrote {ref_path}")
-    ref = read_png(ref_path)
-    res = compare_images(img, ref)
-    if not res:
-        write_png(tmp_path / f"{name}-actual.png", img)
-        write_png(tmp_path / f"{name}-diff.png", diff_image(img, ref))
-    assert res, f"{name}: {res.reason} (actual and diff images in {tmp_path})"
 
 
 @pytest.mark.parametrize("name", ("cut_plane", "irrigated"))
