@@ -551,6 +551,25 @@ def _friction(cout, v, w, pm, ib_inv, m, radius, mu, h):
 
 
 @njit(cache=True, nogil=True)
+def _plate_moved(s, label, md, t, cur, rpose, tag, cat, ev_kind, ev_body, ev_label, ev_t,
+                 ev_ijk, ev_n, ev_value, ev_head) -> int:
+    """Plate slot ``s`` is now at ``cur``: if that differs from its last
+    pose ``rpose[s]``, keep it and publish a ``PLATE`` event (``label`` its
+    host body + 1, 0 free; ``md`` its mode); returns 1 if published, else 0."""
+    same = True
+    for q in range(7):
+        if cur[q] != rpose[s, q]:
+            same = False
+    if same:
+        return 0
+    for q in range(7):
+        rpose[s, q] = cur[q]
+    _publish(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+             PLATE, s, label, t, tag[s], md, 0, cat[s], cur)
+    return 1
+
+
+@njit(cache=True, nogil=True)
 def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spacing,
              mode, kind, owner, host, cat, tag, rpose, rel, vel, omg, mass, ib_inv, com_b,
              k, c, radius, smp, nrm, n_smp, calm, anchor, grab_off, push, tool, gvec, h, nsub,
@@ -564,16 +583,8 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
             continue
         if md == AFFIXED:
             _compose(pose[host[s]], rel[s], cur)
-            same = True
-            for q in range(7):
-                if cur[q] != rpose[s, q]:
-                    same = False
-            if not same:
-                for q in range(7):
-                    rpose[s, q] = cur[q]
-                _publish(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                         PLATE, s, host[s] + 1, t, tag[s], md, 0, cat[s], cur)
-                n_moved += 1
+            n_moved += _plate_moved(s, host[s] + 1, md, t, cur, rpose, tag, cat, ev_kind,
+                                    ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head)
             continue
         frag = kind[s] == KIND_FRAGMENT
         ob = owner[s]
@@ -681,16 +692,8 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
                          POSE, ob, 0, t, 0, 0, 0, 0, cur)
                 n_moved += 1
         else:
-            same = True
-            for q in range(7):
-                if cur[q] != rpose[s, q]:
-                    same = False
-            if not same:
-                for q in range(7):
-                    rpose[s, q] = cur[q]
-                _publish(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                         PLATE, s, 0, t, tag[s], mode[s], 0, cat[s], cur)
-                n_moved += 1
+            n_moved += _plate_moved(s, 0, mode[s], t, cur, rpose, tag, cat, ev_kind,
+                                    ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head)
     return n_moved
 
 
