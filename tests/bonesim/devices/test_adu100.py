@@ -4,7 +4,6 @@ the protocol, the two-point calibration with its prompts, the poller, a
 full run where the lever drives the drill, and an unplug."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from bonesim.devices.adu100 import ADU100Handle
 from bonesim.devices.config import CONFIG_ENV, calibration, load_config
 from bonesim.errors import BonesimError
 from bonesim.devices.standins.adu100_usb import FakeADU100, FakeUsbBackend
+from tests.bonesim.waiting import wait_until
 
 
 @pytest.fixture(autouse=True)
@@ -102,15 +102,6 @@ def model():
     return load_model("phantom", "cutting-5mm")
 
 
-def _wait(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.002)
-    return False
-
-
 def test_lever_drives_the_drill_in_a_full_run_and_an_unplug_stops_it(model):
     from bonesim.devices.null import NullDevice
     from bonesim.devices.pedal import PedalGuard
@@ -130,7 +121,7 @@ def test_lever_drives_the_drill_in_a_full_run_and_an_unplug_stops_it(model):
     run = drive(model, into_bone, 50, pedal=guard)
     assert not run["out"]["drill"].any()
     box.analog[1] = 2000 + 0.75 * 50000                     # squeezed three quarters
-    assert _wait(lambda: h.lever_fraction() == pytest.approx(0.75))
+    assert wait_until(lambda: h.lever_fraction() == pytest.approx(0.75))
     drive(model, into_bone, 400, t0=0.05, run=run)
     o = run["out"]
     assert o["drill"].all()
@@ -139,17 +130,17 @@ def test_lever_drives_the_drill_in_a_full_run_and_an_unplug_stops_it(model):
     np.testing.assert_allclose(h.angles[0], 7.5)
     assert h.reads > 3
     box.plugged = False                                     # pulled out
-    assert _wait(lambda: h._error is not None)
+    assert wait_until(lambda: h._error is not None)
     drive(model, into_bone, 10, t0=0.5, run=run)
     assert not run["out"]["drill"].any() and guard.unplugs == 1
     box.plugged = True                                      # back, still squeezed
     drive(model, into_bone, 200, t0=0.6, run=run)
     assert guard.connected and not run["out"]["drill"].any()   # not until squeezed anew
     box.analog[1] = 2000
-    assert _wait(lambda: h.lever_fraction() == 0.0)
+    assert wait_until(lambda: h.lever_fraction() == 0.0)
     drive(model, into_bone, 5, t0=0.8, run=run)
     box.analog[1] = 52000
-    assert _wait(lambda: h.lever_fraction() == 1.0)
+    assert wait_until(lambda: h.lever_fraction() == 1.0)
     drive(model, into_bone, 5, t0=0.81, run=run)
     assert run["out"]["drill"].all()
     np.testing.assert_allclose(run["out"]["speed"], 80000.0)
@@ -186,10 +177,10 @@ def test_a_recorded_handle_run_keeps_its_angles_replays_and_plays_back(model, tm
     path = tmp_path / "handle.h5"
     run = drive(model, into_bone, 100, pedal=PedalGuard(h), record=path, header=header)
     box.analog[1] = 2000 + 0.75 * 50000                     # squeezed three quarters
-    assert _wait(lambda: h.lever_fraction() == pytest.approx(0.75))
+    assert wait_until(lambda: h.lever_fraction() == pytest.approx(0.75))
     drive(model, into_bone, 300, t0=0.1, run=run)
     box.analog[1] = 52000                                   # fully closed
-    assert _wait(lambda: h.lever_fraction() == 1.0)
+    assert wait_until(lambda: h.lever_fraction() == 1.0)
     drive(model, into_bone, 300, t0=0.4, run=run)
     finish(run)
     h.close()

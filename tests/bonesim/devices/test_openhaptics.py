@@ -8,13 +8,13 @@ from __future__ import annotations
 import ctypes
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bonesim.devices.safety import ACTIVE, UNPLUGGED, WAITING, SafetyLimits
+from tests.bonesim.waiting import wait_until
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -41,15 +41,6 @@ def _rendered(lib):
     return np.array(v[:])
 
 
-def _wait(pred, timeout_s=3.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return False
-
-
 def test_opening_reads_the_device_limits_through_the_binding(stub):
     from bonesim.devices.openhaptics import CAPS, OpenHapticsDevice, library_missing
 
@@ -63,7 +54,7 @@ def test_opening_reads_the_device_limits_through_the_binding(stub):
         assert dev.caps.workspace_mm == (160.0, 120.0, 70.0)
         assert dev.caps.max_stiffness_n_per_mm == pytest.approx(0.39)
         assert "stub" in dev.model
-        assert _wait(lambda: dev.ticks > 20)
+        assert wait_until(lambda: dev.ticks > 20)
         r = dev.read(0.0)
         np.testing.assert_allclose(r.pos_mm, (1.0, 2.0, 3.0))
         np.testing.assert_allclose(r.axis, (0.0, 0.0, -1.0))
@@ -117,7 +108,7 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     assert mag.max() == pytest.approx(0.88, rel=1e-9)      # the device's limit, reached
     assert (mag <= 0.88 + 1e-12).all()
     # the arm renders what the safety layer sent last (device axes = case axes)
-    assert _wait(lambda: np.allclose(_rendered(stub), o["force"][-1], atol=1e-12))
+    assert wait_until(lambda: np.allclose(_rendered(stub), o["force"][-1], atol=1e-12))
     assert run["state"].n_removed > 0
     pos = (ctypes.c_double * 3)()
     stub.stub_position(pos)

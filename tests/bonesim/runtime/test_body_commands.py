@@ -19,6 +19,7 @@ from bonesim.runtime.record import Recorder, make_header
 from bonesim.session.replay import replay, verify
 from bonesim.engine.replica import TissueReplica
 from bonesim.session.reader import read_session
+from tests.bonesim.waiting import wait_until
 
 
 #: Drilling after the cut [s].
@@ -30,13 +31,6 @@ AXIS_CUT = 1
 @pytest.fixture(scope="module")
 def model():
     return load_model("phantom", "cutting-5mm")
-
-
-def _wait(cond, timeout_s=20.0):
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.01)
-    return cond()
 
 
 def _target():
@@ -64,22 +58,22 @@ def split_run(model, tmp_path_factory):
         live = TissueReplica(model, loop.state, snapshot=False)
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert _wait(lambda: loop.state.n_removed > 20)
+        assert wait_until(lambda: loop.state.n_removed > 20)
         # cut through where the burr now drills
         at = np.asarray(loop.status["pos_mm"], float)
         lo[:] = np.rint((at - model.grid.origin_mm) / model.spacing_mm).astype(int)
         lo[AXIS_CUT - 1] = lo[AXIS_CUT - 2] = 0      # the half beyond one plane
         loop.send(SplitBox, lo=lo, hi=hi, body=0)
-        assert _wait(lambda: loop.state.n_bodies == 2)
+        assert wait_until(lambda: loop.state.n_bodies == 2)
         n0 = loop.state.n_removed
         t0 = float(loop.status["t_s"])
         # at least a second of drilling across the cut
-        assert _wait(lambda: loop.state.n_removed > n0 + 150
+        assert wait_until(lambda: loop.state.n_removed > n0 + 150
                      and float(loop.status["t_s"]) > t0 + DRILL_S)
         # the tool off the bone before the drill stops (a stopped tool would
         # push the split-off body: bonesim.runtime.rigid_commands)
         loop.set_target(target - 20.0 * view, view)
-        assert _wait(lambda: np.linalg.norm(np.asarray(loop.status["pos_mm"]) - target) > 15.0)
+        assert wait_until(lambda: np.linalg.norm(np.asarray(loop.status["pos_mm"]) - target) > 15.0)
         loop.set_drill(False)
         time.sleep(0.05)
         # a replica following the loop holds its tissue
@@ -88,7 +82,7 @@ def split_run(model, tmp_path_factory):
         np.testing.assert_array_equal(live.state.body, loop.state.body)
         pose = np.array([0.0, 0.0, 80.0, *IDENTITY_POSE[3:]])
         loop.send(MoveBody, body=1, pose=pose)
-        assert _wait(lambda: loop.state.pose[1][2] == 80.0)
+        assert wait_until(lambda: loop.state.pose[1][2] == 80.0)
         time.sleep(0.05)
         rec.close()
         live.drain()

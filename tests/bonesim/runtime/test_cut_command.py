@@ -17,18 +17,12 @@ from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.runtime.record import Recorder, make_header
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
+from tests.bonesim.waiting import wait_until
 
 
 @pytest.fixture(scope="module")
 def model():
     return load_model("phantom", "cutting-5mm")
-
-
-def _wait(cond, timeout_s=20.0):
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.01)
-    return cond()
 
 
 @pytest.fixture(scope="module")
@@ -48,19 +42,19 @@ def cut_run(model, tmp_path_factory):
         live = TissueReplica(model, loop.state, snapshot=False)
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert _wait(lambda: loop.state.n_removed > 20)
+        assert wait_until(lambda: loop.state.n_removed > 20)
         loop.set_tool("cutplane")
-        assert _wait(lambda: int(loop.status["tool"]) == TOOLS.index("cutplane"))
+        assert wait_until(lambda: int(loop.status["tool"]) == TOOLS.index("cutplane"))
         at = np.asarray(loop.status["pos_mm"], float)
         n0 = loop.state.n_removed
         for k, normal in enumerate((view, view + (0.5, 0, 0), view + (0, 0.5, 0))):
             loop.send(CutPlane, pose=plane_pose(at - 2.0 * view + (k, 0, 0), normal),
                       width_mm=6.0, height_mm=5.0, depth_mm=4.0)
-        assert _wait(lambda: int(loop.status["commands_applied"]) == 4)
+        assert wait_until(lambda: int(loop.status["commands_applied"]) == 4)
         n1 = loop.state.n_removed
         loop.set_tool("drill")
         loop.set_target(target + 6.0 * view, view)      # on to the bone under the cut
-        assert _wait(lambda: loop.state.n_removed > n1 + 50)
+        assert wait_until(lambda: loop.state.n_removed > n1 + 50)
         loop.set_drill(False)
         time.sleep(0.05)
         live.drain()

@@ -22,6 +22,7 @@ from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.runtime.record import Recorder, make_header
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
+from tests.bonesim.waiting import wait_until
 
 BONE = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
 
@@ -159,13 +160,6 @@ def test_speck_size_comes_from_the_case(tmp_path):
 
 
 # ------------------------------------------------- the live loop, recorded
-def _wait(cond, timeout_s=20.0):
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.01)
-    return cond()
-
-
 @pytest.fixture(scope="module")
 def model():
     return load_model("phantom", "cutting-5mm")
@@ -191,7 +185,7 @@ def fragment_run(model, tmp_path_factory):
         finder = FragmentFinder(model, loop.state, loop.status, snapshot=False)
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert _wait(lambda: loop.state.n_removed > 20)
+        assert wait_until(lambda: loop.state.n_removed > 20)
         # the phantom's 4-voxel speck (apart from the bone from the start)
         d, _ = g.to_dense()
         dl, dn = label_parts(d > 0)
@@ -203,7 +197,7 @@ def fragment_run(model, tmp_path_factory):
         finder.poll(loop.send)
 
         def applied(seq):
-            return _wait(lambda: int(loop.status["commands_read"]) > seq)
+            return wait_until(lambda: int(loop.status["commands_read"]) > seq)
 
         at = np.rint((np.asarray(loop.status["pos_mm"], float) - g.origin_mm)
                      / model.spacing_mm).astype(int)
@@ -230,7 +224,7 @@ def fragment_run(model, tmp_path_factory):
         n0 = loop.state.n_removed
         for depth in np.arange(1.0, 8.0, 0.5):            # on, deeper, until it cuts
             loop.set_target(target + depth * view, view)
-            if _wait(lambda: loop.state.n_removed > n0 + 100, 1.0):
+            if wait_until(lambda: loop.state.n_removed > n0 + 100, 1.0):
                 break
         assert loop.state.n_removed > n0 + 100
         for _ in range(5):

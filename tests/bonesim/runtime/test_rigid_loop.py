@@ -17,13 +17,7 @@ from bonesim.runtime.record import Recorder, make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
-
-
-def _wait(cond, timeout_s=30.0):
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        time.sleep(0.01)
-    return cond()
+from tests.bonesim.waiting import wait_until
 
 
 @pytest.fixture(scope="module")
@@ -45,17 +39,17 @@ def run(tmp_path_factory):
         # the bone under the tool, 12 voxels across, made a fragment
         c = np.rint((target - model.grid.origin_mm) / model.spacing_mm).astype(int)
         loop.send(SplitBox, lo=c - 6, hi=c + 6, body=0)
-        assert _wait(lambda: loop.state.n_bodies == 2)
+        assert wait_until(lambda: loop.state.n_bodies == 2)
         # the stopped tool presses on it
         loop.set_target(target + 2.0 * view, view)
-        assert _wait(lambda: tuple(loop.state.pose[1]) != IDENTITY_POSE)
+        assert wait_until(lambda: tuple(loop.state.pose[1]) != IDENTITY_POSE)
         time.sleep(0.3)
         loop.set_target(target - 6.0 * view, view)          # the tool away
         time.sleep(0.2)
         loop.send(PlacePlate, plate="straight-4")
         time.sleep(1.5)                                     # it falls and rests
         loop.send(AffixPlate)
-        assert _wait(lambda: int(loop.status["commands_applied"]) == 3)
+        assert wait_until(lambda: int(loop.status["commands_applied"]) == 3)
         time.sleep(0.2)
         rejected = int(loop.status["commands_rejected"])
         error = bytes(loop.status["command_error"]).decode(errors="replace")

@@ -20,6 +20,7 @@ from bonesim.runtime.record import Recorder, make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
+from tests.bonesim.waiting import wait_until
 
 #: A block of the lateral cortex (the face at x of about 20 mm, looked at
 #: along -x): its outer face's centre 1 mm off the bone [mm], its size along
@@ -35,15 +36,6 @@ LIFT_MM = 12.0
 #: dropped onto the block lengthwise: mesh x along case y, mesh z along +x
 #: (a turn of 120 degrees about (1, 1, 1)), 1.5 mm above the bone.
 PLATE_POSE = (22.5, 4.0, 0.0, 0.5, 0.5, 0.5, 0.5)
-
-
-def _wait(cond, timeout_s=30.0, poll=None):
-    end = time.monotonic() + timeout_s
-    while not cond() and time.monotonic() < end:
-        if poll is not None:
-            poll()
-        time.sleep(0.01)
-    return cond()
 
 
 def _largest_new_body(state) -> int:
@@ -81,7 +73,7 @@ def run(tmp_path_factory):
         finder = FragmentFinder(model, loop.state, loop.status, snapshot=False)
         for params in _strokes():
             loop.send(CutPlane, **params)
-        assert _wait(lambda: loop.state.n_bodies >= 2,
+        assert wait_until(lambda: loop.state.n_bodies >= 2,
                      poll=lambda: finder.poll(loop.send)), "the block was not split off"
         time.sleep(0.3)
         finder.poll(loop.send)                              # any specks of the cuts
@@ -96,7 +88,7 @@ def run(tmp_path_factory):
         pose = np.array(IDENTITY_POSE, float)
         pose[:3] = -LIFT_MM * INTO
         loop.send(MoveBody, body=body, pose=pose)
-        assert _wait(lambda: tuple(loop.state.pose[body][:3]) == tuple(pose[:3]))
+        assert wait_until(lambda: tuple(loop.state.pose[body][:3]) == tuple(pose[:3]))
         time.sleep(0.2)
         rejected = int(loop.status["commands_rejected"])
         error = bytes(loop.status["command_error"]).decode(errors="replace")
