@@ -49,7 +49,8 @@ __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spe
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
            "split_body", "set_pose", "publish_split", "publish_split_box", "publish_pose",
            "body_voxel_counts", "to_body_frame", "to_case_frame", "posed_bodies",
-           "Bodies", "all_identity", "pose_groups", "voxel_bodies", "majority_bodies"]
+           "Bodies", "all_identity", "pose_groups", "voxel_bodies", "majority_bodies",
+           "near_body_box"]
 
 #: Bodies a model holds unless configured otherwise.
 DEFAULT_MAX_BODIES = 64
@@ -115,6 +116,22 @@ def validate_pose(pose) -> np.ndarray:
     return p
 
 
+@njit(cache=True, nogil=True, inline="always")
+def near_body_box(pose_m, bounds, b, pos, r_vox, origin, spacing) -> bool:
+    """Whether the point ``pos`` (case frame [mm]) lies within ``r_vox``
+    voxels of body ``b``'s voxel box (its own frame: ``R^T (pos - t)``)."""
+    dx = pos[0] - pose_m[b, 0, 3]
+    dy = pos[1] - pose_m[b, 1, 3]
+    dz = pos[2] - pose_m[b, 2, 3]
+    near = True
+    for a in range(3):
+        p = pose_m[b, 0, a] * dx + pose_m[b, 1, a] * dy + pose_m[b, 2, a] * dz
+        v = (p - origin[a]) / spacing
+        if v + r_vox < bounds[b, a] or v - r_vox > bounds[b, 3 + a]:
+            near = False
+    return near
+
+
 @njit(cache=True, nogil=True)
 def _plan(alive, pose, pose_m, bounds, pos, radius, origin, spacing, group, pass_body,
           pass_ident):
@@ -123,18 +140,7 @@ def _plan(alive, pose, pose_m, bounds, pos, radius, origin, spacing, group, pass
         group[b] = -1
         if alive[b] == 0:
             continue
-        # tool centre in the body's frame: R^T (pos - t)
-        dx = pos[0] - pose_m[b, 0, 3]
-        dy = pos[1] - pose_m[b, 1, 3]
-        dz = pos[2] - pose_m[b, 2, 3]
-        near = True
-        for a in range(3):
-            p = pose_m[b, 0, a] * dx + pose_m[b, 1, a] * dy + pose_m[b, 2, a] * dz
-            v = (p - origin[a]) / spacing
-            r = radius / spacing + 2.0
-            if v + r < bounds[b, a] or v - r > bounds[b, 3 + a]:
-                near = False
-        if not near:
+        if not near_body_box(pose_m, bounds, b, pos, radius / spacing + 2.0, origin, spacing):
             continue
         g = -1
         for q in range(n_pass):

@@ -71,6 +71,7 @@ import math
 import numpy as np
 from numba import njit
 
+from bonesim.engine.bodies import near_body_box
 from bonesim.engine.events import PLATE, POSE
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 
@@ -238,17 +239,7 @@ def _contact(keys, vals, body, density, alive, pose_m, bounds, origin, spacing,
     for b in range(alive.shape[0]):
         if alive[b] == 0 or b == exclude or n_cand >= cand.shape[0]:
             continue
-        dx = com_w[0] - pose_m[b, 0, 3]
-        dy = com_w[1] - pose_m[b, 1, 3]
-        dz = com_w[2] - pose_m[b, 2, 3]
-        near = True
-        for a in range(3):
-            p = pose_m[b, 0, a] * dx + pose_m[b, 1, a] * dy + pose_m[b, 2, a] * dz
-            v = (p - origin[a]) / spacing
-            r = radius / spacing + 1.0
-            if v + r < bounds[b, a] or v - r > bounds[b, 3 + a]:
-                near = False
-        if near:
+        if near_body_box(pose_m, bounds, b, com_w, radius / spacing + 1.0, origin, spacing):
             cand[n_cand] = b
             n_cand += 1
     if n_cand == 0:
