@@ -92,6 +92,9 @@ MASTOID_TIP_AXIS_MM = ((9.5, 2.0, -9.0), (13.5, -1.0, -21.0))  # process: down, 
 MASTOID_TIP_RADII_MM = (9.5, 3.4)      # tip 1.5-2 cm below the ear canal
 TYMPANIC_CENTER_MM = (8.0, -12.0, -3.0)  # tympanic part around canal and middle ear
 TYMPANIC_SEMI_MM = (11.0, 7.5, 7.5)
+OCCIPITAL_CENTER_MM = (2.0, 18.0, 0.0)  # bone behind the mastoid (occipital and
+OCCIPITAL_SEMI_MM = (14.0, 14.0, 21.0)  # mastoid parts over the sinus); the posterior
+                                       # fossa is carved out of it, leaving a table
 SQUAMA_POINT_MM = (18.0, -6.0, 8.0)    # a point of the squama's lateral face
 SQUAMA_RADIUS_MM = 90.0                # curvature of that face (slightly convex)
 SQUAMA_OUTLINE_MM = ((-4.0, 3.0), (20.5, 21.0))  # (y, z) centre and semi-axes
@@ -128,6 +131,8 @@ TEGMEN_Z_MM = 11.0             # floor of the middle fossa
 SQUAMA_MM = 3.0                # lateral bony plate above the tegmen
 PF_POINT_MM = (0.0, 12.0, 0.0)  # a point on the posterior fossa's bony wall
 PF_NORMAL = (-1.0, 1.2, 0.0)   # points into the posterior fossa (posteromedial)
+PF_TABLE_MM = 3.0              # bony wall kept between the fossa and the outside
+MF_TABLE_Y_MM = 13.0           # the middle fossa keeps that wall too behind this y
 DURA_MM = 1.5
 
 # ---------------------------------------------------------------- air spaces
@@ -312,6 +317,8 @@ def _base_parts(inner_mm=SQUAMA_MM):
          *_bbox_ellipsoid(MASTOID_CENTER_MM, MASTOID_SEMI_MM), BLEND_MM),
         (lambda x, y, z: _sd_ellipsoid(x, y, z, TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM),
          *_bbox_ellipsoid(TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM), BLEND_MM),
+        (lambda x, y, z: _sd_ellipsoid(x, y, z, OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM),
+         *_bbox_ellipsoid(OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM), BLEND_MM),
         (lambda x, y, z: _sd_round_cone(x, y, z, *MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM),
          *_bbox_cone(*MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM), BLEND_MM),
         (lambda x, y, z: _sd_squama(x, y, z, inner_mm),
@@ -601,19 +608,28 @@ class _Canvas:
 def _envelope(cv: _Canvas):
     """Bone shape, middle-fossa and posterior-fossa masks and dura layers."""
     # the squama counts DURA_MM thicker so that its inner face carries dura
-    shape = _cortex_field(cv, SQUAMA_MM + DURA_MM) <= 0
+    field = _cortex_field(cv, SQUAMA_MM + DURA_MM)
+    shape = field <= 0
     sl, x, y, z = cv.full()
     above = z - TEGMEN_Z_MM                                 # > 0 above the tegmen
     medial = _squama_depth(x, y, z) - SQUAMA_MM             # > 0 medial to squama
-    mid = (above > 0) & (medial > 0)
-    mid_depth = np.minimum(above, medial)                   # depth into the fossa
+    # the posterior fossa stops PF_TABLE_MM inside the outer shape (the skull's
+    # wall behind the mastoid, which covers the sinus); so does the middle
+    # fossa within the occipital part, behind the squama
+    occipital = (_sd_ellipsoid(x, y, z, OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM)
+                 <= PF_TABLE_MM) & (y > MF_TABLE_Y_MM)
+    to_table = np.where(occipital, -PF_TABLE_MM - field, np.inf)   # > 0 inside it
+    table = to_table > 0
+    mid = (above > 0) & (medial > 0) & table
+    mid_depth = np.minimum(np.minimum(above, medial), to_table)
     n = np.asarray(PF_NORMAL, float)
     n /= np.linalg.norm(n)
     q = np.asarray(PF_POINT_MM, float)
     pf_depth = (x - q[0]) * n[0] + (y - q[1]) * n[1] + (z - q[2]) * n[2]
-    post = pf_depth > 0
+    to_wall = -PF_TABLE_MM - field                 # > 0 deeper than the skull's wall
+    post = (pf_depth > 0) & (to_wall > 0)
     mid_dura = shape & mid & (mid_depth <= DURA_MM)
-    post_dura = shape & post & (pf_depth <= DURA_MM) & ~mid
+    post_dura = shape & post & (np.minimum(pf_depth, to_wall) <= DURA_MM) & ~mid
     envelope = shape & ~mid & ~post
     return envelope, mid_dura, post_dura
 
