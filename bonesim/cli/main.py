@@ -96,6 +96,19 @@ def cmd_burrs(args) -> int:
 
 
 # ------------------------------------------------------ trajectories / runs
+def _checked(case, args):
+    """The case (a name, path or Case), refused when its anatomy contradicts
+    its declared side or orientation unless ``--accept-orientation``."""
+    from bonesim.io.case import load_case
+
+    case = case if hasattr(case, "require_orientation") else load_case(case)
+    problem = case.require_orientation(getattr(args, "accept_orientation", False))
+    if problem:
+        print(f"bonesim: {case.manifest}: {problem}; drilled as declared "
+              "(--accept-orientation)", file=sys.stderr)
+    return case
+
+
 def _plan(case, burr_name: str):
     from bonesim.io.toolpath import demo_trajectory
 
@@ -106,7 +119,7 @@ def cmd_trajectory(args) -> int:
     from bonesim.io.case import load_case
     from bonesim.io.trajectory import write_trajectory
 
-    case = load_case(args.case)
+    case = _checked(load_case(args.case), args)
     traj = _plan(case, args.burr)
     write_trajectory(args.out, traj)
     print(f"wrote {args.kind} trajectory for case '{case.name}' ({len(traj.t_s)} points, "
@@ -147,6 +160,7 @@ def cmd_simulate(args) -> int:
     from bonesim.io.trajectory import read_trajectory
 
     traj = read_trajectory(args.trajectory)
+    _checked(args.case, args)
     summary = _run(args.case, args.burr, traj, args)
     if args.json:
         _print_json(summary)
@@ -190,7 +204,7 @@ def cmd_demo(args) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    case = load_case(args.case)
+    case = _checked(load_case(args.case), args)
     traj = _plan(case, args.burr)
     tpath = out / "trajectory.csv"
     write_trajectory(tpath, traj)
@@ -228,6 +242,7 @@ def cmd_run(args) -> int:
     if args.monitor_port is not None and args.no_monitor:
         raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
                            "--no-monitor", field="--monitor-port")
+    _checked(args.case, args)
     if offscreen and script is None and frames is None:
         if args.force_limits:
             raise BonesimError("the headless main job drills the planned path and shows no "
@@ -587,6 +602,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="burr samples per voxel edge (default 2)")
         s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
                        help="final surface mesh format (default ply)")
+        accept_opt(s)
+
+    def accept_opt(s):
+        s.add_argument("--accept-orientation", action="store_true",
+                       help="drill a case whose anatomy contradicts its declared side or "
+                            "orientation (refused by default, naming the code that fits)")
 
     def who_opts(s):
         s.add_argument("--participant", help="participant id, stored in the recording")
@@ -611,6 +632,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind", default="demo-mastoidectomy", choices=["demo-mastoidectomy"])
     s.add_argument("--burr", default=DEFAULT_BURR, help="burr the path is planned for")
     s.add_argument("--out", required=True, help="output CSV")
+    accept_opt(s)
     s.set_defaults(func=cmd_trajectory)
 
     s = sub.add_parser("demo", help="headless demo: plan and drill a mastoidectomy on "
@@ -625,6 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--case", default=DEFAULT_CASE,
                    help=f"case name or case.toml path (default {DEFAULT_CASE})")
     s.add_argument("--burr", default=DEFAULT_BURR, help=f"starting burr (default {DEFAULT_BURR})")
+    accept_opt(s)
     s.add_argument("--offscreen", action="store_true",
                    help="render without a display (OSMesa/EGL); default when none exists. "
                         "Alone: the headless main job (the whole demo plan in simulated "

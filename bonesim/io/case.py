@@ -187,11 +187,12 @@ def case_info(case: Case, progress=None) -> dict:
         structure name), ``colors`` (per name: ``rgb``, ``source``),
         ``monitored`` (names the nerve monitor watches), ``camera``
         (``eye_mm, focal_mm, up, source`` and, when derived, ``notes``),
-        ``warnings`` (layout against the declared side, look-alike colours),
+        ``landmarks`` (:meth:`bonesim.io.landmarks.Landmarks.as_dict`: each
+        landmark's point, source and confidence, what is missing, how merged
+        labels were split), ``warnings`` (anatomy against the declared side
+        and orientation, look-alike colours),
         ``total`` (non-empty voxels).
     """
-    from bonesim.io.surgical_view import side_warnings
-
     vol = case.load_volume(progress=progress)
     rc = case.resolved(vol)
     counts = vol.counts(len(case.structures))
@@ -202,9 +203,13 @@ def case_info(case: Case, progress=None) -> dict:
     if rc.declared_camera is None:
         camera["notes"] = list(rc.surgical_view.notes)
     code, how = case.orientation
-    warnings = side_warnings(vol.labels, vol.spacing_mm, vol.origin_mm,
-                             [s.kind for s in rc.structures],
-                             [s.role for s in rc.structures], case.side, case.names)
+    lm = case.landmarks
+    problem = case.orientation_problem()
+    warnings = [problem] if problem else []
+    fc = case.frame_check
+    if fc.unchecked:
+        warnings.append("no labelled structures tell the " + ", ".join(fc.unchecked)
+                        + " direction: the orientation is not checked along it")
     warnings += _color_warnings(rc, vol)
     return {
         "name": case.name,
@@ -226,6 +231,7 @@ def case_info(case: Case, progress=None) -> dict:
                    for s in rc.structures},
         "monitored": [s.name for s in case.structures if s.monitor],
         "camera": camera,
+        "landmarks": lm.as_dict(),
         "warnings": warnings,
         "total": int(counts[1:].sum()),
     }

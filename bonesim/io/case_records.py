@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bonesim.errors import BonesimError
 from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.orientation import PATIENT_FRAME
@@ -309,12 +310,67 @@ class Case:
             self.load_volume()
         return self._derived["view"]
 
-    def _derive_view(self, vol: CaseVolume) -> None:
-        from bonesim.io.surgical_view import surgical_view
+    @property
+    def landmarks(self):
+        """The :class:`~bonesim.io.landmarks.Landmarks` of the mastoidectomy,
+        read from the volume (loaded once, then cached)."""
+        if "landmarks" not in self._derived:
+            self.load_volume()
+        return self._derived["landmarks"]
 
-        self._derived["view"] = surgical_view(
-            vol.labels, vol.spacing_mm, vol.origin_mm, [s.kind for s in self.structures],
-            [s.role for s in self.structures], self.side, self.names)
+    @property
+    def frame_check(self):
+        """How the anatomy agrees with the declared side and orientation
+        (:class:`~bonesim.io.anatomy_frame.FrameCheck`)."""
+        if "frame" not in self._derived:
+            self.load_volume()
+        return self._derived["frame"]
+
+    def orientation_problem(self) -> str:
+        """One line naming where the anatomy contradicts the declared side or
+        orientation, with the code that fits it; empty when it agrees."""
+        code, how = self.orientation
+        return self.frame_check.message(code if how in ("declared", "assumed") else None,
+                                        how, self.side)
+
+    def require_orientation(self, accept: bool = False) -> str:
+        """Refuse a case whose anatomy contradicts its declaration.
+
+        Parameters
+        ----------
+        accept : bool
+            Drill it as declared anyway (``--accept-orientation``).
+
+        Returns
+        -------
+        str
+            The contradiction when accepted (for a notice), else ``""``.
+
+        Raises
+        ------
+        BonesimError
+            Naming the manifest, the contradiction and the fitting code.
+        """
+        problem = self.orientation_problem()
+        if problem and not accept:
+            raise BonesimError(problem + "; --accept-orientation drills it as declared",
+                               self.manifest)
+        return problem
+
+    def _derive(self, vol: CaseVolume) -> None:
+        from bonesim.io.anatomy_frame import check_frame
+        from bonesim.io.landmarks import find_landmarks
+        from bonesim.io.surgical_view import view_from_landmarks
+
+        lm = find_landmarks(vol.labels, vol.spacing_mm, vol.origin_mm, self.structures,
+                            self.side)
+        code, how = self.orientation
+        self._derived["landmarks"] = lm
+        self._derived["frame"] = check_frame(
+            lm.masks, lm.cortex["h"], lm.cortex["origin_mm"], self.side,
+            code if how in ("declared", "assumed") else None)
+        if self.declared_camera is None:
+            self._derived["view"] = view_from_landmarks(lm)
 
     # ----------------------------------------------------------- volume
     def load_volume(self, progress=None) -> CaseVolume:
@@ -326,8 +382,10 @@ class Case:
             ``progress(done, total, what)`` while a big volume loads (passed
             to :func:`bonesim.io.volumes.load_volume`).
 
-        The surgical view of a case without ``[camera]`` is derived from this
-        volume and cached, so :attr:`camera` does not read it again.
+        The landmarks, the side and orientation check and (for a case
+        without ``[camera]``) the surgical view are derived from this volume
+        and cached, so :attr:`camera` and :attr:`landmarks` do not read it
+        again.
         """
         v = self.volume
         names = self.names
@@ -352,8 +410,8 @@ class Case:
                     bone_threshold_hu=v.bone_threshold_hu, labels_path=v.labels,
                     pattern=v.pattern, size_mm=v.size_mm,
                     unknown_colors=v.unknown_colors, origin_mm=v.origin_mm, **kw)
-        if self.declared_camera is None and "view" not in self._derived:
-            self._derive_view(vol)
+        if "landmarks" not in self._derived:
+            self._derive(vol)
         return vol
 
     def resolved(self, vol: CaseVolume) -> "Case":
@@ -378,10 +436,10 @@ class Case:
                        for s, c in zip(structs, colors)]
         out = dataclasses.replace(self, structures=tuple(structs))
         out._derived.update(self._derived)
-        if out.declared_camera is None:
-            if "view" not in out._derived:
-                out._derive_view(vol)
-            self._derived.setdefault("view", out._derived["view"])
+        if "landmarks" not in out._derived:
+            out._derive(vol)
+            for k, v in out._derived.items():
+                self._derived.setdefault(k, v)
         return out
 
 

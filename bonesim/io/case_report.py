@@ -72,6 +72,18 @@ def print_case_info(info: dict) -> None:
           f"up {c['up']}")
     for note in c.get("notes", []):
         print(f"  {note}")
+    lm = info.get("landmarks")
+    if lm:
+        print("landmarks (confidence: labelled, split from a merged label, found from "
+              "geometry, estimated):")
+        for name, m in lm["landmarks"].items():
+            p = ", ".join(f"{v:.1f}" for v in m["point_mm"])
+            print(f"  {name.replace('_', ' '):16s} [{p}] mm  {m['confidence']:9s} "
+                  f"{m['source']}")
+        for m in lm["missing"]:
+            print(f"  missing: {m}")
+        for n in lm["notes"]:
+            print(f"  {n}")
     rows = [{"structure": n, "kind": info["kinds"][n], "voxels": info["counts"][n],
              "colour": f"{_rgb_text(info['colors'][n]['rgb'])} "
                        f"({info['colors'][n]['source']})",

@@ -95,7 +95,10 @@ def write_real_like(folder, *, voxel_mm=0.5, merged=True, crop_mm=None, side="le
     the manifest says (None: no ``orientation`` key). ``origin_mm`` is
     written so that a correctly declared stack lands where the phantom lies.
     """
+    import shutil
+
     folder = Path(folder)
+    shutil.rmtree(folder / "slices", ignore_errors=True)
     labels, structures, origin = real_like_labels(voxel_mm, merged, crop_mm, side, seed)
     write_label_stack(folder / "slices", labels, [rgb for _, _, rgb in structures],
                       orientation=stored)

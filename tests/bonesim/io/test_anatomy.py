@@ -1,8 +1,9 @@
 """Names, palette and neighbours (bonesim.io.anatomy); the automatic surgical view
-and the side checks (bonesim.io.surgical_view)."""
+(bonesim.io.surgical_view) and the cortex it is read on (bonesim.io.landmarks)."""
 from __future__ import annotations
 
 import colorsys
+import dataclasses
 import itertools
 import math
 
@@ -15,8 +16,10 @@ from scipy.spatial.distance import cdist
 from bonesim.io import anatomy as A
 from bonesim.io import phantom as P
 from bonesim.io import surgical_view as V
+from bonesim.io.landmarks import find_canal_pits, find_landmarks, lateral_height_map
 from bonesim.io.case import load_case
 from bonesim.errors import BonesimError
+from tests.bonesim.fakes import BONE
 
 TABLE = A.load_table()
 
@@ -198,7 +201,7 @@ def test_lateral_height_map_matches_loop(seed, side):
     rng = np.random.default_rng(seed)
     mask = rng.random((6, 5, 4)) < 0.3
     origin = rng.normal(size=3) * 10
-    got = V.lateral_height_map(mask, 0.5, origin, side)
+    got = lateral_height_map(mask, 0.5, origin, side)
     lat = 1.0 if side == "left" else -1.0
     for j in range(5):
         for k in range(4):
@@ -214,13 +217,13 @@ def test_canal_pit_of_a_drilled_slab():
     j, k = np.mgrid[:80, :80]
     hole = (j - 30.0) ** 2 + (k - 50.0) ** 2 <= 8.0 ** 2     # r = 4 mm
     h[hole] = -5.0
-    pits = V.find_canal_pits(h, 0.5, 9.0, 4.0, 8.0, 400.0)
+    pits = find_canal_pits(h, 0.5, 9.0, 4.0, 8.0, 400.0)
     assert len(pits) == 1
     p = pits[0]
     assert p["j"] == pytest.approx(30, abs=0.01) and p["k"] == pytest.approx(50, abs=0.01)
     assert p["area_mm2"] == pytest.approx(math.pi * 16, rel=0.05)
     assert p["depth_mm"] == pytest.approx(15.0)
-    assert V.find_canal_pits(h, 0.5, 9.0, 20.0, 8.0, 400.0) == []   # not that deep
+    assert find_canal_pits(h, 0.5, 9.0, 20.0, 8.0, 400.0) == []   # not that deep
 
 
 # ------------------------------------------------------------ the view
@@ -238,10 +241,21 @@ def _mirror(labels, origin):
     return np.ascontiguousarray(labels[::-1]), o
 
 
-def _view(c, labels, origin, side, roles=None, **params):
-    roles = [s.role for s in c.structures] if roles is None else roles
-    return V.surgical_view(labels, 0.5, origin, [s.kind for s in c.structures], roles,
-                           side, c.names, params=params or None)
+def _unnamed(structures, drop):
+    """The structures, those of the anatomical classes ``drop`` renamed so
+    that their names read as nothing."""
+    return [dataclasses.replace(s, name=f"structure {i}", anatomy="")
+            if s.anatomy in drop else s for i, s in enumerate(structures, start=1)]
+
+
+def _view(c, labels, origin, side, structures=None, **params):
+    structures = c.structures if structures is None else structures
+    return V.surgical_view(labels, 0.5, origin, structures, side, params=params or None)
+
+
+def _marks(c, labels, origin, side, structures=None):
+    return find_landmarks(labels, 0.5, origin, c.structures if structures is None
+                          else structures, side)
 
 
 def assert_looks_at_mastoid(view, labels, origin, side):
@@ -277,7 +291,7 @@ def test_view_looks_at_the_mastoid_for_both_sides(phantom, side):
         _mirror(vol.labels, vol.origin_mm)
     view = _view(c, labels, origin, side)
     assert_looks_at_mastoid(view, labels, origin, side)
-    assert any("air channel" in n for n in view.notes)
+    assert "air channel" in _marks(c, labels, origin, side).get("ear_canal").source
     np.testing.assert_allclose(view.landmarks["canal"], P.EAC_AXIS_MM[0][1:], atol=0.5)
     assert view.landmarks["tegmen"][1] == pytest.approx(P.TEGMEN_Z_MM, abs=0.5)
     if side == "right":                      # the mirror image of the left view
@@ -288,7 +302,6 @@ def test_view_looks_at_the_mastoid_for_both_sides(phantom, side):
 
 def test_view_fallbacks(phantom):
     c, vol = phantom
-    roles = [s.role for s in c.structures]
     # a labelled canal: the phantom's canal air painted as a structure
     labels = vol.labels.copy()
     a, b = np.array(P.EAC_AXIS_MM)
@@ -298,28 +311,34 @@ def test_view_fallbacks(phantom):
     r = np.linalg.norm(pts - (a + t[..., None] * (b - a)), axis=-1)
     canal = (r <= P.EAC_RADIUS_MM) & (labels == 0) & (pts[..., 0] > 9)
     labels[canal] = 8                                   # reuse index 8 as "EAC"
-    view = _view(c, labels, vol.origin_mm, "left", roles[:7] + ["ear_canal"])
-    assert any("the labelled" in n for n in view.notes)
+    eac = list(c.structures[:7]) + [dataclasses.replace(c.structures[7], name="EAC",
+                                                        kind="soft", anatomy="ear_canal")]
+    view = _view(c, labels, vol.origin_mm, "left", eac)
+    assert _marks(c, labels, vol.origin_mm, "left", eac).get("ear_canal").confidence \
+        == "labelled"
     assert_looks_at_mastoid(view, vol.labels, vol.origin_mm, "left")
-    # no sinus, no tegmen: fixed offsets from the canal
-    bare = [r if r not in ("sinus", "tegmen") else "" for r in roles]
+    # no sinus, no dura: fixed offsets from the canal
+    bare = _unnamed(c.structures, ("sigmoid_sinus", "middle_fossa_dura",
+                                   "posterior_fossa_dura"))
     view = _view(c, vol.labels, vol.origin_mm, "left", bare)
-    assert any("no sinus" in n for n in view.notes) and any("no tegmen" in n
-                                                              for n in view.notes)
+    assert any("no sinus" in n for n in view.notes)
+    assert _marks(c, vol.labels, vol.origin_mm, "left", bare).get("tegmen").confidence \
+        == "estimated"
     assert_looks_at_mastoid(view, vol.labels, vol.origin_mm, "left")
     # no canal opening (filled with bone), no ossicles: the middle ear is gone,
     # the view falls back to the bone's lateral face, still lateral and on bone
     filled = vol.labels.copy()
     envelope = P.build_phantom(c.volume.seed, 0.5, c.volume.size_mm).envelope
     filled[canal & envelope] = 1
-    none = [r if r not in ("ossicles", "middle_ear") else "" for r in roles]
+    none = _unnamed(c.structures, ("ossicles",))
     view = _view(c, filled, vol.origin_mm, "left", none)
     assert any("no ear canal found" in n for n in view.notes)
     eye, focal = np.array(view.eye_mm), np.array(view.focal_mm)
     assert (eye - focal)[0] > 0 and focal[2] < P.TEGMEN_Z_MM
     # no canal opening but ossicles: the canal lies lateral to the middle ear
     view = _view(c, filled, vol.origin_mm, "left")
-    assert any("lateral to the middle ear" in n for n in view.notes)
+    assert "lateral to the middle ear" in _marks(c, filled, vol.origin_mm, "left") \
+        .get("ear_canal").source
     assert_looks_at_mastoid(view, filled, vol.origin_mm, "left")
 
 
@@ -329,27 +348,6 @@ def test_view_input_errors(phantom):
         _view(c, np.zeros((4, 4, 4), np.uint8), (0, 0, 0), "left")
     with pytest.raises(ValueError, match="side"):
         _view(c, vol.labels, vol.origin_mm, "middle")
-
-
-# ------------------------------------------------------------ side checks
-def test_side_warnings(phantom):
-    c, vol = phantom
-    kinds, roles = [s.kind for s in c.structures], [s.role for s in c.structures]
-
-    def warn(labels, origin, side):
-        return V.side_warnings(labels, 0.5, origin, kinds, roles, side, c.names)
-
-    assert warn(vol.labels, vol.origin_mm, "left") == []
-    mirrored, o = _mirror(vol.labels, vol.origin_mm)
-    assert warn(mirrored, o, "right") == []                     # a correct right ear
-    w = warn(mirrored, o, "left")                               # declared wrongly
-    assert any("labyrinth" in x and "lateral to the middle ear" in x for x in w)
-    assert any("mastoid cortex faces medially" in x for x in w)
-    assert all("L/R letter" in x for x in w)
-    w = warn(np.ascontiguousarray(vol.labels[:, ::-1]), vol.origin_mm, "left")
-    assert len(w) == 1 and "sinus" in w[0] and "anterior" in w[0] and "P/A" in w[0]
-    w = warn(np.ascontiguousarray(vol.labels[:, :, ::-1]), vol.origin_mm, "left")
-    assert len(w) == 1 and "below the labyrinth" in w[0] and "S/I" in w[0]
 
 
 @pytest.mark.parametrize("face_deg, view_deg", [(5.0, 0.0), (20.0, 20.0), (50.0, 30.0)])
@@ -362,7 +360,7 @@ def test_view_follows_a_turned_cortex_within_limits(face_deg, view_deg):
     x, y, z = np.meshgrid(g, g, g, indexing="ij")
     bone = (x * n[0] + y * n[1] <= 4.0) & (np.abs(y) < 12) & (np.abs(z) < 12) & (x > -14)
     labels = bone.astype(np.uint8)
-    view = V.surgical_view(labels, 0.5, (g[0],) * 3, ["bone"], ["bone"], "left")
+    view = V.surgical_view(labels, 0.5, (g[0],) * 3, [BONE], "left")
     d = np.subtract(view.focal_mm, view.eye_mm)
     d /= np.linalg.norm(d)
     assert math.degrees(math.acos(-d[0])) == pytest.approx(view_deg, abs=1.0)
