@@ -79,14 +79,24 @@ class Showcase:
     def __init__(self, case="phantom", burr="cutting-5mm", *, trajectory=None,
                  size=SIZE, monitor: bool = True):
         from bonesim.physics.dust import DustGrid
+        from bonesim.io.burrs import load_burr
         from bonesim.io.loading import load_model
         from bonesim.engine.model import make_state
         from bonesim.render.scene import Scene
         from bonesim.engine.replica import TissueReplica
-        from bonesim.io.toolpath import demo_trajectory
+        from bonesim.io.toolpath import plan_mastoidectomy
 
-        self.model = model = load_model(case, burr)
-        traj = trajectory if trajectory is not None else demo_trajectory(model.case, burr)
+        model = load_model(case, burr)
+        if trajectory is None:                  # the plan: cutting, then diamond burr
+            planned = plan_mastoidectomy(model.case, model.burr)
+            traj = planned.trajectory
+            model = model.with_burrs([load_burr(b) for b in planned.burrs[1:]])
+        else:
+            traj = trajectory
+        if int(traj.burr.max()) >= len(model.burrs):
+            raise ValueError(f"the trajectory uses burr {int(traj.burr.max())}; the run "
+                             f"has burrs 0..{len(model.burrs) - 1}")
+        self.model = model
         self.samples = traj.resample(model.haptic_rate_hz)
         if len(self.samples.t_s) < 2:
             raise ValueError("the trajectory is shorter than one haptic step")
@@ -105,6 +115,7 @@ class Showcase:
         self.scene.set_case_camera(eye, focal, cam.up)
         self.injuries: list[str] = []
         self.q = 0                                   # next sample to step
+        self.burr_index = int(self.samples.burr[0])  # the burr in use
         self.frame_hz = None                         # run_showcase: the video's rate
         self._force = np.zeros(len(self.samples.t_s))  # |force| per step [N]
         self.t_s = float(self.samples.t_s[0])
@@ -184,7 +195,8 @@ class Showcase:
         centre)."""
         s = self.samples
         a = np.asarray(s.axis[q], float)
-        return s.pos_mm[q] + self.model.burr.radius_mm * a / np.linalg.norm(a)
+        r = self.model.burrs[int(s.burr[q])].radius_mm
+        return s.pos_mm[q] + r * a / np.linalg.norm(a)
 
     def advance(self, t_s: float) -> None:
         """Step the engine through every sample up to ``t_s`` and bring the
@@ -204,8 +216,13 @@ class Showcase:
         hi = int(np.searchsorted(s.t_s, t_s, side="right"))
         lo = self.q
         for q in range(lo, hi):
+            if s.burr[q] != self.burr_index:     # between steps, as the loop's SetBurr
+                self.burr_index = int(s.burr[q])
+                events.push_event(state.tissue, events.BURR, float(s.t_s[q]),
+                                  n=self.burr_index)
             f = step(model, state, Sample(s.t_s[q], s.pos_mm[q], s.axis[q], bool(s.drill[q]),
-                                          float(s.speed_rpm[q]), int(s.direction[q])))
+                                          float(s.speed_rpm[q]), int(s.direction[q]),
+                                          self.burr_index))
             self._force[q] = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         self.q = max(hi, lo)
         self._clearance(lo, self.q)
@@ -218,7 +235,7 @@ class Showcase:
         self.scene.update_bodies(self.consumer, ch.changed, ch.touched)   # bodies at their poses
         if len(rem):
             self.dust.add_removed(rem)
-        burr = model.burr
+        burr = model.burrs[int(s.burr[cur])]
         # the dust moves in steps of at most DUST_DT_S, each with the tool,
         # suction and irrigation of its own moment
         n_sub = int(math.ceil(dt / DUST_DT_S)) if dt > 0 else 0
@@ -279,7 +296,9 @@ class Showcase:
             return
         s = self.samples
         sl = slice(lo - lo % -CLEARANCE_EVERY, hi, CLEARANCE_EVERY)
-        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][s.drill[sl].astype(bool)])
+        on = s.drill[sl].astype(bool)
+        radii = np.array([b.radius_mm for b in self.model.burrs])[s.burr[sl][on]]
+        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][on], radii)
         self.min_clearance_mm = min(self.min_clearance_mm, gap)
 
     def image(self) -> np.ndarray:
@@ -292,6 +311,7 @@ class Showcase:
         counts = st.removed_by_label
         return {
             "case": self.model.name, "burr": self.model.burr.name,
+            "burrs": [b.name for b in self.model.burrs],
             "simulated_s": round(self.t_s - self.start_s, 3),
             "plan_s": round(self.end_s - self.start_s, 3),
             "steps": int(self.q),

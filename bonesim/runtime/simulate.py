@@ -143,7 +143,8 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     summary = _summary(model, state, step_ns, force, contact, consumer, injuries)
     every = np.arange(0, n, CLEARANCE_EVERY)
     drilling = every[samples.drill[every].astype(bool)]
-    gap, label, at = closest_approach(model, pos[drilling])
+    radii = np.array([b.radius_mm for b in model.burrs])[samples.burr[drilling]]
+    gap, label, at = closest_approach(model, pos[drilling], radii)
     if at >= 0:
         summary["closest_approach"] = {
             "clearance_mm": round(gap, 3), "structure": model.structure_name(label),
@@ -224,7 +225,7 @@ def _same_surface(a, b) -> bool:
     return not a.canonical().differences(b.canonical())
 
 
-def closest_approach(model: Model, pos_mm) -> tuple[float, int, int]:
+def closest_approach(model: Model, pos_mm, radius_mm=None) -> tuple[float, int, int]:
     """The burr's closest approach to any structure that is not bone.
 
     Distances are exact at the case's native resolution
@@ -235,6 +236,9 @@ def closest_approach(model: Model, pos_mm) -> tuple[float, int, int]:
     model : Model
     pos_mm : (n, 3) float
         Burr centres, case frame [mm].
+    radius_mm : float or (n,) float, optional
+        The burr's radius at each point [mm] (default: the model's first
+        burr's).
 
     Returns
     -------
@@ -251,9 +255,11 @@ def closest_approach(model: Model, pos_mm) -> tuple[float, int, int]:
     if cl is None or not len(p) or not cl.structures:
         return float("inf"), 0, -1
     labels = list(cl.structures)
-    d = cl.distances(p, [[s] for s in labels])
+    r = model.burr.radius_mm if radius_mm is None else radius_mm
+    d = cl.distances(p, [[s] for s in labels]) - np.broadcast_to(
+        np.asarray(r, dtype=np.float64), (len(p),))[:, None]
     q, k = np.unravel_index(int(np.argmin(d)), d.shape)
-    return float(d[q, k]) - model.burr.radius_mm, int(labels[k]), int(q)
+    return float(d[q, k]), int(labels[k]), int(q)
 
 
 def _summary(model, state, step_ns, force, contact, consumer, injuries) -> dict:
