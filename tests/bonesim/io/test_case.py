@@ -218,7 +218,12 @@ BAD = [
      "structures[1]"),
     ([("label = 2", "label = 1")], "label 1 already used", "structures[1]"),
     ([('kind = "bone"', 'kind = "soft"')], "no structure of kind 'bone'", "structures"),
-    ([("voxel_mm = 0.5", "voxel_mm = -1")], "'voxel_mm' must be >=", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = -1")], "'voxel_mm' must be a number of mm from 0.01 "
+     "to 10 or \"native\" (the source's own spacing), got -1", "volume"),
+    ([("voxel_mm = 0.5", 'voxel_mm = "nativ"')], "or \"native\"", "volume"),
+    ([("voxel_mm = 0.5", 'voxel_mm = "0.3"')], "got '0.3'", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = true")], "got True", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = 11")], "got 11", "volume"),
     ([("up = [0, 0, 1]", "up = [1, 0, 0]")], "parallel to the viewing direction", "camera"),
     ([("up = [0, 0, 1]", "up = [0, 1]")], "'up' must be a list of 3", "camera"),
     ([("eye_mm = [50, 0, 0]", "")], "missing required key(s) 'eye_mm'", "camera"),
