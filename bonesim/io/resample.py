@@ -33,7 +33,7 @@ SLAB_VOXELS = 1 << 22
 """Most voxels of one slab's temporaries (4 Mi: 4 MB of uint8, 16 MB of
 float32)."""
 
-def slabs(n0: int, plane_voxels: int, budget: int = SLAB_VOXELS):
+def slabs(n0: int, plane_voxels: int, budget: int | None = None):
     """Ranges ``(a, b)`` of planes along axis 0, each of at most ``budget``
     voxels (at least one plane), covering ``0 .. n0``.
 
@@ -43,15 +43,16 @@ def slabs(n0: int, plane_voxels: int, budget: int = SLAB_VOXELS):
         Planes along axis 0.
     plane_voxels : int
         Voxels of one plane (``n1 * n2``).
-    budget : int
-        Most voxels per slab.
+    budget : int, optional
+        Most voxels per slab (default :data:`SLAB_VOXELS`).
     """
+    budget = SLAB_VOXELS if budget is None else budget
     step = max(1, int(budget) // max(1, int(plane_voxels)))
     for a in range(0, int(n0), step):
         yield a, min(int(n0), a + step)
 
 
-def label_counts(labels: np.ndarray, minlength: int = 256) -> np.ndarray:
+def label_counts(labels: np.ndarray, minlength: int = 0) -> np.ndarray:
     """Voxel count per label value, slab by slab.
 
     ``np.bincount`` casts its input to ``intp`` (8 bytes per voxel: 1 GB for
@@ -66,16 +67,21 @@ def label_counts(labels: np.ndarray, minlength: int = 256) -> np.ndarray:
     Returns
     -------
     (max(minlength, labels.max() + 1),) int64
+        As ``np.bincount(labels.ravel(), minlength=minlength)``.
     """
     labels = np.asarray(labels)
-    counts = np.zeros(max(int(minlength), 256), dtype=np.int64)
+    counts = np.zeros(256, dtype=np.int64)
+    if labels.dtype != np.uint8:
+        raise ValueError(f"labels must be uint8, got {labels.dtype}")
     if labels.ndim != 3:
         labels = labels.reshape(-1, 1, 1)
     for a, b in slabs(labels.shape[0], labels.shape[1] * labels.shape[2]):
         c = np.bincount(labels[a:b].ravel(), minlength=256)
         counts[:len(c)] += c
-    last = max(int(minlength), int(np.flatnonzero(counts)[-1]) + 1 if counts.any() else 0)
-    return counts[:last]
+    last = int(np.flatnonzero(counts)[-1]) + 1 if counts.any() else 0
+    if minlength > 256:
+        counts = np.concatenate([counts, np.zeros(int(minlength) - 256, np.int64)])
+    return counts[:max(int(minlength), last)]
 
 
 def nearest_indices(n_in: int, spacing_mm: float, voxel_mm: float, n_out: int

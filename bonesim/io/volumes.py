@@ -331,7 +331,7 @@ def _same_grid(a: RawVolume, b: RawVolume) -> bool:
 
 def _check_bone(labels: np.ndarray, kinds, path, what: str) -> None:
     bone_idx = [s for s, k in enumerate(kinds, start=1) if k == "bone"]
-    if not label_counts(labels)[bone_idx].any():
+    if not label_counts(labels, MAX_STRUCTURES + 1)[bone_idx].any():
         raise BonesimError(f"no bone: {what}", path)
 
 

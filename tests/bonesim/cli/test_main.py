@@ -158,3 +158,32 @@ def test_run_records_only_when_asked():
     assert p.parse_args(["run"]).record is None
     assert p.parse_args(["run", "--record"]).record == ""
     assert p.parse_args(["run", "--record", "x.h5"]).record == "x.h5"
+
+
+@pytest.mark.parametrize("cmd", ["case-info phantom", "case-export phantom out --format nrrd",
+                                 "simulate --trajectory t.csv", "trajectory --out t.csv",
+                                 "demo", "run"])
+def test_voxel_mm_on_the_commands_that_load_a_case(cmd):
+    p = build_parser()
+    argv = cmd.split()
+    assert p.parse_args(argv).voxel_mm is None                  # the manifest's
+    assert p.parse_args(argv + ["--voxel-mm", "native"]).voxel_mm == "native"
+    assert p.parse_args(argv + ["--voxel-mm", "0.25"]).voxel_mm == 0.25
+
+
+def test_voxel_mm_overrides_the_manifest(capsys, tmp_path):
+    code, out, _ = run_cli(capsys, "case-info", "phantom", "--json", "--voxel-mm", "1")
+    info = json.loads(out)
+    assert code == 0 and info["voxel_mm"] == 1.0 and info["grid"] == [52, 52, 52]
+    # the phantom has no source: native keeps its manifest's 0.5 mm
+    code, out, _ = run_cli(capsys, "case-info", "phantom", "--json", "--voxel-mm", "native")
+    assert code == 0 and json.loads(out)["voxel_mm"] == 0.5
+    code, out, _ = run_cli(capsys, "case-export", "phantom", "--format", "label-stack",
+                           str(tmp_path / "st"), "--voxel-mm", "2")
+    assert code == 0 and "export of case 'phantom'" in out
+    assert len(list((tmp_path / "st" / "planes").glob("*.png"))) == 26
+    with pytest.raises(SystemExit) as e:
+        main(["case-info", "phantom", "--voxel-mm", "fine"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert "--voxel-mm: must be a number of mm" in err and "'fine'" in err
