@@ -56,6 +56,20 @@ def test_nifti_writer_roundtrip(tmp_path):
     assert nib.aff2axcodes(nib.load(tmp_path / "w.nii.gz").affine) == ("L", "P", "S")
 
 
+def test_nifti_intensities_keep_their_type_unless_scaled(tmp_path):
+    lps = asymmetric()
+    V.write_nifti(tmp_path / "w.nii.gz", lps, SPACING, ORIGIN)
+    assert V.read_nifti(tmp_path / "w.nii.gz").data.dtype == np.int16   # no float copy
+    img = nib.load(tmp_path / "w.nii.gz")
+    scaled = nib.Nifti1Image(np.asarray(img.dataobj), img.affine, img.header)
+    scaled.header.set_slope_inter(2.0, -1024.0)
+    nib.save(scaled, tmp_path / "s.nii.gz")
+    raw = V.read_nifti(tmp_path / "s.nii.gz")
+    assert raw.data.dtype == np.float32
+    np.testing.assert_array_equal(raw.data, lps * 2.0 - 1024.0)
+    assert V.read_nifti(tmp_path / "s.nii.gz", scaled=False).data.dtype == np.int16
+
+
 @pytest.mark.parametrize("space", ["right-anterior-superior", "RAS"])
 def test_nrrd_ras_space_loads_into_lps(tmp_path, space):
     lps = asymmetric()
@@ -560,3 +574,23 @@ def test_label_map_lookup_in_slabs(monkeypatch):
         (small == 12).astype(np.uint8))
     with pytest.raises(BonesimError, match="non-integer"):
         V.labels_from_intensity(hu, small + 0.5, KINDS, (None, 12, 1), 300.0, "x")
+
+
+def test_dicom_hu_stay_whole_numbers_in_int16(tmp_path):
+    """The usual CT (whole rescale) reads as int16; a fractional rescale, or
+    HU beyond int16, as float32, with the same values."""
+    stored = np.arange(20).reshape(4, 5) * 150
+    for name, slope, icpt, big in (("whole", 1.0, -1024.0, False),
+                                   ("fraction", 0.5, -1024.0, False),
+                                   ("beyond", 1.0, 0.0, True)):
+        (tmp_path / name).mkdir()
+        for k in range(3):
+            px = stored + (60000 if big and k == 2 else 0)
+            dicom_slice(tmp_path / name / f"s{k}.dcm", px, z=0.5 * k, slope=slope,
+                        intercept=icpt)
+        raw = V.read_dicom_series(tmp_path / name)
+        want = np.stack([stored + (60000 if big and k == 2 else 0) for k in range(3)]
+                        ).astype(np.float64) * slope + icpt
+        assert raw.data.dtype == (np.int16 if name == "whole" else np.float32), name
+        np.testing.assert_array_equal(raw.data, want.transpose(2, 1, 0))
+        assert raw.data.flags.c_contiguous
