@@ -187,3 +187,22 @@ def test_voxel_mm_overrides_the_manifest(capsys, tmp_path):
     err = capsys.readouterr().err
     assert e.value.code == 2
     assert "--voxel-mm: must be a number of mm" in err and "'fine'" in err
+
+
+def test_a_run_at_another_voxel_replays_at_it(capsys, tmp_path):
+    """--voxel-mm is part of the run: the recording replays at that voxel."""
+    t = [i * 0.01 for i in range(81)]
+    rows = ["t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm"]
+    rows += [f"{ti},{24.0 - 12.0 * ti},0.9,1.0,-1,0,0,1,60000" for ti in t]
+    traj = tmp_path / "in.csv"
+    traj.write_text("\n".join(rows) + "\n")
+    h5 = tmp_path / "coarse.h5"
+    code, out, err = run_cli(capsys, "simulate", "--trajectory", str(traj), "--voxel-mm", "1",
+                             "--record", str(h5), "--json")
+    assert code == 0, err
+    assert json.loads(out)["voxels_removed"] > 0
+    from bonesim.session.reader import read_session
+
+    assert read_session(h5).header["voxel_mm"] == 1.0
+    code, out, err = run_cli(capsys, "replay", str(h5), "--verify")
+    assert code == 0, err
