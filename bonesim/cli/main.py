@@ -14,6 +14,7 @@ from pathlib import Path
 from bonesim.io.burrs import DEFAULT_BURR
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
+from bonesim.cli.voxel import apply_voxel_mm, voxel_option
 from bonesim.errors import BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
@@ -22,32 +23,6 @@ __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd
 
 DEFAULT_CASE = "phantom"
 
-
-def _voxel_mm_arg(text: str):
-    """``--voxel-mm``'s value: a number of mm or ``native``."""
-    from bonesim.io.case_records import check_voxel_mm
-
-    try:
-        return check_voxel_mm(text)
-    except BonesimError as exc:
-        raise argparse.ArgumentTypeError(exc.message) from None
-
-
-def _voxel_option(s) -> None:
-    """``--voxel-mm`` on a command that loads a case (see :func:`_apply_voxel_mm`)."""
-    s.add_argument("--voxel-mm", type=_voxel_mm_arg, metavar="MM|native",
-                   help="engine voxel edge [mm], or 'native' for the source's own spacing "
-                        "(its finest axis; the phantom keeps its manifest's); overrides "
-                        "the case's [volume] voxel_mm")
-
-
-def _apply_voxel_mm(args) -> None:
-    """With ``--voxel-mm``, ``args.case`` becomes the loaded case with that
-    voxel (every command passes a case on as a name or as a case alike)."""
-    if getattr(args, "voxel_mm", None) is not None:
-        from bonesim.io.case import load_case
-
-        args.case = load_case(args.case, voxel_mm=args.voxel_mm)
 
 
 def _print_json(obj) -> None:
@@ -585,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "warns where the layout contradicts the side")
     s.add_argument("case", help="bundled case name or path of a case.toml")
     s.add_argument("--json", action="store_true", help="print JSON")
-    _voxel_option(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_case_info)
 
     s = sub.add_parser("case-export", help="write a case's volume as DICOM/NRRD/NIfTI/"
@@ -598,7 +573,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="label stacks: axis code of the written slices (columns, rows, "
                         "slices, e.g. PLS; default LPS)")
     s.add_argument("dir", help="output folder")
-    _voxel_option(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_case_export)
 
     s = sub.add_parser("burrs", help="list the burrs")
@@ -618,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="burr samples per voxel edge (default 2)")
         s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
                        help="final surface mesh format (default ply)")
-        _voxel_option(s)
+        voxel_option(s)
 
     def who_opts(s):
         s.add_argument("--participant", help="participant id, stored in the recording")
@@ -643,7 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind", default="demo-mastoidectomy", choices=["demo-mastoidectomy"])
     s.add_argument("--burr", default=DEFAULT_BURR, help="burr the path is planned for")
     s.add_argument("--out", required=True, help="output CSV")
-    _voxel_option(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_trajectory)
 
     s = sub.add_parser("demo", help="headless demo: plan and drill a mastoidectomy on "
@@ -709,7 +684,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not split off bone that drilling cuts free (default: split "
                         "it into its own body; specks become dust)")
     device_option(s)
-    _voxel_option(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(
@@ -815,7 +790,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        _apply_voxel_mm(args)
+        apply_voxel_mm(args)
         return int(args.func(args) or 0)
     except BonesimError as exc:
         print(f"bonesim: error: {exc}", file=sys.stderr)

@@ -226,12 +226,18 @@ def labels_from_intensity(hu: np.ndarray | None, label_map: np.ndarray | None,
                           labels_source: Path | None = None) -> np.ndarray:
     """Structure indices from intensities and an optional label map.
 
+    Works slab by slab along x (:func:`bonesim.io.resample.slabs`): the
+    threshold's mask and the label map's lookup (a table over values
+    ``0 .. 65535``; others are sorted out per slab) are slab-sized, and the
+    result is the only whole-volume array.
+
     Parameters
     ----------
-    hu : (nx, ny, nz) float or None
-        Intensities [HU]; voxels ``>= bone_threshold_hu`` become the first
-        structure of kind ``"bone"``.
-    label_map : (nx, ny, nz) int or None
+    hu : (nx, ny, nz) real or None
+        Intensities [HU], any real type (an int16 CT is not copied to
+        float); voxels ``>= bone_threshold_hu`` become the first structure
+        of kind ``"bone"``.
+    label_map : (nx, ny, nz) int, bool or whole-valued float, or None
         Overrides: value ``v == label_values[s - 1]`` gives index ``s``; 0 does
         not override.
     kinds : sequence of str
@@ -431,22 +437,21 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
     if raw is None and lmap is None:
         raise ValueError("need a volume path or a label map")
     grid = raw if raw is not None else lmap
-    hu = None if raw is None else raw.data             # the source's type, no copy
-    src_labels = labels_from_intensity(hu, None if lmap is None else lmap.data, kinds,
-                                       label_values, bone_threshold_hu,
-                                       Path(path if path is not None else labels_path),
-                                       labels_path)
-    lmap = None if lmap is None else lmap.source       # the map itself is done with
-    voxel = engine_voxel_mm(voxel_mm, grid.spacing_mm)
-    labels, origin = resample_isotropic(src_labels, grid.spacing_mm, grid.origin_mm,
-                                        voxel, order=0)
-    if hu is not None:
-        hu, _ = resample_isotropic(hu, grid.spacing_mm, grid.origin_mm, voxel, order=1)
-    native = _native_or_none(labels, RawVolume(src_labels, grid.spacing_mm,
-                                               grid.origin_mm, grid.source))
     source = grid.source if lmap is None or raw is None else \
-        f"{raw.source} + labels {lmap}"
-    return CaseVolume(labels, voxel, origin, source, hu, native=native)
+        f"{raw.source} + labels {lmap.source}"
+    hu = None if raw is None else raw.data             # the source's type, no copy
+    src = RawVolume(labels_from_intensity(hu, None if lmap is None else lmap.data, kinds,
+                                          label_values, bone_threshold_hu,
+                                          Path(path if path is not None else labels_path),
+                                          labels_path),
+                    grid.spacing_mm, grid.origin_mm, grid.source)
+    grid = lmap = raw = None                           # the map is done with: freed
+    voxel = engine_voxel_mm(voxel_mm, src.spacing_mm)
+    labels, origin = resample_isotropic(src.data, src.spacing_mm, src.origin_mm, voxel,
+                                        order=0)
+    if hu is not None:
+        hu, _ = resample_isotropic(hu, src.spacing_mm, src.origin_mm, voxel, order=1)
+    return CaseVolume(labels, voxel, origin, source, hu, native=_native_or_none(labels, src))
 
 
 def _native_or_none(labels: np.ndarray, raw: RawVolume) -> NativeLabels | None:

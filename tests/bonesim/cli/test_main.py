@@ -160,17 +160,6 @@ def test_run_records_only_when_asked():
     assert p.parse_args(["run", "--record", "x.h5"]).record == "x.h5"
 
 
-@pytest.mark.parametrize("cmd", ["case-info phantom", "case-export phantom out --format nrrd",
-                                 "simulate --trajectory t.csv", "trajectory --out t.csv",
-                                 "demo", "run"])
-def test_voxel_mm_on_the_commands_that_load_a_case(cmd):
-    p = build_parser()
-    argv = cmd.split()
-    assert p.parse_args(argv).voxel_mm is None                  # the manifest's
-    assert p.parse_args(argv + ["--voxel-mm", "native"]).voxel_mm == "native"
-    assert p.parse_args(argv + ["--voxel-mm", "0.25"]).voxel_mm == 0.25
-
-
 def test_voxel_mm_overrides_the_manifest(capsys, tmp_path):
     code, out, _ = run_cli(capsys, "case-info", "phantom", "--json", "--voxel-mm", "1")
     info = json.loads(out)
