@@ -489,6 +489,9 @@ BENCHMARKS = {
     "monitor_loopback_loss_fraction": bench_monitor,
     "load_labelstack_512_s": bench_load,
     "load_labelstack_512_peak_mb": bench_load,
+    **dict.fromkeys(("load_native_256_s", "load_native_256_peak_mb", "load_native_512_s",
+                     "load_native_512_peak_mb"), lambda quick=False: __import__(
+                         "bonesim.bench.load", fromlist=["_"]).bench_load_native(quick=quick)),
     "dp_align_1000_ms": lambda quick=False: __import__(
         "bonesim.bench.metrics_alignment", fromlist=["_"]).bench_dp_align(quick=quick),
     "visibility_offline_removals_per_s": lambda quick=False: __import__(

@@ -14,6 +14,7 @@ from pathlib import Path
 from bonesim.io.burrs import DEFAULT_BURR
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
+from bonesim.cli.voxel import apply_voxel_mm, voxel_option
 from bonesim.errors import BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
@@ -21,6 +22,7 @@ __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd
            "cmd_warmup", "cmd_bench", "build_parser", "main"]
 
 DEFAULT_CASE = "phantom"
+
 
 
 def _print_json(obj) -> None:
@@ -70,13 +72,15 @@ def cmd_case_export(args) -> int:
     from bonesim.io.case_report import LoadProgress
 
     bar = LoadProgress()
+    case = load_case(args.case)
     try:
-        manifest = export_case(load_case(args.case), args.format, Path(args.dir),
+        manifest = export_case(case, args.format, Path(args.dir),
                                orientation=args.orientation, progress=bar)
     finally:
         bar.close()
     what = args.format + (f" ({args.orientation})" if args.orientation else "")
-    print(f"wrote {what} export of case '{args.case}' to {args.dir} "
+    name = args.case if isinstance(args.case, str) else case.name
+    print(f"wrote {what} export of case '{name}' to {args.dir} "
           f"(manifest {manifest})")
     return 0
 
@@ -110,9 +114,10 @@ def _checked(case, args):
 
 
 def _plan(case, burr_name: str):
-    from bonesim.io.toolpath import demo_trajectory
+    """The demo mastoidectomy (cutting burr, then the plan's diamond burr)."""
+    from bonesim.io.toolpath import plan_mastoidectomy
 
-    return demo_trajectory(case, burr_name)
+    return plan_mastoidectomy(case, burr_name)
 
 
 def cmd_trajectory(args) -> int:
@@ -120,10 +125,14 @@ def cmd_trajectory(args) -> int:
     from bonesim.io.trajectory import write_trajectory
 
     case = _checked(load_case(args.case), args)
-    traj = _plan(case, args.burr)
+    planned = _plan(case, args.burr)
+    traj = planned.trajectory
     write_trajectory(args.out, traj)
+    burrs = ", ".join(f"{i} {b}" for i, b in enumerate(planned.burrs))
+    extra = " ".join(f"--extra-burr {b}" for b in planned.burrs[1:])
     print(f"wrote {args.kind} trajectory for case '{case.name}' ({len(traj.t_s)} points, "
-          f"{traj.t_s[-1]:.1f} s) to {args.out}")
+          f"{traj.t_s[-1]:.1f} s; burr column: {burrs}) to {args.out}; drill it with "
+          f"bonesim simulate --burr {planned.burrs[0]} {extra} --trajectory {args.out}")
     return 0
 
 
@@ -160,8 +169,8 @@ def cmd_simulate(args) -> int:
     from bonesim.io.trajectory import read_trajectory
 
     traj = read_trajectory(args.trajectory)
-    _checked(args.case, args)
-    summary = _run(args.case, args.burr, traj, args)
+    case = _checked(args.case, args)
+    summary = _run(case, args.burr, traj, args)
     if args.json:
         _print_json(summary)
     else:
@@ -205,18 +214,21 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     case = _checked(load_case(args.case), args)
-    traj = _plan(case, args.burr)
+    planned = _plan(case, args.burr)
+    traj = planned.trajectory
     tpath = out / "trajectory.csv"
     write_trajectory(tpath, traj)
     import numpy as np
 
     dt = np.diff(traj.t_s)
     drilling = float(dt[traj.drill[:-1].astype(bool)].sum())
-    print(f"planned a demo mastoidectomy on case '{case.name}' with {args.burr}: "
-          f"{traj.t_s[-1] - traj.t_s[0]:.1f} s ({drilling:.1f} s with the drill on, the "
-          f"rest travel and rinses), written to {tpath}")
+    print(f"planned a demo mastoidectomy on case '{case.name}' with "
+          f"{' then '.join(planned.burrs)}: {traj.t_s[-1] - traj.t_s[0]:.1f} s "
+          f"({drilling:.1f} s with the drill on, the rest travel and rinses), written "
+          f"to {tpath}")
     args.check = True
-    summary = _run(case.manifest, args.burr, traj, args)
+    args.extra_burr = list(planned.burrs[1:])
+    summary = _run(case, args.burr, traj, args)
     _print_summary(summary)
     return 0 if summary.get("surface_consistent", True) else 1
 
@@ -242,7 +254,7 @@ def cmd_run(args) -> int:
     if args.monitor_port is not None and args.no_monitor:
         raise BonesimError("--monitor-port serves the nerve monitor; it cannot go with "
                            "--no-monitor", field="--monitor-port")
-    _checked(args.case, args)
+    args.case = _checked(args.case, args)
     if offscreen and script is None and frames is None:
         if args.force_limits:
             raise BonesimError("the headless main job drills the planned path and shows no "
@@ -255,7 +267,9 @@ def cmd_run(args) -> int:
                            "of a recording)", field="--video")
     if offscreen:
         if script is None and args.device == "mouse":   # a glimpse of the plan
-            traj = _plan(load_case(args.case), args.burr)
+            from bonesim.io.toolpath import demo_trajectory
+
+            traj = demo_trajectory(load_case(args.case), args.burr)
             import numpy as np
 
             start = int(np.flatnonzero(traj.drill)[0])
@@ -571,6 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "warns where the layout contradicts the side")
     s.add_argument("case", help="bundled case name or path of a case.toml")
     s.add_argument("--json", action="store_true", help="print JSON")
+    voxel_option(s)
     s.set_defaults(func=cmd_case_info)
 
     s = sub.add_parser("case-export", help="write a case's volume as DICOM/NRRD/NIfTI/"
@@ -583,6 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="label stacks: axis code of the written slices (columns, rows, "
                         "slices, e.g. PLS; default LPS)")
     s.add_argument("dir", help="output folder")
+    voxel_option(s)
     s.set_defaults(func=cmd_case_export)
 
     s = sub.add_parser("burrs", help="list the burrs")
@@ -603,6 +619,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--mesh-format", choices=["ply", "vtp"], default="ply",
                        help="final surface mesh format (default ply)")
         accept_opt(s)
+        voxel_option(s)
 
     def accept_opt(s):
         s.add_argument("--accept-orientation", action="store_true",
@@ -633,6 +650,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--burr", default=DEFAULT_BURR, help="burr the path is planned for")
     s.add_argument("--out", required=True, help="output CSV")
     accept_opt(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_trajectory)
 
     s = sub.add_parser("demo", help="headless demo: plan and drill a mastoidectomy on "
@@ -699,6 +717,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not split off bone that drilling cuts free (default: split "
                         "it into its own body; specks become dust)")
     device_option(s)
+    voxel_option(s)
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser(
@@ -804,6 +823,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        apply_voxel_mm(args)
         return int(args.func(args) or 0)
     except BonesimError as exc:
         print(f"bonesim: error: {exc}", file=sys.stderr)

@@ -14,7 +14,10 @@ Manifest
     format = "nrrd"                   # phantom | dicom | nrrd | nifti |
                                       # label-stack | seg-nrrd
     path = "ct.nrrd"                  # relative to this manifest (not for phantom)
-    voxel_mm = 0.5                    # isotropic output voxel edge, default 0.5
+    voxel_mm = 0.5                    # isotropic output voxel edge [mm], default 0.5;
+                                      # "native": the source's own spacing (its
+                                      # finest axis if anisotropic; the phantom:
+                                      # the generator's 0.5 mm)
     bone_threshold_hu = 300           # dicom / nrrd / nifti, default 300
     labels = "labels.nrrd"            # dicom / nrrd / nifti: optional label map
                                       # (a .seg.nrrd alone makes a seg-nrrd case)
@@ -80,8 +83,9 @@ from bonesim.io.case_export import EXPORT_FORMATS, export_case
 from bonesim.io.case_manifest import parse_manifest
 from bonesim.io.case_records import (CASE_FILE, CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU,  # noqa: F401
                                      DEFAULT_PATTERN, DEFAULT_VOXEL_MM, KINDS, MAX_LABEL,
-                                     MAX_VOXEL_MM, MIN_VOXEL_MM, ORIENTATION_SOURCES, SEG_FORMAT,
-                                     SIDES, Camera, Case, Structure, Target, VolumeSpec)
+                                     MAX_VOXEL_MM, MIN_VOXEL_MM, NATIVE, ORIENTATION_SOURCES,
+                                     SEG_FORMAT, SIDES, Camera, Case, Structure, Target,
+                                     VolumeSpec, check_voxel_mm)
 from bonesim.errors import BonesimError
 from bonesim.io.orientation import PATIENT_FRAME
 from bonesim.io.volumes import CaseVolume
@@ -110,17 +114,26 @@ def _bundled() -> dict[str, Path]:
     return {p.parent.name: p for p in sorted(root.glob(f"*/{CASE_FILE}"))}
 
 
-def load_case(name_or_path: str | Path = "phantom") -> Case:
+def load_case(name_or_path: str | Path | Case = "phantom",
+              voxel_mm: float | str | None = None) -> Case:
     """Load a bundled case by name, or any case by manifest or folder path.
 
     Parameters
     ----------
-    name_or_path : str or Path
+    name_or_path : str, Path or Case
         A bundled case name (a folder of the ``ct_cases`` package, e.g.
         ``"phantom"``), or the path of a ``case.toml`` or of a folder holding
         one. A bare name that matches a bundled case wins over a same-named
-        folder in the working directory.
+        folder in the working directory. A :class:`Case` is taken as it is
+        (so callers may pass either).
+    voxel_mm : float or "native", optional
+        Overrides the manifest's ``[volume] voxel_mm`` (``--voxel-mm``; see
+        :meth:`Case.with_voxel_mm`).
     """
+    if voxel_mm is not None:
+        return load_case(name_or_path).with_voxel_mm(voxel_mm)
+    if isinstance(name_or_path, Case):
+        return name_or_path
     text = str(name_or_path)
     bundled = _bundled()
     bare = isinstance(name_or_path, str) and "/" not in text and "\\" not in text \

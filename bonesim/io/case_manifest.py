@@ -14,9 +14,9 @@ import numpy as np
 from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.case_records import (CASE_FORMATS, DEFAULT_BONE_THRESHOLD_HU, DEFAULT_PATTERN,
-                                     DEFAULT_VOXEL_MM, KINDS, MAX_LABEL, MAX_VOXEL_MM,
-                                     MIN_VOXEL_MM, SEG_FORMAT, SIDES, Camera, Case, Structure,
-                                     Target, VolumeSpec)
+                                     DEFAULT_VOXEL_MM, KINDS, MAX_LABEL, SEG_FORMAT, SIDES,
+                                     Camera, Case, Structure, Target, VolumeSpec,
+                                     check_voxel_mm)
 from bonesim.io.case_records import Fragments
 from bonesim.errors import BonesimError
 from bonesim.io.orientation import parse_orientation
@@ -92,8 +92,7 @@ def _parse_volume(tab, path: Path) -> VolumeSpec:
             raise BonesimError(f"key '{key}' does not apply to format '{fmt}'",
                                path, where)
     check_keys(tab, allowed, path, where)
-    voxel = float(get_number(tab, "voxel_mm", path, where, default=DEFAULT_VOXEL_MM,
-                             minimum=MIN_VOXEL_MM, maximum=MAX_VOXEL_MM))
+    voxel = check_voxel_mm(tab.get("voxel_mm", DEFAULT_VOXEL_MM), path, where)
     spec = dict(format=fmt, voxel_mm=voxel)
     if fmt == "phantom":
         spec["seed"] = int(get_number(tab, "seed", path, where,

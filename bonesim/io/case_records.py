@@ -11,6 +11,7 @@ exports :mod:`bonesim.io.case_export`. Both build on this module, never on
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,12 +22,12 @@ from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.orientation import PATIENT_FRAME
 from bonesim.io.segmentation import SEG_SUFFIX
-from bonesim.io.volumes import FORMATS, CaseVolume, load_volume
+from bonesim.io.volumes import FORMATS, NATIVE, CaseVolume, load_volume
 
 __all__ = ["CASE_FILE", "SIDES", "KINDS", "SEG_FORMAT", "CASE_FORMATS", "DEFAULT_VOXEL_MM",
            "DEFAULT_BONE_THRESHOLD_HU", "DEFAULT_PATTERN", "MIN_VOXEL_MM", "MAX_VOXEL_MM",
-           "MAX_LABEL", "ORIENTATION_SOURCES", "Structure", "VolumeSpec", "Camera", "Target",
-           "Case", "Fragments"]
+           "MAX_LABEL", "NATIVE", "ORIENTATION_SOURCES", "check_voxel_mm", "Structure", "VolumeSpec", "Camera",
+           "Target", "Case", "Fragments"]
 
 CASE_FILE = "case.toml"
 SIDES = ("left", "right")
@@ -44,6 +45,51 @@ ORIENTATION_SOURCES = ("declared", "file", "assumed", "generated")
 """How a case's orientation is known: declared in the manifest, read from the
 file's header, assumed (a label stack without ``orientation``: LPS), or the
 phantom's (generated in the patient frame)."""
+
+
+def check_voxel_mm(value, path=None, where: str | None = None) -> float | str:
+    """A ``voxel_mm`` as a manifest or ``--voxel-mm`` gives it: a number of mm
+    in ``[MIN_VOXEL_MM, MAX_VOXEL_MM]`` or the string :data:`NATIVE`.
+
+    Parameters
+    ----------
+    value : float, int or str
+        The value given; on the command line (no ``path``) a string may hold
+        a number.
+    path, where : optional
+        The manifest and its table, for the error (``case.toml [volume]:
+        'voxel_mm' must be ...``); without them the value came from the
+        command line and the error's field is ``--voxel-mm``.
+
+    Returns
+    -------
+    float or "native"
+
+    Raises
+    ------
+    BonesimError
+        On anything else, in one line naming the manifest, table and key.
+    """
+    from bonesim.errors import BonesimError
+
+    v = value
+    if isinstance(v, str):
+        text = v.strip()
+        if text.lower() == NATIVE:
+            return NATIVE
+        try:
+            v = float(text) if path is None else None
+        except ValueError:
+            v = None
+    ok = (v is not None and not isinstance(v, bool) and isinstance(v, (int, float))
+          and math.isfinite(v) and MIN_VOXEL_MM <= v <= MAX_VOXEL_MM)
+    if not ok:
+        msg = (f"must be a number of mm from {MIN_VOXEL_MM:g} to {MAX_VOXEL_MM:g} or "
+               f"\"{NATIVE}\" (the source's own spacing), got {value!r}")
+        if path is None:
+            raise BonesimError(msg, field="--voxel-mm")
+        raise BonesimError("'voxel_mm' " + msg, path, where)
+    return float(v)
 
 
 # ------------------------------------------------------------------ records
@@ -104,8 +150,12 @@ class VolumeSpec:
         One of :data:`CASE_FORMATS`.
     path : Path or None
         Volume file / folder (None for the phantom and label-only cases).
-    voxel_mm : float
-        Isotropic voxel edge after loading [mm].
+    voxel_mm : float or "native"
+        Isotropic voxel edge after loading [mm], or :data:`NATIVE`: the
+        source's own spacing (its finest axis when anisotropic, see
+        :func:`bonesim.io.volumes.engine_voxel_mm`; for the phantom, which has
+        no source, the generator's default
+        :data:`bonesim.io.phantom.DEFAULT_VOXEL_MM`).
     bone_threshold_hu : float
         Bone threshold of intensity formats [HU].
     labels : Path or None
@@ -127,7 +177,7 @@ class VolumeSpec:
 
     format: str
     path: Path | None = None
-    voxel_mm: float = DEFAULT_VOXEL_MM
+    voxel_mm: float | str = DEFAULT_VOXEL_MM
     bone_threshold_hu: float = DEFAULT_BONE_THRESHOLD_HU
     labels: Path | None = None
     pattern: str = DEFAULT_PATTERN
@@ -373,6 +423,28 @@ class Case:
             self._derived["view"] = view_from_landmarks(lm)
 
     # ----------------------------------------------------------- volume
+    def with_voxel_mm(self, voxel_mm: float | str) -> "Case":
+        """This case with its engine voxel set to ``voxel_mm`` (``--voxel-mm``).
+
+        Parameters
+        ----------
+        voxel_mm : float or "native"
+            Isotropic voxel edge [mm] (checked as the manifest's key is, see
+            :func:`check_voxel_mm`), or :data:`NATIVE`: the source's spacing.
+            The phantom has no source: ``"native"`` keeps the voxel its
+            manifest gives (the generator's default if that is ``"native"``
+            too).
+
+        Returns
+        -------
+        Case
+            A new case (nothing derived from a volume is carried over).
+        """
+        v = check_voxel_mm(voxel_mm)
+        if v == NATIVE and self.volume.format == "phantom":
+            v = self.volume.voxel_mm
+        return dataclasses.replace(self, volume=dataclasses.replace(self.volume, voxel_mm=v))
+
     def load_volume(self, progress=None) -> CaseVolume:
         """Read (or generate) the case's volume on its isotropic grid.
 
@@ -391,7 +463,8 @@ class Case:
         names = self.names
         if v.format == "phantom":
             size = v.size_mm if v.size_mm is not None else _phantom.DEFAULT_SIZE_MM
-            vol = _phantom.phantom_volume(v.seed, v.voxel_mm, size, names)
+            voxel = _phantom.DEFAULT_VOXEL_MM if v.voxel_mm == NATIVE else v.voxel_mm
+            vol = _phantom.phantom_volume(v.seed, voxel, size, names)
         else:
             kw = {"progress": progress}
             kinds = [s.kind for s in self.structures]

@@ -52,7 +52,10 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
     Returns
     -------
     RawVolume
-        ``data`` float32 HU, axes along +x, +y, +z.
+        ``data`` HU, axes along +x, +y, +z: int16 when every slice's rescale
+        gives whole HU that fit it (the usual CT: slope 1, intercept -1024),
+        else float32. Slices are decoded one at a time into the one volume
+        (no list of planes, no float copy of an integer CT).
     """
     import pydicom
     from pydicom.errors import InvalidDicomError
@@ -60,9 +63,9 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
     folder = Path(folder)
     files = _dicom_files(folder)
     slices = []
-    for f in files:
+    for f in files:                    # headers only: the pixels are read one by one below
         try:
-            ds = pydicom.dcmread(f)
+            ds = pydicom.dcmread(f, stop_before_pixels=True)
         except (InvalidDicomError, OSError, ValueError, EOFError) as exc:
             raise BonesimError(f"unreadable DICOM slice: {exc}", f) from None
         slices.append(ds)
@@ -79,8 +82,6 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
                 raise BonesimError(f"slice lacks {key}", f)
         if "PixelSpacing" not in ds:
             raise BonesimError("missing spacing: slice lacks PixelSpacing", f)
-        if "PixelData" not in ds:
-            raise BonesimError("slice has no pixel data", f)
         sizes.setdefault((int(ds.Rows), int(ds.Columns)), []).append(f)
     if len(sizes) > 1:
         parts = [f"{r}x{c} ({len(fs)} file(s), e.g. {fs[0].name})"
@@ -120,9 +121,16 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
             f"inconsistent slice spacing: gaps between slice positions range from "
             f"{gaps.min():.4g} to {gaps.max():.4g} mm (missing slices?)", folder)
 
-    planes = []
-    for idx in order:
-        ds, f = slices[idx], files[idx]
+    rows, cols = sizes.popitem()[0]
+    vol = np.empty((cols, rows, len(order)), dtype=_hu_dtype(slices))
+    for k, idx in enumerate(order):
+        f = files[idx]
+        try:
+            ds = pydicom.dcmread(f)
+        except (InvalidDicomError, OSError, ValueError, EOFError) as exc:
+            raise BonesimError(f"unreadable DICOM slice: {exc}", f) from None
+        if "PixelData" not in ds:
+            raise BonesimError("slice has no pixel data", f)
         try:
             px = ds.pixel_array
         except Exception as exc:  # pydicom raises many types for bad pixel data
@@ -130,10 +138,14 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
         if px.ndim != 2:
             raise BonesimError(f"expected a single-frame slice, got pixel array of "
                                f"shape {px.shape}", f)
-        slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
-        icpt = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
-        planes.append(px.astype(np.float32) * np.float32(slope) + np.float32(icpt))
-    vol = np.stack(planes, axis=0).transpose(2, 1, 0)     # (cols, rows, slices)
+        slope, icpt = _rescale(ds)
+        if vol.dtype == np.int16:
+            plane = px.astype(np.int64) * int(slope) + int(icpt)
+            if plane.size and (plane.min() < -32768 or plane.max() > 32767):
+                vol = vol.astype(np.float32)            # rare: HU beyond int16
+        if vol.dtype != np.int16:
+            plane = px.astype(np.float32) * np.float32(slope) + np.float32(icpt)
+        vol[:, :, k] = plane.T                          # (cols, rows) of slice k
     affine = np.eye(4)
     affine[:3, 0] = row_dir * pix[0, 1]       # along a row: column index
     affine[:3, 1] = col_dir * pix[0, 0]       # down a column: row index
@@ -141,6 +153,23 @@ def read_dicom_series(folder: str | Path) -> RawVolume:
     affine[:3, 3] = pos[order[0]]
     src = f"{folder} (DICOM series, {len(order)} slices)"
     return snap_to_lps(vol, affine, folder, src)
+
+
+def _rescale(ds) -> tuple[float, float]:
+    """``(RescaleSlope, RescaleIntercept)`` of a slice (1, 0 when absent)."""
+    return (float(getattr(ds, "RescaleSlope", 1.0) or 1.0),
+            float(getattr(ds, "RescaleIntercept", 0.0) or 0.0))
+
+
+def _hu_dtype(slices) -> np.dtype:
+    """int16 when every slice's rescale is whole (its HU are whole numbers;
+    a slice whose HU then do not fit int16 turns the volume to float32 as it
+    is read), else float32."""
+    for ds in slices:
+        slope, icpt = _rescale(ds)
+        if slope != round(slope) or icpt != round(icpt):
+            return np.dtype(np.float32)
+    return np.dtype(np.int16)
 
 
 def write_dicom_series(folder: str | Path, hu: np.ndarray, spacing_mm: float,

@@ -122,6 +122,12 @@ def read_nifti(path: str | Path, scaled: bool = True) -> RawVolume:
         ``.nii`` or ``.nii.gz``.
     scaled : bool
         Apply ``scl_slope`` / ``scl_inter`` (intensities: yes; label maps: no).
+
+    Returns
+    -------
+    RawVolume
+        Scaled intensities as float32; without scaling to apply (or with
+        ``scaled`` False) the stored type (an int16 CT stays int16).
     """
     import nibabel as nib
 
@@ -129,8 +135,15 @@ def read_nifti(path: str | Path, scaled: bool = True) -> RawVolume:
     check_file(path, "NIfTI")
     try:
         img = nib.load(str(path))
-        data = (np.asarray(img.dataobj, dtype=np.float32) if scaled
-                else np.asarray(img.dataobj.get_unscaled()))
+        proxy = img.dataobj
+        identity = (float(getattr(proxy, "slope", 1.0)) == 1.0
+                    and float(getattr(proxy, "inter", 0.0)) == 0.0)
+        if scaled and not identity:
+            data = np.asarray(proxy, dtype=np.float32)
+        else:                          # no scaling to apply: the stored type, no copy
+            data = np.asarray(proxy.get_unscaled())
+            if scaled and data.dtype.kind == "f" and data.dtype != np.float32:
+                data = data.astype(np.float32)
     except Exception as exc:  # nibabel raises ImageFileError, OSError, EOFError...
         raise BonesimError(f"unreadable NIfTI file: {exc}", path) from None
     data = squeeze3(data, path)

@@ -6,10 +6,11 @@ its extent (``size_mm``) and its axis code (``orientation``, see
 
 Big stacks (hundreds of 512 x 512 slices) are read in one pass: the slice
 headers first (sizes checked before any pixel is decoded), then the slices
-decoded in parallel threads (Pillow's decoder and NumPy release the GIL),
-each mapped straight from colour to structure index and written into its
-place in the one LPS-ordered ``uint8`` array the reader returns. No RGB
-volume and no second copy of the labels is ever held.
+decoded in parallel threads (Pillow's decoder and the mapping kernel release
+the GIL), each mapped straight from colour to structure index in one pass
+(:func:`bonesim.io.label_slices.map_slice`) and written into its place in
+the one LPS-ordered ``uint8`` array the reader returns. No RGB volume and
+no second copy of the labels is ever held.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ MAX_DECODE_THREADS = 8
 """Most threads decoding slices at once (at most one per CPU)."""
 
 _UNKNOWN = np.uint16(0xFFFF)         # colour-table entry of a colour no structure has
+                                     # (bonesim.io.label_slices.UNKNOWN)
 
 
 def natural_key(name: str) -> tuple:
@@ -76,17 +78,22 @@ def _nearest_structures(codes: np.ndarray, colors) -> np.ndarray:
     return idx[np.argmin(d2, axis=1)]
 
 
-def _slice_codes(path: Path) -> np.ndarray:
-    """Packed RGB of one slice, (rows, cols) uint32; transparent pixels 0."""
+def _slice_pixels(path: Path) -> np.ndarray:
+    """One decoded slice, (rows, cols, 3 or 4) uint8 (RGB or RGBA)."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
             if im.mode not in ("RGB", "RGBA"):
                 im = im.convert("RGBA")
-            px = np.asarray(im)
+            return np.asarray(im)
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise BonesimError(f"unreadable slice image: {exc}", path) from None
+
+
+def _slice_codes(px: np.ndarray) -> np.ndarray:
+    """Packed RGB of one decoded slice, (rows, cols) uint32; transparent
+    pixels 0."""
     code = px[..., 0].astype(np.uint32) << 16
     code |= px[..., 1].astype(np.uint32) << 8
     code |= px[..., 2]
@@ -178,16 +185,19 @@ def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
     labels = np.empty(to_lps(np.broadcast_to(np.uint8(0), shape_img), code).shape,
                       dtype=np.uint8)
     image_view = from_lps(labels, code)                # (cols, rows, slices) view
+    from bonesim.io.label_slices import map_slice     # numba: only when a stack is read
+
     table = _color_table(colors)
     strays: dict[int, int] = {}
     lock = threading.Lock()
     done = [0]
 
     def decode(k: int) -> None:
-        codes = _slice_codes(files[k])                 # (rows, cols) uint32
-        idx = table[codes]                             # (rows, cols) uint16
-        unknown = idx == _UNKNOWN
-        if unknown.any():
+        px = _slice_pixels(files[k])                   # (rows, cols, 3|4) uint8
+        if map_slice(px, table, image_view[:, :, k]):  # unknown colours: name them
+            codes = _slice_codes(px)                   # (rows, cols) uint32
+            idx = table[codes]                         # (rows, cols) uint16
+            unknown = idx == _UNKNOWN
             values, inverse, counts = np.unique(codes[unknown],
                                                 return_inverse=True, return_counts=True)
             if unknown_colors == "nearest":
@@ -197,7 +207,7 @@ def read_label_stack(folder: str | Path, pattern: str, size_mm, colors,
             with lock:
                 for v, c in zip(values.tolist(), counts.tolist()):
                     strays[v] = strays.get(v, 0) + c
-        image_view[:, :, k] = idx.T
+            image_view[:, :, k] = idx.T
         if progress is not None:
             with lock:
                 done[0] += 1

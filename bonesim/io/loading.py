@@ -22,25 +22,37 @@ from bonesim.engine.model import (DEFAULT_OVERSAMPLE, Model, Sample, clear_touch
 __all__ = ["load_model", "warmup_model", "warmup_sample", "warmup"]
 
 
-def load_model(case: str = "phantom", burr: str = "cutting-5mm", *,
+def load_model(case="phantom", burr: str = "cutting-5mm", *,
                device: DeviceCaps = SCRIPTED, oversample: int = DEFAULT_OVERSAMPLE,
-               materials: dict | None = None) -> Model:
+               materials: dict | None = None, voxel_mm: float | str | None = None
+               ) -> Model:
     """Load a case and a burr from their files and build the model.
 
     Parameters
     ----------
-    case : str
-        Bundled case name or path of a ``case.toml``.
+    case : str, Path or Case
+        Bundled case name, path of a ``case.toml``, or a loaded case.
     burr : str
         Burr name (``cutting-5mm``) or path of a burr file.
     device : DeviceCaps
         The device's limits.
     oversample : int
         Burr lattice refinement.
+    materials : dict, optional
+        Kind -> material (default: the bundled materials).
+    voxel_mm : float or "native", optional
+        Overrides the case's ``[volume] voxel_mm`` (see
+        :meth:`bonesim.io.case.Case.with_voxel_mm`).
+
+    Notes
+    -----
+    At ``voxel_mm = "native"`` on an isotropic source the engine's grid is
+    the source's grid: the case volume holds one label array, and the
+    clearance field is built from it (no second copy).
     """
     from bonesim.io.case import load_case
 
-    c = load_case(case)
+    c = load_case(case, voxel_mm=voxel_mm)
     b = load_burr(burr) if isinstance(burr, str) else burr
     vol = c.load_volume()
     # display colours settled on this volume (neighbours apart); the case keeps

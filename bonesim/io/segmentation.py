@@ -28,6 +28,7 @@ import numpy as np
 
 from bonesim.errors import BonesimError
 from bonesim.io.raw_volume import GRID_TOL_MM, MAX_STRUCTURES, RawVolume, check_file, snap_to_lps
+from bonesim.io.resample import slabs
 
 __all__ = ["SEG_SUFFIX", "KIND_PRIORITY", "Segment", "read_seg_segments", "segment_keys",
            "read_segmentation", "embed_on_grid", "write_seg_nrrd"]
@@ -197,7 +198,9 @@ def read_segmentation(path: str | Path, segment_names, kinds, progress=None
             raise BonesimError(f"segment {g.name!r} is in layer {g.layer}, but the file "
                                f"has {layers.shape[0]} layer(s)", path,
                                f"Segment{segments.index(g)}_Layer")
-        out[layers[g.layer] == g.label_value] = s + 1
+        layer = layers[g.layer]
+        for a, b in slabs(out.shape[0], out.shape[1] * out.shape[2]):   # small masks
+            out[a:b][layer[a:b] == g.label_value] = s + 1
         if progress is not None:
             progress(done, len(order), "painting segments")
     return snap_to_lps(out, affine, path, f"{path} (3D Slicer segmentation, "

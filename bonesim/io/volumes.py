@@ -18,7 +18,18 @@ Reading is split in two steps:
    (NRRD, NIfTI), :mod:`bonesim.io.label_stack`, :mod:`bonesim.io.segmentation`
    (3D Slicer ``.seg.nrrd``), and are re-exported here;
 2. :func:`load_volume` turns intensities into structure labels (threshold plus
-   an optional label map), then resamples to isotropic voxels.
+   an optional label map), then resamples to isotropic voxels
+   (:mod:`bonesim.io.resample`) of the case's ``voxel_mm``, or keeps the
+   source's own spacing for ``voxel_mm = "native"`` (:func:`engine_voxel_mm`).
+
+Memory
+------
+At a source's resolution a volume is big (512³ voxels: 134 MB of uint8
+labels), so nothing here makes a whole-volume temporary of another type:
+thresholding, label-map lookup, counting and resampling go slab by slab
+(:data:`bonesim.io.resample.SLAB_VOXELS`), intensities are kept in the
+source's type, and when the engine's grid is the source's grid the labels
+are held once (:attr:`CaseVolume.native` is None).
 
 Labels
 ------
@@ -51,11 +62,14 @@ from bonesim.io.label_stack import (UNKNOWN_COLOR_MODES, natural_key,  # noqa: F
 from bonesim.io.orientation import PATIENT_FRAME
 from bonesim.io.raw_volume import (GRID_TOL_MM, MAX_LISTED, MAX_STRUCTURES,  # noqa: F401
                                    OBLIQUE_TOL, SPACING_RTOL, ObliqueWarning, RawVolume)
+from bonesim.io.resample import (SLAB_VOXELS, label_counts, nearest_indices,  # noqa: F401
+                                 resample_isotropic, slabs)
 from bonesim.io.segmentation import (SEG_SUFFIX, embed_on_grid, read_segmentation,  # noqa: F401
                                      write_seg_nrrd)
 
-__all__ = ["FORMATS", "NativeLabels", "CaseVolume", "labels_from_intensity",
-           "nearest_indices", "resample_isotropic", "load_volume", "DICOM_HU_OFFSET",
+__all__ = ["FORMATS", "NATIVE", "NativeLabels", "CaseVolume", "engine_voxel_mm",
+           "labels_from_intensity", "nearest_indices", "resample_isotropic", "load_volume",
+           "label_counts", "SLAB_VOXELS", "DICOM_HU_OFFSET",
            "SLICE_GAP_RTOL", "read_dicom_series", "write_dicom_series", "BonesimError",
            "NRRD_GZIP_LEVEL", "read_nifti", "read_nrrd", "write_nifti", "write_nrrd",
            "UNKNOWN_COLOR_MODES", "natural_key", "read_label_stack",
@@ -66,6 +80,33 @@ __all__ = ["FORMATS", "NativeLabels", "CaseVolume", "labels_from_intensity",
 
 FORMATS = ("phantom", "dicom", "nrrd", "nifti", "label-stack", "seg-nrrd")
 """Volume formats a case manifest may name."""
+
+NATIVE = "native"
+"""``voxel_mm`` asking for the source's own spacing (:func:`engine_voxel_mm`)."""
+
+
+def engine_voxel_mm(voxel_mm: float | str, spacing_mm) -> float:
+    """The engine's isotropic voxel edge [mm] for a source of ``spacing_mm``.
+
+    Parameters
+    ----------
+    voxel_mm : float or "native"
+        The case's ``voxel_mm``. :data:`NATIVE` keeps the source's spacing;
+        with an anisotropic source (e.g. 0.19 x 0.19 mm pixels, 0.5 mm
+        slices) that is its **finest** spacing, so no axis loses detail
+        (the coarser axes are resampled to it, nearest neighbour for labels).
+    spacing_mm : (3,) float
+        The source's voxel edges along x, y, z [mm].
+
+    Returns
+    -------
+    float
+    """
+    if isinstance(voxel_mm, str):
+        if voxel_mm != NATIVE:
+            raise ValueError(f"voxel_mm must be a number or {NATIVE!r}, got {voxel_mm!r}")
+        return float(np.min(np.asarray(spacing_mm, dtype=np.float64)))
+    return float(voxel_mm)
 
 
 # ----------------------------------------------------------------- containers
@@ -117,11 +158,14 @@ class CaseVolume:
         Case-frame position of the centre of voxel ``(0, 0, 0)`` [mm].
     source : str
         What was read (file or folder, format), for messages and reports.
-    hu : (nx, ny, nz) float32 or None
-        Intensities [HU] where the format has them.
+    hu : (nx, ny, nz) float32, or the source's integer type, or None
+        Intensities [HU] where the format has them (kept in the source's
+        type: no float copy of an integer CT).
     native : NativeLabels or None
-        The labels at the source's resolution (None: the source is this grid;
-        see :attr:`native_labels`).
+        The labels at the source's resolution; None when the source is this
+        grid (``voxel_mm = "native"`` of an isotropic source, or a
+        ``voxel_mm`` equal to its spacing): the labels are then held once,
+        see :attr:`native_labels`.
     """
 
     labels: np.ndarray
@@ -141,7 +185,10 @@ class CaseVolume:
             raise ValueError(f"spacing_mm must be positive, got {self.spacing_mm}")
         self.origin_mm = np.asarray(self.origin_mm, dtype=np.float64).reshape(3)
         if self.hu is not None:
-            self.hu = np.asarray(self.hu, dtype=np.float32)
+            self.hu = np.asarray(self.hu)
+            kind, size = self.hu.dtype.kind, self.hu.dtype.itemsize
+            if kind not in "iuf" or (kind == "f" and size < 4):
+                self.hu = self.hu.astype(np.float32)
             if self.hu.shape != self.labels.shape:
                 raise ValueError("hu and labels differ in shape")
 
@@ -163,8 +210,9 @@ class CaseVolume:
         return NativeLabels(self.labels, np.full(3, self.spacing_mm), self.origin_mm)
 
     def counts(self, n_structures: int) -> np.ndarray:
-        """Voxel count per index ``0 .. n_structures`` (index 0 = empty)."""
-        return np.bincount(self.labels.ravel(), minlength=n_structures + 1)
+        """Voxel count per index ``0 .. n_structures`` (index 0 = empty),
+        counted slab by slab."""
+        return label_counts(self.labels, n_structures + 1)
 
     def index_to_mm(self, ijk) -> np.ndarray:
         """Case-frame centres [mm] of voxel indices ``ijk`` (shape (..., 3))."""
@@ -178,12 +226,18 @@ def labels_from_intensity(hu: np.ndarray | None, label_map: np.ndarray | None,
                           labels_source: Path | None = None) -> np.ndarray:
     """Structure indices from intensities and an optional label map.
 
+    Works slab by slab along x (:func:`bonesim.io.resample.slabs`): the
+    threshold's mask and the label map's lookup (a table over values
+    ``0 .. 65535``; others are sorted out per slab) are slab-sized, and the
+    result is the only whole-volume array.
+
     Parameters
     ----------
-    hu : (nx, ny, nz) float or None
-        Intensities [HU]; voxels ``>= bone_threshold_hu`` become the first
-        structure of kind ``"bone"``.
-    label_map : (nx, ny, nz) int or None
+    hu : (nx, ny, nz) real or None
+        Intensities [HU], any real type (an int16 CT is not copied to
+        float); voxels ``>= bone_threshold_hu`` become the first structure
+        of kind ``"bone"``.
+    label_map : (nx, ny, nz) int, bool or whole-valued float, or None
         Overrides: value ``v == label_values[s - 1]`` gives index ``s``; 0 does
         not override.
     kinds : sequence of str
@@ -202,31 +256,34 @@ def labels_from_intensity(hu: np.ndarray | None, label_map: np.ndarray | None,
     bone = 1 + list(kinds).index("bone")
     shape = (hu if hu is not None else label_map).shape
     out = np.zeros(shape, dtype=np.uint8)
-    if hu is not None:
-        out[hu >= bone_threshold_hu] = bone
+    where = labels_source or source
+    table = {int(v): s for s, v in enumerate(label_values, start=1) if v is not None}
+    lut = None
     if label_map is not None:
-        lm = np.asarray(label_map)
-        where = labels_source or source
-        if not np.issubdtype(lm.dtype, np.integer):
-            if not np.all(np.isfinite(lm)) or np.any(lm != np.round(lm)):
-                raise BonesimError("label map has non-integer values", where)
-            lm = lm.astype(np.int64)
-        values, counts = np.unique(lm, return_counts=True)
-        table = {int(v): s for s, v in enumerate(label_values, start=1) if v is not None}
-        bad = [(int(v), int(c)) for v, c in zip(values, counts)
-               if v != 0 and int(v) not in table]
-        if bad:
-            listed = ", ".join(f"{v} ({c} voxels)" for v, c in bad[:MAX_LISTED])
-            more = f" and {len(bad) - MAX_LISTED} more" if len(bad) > MAX_LISTED else ""
-            raise BonesimError(
-                f"label map has {len(bad)} value(s) no structure claims: {listed}"
-                f"{more}; known labels: {sorted(table)}", where)
-        idx = np.zeros(lm.shape, dtype=np.uint8)
+        lut = np.full(_LUT_SIZE, _UNCLAIMED, dtype=np.uint16)
+        lut[0] = 0
         for v, s in table.items():
-            idx[lm == v] = s
-        np.copyto(out, idx, where=idx > 0)
+            if 0 <= v < _LUT_SIZE:
+                lut[v] = s
+    strays: dict[int, int] = {}
+    counts = np.zeros(256, dtype=np.int64)
+    for a, b in slabs(shape[0], shape[1] * shape[2]):
+        o = out[a:b]
+        if hu is not None:
+            o[hu[a:b] >= bone_threshold_hu] = bone
+        if lut is not None:
+            idx = _map_label_slab(np.asarray(label_map[a:b]), lut, table, strays, where)
+            np.copyto(o, idx, where=idx > 0, casting="unsafe")
+        counts += np.bincount(o.ravel(), minlength=256)
+    if strays:
+        bad = sorted(strays.items())
+        listed = ", ".join(f"{v} ({c} voxels)" for v, c in bad[:MAX_LISTED])
+        more = f" and {len(bad) - MAX_LISTED} more" if len(bad) > MAX_LISTED else ""
+        raise BonesimError(
+            f"label map has {len(bad)} value(s) no structure claims: {listed}"
+            f"{more}; known labels: {sorted(table)}", where)
     bone_idx = [s for s, k in enumerate(kinds, start=1) if k == "bone"]
-    if not np.isin(out, bone_idx).any():
+    if not counts[bone_idx].any():
         what = ""
         if hu is not None and hu.size:
             what = (f"no voxel reaches bone_threshold_hu = {bone_threshold_hu:g} "
@@ -237,77 +294,38 @@ def labels_from_intensity(hu: np.ndarray | None, label_map: np.ndarray | None,
     return out
 
 
-def nearest_indices(n_in: int, spacing_mm: float, voxel_mm: float, n_out: int
-                    ) -> np.ndarray:
-    """Source index of each output voxel's centre along one axis (nearest).
-
-    Output voxel ``o`` (edge ``voxel_mm``) is centred at
-    ``(o + 0.5) * voxel_mm`` from the box's low edge, which falls in source
-    voxel ``floor(c + 0.5)`` with ``c = (o + 0.5) * voxel_mm / spacing_mm - 0.5``,
-    clipped to the source (the box's edges repeat the edge voxels). ``c`` is
-    evaluated in the floating-point order ``scipy.ndimage.affine_transform``
-    uses for a diagonal matrix, so ties (a centre exactly on a voxel
-    boundary) fall the same way.
-
-    Returns
-    -------
-    (n_out,) intp
-    """
-    scale = voxel_mm / spacing_mm
-    shift = (0.5 * scale - 0.5) / scale
-    c = (np.arange(n_out, dtype=np.float64) + shift) * scale
-    return np.clip(np.floor(c + 0.5), 0, n_in - 1).astype(np.intp)
+_LUT_SIZE = 1 << 16                  # label-map values looked up in a table
+_UNCLAIMED = np.uint16(0xFFFF)       # the table's mark of a value no structure claims
 
 
-def resample_isotropic(data: np.ndarray, spacing_mm, origin_mm, voxel_mm: float,
-                       order: int) -> tuple[np.ndarray, np.ndarray]:
-    """Resample onto isotropic voxels of edge ``voxel_mm`` covering the same box.
-
-    The physical box (voxel edge to voxel edge) is kept; the new voxel count
-    per axis is ``round(n * spacing / voxel_mm)``. When every spacing already
-    equals ``voxel_mm`` the data are returned untouched (no interpolation).
-    Nearest-neighbour resampling picks source voxels axis by axis
-    (:func:`nearest_indices`): it reads only the voxels it keeps and gives the
-    same result as a full ``scipy.ndimage.affine_transform`` of order 0.
-
-    Parameters
-    ----------
-    data : (nx, ny, nz) array
-        Axes along x, y, z.
-    spacing_mm : (3,) float
-        Current voxel edges [mm].
-    origin_mm : (3,) float
-        Current centre of voxel (0, 0, 0) [mm].
-    voxel_mm : float
-        Target edge [mm].
-    order : int
-        0 nearest neighbour (labels), 1 linear (intensities).
-
-    Returns
-    -------
-    data : (mx, my, mz) array
-    origin_mm : (3,) float64
-    """
-    spacing = np.asarray(spacing_mm, dtype=np.float64).reshape(3)
-    origin = np.asarray(origin_mm, dtype=np.float64).reshape(3)
-    if np.allclose(spacing, voxel_mm, rtol=SPACING_RTOL, atol=0.0):
-        return data, origin
-    shape = [int(n) for n in
-             np.maximum(1, np.round(np.asarray(data.shape) * spacing / voxel_mm))]
-    new_origin = origin - spacing / 2 + voxel_mm / 2
-    if order == 0:
-        out = data
-        for a in range(3):                     # shrinking axes first keeps it small
-            idx = nearest_indices(data.shape[a], spacing[a], voxel_mm, shape[a])
-            out = np.take(out, idx, axis=a)
-        return np.ascontiguousarray(out), new_origin
-    from scipy import ndimage
-
-    scale = voxel_mm / spacing
-    out = ndimage.affine_transform(data, scale, offset=0.5 * scale - 0.5,
-                                   output_shape=tuple(shape), order=order,
-                                   mode="nearest", prefilter=False)
-    return out, new_origin
+def _map_label_slab(m: np.ndarray, lut: np.ndarray, table: dict, strays: dict,
+                    where) -> np.ndarray:
+    """Structure index (uint16, 0 = no override) of each voxel of a slab of a
+    label map; values no structure claims are counted into ``strays`` (and
+    left 0)."""
+    if m.dtype == np.bool_:
+        m = m.view(np.uint8)
+    elif not np.issubdtype(m.dtype, np.integer):
+        if m.dtype.kind != "f" or not np.all(np.isfinite(m)) or np.any(m != np.round(m)):
+            raise BonesimError("label map has non-integer values", where)
+        m = m.astype(np.int64)
+    if m.size and int(m.min()) >= 0 and int(m.max()) < _LUT_SIZE:
+        idx = lut[m]
+        bad = idx == _UNCLAIMED
+        if bad.any():
+            values, n = np.unique(m[bad], return_counts=True)
+            for v, c in zip(values.tolist(), n.tolist()):
+                strays[int(v)] = strays.get(int(v), 0) + int(c)
+            idx[bad] = 0
+        return idx
+    idx = np.zeros(m.shape, dtype=np.uint16)
+    values, inverse, n = np.unique(m, return_inverse=True, return_counts=True)
+    known = np.array([table.get(int(v), 0) for v in values.tolist()], dtype=np.uint16)
+    for v, c, s in zip(values.tolist(), n.tolist(), known.tolist()):
+        if v != 0 and s == 0:
+            strays[int(v)] = strays.get(int(v), 0) + int(c)
+    idx.ravel()[:] = known[inverse.ravel()]
+    return idx
 
 
 # ------------------------------------------------------------------- loading
@@ -319,13 +337,13 @@ def _same_grid(a: RawVolume, b: RawVolume) -> bool:
 
 def _check_bone(labels: np.ndarray, kinds, path, what: str) -> None:
     bone_idx = [s for s, k in enumerate(kinds, start=1) if k == "bone"]
-    if not np.isin(labels, bone_idx).any():
+    if not label_counts(labels, MAX_STRUCTURES + 1)[bone_idx].any():
         raise BonesimError(f"no bone: {what}", path)
 
 
 def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                 label_values: Sequence[int | None] = (),
-                colors: Sequence = (), voxel_mm: float = 0.5,
+                colors: Sequence = (), voxel_mm: float | str = 0.5,
                 bone_threshold_hu: float = 300.0, labels_path: Path | None = None,
                 pattern: str = "*.png", size_mm=None, unknown_colors: str = "error",
                 origin_mm=None, orientation: str = PATIENT_FRAME,
@@ -347,8 +365,9 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
         Label-map integer per structure.
     colors : sequence of (3,) int or None
         Label-stack colour per structure.
-    voxel_mm : float
-        Isotropic output voxel edge [mm].
+    voxel_mm : float or "native"
+        Isotropic output voxel edge [mm], or :data:`NATIVE` for the source's
+        own spacing (its finest axis, see :func:`engine_voxel_mm`).
     bone_threshold_hu : float
         Bone threshold for intensity formats [HU].
     labels_path : Path, optional
@@ -363,6 +382,12 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
     progress : callable, optional
         ``progress(done, total, what)`` while slices decode or segments are
         painted.
+
+    Returns
+    -------
+    CaseVolume
+        On the engine's grid; ``native`` holds the source-resolution labels
+        only when they differ from it (else None: one array, not two).
     """
     if len(kinds) > MAX_STRUCTURES:
         raise ValueError(f"at most {MAX_STRUCTURES} structures")
@@ -376,11 +401,12 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                 raise ValueError("a seg-nrrd volume needs segment_names")
             raw = read_segmentation(path, segment_names, kinds, progress)
             what = "no voxel of the segmentation is in a bone segment"
-        native = NativeLabels(raw.data, raw.spacing_mm, raw.origin_mm)
+        voxel = engine_voxel_mm(voxel_mm, raw.spacing_mm)
         labels, origin = resample_isotropic(raw.data, raw.spacing_mm, raw.origin_mm,
-                                            voxel_mm, order=0)
+                                            voxel, order=0)
         _check_bone(labels, kinds, path, what)
-        return CaseVolume(labels, voxel_mm, origin, raw.source, native=native)
+        return CaseVolume(labels, voxel, origin, raw.source,
+                          native=_native_or_none(labels, raw))
 
     readers = {"dicom": read_dicom_series, "nrrd": read_nrrd, "nifti": read_nifti}
     if fmt not in readers:
@@ -411,17 +437,26 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
     if raw is None and lmap is None:
         raise ValueError("need a volume path or a label map")
     grid = raw if raw is not None else lmap
-    hu = None if raw is None else raw.data.astype(np.float32, copy=False)
-    labels = labels_from_intensity(hu, None if lmap is None else lmap.data, kinds,
-                                   label_values, bone_threshold_hu,
-                                   Path(path if path is not None else labels_path),
-                                   labels_path)
-    native = NativeLabels(labels, grid.spacing_mm, grid.origin_mm)
-    labels, origin = resample_isotropic(labels, grid.spacing_mm, grid.origin_mm,
-                                        voxel_mm, order=0)
-    if hu is not None:
-        hu, _ = resample_isotropic(hu, grid.spacing_mm, grid.origin_mm, voxel_mm,
-                                   order=1)
     source = grid.source if lmap is None or raw is None else \
         f"{raw.source} + labels {lmap.source}"
-    return CaseVolume(labels, voxel_mm, origin, source, hu, native=native)
+    hu = None if raw is None else raw.data             # the source's type, no copy
+    src = RawVolume(labels_from_intensity(hu, None if lmap is None else lmap.data, kinds,
+                                          label_values, bone_threshold_hu,
+                                          Path(path if path is not None else labels_path),
+                                          labels_path),
+                    grid.spacing_mm, grid.origin_mm, grid.source)
+    grid = lmap = raw = None                           # the map is done with: freed
+    voxel = engine_voxel_mm(voxel_mm, src.spacing_mm)
+    labels, origin = resample_isotropic(src.data, src.spacing_mm, src.origin_mm, voxel,
+                                        order=0)
+    if hu is not None:
+        hu, _ = resample_isotropic(hu, src.spacing_mm, src.origin_mm, voxel, order=1)
+    return CaseVolume(labels, voxel, origin, source, hu, native=_native_or_none(labels, src))
+
+
+def _native_or_none(labels: np.ndarray, raw: RawVolume) -> NativeLabels | None:
+    """The source's labels to keep beside the engine's ``labels``: None when
+    they are the same array (no resampling happened)."""
+    if labels is raw.data:
+        return None
+    return NativeLabels(raw.data, raw.spacing_mm, raw.origin_mm)

@@ -142,7 +142,10 @@ class Session:
                 if p is None:
                     raise
                 burrs.append(load_burr(p))
-        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]))
+        # the run's voxel, which --voxel-mm may have set over the manifest's
+        voxel = h.get("voxel_mm")
+        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]),
+                           voxel_mm=None if voxel is None else float(voxel))
         models = [model] + [model.with_burr(b) for b in burrs[1:]]
         if check:
             for q, (m, want) in enumerate(zip(models, h["model_sha256"])):

@@ -158,3 +158,40 @@ def test_run_records_only_when_asked():
     assert p.parse_args(["run"]).record is None
     assert p.parse_args(["run", "--record"]).record == ""
     assert p.parse_args(["run", "--record", "x.h5"]).record == "x.h5"
+
+
+def test_voxel_mm_overrides_the_manifest(capsys, tmp_path):
+    code, out, _ = run_cli(capsys, "case-info", "phantom", "--json", "--voxel-mm", "1")
+    info = json.loads(out)
+    assert code == 0 and info["voxel_mm"] == 1.0 and info["grid"] == [52, 52, 52]
+    # the phantom has no source: native keeps its manifest's 0.5 mm
+    code, out, _ = run_cli(capsys, "case-info", "phantom", "--json", "--voxel-mm", "native")
+    assert code == 0 and json.loads(out)["voxel_mm"] == 0.5
+    code, out, _ = run_cli(capsys, "case-export", "phantom", "--format", "label-stack",
+                           str(tmp_path / "st"), "--voxel-mm", "2")
+    assert code == 0 and "export of case 'phantom'" in out
+    assert len(list((tmp_path / "st" / "planes").glob("*.png"))) == 26
+    with pytest.raises(SystemExit) as e:
+        main(["case-info", "phantom", "--voxel-mm", "fine"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert "--voxel-mm: must be a number of mm" in err and "'fine'" in err
+
+
+def test_a_run_at_another_voxel_replays_at_it(capsys, tmp_path):
+    """--voxel-mm is part of the run: the recording replays at that voxel."""
+    t = [i * 0.01 for i in range(81)]
+    rows = ["t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z,drill,speed_rpm"]
+    rows += [f"{ti},{24.0 - 12.0 * ti},0.9,1.0,-1,0,0,1,60000" for ti in t]
+    traj = tmp_path / "in.csv"
+    traj.write_text("\n".join(rows) + "\n")
+    h5 = tmp_path / "coarse.h5"
+    code, out, err = run_cli(capsys, "simulate", "--trajectory", str(traj), "--voxel-mm", "1",
+                             "--record", str(h5), "--json")
+    assert code == 0, err
+    assert json.loads(out)["voxels_removed"] > 0
+    from bonesim.session.reader import read_session
+
+    assert read_session(h5).header["voxel_mm"] == 1.0
+    code, out, err = run_cli(capsys, "replay", str(h5), "--verify")
+    assert code == 0, err

@@ -218,7 +218,12 @@ BAD = [
      "structures[1]"),
     ([("label = 2", "label = 1")], "label 1 already used", "structures[1]"),
     ([('kind = "bone"', 'kind = "soft"')], "no structure of kind 'bone'", "structures"),
-    ([("voxel_mm = 0.5", "voxel_mm = -1")], "'voxel_mm' must be >=", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = -1")], "'voxel_mm' must be a number of mm from 0.01 "
+     "to 10 or \"native\" (the source's own spacing), got -1", "volume"),
+    ([("voxel_mm = 0.5", 'voxel_mm = "nativ"')], "or \"native\"", "volume"),
+    ([("voxel_mm = 0.5", 'voxel_mm = "0.3"')], "got '0.3'", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = true")], "got True", "volume"),
+    ([("voxel_mm = 0.5", "voxel_mm = 11")], "got 11", "volume"),
     ([("up = [0, 0, 1]", "up = [1, 0, 0]")], "parallel to the viewing direction", "camera"),
     ([("up = [0, 0, 1]", "up = [0, 1]")], "'up' must be a list of 3", "camera"),
     ([("eye_mm = [50, 0, 0]", "")], "missing required key(s) 'eye_mm'", "camera"),
@@ -669,3 +674,55 @@ def test_camera_is_optional_and_the_anatomy_key_overrides(tmp_path):
     nerve = c.structures[1]
     assert nerve.anatomy == "stapes" and nerve.role == "ossicles" and not nerve.monitor
     assert c.camera.up[2] > 0.8                 # derived from the tiny volume
+
+
+# ------------------------------------------------------------ native resolution
+def test_native_voxel_in_the_manifest_and_as_an_override(tmp_path):
+    from bonesim.io.volumes import write_nrrd
+
+    data = np.full((8, 8, 8), -1000, np.int16)
+    data[2:6, 2:6, 2:6] = 1500
+    write_nrrd(tmp_path / "ct.nrrd", data, 0.25, (0, 0, 0))
+    path = write_case(tmp_path, replace=[("voxel_mm = 0.5", 'voxel_mm = "native"')])
+    c = C.load_case(path)
+    assert c.volume.voxel_mm == "native"
+    vol = c.load_volume()
+    assert vol.spacing_mm == 0.25 and vol.shape == (8, 8, 8)
+    assert vol.native is None and vol.hu.dtype == np.int16      # one grid, no float copy
+    # --voxel-mm: a number or native, over whatever the manifest says
+    half = C.load_case(path, voxel_mm=0.5)
+    assert half.volume.voxel_mm == 0.5 and half.load_volume().shape == (4, 4, 4)
+    assert half.load_volume().native.labels.shape == (8, 8, 8)
+    assert C.load_case(half) is half                            # a case is taken as it is
+    back = C.load_case(half, voxel_mm="native")
+    assert back.volume.voxel_mm == "native" and back.load_volume().spacing_mm == 0.25
+    assert C.load_case(path, voxel_mm="0.125").volume.voxel_mm == 0.125  # command line
+    with pytest.raises(BonesimError) as e:
+        c.with_voxel_mm("fine")
+    assert e.value.field == "--voxel-mm" and "or \"native\"" in str(e.value)
+    with pytest.raises(BonesimError, match="got 0.001"):
+        c.with_voxel_mm(0.001)
+
+
+def test_phantom_native_is_its_manifest_voxel(tmp_path, phantom_case):
+    # the bundled phantom gives 0.5 mm: "native" keeps it
+    assert phantom_case.with_voxel_mm("native").volume.voxel_mm == 0.5
+    assert phantom_case.with_voxel_mm(1.0).volume.voxel_mm == 1.0
+    # a phantom manifest asking for "native" gets the generator's default
+    text = phantom_case.manifest.read_text().replace("voxel_mm = 0.5",
+                                                     'voxel_mm = "native"')
+    text = text.replace("[[structures]]", "[camera]\neye_mm = [120, 0, 0]\nfocal_mm = "
+                        "[20, 0, 0]\nup = [0, 0, 1]\n\n[[structures]]", 1)
+    (tmp_path / "case.toml").write_text(text)
+    c = C.load_case(tmp_path)
+    assert c.volume.voxel_mm == "native" and c.with_voxel_mm("native") == c
+    assert c.load_volume().spacing_mm == P.DEFAULT_VOXEL_MM
+
+
+def test_load_model_at_another_voxel():
+    from bonesim.io.loading import load_model
+
+    m = load_model("phantom", "cutting-5mm", voxel_mm=1.0)
+    assert m.grid.spacing_mm == 1.0 and m.case.volume.voxel_mm == 1.0
+    assert m.grid.shape == (52, 52, 52)
+    assert m.clearance.spacing_mm.tolist() == [1.0, 1.0, 1.0]   # the grid is the source

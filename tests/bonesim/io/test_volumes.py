@@ -56,6 +56,20 @@ def test_nifti_writer_roundtrip(tmp_path):
     assert nib.aff2axcodes(nib.load(tmp_path / "w.nii.gz").affine) == ("L", "P", "S")
 
 
+def test_nifti_intensities_keep_their_type_unless_scaled(tmp_path):
+    lps = asymmetric()
+    V.write_nifti(tmp_path / "w.nii.gz", lps, SPACING, ORIGIN)
+    assert V.read_nifti(tmp_path / "w.nii.gz").data.dtype == np.int16   # no float copy
+    img = nib.load(tmp_path / "w.nii.gz")
+    scaled = nib.Nifti1Image(np.asarray(img.dataobj), img.affine, img.header)
+    scaled.header.set_slope_inter(2.0, -1024.0)
+    nib.save(scaled, tmp_path / "s.nii.gz")
+    raw = V.read_nifti(tmp_path / "s.nii.gz")
+    assert raw.data.dtype == np.float32
+    np.testing.assert_array_equal(raw.data, lps * 2.0 - 1024.0)
+    assert V.read_nifti(tmp_path / "s.nii.gz", scaled=False).data.dtype == np.int16
+
+
 @pytest.mark.parametrize("space", ["right-anterior-superior", "RAS"])
 def test_nrrd_ras_space_loads_into_lps(tmp_path, space):
     lps = asymmetric()
@@ -474,3 +488,109 @@ def test_ct_with_a_cropped_slicer_segmentation(tmp_path):
     want[2, 1:3, 1:3] = 3
     want[3, 1, 1:3] = 2
     np.testing.assert_array_equal(vol.labels, want)
+
+
+# ------------------------------------------------------------ native resolution
+def test_engine_voxel_of_native_is_the_finest_spacing():
+    assert V.engine_voxel_mm("native", (0.19, 0.19, 0.19)) == 0.19
+    assert V.engine_voxel_mm("native", (0.19, 0.2, 0.5)) == 0.19
+    assert V.engine_voxel_mm(0.5, (0.19, 0.19, 0.19)) == 0.5
+    with pytest.raises(ValueError, match="native"):
+        V.engine_voxel_mm("fine", (1, 1, 1))
+
+
+def test_native_label_stack_holds_its_labels_once(tmp_path):
+    lab = index_planes()
+    V.write_label_stack(tmp_path / "st", lab, COLORS)
+    kw = dict(kinds=KINDS, colors=COLORS, size_mm=np.array(lab.shape) * 0.19)
+    vol = V.load_volume("label-stack", tmp_path / "st", voxel_mm="native", **kw)
+    assert vol.spacing_mm == pytest.approx(0.19) and vol.shape == lab.shape
+    np.testing.assert_array_equal(vol.labels, lab)
+    assert vol.native is None                           # the engine grid is the source's
+    assert vol.native_labels.labels is vol.labels
+    # the same number as voxel_mm: the same, one array
+    same = V.load_volume("label-stack", tmp_path / "st", voxel_mm=0.19, **kw)
+    assert same.native is None and same.spacing_mm == vol.spacing_mm
+    fine = V.load_volume("label-stack", tmp_path / "st", voxel_mm=0.095, **kw)
+    assert fine.native is not None and fine.native.labels.shape == lab.shape
+    assert fine.shape == tuple(2 * n for n in lab.shape)
+
+
+def test_native_of_anisotropic_slices_is_their_finest_spacing(tmp_path):
+    """0.2 mm pixels, 0.5 mm slices: "native" is 0.2 mm; the slice axis is
+    resampled (nearest), the source kept for distances."""
+    lab = index_planes()                                  # (nx, ny, nz) = (4, 3, 12)
+    V.write_label_stack(tmp_path / "st", lab, COLORS)
+    size = np.array(lab.shape) * np.array([0.2, 0.2, 0.5])
+    vol = V.load_volume("label-stack", tmp_path / "st", kinds=KINDS, colors=COLORS,
+                        size_mm=size, voxel_mm="native")
+    assert vol.spacing_mm == pytest.approx(0.2)
+    assert vol.shape == (4, 3, 30)                        # 12 slices * 0.5 / 0.2
+    np.testing.assert_allclose(vol.extent_mm, size, atol=0.1)
+    np.testing.assert_array_equal(vol.native.labels, lab)
+    np.testing.assert_allclose(vol.native.spacing_mm, [0.2, 0.2, 0.5])
+    np.testing.assert_array_equal(vol.labels[:, :, 0], lab[:, :, 0])
+
+
+def test_native_ct_keeps_its_intensities_without_a_float_copy(tmp_path):
+    hu = asymmetric() * 3 - 200                           # int16, some >= 300
+    V.write_nrrd(tmp_path / "ct.nrrd", hu.astype(np.int16), 0.25, ORIGIN)
+    vol = V.load_volume("nrrd", tmp_path / "ct.nrrd", kinds=KINDS, voxel_mm="native")
+    assert vol.spacing_mm == 0.25 and vol.native is None
+    assert vol.hu.dtype == np.int16                       # the source's type
+    np.testing.assert_array_equal(vol.hu, hu)
+    np.testing.assert_array_equal(vol.labels, np.where(hu >= 300, 1, 0))
+    # resampled intensities keep the type too (rounded)
+    half = V.load_volume("nrrd", tmp_path / "ct.nrrd", kinds=KINDS, voxel_mm=0.5)
+    assert half.hu.dtype == np.int16 and half.native.labels.shape == SHAPE
+
+
+def test_label_map_lookup_in_slabs(monkeypatch):
+    """Slab by slab, a label map is looked up as a whole one would be: big,
+    negative, float and bool values included."""
+    import bonesim.io.resample as R
+
+    monkeypatch.setattr(R, "SLAB_VOXELS", 3)
+    rng = np.random.default_rng(5)
+    lm = rng.choice([0, 12, 7, 70000], size=(5, 2, 3)).astype(np.int64)
+    hu = rng.normal(300, 200, size=lm.shape).astype(np.float32)
+    with pytest.raises(BonesimError, match=r"1 value\(s\) no structure claims: 7 \("):
+        V.labels_from_intensity(hu, lm, KINDS, (None, 12, 70000), 300.0, "ct.nrrd")
+    lm[lm == 7] = -3
+    with pytest.raises(BonesimError, match=r"-3 \("):
+        V.labels_from_intensity(hu, lm, KINDS, (None, 12, 70000), 300.0, "ct.nrrd")
+    lm[lm == -3] = 0
+    want = np.where(hu >= 300, 1, 0)
+    want[lm == 12] = 2
+    want[lm == 70000] = 3
+    np.testing.assert_array_equal(
+        V.labels_from_intensity(hu, lm, KINDS, (None, 12, 70000), 300.0, "x"), want)
+    small = np.where(lm == 70000, 0, lm)
+    np.testing.assert_array_equal(
+        V.labels_from_intensity(hu, small.astype(np.float32), KINDS, (None, 12, 1), 300.0,
+                                "x"), np.where(small == 12, 2, np.where(hu >= 300, 1, 0)))
+    np.testing.assert_array_equal(
+        V.labels_from_intensity(None, small == 12, KINDS, (1, None, None), 300.0, "x"),
+        (small == 12).astype(np.uint8))
+    with pytest.raises(BonesimError, match="non-integer"):
+        V.labels_from_intensity(hu, small + 0.5, KINDS, (None, 12, 1), 300.0, "x")
+
+
+def test_dicom_hu_stay_whole_numbers_in_int16(tmp_path):
+    """The usual CT (whole rescale) reads as int16; a fractional rescale, or
+    HU beyond int16, as float32, with the same values."""
+    stored = np.arange(20).reshape(4, 5) * 150
+    for name, slope, icpt, big in (("whole", 1.0, -1024.0, False),
+                                   ("fraction", 0.5, -1024.0, False),
+                                   ("beyond", 1.0, 0.0, True)):
+        (tmp_path / name).mkdir()
+        for k in range(3):
+            px = stored + (60000 if big and k == 2 else 0)
+            dicom_slice(tmp_path / name / f"s{k}.dcm", px, z=0.5 * k, slope=slope,
+                        intercept=icpt)
+        raw = V.read_dicom_series(tmp_path / name)
+        want = np.stack([stored + (60000 if big and k == 2 else 0) for k in range(3)]
+                        ).astype(np.float64) * slope + icpt
+        assert raw.data.dtype == (np.int16 if name == "whole" else np.float32), name
+        np.testing.assert_array_equal(raw.data, want.transpose(2, 1, 0))
+        assert raw.data.flags.c_contiguous
