@@ -188,11 +188,14 @@ def _outline_yz(lm, plan, volume_lo, volume_hi):
     """The triangle of attack: a (y, z) polygon [mm] on the cortex and, per
     edge (vertex ``k`` to ``k + 1``), the slope of the wall below it.
 
-    Front (the canal's wall) and top (the tegmen's line) have steep walls
-    (``steep_slope``: they follow the canal and the tegmen in); the back
+    Front (behind the canal's wall, around its posterosuperior rim, above it
+    to the tegmen's line: Macewen's triangle in the anterosuperior corner) and
+    top (the tegmen's line) have steep walls (``steep_slope``: they follow
+    the canal and the tegmen in); the back
     (over the sinus: ``sinus_over_mm`` behind the rim whose wall reaches the
     sinus, :func:`_sinus_rim_profile`) and the bottom (toward the tip) are
-    saucerized (``wall_slope``).
+    saucerized (``wall_slope``), but where the volume's face cuts the back
+    rim off, its wall too goes straight in.
     """
     canal = lm.get("ear_canal")
     wall = canal.detail["posterior_wall_y_mm"]
@@ -212,16 +215,35 @@ def _outline_yz(lm, plan, volume_lo, volume_hi):
     sinus = lm.get("sigmoid_sinus")
     default = sinus.point_mm[1] if sinus is not None else wall + 20.0
     back = np.where(np.isfinite(rim), rim, default) + plan.sinus_over_mm
+    # where the volume's face cuts the rim off, the wall goes straight in (to
+    # reach the sinus at all without touching the bone at the edge)
+    clipped = back > volume_hi[1] - plan.edge_mm
     back = np.minimum(back, volume_hi[1] - plan.edge_mm)
     if np.max(back) - y_front < 4.0:
         raise BonesimError(f"no room for a mastoidectomy: the sinus's front (y "
                            f"{np.max(back) - plan.sinus_over_mm:.1f} mm) lies within "
                            f"{4.0 - plan.sinus_over_mm:g} mm of the ear canal's "
                            f"posterior wall (y {wall:.1f} mm)")
-    poly = [(y_front, z_top)] + [(max(b, y_front + 1.0), z) for b, z in zip(back, zs)] + \
-        [(y_front, z_low)]
+    # the front: behind the canal's wall below its axis, then around its
+    # posterosuperior rim (Macewen's triangle lies above it, in the cavity's
+    # anterosuperior corner) up to the line over the canal's axis
+    y_c, z_c = canal.point_mm[1], canal.point_mm[2]
+    r_rim = canal.detail["radius_mm"] + plan.canal_wall_mm
+    angles = np.linspace(0.0, 0.5 * math.pi, 7)
+    arc = [(y_c + r_rim * math.cos(a), z_c + r_rim * math.sin(a)) for a in angles
+           if z_c + r_rim * math.sin(a) < z_top]
     steep, saucer = plan.steep_slope, plan.wall_slope
-    slopes = [steep] + [saucer] * (len(zs) - 1) + [saucer, steep]
+    poly = [(min(y_c, y_front), z_top)] + \
+        [(max(b, y_front + 1.0), z) for b, z in zip(back, zs)] + [(y_front, z_low)]
+    slopes = [steep] + [steep if clipped[k] or clipped[k + 1] else saucer
+                        for k in range(len(zs) - 1)] + [saucer]
+    if z_low < z_c:
+        poly.append((y_front, z_c))
+        slopes.append(steep)
+        for pt in arc[1:]:
+            poly.append(pt)
+            slopes.append(steep)
+    slopes.append(steep)                                # back up to the first vertex
     return np.array(poly, float), np.array(slopes, float)
 
 

@@ -62,14 +62,14 @@ class DemoPlan:
     finish_rpm: float = 60000.0
     line_overlap: float = 0.5
     column_mm: float = 0.5
-    layer_mm: float = 1.0
+    layer_mm: float = 1.5
     n_layers: int = 24
     margin_mm: float = 1.0
-    speed_mm_s: float = 20.0
+    speed_mm_s: float = 25.0
     travel_mm_s: float = 60.0
     plunge_mm_s: float = 10.0
     sample_hz: float = 100.0
-    rinse_every_s: float = 45.0
+    rinse_every_s: float = 60.0
     rinse_gap_mm: float = 0.5
     uncut_mm: float = 1.0
     suction_mm_s: float = 40.0
@@ -79,20 +79,20 @@ class DemoPlan:
     region_radius_mm: float = 0.0
     wall_slope: float = 1.2
     steep_slope: float = math.inf
-    canal_wall_mm: float = 1.0
-    sinus_over_mm: float = 4.0
-    tegmen_keep_mm: float = 1.0
+    canal_wall_mm: float = 0.5
+    sinus_over_mm: float = 1.0
+    tegmen_keep_mm: float = 0.0
     tip_keep_mm: float = 4.0
     below_antrum_mm: float = 0.0
     edge_mm: float = 2.0
-    bulk_margin_mm: float = 2.0
-    bulk_thin_mm: float = 1.6
-    bulk_canal_mm: float = 2.0
+    bulk_margin_mm: float = 1.6
+    bulk_thin_mm: float = 1.3
+    bulk_canal_mm: float = 1.5
     finish_burr: str = "diamond-3mm"
     thin_margin_mm: float = 0.6
     canal_margin_mm: float = 1.0
-    finish_layer_mm: float = 0.5
-    finish_speed_mm_s: float = 8.0
+    finish_layer_mm: float = 0.75
+    finish_speed_mm_s: float = 12.0
     finish_gain_mm: float = 0.3
 
 
