@@ -75,6 +75,7 @@ def _parts():
     from bonesim.physics import clicks
     from bonesim.physics import dust
     from bonesim.io import loading
+    from bonesim.io import neighbours
     from bonesim.runtime import simulate
     from bonesim.physics import sound
     from bonesim.engine import surface
@@ -89,7 +90,8 @@ def _parts():
             ("vibration", vibration.warmup), ("sound", sound.warmup),
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
             ("nerve monitor", _monitor), ("recording", _visibility),
-            ("tutoring", tutor.warmup), ("haptic loop", _loop)]
+            ("tutoring", tutor.warmup), ("colour neighbours", neighbours.warmup),
+            ("haptic loop", _loop)]
 
 
 def warmup_all(report=None) -> dict:
