@@ -111,6 +111,7 @@ class Showcase:
         self.force_n = 0.0
         self.monitor = self.trace = None
         self.min_clearance_mm = math.inf
+        self.min_clearance_label = 0               # the structure it was to
         if monitor:
             self._start_monitor()
 
@@ -279,8 +280,9 @@ class Showcase:
             return
         s = self.samples
         sl = slice(lo - lo % -CLEARANCE_EVERY, hi, CLEARANCE_EVERY)
-        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][s.drill[sl].astype(bool)])
-        self.min_clearance_mm = min(self.min_clearance_mm, gap)
+        gap, label, _ = closest_approach(self.model, s.pos_mm[sl][s.drill[sl].astype(bool)])
+        if gap < self.min_clearance_mm:
+            self.min_clearance_mm, self.min_clearance_label = gap, label
 
     def image(self) -> np.ndarray:
         """The current frame, (height, width, 3) uint8."""
@@ -302,7 +304,9 @@ class Showcase:
             "dust_cells": float(round(self.dust.total_cells, 2)),
             "dust_suctioned_cells": float(round(self.dust.suctioned_cells, 2)),
             **({} if not math.isfinite(self.min_clearance_mm) else
-               {"min_clearance_mm": round(self.min_clearance_mm, 3)}),
+               {"min_clearance_mm": round(self.min_clearance_mm, 3),
+                "min_clearance_structure": self.model.structure_name(
+                    self.min_clearance_label)}),
         }
 
     def close(self) -> None:
