@@ -203,8 +203,9 @@ def test_a_thin_structure_counts_where_it_lies():
 
 
 def test_neighbours_are_quick_at_256_cubed():
-    """A 256^3 label map at 0.19 mm is measured well under a second (once
-    the kernels are compiled): no whole-volume float copy, no distance field."""
+    """A 256^3 label map at 0.19 mm is measured well under a second of CPU
+    (once the kernels are compiled; about 0.1 s when written): no
+    whole-volume float copy, no distance field."""
     N.warmup()
     rng = np.random.default_rng(3)
     labels = np.ones((256, 256, 256), np.uint8)
@@ -214,9 +215,9 @@ def test_neighbours_are_quick_at_256_cubed():
         r = rng.integers(3, 25, 3)
         labels[tuple(slice(max(a - b, 0), a + b) for a, b in zip(c, r))] = s
     labels[100:200, 50, 60] = 9                               # a thread
-    t = time.perf_counter()
+    t = time.process_time()                 # CPU: the machine may be shared
     adj = A.neighbours(labels, 16, 0.19, 1.5, (-24.0, -24.0, -24.0), 0.5)
-    assert time.perf_counter() - t < 1.5
+    assert time.process_time() - t < 0.8
     assert adj.any()
 
 
