@@ -34,7 +34,8 @@ Manifest
     segment = "Bone"                  # seg-nrrd: segment name or ID (default: name)
     anatomy = "bone"                  # optional: class of bonesim/data/anatomy.toml
     display_color = [230, 220, 200]   # rendering colour (default: from the data)
-    monitor = false                   # nerve monitor (default: true for nerves)
+    monitor = false                   # nerve monitor (default: true for the facial
+                                      # nerve and the chorda tympani)
 
     [camera]                          # optional; case frame (LPS), mm
     eye_mm = [120, 0, 0]
