@@ -11,6 +11,7 @@ exports :mod:`bonesim.io.case_export`. Both build on this module, never on
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -385,10 +386,11 @@ class Case:
         """
         native = vol.native_labels
         got = self._derived.get("neighbours")
-        if got is not None and got[0] is native.labels:
+        if got is not None and got[0]() is native.labels:
             return got[1]
         adj = _anatomy.case_neighbours(native, len(self.structures))
-        self._derived["neighbours"] = (native.labels, adj)
+        # a weak reference: the case must not keep a big label map alive
+        self._derived["neighbours"] = (weakref.ref(native.labels), adj)
         return adj
 
     def resolved(self, vol: CaseVolume) -> "Case":

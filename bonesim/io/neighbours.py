@@ -53,6 +53,8 @@ def _axis_cells(n: int, origin: float, spacing: float, cell_mm: float) -> np.nda
 
 @njit(cache=True, nogil=True)
 def _pool_kernel(labels, c0, c1, c2, lut, out, pad):   # pragma: no cover - numba
+    """OR each voxel's bit set (``lut[label]``) into its cell ``(c0[i], c1[j],
+    c2[k])`` (shifted by ``pad``), once per run of one label in one cell."""
     n0, n1, n2 = labels.shape
     w = out.shape[3]
     for i in range(n0):
