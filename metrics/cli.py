@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 
+from bonesim.io.anatomy import clinical_name
+
 __all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits",
            "cmd_metrics_view"]
 
@@ -68,16 +70,18 @@ def cmd_metrics_run(args) -> int:
     if "skipped" in f:
         print(f"forces: {f['skipped']}")
     else:
-        print(f"forces near {f['structure']}: {f['rows']} removals within 30 mm, mean "
-              f"{_fmt(f['mean_force_n'], ' N')}")
+        print(f"forces near the {clinical_name(f['structure'])}: {f['rows']} removals "
+              f"within 30 mm, mean {_fmt(f['mean_force_n'], ' N')}")
     for name, e in res["exposure"].items():
-        print(f"exposure {name}: " + ", ".join(f"{_fmt(val)} {k.replace('_', ' ')}"
-                                               for k, val in e.items() if k.startswith("under")))
+        print(f"exposure {clinical_name(name)}: "
+              + ", ".join(f"{_fmt(val)} {k.replace('_', ' ')}"
+                          for k, val in e.items() if k.startswith("under")))
     st = c["strokes"]
     print(f"strokes: {st['strokes']}, plunge {_fmt(st['mean_plunge'])}, straightness "
           f"{_fmt(st['mean_straightness'])}")
     hurt = {n: v for n, v in c["contacts"].items() if v["injuries"] or v["contacts"]}
-    print("contacts: " + (", ".join(f"{n} {v['contacts']} contact(s) {v['injuries']} "
+    print("contacts: " + (", ".join(f"{clinical_name(n)} {v['contacts']} contact(s) "
+                                    f"{v['injuries']} "
                                     f"injur{'y' if v['injuries'] == 1 else 'ies'}"
                                     for n, v in hurt.items()) or "none"))
     if "final_product" in res:
@@ -86,12 +90,13 @@ def cmd_metrics_run(args) -> int:
               f"Dice {_fmt(m['dice'])}, mean distance {_fmt(m['mean_mm'], ' mm')}")
     if "exceedances" in res:
         e = res["exceedances"]
-        print(f"above the experts' limits near {e['structure']} ({e['percentile']:g}th "
+        near = clinical_name(e["structure"])
+        print(f"above the experts' limits near the {near} ({e['percentile']:g}th "
               f"percentile per 2 mm bin): force {e['count']['force_n']} time(s), speed "
               f"{e['count']['speed_rpm']} time(s)")
         for w in e["worst"]:
             unit, f = (" N", ".3f") if w["quantity"] == "force_n" else (" rpm", ",.0f")
-            print(f"  at {w['t_s']:.3f} s, {w['distance_mm']:.1f} mm away, burr at "
+            print(f"  at {w['t_s']:.3f} s, {w['distance_mm']:.1f} mm from the {near}, burr at "
                   f"({', '.join(f'{v:.1f}' for v in w['pos_mm'])}) mm: "
                   f"{w['value']:{f}}{unit} against {w['limit']:{f}}{unit} "
                   f"(+{w['excess']:{f}}{unit})")
@@ -124,7 +129,8 @@ def cmd_metrics_limits(args) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
     else:
-        print(f"{args.out}: force and speed limits near {lim.structure} ({lim.percentile:g}th "
+        print(f"{args.out}: force and speed limits near the {clinical_name(lim.structure)} "
+              f"({lim.percentile:g}th "
               f"percentile, {have} of {len(lim.force_n)} bins of "
               f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm) from {len(lim.source)} expert "
               f"run(s) of case {lim.case!r}; use it with bonesim run --force-limits")

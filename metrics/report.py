@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bonesim.io.anatomy import clinical_name
+
 __all__ = ["FIG_SIZE", "SMALL_FIG_SIZE", "DPI", "GROUP_COLOURS", "OTHER_COLOUR", "GROUP_ORDER",
            "KEY_METRICS", "SCATTER_METRICS", "ALPHA", "CONFIDENCE", "JITTER", "NA",
            "write_report"]
@@ -361,9 +363,10 @@ def _force_plot(result):
         ax.errorbar(x[has], m[has], yerr=err[:, has], fmt="o-", color=_colour(g), capsize=3,
                     ms=4, lw=1.3,
                     label=f"{_label(g)} ({runs} runs, {int(bs.n[gi].sum())} removals)")
-    ax.set_xlabel(f"distance from {bs.structure} [mm] ({BIN_MM:g} mm bins)")
+    ax.set_xlabel(f"distance from the {clinical_name(bs.structure)} [mm] "
+                  f"({BIN_MM:g} mm bins)")
     ax.set_ylabel("mean force [N]")
-    ax.set_title(f"Force near {bs.structure}, {CONFIDENCE:.0%} CI per bin")
+    ax.set_title(f"Force near the {clinical_name(bs.structure)}, {CONFIDENCE:.0%} CI per bin")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     note = (f"Force: {FORCES.get(bs.force, bs.force)}. Rows of all runs of a group are pooled "
@@ -466,7 +469,8 @@ def _scatter_section(result, groups, figs) -> str:
 
 
 def _force_section(result, figs) -> str:
-    out = [f"<h2>4. Force against distance to the {_esc(result.structure)}</h2>"]
+    out = [f"<h2>4. Force against distance to the {_esc(clinical_name(result.structure))}"
+           "</h2>"]
     try:
         fig, note = _force_plot(result)
     except ValueError as exc:

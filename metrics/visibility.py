@@ -51,6 +51,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.bodies import to_case_frame
+from bonesim.io.anatomy import clinical_name
 from bonesim.render.visibility_view import (HIDDEN_RGB, VISIBLE_OPACITY, VISIBLE_RGB,
                                             visibility_scene)
 from bonesim.render.visibility_view import show_visibility as show_visibility_window
@@ -408,7 +409,8 @@ def _legend(result, session):
                  f"({result.n_visible:,} of {result.n_removed:,} removals; "
                  f"{result.n_hidden:,} hidden)"]
         for name, v in sorted(result.by_structure.items(), key=lambda kv: -kv[1].n_removed):
-            lines.append(f"  {name}: {v.fraction * 100:.1f} % of {v.n_removed:,}")
+            lines.append(f"  {clinical_name(name)}: {v.fraction * 100:.1f} % of "
+                         f"{v.n_removed:,}")
     else:
         lines = ["no voxel was removed"]
     return title, lines

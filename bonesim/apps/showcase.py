@@ -122,6 +122,7 @@ class Showcase:
         self.force_n = 0.0
         self.monitor = self.trace = None
         self.min_clearance_mm = math.inf
+        self.min_clearance_label = 0               # the structure it was to
         if monitor:
             self._start_monitor()
 
@@ -298,8 +299,9 @@ class Showcase:
         sl = slice(lo - lo % -CLEARANCE_EVERY, hi, CLEARANCE_EVERY)
         on = s.drill[sl].astype(bool)
         radii = np.array([b.radius_mm for b in self.model.burrs])[s.burr[sl][on]]
-        gap, _, _ = closest_approach(self.model, s.pos_mm[sl][on], radii)
-        self.min_clearance_mm = min(self.min_clearance_mm, gap)
+        gap, label, _ = closest_approach(self.model, s.pos_mm[sl][on], radii)
+        if gap < self.min_clearance_mm:
+            self.min_clearance_mm, self.min_clearance_label = gap, label
 
     def image(self) -> np.ndarray:
         """The current frame, (height, width, 3) uint8."""
@@ -322,7 +324,9 @@ class Showcase:
             "dust_cells": float(round(self.dust.total_cells, 2)),
             "dust_suctioned_cells": float(round(self.dust.suctioned_cells, 2)),
             **({} if not math.isfinite(self.min_clearance_mm) else
-               {"min_clearance_mm": round(self.min_clearance_mm, 3)}),
+               {"min_clearance_mm": round(self.min_clearance_mm, 3),
+                "min_clearance_structure": self.model.structure_name(
+                    self.min_clearance_label)}),
         }
 
     def close(self) -> None:

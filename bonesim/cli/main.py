@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+from bonesim.io.anatomy import clinical_name
 from bonesim.io.burrs import DEFAULT_BURR
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
@@ -178,20 +179,27 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _shown(names) -> str:
+    """Structure names as a surgeon reads them (clinical names), comma-separated."""
+    return ", ".join(clinical_name(n) for n in names)
+
+
 def _print_summary(s: dict) -> None:
+    from bonesim.runtime.simulate import approach_text
+
     print(f"case {s['case']}, burr {s['burr']}: {s['steps']} haptic steps "
           f"({s['duration_s']} s simulated) in {s['wall_s']} s")
     print(f"removed {s['voxels_removed']} voxels ({s['volume_removed_mm3']} mm^3): "
-          + ", ".join(f"{k} {v}" for k, v in s["removed_by_structure"].items()))
+          + ", ".join(f"{clinical_name(k)} {v}" for k, v in s["removed_by_structure"].items()))
     print(f"injuries: {len(s['injuries'])}"
-          + "".join(f"\n  {i['t_s']:8.3f} s  {i['kind']:8s} {i['structure']} "
+          + "".join(f"\n  {i['t_s']:8.3f} s  {i['kind']:8s} {clinical_name(i['structure'])} "
                     f"({i['voxels']} voxels)" for i in s["injuries"][:20]))
     if "closest_approach" in s:
         c = s["closest_approach"]
         grid = " x ".join(f"{v:g}" for v in c["native_spacing_mm"])
-        print(f"closest approach of the drilling burr: {c['clearance_mm']:.2f} mm to "
-              f"{c['structure']} at {c['t_s']:.2f} s (exact on the {grid} mm source "
-              "grid)")
+        print(f"closest approach of the drilling burr: "
+              f"{approach_text(c['clearance_mm'], c['structure'])} at {c['t_s']:.2f} s "
+              f"(exact on the {grid} mm source grid)")
     print(f"force: mean {s['force_n']['mean']} N, in contact "
           f"{s['force_n']['mean_in_contact']} N, max {s['force_n']['max']} N")
     print(f"haptic step: p50 {s['haptic_step_us']['p50']} us, "
@@ -300,7 +308,7 @@ def cmd_run(args) -> int:
         app.start()
         if serve is not None:
             print(f"bonesim: nerve monitor on {args.monitor_host}:{app.monitor.port} "
-                  f"({', '.join(app.monitor.names)})", file=sys.stderr, flush=True)
+                  f"({_shown(app.monitor.names)})", file=sys.stderr, flush=True)
         summary = app.run(frames=frames, screenshot=screenshot)
     finally:
         app.close()
@@ -311,7 +319,7 @@ def cmd_run(args) -> int:
               f"at {summary['frame_hz']} Hz; haptic loop {summary['haptic_rate_hz']} Hz "
               f"(period p99 {summary['haptic_period_p99_ms']} ms)")
         print(f"removed {summary['voxels_removed']} voxels; injuries: "
-              f"{', '.join(summary['injuries']) or 'none'}")
+              f"{_shown(summary['injuries']) or 'none'}")
         for note in summary["notices"]:
             print(f"note: {note}")
         if "screenshot" in summary:
@@ -354,11 +362,14 @@ def _run_showcase(args) -> int:
     print(f"case {out['case']}, burr {out['burr']}: the demo mastoidectomy, "
           f"{out['simulated_s']:.0f} s of simulated surgery in {out['steps']} haptic steps "
           f"({out['wall_s']:.0f} s here)")
+    from bonesim.runtime.simulate import approach_text
+
     print(f"removed {out['voxels_removed']} voxels ("
-          + ", ".join(f"{k} {v}" for k, v in out["removed_by_structure"].items())
-          + f"); injuries: {', '.join(out['injuries']) or 'none'}")
+          + ", ".join(f"{clinical_name(k)} {v}" for k, v in out["removed_by_structure"].items())
+          + f"); injuries: {_shown(out['injuries']) or 'none'}")
     if "min_clearance_mm" in out:
-        print(f"closest approach to a critical structure: {out['min_clearance_mm']:.2f} mm")
+        print("closest approach: " + approach_text(out["min_clearance_mm"],
+                                                   out["min_clearance_structure"]))
     print(f"wrote {out['picture']}" + (f" and {out['video']} ({out['frames']} frames, "
                                        f"{out['speedup']:g}x)" if "video" in out else ""))
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 
+from bonesim.io.anatomy import clinical_name
 from bonesim.cli.main import _print_json, _table
 from bonesim.runtime.record import sessions_folder
 from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
@@ -37,7 +38,10 @@ def cmd_sessions_info(args) -> int:
         elif k == "injuries":
             print(f"injuries: {len(v)}")
             for i in v[:20]:
-                print(f"  {i['t_s']:9.3f} s  {i['kind']:8s} {i['structure']}")
+                print(f"  {i['t_s']:9.3f} s  {i['kind']:8s} {clinical_name(i['structure'])}")
+        elif k == "removed_by_structure":
+            print(f"{k}: " + (", ".join(f"{clinical_name(kk)} {vv}" for kk, vv in v.items())
+                              or "none"))
         elif isinstance(v, dict):
             print(f"{k}: " + (", ".join(f"{kk} {vv}" for kk, vv in v.items()) or "none"))
         else:

@@ -74,7 +74,7 @@ def _loop() -> None:
 def _parts():
     from bonesim.physics import clicks
     from bonesim.physics import dust
-    from bonesim.io import label_slices, loading
+    from bonesim.io import label_slices, loading, neighbours
     from bonesim.runtime import simulate
     from bonesim.physics import sound
     from bonesim.engine import surface
@@ -90,6 +90,7 @@ def _parts():
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
             ("nerve monitor", _monitor), ("recording", _visibility),
             ("tutoring", tutor.warmup), ("label stacks", label_slices.warmup),
+            ("colour neighbours", neighbours.warmup),
             ("haptic loop", _loop)]
 
 

@@ -8,18 +8,24 @@ facial nerve, ``"ICA"`` as the carotid artery, ``"sinus tympani"`` as middle
 ear (not the sigmoid sinus). A case uses the class for
 
 * the **kind** of a structure a 3D Slicer segmentation brings without one,
-* whether the **nerve monitor** watches it by default (nerves: facial,
-  chorda tympani, vestibular, cochlear, any name saying "nerve"),
+* whether the **nerve monitor** watches it by default (a mastoidectomy's:
+  the facial nerve and the chorda tympani) or could (the other nerves:
+  vestibular, cochlear, any name saying "nerve"),
+* its **clinical name** on screen (:func:`clinical_name`: ``facial_nerve``
+  reads ``Facial nerve``, ``CN7`` reads ``Facial nerve``), while files keep
+  the manifest's name,
 * its **default display colour** (a conventional anatomical palette: nerves
   yellow, sinus and veins blue, arteries red, dura and tegmen pink-grey,
   labyrinth purple, ossicles teal, bone ivory), and
 * the **landmarks** the automatic surgical view reads
   (:mod:`bonesim.io.surgical_view`).
 
-Colours of neighbouring structures are then kept apart in the loaded volume
-(:func:`neighbours`, :func:`resolve_colors`): two structures within
-``neighbour_mm`` of each other must differ by ``min_delta_e`` (CIEDE2000);
-only colours the manifest did not set are changed.
+Colours of neighbouring structures are then kept apart (:func:`neighbours`,
+:func:`resolve_colors`): two structures within ``neighbour_mm`` of each other
+must differ by ``min_delta_e`` (CIEDE2000); only colours the manifest did not
+set are changed. Neighbours are measured on the source's labels pooled onto a
+fixed ``analysis_mm`` lattice of the case frame, never on the engine's grid,
+so a structure keeps its colour whatever ``voxel_mm`` the case is loaded at.
 """
 from __future__ import annotations
 
@@ -37,9 +43,9 @@ from bonesim.errors import BonesimError
 from bonesim.tomlfile import check_keys, get_number, get_str, read_toml
 
 __all__ = ["ROLES", "COLOR_SOURCES", "AnatomyClass", "AnatomyTable", "default_table_path",
-           "load_table", "normalize_name", "classify", "default_kind",
-           "default_monitor", "default_color", "neighbours", "delta_e",
-           "resolve_colors"]
+           "load_table", "normalize_name", "classify", "clinical_name", "default_kind",
+           "default_monitor", "monitor_available", "default_color", "neighbours",
+           "case_neighbours", "delta_e", "resolve_colors"]
 
 #: Landmark roles a class may play for the surgical view.
 ROLES = ("bone", "ear_canal", "middle_ear", "ossicles", "labyrinth", "sinus", "tegmen",
@@ -51,7 +57,7 @@ ROLES = ("bone", "ear_canal", "middle_ear", "ossicles", "labyrinth", "sinus", "t
 COLOR_SOURCES = ("manifest", "label", "segment", "palette")
 
 _KINDS = ("bone", "critical", "soft")
-_CLASS_KEYS = ("kind", "monitor", "colors", "names", "role")
+_CLASS_KEYS = ("title", "kind", "nerve", "monitor", "colors", "names", "role")
 _TOP_KEYS = ("colors", "kinds", "aliases", "classes", "view")
 _ROMAN = {"i": "1", "ii": "2", "iii": "3", "iv": "4", "v": "5", "vi": "6", "vii": "7",
           "viii": "8", "ix": "9", "x": "10", "xi": "11", "xii": "12"}
@@ -77,6 +83,11 @@ class AnatomyClass:
         Normalised phrases (word tuples) that identify the class.
     role : str
         Landmark role for the surgical view (one of :data:`ROLES`) or ``""``.
+    title : str
+        Clinical name (``"Facial nerve"``).
+    nerve : bool
+        A nerve: the nerve monitor can watch it (on by default only where
+        ``monitor``).
     """
 
     id: str
@@ -85,6 +96,8 @@ class AnatomyClass:
     colors: tuple
     names: tuple
     role: str = ""
+    title: str = ""
+    nerve: bool = False
 
 
 @dataclass(frozen=True)
@@ -111,6 +124,8 @@ class AnatomyTable:
         Surgical-view parameters (see :mod:`bonesim.io.surgical_view`).
     path : Path
         The file read.
+    analysis_mm : float
+        Cell edge of the fixed lattice neighbours are measured on [mm].
     """
 
     classes: dict
@@ -122,6 +137,7 @@ class AnatomyTable:
     warn_delta_e: float
     view: dict
     path: Path
+    analysis_mm: float = 0.5
 
 
 def default_table_path() -> Path:
@@ -164,10 +180,12 @@ def _load_table(path: str) -> AnatomyTable:
     doc = read_toml(p)
     check_keys(doc, _TOP_KEYS, p, "top level", required=_TOP_KEYS)
     ctab = doc["colors"]
-    ckeys = ("neighbour_mm", "min_delta_e", "warn_delta_e", "fallback")
+    ckeys = ("neighbour_mm", "analysis_mm", "min_delta_e", "warn_delta_e", "fallback")
     check_keys(ctab, ckeys, p, "colors", required=ckeys)
     neighbour = float(get_number(ctab, "neighbour_mm", p, "colors", minimum=0.0,
                                  maximum=50.0))
+    analysis = float(get_number(ctab, "analysis_mm", p, "colors", minimum=0.05,
+                                maximum=10.0))
     min_de = float(get_number(ctab, "min_delta_e", p, "colors", minimum=0.0,
                               maximum=100.0))
     warn_de = float(get_number(ctab, "warn_delta_e", p, "colors", minimum=0.0,
@@ -186,10 +204,13 @@ def _load_table(path: str) -> AnatomyTable:
         where = f"classes.{cid}"
         check_keys(tab, _CLASS_KEYS, p, where, required=("kind", "colors", "names"))
         kind = get_str(tab, "kind", p, where, choices=_KINDS)
-        monitor = tab.get("monitor", False)
-        if not isinstance(monitor, bool):
-            raise BonesimError(f"'monitor' must be true or false, got {monitor!r}",
-                               p, where)
+        flags = {}
+        for key in ("monitor", "nerve"):
+            flags[key] = tab.get(key, False)
+            if not isinstance(flags[key], bool):
+                raise BonesimError(f"'{key}' must be true or false, got {flags[key]!r}",
+                                   p, where)
+        title = get_str(tab, "title", p, where, default="") or _tidy(cid)
         role = get_str(tab, "role", p, where, default="")
         if role and role not in ROLES:
             raise BonesimError(f"'role' must be one of {list(ROLES)}, got {role!r}",
@@ -199,15 +220,16 @@ def _load_table(path: str) -> AnatomyTable:
                 isinstance(n, str) and n.strip() for n in names):
             raise BonesimError("'names' must be a list of non-empty strings", p, where)
         phrases = tuple(_words(n, aliases) for n in names)
-        classes[cid] = AnatomyClass(cid, kind, monitor, _colors(tab["colors"], p, where),
-                                    phrases, role)
+        classes[cid] = AnatomyClass(cid, kind, flags["monitor"],
+                                    _colors(tab["colors"], p, where), phrases, role, title,
+                                    flags["nerve"] or flags["monitor"])
     view = {}
     for k, v in doc["view"].items():
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise BonesimError(f"'{k}' must be a finite number, got {v!r}", p, "view")
         view[k] = float(v)
     return AnatomyTable(classes, aliases, kind_colors, fallback, neighbour, min_de,
-                        warn_de, view, p)
+                        warn_de, view, p, analysis)
 
 
 def load_table(path: str | Path | None = None) -> AnatomyTable:
@@ -255,6 +277,74 @@ def classify(name: str, table: AnatomyTable | None = None) -> AnatomyClass | Non
     return best
 
 
+_TITLE_WORD = re.compile(r"[A-Za-z][a-z]+$|[a-z]$")
+
+
+def _tidy(text: str) -> str:
+    """A name written out for the screen: underscores and camelCase become
+    spaces, sentence case; words in capitals (``IAC``) and words mixing
+    letters otherwise (``McEwen``) are kept."""
+    text = re.sub(r"(?<=[a-z])(?=[A-Z][a-z])", " ", str(text))
+    words = re.sub(r"[_\s]+", " ", text).strip().split(" ")
+    out = [w.lower() if _TITLE_WORD.match(w) else w for w in words]
+    if out and out[0]:
+        out[0] = out[0][0].upper() + out[0][1:]
+    return " ".join(out)
+
+
+def _abbreviated(text: str, table: AnatomyTable) -> bool:
+    """Every word of ``text`` an [aliases] abbreviation of at most four letters,
+    a number or a Roman numeral, and at least one an abbreviation."""
+    raw = _words(text, {})
+    short = [w in table.aliases and len(w) <= 4 and table.aliases[w] != (w,) for w in raw]
+    return any(short) and all(s or w.isdigit() or w in _ROMAN for s, w in zip(short, raw))
+
+
+@functools.lru_cache(maxsize=1024)
+def _clinical(name: str, path: str) -> str:
+    table = _load_table(path)
+    if _abbreviated(name, table):
+        cls = classify(name, table)
+        if cls is not None:
+            words = _words(name, table.aliases)
+            if any(w.isdigit() for w in words) and words in cls.names:
+                return cls.title
+            return _tidy(" ".join(words))
+    return _tidy(name)
+
+
+def clinical_name(name: str, table: AnatomyTable | None = None) -> str:
+    """The name a structure shows on screen (window, HUD, monitor trace,
+    legends, pictures, the commands' text); files keep ``name`` itself.
+
+    A name written out is tidied (underscores and camelCase to spaces,
+    sentence case, capitals kept: ``facial_nerve`` -> ``Facial nerve``,
+    ``IAC_contents`` -> ``IAC contents``). An abbreviation the table reads
+    (every word an ``[aliases]`` abbreviation of at most four letters, a
+    number or a Roman numeral) is written out: its expansion (``SS`` ->
+    ``Sigmoid sinus``, ``ICA`` -> ``Internal carotid artery``), or, when
+    the expansion holds a number and is one of its class's names, the
+    class's ``title`` (``CN7``, ``n. VII`` -> ``Facial nerve``). Applying it
+    to its own result changes nothing.
+
+    Parameters
+    ----------
+    name : str
+        The structure's name (as in the manifest).
+    table : AnatomyTable, optional
+        Default: the shipped table.
+
+    Examples
+    --------
+    >>> clinical_name("sigmoid_sinus")
+    'Sigmoid sinus'
+    >>> clinical_name("FN"), clinical_name("CN7")
+    ('Facial nerve', 'Facial nerve')
+    """
+    path = str(default_table_path()) if table is None else str(table.path)
+    return _clinical(str(name), path)
+
+
 def default_kind(name: str, table: AnatomyTable | None = None) -> str:
     """Kind of a structure known only by name: its class's kind, else
     ``"critical"`` (an unknown structure is kept safe)."""
@@ -264,9 +354,19 @@ def default_kind(name: str, table: AnatomyTable | None = None) -> str:
 
 def default_monitor(name: str, kind: str, table: AnatomyTable | None = None) -> bool:
     """Whether the nerve monitor watches a structure unless told otherwise:
-    its name reads as a nerve and its kind is not bone."""
+    its name reads as a class the monitor watches by default (a
+    mastoidectomy's: the facial nerve, the chorda tympani) and its kind is not
+    bone."""
     cls = classify(name, table)
     return kind != "bone" and cls is not None and cls.monitor
+
+
+def monitor_available(name: str, kind: str, table: AnatomyTable | None = None) -> bool:
+    """Whether a structure is a nerve the monitor could watch (its name reads
+    as a nerve class and its kind is not bone), watched by default or not.
+    ``bonesim case-info`` lists those left off as available."""
+    cls = classify(name, table)
+    return kind != "bone" and cls is not None and cls.nerve
 
 
 def default_color(name: str, kind: str, table: AnatomyTable | None = None
@@ -279,9 +379,14 @@ def default_color(name: str, kind: str, table: AnatomyTable | None = None
 
 
 # --------------------------------------------------------------- neighbours
-def neighbours(labels: np.ndarray, n_structures: int, spacing_mm: float,
-               within_mm: float) -> np.ndarray:
+def neighbours(labels: np.ndarray, n_structures: int, spacing_mm, within_mm: float,
+               origin_mm=(0.0, 0.0, 0.0), cell_mm: float | None = None) -> np.ndarray:
     """Which structures touch or lie within ``within_mm`` of each other.
+
+    Measured on the labels pooled onto a fixed lattice of ``cell_mm`` cells
+    of the case frame, a structure counting in every cell it reaches
+    (:func:`bonesim.io.neighbours.neighbours`, which says the rule): the same
+    anatomy gives the same neighbours whatever grid it comes on.
 
     Parameters
     ----------
@@ -289,12 +394,18 @@ def neighbours(labels: np.ndarray, n_structures: int, spacing_mm: float,
         Structure index per voxel (0 empty), axes x, y, z.
     n_structures : int
         Number of structures (indices 1 .. n).
-    spacing_mm : float
-        Isotropic voxel edge [mm].
+    spacing_mm : float or (3,) float
+        Voxel edge along x, y, z [mm].
     within_mm : float
-        Largest gap between neighbours [mm]: two structures are neighbours
-        when a voxel centre of one lies within ``spacing_mm + within_mm`` of
-        a voxel centre of the other (voxels sharing a face have a gap of 0).
+        Largest gap between neighbours [mm]: with ``cell_mm`` the voxel edge
+        (the default) and the voxel centres on the lattice, two structures are
+        neighbours when a voxel centre of one lies within ``spacing_mm +
+        within_mm`` of a voxel centre of the other (voxels sharing a face
+        have a gap of 0).
+    origin_mm : (3,) float
+        Case-frame centre of voxel ``(0, 0, 0)`` [mm].
+    cell_mm : float, optional
+        Lattice cell edge [mm] (cases use ``analysis_mm`` of the table).
 
     Returns
     -------
@@ -302,36 +413,22 @@ def neighbours(labels: np.ndarray, n_structures: int, spacing_mm: float,
         Symmetric, ``[s - 1, t - 1]`` for structures ``s`` and ``t``; the
         diagonal is False.
     """
-    from scipy import ndimage
+    from bonesim.io import neighbours as _nb
 
-    labels = np.asarray(labels)
-    if labels.ndim != 3:
-        raise ValueError(f"labels must be 3-D, got shape {labels.shape}")
-    if not spacing_mm > 0 or not within_mm >= 0:
-        raise ValueError("spacing_mm must be positive and within_mm non-negative")
-    n = int(n_structures)
-    out = np.zeros((n, n), dtype=bool)
-    counts = np.bincount(labels.ravel(), minlength=n + 1)[1:n + 1]
-    if n == 0:
-        return out
-    reach = spacing_mm + within_mm                          # centre to centre
-    pad = int(math.ceil(reach / spacing_mm))
-    boxes = ndimage.find_objects(labels, max_label=n)
-    largest = int(np.argmax(counts))                      # found by symmetry
-    shape = np.array(labels.shape)
-    for s in range(n):
-        box = boxes[s]
-        if box is None or s == largest:
-            continue
-        lo = np.maximum([b.start - pad for b in box], 0)
-        hi = np.minimum([b.stop + pad for b in box], shape)
-        crop = labels[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        dist = ndimage.distance_transform_edt(crop != s + 1, sampling=spacing_mm)
-        near = np.unique(crop[dist <= reach + 1e-9])
-        near = near[(near > 0) & (near != s + 1)].astype(int) - 1
-        out[s, near] = True
-        out[near, s] = True
-    return out
+    return _nb.neighbours(labels, n_structures, spacing_mm, within_mm, origin_mm, cell_mm)
+
+
+def case_neighbours(native, n_structures: int, table: AnatomyTable | None = None
+                    ) -> np.ndarray:
+    """Neighbours of a case's structures for its display colours: measured on
+    its source-resolution labels (``native``, a
+    :class:`bonesim.io.volumes.NativeLabels`) on the table's fixed
+    ``analysis_mm`` lattice within ``neighbour_mm``, so the same source gives
+    the same neighbours at every ``voxel_mm``.
+    """
+    table = load_table() if table is None else table
+    return neighbours(native.labels, n_structures, native.spacing_mm, table.neighbour_mm,
+                      native.origin_mm, table.analysis_mm)
 
 
 # ------------------------------------------------------------------ colours

@@ -37,7 +37,8 @@ Manifest
     segment = "Bone"                  # seg-nrrd: segment name or ID (default: name)
     anatomy = "bone"                  # optional: class of bonesim/data/anatomy.toml
     display_color = [230, 220, 200]   # rendering colour (default: from the data)
-    monitor = false                   # nerve monitor (default: true for nerves)
+    monitor = false                   # nerve monitor (default: true for the facial
+                                      # nerve and the chorda tympani)
 
     [camera]                          # optional; case frame (LPS), mm
     eye_mm = [120, 0, 0]
@@ -68,7 +69,8 @@ Defaults read from the anatomy (:mod:`bonesim.io.anatomy`, ``docs/cases.md``):
 ``display_color`` is the label stack's colour, the segment's colour, or a
 conventional palette colour for the structure's name and kind, changed where
 it would look like a neighbour's (:meth:`Case.resolved`); ``monitor`` is on
-for structures whose name says nerve; without ``[camera]`` the camera is the
+for the facial nerve and the chorda tympani (other nerves are listed by
+``case-info`` as available, off); without ``[camera]`` the camera is the
 surgeon's lateral view of the mastoid (:mod:`bonesim.io.surgical_view`).
 
 Every problem is raised as a :class:`~bonesim.errors.BonesimError` naming the
@@ -165,8 +167,7 @@ def _color_warnings(case: Case, vol: CaseVolume) -> list[str]:
     fixed = [i for i, s in enumerate(case.structures) if s.color_source == "manifest"]
     if len(fixed) < 2:
         return []
-    adj = _anatomy.neighbours(vol.labels, len(case.structures), vol.spacing_mm,
-                              table.neighbour_mm)
+    adj = case.neighbours(vol)
     out = []
     for a in fixed:
         for b in fixed:
@@ -198,7 +199,10 @@ def case_info(case: Case, progress=None) -> dict:
         None, ``source``), ``grid`` (nx, ny, nz), ``voxel_mm, origin_mm,
         extent_mm, counts`` (voxels per structure name), ``kinds`` (kind per
         structure name), ``colors`` (per name: ``rgb``, ``source``),
-        ``monitored`` (names the nerve monitor watches), ``camera``
+        ``display_names`` (per name: the clinical name shown on screen,
+        :func:`bonesim.io.anatomy.clinical_name`), ``monitored`` (names the
+        nerve monitor watches), ``monitor_available`` (nerves it could watch
+        but leaves off by default; ``monitor = true`` turns one on), ``camera``
         (``eye_mm, focal_mm, up, source`` and, when derived, ``notes``),
         ``landmarks`` (:meth:`bonesim.io.landmarks.Landmarks.as_dict`: each
         landmark's point, source and confidence, what is missing, how merged
@@ -242,7 +246,10 @@ def case_info(case: Case, progress=None) -> dict:
         "kinds": {s.name: s.kind for s in case.structures},
         "colors": {s.name: {"rgb": list(s.display_color), "source": s.color_source}
                    for s in rc.structures},
+        "display_names": {s.name: s.display_name for s in case.structures},
         "monitored": [s.name for s in case.structures if s.monitor],
+        "monitor_available": [s.name for s in case.structures
+                              if s.monitor_available and not s.monitor],
         "camera": camera,
         "landmarks": lm.as_dict(),
         "warnings": warnings,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -138,6 +139,21 @@ class Structure:
         """Landmark role of the anatomical class (``""`` for none)."""
         cls = _anatomy.load_table().classes.get(self.anatomy)
         return cls.role if cls is not None else ""
+
+    @property
+    def display_name(self) -> str:
+        """The name shown on screen (window, HUD, monitor trace, legends,
+        pictures, the commands' text): :func:`bonesim.io.anatomy.clinical_name`
+        of :attr:`name` (``facial_nerve`` -> ``Facial nerve``). Files keep
+        :attr:`name`."""
+        return _anatomy.clinical_name(self.name)
+
+    @property
+    def monitor_available(self) -> bool:
+        """A nerve the monitor could watch (:attr:`monitor` says whether it
+        does): its anatomical class is a nerve and its kind is not bone."""
+        cls = _anatomy.load_table().classes.get(self.anatomy)
+        return self.kind != "bone" and cls is not None and cls.nerve
 
 
 @dataclass(frozen=True)
@@ -487,20 +503,42 @@ class Case:
             self._derive(vol)
         return vol
 
+    def neighbours(self, vol: CaseVolume) -> np.ndarray:
+        """Which structures are neighbours for the display colours: within the
+        anatomy table's ``neighbour_mm``, measured on ``vol``'s source labels
+        (:attr:`~bonesim.io.volumes.CaseVolume.native_labels`) on the table's
+        fixed ``analysis_mm`` lattice (:func:`bonesim.io.anatomy.case_neighbours`),
+        so the same source gives the same neighbours at every ``voxel_mm``.
+        Computed once per volume.
+
+        Returns
+        -------
+        (n, n) bool
+        """
+        native = vol.native_labels
+        got = self._derived.get("neighbours")
+        if got is not None and got[0]() is native.labels:
+            return got[1]
+        adj = _anatomy.case_neighbours(native, len(self.structures))
+        # a weak reference: the case must not keep a big label map alive
+        self._derived["neighbours"] = (weakref.ref(native.labels), adj)
+        return adj
+
     def resolved(self, vol: CaseVolume) -> "Case":
         """This case with display colours settled for ``vol``.
 
-        Neighbouring structures (within the anatomy table's ``neighbour_mm``
-        in ``vol``) whose colours would look alike get other colours; only
-        colours the manifest did not set change (see
-        :func:`bonesim.io.anatomy.resolve_colors`). The surgical view is derived
-        from ``vol`` too. ``vol`` must be this case's volume.
+        Neighbouring structures (:meth:`neighbours`: within the anatomy
+        table's ``neighbour_mm``, measured at a fixed resolution of the
+        source, so the colours do not change with ``voxel_mm``) whose colours
+        would look alike get other colours; only colours the manifest did not
+        set change (see :func:`bonesim.io.anatomy.resolve_colors`). The
+        surgical view is derived from ``vol`` too. ``vol`` must be this case's
+        volume.
         """
         table = _anatomy.load_table()
         structs = list(self.structures)
         if any(s.color_source != "manifest" for s in structs):
-            adj = _anatomy.neighbours(vol.labels, len(structs), vol.spacing_mm,
-                                      table.neighbour_mm)
+            adj = self.neighbours(vol)
             cands = [_color_candidates(s, table) for s in structs]
             colors = _anatomy.resolve_colors([s.display_color for s in structs],
                                              [s.color_source for s in structs], cands,

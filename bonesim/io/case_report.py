@@ -2,7 +2,7 @@
 commands."""
 from __future__ import annotations
 
-__all__ = ["LoadProgress", "print_case_info"]
+__all__ = ["LoadProgress", "monitor_line", "print_case_info"]
 
 
 def table(rows: list[dict], cols: list[str]) -> None:
@@ -50,6 +50,16 @@ def _rgb_text(rgb) -> str:
     return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
+def monitor_line(monitored, available=(), shown=None) -> str:
+    """``monitor: Facial nerve, Chorda tympani (also available, off:
+    Vestibular nerve)``: the nerves the monitor watches and those it could,
+    by their clinical names (``shown``: code name -> clinical name)."""
+    shown = shown or {}
+    on = ", ".join(shown.get(n, n) for n in monitored) or "none"
+    rest = ", ".join(shown.get(n, n) for n in available)
+    return f"monitor: {on}" + (f" (also available, off: {rest})" if rest else "")
+
+
 def print_case_info(info: dict) -> None:
     """Print :func:`bonesim.io.case.case_info`'s summary as text (stdout)."""
     f = info["frame"]
@@ -84,13 +94,16 @@ def print_case_info(info: dict) -> None:
             print(f"  missing: {m}")
         for n in lm["notes"]:
             print(f"  {n}")
-    rows = [{"structure": n, "kind": info["kinds"][n], "voxels": info["counts"][n],
+    shown = info.get("display_names", {})
+    off = info.get("monitor_available", [])
+    rows = [{"structure": n, "shown as": shown.get(n, n), "kind": info["kinds"][n],
+             "voxels": info["counts"][n],
              "colour": f"{_rgb_text(info['colors'][n]['rgb'])} "
                        f"({info['colors'][n]['source']})",
-             "monitor": "yes" if n in info["monitored"] else ""}
+             "monitor": "yes" if n in info["monitored"] else "off" if n in off else ""}
             for n in info["counts"]]
     print(f"structures ({info['total']} voxels in all):")
-    table(rows, ["structure", "kind", "voxels", "colour", "monitor"])
-    print("monitored by the nerve monitor: " + (", ".join(info["monitored"]) or "none"))
+    table(rows, ["structure", "shown as", "kind", "voxels", "colour", "monitor"])
+    print(monitor_line(info["monitored"], off, shown))
     for w in info["warnings"]:
         print(f"warning: {w}")

@@ -45,6 +45,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.net import packets as net
 from bonesim.errors import BonesimError
+from bonesim.io.anatomy import clinical_name
 
 __all__ = ["DEFAULT_PORT", "STREAM_HZ", "MonitorServer", "MonitorConsole",
            "pack_data", "unpack_data"]
@@ -163,7 +164,8 @@ class MonitorServer:
     Parameters
     ----------
     names : list of str
-        Monitored nerves.
+        Monitored nerves (structure names; the consoles show their clinical
+        names, sent beside them as ``titles``).
     colors : (k, 3) uint8
         Their display colours.
     params : ActivityParams
@@ -207,6 +209,7 @@ class MonitorServer:
         self.port = int(sock.getsockname()[1]) if hasattr(sock, "getsockname") else int(port)
         self.stream_hz = float(stream_hz)
         info = {"service": "nerve-monitor", "names": self.names,
+                "titles": [clinical_name(n) for n in self.names],
                 "colors": colors.tolist(),
                 "params": asdict(params), "stream_hz": self.stream_hz,
                 "update_hz": update_hz}
@@ -375,6 +378,15 @@ class MonitorConsole:
         return list(self.info.get("names", []))
 
     @property
+    def titles(self) -> list:
+        """The nerves' clinical names, for the screen (the server's, else
+        made here from :attr:`names`)."""
+        got = self.info.get("titles")
+        if isinstance(got, list) and len(got) == self.n:
+            return [str(x) for x in got]
+        return [clinical_name(n) for n in self.names]
+
+    @property
     def n(self) -> int:
         return len(self.names)
 
@@ -480,13 +492,15 @@ class MonitorConsole:
         warn = float(p.get("warn_mm", 1.0))
         top = float(p.get("max_hz", 400.0))
         out = []
-        for c, name in enumerate(self.names):
+        titles = self.titles
+        wide = max([16] + [len(x) for x in titles])
+        for c, name in enumerate(titles):
             d, r = float(self.distance_mm[c]), float(self.rates_hz[c])
             dtxt = f"{d:6.2f} mm" if d < 99.5 else "  far    "
             fill = int(round(width * math.sqrt(max(r, 0.0) / top))) if top > 0 else 0
             bar = "#" * min(fill, width) + "." * (width - min(fill, width))
             alarm = "  WARNING" if d < warn else ""
-            out.append(f"{name:16s} d {dtxt}  {r:6.1f}/s |{bar}|{alarm}")
+            out.append(f"{name:{wide}s} d {dtxt}  {r:6.1f}/s |{bar}|{alarm}")
         lat = np.asarray(self._latency[-1000:]) * 1e3
         lat_txt = f"latency p50 {np.percentile(lat, 50):.2f} ms" if len(lat) else "latency -"
         link = "link ok" if self.link_ok else "LINK LOST"
@@ -553,7 +567,7 @@ def cmd_monitor(args) -> int:
     try:
         con.connect(args.timeout)
         print(f"bonesim: nerve monitor of {args.host}:{args.port}: "
-              f"{', '.join(con.names)}", file=sys.stderr)
+              f"{', '.join(con.titles)}", file=sys.stderr)
         if not args.no_sound or args.wav:
             synth, out, recorder = _console_clicks(con, args.wav)
         end = math.inf if args.duration is None else con.clock() + args.duration

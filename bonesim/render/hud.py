@@ -24,7 +24,9 @@ keys (all optional; units in the names):
 ``haptic_hz``        haptic loop rate [Hz]
 ``frame_hz``         frame rate [Hz] (default: measured by the scene)
 ``elapsed_s``        run time [s]
-``injuries``         count, list of structure names, or text
+``injuries``         count, list of structure names (shown by their
+                     clinical names, :func:`bonesim.io.anatomy.clinical_name`),
+                     or text
 ``visible``          ``(visible, judged)``: removals the eye could see since the
                      case reset, of those judged (the recorder's voxel
                      visibility, :mod:`bonesim.physics.visibility`); shown as a
@@ -42,11 +44,15 @@ keys (all optional; units in the names):
                      wrapped (continuations indented by two spaces)
 ===================  ====================================================
 
-Any other key is shown as ``key: value``.
+Any other key is shown as ``key: value``. Structures are named by their
+clinical names (``facial_nerve`` shows as ``Facial nerve``), whichever name
+the app passes.
 """
 from __future__ import annotations
 
 import textwrap
+
+from bonesim.io.anatomy import clinical_name
 
 __all__ = ["DEVICE_STATE_TEXT", "KNOWN", "LABEL_W", "WRAP_CHARS", "WRAP_INDENT", "format_hud", "format_help"]
 
@@ -86,7 +92,7 @@ def _injuries(v) -> str:
     if isinstance(v, (list, tuple)):
         if not v:
             return "none"
-        names = [str(x) for x in v]
+        names = [clinical_name(str(x)) for x in v]
         text = ", ".join(names[:3]) + (f" +{len(names) - 3}" if len(names) > 3 else "")
         return f"{len(names)} ({text})"
     if isinstance(v, (int, float)) and not isinstance(v, bool):
@@ -122,7 +128,7 @@ def _depth(v) -> str:
 
 
 def _force_limit(v: dict) -> list:
-    name = str(v.get("structure", "")).replace("_", " ")
+    name = clinical_name(str(v.get("structure", "")))
     w = v.get("warning")
     if w is None:
         n = int(v.get("count", 0))
@@ -133,6 +139,8 @@ def _force_limit(v: dict) -> list:
     else:
         text = f"{w.value:,.0f} > {w.limit:,.0f} rpm"
     return [_line("LIMIT!", text), f"{WRAP_INDENT}{w.distance_mm:.1f} mm from {name}"]
+
+
 def _device(v) -> str:
     if isinstance(v, str):
         return v

@@ -16,7 +16,8 @@ In each lane
 * every spike as a short vertical tick in a strip along the lane's bottom
   (at most one tick per pixel column);
 * a faint dashed line at the resting rate ``baseline_hz``;
-* a label in the nerve's colour: name, burr-to-nerve distance
+* a label in the nerve's colour: its clinical name (``Facial nerve``,
+  :func:`bonesim.io.anatomy.clinical_name`), burr-to-nerve distance
   (``d 2.3 mm``; ``d > 10 mm`` at 10 mm or farther, infinite included) and
   rate (``45/s``) of the newest sample (:func:`format_label`). Closer than
   ``warn_mm`` the lane turns red and the label starts with ``WARNING``.
@@ -59,6 +60,7 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor2D, vtkPolyDataMapper2D, vtkTextActor
 
+from bonesim.io.anatomy import clinical_name
 from bonesim.runtime.monitor import HISTORY_S
 
 __all__ = ["MonitorTrace", "format_label", "PANEL_RGBA", "LANE_RGBA", "WARN_RGBA",
@@ -196,7 +198,8 @@ class MonitorTrace:
         Its renderer receives the overlay; its window size sets the layout;
         its ``hud_actor`` (if any) is kept clear of.
     names : sequence of str
-        The monitored nerves, one lane each (top to bottom).
+        The monitored nerves, one lane each (top to bottom); their labels
+        show the clinical names (:attr:`titles`).
     colors : (k, 3) array_like
         Their display colours, RGB 0-255.
     window_s : float
@@ -217,6 +220,8 @@ class MonitorTrace:
         :data:`TICK`, :data:`BASELINE`) and ``lane``.
     labels : list of vtkTextActor
         One per lane.
+    titles : list of str
+        The nerves' clinical names, as the labels show them.
     now : float
         Loop time at the right edge in the last drawing [s].
     warning : (k,) bool
@@ -248,6 +253,7 @@ class MonitorTrace:
             raise ValueError(f"warn_mm must be a number, got {warn_mm!r}")
         self.scene = scene
         self.names = names
+        self.titles = [clinical_name(n) for n in names]
         self.colors = np.rint(col).astype(np.uint8)
         self.window_s = float(window_s)
         self.max_hz = float(max_hz)
@@ -572,7 +578,7 @@ class MonitorTrace:
             lx0, _, lx1, ly1 = lay.lanes[c]
             warn = bool(self.warning[c])
             sep, fs = self._label_style(c, lx1 - lx0 - 6, min(lay.font, lay.label_h), warn)
-            text = format_label(self.names[c], dist[-1, c] if m else None,
+            text = format_label(self.titles[c], dist[-1, c] if m else None,
                                 rate[-1, c] if m else None, self.warn_mm, sep)
             if ta.GetInput() != text:
                 ta.SetInput(text)
@@ -593,7 +599,7 @@ class MonitorTrace:
             d = 0.0 if warn else FAR_MM
             w = math.inf if warn else -math.inf
             for sep in ("  ", " "):
-                n = len(format_label(self.names[c], d, self.max_hz, w, sep))
+                n = len(format_label(self.titles[c], d, self.max_hz, w, sep))
                 if n * _GLYPH_EM * font <= room:
                     break
             got = (sep, max(6, min(font, int(room / (_GLYPH_EM * n)))))

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from bonesim.io.anatomy import clinical_name
 from bonesim.render.hud import format_help
 
 __all__ = ["VISIBLE_RGB", "HIDDEN_RGB", "VISIBLE_OPACITY", "CUBE_FILL", "VIEWER_KEYS",
@@ -58,7 +59,8 @@ def visibility_scene(model, centre_mm, visible, chosen, title: str, lines, *,
     visible : (n,) int
         1 visible at removal, anything else hidden.
     chosen : sequence of str
-        Structures to draw.
+        Structures to draw (by name; the colour key shows their clinical
+        names).
     title : str
     lines : sequence of str
         Legend lines under the title (fractions); the colour key and the
@@ -111,7 +113,7 @@ def visibility_scene(model, centre_mm, visible, chosen, title: str, lines, *,
             [(ln, (0.92, 0.92, 0.88), fs) for ln in lines] + \
             [("green: visible when removed", np.array(VISIBLE_RGB) / 255, fs),
              ("red: hidden when removed (undercut)", np.array(HIDDEN_RGB) / 255, fs)] + \
-            [(st.name, np.array(st.display_color[:3]) / 255, fs)
+            [(clinical_name(st.name), np.array(st.display_color[:3]) / 255, fs)
              for st in model.structures if st.name in chosen]
         for text, rgb, s in texts:
             a = vtkTextActor()

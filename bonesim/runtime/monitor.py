@@ -54,6 +54,7 @@ from bonesim.engine import events
 from bonesim.engine.bodies import Bodies, is_identity, majority_bodies, to_body_frame
 from bonesim.physics.clearance import Clearance
 from bonesim.errors import BonesimError
+from bonesim.io.anatomy import clinical_name
 from bonesim.physics.monitor_rings import (HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history,
                                            shared_rings)
 from bonesim.runtime.child import ChildProcess
@@ -167,6 +168,9 @@ class NerveMonitor:
     Attributes
     ----------
     names : list of str
+        The nerves' structure names (as the case spells them: files, JSON).
+    titles : list of str
+        Their clinical names, for the screen (``Facial nerve``).
     labels : list of int
         Grid label of each nerve.
     colors : (k, 3) uint8
@@ -202,6 +206,7 @@ class NerveMonitor:
         if len(chosen) > MAX_NERVES:
             raise ValueError(f"at most {MAX_NERVES} monitored structures, got {len(chosen)}")
         self.names = [st.name for _, st in chosen]
+        self.titles = [clinical_name(n) for n in self.names]
         self.labels = [lab for lab, _ in chosen]
         self.colors = np.array([st.display_color for _, st in chosen],
                                dtype=np.uint8).reshape(-1, 3)
@@ -572,6 +577,9 @@ class MonitorProcess(ChildProcess):
     view : MonitorView
         The shared block, readable in this process.
     names : list of str
+        The nerves' structure names.
+    titles : list of str
+        Their clinical names, for the screen.
     status : ndarray
         The shared status record (:data:`STATUS`).
     """
@@ -594,6 +602,7 @@ class MonitorProcess(ChildProcess):
         self.serve = serve
         chosen = monitored_structures(loop.model)
         self.names = [st.name for _, st in chosen]
+        self.titles = [clinical_name(n) for n in self.names]
         colors = [st.display_color for _, st in chosen]
         if not self.names:
             raise ValueError(f"case {loop.model.name!r} monitors no structure "

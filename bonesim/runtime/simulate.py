@@ -20,8 +20,10 @@ from bonesim.engine import events
 from bonesim.engine.haptics import O_N_IMMERSED
 from bonesim.engine.model import Model, Sample, make_state, step
 from bonesim.engine.replica import TissueReplica
+from bonesim.io.anatomy import clinical_name
 
-__all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "warmup", "run_trajectory", "closest_approach"]
+__all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "warmup", "run_trajectory", "closest_approach",
+           "approach_text"]
 
 #: Frame rate at which the surface consumer drains the rings [Hz].
 FRAME_HZ = 60.0
@@ -146,8 +148,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     radii = np.array([b.radius_mm for b in model.burrs])[samples.burr[drilling]]
     gap, label, at = closest_approach(model, pos[drilling], radii)
     if at >= 0:
+        name = model.structure_name(label)
         summary["closest_approach"] = {
-            "clearance_mm": round(gap, 3), "structure": model.structure_name(label),
+            "clearance_mm": round(gap, 3), "structure": name,
+            "display_name": clinical_name(name),
             "t_s": round(float(samples.t_s[drilling[at]]), 3),
             "native_spacing_mm": [round(float(v), 4) for v in model.clearance.spacing_mm]}
     if rec is not None:
@@ -260,6 +264,20 @@ def closest_approach(model: Model, pos_mm, radius_mm=None) -> tuple[float, int, 
         np.asarray(r, dtype=np.float64), (len(p),))[:, None]
     q, k = np.unravel_index(int(np.argmin(d)), d.shape)
     return float(d[q, k]), int(labels[k]), int(q)
+
+
+def approach_text(clearance_mm: float, structure: str) -> str:
+    """A distance line that names its structure by its clinical name:
+    ``1.00 mm to the Facial nerve`` (``structure``: the code name).
+
+    Parameters
+    ----------
+    clearance_mm : float
+        Burr surface to the structure [mm] (negative: into it).
+    structure : str
+        The structure's name (as the case spells it).
+    """
+    return f"{clearance_mm:.2f} mm to the {clinical_name(structure)}"
 
 
 def _summary(model, state, step_ns, force, contact, consumer, injuries) -> dict:

@@ -48,6 +48,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
+from bonesim.io.anatomy import clinical_name
 from bonesim.progress import format_clock
 from bonesim.engine.replica import TissueReplica
 
@@ -313,7 +314,8 @@ class Frame:
         Structures injured in this epoch up to ``t`` (each once, in order).
     recent : list of str
         Injuries of this epoch in the last :data:`INJURY_NOTICE_S` seconds,
-        as ``"<structure> (<kind>) at <time>"``.
+        as ``"<structure> (<kind>) at <time>"``, the structure by its clinical
+        name (:func:`bonesim.io.anatomy.clinical_name`).
     camera : tuple or None
         ``(eye_mm, focal_mm, up)`` of the recorded camera.
     handle_deg : tuple of float or None
@@ -478,8 +480,8 @@ class Player:
         for q in tl.injuries_until(t, epoch):
             if t - tl.inj_t[q] <= INJURY_NOTICE_S:
                 kind = int(tl.inj_kind[q])
-                recent.append(f"{self.model.structure_name(int(tl.inj_label[q]))} "
-                              f"({'removal' if kind == 1 else 'contact'}) at "
+                name = clinical_name(self.model.structure_name(int(tl.inj_label[q])))
+                recent.append(f"{name} ({'removal' if kind == 1 else 'contact'}) at "
                               f"{format_clock(tl.inj_t[q])}")
         b = int(s["burr"][i])
         return Frame(t_s=t, duration_s=tl.duration, index=i,

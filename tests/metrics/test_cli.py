@@ -32,6 +32,8 @@ def test_metrics_run_prints_a_summary_and_json(tmp_path, capsys):
     assert main(["metrics", "run", str(n), "--expert", str(e)]) == 0
     out = capsys.readouterr().out
     assert "visibility:" in out and "final product vs 1 expert run(s)" in out
+    # structures by their clinical names in the text (JSON keeps the code names)
+    assert "forces near the Chorda tympani:" in out and "exposure Sigmoid sinus:" in out
     assert main(["metrics", "run", str(n), "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["run"]["participant"] == "N01" and "final_product" not in res

@@ -72,7 +72,7 @@ def test_the_page_is_self_contained_and_its_images_are_pngs(report):
 def test_every_section_group_size_metric_and_error_is_there(report, scored):
     page, png_dir = report
     for heading in ("1. Cohort", "2. Scores by group", "3. Instructor score against the metrics",
-                    "4. Force against distance to the chorda_tympani",
+                    "4. Force against distance to the Chorda tympani",
                     "5. Visibility at removal", "6. Statistics of every metric", "7. Runs",
                     "Naive Bayes training sets"):
         assert heading in page, heading

@@ -57,6 +57,9 @@ def test_main_job_rinses_writes_video_and_picture(tmp_path):
     assert out["voxels_removed"] > 3000 and out["injuries"] == []
     assert set(out["removed_by_structure"]) == {"bone"}
     assert out["min_clearance_mm"] >= 1.0 - 1e-3
+    assert out["min_clearance_structure"] in {"sigmoid_sinus", "posterior_fossa_dura",
+                                              "middle_fossa_dura", "facial_nerve",
+                                              "chorda_tympani", "labyrinth", "ossicles"}
     # half the dust made went into the suction already (54% when written; by
     # the plan's end 91%)
     made = out["dust_cells"] + out["dust_suctioned_cells"]
@@ -75,6 +78,24 @@ def test_headless_run_command(tmp_path, capsys):
     assert "[--record]: --record needs the live simulator" in capsys.readouterr().err
     assert main(["run", "--offscreen", "--frames", "2", "--video", "x.mp4"]) != 0
     assert "[--video]: --video is the headless main job's" in capsys.readouterr().err
+
+
+def test_headless_run_summary_names_structures(monkeypatch, capsys):
+    """The text summary of the main job: clinical names, and the closest
+    approach says to what."""
+    import bonesim.apps.showcase as S
+
+    def fake(*a, **kw):
+        return {"case": "phantom", "burr": "cutting-5mm", "simulated_s": 240.0, "steps": 9,
+                "wall_s": 60.0, "voxels_removed": 5, "removed_by_structure": {"bone": 5},
+                "injuries": ["chorda_tympani"], "min_clearance_mm": 1.004,
+                "min_clearance_structure": "sigmoid_sinus", "picture": "x.png"}
+
+    monkeypatch.setattr(S, "run_showcase", fake)
+    assert main(["run", "--offscreen", "--video", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "removed 5 voxels (Bone 5); injuries: Chorda tympani" in out
+    assert "closest approach: 1.00 mm to the Sigmoid sinus" in out
 
 
 def test_bad_seconds():

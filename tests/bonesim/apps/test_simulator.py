@@ -62,8 +62,8 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
         assert re.search(r"depth\s+(in view|\d+\.\d mm under bone)", hud), hud
         # the HUD shows the warning while it is recent, else the count (a
         # loaded machine may end the 90 frames after the burr stopped cutting)
-        assert re.search(r"LIMIT! \d\.\d\d > 0\.50 N\n  \d+\.\d mm from chorda tympani|"
-                         r"limit  chorda tympani: [\d,]+ over", hud), hud
+        assert re.search(r"LIMIT! \d\.\d\d > 0\.50 N\n  \d+\.\d mm from Chorda tympani|"
+                         r"limit  Chorda tympani: [\d,]+ over", hud), hud
         live = dict(app.watch.count)
         app.window.press("irrigation")                # w: the water wets the dust
         app.window.run_offscreen(10, realtime=True)
@@ -93,7 +93,7 @@ def test_offscreen_app_drills_updates_mesh_and_reports_rates(script, tmp_path):
     m = out["monitor"]
     assert m["nerves"] == ["facial_nerve", "chorda_tympani"] and m["source"] == "samples"
     assert m["updates"] > 100 and m["update_hz"] > 0  # (its rate is a figure: load-bound)
-    assert "facial_nerve" in trace_text and "chorda_tympani" in trace_text and trace_hidden
+    assert "Facial nerve" in trace_text and "Chorda tympani" in trace_text and trace_hidden
     assert (tmp_path / "shot.png").stat().st_size > 1000
     # the session was recorded: samples, every removal, camera per frame, the key
     from bonesim.session.reader import read_session

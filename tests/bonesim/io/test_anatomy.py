@@ -62,15 +62,20 @@ def test_unknown_names_and_normalisation():
     assert A.default_kind("Sigmoid sinus") == "soft" and A.default_kind("Bone") == "bone"
 
 
-@pytest.mark.parametrize("name, kind, watched", [
-    ("facial_nerve", "critical", True), ("Chorda tympani", "critical", True),
-    ("vestibular nerve", "critical", True), ("cochlear nerve", "critical", True),
-    ("n. VII", "critical", True), ("optic nerve", "soft", True),
-    ("cochlea", "critical", False), ("sigmoid_sinus", "soft", False),
-    ("ICA", "critical", False), ("nerve canal", "bone", False),
+@pytest.mark.parametrize("name, kind, watched, available", [
+    ("facial_nerve", "critical", True, True), ("Chorda tympani", "critical", True, True),
+    ("n. VII", "critical", True, True), ("FN", "critical", True, True),
+    # nerves of the internal auditory canal and others: listed, off
+    ("vestibular nerve", "critical", False, True), ("cochlear nerve", "critical", False, True),
+    ("CN VIII", "critical", False, True), ("optic nerve", "soft", False, True),
+    ("cochlea", "critical", False, False), ("sigmoid_sinus", "soft", False, False),
+    ("ICA", "critical", False, False), ("nerve canal", "bone", False, False),
 ])
-def test_monitor_defaults(name, kind, watched):
+def test_monitor_defaults(name, kind, watched, available):
+    """A mastoidectomy's monitor watches the facial nerve and the chorda
+    tympani; the other nerves can be watched but are off by default."""
     assert A.default_monitor(name, kind) is watched
+    assert A.monitor_available(name, kind) is available
 
 
 def _hue_deg(rgb):

@@ -430,7 +430,7 @@ def test_undeclared_orientation_is_assumed(tmp_path, phantom_vol, capsys):
     out = capsys.readouterr().out
     assert "orientation: LPS, assumed: the manifest declares none" in out
     assert "patient frame: LPS" in out and "camera (derived from the anatomy)" in out
-    assert "monitored by the nerve monitor: facial_nerve, chorda_tympani" in out
+    assert "monitor: Facial nerve, Chorda tympani\n" in out
     assert "warning:" not in out
 
 

@@ -123,7 +123,9 @@ def test_console_receives_every_update_and_spike_in_order():
     assert h1["spike_t"].min() >= t[-1] - 1.0 and len(h1["spike_t"]) < len(h["spike_t"])
     # the console's text: a line per nerve, a warning below warn_mm, the link
     lines = con.lines()
-    assert len(lines) == 3 and lines[0].startswith("facial_nerve") and "link ok" in lines[2]
+    assert len(lines) == 3 and lines[0].startswith("Facial nerve ") and "link ok" in lines[2]
+    assert lines[1].startswith("Chorda tympani ")                  # clinical names on screen
+    assert con.titles == ["Facial nerve", "Chorda tympani"] and con.names == NAMES
     assert "WARNING" in lines[0] and "WARNING" not in lines[1]      # 0.1 mm vs 9 mm
 
 
@@ -423,7 +425,8 @@ def test_cli_run_serves_the_monitor_and_the_console_follows(tmp_path, capsys,
             run.kill()
     assert rc == 0, err
     assert run.returncode == 0, r_err
-    assert f"nerve monitor on 127.0.0.1:{port}" in r_err
+    assert f"nerve monitor on 127.0.0.1:{port} (Facial nerve, Chorda tympani)" in r_err
+    assert f"nerve monitor of 127.0.0.1:{port}: Facial nerve, Chorda tympani" in err
     console, summary = json.loads(out), json.loads(r_out)
     assert console["names"] == NAMES and console["byes"] == 1 and console["data"] > 50
     assert console["packets"]["auth"] == 0 and console["spikes"] > 0

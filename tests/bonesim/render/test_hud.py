@@ -17,7 +17,7 @@ def test_hud_lines_with_units():
     assert "force  1.23 N" in lines
     assert "haptic 999 Hz" in lines and "frame  60 Hz" in lines
     assert "time   3.2 s" in lines
-    assert "injury 1 (facial_nerve)" in lines
+    assert "injury 1 (Facial nerve)" in lines         # the clinical name
     assert not any(ln.startswith("depth") for ln in lines)   # no depth given
     # compact: fits the side panel
     assert max(len(ln) for ln in lines) <= 28
@@ -61,17 +61,33 @@ def test_hud_force_limit_line_ok_over_and_warning():
 
     assert format_hud({"force_limit": None}) == ""
     assert format_hud({"force_limit": {"structure": "chorda_tympani", "count": 0,
-                                       "warning": None}}) == "limit  chorda tympani: ok"
+                                       "warning": None}}) == "limit  Chorda tympani: ok"
     assert format_hud({"force_limit": {"structure": "chorda_tympani", "count": 1234,
                                        "warning": None}}) == \
-        "limit  chorda tympani: 1,234 over"
+        "limit  Chorda tympani: 1,234 over"
     w = LimitWarning(1.0, "force_n", 3.3, 2.456, 3.04)
     assert format_hud({"force_limit": {"structure": "facial_nerve", "count": 1,
                                        "warning": w}}).splitlines() == \
-        ["LIMIT! 3.30 > 2.46 N", "  3.0 mm from facial nerve"]
+        ["LIMIT! 3.30 > 2.46 N", "  3.0 mm from Facial nerve"]
     w = LimitWarning(1.0, "speed_rpm", 80000.0, 60000.0, 12.0)
     assert format_hud({"force_limit": {"structure": "x", "count": 1, "warning": w}}
                       ).splitlines()[0] == "LIMIT! 80,000 > 60,000 rpm"
+
+
+def test_hud_names_structures_by_their_clinical_names():
+    """Code names and abbreviations from the case come out as a surgeon
+    reads them; names already clinical are kept."""
+    text = format_hud({"injuries": ["sigmoid_sinus", "FN", "Chorda tympani", "CN7"]})
+    assert text == "injury 4 (Sigmoid sinus, Facial nerve, Chorda tympani +1)"
+    from bonesim.physics.force_limits import LimitWarning
+
+    w = LimitWarning(1.0, "force_n", 3.3, 2.456, 0.84)
+    lines = format_hud({"force_limit": {"structure": "SS", "count": 1, "warning": w}}
+                       ).splitlines()
+    assert lines[1] == "  0.8 mm from Sigmoid sinus"         # the distance names it
+    assert "_" not in "".join(lines)
+
+
 def test_device_state_line_says_when_the_mouse_has_taken_over():
     from bonesim.render.hud import format_hud
 

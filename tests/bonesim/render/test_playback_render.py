@@ -77,7 +77,7 @@ def test_frame_at_a_time_places_tool_hud_surface_camera_and_bar(view, recorded):
     hud = scene.hud_text
     assert "time: 0:00.8 / 0:01.8" in hud and "playback: 2x" in hud
     assert f"removed: {hi - lo:,} voxels" in hud and hi - lo > 50
-    assert "injury 1 (nerve)" in hud and "frame" not in hud    # no measured rate
+    assert "injury 1 (Nerve)" in hud and "frame" not in hud    # no measured rate
     assert f"force  {np.linalg.norm(s.samples['force_n'][i]):.2f} N" in hud
     # the surface drawn is the player's, at that time
     assert scene.surface is player.surface

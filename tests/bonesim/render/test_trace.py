@@ -254,8 +254,10 @@ def test_warning_text_and_red_lane_below_warn_mm(scene):
     tr = MonitorTrace(scene, NAMES, COLORS, warn_mm=1.0)
     tr.update(history(rates=(45.2, 4.0), dists=(2.34, math.inf)))
     lines = tr.text().splitlines()
-    assert lines[0].split() == ["facial_nerve", "d", "2.3", "mm", "45/s"]
-    assert lines[1].split() == ["chorda_tympani", "d", ">", "10", "mm", "4/s"]
+    # clinical names on screen (the code names stay in tr.names)
+    assert lines[0].split() == ["Facial", "nerve", "d", "2.3", "mm", "45/s"]
+    assert lines[1].split() == ["Chorda", "tympani", "d", ">", "10", "mm", "4/s"]
+    assert tr.names == NAMES and tr.titles == ["Facial nerve", "Chorda tympani"]
     assert "WARNING" not in tr.text() and not tr.warning.any()
     calm = scene.image()
     tr.update(history(rates=(180.0, 4.0), dists=(0.4, 1.0)))     # 1.0 is not below 1.0
@@ -301,7 +303,7 @@ def test_empty_history_draws_the_panel_only(scene):
         kinds = {c[0] for c in cells(tr.foreground)}
         assert TRACE not in kinds and TICK not in kinds and kinds <= {BASELINE}
         assert [ln.split() for ln in tr.text().splitlines()] == [
-            ["facial_nerve", "no", "signal"], ["chorda_tympani", "no", "signal"]]
+            ["Facial", "nerve", "no", "signal"], ["Chorda", "tympani", "no", "signal"]]
         img = scene.image()
         first = img if first is None else first
         assert np.array_equal(img, first)
@@ -405,7 +407,7 @@ def test_matches_reference_picture(phantom, tmp_path):
     assert tr.text() == ""
     tr.set_visible(True)
     sc.close()
-    assert tr.text().splitlines()[0].split()[:4] == ["WARNING", "facial_nerve", "d", "0.6"]
+    assert tr.text().splitlines()[0].split()[:5] == ["WARNING", "Facial", "nerve", "d", "0.6"]
     check("trace", img, tmp_path)                      # (skips after writing, if asked)
     assert not compare_images(bare, read_png(IMAGES / "trace.png"))   # the trace is what
                                                                       # the picture shows

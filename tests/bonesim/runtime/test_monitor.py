@@ -19,9 +19,13 @@ def test_phantom_monitors_facial_nerve_and_chorda():
 def test_monitor_flag_default_roundtrip_and_errors(tmp_path):
     tiny_volume(tmp_path)
     c = C.load_case(write_case(tmp_path))
-    assert [s.name for s in c.structures if s.monitor] == ["nerve"]   # name says nerve
+    # a nerve that is neither the facial nerve nor the chorda: listed, off
+    assert not any(s.monitor for s in c.structures)
+    assert [s.name for s in c.structures if s.monitor_available] == ["nerve"]
     c = C.load_case(write_case(tmp_path, replace=[("label = 2", "label = 2\nmonitor = false")]))
     assert not any(s.monitor for s in c.structures)
+    c = C.load_case(write_case(tmp_path, replace=[('name = "nerve"', 'name = "facial nerve"')]))
+    assert [s.name for s in c.structures if s.monitor] == ["facial nerve"]   # on by default
     c = C.load_case(write_case(tmp_path, replace=[("label = 2", "label = 2\nmonitor = true")]))
     assert [s.name for s in c.structures if s.monitor] == ["nerve"]
     back = C.load_case(C.export_case(c, "nrrd", tmp_path / "out"))
@@ -83,6 +87,7 @@ def nerve_voxels_mm(vol, label):
 def test_phantom_nerves_are_the_monitored_ones(phantom_monitor, phantom_model):
     nm = phantom_monitor
     assert nm.names == ["facial_nerve", "chorda_tympani"] and nm.n == 2
+    assert nm.titles == ["Facial nerve", "Chorda tympani"]           # for the screen
     assert nm.clearance is phantom_model.clearance         # the model's, not rebuilt
     counts = phantom_model.grid.counts_by_label(len(phantom_model.structures))
     for f, lab in zip(nm.fields, nm.labels):

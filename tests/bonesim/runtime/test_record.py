@@ -163,6 +163,11 @@ def test_sessions_info_cli_json(recorded, capsys):
     assert main(["sessions", "info", str(recorded[0]), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["participant"] == "p07" and info["complete"] is True
+    assert set(info["removed_by_structure"]) <= {"bone", "facial_nerve"}    # code names
+    assert main(["sessions", "info", str(recorded[0])]) == 0
+    text = capsys.readouterr().out
+    line = next(ln for ln in text.splitlines() if ln.startswith("removed_by_structure: "))
+    assert "Bone " in line and "_" not in line.split(": ", 1)[1]       # clinical names
 
 
 # ----------------------------------------------------- live loop recording

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from bonesim.io.loading import load_model
-from bonesim.runtime.simulate import CLEARANCE_EVERY, closest_approach, run_trajectory
+from bonesim.io.anatomy import clinical_name
+from bonesim.runtime.simulate import (CLEARANCE_EVERY, approach_text, closest_approach,
+                                      run_trajectory)
 from bonesim.io.trajectory import Trajectory
 
 
@@ -66,5 +68,35 @@ def test_run_reports_the_drilling_burrs_closest_approach(model, native_boxes):
     q = q[fine.drill[q].astype(bool)]
     ref = min(naive_gaps(model, native_boxes, fine.pos_mm[q]))
     assert c["clearance_mm"] == pytest.approx(ref[0], abs=1e-3)
-    assert c["structure"] == model.structure_name(ref[1])
+    assert c["structure"] == model.structure_name(ref[1])       # the code name, for files
+    assert c["display_name"] == clinical_name(c["structure"])      # the name on screen
     assert c["native_spacing_mm"] == [0.5, 0.5, 0.5] and c["t_s"] >= 0.5   # drilling only
+
+
+def test_distance_lines_name_their_structure():
+    assert approach_text(1.0, "facial_nerve") == "1.00 mm to the Facial nerve"
+    assert approach_text(0.254, "SS") == "0.25 mm to the Sigmoid sinus"
+
+
+def test_simulate_summary_names_the_structure(model, capsys):
+    """The human summary of ``bonesim simulate`` names the closest structure
+    by its clinical name; ``--json`` keeps the code name beside it."""
+    from bonesim.cli.main import _print_summary
+
+    s = {"case": "phantom", "burr": "cutting-4mm", "steps": 10, "duration_s": 0.01,
+         "wall_s": 0.1, "voxels_removed": 3, "volume_removed_mm3": 0.375,
+         "removed_by_structure": {"bone": 2, "chorda_tympani": 1},
+         "injuries": [{"t_s": 0.005, "kind": "removal", "structure": "chorda_tympani",
+                       "voxels": 1}],
+         "closest_approach": {"clearance_mm": -0.2, "structure": "chorda_tympani",
+                              "display_name": "Chorda tympani", "t_s": 0.005,
+                              "native_spacing_mm": [0.5, 0.5, 0.5]},
+         "force_n": {"mean": 0.1, "mean_in_contact": 0.2, "max": 0.3},
+         "haptic_step_us": {"p50": 10.0, "p99": 20.0}}
+    _print_summary(s)
+    out = capsys.readouterr().out
+    assert "removed 3 voxels (0.375 mm^3): Bone 2, Chorda tympani 1" in out
+    assert "removal  Chorda tympani (1 voxels)" in out
+    assert ("closest approach of the drilling burr: -0.20 mm to the Chorda tympani at "
+            "0.01 s") in out
+    assert "chorda_tympani" not in out

@@ -215,7 +215,7 @@ def test_frame_and_hud(recorded, monkeypatch):
     e, lo, hi = tl.removal_range(last_inj + 0.5)
     assert f.voxels_removed == hi - lo > 0
     assert f.volume_removed_mm3 == pytest.approx((hi - lo) * 0.125)
-    assert f.injuries == ["nerve"] and f.recent and "nerve" in f.recent[0]
+    assert f.injuries == ["nerve"] and f.recent and f.recent[0].startswith("Nerve (")
     monkeypatch.setattr(bonesim.session.playback, "INJURY_NOTICE_S", 0.4)
     assert p.frame(last_inj + 0.39).recent and p.frame(last_inj + 0.41).recent == []
     monkeypatch.undo()
@@ -225,7 +225,7 @@ def test_frame_and_hud(recorded, monkeypatch):
     assert info["playback"] == "2x  playing" and info["injuries"] == ["nerve"]
     assert info["time"] == f"{format_clock(last_inj + 0.5)} / 0:01.8"
     assert info["removed"].startswith(f"{hi - lo:,} voxels")
-    assert "INJURY nerve" in info["message"] and "recording incomplete" in info["message"]
+    assert "INJURY Nerve (" in info["message"] and "recording incomplete" in info["message"]
     assert "since reset 1" in hud_info(p.frame(1.7), p.model)["removed"]
     assert p.t == 0.0                            # frame() does not seek
 
