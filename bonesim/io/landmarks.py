@@ -422,7 +422,8 @@ def group_masks(labels: np.ndarray, spacing_mm: float, structures, groups, param
                 add("dura", sheet)
                 why = "its name says sinus and dura" if mixed else \
                     f"{100 * share:.0f} % of it is a thin sheet"
-                notes.append(f"{st.name!r} split by thickness ({why}): the channel "
+                notes.append(f"{_anatomy.clinical_name(st.name)!r} split by thickness "
+                             f"({why}): the channel "
                              f"({ch.sum() * spacing_mm ** 3:.0f} mm^3) is the sigmoid "
                              f"sinus, the sheet ({sheet.sum() * spacing_mm ** 3:.0f} mm^3)"
                              " dura")
@@ -629,8 +630,8 @@ def find_landmarks(labels: np.ndarray, spacing_mm: float, origin_mm, structures,
               "origin_mm": origin}
 
     def who(group):
-        return ", ".join(repr(n) for n, g in zip(names, groups) if group in g
-                         or (group == "dura" and "tegmen" in g))
+        return ", ".join(repr(_anatomy.clinical_name(n)) for n, g in zip(names, groups)
+                         if group in g or (group == "dura" and "tegmen" in g))
 
     def pts(group):
         m = masks.get(group)
