@@ -61,10 +61,16 @@ def cmd_case_info(args) -> int:
         info = case_info(case, progress=bar)
     finally:
         bar.close()
+    if args.png:
+        from bonesim.render.landmarks_view import landmarks_picture
+
+        info["png"] = str(landmarks_picture(case, args.png))
     if args.json:
         _print_json(info)
     else:
         print_case_info(info)
+        if args.png:
+            print(f"wrote the landmarks picture {info['png']}")
     return 0
 
 
@@ -596,6 +602,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "warns where the layout contradicts the side")
     s.add_argument("case", help="bundled case name or path of a case.toml")
     s.add_argument("--json", action="store_true", help="print JSON")
+    s.add_argument("--png", metavar="FILE.png",
+                   help="draw the landmarks from the surgeon's view into this picture")
     voxel_option(s)
     s.set_defaults(func=cmd_case_info)
 
