@@ -19,7 +19,7 @@ __all__ = ["MAX_PER_CELL", "RESHADE_REACH", "CORNER_OFFSETS", "TRIPLE_CORNERS",
 #: Most triples that qualify in one cell (checked when the table is built).
 MAX_PER_CELL = 4
 #: Chebyshev distance [voxels] from a removed or touched voxel within which
-#: :meth:`Surface.update` may change vertex normals (colours can change
+#: :meth:`Surface.update` may move vertices and change their normals (colours can change
 #: further, up to the thin-bone tint's reach); for a renderer tracking
 #: which vertices changed.
 RESHADE_REACH = NORMAL_RADIUS
