@@ -81,7 +81,7 @@ from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, _fallback_
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
 from bonesim.engine.thin_bone import (TP_MAX, TP_TAN, _as_bone, _near_structure, _ray_dir,
                                       _structure_bits, _tint, beneath, bone_labels, cone_table,
-                                      ray_params, tint_reach, tint_weight)
+                                      near_radius, ray_params, tint_reach, tint_weight)
 
 __all__ = ["NORMAL_RADIUS", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
            "ShadingParams", "default_shading_path", "load_shading", "normal_weights",
@@ -513,6 +513,14 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                     else:
                         dx, dy, dz, _ = _ray_dir(nx, ny, nz, tanc, cone[rq - 1, 0],
                                                  cone[rq - 1, 1])
+                    # the ray's box must meet the inputs' box grown by a voxel
+                    ex = i - reach * dx
+                    ey = j - reach * dy
+                    ez = k - reach * dz
+                    if (max(i, ex) < lo0 - 1 or min(i, ex) > hi0 + 1 or max(j, ey) < lo1 - 1
+                            or min(j, ey) > hi1 + 1 or max(k, ez) < lo2 - 1
+                            or min(k, ez) > hi2 + 1):
+                        continue
                     if _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, -dx, -dy, -dz, reach):
                         hit = True
                         break
@@ -533,14 +541,15 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
 def _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, dx, dy, dz, reach):
     """Whether the segment from voxel ``(i, j, k)`` along the unit ``d`` up
     to ``reach`` voxels passes near the set ``R1`` (the removed voxels
-    dilated by one voxel) of the window. Points every half voxel are
-    tested: every sample of the ray lies within a quarter voxel of one, so
-    its voxel is within one voxel of that point's, and the test never
+    dilated by one voxel) of the window. Points every voxel are tested
+    (and the segment's end): every sample of the ray lies within half a
+    voxel of one, so each of its coordinates is within half a voxel of that
+    point's, its voxel within one voxel of that point's, and the test never
     misses a removed voxel the ray reads."""
     one = np.uint64(1)
-    n_pts = int(math.ceil(2.0 * reach)) + 1
+    n_pts = int(math.ceil(reach))
     for q in range(n_pts + 1):
-        t = min(0.5 * q, reach)
+        t = min(np.float64(q), reach)
         x = int(math.floor(i + t * dx + 0.5)) - wlo[0]
         y = int(math.floor(j + t * dy + 0.5)) - wlo[1]
         z = int(math.floor(k + t * dz + 0.5)) - wlo[2]
@@ -599,7 +608,7 @@ class Shader:
             if _structure_bits(grid.label, self.bone, bits):
                 # (C order: the warm-up's one-brick grid compiles this layout)
                 _near_structure(grid.keys, grid.vals, np.ascontiguousarray(grid.bricks), bits,
-                                self.reach, self._near)
+                                near_radius(p, self.spacing), self._near)
         self._fp = np.zeros(_N_F)
         self._fp[_F_ORIGIN:_F_ORIGIN + 3] = self._origin
         self._fp[_F_SPACING] = self.spacing

@@ -25,9 +25,9 @@ from bonesim.engine.grid import Grid, voxel_offset
 from bonesim.engine.shading import (NORMAL_RADIUS, ShadingParams, beneath, bone_labels,
                                     default_shading_path, load_shading, normal_weights,
                                     stencil_weights, tint_reach, tint_weight)
-from bonesim.engine.thin_bone import cone_table, ray_length_mm
+from bonesim.engine.thin_bone import (TINT_BISECT_ITERS, TINT_STEP_FRACTION, cone_table,
+                                      near_radius, ray_length_mm)
 from bonesim.engine.surface import Surface
-from bonesim.engine.thickness import BISECT_ITERS, STEP_FRACTION
 from tests.bonesim.fakes import force_tiles
 
 BONE_RGB = (235, 225, 200)
@@ -91,24 +91,26 @@ class DenseTissue:
 
 
 def ref_exit(tissue, p, n, bone, max_mm):
-    """The ray of bonesim.engine.thickness.exit_ray, step by step: (distance, met)."""
-    step = STEP_FRACTION * tissue.h
-    if step >= max_mm:
-        return max_mm, 0
+    """The thin-bone ray of bonesim.engine.thin_bone._march, step by step:
+    (distance, met); met 0 (at max_mm) when it reaches empty space, -1 when
+    it is still in bone at max_mm."""
+    step = TINT_STEP_FRACTION * tissue.h
 
     def at(t):
         return tissue.sample([p[a] + t * n[a] for a in range(3)], bone)
 
-    lo, hi = 0.0, step
+    lo, hi = 0.0, min(step, max_mm)
     while True:
         inside, lab = at(hi)
         if not inside:
+            if lab == 0:
+                return max_mm, 0
             met = lab
             break
-        lo, hi = hi, hi + step
         if hi >= max_mm:
-            return max_mm, 0
-    for _ in range(BISECT_ITERS):
+            return max_mm, -1
+        lo, hi = hi, min(hi + step, max_mm)
+    for _ in range(TINT_BISECT_ITERS):
         t = 0.5 * (lo + hi)
         if at(t)[0]:
             lo = t
@@ -141,24 +143,25 @@ def ref_ray(tissue, ijk, d, m, shift, bone, p=P):
     measured from the vertex ``shift`` (float32) voxels out."""
     c = [tissue.origin[a] + tissue.h * int(ijk[a]) for a in range(3)]
     e, met = ref_exit(tissue, c, [-v for v in d], bone, ray_length_mm(p, tissue.h))
-    if met == 0:
-        return p.start_mm, 0
+    if met <= 0:
+        return p.start_mm, met
     return max(0.0, e + tissue.h * float(np.float32(shift)) * m), met
 
 
 def ref_beneath(tissue, ijk, nrm, bone, p=P, shift=0.5):
     """(thickness, structure) beneath a bone voxel along -nrm (float32)."""
     n = tuple(float(np.float32(c)) for c in nrm)
-    return ref_ray(tissue, ijk, n, 1.0, shift, bone, p)
+    t, s = ref_ray(tissue, ijk, n, 1.0, shift, bone, p)
+    return t, max(s, 0)
 
 
 def ref_tint(tissue, ijk, nrm, shift, bone, p=P):
     """``(W, acc)``: the blend weight and weighted colour over the rays."""
     wsum, acc = 0.0, [0.0, 0.0, 0.0]
     dirs = ref_directions(nrm, p)
-    for d, m in dirs:
+    for q, (d, m) in enumerate(dirs):
         t, s = ref_ray(tissue, ijk, d, m, shift, bone, p)
-        if s == 0:
+        if s <= 0:
             continue
         w = ref_weight(t, p)
         wsum += w
@@ -339,7 +342,7 @@ def test_slab_shows_the_structure_by_its_thickness(n_bone, struct, h):
     np.testing.assert_allclose(surf.nrm[v], [0, 0, 1], atol=1e-6)
     t, s = beneath(grid, [[6, 6, top]], surf.nrm[v:v + 1], BONE)
     if n_bone * h <= P.start_mm:
-        bisection = STEP_FRACTION * h / 2 ** BISECT_ITERS
+        bisection = TINT_STEP_FRACTION * h / 2 ** TINT_BISECT_ITERS
         assert s[0] == struct and t[0] == pytest.approx(n_bone * h, abs=bisection)
     else:
         assert s[0] == 0 and t[0] == P.start_mm
@@ -455,6 +458,30 @@ def test_void_inside_the_bone_along_the_ray_ends_the_tint():
     assert after == vertex_colour(surf, grid, (8, 8, top))
     assert after[2] < before[2]                 # the central ray now meets air: less blue
     _assert_same_as_rebuild(surf, grid)
+
+
+@pytest.mark.parametrize("h", [0.5, 0.19])
+def test_near_structure_mask_is_the_union_of_balls(h):
+    """The static mask of the voxels that cast rays: exactly those within
+    near_radius (centre to centre) of a voxel of a non-bone label, brute
+    force over a grid of several bricks."""
+    rng = np.random.default_rng(11)
+    lab = np.ones((30, 26, 34), np.uint8)
+    for _ in range(4):
+        lab[tuple(rng.integers(0, s) for s in lab.shape)] = 2
+    lab[3:5, 20:22, 30:33] = 3
+    grid = Grid.from_dense(lab, spacing_mm=h)
+    surf = Surface.build(grid, COLORS, bone=BONE)
+    near = surf.shader._near
+    r = near_radius(P, h)
+    src = np.argwhere(lab > 1)
+    for b in range(grid.n_bricks):
+        base = grid.bricks[b].astype(np.int64) * 8
+        for o in range(512):
+            ijk = base + [(o >> 6) & 7, (o >> 3) & 7, o & 7]
+            want = bool((((src - ijk) ** 2).sum(axis=1) <= r * r).any())
+            got = bool((int(near[b, o >> 6]) >> (o & 63)) & 1)
+            assert got == want, (ijk, got, want)
 
 
 # ---------------------------------------------------------------------------
@@ -620,8 +647,8 @@ def test_finest_voxels_at_the_largest_reach():
     surf = Surface.build(grid, COLORS, bone=BONE)
     v = surf.vertex_at(7, 7, top)
     t, s = beneath(grid, [[7, 7, top]], surf.nrm[v:v + 1], BONE)
-    step = STEP_FRACTION * h
-    assert s[0] == 2 and t[0] == pytest.approx(8 * h, abs=2 * step / 2 ** BISECT_ITERS)
+    step = TINT_STEP_FRACTION * h
+    assert s[0] == 2 and t[0] == pytest.approx(8 * h, abs=step / 2 ** TINT_BISECT_ITERS)
     assert surf.col[v].tolist() == vertex_colour(surf, grid, (7, 7, top))
     far = surf.vertex_at(0, 0, 0)                    # 29 voxels under the bone: no tint
     assert surf.col[far].tolist() == list(SINUS_RGB) + [255]
