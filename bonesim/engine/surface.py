@@ -92,7 +92,7 @@ cell the kernel compares the triangles it owns now (found through the owner
 lists below) with those it should own, drops the difference, drops the
 vertices of emptied voxels, creates the vertices of voxels that became
 surface and adds the new triangles; then
-:meth:`bonesim.engine.shading.Shader.refresh` recomputes the normal and colour of
+:meth:`bonesim.engine.shading.Shader.refresh` recomputes the position, normal and colour of
 every vertex the removed and touched voxels can have changed. The old triangles come from the mesh
 itself, not from a guess of the old occupancy, so extra entries (voxels
 listed twice, still bone, already empty before the batch, or never bone)
@@ -443,7 +443,7 @@ class Surface:
         Work is proportional to the number of voxels given, not to the
         surface: cells around removed voxels are re-evaluated, vertices
         created for voxels that became surface and dropped for removed ones,
-        and the normals and colours the changes can reach are recomputed
+        and the positions, normals and colours the changes can reach are recomputed
         (:meth:`bonesim.engine.shading.Shader.refresh`).
 
         Parameters

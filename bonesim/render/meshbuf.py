@@ -50,11 +50,14 @@ it may have changed since. Two ways to know what may have changed:
 *Change marks* (fast; when the caller passes the voxels given to
 ``Surface.update``). A removal only re-evaluates the cells that contain the
 removed voxel, so every triangle it creates has all three corners in the
-3x3x3 block around that voxel; re-shading (new normals) reaches the same
-block around removed and touched voxels; a new vertex is a neighbour of a
-removed voxel. So the vertices of those blocks are *marked* (``_mark_near``,
-O(27) hash look-ups per voxel), and a triangle is kept when a corner is
-marked. The per-update pass then reads only the triangle slots.
+3x3x3 block around that voxel; a new vertex is a neighbour of a removed
+voxel. So the vertices of those blocks are *marked* (``_mark_near``, O(27)
+hash look-ups per voxel), and a triangle is kept when a corner is marked.
+The per-update pass then reads only the triangle slots. (Re-shading moves
+and turns vertices up to ``NORMAL_RADIUS`` voxels from a removed or touched
+voxel; beyond the marked block those are small changes of vertices that
+already existed, and a triangle they turn toward the eye joins the subset
+at the next snapshot, when the camera next comes to rest.)
 
 *Comparison* (fallback; when the voxels are not given). A triangle is kept
 when its slot lies past the snapshot's end, its key or corners differ from
