@@ -108,8 +108,9 @@ _WIN_DEPTH = 64
 # layout of the float64 constants ``fp`` and int64 slots ``ip`` the kernels take
 _F_ORIGIN, _F_SPACING, _F_ISO, _F_OUT, _F_IN = 0, 3, 4, 5, 6   # origin (3), spacing, [surface]
 _N_F = 7
-_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, f32
-_N_I = 6
+_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3   # need: rows, bricks, f32, vertex list
+_I_NV = 7                                               # vertices moved, listed in vlist
+_N_I = 8
 
 
 # The hot loops below call only helpers on scalars: a numba helper taking
@@ -272,7 +273,7 @@ def _dilate_rows(rows, src, dst, tmp, wd0, wd1, r, zmask):
 # layout of the float64 constants and int64 slots passed to _refresh
 @njit(cache=True, nogil=True)
 def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, cone, ip, removed,
-             touched, rows, wbr, f32, pos, nrm, shf, col):
+             touched, rows, wbr, f32, vlist, pos, nrm, shf, col):
     """Refresh the vertices near the inputs (see the module docstring) on one
     window: their bounding box plus ``m = ip[_I_MARGIN]`` voxels. The field
     (normals, positions) is computed on the box of the inputs' bounding box plus ``2
@@ -283,6 +284,9 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
     _WIN_VOXELS_PER_INPUT * inputs, (2 m + 16)**3)`` voxels, which a single
     voxel always fits: split the inputs), -2 if the
     scratch is too small (sizes needed in ``ip[_I_NEED:]``; nothing done).
+    The slots of the vertices whose position or normal it recomputed are
+    listed in ``vlist[:ip[_I_NV]]`` (their triangles' drawn winding may
+    change).
     """
     nr = removed.shape[0]
     nt = touched.shape[0]
@@ -335,11 +339,13 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
     n_pl = (Y - 6) * (Z - 6)
     need_f = n_box + 2 * n_k + (21 + N_FIELD) * n_pl
     if rows.shape[0] < _N_ROWSETS * nrow or wbr.shape[0] < bd0 * bd1 * bd2 \
-            or f32.shape[0] < need_f:
+            or f32.shape[0] < need_f or vlist.shape[0] < n_box:
         ip[_I_NEED] = _N_ROWSETS * nrow
         ip[_I_NEED + 1] = bd0 * bd1 * bd2
         ip[_I_NEED + 2] = need_f
+        ip[_I_NEED + 3] = n_box
         return -2
+    ip[_I_NV] = 0
     ld = f32[:n_box]
     rs = f32[n_box:n_box + n_k]
     rd = f32[n_box + n_k:n_box + 2 * n_k]
@@ -455,6 +461,8 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                 pos[v, 1] = origin[1] + spacing * (j + sv * ny)
                 pos[v, 2] = origin[2] + spacing * (k + sv * nz)
                 shf[v] = sv
+                vlist[ip[_I_NV]] = v
+                ip[_I_NV] += 1
                 lab = np.int64(label[b, o])
                 if lab >= ncol:
                     lab = 0
@@ -622,6 +630,7 @@ class Shader:
         self._rows = np.zeros(_N_ROWSETS * 1024, dtype=np.uint64)
         self._wbr = np.zeros(64, dtype=np.int32)
         self._f32 = np.zeros(1 << 16, dtype=np.float32)
+        self._vlist = np.zeros(1 << 12, dtype=np.int32)
 
     @property
     def normal_reach(self) -> int:
@@ -654,11 +663,15 @@ class Shader:
                           col, counts)
         return int(counts.sum())
 
-    def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched) -> int:
+    def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:
         """Recompute what ``removed`` and ``touched`` (int32 (n, 3) C arrays,
         validated by the caller) can have changed (arrays as for
         :meth:`shade_all`); returns the number of vertices refreshed (a
-        vertex near several windows counts once per window)."""
+        vertex near several windows counts once per window).
+
+        ``moved(slots)``, if given, is called after each window with the
+        (int32) slots of the vertices whose position or normal that window
+        recomputed (a view of scratch memory, valid during the call)."""
         if removed.shape[0] == 0 and touched.shape[0] == 0:
             return 0
         n = 0
@@ -668,18 +681,20 @@ class Shader:
             while True:
                 got = _refresh(grid.keys, grid.vals, grid.density, grid.label, vmap, self.bone,
                                self._near, self.colors, self._W, self._fp, self._tp, self._cone,
-                               self._ip, rem, tch, self._rows, self._wbr, self._f32, pos, nrm,
-                               shift, col)
+                               self._ip, rem, tch, self._rows, self._wbr, self._f32,
+                               self._vlist, pos, nrm, shift, col)
                 if got != -2:
                     break
-                need = self._ip[_I_NEED:_I_NEED + 3].tolist()
-                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2)):
+                need = self._ip[_I_NEED:_I_NEED + 4].tolist()
+                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2), ("_vlist", 3)):
                     cur = getattr(self, name)
                     if cur.shape[0] < need[k]:
                         n_new = max(need[k], 2 * cur.shape[0])
                         setattr(self, name, np.zeros((n_new,) + cur.shape[1:], dtype=cur.dtype))
             if got >= 0:
                 n += got
+                if moved is not None:
+                    moved(self._vlist[:self._ip[_I_NV]])
             else:
                 stack.extend(_split(rem, tch, self.margin))
         return int(n)

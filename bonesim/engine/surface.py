@@ -145,7 +145,7 @@ from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE
                                            _S_T_ADD, _S_T_DEL, _S_V_ADD, _S_V_DEL, _TR_FILL, _TR_KEY,
                                            _TR_NEXT, _TR_ONEXT, _TR_WIDTH, _T_ALIVE, _T_HW, _VR_HEAD,
                                            _VR_OHEAD, _V_ALIVE, _V_HW, _brick_neighbours, _link_all,
-                                           _triangles_of_vertex)
+                                           _orient_all, _orient_of, _triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, _update
 from bonesim.engine.surface_window import _N_ROWSETS
 
@@ -310,6 +310,14 @@ class Surface:
     vmap : (n_bricks, 512) int32
         Vertex slot of each grid voxel (same layout as ``grid.density``), -1
         for none.
+    tflip : (tcap,) uint8
+        1 where a triangle is drawn ``(tri[t, 0], tri[t, 2], tri[t, 1])``:
+        its face normal ``(b - a) x (c - a)`` points against the sum of its
+        corners' normals (where the surface folds within a voxel or two).
+        Drawn so, OpenGL's front face always agrees with the normals
+        (:mod:`bonesim.render.meshbuf`). Kept for every live triangle: set
+        at :meth:`build`, and by :meth:`update` for every triangle of a
+        vertex it moved or turned.
     vhead : (vcap,) int32, tnext : (tcap, 3) int32
         Vertex -> triangle lists (see module docstring); use
         :meth:`triangles_of`.
@@ -321,7 +329,7 @@ class Surface:
     """
 
     def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
-                 vfree, trec, tfree, cnt, origin_mm, spacing_mm, shader):
+                 vfree, trec, tfree, tflip, cnt, origin_mm, spacing_mm, shader):
         self._keys = keys
         self._vals = vals
         self.colors = colors
@@ -337,6 +345,7 @@ class Surface:
         self._vfree = vfree
         self._trec = trec
         self._tfree = tfree
+        self.tflip = tflip
         self._cnt = cnt
         self._origin = np.asarray(origin_mm, dtype=np.float64)
         self._spacing = float(spacing_mm)
@@ -414,9 +423,11 @@ class Surface:
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
         shift = np.zeros(vcap, dtype=np.float32)
         shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        tflip = np.zeros(tcap, dtype=np.uint8)
+        _orient_all(trec, n_t, pos, nrm, tflip)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
-                   np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), cnt,
-                   grid.origin_mm, grid.spacing_mm, shader)
+                   np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), tflip,
+                   cnt, grid.origin_mm, grid.spacing_mm, shader)
 
     @classmethod
     def of_model(cls, model, grid: Grid | None = None,
@@ -493,10 +504,15 @@ class Surface:
         if st[_S_ERR]:
             raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
         n_shaded = self.shader.refresh(grid, self.vmap, self.pos, self.nrm, self.shift, self.col,
-                                       removed, touched)
+                                       removed, touched, self._orient)
         return {"vertices_added": st[_S_V_ADD], "vertices_removed": st[_S_V_DEL],
                 "triangles_added": st[_S_T_ADD], "triangles_removed": st[_S_T_DEL],
                 "vertices_reshaded": n_shaded, "cells_visited": st[_S_CELLS]}
+
+    def _orient(self, vlist):
+        """Drawn winding of the triangles of the vertices a refresh moved
+        (new triangles' corners are all among them)."""
+        _orient_of(self._vrec, self._trec, vlist, self.pos, self.nrm, self.tflip)
 
     def _grow_scratch(self, vol, nrows):
         """Scratch of the update for windows of ``vol`` voxels, ``nrows`` rows."""
@@ -538,6 +554,7 @@ class Surface:
             self._trec[:old.shape[0]] = old
             self._trec[old.shape[0]:] = _TR_FILL
             self._tfree = _grown(self._tfree, cap, 0)
+            self.tflip = _grown(self.tflip, cap, 0)
         self._record_views()
 
     # ---------------------------------------------------------------- queries

@@ -21,7 +21,8 @@ away from it. OpenGL calls it back-facing, and the renderer's two-sided
 lighting turns its normals around, away from the light: a dark speck, one
 voxel wide, on bright bone. So every compaction writes a triangle as
 ``(a, c, b)`` when its face normal ``(b - a) x (c - a)`` points against
-the sum of its corners' normals (:func:`_flip`), and as ``(a, b, c)``
+the sum of its corners' normals (the surface keeps that bit per triangle,
+``Surface.tflip``, up to date as it moves vertices), and as ``(a, b, c)``
 otherwise: the drawn winding always agrees with the shading normals.
 :func:`oriented_triangles` does the same for compact arrays. (The visible
 subset below still judges a face by the surface's own winding, out of the
@@ -81,18 +82,8 @@ from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 __all__ = ["VisibleJob", "SurfaceBuffers", "oriented_triangles", "warmup"]
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _flip(ax, ay, az, bx, by, bz, cx, cy, cz, nx, ny, nz):
-    """Whether the face normal ``(b - a) x (c - a)`` points against ``n``
-    (the sum of the corners' normals): the triangle is then drawn as
-    ``(a, c, b)``."""
-    ux, uy, uz = bx - ax, by - ay, bz - az
-    wx, wy, wz = cx - ax, cy - ay, cz - az
-    return (uy * wz - uz * wy) * nx + (uz * wx - ux * wz) * ny + (ux * wy - uy * wx) * nz < 0.0
-
-
 @njit(cache=True, nogil=True)
-def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
+def _compact(tri, key, tflip, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
              full, vis):
     """Write live triangles into ``full`` (and the visible ones into ``vis``).
 
@@ -118,9 +109,7 @@ def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, wit
         a = tri[t, 0]
         b = tri[t, 1]
         c = tri[t, 2]
-        if _flip(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
-                 pos[c, 0], pos[c, 1], pos[c, 2], nrm[a, 0] + nrm[b, 0] + nrm[c, 0],
-                 nrm[a, 1] + nrm[b, 1] + nrm[c, 1], nrm[a, 2] + nrm[b, 2] + nrm[c, 2]):
+        if tflip[t]:
             b, c = c, b
         full[3 * nf] = a
         full[3 * nf + 1] = b
@@ -144,7 +133,7 @@ def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, wit
 
 
 @njit(cache=True, nogil=True)
-def _compact_marked(tri, key, pos, nrm, s_tvis, marked, full, vis):
+def _compact_marked(tri, key, tflip, s_tvis, marked, full, vis):
     """Like :func:`_compact` with change marks: keep a live triangle in ``vis``
     when it was visible in the snapshot or a corner is marked."""
     nts = s_tvis.shape[0]
@@ -156,9 +145,7 @@ def _compact_marked(tri, key, pos, nrm, s_tvis, marked, full, vis):
         a = tri[t, 0]
         b = tri[t, 1]
         c = tri[t, 2]
-        if _flip(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
-                 pos[c, 0], pos[c, 1], pos[c, 2], nrm[a, 0] + nrm[b, 0] + nrm[c, 0],
-                 nrm[a, 1] + nrm[b, 1] + nrm[c, 1], nrm[a, 2] + nrm[b, 2] + nrm[c, 2]):
+        if tflip[t]:
             b, c = c, b
         full[3 * nf] = a
         full[3 * nf + 1] = b
@@ -400,15 +387,15 @@ class SurfaceBuffers:
         if job is not None and job.surface_ref() is not surface:
             self._job = job = None
         if job is None:
-            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
-                              self._empty_i, self._empty_k, self._empty_f, self._empty_f,
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
+                              surface.nrm, self._empty_i, self._empty_k, self._empty_f, self._empty_f,
                               self._empty_u, self._vdirty, False, self.full, self.vis)
         elif self._marks_ok and self._marks_job is job:
-            nf, nv = _compact_marked(surface.tri, surface.tri_key, surface.pos, surface.nrm,
-                                     job.tvis, self._marked, self.full, self.vis)
+            nf, nv = _compact_marked(surface.tri, surface.tri_key, surface.tflip, job.tvis,
+                                     self._marked, self.full, self.vis)
         else:
-            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
-                              job.s_tri, job.s_key, job.s_pos, job.s_nrm, job.tvis,
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
+                              surface.nrm, job.s_tri, job.s_key, job.s_pos, job.s_nrm, job.tvis,
                               self._vdirty, True, self.full, self.vis)
         self.n_full, self.n_vis = int(nf), int(nv)
         return self.n_full, self.n_vis

@@ -492,10 +492,24 @@ def test_input_validation():
 # ---------------------------------------------------------------------------
 # incremental update == full tessellation
 # ---------------------------------------------------------------------------
+def _assert_flips(surf):
+    """``tflip`` of every live triangle: its face normal against the sum of
+    its corners' normals, recomputed with plain numpy."""
+    ts = surf.triangle_slots
+    t = surf.tri[ts]
+    p, n = surf.pos.astype(np.float32), surf.nrm.astype(np.float32)
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    want = (face * n[t].sum(axis=1)).sum(axis=1) < 0
+    got = surf.tflip[ts] != 0
+    close = np.abs((face * n[t].sum(axis=1)).sum(axis=1)) < 1e-6     # float order aside
+    assert (got == want)[~close].all()
+
+
 def _assert_same_as_rebuild(surf, grid):
-    fresh = Surface.build(grid, COLORS).canonical()
-    diffs = surf.canonical().differences(fresh)          # exact, normals included
+    fresh = Surface.build(grid, COLORS)
+    diffs = surf.canonical().differences(fresh.canonical())   # exact, normals included
     assert not diffs, diffs
+    _assert_flips(surf)
 
 
 def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, tiled):
