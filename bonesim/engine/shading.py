@@ -46,8 +46,9 @@ lowered density that stays > 0 does not change. So after the voxels
 
 and nothing else changes. Rays are cast only from bone voxels that have a
 voxel of a non-bone structure (label, whatever its density: labels never
-change) within ``tint_reach``; elsewhere no ray can meet a structure. A
-static 512-bit mask per brick says which voxels qualify.
+change) within :func:`~bonesim.engine.thin_bone.near_radius` (a ball);
+elsewhere no ray can meet a structure. A static 512-bit mask per brick says
+which voxels qualify.
 
 Implementation
 --------------

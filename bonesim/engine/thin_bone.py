@@ -30,8 +30,8 @@ Thickness along a ray
     ``n`` (:mod:`bonesim.engine.normals`), which a plane through it puts
     ``shift * m_q`` voxels out along ``d_q``. A slab of ``N`` voxels whose
     vertex sits on the voxels' face (``shift = 1/2``) reads ``N *
-    spacing_mm`` along its normal (to the bisection's precision). A ray that reaches empty space, or no
-    exit in time, meets no structure (``s_q = 0``).
+    spacing_mm`` along its normal (to the bisection's precision). A ray
+    that reaches empty space, or no exit in time, meets no structure (``s_q = 0``).
 Tint weight and colour
     ``w(t) = max_weight * x**2 * (3 - 2 x)`` with ``x = clip((start_mm - t)
     / (start_mm - full_mm), 0, 1)`` (:func:`tint_weight`): 0 at ``start_mm``

@@ -388,7 +388,8 @@ class SurfaceBuffers:
             self._job = job = None
         if job is None:
             nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
-                              surface.nrm, self._empty_i, self._empty_k, self._empty_f, self._empty_f,
+                              surface.nrm, self._empty_i, self._empty_k, self._empty_f,
+                              self._empty_f,
                               self._empty_u, self._vdirty, False, self.full, self.vis)
         elif self._marks_ok and self._marks_job is job:
             nf, nv = _compact_marked(surface.tri, surface.tri_key, surface.tflip, job.tvis,
