@@ -395,6 +395,43 @@ def test_drilling_a_slab_thinner_strengthens_the_tint(tiled):
     assert [c[0] for c in seen] == sorted((c[0] for c in seen), reverse=True)
 
 
+def _wedge(n=40, h=0.5):
+    """Bone over a sinus (k < 6), drilled to a floor that rises evenly along
+    x from half a voxel to six and a half voxels over the sinus, the
+    voxel under the floor partly drilled (as a burr leaves it)."""
+    lab = np.zeros((n, 16, 24), np.uint8)
+    lab[:, :, :6] = 2
+    lab[:, :, 6:20] = 1
+    dens = np.ones(lab.shape, np.float32)
+    x = np.arange(n)[:, None, None]
+    z = np.arange(24)[None, None, :]
+    floor = 6 + 0.5 + 6.0 * x / (n - 1)
+    frac = np.broadcast_to(floor - np.floor(floor), dens.shape)
+    dens[(z >= np.floor(floor) + 1) & (lab == 1)] = 0
+    part = (z == np.floor(floor)) & (lab == 1)
+    dens[part] = frac[part]
+    lab[dens == 0] = 0
+    return Grid.from_dense(lab, dens, spacing_mm=h)
+
+
+def test_a_drilled_wedge_reads_as_a_band():
+    """Along a floor thinned evenly toward the sinus, the drawn floor rises
+    smoothly (no voxel terraces) and the tint deepens smoothly toward the
+    thin end: a band, not steps or blotches."""
+    grid = _wedge()
+    surf = Surface.build(grid, COLORS, bone=BONE)
+    z, red = [], []
+    for i in range(4, 36):                       # away from the end walls
+        k = max(k for k in range(24) if grid.label_at(i, 8, k) == 1)
+        v = surf.vertex_at(i, 8, k)
+        z.append(float(surf.pos[v, 2]))
+        red.append(int(surf.col[v, 0]))
+    dz, dr = np.diff(z), np.diff(red)
+    assert (dz > 0).all() and dz.max() < 0.2               # < 0.4 voxel per voxel
+    assert (dr >= 0).all() and dr.max() <= 12              # bluer as it thins
+    assert red[0] < BONE_RGB[0] - 80 and red[-1] >= BONE_RGB[0] - 5
+
+
 def test_bone_over_air_and_non_bone_surfaces_keep_their_colour():
     lab = np.zeros((12, 12, 8), np.uint8)
     lab[:, :, 2:4] = 1                      # a 1 mm plate over air
