@@ -254,10 +254,11 @@ def bench_load_native(quick=False) -> dict:
 
     The stacks are the phantom's anatomy upsampled onto cubes (52 mm across:
     0.203 mm and 0.102 mm pixels, as real segmentations' 0.1-0.2 mm), RGB PNG
-    slices declared ``"PIR"``, with a ``[camera]`` (no view is derived:
-    the derived view and the colours' neighbours are not part of the
-    figure), written once per run into a temporary folder (not timed). Each
-    load runs in a fresh process (numba's cached kernels load there too).
+    slices declared ``"PIR"``, with a ``[camera]`` (no view is derived;
+    the landmarks and the side and orientation check, which every load
+    derives, are part of the figure, the colours' neighbours are not),
+    written once per run into a temporary folder (not timed). Each load runs
+    in a fresh process (numba's cached kernels load there too).
     """
     sizes = QUICK_NATIVE_SIZES if quick else NATIVE_SIZES
     out: dict = {}
