@@ -57,13 +57,13 @@ def landmarks_picture(case, path, size=(1280, 960)):
     import vtkmodules.vtkRenderingFreeType  # noqa: F401  (text rendering)
     from vtkmodules.vtkFiltersSources import vtkSphereSource
     from vtkmodules.vtkRenderingCore import (vtkActor, vtkBillboardTextActor3D,
-                                             vtkPolyDataMapper, vtkTextActor)
+                                             vtkPolyDataMapper)
 
     from bonesim.io.anatomy import load_table
     from bonesim.io.landmarks import analysis_grid
     from bonesim.render.geometry import structure_polydata
     from bonesim.render.scene import Scene
-    from bonesim.render.visibility_view import legend_font_px
+    from bonesim.render.visibility_view import add_legend, legend_font_px
 
     vol = case.load_volume()
     lm = case.landmarks
@@ -136,19 +136,7 @@ def landmarks_picture(case, path, size=(1280, 960)):
                                ("estimated", "where it must be"))]
         lines += [(GROUP_TEXT.get(g, g), np.array(rgb) / 255.0, fs) for g, rgb in drawn]
         lines += [("missing: " + m, (1.0, 0.55, 0.3), fs) for m in lm.missing]
-        y = size[1] - 8
-        for text, rgb, s in lines:
-            a = vtkTextActor()
-            a.SetInput(text)
-            tp = a.GetTextProperty()
-            tp.SetFontSize(s)
-            tp.SetColor(*map(float, rgb))
-            tp.SetVerticalJustificationToTop()
-            tp.SetBackgroundColor(0.0, 0.0, 0.0)
-            tp.SetBackgroundOpacity(0.45)
-            a.SetDisplayPosition(10, y)
-            scene.renderer.AddViewProp(a)
-            y -= int(s * 1.35)
+        add_legend(scene.renderer, lines, size[1] - 8)
         return scene.screenshot(path)
     finally:
         scene.close()

@@ -18,7 +18,8 @@ from bonesim.io.anatomy import clinical_name
 from bonesim.render.hud import format_help
 
 __all__ = ["VISIBLE_RGB", "HIDDEN_RGB", "VISIBLE_OPACITY", "CUBE_FILL", "VIEWER_KEYS",
-           "VIEWER_MOUSE_HELP", "legend_font_px", "visibility_scene", "viewer_window",
+           "VIEWER_MOUSE_HELP", "legend_font_px", "add_legend", "visibility_scene",
+           "viewer_window",
            "show_visibility"]
 
 #: Colour of removals that were visible (0-255 RGB).
@@ -77,9 +78,6 @@ def visibility_scene(model, centre_mm, visible, chosen, title: str, lines, *,
     bonesim.render.scene.Scene
         Close it when done.
     """
-    import vtkmodules.vtkRenderingFreeType  # noqa: F401  (text rendering)
-    from vtkmodules.vtkRenderingCore import vtkTextActor
-
     from bonesim.render.scene import Scene
 
     centre_mm = np.asarray(centre_mm, np.float64).reshape(-1, 3)
@@ -115,23 +113,41 @@ def visibility_scene(model, centre_mm, visible, chosen, title: str, lines, *,
              ("red: hidden when removed (undercut)", np.array(HIDDEN_RGB) / 255, fs)] + \
             [(clinical_name(st.name), np.array(st.display_color[:3]) / 255, fs)
              for st in model.structures if st.name in chosen]
-        for text, rgb, s in texts:
-            a = vtkTextActor()
-            a.SetInput(text)
-            tp = a.GetTextProperty()
-            tp.SetFontSize(s)
-            tp.SetColor(*map(float, rgb))
-            tp.SetVerticalJustificationToTop()
-            tp.SetBackgroundColor(0.0, 0.0, 0.0)
-            tp.SetBackgroundOpacity(0.45)
-            a.SetDisplayPosition(10, y)
-            a.PickableOff()
-            scene.renderer.AddViewProp(a)
-            y -= int(s * 1.35)
+        add_legend(scene.renderer, texts, y)
     except BaseException:
         scene.close()
         raise
     return scene
+
+
+def add_legend(renderer, lines, top_px: int) -> None:
+    """Lines of text down the top-left corner of ``renderer``'s view.
+
+    Parameters
+    ----------
+    renderer : vtkRenderer
+    lines : sequence of (str, (3,) float 0-1, int)
+        Text, colour and font size [px] of each line.
+    top_px : int
+        Where the first line's top sits [px from the bottom].
+    """
+    import vtkmodules.vtkRenderingFreeType  # noqa: F401  (text rendering)
+    from vtkmodules.vtkRenderingCore import vtkTextActor
+
+    y = top_px
+    for text, rgb, s in lines:
+        a = vtkTextActor()
+        a.SetInput(text)
+        tp = a.GetTextProperty()
+        tp.SetFontSize(s)
+        tp.SetColor(*map(float, rgb))
+        tp.SetVerticalJustificationToTop()
+        tp.SetBackgroundColor(0.0, 0.0, 0.0)
+        tp.SetBackgroundOpacity(0.45)
+        a.SetDisplayPosition(10, y)
+        a.PickableOff()
+        renderer.AddViewProp(a)
+        y -= int(s * 1.35)
 
 
 def viewer_window(scene):
