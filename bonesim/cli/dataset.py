@@ -20,6 +20,12 @@ __all__ = ["dataset_parsers", "options_from_args", "cmd_dataset", "cmd_sessions_
 _STREAM_FLAGS = ("rgb", "depth", "seg", "normals", "points")
 
 
+def _print_json(obj) -> None:
+    import json
+
+    print(json.dumps(obj, indent=2))
+
+
 def dataset_parsers(sub, _lazy, sessions_sub) -> None:
     """Add ``bonesim dataset`` to the subcommands ``sub`` and ``export`` to
     ``bonesim sessions``' ``sessions_sub``."""
@@ -126,7 +132,6 @@ def _one_run(path: str) -> bool:
 
 
 def cmd_dataset(args) -> int:
-    from bonesim.cli.main import _print_json
     from bonesim.progress import ProgressBar
 
     opts = options_from_args(args)
@@ -145,17 +150,18 @@ def cmd_dataset(args) -> int:
     from bonesim.render.dataset import make_dataset
 
     warmup()
-    bar = None if args.no_progress else ProgressBar(1, "dataset")
+    bars = []
 
     def progress(done, total):
-        bar.total = max(int(total), 1)
-        bar.update(done)
+        if not bars:                        # the first frame is rendered: show the bar
+            bars.append(ProgressBar(total, "dataset"))
+        bars[0].update(done)
 
     try:
         res = make_dataset(args.runs, args.out, opts,
-                           progress=None if bar is None else progress)
+                           progress=None if args.no_progress else progress)
     finally:
-        if bar is not None:
+        for bar in bars:
             bar.close()
     if args.preview:
         from bonesim.session.dataset_io import open_dataset
@@ -181,7 +187,6 @@ def cmd_dataset(args) -> int:
 
 
 def cmd_sessions_export(args) -> int:
-    from bonesim.cli.main import _print_json
     from bonesim.session.bone_export import export_bone
     from bonesim.session.reader import damage_notice, read_session
 

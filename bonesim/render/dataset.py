@@ -486,12 +486,19 @@ def make_dataset(run, out, options, *, progress=None) -> dict:
     from bonesim.session.dataset_io import open_writer
     from bonesim.session.reader import damage_notice, read_session
 
+    from bonesim.errors import BonesimError
+
     session = read_session(run) if isinstance(run, (str, Path)) else run
     notes = []
     line = damage_notice(session) if hasattr(session, "damage") else None
     if line:
         notes.append(line)
-    src = FrameSource(session, options)
+    try:
+        src = FrameSource(session, options)
+    except BonesimError as exc:              # a bad --start/--end: name the run too
+        if exc.path is not None or getattr(session, "path", None) is None:
+            raise
+        raise BonesimError(exc.message, session.path, exc.field) from None
     n = len(src.times)
     prov = spec.provenance(session, options, n, notes)
     classes = spec.class_table(src.player.model.structures)

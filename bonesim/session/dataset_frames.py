@@ -8,8 +8,9 @@ simulates the dust and the water again from the recording
 (:class:`bonesim.physics.dust.DustGrid`): every recorded removal becomes
 dust when it happens, and the dust moves on a fixed clock of
 :data:`DUST_DT_S` steps from the recording's start, whatever the frame rate,
-with the burr at its recorded pose pushing it, so the dust of a moment is
-the same in every dataset of the run. Water: where the recording's key
+with the burr at its recorded pose pushing it, and its sprites (whose age
+fades them) listed at every step, so the dust of a moment is the same in
+every dataset of the run. Water: where the recording's key
 events turned irrigation on, at the burr (as the window pours it); with
 ``suction="follow"`` also the suction-irrigator of the headless main job
 (:mod:`bonesim.apps.showcase`: while the drill runs, water lands at the burr
@@ -209,6 +210,9 @@ class FrameSource:
                         tool_radius_mm=self._radius(q), suction_pos_mm=suck,
                         suction_radius_mm=SUCTION_TIP_RADIUS_MM if suck is not None else 0.0,
                         irrigation_pos_mm=wet, irrigation_radius_mm=radius, bodies=st)
+        # listing the sprites notes when each cell's dust arrived (its age, which
+        # fades it): do it every step, so ages do not depend on the frame rate
+        self._dust.sprites()
 
     def at(self, t: float) -> FrameState:
         """The frame at playback time ``t`` (times must not decrease from call

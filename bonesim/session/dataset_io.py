@@ -140,17 +140,14 @@ class H5Writer:
 def _png(path: Path, arr: np.ndarray) -> None:
     from PIL import Image
 
-    if arr.dtype == np.uint16:
-        img = Image.fromarray(arr, mode="I;16")
-    else:
-        img = Image.fromarray(arr)
+    img = Image.fromarray(np.ascontiguousarray(arr))       # uint16 -> "I;16", 16-bit PNG
     img.save(path, format="PNG", optimize=False, compress_level=6)
 
 
 def _tiff(path: Path, arr: np.ndarray) -> None:
     from PIL import Image
 
-    Image.fromarray(np.ascontiguousarray(arr, np.float32), mode="F").save(
+    Image.fromarray(np.ascontiguousarray(arr, np.float32)).save(            # mode "F"
         path, format="TIFF", compression="tiff_adobe_deflate")
 
 
