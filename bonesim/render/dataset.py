@@ -17,7 +17,7 @@ twice per eye:
    first surface's depth, turned into metric depth along the optical axis
    with the projection the frame was drawn with. On a bone surface the
    structure is the one of the voxel the pixel's ray reaches there
-   (:func:`bonesim.session.dataset_labels.first_voxel_labels`, in the body's
+   (:func:`bonesim.session.dataset_labels.label_image`, in the body's
    frame).
 
 Both passes draw the same geometry with the same camera, so the labels and
@@ -46,7 +46,7 @@ from bonesim.session import dataset_spec as spec
 from bonesim.session.dataset_camera import (cam_to_case, depth_from_zbuffer,
                                             normals_from_points, opencv_extrinsics,
                                             opencv_intrinsics, pixel_rays)
-from bonesim.session.dataset_labels import first_voxel_labels
+from bonesim.session.dataset_labels import label_image
 
 __all__ = ["ID_SPLAT_SHADER", "DatasetRenderer", "make_dataset"]
 
@@ -348,42 +348,22 @@ class DatasetRenderer:
         n = len(table)
         cls_of = np.zeros(n, np.uint8)
         inst_of = np.full(n, spec.NO_INSTANCE, np.int16)
-        tissue = np.zeros(n, bool)
+        entry_body = np.full(n, -1, np.int64)
         for k, e in enumerate(table[1:], start=1):
             kind, cid, inst = e
             inst_of[k] = inst
             if kind == _TISSUE:
-                tissue[k] = True
+                entry_body[k] = inst
             else:
                 cls_of[k] = cid
         cls = cls_of[idx]
         inst = inst_of[idx]
-        sel = tissue[idx] & np.isfinite(depth)
-        if sel.any():
-            cls[sel] = self._tissue_labels(inst[sel], sel, depth, cam)
+        if (entry_body >= 0).any():
+            st = self.player.replica.state
+            self.stats["label_misses"] += label_image(
+                self.player.grid, st.body, st.pose_m, entry_body, idx, depth, cam["K"],
+                cam["R"], cam["cam_to_case"][:3, 3], cls)
         return cls, inst
-
-    def _tissue_labels(self, bodies, sel, depth, cam) -> np.ndarray:
-        """Structure of the voxel each selected pixel's ray reaches (body frames)."""
-        rays = self._pixel_rays(cam["K"])[sel]                  # camera frame, z = 1
-        norm = np.linalg.norm(rays, axis=1)
-        r = cam["R"]
-        dirs = (rays / norm[:, None]) @ r                        # R.T @ d, case frame
-        t_hit = depth[sel].astype(np.float64) * norm
-        eye = cam["cam_to_case"][:3, 3]
-        st = self.player.replica.state
-        orgs = np.empty_like(dirs)
-        bdirs = np.empty_like(dirs)
-        for b in np.unique(bodies):
-            m = bodies == b
-            pm = st.pose_m[int(b)]
-            rot, tr = pm[:, :3], pm[:, 3]
-            orgs[m] = (eye - tr) @ rot
-            bdirs[m] = dirs[m] @ rot
-        labels, misses = first_voxel_labels(self.player.grid, st.body, bodies, orgs, bdirs,
-                                            t_hit)
-        self.stats["label_misses"] += misses
-        return labels
 
     def _pixel_rays(self, k):
         if self._rays is None or not np.array_equal(self._rays[0], k):

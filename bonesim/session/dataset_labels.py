@@ -21,7 +21,7 @@ from numba import njit
 
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 
-__all__ = ["BACK_VOXELS", "AHEAD_VOXELS", "first_voxel_labels"]
+__all__ = ["BACK_VOXELS", "AHEAD_VOXELS", "first_voxel_labels", "label_image"]
 
 #: The walk starts this many voxel edges before the drawn surface ...
 BACK_VOXELS = 1.5
@@ -43,79 +43,162 @@ def _occupied_label(keys, vals, density, label, body, nx, ny, nz, i, j, k, b):
     return np.int64(label[br, off])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _axis_start(p, d, t0, h):
+    """Voxel index, step, first boundary crossing and crossing interval along one
+    axis of a ray at ``t0`` (``p``: continuous voxel coordinate there)."""
+    i = np.int64(math.floor(p + 0.5))
+    if d > 0.0:
+        return i, np.int64(1), t0 + (i + 0.5 - p) * h / d, h / d
+    if d < 0.0:
+        return i, np.int64(-1), t0 + (i - 0.5 - p) * h / d, -h / d
+    return i, np.int64(0), np.inf, np.inf
+
+
+@njit(cache=True, nogil=True)
+def _walk_one(keys, vals, density, label, body, nx, ny, nz, ox, oy, oz, h, b,
+              rx, ry, rz, dx, dy, dz, thit, back, ahead):
+    """Label of the first voxel of body ``b`` along the ray ``r + t d`` for
+    ``t`` in ``[thit - back h, thit + ahead h]``, else of the nearest such
+    voxel around the hit; -1 if none."""
+    t0 = max(thit - back * h, 0.0)
+    t1 = thit + ahead * h
+    i, si, ti, di = _axis_start((rx + dx * t0 - ox) / h, dx, t0, h)
+    j, sj, tj, dj = _axis_start((ry + dy * t0 - oy) / h, dy, t0, h)
+    k, sk, tk, dk = _axis_start((rz + dz * t0 - oz) / h, dz, t0, h)
+    t = t0
+    while t <= t1:
+        lab = _occupied_label(keys, vals, density, label, body, nx, ny, nz, i, j, k, b)
+        if lab >= 0:
+            return lab
+        if ti <= tj and ti <= tk:
+            t = ti
+            i += si
+            ti += di
+        elif tj <= tk:
+            t = tj
+            j += sj
+            tj += dj
+        else:
+            t = tk
+            k += sk
+            tk += dk
+    # nearest occupied voxel of the body around the hit point
+    hx = (rx + dx * thit - ox) / h
+    hy = (ry + dy * thit - oy) / h
+    hz = (rz + dz * thit - oz) / h
+    ci = np.int64(math.floor(hx + 0.5))
+    cj = np.int64(math.floor(hy + 0.5))
+    ck = np.int64(math.floor(hz + 0.5))
+    best = np.inf
+    found = np.int64(-1)
+    for a in range(-1, 2):
+        for bb in range(-1, 2):
+            for c in range(-1, 2):
+                lab = _occupied_label(keys, vals, density, label, body, nx, ny, nz,
+                                      ci + a, cj + bb, ck + c, b)
+                if lab < 0:
+                    continue
+                e = (ci + a - hx) ** 2 + (cj + bb - hy) ** 2 + (ck + c - hz) ** 2
+                if e < best:
+                    best = e
+                    found = lab
+    return found
+
+
 @njit(cache=True, nogil=True)
 def _walk(keys, vals, density, label, body, shape, origin, h, bods, orgs, dirs, thit,
           back, ahead, out):
-    nx, ny, nz = shape[0], shape[1], shape[2]
     misses = 0
     for q in range(orgs.shape[0]):
-        b = bods[q]
-        t0 = max(thit[q] - back * h, 0.0)
-        t1 = thit[q] + ahead * h
-        # continuous voxel coordinates (voxel centres at integers)
-        pos = np.empty(3)
-        idx = np.empty(3, np.int64)
-        stp = np.empty(3, np.int64)
-        tmax = np.empty(3)
-        tdel = np.empty(3)
-        for a in range(3):
-            pos[a] = (orgs[q, a] + dirs[q, a] * t0 - origin[a]) / h
-            idx[a] = np.int64(math.floor(pos[a] + 0.5))
-            d = dirs[q, a]
-            if d > 0.0:
-                stp[a] = 1
-                tmax[a] = t0 + (idx[a] + 0.5 - pos[a]) * h / d
-                tdel[a] = h / d
-            elif d < 0.0:
-                stp[a] = -1
-                tmax[a] = t0 + (idx[a] - 0.5 - pos[a]) * h / d
-                tdel[a] = -h / d
-            else:
-                stp[a] = 0
-                tmax[a] = np.inf
-                tdel[a] = np.inf
-        found = -1
-        t = t0
-        while t <= t1:
-            lab = _occupied_label(keys, vals, density, label, body, nx, ny, nz,
-                                  idx[0], idx[1], idx[2], b)
-            if lab >= 0:
-                found = lab
-                break
-            a = 0
-            if tmax[1] < tmax[a]:
-                a = 1
-            if tmax[2] < tmax[a]:
-                a = 2
-            t = tmax[a]
-            idx[a] += stp[a]
-            tmax[a] += tdel[a]
-        if found < 0:
-            # nearest occupied voxel of the body around the hit point
-            best = np.inf
-            hc = np.empty(3)
-            for a in range(3):
-                hc[a] = (orgs[q, a] + dirs[q, a] * thit[q] - origin[a]) / h
-            ci = np.int64(math.floor(hc[0] + 0.5))
-            cj = np.int64(math.floor(hc[1] + 0.5))
-            ck = np.int64(math.floor(hc[2] + 0.5))
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    for dk in range(-1, 2):
-                        lab = _occupied_label(keys, vals, density, label, body, nx, ny, nz,
-                                              ci + di, cj + dj, ck + dk, b)
-                        if lab < 0:
-                            continue
-                        e = ((ci + di - hc[0]) ** 2 + (cj + dj - hc[1]) ** 2
-                             + (ck + dk - hc[2]) ** 2)
-                        if e < best:
-                            best = e
-                            found = lab
-        if found < 0:
+        lab = _walk_one(keys, vals, density, label, body, shape[0], shape[1], shape[2],
+                        origin[0], origin[1], origin[2], h, bods[q], orgs[q, 0], orgs[q, 1],
+                        orgs[q, 2], dirs[q, 0], dirs[q, 1], dirs[q, 2], thit[q], back, ahead)
+        if lab < 0:
             misses += 1
-            found = 0
-        out[q] = found
+            lab = 0
+        out[q] = lab
     return misses
+
+
+@njit(cache=True, nogil=True)
+def _label_image(keys, vals, density, label, body, shape, origin, h, entry_body, idx, depth,
+                 kinv, rot, eye, pose_m, back, ahead, out):
+    """Every pixel whose entry is a body's surface (``entry_body[idx] >= 0``):
+    its ray from ``eye`` through the pixel centre, taken into that body's frame."""
+    misses = 0
+    for v in range(idx.shape[0]):
+        for u in range(idx.shape[1]):
+            b = entry_body[idx[v, u]]
+            z = depth[v, u]
+            if b < 0 or not np.isfinite(z):
+                continue
+            # camera-frame ray (z = 1), then the case frame (R.T) and unit length
+            cx = kinv[0, 0] * u + kinv[0, 2]
+            cy = kinv[1, 1] * v + kinv[1, 2]
+            n = math.sqrt(cx * cx + cy * cy + 1.0)
+            wx = (rot[0, 0] * cx + rot[1, 0] * cy + rot[2, 0]) / n
+            wy = (rot[0, 1] * cx + rot[1, 1] * cy + rot[2, 1]) / n
+            wz = (rot[0, 2] * cx + rot[1, 2] * cy + rot[2, 2]) / n
+            # into the body's frame: x_body = Rb.T (x_case - tb)
+            ex = eye[0] - pose_m[b, 0, 3]
+            ey = eye[1] - pose_m[b, 1, 3]
+            ez = eye[2] - pose_m[b, 2, 3]
+            rx = pose_m[b, 0, 0] * ex + pose_m[b, 1, 0] * ey + pose_m[b, 2, 0] * ez
+            ry = pose_m[b, 0, 1] * ex + pose_m[b, 1, 1] * ey + pose_m[b, 2, 1] * ez
+            rz = pose_m[b, 0, 2] * ex + pose_m[b, 1, 2] * ey + pose_m[b, 2, 2] * ez
+            dx = pose_m[b, 0, 0] * wx + pose_m[b, 1, 0] * wy + pose_m[b, 2, 0] * wz
+            dy = pose_m[b, 0, 1] * wx + pose_m[b, 1, 1] * wy + pose_m[b, 2, 1] * wz
+            dz = pose_m[b, 0, 2] * wx + pose_m[b, 1, 2] * wy + pose_m[b, 2, 2] * wz
+            lab = _walk_one(keys, vals, density, label, body, shape[0], shape[1], shape[2],
+                            origin[0], origin[1], origin[2], h, b, rx, ry, rz, dx, dy, dz,
+                            z * n, back, ahead)
+            if lab < 0:
+                misses += 1
+                lab = 0
+            out[v, u] = lab
+    return misses
+
+
+def label_image(grid, body, pose_m, entry_body, idx, depth, k, r, eye, out,
+                back=BACK_VOXELS, ahead=AHEAD_VOXELS) -> int:
+    """Label the bone-surface pixels of a frame in place.
+
+    Parameters
+    ----------
+    grid, body
+        As :func:`first_voxel_labels`.
+    pose_m : (max_bodies, 3, 4) float64
+        Body-to-case poses (the state's ``pose_m``).
+    entry_body : (n_entries,) int64
+        The body each entry of the label pass shows, -1 for entries that are
+        not a body's surface.
+    idx : (H, W) int64
+        Entry per pixel.
+    depth : (H, W) float32
+        Depth along the optical axis [mm].
+    k, r, eye
+        Intrinsics, extrinsics' rotation (case -> camera, OpenCV) and the
+        eye [mm] (:mod:`bonesim.session.dataset_camera`).
+    out : (H, W) uint8
+        Receives the labels of those pixels (others untouched).
+
+    Returns
+    -------
+    int
+        Pixels whose ray found no voxel of their body (labelled 0).
+    """
+    return int(_label_image(grid.keys, grid.vals, grid.density, grid.label, body,
+                            np.asarray(grid.shape, np.int64),
+                            np.asarray(grid.origin_mm, np.float64), float(grid.spacing_mm),
+                            np.ascontiguousarray(entry_body, np.int64),
+                            np.ascontiguousarray(idx, np.int64),
+                            np.ascontiguousarray(depth, np.float32),
+                            np.linalg.inv(np.asarray(k, np.float64)),
+                            np.ascontiguousarray(r, np.float64),
+                            np.ascontiguousarray(eye, np.float64),
+                            np.ascontiguousarray(pose_m, np.float64), float(back), float(ahead),
+                            out))
 
 
 def first_voxel_labels(grid, body, bodies, origins, dirs, t_hit, back=BACK_VOXELS,
