@@ -41,9 +41,9 @@ def depth_colors(depth, lo=None, hi=None) -> np.ndarray:
     return out
 
 
-def overlay(rgb, cls, classes, alpha: float = 0.55) -> np.ndarray:
+def overlay(rgb, cls, classes, alpha: float = 0.55, edges: bool = True) -> np.ndarray:
     """The class map's preview colours blended over the picture (background
-    left as it is)."""
+    left as it is), with the borders between classes drawn dark."""
     lut = np.zeros((256, 3), np.float64)
     for c in classes:
         lut[int(c["id"])] = c.get("rgb", (200, 200, 200))
@@ -51,6 +51,12 @@ def overlay(rgb, cls, classes, alpha: float = 0.55) -> np.ndarray:
     base = np.asarray(rgb, np.float64)
     m = (np.asarray(cls) != 0)[..., None]
     out = np.where(m, (1 - alpha) * base + alpha * col, base)
+    if edges:
+        c = np.asarray(cls)
+        e = np.zeros(c.shape, bool)
+        e[:, 1:] |= c[:, 1:] != c[:, :-1]
+        e[1:, :] |= c[1:, :] != c[:-1, :]
+        out[e] = 0.25 * out[e]
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
