@@ -384,3 +384,65 @@ def test_normals_face_the_camera_and_fit_the_points(scene):
     radial = pc[f & ok] - centre
     radial /= np.linalg.norm(radial, axis=1)[:, None]
     assert np.median((n[f & ok] * radial).sum(axis=1)) > 0.95
+
+
+def test_a_moved_fragment_and_a_plate_carry_their_instance_ids(phantom):
+    """A piece of the phantom split off as body 1 and lifted toward the camera,
+    and a plate placed in front of the bone: the piece's pixels are bone of
+    instance 1 lying where the piece now is, the plate's are class plate with
+    its slot."""
+    from types import SimpleNamespace
+
+    from bonesim.engine.bodies import pose_matrix, publish_pose, publish_split_box
+    from bonesim.engine.model import make_state
+    from bonesim.engine.replica import TissueReplica
+    from bonesim.engine.rigid import gravity_direction
+    from bonesim.engine.rigid_set import RigidSet, publish_plate
+    from bonesim.io.plates import default_plates
+    from bonesim.session.playback import Frame
+    from bonesim.session.dataset_frames import FrameState
+    from tests.bonesim.render import scenes
+
+    model = phantom
+    state = make_state(model)
+    rep = TissueReplica(model, state, surface=True)
+
+    b, _ = publish_split_box(state, 0, scenes.PIECE_LO, scenes.PIECE_HI, 0.0)
+    publish_pose(state, b, np.array([*scenes.PIECE_LIFT_MM, 1.0, 0.0, 0.0, 0.0]), 0.0)
+    rs = RigidSet(model.max_bodies, gravity_dir=gravity_direction(model))
+    spec_ = default_plates()[0]
+    g = model.grid
+    centre = g.origin_mm + g.spacing_mm * (np.add(scenes.PIECE_LO, scenes.PIECE_HI) / 2.0)
+    plate_at = centre + np.array([4.0, -14.0, 0.0])
+    s = rs.add_plate(spec_.pos, spec_.nrm, spec_.offset_mm, spec_.mass_kg,
+                     spec_.stiffness_n_mm, (*plate_at, math.sqrt(0.5), 0.0, math.sqrt(0.5), 0.0),
+                     catalog=0, axis=spec_.axis, samples=spec_.samples)
+    publish_plate(state, rs, s, 0.0)
+    rep.drain()
+    assert sorted(rep.body_surfaces) == [0, b] and s in rep.plates
+    player = SimpleNamespace(model=model, replica=rep, surface=rep.surface, grid=rep.grid,
+                             burrs=[model.burr])
+    far = np.array([60.0, 60.0, 60.0])                        # the burr out of sight
+    frame = Frame(t_s=0.0, duration_s=1.0, index=0, pos_mm=far, axis=np.array([-1.0, 0, 0]),
+                  drill=False, speed_rpm=0.0, direction=1, burr_index=0, burr=model.burr,
+                  force_n=0.0, epoch=0, voxels_removed=0, volume_removed_mm3=0.0)
+    eye = np.array(scenes.OBLIQUE_EYE)
+    focal = np.array(scenes.OBLIQUE_FOCAL)
+    fs = FrameState(frame, [(eye, focal, np.array(scenes.UP))])
+    opts = DatasetOptions(size=SIZE, rgb=False, depth=True, seg=True, points=True)
+    with DatasetRenderer(player, opts) as rend:
+        res = rend.render(fs)[0]
+        assert rend.stats["label_misses"] == 0
+    piece = res["instance"] == b
+    assert piece.sum() > 50
+    assert set(np.unique(res["class"][piece]).tolist()) <= {1}           # bone
+    # the piece's pixels lie on the piece where it now is (lifted)
+    lo = g.origin_mm + g.spacing_mm * np.asarray(scenes.PIECE_LO) + scenes.PIECE_LIFT_MM
+    hi = g.origin_mm + g.spacing_mm * np.asarray(scenes.PIECE_HI) + scenes.PIECE_LIFT_MM
+    pts = res["points_case"][piece]
+    assert ((pts >= lo - 0.5) & (pts <= hi + 0.5)).all()
+    np.testing.assert_allclose(pose_matrix(rep.state.pose[b])[:, 3], scenes.PIECE_LIFT_MM)
+    plate = res["class"] == spec.CLASS_PLATE
+    assert plate.sum() > 20 and (res["instance"][plate] == s).all()
+    main = (res["instance"] == 0) & (res["class"] == 1)
+    assert main.sum() > 1000
