@@ -199,8 +199,7 @@ def bench_surface(quick=False) -> dict:
     per_k = []
     reshaded = []
     n_blobs = 10 if quick else 60
-    pos, _, _, _ = surf.arrays()
-    verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
+    verts = surf.ijk[surf.vertex_slots].copy()          # the surface voxels
     for _ in range(n_blobs):
         c = verts[rng.integers(len(verts))]
         ijk = remove_voxels(grid, c + ball)
@@ -468,6 +467,8 @@ BENCHMARKS = {
     "retessellate_speedup_vs_full": bench_surface,
     "retessellate_one_voxel_us": bench_surface,
     "tessellate_phantom_s": bench_surface,
+    "surface_roughness_deg": lambda quick=False: __import__(
+        "bonesim.bench.surface_quality", fromlist=["_"]).bench_surface_roughness(quick=quick),
     "tessellate_ct512_s": bench_ct512,
     "marching_cubes_ct512_s": bench_ct512,
     "simulate_warm_s": bench_simulate,

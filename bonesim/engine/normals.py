@@ -1,5 +1,6 @@
-"""Smooth vertex normals: a Gaussian-derivative density gradient over 7x7x7
-voxels, evaluated separably on dense boxes of densities.
+"""Smooth vertex normals and sub-voxel vertex positions: a Gaussian-smoothed
+density over 7x7x7 voxels and its gradient, evaluated separably on dense
+boxes of densities.
 
 Definition
 ----------
@@ -25,6 +26,29 @@ Vertex normal
     :data:`GRAD_EPS` the normal is the normalised sum of the offsets
     ``(di, dj, dk)`` toward the empty 26-neighbours, and if that sum is zero
     too, ``+z``. Normals are stored as float32.
+Smoothed density
+    ``f = sum_a S[a] sum_b S[b] sum_c S[c] d(i + a, j + b, k + c)``, the
+    same Gaussian without derivative (evaluated like ``g``: float32,
+    separably, symmetric terms folded). The density is the fraction of a
+    voxel's material left (1 intact, partly drilled in between), so ``f``
+    is a smoothed partial-volume occupancy.
+Vertex position
+    The vertex of voxel ``(i, j, k)`` sits on the level set ``f = iso`` of
+    that field, reached by one Newton step along the normal from the
+    voxel's centre ``c``::
+
+        s = clip((f - iso) / |g|, -max_in, max_out)      [voxels]
+        p = origin_mm + spacing_mm * ((i, j, k) + s n)   [mm]
+
+    (``s = 0`` when ``|g| <=`` :data:`GRAD_EPS`; ``iso``, ``max_in`` and
+    ``max_out`` are ``[surface]`` of the shading file). A flat face of
+    intact bone lies about half a voxel outside its voxels' centres, where
+    the voxels end; a partly drilled voxel's vertex sinks as its density
+    falls, so a drilled floor is as smooth as the burr left it, not a
+    staircase of voxel centres. The clip keeps thin plates (where ``f``
+    never reaches ``iso``) from collapsing: each face moves at most
+    ``max_in`` into the bone. :func:`_vertex_shift` computes ``s`` in
+    float64 from the float32 ``f`` and ``g``.
 
 The kernels (:func:`_kj_plane`, :func:`_i_plane`, :func:`_unit`,
 :func:`_fallback_normal`) are used by :mod:`bonesim.engine.shading` for the full
@@ -37,7 +61,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["NORMAL_RADIUS", "GRAD_EPS", "normal_weights", "stencil_weights"]
+__all__ = ["NORMAL_RADIUS", "GRAD_EPS", "N_FIELD", "normal_weights", "stencil_weights"]
 
 #: Half-width [voxels] of the normal stencil (7x7x7 voxels; the kernels are
 #: written out for this value).
@@ -45,6 +69,9 @@ NORMAL_RADIUS = 3
 #: Gradients with a norm at most this [density per voxel] are treated as zero
 #: (fallback normal).
 GRAD_EPS = 1e-6
+#: Components of the field per voxel that :func:`_i_plane` writes: the
+#: gradient's three and the smoothed density.
+N_FIELD = 4
 
 
 def normal_weights(sigma_voxels: float):
@@ -134,11 +161,12 @@ def _kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
 
 @njit(cache=True, nogil=True)
 def _i_plane(ring, first, n_pl, W, g):
-    """Pass along i: the gradient of the plane between the ring's planes
-    ``first .. first + 6`` (slot ``p % 7`` holds plane ``p``, see
-    :func:`_kj_plane`): ``g[0:n]`` = D-pass of ``tx``, ``g[n:2n]`` and
-    ``g[2n:3n]`` the S-passes of ``ty`` and ``tz`` (``n = Yo Zo``, float32,
-    left to right as in :func:`_kj_plane`)."""
+    """Pass along i: the gradient and smoothed density of the plane between
+    the ring's planes ``first .. first + 6`` (slot ``p % 7`` holds plane
+    ``p``, see :func:`_kj_plane`): ``g[0:n]`` = D-pass of ``tx``, ``g[n:2n]``
+    and ``g[2n:3n]`` the S-passes of ``ty`` and ``tz``, ``g[3n:4n]`` the
+    S-pass of ``tx`` (``f``) (``n = Yo Zo``, float32, left to right as in
+    :func:`_kj_plane`; ``g`` holds :data:`N_FIELD` ``n`` values)."""
     s0 = W[0]
     s1 = W[1]
     s2 = W[2]
@@ -146,14 +174,15 @@ def _i_plane(ring, first, n_pl, W, g):
     d1 = W[4]
     d2 = W[5]
     d3 = W[6]
-    for c in range(3):
-        a0 = ring[(3 * ((first + 0) % 7) + c) * n_pl:(3 * ((first + 0) % 7) + c + 1) * n_pl]
-        a1 = ring[(3 * ((first + 1) % 7) + c) * n_pl:(3 * ((first + 1) % 7) + c + 1) * n_pl]
-        a2 = ring[(3 * ((first + 2) % 7) + c) * n_pl:(3 * ((first + 2) % 7) + c + 1) * n_pl]
-        a3 = ring[(3 * ((first + 3) % 7) + c) * n_pl:(3 * ((first + 3) % 7) + c + 1) * n_pl]
-        a4 = ring[(3 * ((first + 4) % 7) + c) * n_pl:(3 * ((first + 4) % 7) + c + 1) * n_pl]
-        a5 = ring[(3 * ((first + 5) % 7) + c) * n_pl:(3 * ((first + 5) % 7) + c + 1) * n_pl]
-        a6 = ring[(3 * ((first + 6) % 7) + c) * n_pl:(3 * ((first + 6) % 7) + c + 1) * n_pl]
+    for c in range(4):
+        src = c if c < 3 else 0             # f: the S-pass of tx
+        a0 = ring[(3 * ((first + 0) % 7) + src) * n_pl:(3 * ((first + 0) % 7) + src + 1) * n_pl]
+        a1 = ring[(3 * ((first + 1) % 7) + src) * n_pl:(3 * ((first + 1) % 7) + src + 1) * n_pl]
+        a2 = ring[(3 * ((first + 2) % 7) + src) * n_pl:(3 * ((first + 2) % 7) + src + 1) * n_pl]
+        a3 = ring[(3 * ((first + 3) % 7) + src) * n_pl:(3 * ((first + 3) % 7) + src + 1) * n_pl]
+        a4 = ring[(3 * ((first + 4) % 7) + src) * n_pl:(3 * ((first + 4) % 7) + src + 1) * n_pl]
+        a5 = ring[(3 * ((first + 5) % 7) + src) * n_pl:(3 * ((first + 5) % 7) + src + 1) * n_pl]
+        a6 = ring[(3 * ((first + 6) % 7) + src) * n_pl:(3 * ((first + 6) % 7) + src + 1) * n_pl]
         o = g[c * n_pl:(c + 1) * n_pl]
         if c == 0:
             for q in range(n_pl):
@@ -175,6 +204,21 @@ def _unit(gx, gy, gz):
     if g > GRAD_EPS:
         return -gx / g, -gy / g, -gz / g, True
     return 0.0, 0.0, 1.0, False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vertex_shift(f, gx, gy, gz, iso, max_out, max_in):
+    """Newton step ``s`` [voxels] from a voxel centre to the level set
+    ``f = iso`` along the normal ``-g / |g|`` (module docstring), in
+    float64 from the float32 field values; 0 when ``|g| <= GRAD_EPS``."""
+    gx = np.float64(gx)
+    gy = np.float64(gy)
+    gz = np.float64(gz)
+    g = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if not g > GRAD_EPS:
+        return 0.0
+    s = (np.float64(f) - iso) / g
+    return min(max(s, -max_in), max_out)
 
 
 @njit(cache=True, nogil=True)

@@ -1,62 +1,70 @@
-"""Vertex normals and colours of the bone surface: smooth bone, and thin bone
-that shows what lies beneath.
+"""Vertex positions, normals and colours of the bone surface: smooth bone,
+and thin bone that shows what lies beneath.
 
-:class:`bonesim.engine.surface.Surface` puts a vertex at the centre of every surface
-voxel; this module gives each vertex its normal and its colour, over the
-whole surface (:meth:`Shader.shade_all`) or again around the voxels a drill
-changed (:meth:`Shader.refresh`). Both evaluate the same functions of the
-current grid, so an incrementally updated surface equals a rebuilt one bit
-for bit.
+:class:`bonesim.engine.surface.Surface` gives every surface voxel a vertex;
+this module places each vertex and gives it its normal and its colour, over
+the whole surface (:meth:`Shader.shade_all`) or again around the voxels a
+drill changed (:meth:`Shader.refresh`). Both evaluate the same functions of
+the current grid, so an incrementally updated surface equals a rebuilt one
+bit for bit.
 
 Definitions
 -----------
-Vertex normal
-    :mod:`bonesim.engine.normals`: a Gaussian-derivative density gradient over the
-    7x7x7 voxels around the vertex.
-Structure beneath, thickness, tint weight ``w``
-    :mod:`bonesim.engine.thin_bone`: a ray along ``-n`` through the bone (the
-    estimate the drill sound uses), its chord ``t`` where it meets a
-    non-bone structure ``s``, and ``w(t)``.
+Vertex normal, vertex position
+    :mod:`bonesim.engine.normals`: the gradient of a Gaussian-smoothed
+    density over the 7x7x7 voxels around the vertex's voxel gives the
+    normal, and one Newton step along it from the voxel's centre onto the
+    smoothed density's level set gives the position (``shift`` voxels
+    along the normal, stored per vertex as float32). The physics keeps its
+    voxels; only the drawn surface is smooth.
+Structure beneath, thickness, tint
+    :mod:`bonesim.engine.thin_bone`: rays through the bone along ``-n`` and
+    on a cone around it (the estimate the drill sound uses), their
+    thickness measured from the vertex, and the blend ``W`` toward the
+    structures they meet with the weighted colour ``(R, G, B)`` of those.
 Vertex colour
-    RGBA uint8: ``c = (1 - w) * colors[label] + w * colors[s]`` per channel,
-    times ``SHADE_MIN + (1 - SHADE_MIN) * clip(d, 0, 1)`` (``d`` the vertex's
-    density), rounded half up (``floor(x + 0.5)``, at most 255); alpha 255.
-    With ``w = 0`` this is exactly the structure's shaded display colour.
+    RGBA uint8: ``c = (1 - W) * colors[label] + (R, G, B)`` per channel,
+    rounded half up (``floor(x + 0.5)``, at most 255); alpha 255. With
+    ``W = 0`` this is exactly the structure's display colour. The density
+    does not darken the colour: a partly drilled voxel shows as a vertex
+    sunk into the bone, not as a dark spot.
 
 What a drill changes
 --------------------
-A vertex's normal reads the densities within :data:`NORMAL_RADIUS` voxels
-(Chebyshev distance) of it; its colour its own density; its rays, voxels
+A vertex's normal and position read the densities within
+:data:`NORMAL_RADIUS` voxels (Chebyshev distance) of it; its rays, voxels
 within :func:`tint_reach` voxels, and only whether they are bone, which a
 lowered density that stays > 0 does not change. So after the voxels
 ``removed`` (density now 0) and ``touched`` (lowered) changed,
 :meth:`Shader.refresh` recomputes
 
-* normal and colour of every vertex within ``NORMAL_RADIUS`` of any of them
-  (this includes every vertex the tessellation created), and
+* position, normal and colour of every vertex within ``NORMAL_RADIUS`` of
+  any of them (this includes every vertex the tessellation created), and
 * the colour of every other bone vertex within :func:`tint_reach` of a
-  removed voxel whose rays (along ``+-n`` up to ``start_mm``) pass within
-  one voxel of a removed voxel,
+  removed voxel one of whose rays passes within one voxel of a removed
+  voxel,
 
 and nothing else changes. Rays are cast only from bone voxels that have a
 voxel of a non-bone structure (label, whatever its density: labels never
-change) within ``tint_reach``; elsewhere no ray can meet a structure. A
-static 512-bit mask per brick says which voxels qualify.
+change) within :func:`~bonesim.engine.thin_bone.near_radius` (a ball);
+elsewhere no ray can meet a structure. A static 512-bit mask per brick says
+which voxels qualify.
 
 Implementation
 --------------
-The gradient is computed on dense boxes of densities, separably and plane
-by plane along i (a ring of seven planes of the k and j passes), so the
-working set stays small: per brick (the brick and a 3-voxel halo, 14^3
-voxels) for the full shading, in parallel over bricks; on the inputs'
-bounding box plus ``2 NORMAL_RADIUS`` for the refresh. The refresh's sets
-of voxels (inputs, the vertices to refresh, the removed voxels dilated by
-one) are bit rows over a window around the inputs (their bounding box plus
-``max(tint_reach, 2 NORMAL_RADIUS)``, at most 64 voxels deep along k; inputs
-spread too far are split into several windows), one uint64 per ``(i, j)``
-row, obtained by shifts and ORs. Rays read the grid through its hash table.
-Since every output is the same expression of the same inputs in both, a
-refreshed vertex is bit for bit what a full shading gives.
+The field (gradient and smoothed density) is computed on dense boxes of
+densities, separably and plane by plane along i (a ring of seven planes of
+the k and j passes), so the working set stays small: per brick (the brick
+and a 3-voxel halo, 14^3 voxels) for the full shading, in parallel over
+bricks; on the inputs' bounding box plus ``2 NORMAL_RADIUS`` for the
+refresh. The refresh's sets of voxels (inputs, the vertices to refresh, the
+removed voxels dilated by one) are bit rows over a window around the inputs
+(their bounding box plus ``max(tint_reach, 2 NORMAL_RADIUS)``, at most 64
+voxels deep along k; inputs spread too far are split into several
+windows), one uint64 per ``(i, j)`` row, obtained by shifts and ORs. Rays
+read the grid through its hash table. Since every output is the same
+expression of the same inputs in both, a refreshed vertex is bit for bit
+what a full shading gives.
 """
 from __future__ import annotations
 
@@ -68,20 +76,19 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from bonesim.errors import BonesimError
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
-from bonesim.engine.normals import (GRAD_EPS, NORMAL_RADIUS, _fallback_normal, _i_plane, _kj_plane, _unit,
-                                    normal_weights, stencil_weights)
+from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, _fallback_normal, _i_plane,
+                                    _kj_plane, _unit, _vertex_shift, normal_weights,
+                                    stencil_weights)
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
-from bonesim.engine.thickness import STEP_FRACTION
-from bonesim.engine.thin_bone import (_as_bone, _near_structure, _structure_bits, _tint, beneath,
-                                      bone_labels, tint_reach, tint_weight)
+from bonesim.engine.thin_bone import (TP_MAX, TP_TAN, _as_bone, _near_structure, _ray_dir,
+                                      _structure_bits, _tint, beneath, bone_labels, cone_table,
+                                      near_radius, ray_params, tint_reach, tint_weight)
 
-__all__ = ["NORMAL_RADIUS", "SHADE_MIN", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
+__all__ = ["NORMAL_RADIUS", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
            "ShadingParams", "default_shading_path", "load_shading", "normal_weights",
            "stencil_weights", "tint_weight", "tint_reach", "bone_labels", "beneath", "Shader",
            ]
 
-#: Darkest shade factor, applied to a voxel of density 0 (density 1 is full colour).
-SHADE_MIN = 0.35
 #: Alpha of every vertex colour.
 ALPHA = 255
 #: Largest reach [voxels] of the refresh: ``tint_reach`` must not exceed it
@@ -99,20 +106,24 @@ _N_ROWSETS = 6
 _WIN_MIN_VOXELS = 32768
 _WIN_VOXELS_PER_INPUT = 128
 _WIN_DEPTH = 64
+# layout of the float64 constants ``fp`` and int64 slots ``ip`` the kernels take
+_F_ORIGIN, _F_SPACING, _F_ISO, _F_OUT, _F_IN = 0, 3, 4, 5, 6   # origin (3), spacing, [surface]
+_N_F = 7
+_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3   # need: rows, bricks, f32, vertex list
+_I_NV = 7                                               # vertices moved, listed in vlist
+_N_I = 8
 
 
 # The hot loops below call only helpers on scalars: a numba helper taking
 # arrays, inlined or not, costs reference counting on every call (some 30 ns
 # per vertex); helpers with arrays are called in rare branches only.
 @njit(cache=True, nogil=True, inline="always")
-def _shade(r0, g0, b0, r1, g1, b1, w, dens):
+def _blend(r0, g0, b0, w, ar, ag, ab):
     """RGB (uint8) of the colour ``(r0, g0, b0)`` blended with weight ``w``
-    toward ``(r1, g1, b1)`` and shaded by the density (module docstring)."""
-    d = min(max(np.float64(dens), 0.0), 1.0)
-    shade = SHADE_MIN + (1.0 - SHADE_MIN) * d
-    r = np.floor((np.float64(r0) * (1.0 - w) + np.float64(r1) * w) * shade + 0.5)
-    g = np.floor((np.float64(g0) * (1.0 - w) + np.float64(g1) * w) * shade + 0.5)
-    b = np.floor((np.float64(b0) * (1.0 - w) + np.float64(b1) * w) * shade + 0.5)
+    toward the weighted structure colour ``(ar, ag, ab)`` (module docstring)."""
+    r = np.floor(np.float64(r0) * (1.0 - w) + ar + 0.5)
+    g = np.floor(np.float64(g0) * (1.0 - w) + ag + 0.5)
+    b = np.floor(np.float64(b0) * (1.0 - w) + ab + 0.5)
     return np.uint8(min(r, 255.0)), np.uint8(min(g, 255.0)), np.uint8(min(b, 255.0))
 
 
@@ -141,20 +152,26 @@ def _gather_halo(density, nbr, b, box):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, near,
-                      colors, W, origin, spacing, tp, nrm, col, counts):
-    """Normal and colour of every vertex, brick by brick (the brick plus a
-    3-voxel halo is the box of the gradient passes, plane by plane)."""
+                      colors, W, fp, tp, cone, pos, nrm, shf, col, counts):
+    """Position, normal and colour of every vertex, brick by brick (the
+    brick plus a 3-voxel halo is the box of the field's passes, plane by
+    plane)."""
     nb_tot = bricks.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     ncol = colors.shape[0]
     one = np.uint64(1)
     n_pl = BRICK * BRICK
+    origin = fp[_F_ORIGIN:_F_ORIGIN + 3]
+    spacing = fp[_F_SPACING]
+    iso = fp[_F_ISO]
+    s_out = fp[_F_OUT]
+    s_in = fp[_F_IN]
     for ch in prange(n_chunks):
         box = np.empty(_LB * _LB * _LB, dtype=np.float32)
         rs = np.empty(_LB * BRICK, dtype=np.float32)
         rd = np.empty(_LB * BRICK, dtype=np.float32)
         ring = np.empty(21 * n_pl, dtype=np.float32)
-        g = np.empty(3 * n_pl, dtype=np.float32)
+        g = np.empty(N_FIELD * n_pl, dtype=np.float32)
         n = 0
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
             gathered = False
@@ -184,29 +201,39 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                         continue
                     y = q >> 3
                     z = q & BRICK_MASK
-                    nx, ny, nz, ok = _unit(g[q], g[n_pl + q], g[2 * n_pl + q])
+                    i = bi + x
+                    j = bj + y
+                    k = bk + z
+                    gx = g[q]
+                    gy = g[n_pl + q]
+                    gz = g[2 * n_pl + q]
+                    nx, ny, nz, ok = _unit(gx, gy, gz)
                     if not ok:
                         nx, ny, nz = _fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
                                                       + z + _HALO, _LB, _LB)
+                    sh = _vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
                     nrm[v, 0] = nx
                     nrm[v, 1] = ny
                     nrm[v, 2] = nz
+                    pos[v, 0] = origin[0] + spacing * (i + sh * nx)
+                    pos[v, 1] = origin[1] + spacing * (j + sh * ny)
+                    pos[v, 2] = origin[2] + spacing * (k + sh * nz)
+                    shf[v] = sh
                     lab = np.int64(label[b, o])
                     if lab >= ncol:
                         lab = 0
-                    met = 0
                     w = 0.0
+                    ar = 0.0
+                    ag = 0.0
+                    ab = 0.0
                     if tint_on:
                         if bone[lab] != 0:
                             if (near[b, x] >> np.uint64(q)) & one:
-                                met, w = _tint(keys, vals, density, label, bone, origin,
-                                               spacing, tp, bi + x, bj + y, bk + z, nrm[v, 0],
-                                               nrm[v, 1], nrm[v, 2])
-                                if met >= ncol:
-                                    met = 0
-                    cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
-                                        colors[met, 0], colors[met, 1], colors[met, 2], w,
-                                        density[b, o])
+                                w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors,
+                                                      origin, spacing, tp, cone, i, j, k,
+                                                      nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
+                    cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
+                                        ag, ab)
                     col[v, 0] = cr
                     col[v, 1] = cg
                     col[v, 2] = cb
@@ -245,18 +272,12 @@ def _dilate_rows(rows, src, dst, tmp, wd0, wd1, r, zmask):
 
 
 # layout of the float64 constants and int64 slots passed to _refresh
-_F_ORIGIN, _F_SPACING, _F_TP, _F_W = 0, 3, 4, 8          # origin (3), spacing, tp (4), W (7)
-_N_F = 15
-_I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3        # need: rows, bricks, f32
-_N_I = 6
-
-
 @njit(cache=True, nogil=True)
-def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, removed, touched,
-             rows, wbr, f32, nrm, col):
+def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, cone, ip, removed,
+             touched, rows, wbr, f32, vlist, pos, nrm, shf, col):
     """Refresh the vertices near the inputs (see the module docstring) on one
-    window: their bounding box plus ``m = ip[_I_MARGIN]`` voxels. The normals
-    are computed on the box of the inputs' bounding box plus ``2
+    window: their bounding box plus ``m = ip[_I_MARGIN]`` voxels. The field
+    (normals, positions) is computed on the box of the inputs' bounding box plus ``2
     NORMAL_RADIUS`` (its densities and passes in ``f32``).
 
     Returns the number of vertices refreshed, -1 if the window is too big
@@ -264,6 +285,9 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
     _WIN_VOXELS_PER_INPUT * inputs, (2 m + 16)**3)`` voxels, which a single
     voxel always fits: split the inputs), -2 if the
     scratch is too small (sizes needed in ``ip[_I_NEED:]``; nothing done).
+    The slots of the vertices whose position or normal it recomputed are
+    listed in ``vlist[:ip[_I_NV]]`` (their triangles' drawn winding may
+    change).
     """
     nr = removed.shape[0]
     nt = touched.shape[0]
@@ -314,24 +338,25 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
     n_box = X * Y * Z
     n_k = Y * (Z - 6)
     n_pl = (Y - 6) * (Z - 6)
-    need_f = n_box + 2 * n_k + 24 * n_pl
+    need_f = n_box + 2 * n_k + (21 + N_FIELD) * n_pl
     if rows.shape[0] < _N_ROWSETS * nrow or wbr.shape[0] < bd0 * bd1 * bd2 \
-            or f32.shape[0] < need_f:
+            or f32.shape[0] < need_f or vlist.shape[0] < n_box:
         ip[_I_NEED] = _N_ROWSETS * nrow
         ip[_I_NEED + 1] = bd0 * bd1 * bd2
         ip[_I_NEED + 2] = need_f
+        ip[_I_NEED + 3] = n_box
         return -2
+    ip[_I_NV] = 0
     ld = f32[:n_box]
     rs = f32[n_box:n_box + n_k]
     rd = f32[n_box + n_k:n_box + 2 * n_k]
     ring = f32[n_box + 2 * n_k:n_box + 2 * n_k + 21 * n_pl]
     g = f32[n_box + 2 * n_k + 21 * n_pl:need_f]
-    W = np.empty(7, dtype=np.float32)
-    for c in range(7):
-        W[c] = np.float32(fp[_F_W + c])
     origin = fp[_F_ORIGIN:_F_ORIGIN + 3]
     spacing = fp[_F_SPACING]
-    tp = fp[_F_TP:_F_TP + 4]
+    iso = fp[_F_ISO]
+    s_out = fp[_F_OUT]
+    s_in = fp[_F_IN]
     one = np.uint64(1)
     zmask = np.uint64(0xFFFFFFFFFFFFFFFF) if wd2 == 64 else (one << np.uint64(wd2)) - one
     A = _R_ALL * nrow
@@ -423,27 +448,36 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
                 if v < 0:
                     continue
                 q = (y - sh) * Zo + z - sh
-                nx, ny, nz, ok = _unit(g[q], g[n_pl + q], g[2 * n_pl + q])
+                gx = g[q]
+                gy = g[n_pl + q]
+                gz = g[2 * n_pl + q]
+                nx, ny, nz, ok = _unit(gx, gy, gz)
                 if not ok:
                     nx, ny, nz = _fallback_normal(ld, ((x - off) * Y + y - off) * Z + z - off, Y, Z)
+                sv = _vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
                 nrm[v, 0] = nx
                 nrm[v, 1] = ny
                 nrm[v, 2] = nz
+                pos[v, 0] = origin[0] + spacing * (i + sv * nx)
+                pos[v, 1] = origin[1] + spacing * (j + sv * ny)
+                pos[v, 2] = origin[2] + spacing * (k + sv * nz)
+                shf[v] = sv
+                vlist[ip[_I_NV]] = v
+                ip[_I_NV] += 1
                 lab = np.int64(label[b, o])
                 if lab >= ncol:
                     lab = 0
-                met = 0
                 w = 0.0
+                ar = 0.0
+                ag = 0.0
+                ab = 0.0
                 if tint_on:
                     if bone[lab] != 0:
                         if (near[b, o >> 6] >> np.uint64(o & 63)) & one:
-                            met, w = _tint(keys, vals, density, label, bone, origin, spacing,
-                                           tp, i, j, k, nrm[v, 0], nrm[v, 1], nrm[v, 2])
-                            if met >= ncol:
-                                met = 0
-                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
-                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
-                                    density[b, o])
+                            w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors,
+                                                  origin, spacing, tp, cone, i, j, k, nrm[v, 0],
+                                                  nrm[v, 1], nrm[v, 2], shf[v])
+                cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar, ag, ab)
                 col[v, 0] = cr
                 col[v, 1] = cg
                 col[v, 2] = cb
@@ -451,8 +485,10 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
                 count += 1
     if not tint_on or nr == 0:
         return count
-    # vertices whose normal stays but whose rays may pass a removed voxel
-    reach = tp[1] / spacing
+    # vertices whose field stays but one of whose rays may pass a removed voxel
+    reach = tp[TP_MAX] / spacing
+    tanc = tp[TP_TAN]
+    n_rays = cone.shape[0] + 1
     for x in range(wd0):
         i = wlo[0] + x
         for y in range(wd1):
@@ -476,16 +512,32 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
                 lab = np.int64(label[b, o])
                 if lab >= ncol or bone[lab] == 0:
                     continue
-                if not _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, nrm[v, 0], nrm[v, 1],
-                                  nrm[v, 2], reach):
+                nx = np.float64(nrm[v, 0])
+                ny = np.float64(nrm[v, 1])
+                nz = np.float64(nrm[v, 2])
+                hit = False
+                for rq in range(n_rays):
+                    if rq == 0:
+                        dx, dy, dz = nx, ny, nz
+                    else:
+                        dx, dy, dz, _ = _ray_dir(nx, ny, nz, tanc, cone[rq - 1, 0],
+                                                 cone[rq - 1, 1])
+                    # the ray's box must meet the inputs' box grown by a voxel
+                    ex = i - reach * dx
+                    ey = j - reach * dy
+                    ez = k - reach * dz
+                    if (max(i, ex) < lo0 - 1 or min(i, ex) > hi0 + 1 or max(j, ey) < lo1 - 1
+                            or min(j, ey) > hi1 + 1 or max(k, ez) < lo2 - 1
+                            or min(k, ez) > hi2 + 1):
+                        continue
+                    if _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, -dx, -dy, -dz, reach):
+                        hit = True
+                        break
+                if not hit:
                     continue
-                met, w = _tint(keys, vals, density, label, bone, origin, spacing, tp, i, j, k,
-                               nrm[v, 0], nrm[v, 1], nrm[v, 2])
-                if met >= ncol:
-                    met = 0
-                cr, cg, cb = _shade(colors[lab, 0], colors[lab, 1], colors[lab, 2],
-                                    colors[met, 0], colors[met, 1], colors[met, 2], w,
-                                    density[b, o])
+                w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors, origin, spacing,
+                                      tp, cone, i, j, k, nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
+                cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar, ag, ab)
                 col[v, 0] = cr
                 col[v, 1] = cg
                 col[v, 2] = cb
@@ -495,29 +547,30 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, fp, ip, remov
 
 
 @njit(cache=True, nogil=True)
-def _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, nx, ny, nz, reach):
-    """Whether the segment from voxel ``(i, j, k)`` along ``+-n`` up to
-    ``reach`` voxels passes near the set ``R1`` (the removed voxels dilated
-    by one voxel) of the window. Points every half voxel are tested: every
-    sample of the rays lies within a quarter voxel of one, so its voxel is
-    within one voxel of that point's, and the test never misses a removed
-    voxel a ray reads."""
+def _ray_meets(rows, R1, wlo, wd0, wd1, wd2, i, j, k, dx, dy, dz, reach):
+    """Whether the segment from voxel ``(i, j, k)`` along the unit ``d`` up
+    to ``reach`` voxels passes near the set ``R1`` (the removed voxels
+    dilated by one voxel) of the window. Points every voxel are tested
+    (and the segment's end): every sample of the ray lies within half a
+    voxel of one, so each of its coordinates is within half a voxel of that
+    point's, its voxel within one voxel of that point's, and the test never
+    misses a removed voxel the ray reads."""
     one = np.uint64(1)
-    n_pts = int(math.ceil(2.0 * reach)) + 1
-    for sgn in (-1.0, 1.0):
-        for q in range(n_pts + 1):
-            t = sgn * min(0.5 * q, reach)
-            x = int(math.floor(i + t * nx + 0.5)) - wlo[0]
-            y = int(math.floor(j + t * ny + 0.5)) - wlo[1]
-            z = int(math.floor(k + t * nz + 0.5)) - wlo[2]
-            if 0 <= x < wd0 and 0 <= y < wd1 and 0 <= z < wd2:
-                if (rows[R1 + x * wd1 + y] >> np.uint64(z)) & one:
-                    return True
+    n_pts = int(math.ceil(reach))
+    for q in range(n_pts + 1):
+        t = min(np.float64(q), reach)
+        x = int(math.floor(i + t * dx + 0.5)) - wlo[0]
+        y = int(math.floor(j + t * dy + 0.5)) - wlo[1]
+        z = int(math.floor(k + t * dz + 0.5)) - wlo[2]
+        if 0 <= x < wd0 and 0 <= y < wd1 and 0 <= z < wd2:
+            if (rows[R1 + x * wd1 + y] >> np.uint64(z)) & one:
+                return True
     return False
 
 
 class Shader:
-    """Normals and colours of one surface's vertices (see the module docstring).
+    """Positions, normals and colours of one surface's vertices (see the
+    module docstring).
 
     Parameters
     ----------
@@ -540,35 +593,37 @@ class Shader:
         if not isinstance(self.params, ShadingParams):
             raise TypeError(f"shading must be a ShadingParams, got "
                             f"{type(self.params).__name__}")
+        p = self.params
         self.colors = colors
         self._nbr = nbr
-        self._W = stencil_weights(self.params.sigma_voxels)
+        self._W = stencil_weights(p.sigma_voxels)
         self.spacing = float(grid.spacing_mm)
         self._origin = np.asarray(grid.origin_mm, dtype=np.float64).copy()
         self.tint_on = bone is not None
         n_rows = colors.shape[0]
         self.bone = _as_bone(bone, n_rows) if bone is not None else np.zeros(n_rows, np.uint8)
-        self.reach = tint_reach(self.params, self.spacing) if self.tint_on else 0
+        self.reach = tint_reach(p, self.spacing) if self.tint_on else 0
         if self.reach > MAX_REACH_VOXELS:
             raise BonesimError(
-                f"'start_mm' = {self.params.start_mm} reaches {self.reach} voxels of "
+                f"'start_mm' = {p.start_mm} reaches {self.reach} voxels of "
                 f"{self.spacing} mm (at most {MAX_REACH_VOXELS}); lower it", None,
                 "thin_bone")
         self.margin = max(self.reach, 2 * NORMAL_RADIUS)
-        self._tp = np.array([STEP_FRACTION * self.spacing, self.params.start_mm,
-                             self.params.full_mm, self.params.max_weight])
+        self._tp = ray_params(p, self.spacing)
+        self._cone = cone_table(p)
         self._near = np.zeros((grid.n_bricks, BRICK), dtype=np.uint64)
         if self.tint_on:
             bits = np.empty((grid.n_bricks, BRICK), dtype=np.uint64)
             if _structure_bits(grid.label, self.bone, bits):
                 # (C order: the warm-up's one-brick grid compiles this layout)
                 _near_structure(grid.keys, grid.vals, np.ascontiguousarray(grid.bricks), bits,
-                                self.reach, self._near)
+                                near_radius(p, self.spacing), self._near)
         self._fp = np.zeros(_N_F)
         self._fp[_F_ORIGIN:_F_ORIGIN + 3] = self._origin
         self._fp[_F_SPACING] = self.spacing
-        self._fp[_F_TP:_F_TP + 4] = self._tp
-        self._fp[_F_W:_F_W + 7] = self._W
+        self._fp[_F_ISO] = p.iso_density
+        self._fp[_F_OUT] = p.max_out_voxels
+        self._fp[_F_IN] = p.max_in_voxels
         self._ip = np.zeros(_N_I, dtype=np.int64)
         self._ip[_I_TINT] = 1 if self.tint_on else 0
         self._ip[_I_REACH] = self.reach
@@ -576,27 +631,48 @@ class Shader:
         self._rows = np.zeros(_N_ROWSETS * 1024, dtype=np.uint64)
         self._wbr = np.zeros(64, dtype=np.int32)
         self._f32 = np.zeros(1 << 16, dtype=np.float32)
+        self._vlist = np.zeros(1 << 12, dtype=np.int32)
 
     @property
     def normal_reach(self) -> int:
-        """Voxels [Chebyshev] around a changed voxel whose normals may change."""
+        """Voxels [Chebyshev] around a changed voxel whose normals and
+        positions may change."""
         return NORMAL_RADIUS
 
-    def shade_all(self, grid, vmap, nrm, col) -> int:
-        """Normal and colour of every vertex of ``vmap``; returns their number."""
+    def shade_all(self, grid, vmap, pos, nrm, shift, col) -> int:
+        """Position, normal, shift and colour of every vertex of ``vmap``;
+        returns their number.
+
+        Parameters
+        ----------
+        grid : Grid
+        vmap : (n_bricks, 512) int32
+            Vertex slot per voxel, -1 for none.
+        pos, nrm : (vcap, 3) float32
+            Written: positions [mm] and unit normals.
+        shift : (vcap,) float32
+            Written: each vertex's offset from its voxel's centre along its
+            normal [voxels].
+        col : (vcap, 4) uint8
+            Written: RGBA.
+        """
         n_chunks = max(1, (grid.n_bricks + _CHUNK - 1) // _CHUNK)
         counts = np.zeros(n_chunks, dtype=np.int64)
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
                           grid.bricks, vmap, self.bone, self.tint_on, self._near,
-                          self.colors, self._W, self._origin, self.spacing,
-                          self._tp, nrm, col, counts)
+                          self.colors, self._W, self._fp, self._tp, self._cone, pos, nrm, shift,
+                          col, counts)
         return int(counts.sum())
 
-    def refresh(self, grid, vmap, nrm, col, removed, touched) -> int:
+    def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:
         """Recompute what ``removed`` and ``touched`` (int32 (n, 3) C arrays,
-        validated by the caller) can have changed; returns the number of
-        vertices refreshed (a vertex near several windows counts once per
-        window)."""
+        validated by the caller) can have changed (arrays as for
+        :meth:`shade_all`); returns the number of vertices refreshed (a
+        vertex near several windows counts once per window).
+
+        ``moved(slots)``, if given, is called after each window with the
+        (int32) slots of the vertices whose position or normal that window
+        recomputed (a view of scratch memory, valid during the call)."""
         if removed.shape[0] == 0 and touched.shape[0] == 0:
             return 0
         n = 0
@@ -605,18 +681,21 @@ class Shader:
             rem, tch = stack.pop()
             while True:
                 got = _refresh(grid.keys, grid.vals, grid.density, grid.label, vmap, self.bone,
-                               self._near, self.colors, self._fp, self._ip, rem, tch,
-                               self._rows, self._wbr, self._f32, nrm, col)
+                               self._near, self.colors, self._W, self._fp, self._tp, self._cone,
+                               self._ip, rem, tch, self._rows, self._wbr, self._f32,
+                               self._vlist, pos, nrm, shift, col)
                 if got != -2:
                     break
-                need = self._ip[_I_NEED:_I_NEED + 3].tolist()
-                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2)):
+                need = self._ip[_I_NEED:_I_NEED + 4].tolist()
+                for name, k in (("_rows", 0), ("_wbr", 1), ("_f32", 2), ("_vlist", 3)):
                     cur = getattr(self, name)
                     if cur.shape[0] < need[k]:
                         n_new = max(need[k], 2 * cur.shape[0])
                         setattr(self, name, np.zeros((n_new,) + cur.shape[1:], dtype=cur.dtype))
             if got >= 0:
                 n += got
+                if moved is not None:
+                    moved(self._vlist[:self._ip[_I_NV]])
             else:
                 stack.extend(_split(rem, tch, self.margin))
         return int(n)

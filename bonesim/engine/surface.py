@@ -1,8 +1,12 @@
 """Hybrid voxel / triangle bone surface: the vertices *are* surface voxels.
 
-This module keeps a triangle mesh of the bone whose vertices sit at the
-centres of surface voxels of a :class:`bonesim.engine.grid.Grid`, and updates it in
-time proportional to the number of voxels the drill removed.
+This module keeps a triangle mesh of the bone with one vertex per surface
+voxel of a :class:`bonesim.engine.grid.Grid`, and updates it in time
+proportional to the number of voxels the drill removed. The mesh's topology
+comes from the voxels (below); each vertex is drawn near its voxel's
+centre, moved along its normal onto a smoothed density's level set
+(:mod:`bonesim.engine.normals`), so the drawn surface is smooth while the
+physics keeps its voxels.
 
 Definitions
 -----------
@@ -14,13 +18,14 @@ Occupied voxel
     density > 0. Voxels in bricks the grid did not allocate are empty.
 Surface voxel
     an occupied voxel with at least one empty voxel among its 26 neighbours.
-    Each surface voxel carries exactly one vertex, at its centre.
-Vertex normal, vertex colour
+    Each surface voxel carries exactly one vertex.
+Vertex position, normal, colour
     defined in :mod:`bonesim.engine.shading`: the normal from a Gaussian-derivative
-    density gradient over the 7x7x7 voxels around the vertex, the colour the
-    structure's display colour shaded by the voxel's density and, where the
-    bone over a non-bone structure is thin, blended toward that structure's
-    colour (the bone labels are given to :meth:`Surface.build`).
+    density gradient over the 7x7x7 voxels around the vertex, the position
+    the voxel's centre moved along it onto the level set of the smoothed
+    density (within a fraction of a voxel), the colour the structure's
+    display colour, blended toward that of a non-bone structure where the
+    bone over it is thin (the bone labels are given to :meth:`Surface.build`).
 Cell
     the 2x2x2 block of voxels ``m + {0, 1}^3`` named by its minimum corner
     ``m``. Corner ``c`` (0..7) of a cell is the voxel ``m + (c >> 2 & 1,
@@ -87,7 +92,7 @@ cell the kernel compares the triangles it owns now (found through the owner
 lists below) with those it should own, drops the difference, drops the
 vertices of emptied voxels, creates the vertices of voxels that became
 surface and adds the new triangles; then
-:meth:`bonesim.engine.shading.Shader.refresh` recomputes the normal and colour of
+:meth:`bonesim.engine.shading.Shader.refresh` recomputes the position, normal and colour of
 every vertex the removed and touched voxels can have changed. The old triangles come from the mesh
 itself, not from a guess of the old occupancy, so extra entries (voxels
 listed twice, still bone, already empty before the batch, or never bone)
@@ -132,8 +137,7 @@ import numpy as np
 
 from bonesim.engine.grid import (BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
-from bonesim.engine.shading import (GRAD_EPS, SHADE_MIN, Shader, ShadingParams,
-                                    bone_labels)
+from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
 from bonesim.engine.surface_build import (_CHUNK, _build_count, _build_triangles, _build_vertices)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            _N_STATS, qualifying_triples,
@@ -141,11 +145,11 @@ from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE
                                            _S_T_ADD, _S_T_DEL, _S_V_ADD, _S_V_DEL, _TR_FILL, _TR_KEY,
                                            _TR_NEXT, _TR_ONEXT, _TR_WIDTH, _T_ALIVE, _T_HW, _VR_HEAD,
                                            _VR_OHEAD, _V_ALIVE, _V_HW, _brick_neighbours, _link_all,
-                                           _triangles_of_vertex)
+                                           _orient_all, _orient_of, _triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, _update
 from bonesim.engine.surface_window import _N_ROWSETS
 
-__all__ = ["Surface", "CanonicalSurface", "SHADE_MIN", "GRAD_EPS", "RESHADE_REACH", "warmup",
+__all__ = ["Surface", "CanonicalSurface", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
 
 # ----------------------------------------------------------------------------
@@ -222,10 +226,11 @@ class CanonicalSurface:
     col: np.ndarray
     tris: np.ndarray
 
-    def differences(self, other, atol=0.0):
+    def differences(self, other, atol=0.0, pos_atol=0.0):
         """Human-readable list of what differs from ``other`` (empty if equal).
 
-        ``atol`` is the tolerance on normals (positions and colours are exact).
+        ``atol`` is the tolerance on normals, ``pos_atol`` on positions [mm]
+        (colours, voxels and triangles are exact).
         """
         out = []
         if not np.array_equal(self.ijk, other.ijk):
@@ -234,8 +239,12 @@ class CanonicalSurface:
             out.append(f"vertices differ: only here {sorted(a - b)[:5]}, "
                        f"only there {sorted(b - a)[:5]}")
             return out
-        if not np.array_equal(self.pos, other.pos):
-            out.append("positions differ")
+        if pos_atol == 0:
+            bad = np.flatnonzero((self.pos != other.pos).any(axis=1))
+        else:
+            bad = np.flatnonzero((np.abs(self.pos - other.pos) > pos_atol).any(axis=1))
+        if bad.size:
+            out.append(f"positions differ at {self.ijk[bad[:5]].tolist()}")
         if atol == 0:
             bad = np.flatnonzero((self.nrm != other.nrm).any(axis=1))
         else:
@@ -276,9 +285,14 @@ class Surface:
     Attributes
     ----------
     pos : (vcap, 3) float32
-        Vertex positions [mm] (voxel centres, case frame).
+        Vertex positions [mm] (case frame): the voxel's centre moved
+        ``shift`` voxels along the normal, onto the smoothed density's level
+        set (:mod:`bonesim.engine.normals`).
     nrm : (vcap, 3) float32
         Unit vertex normals (pointing out of the bone).
+    shift : (vcap,) float32
+        Each vertex's offset from its voxel's centre along its normal
+        [voxels] (the thin-bone rays measure from there).
     col : (vcap, 4) uint8
         Vertex RGBA colours.
     ijk : (vcap, 3) int32
@@ -296,18 +310,26 @@ class Surface:
     vmap : (n_bricks, 512) int32
         Vertex slot of each grid voxel (same layout as ``grid.density``), -1
         for none.
+    tflip : (tcap,) uint8
+        1 where a triangle is drawn ``(tri[t, 0], tri[t, 2], tri[t, 1])``:
+        its face normal ``(b - a) x (c - a)`` points against the sum of its
+        corners' normals (where the surface folds within a voxel or two).
+        Drawn so, OpenGL's front face always agrees with the normals
+        (:mod:`bonesim.render.meshbuf`). Kept for every live triangle: set
+        at :meth:`build`, and by :meth:`update` for every triangle of a
+        vertex it moved or turned.
     vhead : (vcap,) int32, tnext : (tcap, 3) int32
         Vertex -> triangle lists (see module docstring); use
         :meth:`triangles_of`.
     colors : (n_labels + 1, 3) uint8
         The structure colour table given to :meth:`build`.
     shader : bonesim.engine.shading.Shader
-        Computes the normals and colours (its ``bone`` mask, ``tint_on`` and
+        Computes the positions, normals and colours (its ``bone`` mask, ``tint_on`` and
         ``params`` say how).
     """
 
-    def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec, vfree,
-                 trec, tfree, cnt, origin_mm, spacing_mm, shader):
+    def __init__(self, keys, vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
+                 vfree, trec, tfree, tflip, cnt, origin_mm, spacing_mm, shader):
         self._keys = keys
         self._vals = vals
         self.colors = colors
@@ -315,6 +337,7 @@ class Surface:
         self.vmap = vmap
         self.pos = pos
         self.nrm = nrm
+        self.shift = shift
         self.col = col
         self.ijk = ijk
         self.alive = alive
@@ -322,6 +345,7 @@ class Surface:
         self._vfree = vfree
         self._trec = trec
         self._tfree = tfree
+        self.tflip = tflip
         self._cnt = cnt
         self._origin = np.asarray(origin_mm, dtype=np.float64)
         self._spacing = float(spacing_mm)
@@ -397,10 +421,13 @@ class Surface:
         vrec = np.full((vcap, 2), -1, dtype=np.int32)
         _link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
-        shader.shade_all(grid, vmap, nrm, col)
-        return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, col, ijk, alive, vrec,
-                   np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), cnt,
-                   grid.origin_mm, grid.spacing_mm, shader)
+        shift = np.zeros(vcap, dtype=np.float32)
+        shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        tflip = np.zeros(tcap, dtype=np.uint8)
+        _orient_all(trec, n_t, pos, nrm, tflip)
+        return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
+                   np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), tflip,
+                   cnt, grid.origin_mm, grid.spacing_mm, shader)
 
     @classmethod
     def of_model(cls, model, grid: Grid | None = None,
@@ -427,7 +454,7 @@ class Surface:
         Work is proportional to the number of voxels given, not to the
         surface: cells around removed voxels are re-evaluated, vertices
         created for voxels that became surface and dropped for removed ones,
-        and the normals and colours the changes can reach are recomputed
+        and the positions, normals and colours the changes can reach are recomputed
         (:meth:`bonesim.engine.shading.Shader.refresh`).
 
         Parameters
@@ -476,10 +503,16 @@ class Surface:
             resume = True
         if st[_S_ERR]:
             raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
-        n_shaded = self.shader.refresh(grid, self.vmap, self.nrm, self.col, removed, touched)
+        n_shaded = self.shader.refresh(grid, self.vmap, self.pos, self.nrm, self.shift, self.col,
+                                       removed, touched, self._orient)
         return {"vertices_added": st[_S_V_ADD], "vertices_removed": st[_S_V_DEL],
                 "triangles_added": st[_S_T_ADD], "triangles_removed": st[_S_T_DEL],
                 "vertices_reshaded": n_shaded, "cells_visited": st[_S_CELLS]}
+
+    def _orient(self, vlist):
+        """Drawn winding of the triangles of the vertices a refresh moved
+        (new triangles' corners are all among them)."""
+        _orient_of(self._vrec, self._trec, vlist, self.pos, self.nrm, self.tflip)
 
     def _grow_scratch(self, vol, nrows):
         """Scratch of the update for windows of ``vol`` voxels, ``nrows`` rows."""
@@ -508,6 +541,7 @@ class Surface:
             cap = max(2 * self.pos.shape[0], self.pos.shape[0] + need_v)
             self.pos = _grown(self.pos, cap, 0)
             self.nrm = _grown(self.nrm, cap, 0)
+            self.shift = _grown(self.shift, cap, 0)
             self.col = _grown(self.col, cap, 0)
             self.ijk = _grown(self.ijk, cap, 0)
             self.alive = _grown(self.alive, cap, 0)
@@ -520,6 +554,7 @@ class Surface:
             self._trec[:old.shape[0]] = old
             self._trec[old.shape[0]:] = _TR_FILL
             self._tfree = _grown(self._tfree, cap, 0)
+            self.tflip = _grown(self.tflip, cap, 0)
         self._record_views()
 
     # ---------------------------------------------------------------- queries

@@ -19,7 +19,7 @@ __all__ = ["MAX_PER_CELL", "RESHADE_REACH", "CORNER_OFFSETS", "TRIPLE_CORNERS",
 #: Most triples that qualify in one cell (checked when the table is built).
 MAX_PER_CELL = 4
 #: Chebyshev distance [voxels] from a removed or touched voxel within which
-#: :meth:`Surface.update` may change vertex normals (colours can change
+#: :meth:`Surface.update` may move vertices and change their normals (colours can change
 #: further, up to the thin-bone tint's reach); for a renderer tracking
 #: which vertices changed.
 RESHADE_REACH = NORMAL_RADIUS
@@ -215,3 +215,47 @@ def _link_all(trec, vrec, n_t):
         v = trec[t, 0]
         trec[t, _TR_ONEXT] = vrec[v, _VR_OHEAD]
         vrec[v, _VR_OHEAD] = t
+
+
+# ----------------------------------------------------------------------------
+# The drawn winding (Surface.tflip)
+# ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True, inline="always")
+def _flip(ax, ay, az, bx, by, bz, cx, cy, cz, nx, ny, nz):
+    """Whether the face normal ``(b - a) x (c - a)`` points against ``n``
+    (the sum of the corners' normals): the triangle is then drawn as
+    ``(a, c, b)``."""
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    wx, wy, wz = cx - ax, cy - ay, cz - az
+    return (uy * wz - uz * wy) * nx + (uz * wx - ux * wz) * ny + (ux * wy - uy * wx) * nz < 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _flip_of(trec, t, pos, nrm):
+    a = trec[t, 0]
+    b = trec[t, 1]
+    c = trec[t, 2]
+    return _flip(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
+                 pos[c, 0], pos[c, 1], pos[c, 2], nrm[a, 0] + nrm[b, 0] + nrm[c, 0],
+                 nrm[a, 1] + nrm[b, 1] + nrm[c, 1], nrm[a, 2] + nrm[b, 2] + nrm[c, 2])
+
+
+@njit(cache=True, nogil=True)
+def _orient_all(trec, n_t, pos, nrm, tflip):
+    """``tflip[t]`` for every live triangle slot below ``n_t``."""
+    for t in range(n_t):
+        if trec[t, _TR_KEY] >= 0:
+            tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
+
+
+@njit(cache=True, nogil=True)
+def _orient_of(vrec, trec, vlist, pos, nrm, tflip):
+    """``tflip`` of every triangle of the vertices ``vlist`` (their vertex
+    lists; a triangle met twice is set twice, to the same value)."""
+    for q in range(vlist.shape[0]):
+        v = vlist[q]
+        t = vrec[v, _VR_HEAD]
+        while t >= 0:
+            tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
+            s = 0 if trec[t, 0] == v else (1 if trec[t, 1] == v else 2)
+            t = trec[t, _TR_NEXT + s]

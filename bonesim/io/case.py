@@ -94,7 +94,8 @@ from bonesim.io.volumes import CaseVolume
 
 __all__ = ["CASE_FILE", "SIDES", "KINDS", "CASE_FORMATS", "EXPORT_FORMATS",
            "Structure", "VolumeSpec", "Camera", "Target", "Case", "parse_case",
-           "cases_dir", "load_case", "list_cases", "case_info", "export_case"]
+           "cases_dir", "load_case", "case_versions", "list_cases", "case_info",
+           "export_case"]
 
 
 def parse_case(path: str | Path) -> Case:
@@ -111,9 +112,25 @@ def cases_dir() -> Path:
     return Path(ct_cases.__file__).resolve().parent
 
 
-def _bundled() -> dict[str, Path]:
+def _bundled(versions: bool = False) -> dict[str, Path]:
+    """Bundled case name -> manifest; with ``versions``, also the kept older
+    versions of each (``ct_cases/NAME/versions/vK/case.toml`` as ``NAME@K``)."""
     root = cases_dir()
-    return {p.parent.name: p for p in sorted(root.glob(f"*/{CASE_FILE}"))}
+    out = {p.parent.name: p for p in sorted(root.glob(f"*/{CASE_FILE}"))}
+    if versions:
+        for p in sorted(root.glob(f"*/versions/v*/{CASE_FILE}")):
+            k = p.parent.name[1:]
+            if k.isdigit():
+                out[f"{p.parent.parent.parent.name}@{int(k)}"] = p
+    return out
+
+
+def case_versions(name: str) -> list[str]:
+    """The kept older versions of a bundled case, newest first
+    (``["phantom@2"]``)."""
+    pre = f"{name}@"
+    found = [k for k in _bundled(versions=True) if k.startswith(pre)]
+    return sorted(found, key=lambda k: -int(k[len(pre):]))
 
 
 def load_case(name_or_path: str | Path | Case = "phantom",
@@ -137,7 +154,7 @@ def load_case(name_or_path: str | Path | Case = "phantom",
     if isinstance(name_or_path, Case):
         return name_or_path
     text = str(name_or_path)
-    bundled = _bundled()
+    bundled = _bundled(versions=True)
     bare = isinstance(name_or_path, str) and "/" not in text and "\\" not in text \
         and not text.endswith(".toml")
     if bare and text in bundled:

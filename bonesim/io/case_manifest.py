@@ -30,7 +30,7 @@ _TOP_KEYS = ("case", "volume", "structures", "camera", "target", "physics")
 _CASE_KEYS = ("name", "description", "side")
 _VOLUME_COMMON = ("format", "voxel_mm")
 _VOLUME_KEYS = {
-    "phantom": ("seed", "size_mm"),
+    "phantom": ("seed", "size_mm", "generation"),
     "dicom": ("path", "bone_threshold_hu", "labels"),
     "nrrd": ("path", "bone_threshold_hu", "labels"),
     "nifti": ("path", "bone_threshold_hu", "labels"),
@@ -99,6 +99,12 @@ def _parse_volume(tab, path: Path) -> VolumeSpec:
                                       default=_phantom.DEFAULT_SEED, integer=True))
         if "size_mm" in tab:
             spec["size_mm"] = _positive_vector(tab, "size_mm", path, where)
+        gen = get_number(tab, "generation", path, where,
+                         default=_phantom.LATEST_GENERATION, integer=True)
+        if gen not in _phantom.GENERATIONS:
+            raise BonesimError(f"'generation' must be one of {list(_phantom.GENERATIONS)}, "
+                               f"got {gen}", path, where)
+        spec["generation"] = int(gen)
         return VolumeSpec(**spec)
     spec["path"] = _relative(tab, "path", path, where)
     if fmt == SEG_FORMAT:

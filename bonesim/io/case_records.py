@@ -189,6 +189,8 @@ class VolumeSpec:
         Label-stack axis code as declared (None: not declared, read as LPS).
     seed : int
         Phantom seed.
+    generation : int
+        Phantom shape generation (:data:`bonesim.io.phantom.GENERATIONS`).
     """
 
     format: str
@@ -202,6 +204,7 @@ class VolumeSpec:
     origin_mm: tuple[float, float, float] | None = None
     orientation: str | None = None
     seed: int = _phantom.DEFAULT_SEED
+    generation: int = _phantom.LATEST_GENERATION
 
     @property
     def segmentation(self) -> Path | None:
@@ -480,7 +483,7 @@ class Case:
         if v.format == "phantom":
             size = v.size_mm if v.size_mm is not None else _phantom.DEFAULT_SIZE_MM
             voxel = _phantom.DEFAULT_VOXEL_MM if v.voxel_mm == NATIVE else v.voxel_mm
-            vol = _phantom.phantom_volume(v.seed, voxel, size, names)
+            vol = _phantom.phantom_volume(v.seed, voxel, size, names, v.generation)
         else:
             kw = {"progress": progress}
             kinds = [s.kind for s in self.structures]

@@ -601,8 +601,6 @@ def find_landmarks(labels: np.ndarray, spacing_mm: float, origin_mm, structures,
     ValueError
         No bone, or inconsistent inputs.
     """
-    from scipy import ndimage
-
     if side not in ("left", "right"):
         raise ValueError(f"side must be 'left' or 'right', got {side!r}")
     p = load_params() if params is None else params

@@ -76,7 +76,7 @@ from bonesim.errors import BonesimError
 from bonesim.io.landmarks import analysis_grid, structure_groups
 from bonesim.io.path_moves import (TRAVEL_ABOVE_MM, STAIR_RAISE_MM, CutSurface,
                                    PathBuilder, first_bone, rinse, segment_clear, stair,
-                                   trace_floors, travel_height, view_frame)
+                                   stairs_along, trace_floors, travel_height, view_frame)
 from bonesim.io.trajectory import Trajectory
 
 __all__ = ["THIN_GROUPS", "CANAL_GROUPS", "NEEDED", "plan_case", "mastoidectomy_path",
@@ -368,7 +368,6 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
     trajectory : Trajectory
     summary : dict
     """
-    from scipy import ndimage
     from skimage.draw import polygon2mask
 
     from bonesim.physics.clearance import Clearance
@@ -420,7 +419,8 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
         a, b, r = capsule
         ab = b - a
         t = np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0)
-        return np.linalg.norm(p - (a + t[:, None] * ab), axis=1) - r
+        off = p - (a + t[:, None] * ab)
+        return np.sqrt(np.einsum("ij,ij->i", off, off)) - r
 
     def gap_for(radius, m_crit, m_thin, m_canal):
         need = {"critical": m_crit, "thin": m_thin, "canal": m_canal}
@@ -552,7 +552,7 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
     def do_rinse():
         rc = rinse_cols
         rinse(path, surface, ca[rc], cb[rc], reached[rc], floor1[rc], lift, at, view,
-              gap_travel, 0.0, plan, across_for(gap_travel))
+              gap_travel, plan)
         drilled_at_rinse[0] = path.drill_s
 
     def run_stage(tgt, floor, r, start, layer_mm, speed, gap, burr_index, relative):
@@ -599,9 +599,8 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
                 else:
                     stair(path, base_last, b_first, view, d_last, now[q[0]], speed, across,
                           drill=True)
-                for q0, q1 in zip(q[:-1], q[1:]):
-                    stair(path, at(ca[q0], cb[q0], 0.0), at(ca[q1], cb[q1], 0.0), view,
-                          now[q0], now[q1], speed, across, drill=True)
+                stairs_along(path, at(ca[q], cb[q], 0.0), now[q], view, speed, gap, lift,
+                             drill=True)
                 surface.carve(ca[q], cb[q], now[q], r)
                 swept.carve(ca[q], cb[q], now[q], r)
                 n_strokes += 1

@@ -39,7 +39,8 @@ from bonesim.errors import BonesimError
 
 __all__ = ["TRACE_TOL_MM", "TRACE_STEPS", "TRAVEL_RAISE_MM", "TRAVEL_ABOVE_MM",
            "BISECT_MM", "HOP_STEP_MM", "STAIR_RAISE_MM", "view_frame", "first_bone",
-           "trace_floors", "segment_clear", "PathBuilder", "stair", "travel_height",
+           "trace_floors", "segment_clear", "segments_clear", "PathBuilder", "stair",
+           "stairs_along", "travel_height",
            "CutSurface", "rinse", "hop"]
 
 #: Sphere tracing stops when a step would be shorter than this [mm].
@@ -132,6 +133,31 @@ def segment_clear(dist, p, q, clear) -> bool:
     return True
 
 
+def segments_clear(dist, p, q, clear) -> np.ndarray:
+    """:func:`segment_clear` for many segments at once: ``(n,)`` bool, segment
+    ``k`` from ``p[k]`` to ``q[k]`` ((n, 3) [mm]). The same bisection, every
+    piece still open evaluated in one call per round."""
+    p = np.asarray(p, float).reshape(-1, 3)
+    q = np.asarray(q, float).reshape(-1, 3)
+    ok = np.ones(len(p), bool)
+    seg = np.arange(len(p))
+    a, b = p, q
+    while len(seg):
+        d = dist(np.concatenate([a, b]))
+        da, db = d[:len(seg)], d[len(seg):]
+        length = np.linalg.norm(b - a, axis=1)
+        bad = (da < clear) | (db < clear)
+        done = ~bad & ((da + db - length) / 2 >= clear)
+        short = ~bad & ~done & (length < BISECT_MM)
+        ok[seg[bad | short]] = False
+        go = ~bad & ~done & ~short & ok[seg]
+        seg, a, b = seg[go], a[go], b[go]
+        m = (a + b) / 2
+        seg = np.concatenate([seg, seg])
+        a, b = np.concatenate([a, m]), np.concatenate([m, b])
+    return ok
+
+
 class PathBuilder:
     """Waypoints, the speed [mm/s] used to reach each one and the tool's state
     on the way there (drill, suction, irrigation; the burr index ``burr``
@@ -187,6 +213,43 @@ def stair(path, base0, base1, view, d0, d1, speed, across, **state):
     path.go(base0 + d * view, speed, **state)
     path.go(base1 + d * view, speed, **state)
     path.go(base1 + d1 * view, speed, **state)
+
+
+def stairs_along(path, bases, depths, view, speed, gap, lift, **state):
+    """:func:`stair` through consecutive rays ``bases`` (n, 3) at ``depths``
+    (n,) [mm]: each move across at the shallower of its two depths where that
+    is proven clear (:func:`segments_clear`, all at once), else raised by
+    :data:`STAIR_RAISE_MM` until it is (not above ``lift``)."""
+    bases = np.asarray(bases, float)
+    depths = np.asarray(depths, float)
+    if len(bases) < 2:
+        return
+    d = np.minimum(depths[:-1], depths[1:])
+    ok = segments_clear(gap, bases[:-1] + d[:, None] * view, bases[1:] + d[:, None] * view,
+                        0.0)
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        # raise each refused move by STAIR_RAISE_MM steps up to the travel
+        # depth, every candidate of every move proven in one batch; the deepest
+        # clear one is taken (the travel depth itself is clear)
+        steps = np.ceil(np.maximum(d[bad] - lift, 0.0) / STAIR_RAISE_MM).astype(int)
+        k = np.concatenate([np.arange(1, n + 1) for n in steps]) if steps.sum() else \
+            np.zeros(0, int)
+        owner = np.repeat(np.arange(len(bad)), steps)
+        cand = np.maximum(d[bad][owner] - STAIR_RAISE_MM * k, lift)
+        i0, i1 = bad[owner], bad[owner] + 1
+        clear = segments_clear(gap, bases[i0] + cand[:, None] * view,
+                               bases[i1] + cand[:, None] * view, 0.0) | (cand <= lift)
+        best = np.full(len(bad), lift)
+        for j in range(len(bad)):
+            sel = np.flatnonzero((owner == j) & clear)
+            if len(sel):
+                best[j] = cand[sel[0]]                       # the deepest clear one
+        d[bad] = best
+    for k in range(len(d)):
+        path.go(bases[k] + d[k] * view, speed, **state)
+        path.go(bases[k + 1] + d[k] * view, speed, **state)
+        path.go(bases[k + 1] + depths[k + 1] * view, speed, **state)
 
 
 def travel_height(gap, at, a, b, start):
@@ -279,10 +342,14 @@ class CutSurface:
         return self.height(rel @ self.u, rel @ self.v)
 
 
-def rinse(path, surface, ca, cb, reached, floor, lift, at, view, dist, clear, plan,
-           across):
+def rinse(path, surface, ca, cb, reached, floor, lift, at, view, gap, plan):
     """Drill off: irrigate the drilled cavity, then suction it (see the module
-    docstring); back at the travel height after."""
+    docstring); back at the travel height after.
+
+    ``ca, cb`` [mm] are the lattice columns swept (raster lines of equal
+    ``ca``), ``reached`` the deepest burr centre per column (-inf where the
+    burr never went), ``floor`` the deepest clear tool centre, ``gap`` the
+    gap function the moves keep positive, ``lift`` the travel depth."""
     opened = np.isfinite(reached)
     lines = np.unique(ca[opened])
     if lines.size == 0:
@@ -302,13 +369,12 @@ def rinse(path, surface, ca, cb, reached, floor, lift, at, view, dist, clear, pl
         for k, on in enumerate(cols):
             a = ca[on[0]]
             if k == 0 or not hop(path, surface, at(a, cb[on[0]], 0.0), view, h[on[0]],
-                                  dist, clear, speed, flag):
+                                 gap, 0.0, speed, flag):
                 path.go(path.last - np.dot(path.last - up, view) * view, plan.travel_mm_s)
                 path.go(at(a, cb[on[0]], lift), plan.travel_mm_s)
                 path.go(at(a, cb[on[0]], h[on[0]]), speed, **{flag: True})   # in, on
-            for q0, q1 in zip(on[:-1], on[1:]):
-                stair(path, at(a, cb[q0], 0.0), at(a, cb[q1], 0.0), view, h[q0], h[q1],
-                       speed, across, **{flag: True})
+            stairs_along(path, at(np.full(len(on), a), cb[on], 0.0), h[on], view, speed,
+                         gap, lift, **{flag: True})
     path.go(path.last - np.dot(path.last - up, view) * view, plan.travel_mm_s)
 
 

@@ -55,6 +55,7 @@ trajectories can rely on :data:`LANDMARKS_MM`.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ from scipy import ndimage
 from bonesim.io.volumes import CaseVolume
 
 __all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
+           "GENERATIONS", "LATEST_GENERATION",
            "PhantomParts", "build_phantom", "phantom_volume", "lateral_surface_x_mm"]
 
 PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
@@ -72,6 +74,14 @@ PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
 DEFAULT_SEED = 0
 DEFAULT_VOXEL_MM = 0.5
 DEFAULT_SIZE_MM = (52.0, 52.0, 52.0)
+#: Generations of the phantom's shape this module still builds: 2, the
+#: temporal bone whose posterior fossa opened behind the mastoid (the sinus
+#: bulging out of the bone); 3, the posterior fossa closed by a wall of bone
+#: behind the mastoid (``OCCIPITAL_*``, ``PF_TABLE_MM``) so the sinus lies
+#: inside the bone. Recordings made on an older generation replay on it
+#: (bundled as ``phantom@2``).
+GENERATIONS = (2, 3)
+LATEST_GENERATION = GENERATIONS[-1]
 
 # ------------------------------------------------------------ outer cortex
 # The bone's outer shape is the zero level of a smooth signed distance field
@@ -298,10 +308,10 @@ def _bbox_cone(a, b, ra, rb):
     return np.minimum(a, b) - rmax, np.maximum(a, b) + rmax
 
 
-def _base_parts(inner_mm=SQUAMA_MM):
+def _base_parts(inner_mm=SQUAMA_MM, generation=LATEST_GENERATION):
     """The large parts, each (distance function of x, y, z, bounding box lo,
     hi [mm], fillet [mm] with the parts before it); the squama is
-    ``inner_mm`` thick."""
+    ``inner_mm`` thick; the occipital part from generation 3 on."""
     (cy, cz), (sy, sz) = SQUAMA_OUTLINE_MM
     sq_x = SQUAMA_POINT_MM[0]
     zr_lo, zr_hi = _bbox_ellipsoid(ZYGOMA_ROOT_CENTER_MM, ZYGOMA_ROOT_SEMI_MM)
@@ -317,15 +327,15 @@ def _base_parts(inner_mm=SQUAMA_MM):
          *_bbox_ellipsoid(MASTOID_CENTER_MM, MASTOID_SEMI_MM), BLEND_MM),
         (lambda x, y, z: _sd_ellipsoid(x, y, z, TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM),
          *_bbox_ellipsoid(TYMPANIC_CENTER_MM, TYMPANIC_SEMI_MM), BLEND_MM),
-        (lambda x, y, z: _sd_ellipsoid(x, y, z, OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM),
-         *_bbox_ellipsoid(OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM), BLEND_MM),
         (lambda x, y, z: _sd_round_cone(x, y, z, *MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM),
          *_bbox_cone(*MASTOID_TIP_AXIS_MM, *MASTOID_TIP_RADII_MM), BLEND_MM),
         (lambda x, y, z: _sd_squama(x, y, z, inner_mm),
          np.array([sq_x - inner_mm - (sy * sy + sz * sz) / SQUAMA_RADIUS_MM, cy - sy, cz - sz]),
          np.array([sq_x, cy + sy, cz + sz]), BLEND_MM),
         (_sd_zygoma, np.minimum(zr_lo, zp_lo), np.maximum(zr_hi, zp_hi), BLEND_MM),
-    ]
+    ] + ([(lambda x, y, z: _sd_ellipsoid(x, y, z, OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM),
+           *_bbox_ellipsoid(OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM), BLEND_MM)]
+         if generation >= 3 else [])
 
 
 def _eval_points(parts, x, y, z):
@@ -355,17 +365,20 @@ def _surface_x(parts, y, z, x_lo=-26.0, x_hi=26.0):
     return np.where(hit, 0.5 * (lo + hi), np.nan)
 
 
-def _polyline_on_cortex(yz, radii, height):
+def _polyline_on_cortex(yz, radii, height, generation=LATEST_GENERATION):
     """3-D path of a ridge that stands ``height`` [mm] out of the cortex along
     the (y, z) points ``yz``: tube centres ``radius - height`` below it."""
     yz = np.asarray(yz, float)
     r = np.interp(np.arange(len(yz)), [0, len(yz) - 1], radii)
-    x = _surface_x(_base_parts(), yz[:, 0], yz[:, 1]) + height - r
+    x = _surface_x(_base_parts(generation=generation), yz[:, 0], yz[:, 1]) + height - r
     return np.column_stack([x, yz]), r
 
 
-_RIDGE_PTS, _RIDGE_R = _polyline_on_cortex(TEMPORAL_LINE_YZ_MM, TEMPORAL_LINE_RADII_MM,
-                                           TEMPORAL_LINE_HEIGHT_MM)
+@functools.lru_cache(maxsize=len(GENERATIONS))
+def _ridge(generation):
+    """The temporal line's tube centres and radii on a generation's cortex."""
+    return _polyline_on_cortex(TEMPORAL_LINE_YZ_MM, TEMPORAL_LINE_RADII_MM,
+                               TEMPORAL_LINE_HEIGHT_MM, generation)
 _EAC_C = EAC_AXIS_MM[0][1:]                        # (y, z) of the canal's axis
 _HENLE_BASE = np.array([
     EAC_RIM_X_MM - 0.5 * HENLE_SPINE_MM[1],
@@ -385,13 +398,14 @@ def _sd_meatus(x, y, z):
     return _smax(ring, np.abs(x - (EAC_RIM_X_MM - half)) - half, FEATURE_BLEND_MM)
 
 
-def _feature_parts():
+def _feature_parts(generation=LATEST_GENERATION):
     """Small parts on the cortex, as :func:`_base_parts`: the temporal line,
     the bony meatus and the spine of Henle."""
     parts = []
-    for i in range(len(_RIDGE_PTS) - 1):
-        a, b = tuple(_RIDGE_PTS[i]), tuple(_RIDGE_PTS[i + 1])
-        ra, rb = float(_RIDGE_R[i]), float(_RIDGE_R[i + 1])
+    ridge_pts, ridge_r = _ridge(generation)
+    for i in range(len(ridge_pts) - 1):
+        a, b = tuple(ridge_pts[i]), tuple(ridge_pts[i + 1])
+        ra, rb = float(ridge_r[i]), float(ridge_r[i + 1])
         parts.append((lambda x, y, z, a=a, b=b, ra=ra, rb=rb:
                       _sd_round_cone(x, y, z, a, b, ra, rb),
                       *_bbox_cone(a, b, ra, rb), FEATURE_BLEND_MM))
@@ -426,7 +440,8 @@ def _roughness(x, y, z):
     return (ROUGH_MM * np.sqrt(2.0 / ROUGH_WAVES)) * w * s      # unit-variance sum
 
 
-def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True) -> np.ndarray:
+def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True,
+                  generation=LATEST_GENERATION) -> np.ndarray:
     """Signed distance [mm] to the outer shape on the grid (float32), the
     squama ``inner_mm`` thick, with the mastoid's relief or without.
 
@@ -435,7 +450,7 @@ def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True) -> np.
     """
     f = np.full(cv.shape, 1e3, dtype=np.float32)
     pad = 2 * max(BLEND_MM, ROOT_BLEND_MM, FEATURE_BLEND_MM) + cv.h
-    for fn, lo, hi, k in _base_parts(inner_mm) + _feature_parts():
+    for fn, lo, hi, k in _base_parts(inner_mm, generation) + _feature_parts(generation):
         b = cv.box(np.asarray(lo) - pad, np.asarray(hi) + pad)
         if b is None:
             continue
@@ -605,19 +620,20 @@ class _Canvas:
         mask[sl] |= (rho - R) ** 2 + h * h <= r * r
 
 
-def _envelope(cv: _Canvas):
+def _envelope(cv: _Canvas, generation=LATEST_GENERATION):
     """Bone shape, middle-fossa and posterior-fossa masks and dura layers."""
     # the squama counts DURA_MM thicker so that its inner face carries dura
-    field = _cortex_field(cv, SQUAMA_MM + DURA_MM)
+    field = _cortex_field(cv, SQUAMA_MM + DURA_MM, generation=generation)
     shape = field <= 0
     sl, x, y, z = cv.full()
     above = z - TEGMEN_Z_MM                                 # > 0 above the tegmen
     medial = _squama_depth(x, y, z) - SQUAMA_MM             # > 0 medial to squama
-    # the posterior fossa stops PF_TABLE_MM inside the outer shape (the skull's
-    # wall behind the mastoid, which covers the sinus); so does the middle
-    # fossa within the occipital part, behind the squama
+    # from generation 3 the posterior fossa stops PF_TABLE_MM inside the outer
+    # shape (the skull's wall behind the mastoid, which covers the sinus); so
+    # does the middle fossa within the occipital part, behind the squama
+    closed = generation >= 3
     occipital = (_sd_ellipsoid(x, y, z, OCCIPITAL_CENTER_MM, OCCIPITAL_SEMI_MM)
-                 <= PF_TABLE_MM) & (y > MF_TABLE_Y_MM)
+                 <= PF_TABLE_MM) & (y > MF_TABLE_Y_MM) & closed
     to_table = np.where(occipital, -PF_TABLE_MM - field, np.inf)   # > 0 inside it
     table = to_table > 0
     mid = (above > 0) & (medial > 0) & table
@@ -626,7 +642,7 @@ def _envelope(cv: _Canvas):
     n /= np.linalg.norm(n)
     q = np.asarray(PF_POINT_MM, float)
     pf_depth = (x - q[0]) * n[0] + (y - q[1]) * n[1] + (z - q[2]) * n[2]
-    to_wall = -PF_TABLE_MM - field                 # > 0 deeper than the skull's wall
+    to_wall = -PF_TABLE_MM - field if closed else np.inf   # > 0 deeper than the wall
     post = (pf_depth > 0) & (to_wall > 0)
     mid_dura = shape & mid & (mid_depth <= DURA_MM)
     post_dura = shape & post & (np.minimum(pf_depth, to_wall) <= DURA_MM) & ~mid
@@ -686,7 +702,8 @@ def _air_cells(cv: _Canvas, rng, envelope, protected):
 
 
 def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
-                  size_mm=DEFAULT_SIZE_MM) -> PhantomParts:
+                  size_mm=DEFAULT_SIZE_MM, generation: int = LATEST_GENERATION
+                  ) -> PhantomParts:
     """Generate the phantom's part masks and intensities.
 
     Parameters
@@ -697,6 +714,8 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
         Isotropic voxel edge [mm].
     size_mm : (3,) float
         Grid extent ``(x, y, z)`` [mm], centred on the frame origin.
+    generation : int
+        Which shape (:data:`GENERATIONS`; default the latest).
 
     Returns
     -------
@@ -704,11 +723,13 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     """
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
+    if generation not in GENERATIONS:
+        raise ValueError(f"phantom generation {generation!r} is not one of {GENERATIONS}")
     shape = np.maximum(1, np.round(np.asarray(size_mm, float) / voxel_mm)).astype(int)
     cv = _Canvas(shape, voxel_mm)
     rng = np.random.default_rng(seed)
 
-    envelope, mid_dura, post_dura = _envelope(cv)
+    envelope, mid_dura, post_dura = _envelope(cv, generation)
 
     sinus = cv.empty()
     cv.polyline(sinus, SINUS_PATH_MM, SINUS_RADIUS_MM)
@@ -767,12 +788,13 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
 
 
 def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
-                   size_mm=DEFAULT_SIZE_MM, structures=PARTS) -> CaseVolume:
+                   size_mm=DEFAULT_SIZE_MM, structures=PARTS,
+                   generation: int = LATEST_GENERATION) -> CaseVolume:
     """The phantom as a :class:`~bonesim.io.volumes.CaseVolume`.
 
     Parameters
     ----------
-    seed, voxel_mm, size_mm
+    seed, voxel_mm, size_mm, generation
         See :func:`build_phantom`.
     structures : sequence of str
         Part names in manifest order: part ``structures[s - 1]`` gets label
@@ -786,7 +808,7 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     unknown = [s for s in structures if s not in PARTS]
     if unknown:
         raise ValueError(f"unknown phantom part(s) {unknown}; known: {list(PARTS)}")
-    parts = build_phantom(seed, voxel_mm, size_mm)
+    parts = build_phantom(seed, voxel_mm, size_mm, generation)
     labels = np.zeros(parts.hu.shape, dtype=np.uint8)
     hu = parts.hu
     for s, name in enumerate(structures, start=1):
@@ -794,5 +816,5 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     omitted = [p for p in PARTS if p not in structures]
     for name in omitted:
         hu[parts.masks[name]] = HU_AIR
-    src = f"procedural left temporal-bone phantom (seed {seed})"
+    src = f"procedural left temporal-bone phantom (seed {seed}, generation {generation})"
     return CaseVolume(labels, parts.spacing_mm, parts.origin_mm, src, hu)

@@ -73,8 +73,7 @@ def bench_update(quick: bool = False) -> dict:
     surf = Surface.build(grid, model.colors)
     scene = Scene.from_model(model, surf, size=SIZE)
     scene.render()
-    pos, _, _, _ = surf.arrays()
-    verts = np.floor((pos - grid.origin_mm) / grid.spacing_mm + 0.5).astype(np.int32)
+    verts = surf.ijk[surf.vertex_slots].copy()          # the surface voxels
     rng = np.random.default_rng(0)
     ball = ball_offsets(7.8)                       # ~2000 voxels; about half in bone
     n_blobs = 8 if quick else 40

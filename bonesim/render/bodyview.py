@@ -33,8 +33,11 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
+from bonesim.render.meshbuf import oriented_triangles
+
 __all__ = ["BodiesMixin", "vtk_matrix", "surface_polydata", "FRAGMENT_TINTS",
-           "fragment_tint", "PLATE_COLOR", "mesh_polydata"]
+           "fragment_tint", "PLATE_COLOR", "mesh_polydata", "light_by_outward_normals",
+           "OUTWARD_NORMAL_IMPL"]
 
 _IDENTITY = np.eye(4)
 #: Per-channel factors on a fragment's colours, by body id (body 1 the first,
@@ -45,6 +48,23 @@ FRAGMENT_TINTS = ((1.0, 0.72, 0.45), (0.55, 0.78, 1.0), (0.62, 1.0, 0.55),
                   (1.0, 0.6, 0.8), (1.0, 0.95, 0.45))
 #: Colour of plates and distractors (titanium), RGB 0-1.
 PLATE_COLOR = (0.66, 0.69, 0.74)
+
+
+#: Fragment-shader code that takes a bone surface's normals as they are. VTK
+#: turns the normals of back-facing triangles around (two-sided lighting);
+#: the bone's vertex normals always point out of the bone (the smoothed
+#: density's gradient), and a triangle seen edge-on at a rim can be
+#: back-facing on screen while its normals face the eye: turned around, it
+#: would be a dark speck. Replaces VTK's ``//VTK::Normal::Impl`` (before VTK's
+#: own code, which then finds no tag to fill).
+OUTWARD_NORMAL_IMPL = "vec3 normalVCVSOutput = normalize(normalVCVSOutput);\n"
+
+
+def light_by_outward_normals(actor) -> None:
+    """Light ``actor``'s surface by its point normals on both faces,
+    without turning them around on back faces (:data:`OUTWARD_NORMAL_IMPL`)."""
+    actor.GetShaderProperty().AddFragmentShaderReplacement(
+        "//VTK::Normal::Impl", True, OUTWARD_NORMAL_IMPL, False)
 
 
 def fragment_tint(b: int) -> tuple:
@@ -64,9 +84,11 @@ def vtk_matrix(m) -> vtkMatrix4x4:
 
 def surface_polydata(surface, tint=None) -> vtkPolyData:
     """A deep copy of a :class:`~bonesim.engine.surface.Surface` as polydata:
-    points [mm], its normals and RGBA colours as point data, its triangles.
+    points [mm], its normals and RGBA colours as point data, its triangles
+    wound as the scene draws them (:func:`bonesim.render.meshbuf.oriented_triangles`).
     ``tint`` (3 factors 0-1) scales the colours' RGB."""
     pos, nrm, col, tri = surface.arrays()
+    tri = oriented_triangles(pos, nrm, tri)
     if tint is not None:
         col = np.array(col, copy=True)
         col[:, :3] = np.clip(col[:, :3] * np.asarray(tint, float), 0, 255).astype(np.uint8)
@@ -219,6 +241,7 @@ class BodiesMixin:
             actor.SetMapper(mapper)
             actor.ForceOpaqueOn()
             actor.SetProperty(self.surface_actor.GetProperty())     # the bone's material
+            light_by_outward_normals(actor)
             self.renderer.AddActor(actor)
         else:
             actor = entry[0]

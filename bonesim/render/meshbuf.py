@@ -11,13 +11,30 @@ pass over the triangle slots writes the vertex indices of every live
 triangle into a flat int32 connectivity buffer. That pass is O(triangle
 slots) in a numba loop (~0.1 ms per 100,000 slots).
 
+Winding as drawn
+----------------
+The surface winds each triangle by the voxels it comes from (seen from
+outside the cell's empty corners); its vertex normals come from the
+smoothed density. Where the surface folds within a voxel or two, the two
+can disagree: a triangle whose corners' normals face the eye is then wound
+away from it. OpenGL calls it back-facing, and the renderer's two-sided
+lighting turns its normals around, away from the light: a dark speck, one
+voxel wide, on bright bone. So every compaction writes a triangle as
+``(a, c, b)`` when its face normal ``(b - a) x (c - a)`` points against
+the sum of its corners' normals (the surface keeps that bit per triangle,
+``Surface.tflip``, up to date as it moves vertices), and as ``(a, b, c)``
+otherwise: the drawn winding always agrees with the shading normals.
+:func:`oriented_triangles` does the same for compact arrays. (The visible
+subset below still judges a face by the surface's own winding, out of the
+bone: what it asks is which side of the bone a triangle is on.)
+
 Visible subset (SPEC, "Hybrid voxel / surface data structure")
 --------------------------------------------------------------
 A vertex *faces the camera* when its normal points toward the eye:
 ``dot(n, eye - p) > 0`` for a perspective camera, ``dot(n, -d) > 0`` for a
 parallel one looking along ``d``. A triangle is *visible* when at least one
 of its vertices faces the camera (SPEC), or when its own face does (normal
-``(b - a) x (c - a)``, wound like the vertex normals). The second test is
+``(b - a) x (c - a)`` as the surface winds it, out of the bone). The second test is
 ours: at a drilled rim the smoothed vertex normals of a triangle seen edge-on
 can all point away although the face shows, and without it the resting
 picture lost those pixels. When the camera comes to rest,
@@ -34,11 +51,14 @@ it may have changed since. Two ways to know what may have changed:
 *Change marks* (fast; when the caller passes the voxels given to
 ``Surface.update``). A removal only re-evaluates the cells that contain the
 removed voxel, so every triangle it creates has all three corners in the
-3x3x3 block around that voxel; re-shading (new normals) reaches the same
-block around removed and touched voxels; a new vertex is a neighbour of a
-removed voxel. So the vertices of those blocks are *marked* (``_mark_near``,
-O(27) hash look-ups per voxel), and a triangle is kept when a corner is
-marked. The per-update pass then reads only the triangle slots.
+3x3x3 block around that voxel; a new vertex is a neighbour of a removed
+voxel. So the vertices of those blocks are *marked* (``_mark_near``, O(27)
+hash look-ups per voxel), and a triangle is kept when a corner is marked.
+The per-update pass then reads only the triangle slots. (Re-shading moves
+and turns vertices up to ``NORMAL_RADIUS`` voxels from a removed or touched
+voxel; beyond the marked block those are small changes of vertices that
+already existed, and a triangle they turn toward the eye joins the subset
+at the next snapshot, when the camera next comes to rest.)
 
 *Comparison* (fallback; when the voxels are not given). A triangle is kept
 when its slot lies past the snapshot's end, its key or corners differ from
@@ -59,11 +79,11 @@ from numba import njit
 
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 
-__all__ = ["VisibleJob", "SurfaceBuffers", "warmup"]
+__all__ = ["VisibleJob", "SurfaceBuffers", "oriented_triangles", "warmup"]
 
 
 @njit(cache=True, nogil=True)
-def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
+def _compact(tri, key, tflip, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
              full, vis):
     """Write live triangles into ``full`` (and the visible ones into ``vis``).
 
@@ -89,6 +109,8 @@ def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, wit
         a = tri[t, 0]
         b = tri[t, 1]
         c = tri[t, 2]
+        if tflip[t]:
+            b, c = c, b
         full[3 * nf] = a
         full[3 * nf + 1] = b
         full[3 * nf + 2] = c
@@ -97,8 +119,8 @@ def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, wit
             keep = False
             if t >= nts:
                 keep = True
-            elif (s_key[t] != k or s_tri[t, 0] != a or s_tri[t, 1] != b
-                  or s_tri[t, 2] != c):
+            elif (s_key[t] != k or s_tri[t, 0] != tri[t, 0] or s_tri[t, 1] != tri[t, 1]
+                  or s_tri[t, 2] != tri[t, 2]):
                 keep = True
             elif s_tvis[t] != 0 or vdirty[a] != 0 or vdirty[b] != 0 or vdirty[c] != 0:
                 keep = True
@@ -111,7 +133,7 @@ def _compact(tri, key, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, wit
 
 
 @njit(cache=True, nogil=True)
-def _compact_marked(tri, key, s_tvis, marked, full, vis):
+def _compact_marked(tri, key, tflip, s_tvis, marked, full, vis):
     """Like :func:`_compact` with change marks: keep a live triangle in ``vis``
     when it was visible in the snapshot or a corner is marked."""
     nts = s_tvis.shape[0]
@@ -123,6 +145,8 @@ def _compact_marked(tri, key, s_tvis, marked, full, vis):
         a = tri[t, 0]
         b = tri[t, 1]
         c = tri[t, 2]
+        if tflip[t]:
+            b, c = c, b
         full[3 * nf] = a
         full[3 * nf + 1] = b
         full[3 * nf + 2] = c
@@ -173,7 +197,8 @@ def _visible_flags(pos, nrm, tri, key, eye, dirn, parallel, vflag, tvis):
         a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
         vis = (vflag[a] | vflag[b] | vflag[c]) != 0
         if not vis:
-            # face normal (b - a) x (c - a), wound like the vertex normals
+            # face normal (b - a) x (c - a) as the surface winds it (out of
+            # the bone), whatever way the triangle is drawn
             ux, uy, uz = pos[b, 0] - pos[a, 0], pos[b, 1] - pos[a, 1], pos[b, 2] - pos[a, 2]
             wx, wy, wz = pos[c, 0] - pos[a, 0], pos[c, 1] - pos[a, 1], pos[c, 2] - pos[a, 2]
             fx, fy, fz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
@@ -189,6 +214,35 @@ def _visible_flags(pos, nrm, tri, key, eye, dirn, parallel, vflag, tvis):
         else:
             tvis[t] = 0
     return n
+
+
+def oriented_triangles(pos, nrm, tris) -> np.ndarray:
+    """Triangles wound as the scene draws them (module docstring, "Winding
+    as drawn").
+
+    Parameters
+    ----------
+    pos, nrm : (n, 3) float array_like
+        Vertex positions [mm] and normals.
+    tris : (m, 3) int array_like
+        Vertex indices.
+
+    Returns
+    -------
+    (m, 3) int32
+        ``tris`` with the last two corners swapped where the face normal
+        points against the sum of the corners' normals.
+    """
+    p = np.asarray(pos, dtype=np.float32)
+    n = np.asarray(nrm, dtype=np.float32)
+    t = np.array(tris, dtype=np.int32).reshape(-1, 3)
+    if t.size == 0:
+        return t
+    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
+    face = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", face, n[t].sum(axis=1)) < 0
+    t[flip, 1], t[flip, 2] = t[flip, 2], t[flip, 1].copy()
+    return t
 
 
 class VisibleJob:
@@ -333,15 +387,16 @@ class SurfaceBuffers:
         if job is not None and job.surface_ref() is not surface:
             self._job = job = None
         if job is None:
-            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
-                              self._empty_i, self._empty_k, self._empty_f, self._empty_f,
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
+                              surface.nrm, self._empty_i, self._empty_k, self._empty_f,
+                              self._empty_f,
                               self._empty_u, self._vdirty, False, self.full, self.vis)
         elif self._marks_ok and self._marks_job is job:
-            nf, nv = _compact_marked(surface.tri, surface.tri_key, job.tvis, self._marked,
-                                     self.full, self.vis)
+            nf, nv = _compact_marked(surface.tri, surface.tri_key, surface.tflip, job.tvis,
+                                     self._marked, self.full, self.vis)
         else:
-            nf, nv = _compact(surface.tri, surface.tri_key, surface.pos, surface.nrm,
-                              job.s_tri, job.s_key, job.s_pos, job.s_nrm, job.tvis,
+            nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
+                              surface.nrm, job.s_tri, job.s_key, job.s_pos, job.s_nrm, job.tvis,
                               self._vdirty, True, self.full, self.vis)
         self.n_full, self.n_vis = int(nf), int(nv)
         return self.n_full, self.n_vis

@@ -27,8 +27,10 @@ no per-vertex Python work: the surface's slot arrays ``pos`` (float32),
 grows its arrays), and the live triangles are compacted by a numba pass
 into an int32 buffer that a ``vtkCellArray`` uses in place. Colours are
 direct scalars, normals are the surface's density-gradient normals, and
-both faces are lit (two-sided lighting), so the bone looks right from
-inside a drilled cavity too. The material (``[bone]``) has a soft, wide
+both faces are lit by those normals as they are (never turned around on
+back faces: :func:`bonesim.render.bodyview.light_by_outward_normals`; the
+drawn winding follows them too, :mod:`bonesim.render.meshbuf`), so a
+triangle seen edge-on at a rim is never a dark speck. The material (``[bone]``) has a soft, wide
 specular highlight under the microscope's headlight and fill light.
 
 Visible subset
@@ -56,7 +58,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOImage import vtkPNGWriter
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkPolyDataMapper, vtkRenderer,
                                          vtkWindowToImageFilter)
-from bonesim.render.bodyview import BodiesMixin
+from bonesim.render.bodyview import BodiesMixin, light_by_outward_normals
 from bonesim.render.dustview import DustLayer
 from bonesim.render.geometry import polydata_from_arrays, structure_polydata, tool_matrix
 from bonesim.render.gl import make_render_window
@@ -271,6 +273,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         # free slots of the colour array have alpha 0; without this VTK would
         # scan the alphas, call the surface translucent and blend it unsorted
         a.ForceOpaqueOn()
+        light_by_outward_normals(a)
         p = a.GetProperty()
         p.SetInterpolationToGouraud()
         bone = self.style.bone

@@ -74,6 +74,9 @@ class Session:
         An instrumented handle's readings (``t_s``, ``angles_deg``,
         ``counts``; :mod:`bonesim.runtime.handle_stream`): no rows for runs
         without one and for files written before the group existed.
+    case_version : str or None
+        Set when the model was rebuilt from a kept older version of a bundled
+        case (``"phantom@2"``), found by the recorded hashes.
     """
 
     path: Path
@@ -88,6 +91,7 @@ class Session:
     readable: dict = field(default_factory=dict)
     repaired: dict | None = None
     handle: dict = field(default_factory=lambda: _no_rows(GROUPS["handle"]))
+    case_version: str | None = None
 
     @cached_property
     def removals(self) -> dict:
@@ -144,16 +148,35 @@ class Session:
                 burrs.append(load_burr(p))
         # the run's voxel, which --voxel-mm may have set over the manifest's
         voxel = h.get("voxel_mm")
-        model = load_model(src, burrs[0], device=caps, oversample=int(h["oversample"]),
+
+        def build(source):
+            m = load_model(source, burrs[0], device=caps, oversample=int(h["oversample"]),
                            voxel_mm=None if voxel is None else float(voxel))
-        models = [model] + [model.with_burr(b) for b in burrs[1:]]
-        if check:
-            for q, (m, want) in enumerate(zip(models, h["model_sha256"])):
-                if model_sha256(m) != want:
-                    raise BonesimError(
-                        f"{self.path}: burr {q} ({h['burrs'][q]['name']}) on case "
-                        f"{case['name']!r} no longer builds the recorded model (the case, "
-                        "burr or material files changed since the recording)")
+            return [m] + [m.with_burr(b) for b in burrs[1:]]
+
+        def mismatch(models):
+            return next((q for q, (m, want) in enumerate(zip(models, h["model_sha256"]))
+                         if model_sha256(m) != want), None)
+
+        models = build(src)
+        if not check:
+            return models
+        bad = mismatch(models)
+        if bad is not None and src == case["name"]:
+            # a bundled case that changed since: the kept older versions, newest
+            # first, found by the recorded hashes
+            from bonesim.io.case import case_versions
+
+            for older in case_versions(case["name"]):
+                candidate = build(older)
+                if mismatch(candidate) is None:
+                    self.case_version = older
+                    return candidate
+        if bad is not None:
+            raise BonesimError(
+                f"{self.path}: burr {bad} ({h['burrs'][bad]['name']}) on case "
+                f"{case['name']!r} no longer builds the recorded model (the case, "
+                "burr or material files changed since the recording)")
         return models
 
     def load_model(self, check: bool = True):

@@ -6,10 +6,9 @@ import pytest
 
 from bonesim.engine import events
 from bonesim.io.burrs import load_burr
-from bonesim.io.case import load_case
-from bonesim.io.toolpath import demo_trajectory
 from bonesim.io.loading import load_model
 from bonesim.engine.model import make_state, step
+from tests.bonesim.plans import drilling_window
 
 
 @pytest.fixture(scope="module")
@@ -19,8 +18,8 @@ def model():
 
 @pytest.fixture(scope="module")
 def samples():
-    traj = demo_trajectory(load_case("phantom"), "cutting-4mm").resample(1000.0)
     # the first 3 s that actually drill bone
+    traj = drilling_window("cutting-4mm", 300).resample(1000.0)
     return list(traj.samples())[:3000]
 
 

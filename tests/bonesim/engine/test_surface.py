@@ -4,7 +4,8 @@ The centre piece is a slow, deliberately plain numpy reference of the whole
 definition (dense arrays, explicit loops over cells and the 56 corner
 triples, plane/side tests with cross and dot products, normals by an einsum
 over the 7x7x7 Gaussian-derivative stencil written out from the formula of
-bonesim.engine.shading): the kernels' full tessellation must equal it, and the
+bonesim.engine.normals, and the vertex's Newton step onto the smoothed
+density's level set): the kernels' full tessellation must equal it, and the
 incremental update must equal a full tessellation after any removal
 sequence. The thin-bone tint has its own tests (test_shading.py).
 """
@@ -20,7 +21,7 @@ from hypothesis import strategies as st
 
 from bonesim.engine.grid import Grid, voxel_offset
 from bonesim.engine.shading import NORMAL_RADIUS, load_shading
-from bonesim.engine.surface import SHADE_MIN, GRAD_EPS, CanonicalSurface, Surface
+from bonesim.engine.surface import GRAD_EPS, CanonicalSurface, Surface
 from bonesim.engine.surface_window import WINDOW_DEPTH
 from tests.bonesim.fakes import force_tiles
 
@@ -34,6 +35,9 @@ _EXAMPLES = int(os.environ.get("BONESIM_SURFACE_EXAMPLES", "30"))
 # numpy reference
 # ---------------------------------------------------------------------------
 R = NORMAL_RADIUS
+#: Tolerance on positions [voxels] against the float64 reference (the
+#: kernels sum in float32).
+POS_ATOL = 1e-4
 
 
 def _ref_weights():
@@ -49,25 +53,28 @@ def _ref_weights():
 
 
 def _ref_vertex(D, lab, p):
-    """Normal and colour of the vertex at padded index p (a tuple)."""
+    """Normal, shift [voxels] and colour of the vertex at padded index p (a tuple)."""
     x, y, z = p
     nb = D[x - R:x + R + 1, y - R:y + R + 1, z - R:z + R + 1].astype(np.float64)
     smooth, deriv = _ref_weights()
     gx = np.einsum("abc,a,b,c->", nb, deriv, smooth, smooth)
     gy = np.einsum("abc,a,b,c->", nb, smooth, deriv, smooth)
     gz = np.einsum("abc,a,b,c->", nb, smooth, smooth, deriv)
+    f = np.einsum("abc,a,b,c->", nb, smooth, smooth, smooth)
     g = np.array([gx, gy, gz])
     if np.linalg.norm(g) > GRAD_EPS:
         n = -g / np.linalg.norm(g)
+        sp = load_shading()
+        shift = float(np.clip((f - sp.iso_density) / np.linalg.norm(g), -sp.max_in_voxels,
+                              sp.max_out_voxels))
     else:
         s = np.zeros(3)
         for d in itertools.product((-1, 0, 1), repeat=3):
             if d != (0, 0, 0) and not D[x + d[0], y + d[1], z + d[2]] > 0:
                 s += d
         n = s / np.linalg.norm(s) if np.linalg.norm(s) > 0 else np.array([0.0, 0.0, 1.0])
-    shade = SHADE_MIN + (1 - SHADE_MIN) * min(max(float(D[p]), 0.0), 1.0)
-    rgb = [min(255, int(np.floor(c * shade + 0.5))) for c in COLORS[lab[p]].astype(float)]
-    return n, rgb + [255]
+        shift = 0.0
+    return n, shift, [int(c) for c in COLORS[lab[p]]] + [255]
 
 
 def _ref_qualifies(occ_cell, tri_idx):
@@ -99,8 +106,10 @@ def _ref_qualifies(occ_cell, tri_idx):
     return emp_sides.pop()
 
 
-def reference(dens, label):
-    """CanonicalSurface of the definition for dense volumes at voxel (0, 0, 0)."""
+def reference(dens, label, origin=(0.0, 0.0, 0.0), spacing=1.0):
+    """CanonicalSurface of the definition for dense volumes at voxel (0, 0, 0)
+    (voxel (0, 0, 0) centred at ``origin`` [mm], voxels ``spacing`` [mm])."""
+    origin = np.asarray(origin, dtype=np.float64)
     P = R + 1
     D = np.pad(np.where(label > 0, dens, 0).astype(np.float32), P)
     lab = np.pad(label, P)
@@ -135,17 +144,19 @@ def reference(dens, label):
         vox = vox[r:] + vox[:r]
         tris.append([c for v in vox for c in v])
     ijk = np.array(sorted(verts), dtype=np.int32).reshape(-1, 3)
-    nrm = np.array([verts[tuple(v)][0] for v in ijk.tolist()], dtype=np.float32).reshape(-1, 3)
-    col = np.array([verts[tuple(v)][1] for v in ijk.tolist()], dtype=np.uint8).reshape(-1, 4)
+    nrm = np.array([verts[tuple(v)][0] for v in ijk.tolist()]).reshape(-1, 3)
+    shift = np.array([verts[tuple(v)][1] for v in ijk.tolist()]).reshape(-1, 1)
+    col = np.array([verts[tuple(v)][2] for v in ijk.tolist()], dtype=np.uint8).reshape(-1, 4)
     tris = np.array(sorted(tris), dtype=np.int32).reshape(-1, 9)
-    return CanonicalSurface(ijk, ijk.astype(np.float32), nrm, col, tris)
+    pos = (origin + spacing * (ijk + shift * nrm)).astype(np.float32)
+    return CanonicalSurface(ijk, pos, nrm.astype(np.float32), col, tris)
 
 
 def _check_vs_reference(dens, label):
     grid = Grid.from_dense(label, dens, spacing_mm=1.0)
     got = Surface.build(grid, COLORS).canonical()
     want = reference(dens, label)
-    diffs = got.differences(want, atol=1e-5)
+    diffs = got.differences(want, atol=1e-5, pos_atol=POS_ATOL)
     assert not diffs, diffs
     return got
 
@@ -279,10 +290,10 @@ def test_build_origin_spacing_and_brick_boundaries():
     grid = Grid.from_dense(lab, dens, spacing_mm=0.4, origin_mm=(-3.0, 1.5, 10.0))
     surf = Surface.build(grid, COLORS)
     can = surf.canonical()
-    want = reference(dens, lab)
+    want = reference(dens, lab, origin=(-3.0, 1.5, 10.0), spacing=0.4)
     np.testing.assert_array_equal(can.ijk, want.ijk)
     np.testing.assert_array_equal(can.tris, want.tris)
-    np.testing.assert_allclose(can.pos, np.array([-3.0, 1.5, 10.0]) + 0.4 * can.ijk, atol=1e-5)
+    np.testing.assert_allclose(can.pos, want.pos, atol=0.4 * POS_ATOL)
     np.testing.assert_allclose(can.nrm, want.nrm, atol=1e-5)
     np.testing.assert_array_equal(can.col, want.col)
 
@@ -366,22 +377,58 @@ def test_each_triangle_once_and_corners_are_surface_voxels():
         assert d[x, y, z] > 0 and not (d[x - 1:x + 2, y - 1:y + 2, z - 1:z + 2] > 0).all()
 
 
-def test_colour_shading_and_labels():
+def test_colours_are_the_labels_whatever_the_density():
+    """A partly drilled voxel keeps its structure's colour (no dark speck);
+    its density moves its vertex instead."""
     lab = np.zeros((5, 5, 5), np.uint8)
     lab[1:4, 1:4, 1:4] = 2
     dens = np.ones(lab.shape, np.float32)
     dens[1, 2, 2] = 0.5
     dens[3, 2, 2] = 0.0001
     surf = Surface.build(Grid.from_dense(lab, dens), COLORS)
+    for v in surf.vertex_slots:
+        assert surf.col[v].tolist() == [200, 60, 50, 255]
 
-    def rgba(v):
-        return surf.col[surf.vertex_at(*v)].tolist()
 
-    assert rgba((2, 2, 1)) == [200, 60, 50, 255]
-    s = SHADE_MIN + (1 - SHADE_MIN) * 0.5
-    assert rgba((1, 2, 2)) == [int(np.floor(c * s + 0.5)) for c in (200, 60, 50)] + [255]
-    s = SHADE_MIN + (1 - SHADE_MIN) * 0.0001
-    assert rgba((3, 2, 2)) == [int(np.floor(c * s + 0.5)) for c in (200, 60, 50)] + [255]
+@pytest.mark.parametrize("h", [0.5, 0.19])
+def test_vertices_sit_where_the_bone_ends(h):
+    """A flat face of intact bone is drawn about half a voxel out of its
+    voxels' centres (where the voxels end); as the top layer is drilled
+    down its vertices sink smoothly into the bone, within the clip."""
+    sp = load_shading()
+    n, top = 16, 7
+    lab = np.zeros((n, n, top + 4), np.uint8)
+    lab[:, :, :top + 1] = 1
+    prev = None
+    for d in (1.0, 0.8, 0.6, 0.4, 0.2, 0.05):
+        dens = np.ones(lab.shape, np.float32)
+        dens[:, :, top] = d
+        grid = Grid.from_dense(lab, dens, spacing_mm=h, origin_mm=(1.0, 2.0, 3.0))
+        surf = Surface.build(grid, COLORS)
+        v = surf.vertex_at(8, 8, top)
+        np.testing.assert_allclose(surf.nrm[v], [0, 0, 1], atol=1e-6)
+        np.testing.assert_allclose(surf.pos[v, :2], [1.0 + 8 * h, 2.0 + 8 * h], atol=1e-5)
+        s = float(surf.shift[v])
+        assert surf.pos[v, 2] == pytest.approx(3.0 + h * (top + s), abs=1e-5)
+        assert -sp.max_in_voxels <= s <= sp.max_out_voxels
+        if d == 1.0:
+            assert 0.35 < s < 0.55                        # about the voxels' face
+        else:
+            assert s < prev                               # drilling sinks it
+        prev = s
+    assert prev < -0.2
+
+
+def test_thin_plates_do_not_collapse():
+    """Both faces of a plate two voxels thick move at most max_in_voxels
+    into it: they stay apart and keep facing out."""
+    sp = load_shading()
+    lab = np.zeros((14, 14, 9), np.uint8)
+    lab[:, :, 3:5] = 1
+    surf = Surface.build(Grid.from_dense(lab, spacing_mm=1.0), COLORS)
+    lo, hi = surf.vertex_at(7, 7, 3), surf.vertex_at(7, 7, 4)
+    assert surf.nrm[lo][2] < -0.99 and surf.nrm[hi][2] > 0.99
+    assert surf.pos[hi, 2] - surf.pos[lo, 2] >= 1.0 - 2 * sp.max_in_voxels - 1e-6
 
 
 def test_vertex_to_triangle_map_after_build():
@@ -445,10 +492,24 @@ def test_input_validation():
 # ---------------------------------------------------------------------------
 # incremental update == full tessellation
 # ---------------------------------------------------------------------------
+def _assert_flips(surf):
+    """``tflip`` of every live triangle: its face normal against the sum of
+    its corners' normals, recomputed with plain numpy."""
+    ts = surf.triangle_slots
+    t = surf.tri[ts]
+    p, n = surf.pos.astype(np.float32), surf.nrm.astype(np.float32)
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    want = (face * n[t].sum(axis=1)).sum(axis=1) < 0
+    got = surf.tflip[ts] != 0
+    close = np.abs((face * n[t].sum(axis=1)).sum(axis=1)) < 1e-6     # float order aside
+    assert (got == want)[~close].all()
+
+
 def _assert_same_as_rebuild(surf, grid):
-    fresh = Surface.build(grid, COLORS).canonical()
-    diffs = surf.canonical().differences(fresh)          # exact, normals included
+    fresh = Surface.build(grid, COLORS)
+    diffs = surf.canonical().differences(fresh.canonical())   # exact, normals included
     assert not diffs, diffs
+    _assert_flips(surf)
 
 
 def _run_random_removals(seed, shape, p_occ, graded, n_batches, max_batch, tiled):

@@ -429,3 +429,37 @@ def test_bounding_boxes_leave_the_shape_as_the_full_field():
     sure = np.abs(full) > 1e-3                    # beyond float32 rounding
     assert sure.mean() > 0.99
     assert np.array_equal((grid <= 0)[sure], (full <= 0)[sure])
+
+
+# ----------------------------------------------------------- generations
+def test_generation_2_is_the_open_posterior_fossa():
+    """Generation 2 (kept as ``phantom@2`` for its recordings) differs from
+    the latest only behind the mastoid: the bone closing the posterior fossa
+    over the sinus; the named anatomy is the same."""
+    from bonesim.io.case import case_versions, load_case
+
+    old, new = P.build_phantom(7, generation=2), P.build_phantom(7)
+    for name in ("sigmoid_sinus", "facial_nerve", "chorda_tympani", "labyrinth",
+                 "ossicles"):
+        np.testing.assert_array_equal(old.masks[name], new.masks[name])
+    grown = new.masks["bone"] & ~old.masks["bone"]
+    y = coord(np.argwhere(grown)[:, 1], 1, new)
+    assert grown.sum() > 1000 and np.percentile(y, 5) > 2.0        # behind the mastoid
+    assert "phantom@2" in case_versions("phantom")
+    c = load_case("phantom@2")
+    assert c.name == "phantom" and c.volume.generation == 2
+    np.testing.assert_array_equal(c.load_volume().labels != 0,
+                                  P.phantom_volume(7, generation=2).labels != 0)
+    with pytest.raises(ValueError, match="generation"):
+        P.build_phantom(7, generation=1)
+
+
+def test_a_bad_generation_names_the_key(tmp_path):
+    from bonesim.errors import BonesimError
+    from bonesim.io.case import cases_dir, parse_case
+
+    text = (cases_dir() / "phantom" / "case.toml").read_text()
+    path = tmp_path / "case.toml"
+    path.write_text(text.replace("generation = 3", "generation = 9"))
+    with pytest.raises(BonesimError, match=r"\[volume\]: 'generation' must be one of"):
+        parse_case(path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from bonesim.engine.grid import voxel_offset
-from bonesim.render.meshbuf import SurfaceBuffers
+from bonesim.render.meshbuf import SurfaceBuffers, oriented_triangles
 from bonesim.engine.surface import Surface
 
 EYE = np.array([8.0, 8.0, 60.0])          # above the block's top face (z = 7.75 mm)
@@ -24,11 +24,25 @@ def pit(i0, i1, j0, j1, k0, k1):
 
 
 def triples(a):
-    return {tuple(int(x) for x in t) for t in np.asarray(a).reshape(-1, 3)}
+    """The triangles of ``a`` as a set, whatever their winding (the buffers
+    wind them as drawn, :func:`drawn`)."""
+    return {tuple(sorted(int(x) for x in t)) for t in np.asarray(a).reshape(-1, 3)}
 
 
 def live(surf):
     return surf.tri[surf.triangle_slots]
+
+
+def drawn(surf):
+    """The live triangles wound as the scene draws them: face normal along
+    the sum of the corners' normals, plain numpy."""
+    t = live(surf).copy()
+    p, n = surf.pos.astype(np.float64), surf.nrm.astype(np.float64)
+    out = []
+    for a, b, c in t.tolist():
+        face = np.cross(p[b] - p[a], p[c] - p[a])
+        out.append([a, c, b] if face @ (n[a] + n[b] + n[c]) < 0 else [a, b, c])
+    return np.array(out, dtype=np.int32).reshape(-1, 3)
 
 
 def facing_tris(surf, eye=None, direction=None):
@@ -59,7 +73,7 @@ def test_full_list_is_every_live_triangle(block):
     buf = SurfaceBuffers()
     nf, nv = buf.sync(surf)
     assert (nf, nv) == (surf.n_triangles, 0)
-    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), live(surf))
+    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), drawn(surf))
     assert np.array_equal(buf.offsets[:nf + 1], np.arange(0, 3 * nf + 1, 3))
 
 
@@ -91,6 +105,35 @@ def test_a_face_seen_edge_on_with_averted_normals_is_kept():
     assert _visible_flags(pos, nrm, tri, key, eye, np.array([0.0, 0.0, -1.0]), True,
                           vflag, tvis) == 1
     assert list(tvis) == [1, 0]
+
+
+def test_drawn_winding_follows_the_normals(block):
+    """Thin walls fold the surface: some triangles' own winding points
+    against their corners' normals. Both buffers draw every triangle wound
+    along its normals (never a back face whose normals face the eye: a dark
+    speck under two-sided lighting), and the compact arrays agree."""
+    model, state = block
+    grid = state.grid
+    surf = Surface.build(grid, model.colors)
+    for i in range(1, 31, 3):                       # a comb of one-voxel walls
+        surf.update(grid, remove(grid, pit(i, i + 2, 1, 31, 2, 16)))
+    want = drawn(surf)
+    assert not np.array_equal(want, live(surf))     # some triangles are turned
+    buf = SurfaceBuffers()
+    nf, _ = buf.sync(surf)
+    got = buf.full[:3 * nf].reshape(-1, 3)
+    assert np.array_equal(got, want)
+    p, n = surf.pos.astype(np.float64), surf.nrm.astype(np.float64)
+    face = np.cross(p[got[:, 1]] - p[got[:, 0]], p[got[:, 2]] - p[got[:, 0]])
+    assert (np.einsum("ij,ij->i", face, n[got].sum(axis=1)) >= 0).all()
+    adopt(buf, surf)
+    nf, nv = buf.sync(surf, np.zeros((0, 3), np.int32), np.zeros((0, 3), np.int32))
+    vis = buf.vis[:3 * nv].reshape(-1, 3)
+    assert {tuple(t) for t in vis.tolist()} <= {tuple(t) for t in want.tolist()}
+    pos, nrm, _, tris = surf.arrays()
+    ot = oriented_triangles(pos, nrm, tris)
+    remap = {int(v): q for q, v in enumerate(surf.vertex_slots)}
+    assert np.array_equal(ot, np.vectorize(remap.get)(want))
 
 
 def test_parallel_projection_uses_the_view_direction(block):
@@ -134,7 +177,7 @@ def test_buffers_grow_with_the_surface(block):
         surf.update(grid, remove(grid, pit(i, i + 1, 1, 31, 2, 16)))
     nf, _ = buf.sync(surf)
     assert nf == surf.n_triangles and buf.full.shape[0] > cap0
-    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), live(surf))
+    assert np.array_equal(buf.full[:3 * nf].reshape(-1, 3), drawn(surf))
 
 
 def test_invalidate_and_other_surface_drop_the_subset(block):

@@ -90,7 +90,7 @@ def test_replica_follows_removals_and_resets(view):
     assert v.applied == 120 and not _occupied(v.grid, top).any()
     # the drawn surface is the replica's, and equals one built from scratch
     assert v.scene.surface is v.surface
-    fresh = Surface.build(v.grid, model.colors)
+    fresh = Surface.of_model(model, v.grid)            # as the replica: with the tint
     assert not fresh.canonical().differences(v.surface.canonical())
     assert v.scene._buffers.n_full == v.surface.n_triangles
     # a reset in the middle of a batch: what came before it is moot
@@ -101,7 +101,7 @@ def test_replica_follows_removals_and_resets(view):
     assert v.drain() == 30 and v.resets == 1 and v.applied == 30
     assert v.replica.epoch == 1 and v.scene.surface is v.surface
     assert _occupied(v.grid, top).all() and not _occupied(v.grid, below).any()
-    fresh = Surface.build(v.grid, model.colors)
+    fresh = Surface.of_model(model, v.grid)            # as the replica: with the tint
     assert not fresh.canonical().differences(v.surface.canonical())
     # the model itself is untouched
     assert _occupied(model.grid, below).all()

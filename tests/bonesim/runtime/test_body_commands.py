@@ -222,9 +222,12 @@ def test_playback_shows_each_body_where_it_stands(split_run, model):
 
     rep = direct.replica
     np.testing.assert_array_equal(rep.body_grids[0].density, masked_density(rep.state, 0))
-    # body 1's surface holds exactly body 1's voxels: its vertices lie on them
+    # body 1's surface holds exactly body 1's voxels: its vertices are theirs,
+    # drawn within a voxel of their centres
     g1 = direct.replica.body_grids[1]
-    pos, _, _, _ = direct.replica.body_surfaces[1].arrays()
-    ijk = np.rint((pos - g1.origin_mm) / g1.spacing_mm).astype(int)
+    s1 = direct.replica.body_surfaces[1]
+    ijk = s1.ijk[s1.vertex_slots]
     d = np.array([g1.density_at(*v) for v in ijk[:500]])
     assert (d > 0).all()
+    centres = g1.origin_mm + g1.spacing_mm * ijk
+    assert np.abs(s1.pos[s1.vertex_slots] - centres).max() < g1.spacing_mm

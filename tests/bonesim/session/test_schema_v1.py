@@ -50,9 +50,12 @@ def test_a_v1_file_migrates_to_the_tissue_stream():
 
 
 def test_a_v1_file_replays_bit_for_bit_and_plays_back():
+    """The fixture was recorded on the phantom's generation 2; it replays on
+    the kept ``phantom@2``, found by its recorded hashes."""
     s = read_session(V1)
     report = verify(s)
     assert report["ok"], report
+    assert s.case_version == "phantom@2"
     assert report["events_recorded"] == report["events_replayed"] > 1000
     assert main(["replay", str(V1), "--verify"]) == 0
     out = replay(s)

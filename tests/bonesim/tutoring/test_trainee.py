@@ -13,6 +13,7 @@ import pytest
 
 from bonesim.errors import BonesimError
 from bonesim.tutoring.trainee import TraineeProcess
+from tests.bonesim.plans import drilling_window
 from tests.bonesim.fakes import wait_for
 from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 from tests.bonesim.tutoring.test_tutor import _replay_changes
@@ -94,16 +95,12 @@ def test_a_child_that_dies_silently_is_reported_with_its_exit_code():
 
 
 def test_live_instructor_over_loopback_window_replica_matches():
-    from bonesim.io.case import load_case
-    from bonesim.io.toolpath import demo_trajectory
     from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.io.loading import load_model
     from bonesim.tutoring.tutor import TutorServer
 
     model = load_model("phantom", "cutting-5mm")
-    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    start = int(np.flatnonzero(traj.drill)[0])
-    traj = traj.at_times(traj.t_s[start:start + 3000])
+    traj = drilling_window("cutting-5mm", 3000)
     with HapticLoop(model, device=("scripted", traj)) as loop:
         server = TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
         try:

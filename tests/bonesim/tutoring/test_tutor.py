@@ -27,6 +27,7 @@ from bonesim.net import packets as net
 from bonesim.runtime.commands import LoopContext, MoveBody, Reset, SplitBox
 from bonesim.runtime.haptic_loop import push_sample
 from bonesim.tutoring import tutor
+from tests.bonesim.plans import drilling_window
 from tests.bonesim.fakes import block_model
 
 KEY = bytes(range(100, 132))
@@ -587,12 +588,8 @@ def phantom():
 
 
 def _demo_path():
-    from bonesim.io.case import load_case
-    from bonesim.io.toolpath import demo_trajectory
 
-    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    start = int(np.flatnonzero(traj.drill)[0])
-    return traj.at_times(traj.t_s[start:start + 3000])
+    return drilling_window("cutting-5mm", 3000)
 
 
 @pytest.mark.slow
@@ -722,13 +719,9 @@ def test_cli_playback_headless_json(tmp_path, capsys):
     played back through the tutoring controller."""
     import json
 
-    from bonesim.io.case import load_case
-    from bonesim.io.toolpath import demo_trajectory
     from bonesim.io.trajectory import write_trajectory
 
-    traj = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    start = int(np.flatnonzero(traj.drill)[0])
-    traj = traj.at_times(traj.t_s[start:start + 60])
+    traj = drilling_window("cutting-5mm", 60)
     csv = tmp_path / "short.csv"
     write_trajectory(csv, traj)
     h5 = tmp_path / "run.h5"
@@ -747,8 +740,7 @@ def test_cli_playback_headless_json(tmp_path, capsys):
     # the research metrics align them
     import dataclasses
 
-    full = demo_trajectory(load_case("phantom"), "cutting-5mm")
-    full = full.at_times(full.t_s[start:start + 300])
+    full = drilling_window("cutting-5mm", 300, lead_s=-1.0)   # 1 s into the cutting
     t = full.t_s - full.t_s[0]
     warped = dataclasses.replace(full, t_s=full.t_s[0] + t + 0.15 * t[-1]
                                  * np.sin(np.pi * t / t[-1]))
