@@ -11,14 +11,16 @@ twice per eye:
 2. **The label pass**: every drawn object in one flat colour that encodes
    an entry of a table (what it is: a body's bone surface, a structure's
    mesh, the burr, the shaft, the suction tool, dust, water, a plate), no
-   lighting, no blending, no HUD; dust and water sprites drawn opaque over
+   lighting, no custom shader code, no blending, no HUD; dust and water sprites drawn opaque over
    their cores (:data:`~bonesim.session.dataset_spec.SPRITE_LABEL_OPACITY`).
    The colour buffer gives each pixel's entry and the depth buffer the
    first surface's depth, turned into metric depth along the optical axis
-   with the projection the frame was drawn with. On a bone surface the
-   structure is the one of the voxel the pixel's ray reaches there
+   with the projection the frame was drawn with. On tissue (a body's bone
+   surface, or a structure's own mesh) the structure is the one of the voxel
+   the pixel's ray reaches there
    (:func:`bonesim.session.dataset_labels.label_image`, in the body's
-   frame).
+   frame), so the labels follow the voxels where the smoothed meshes and the
+   bone's surface cross within a voxel of each other.
 
 Both passes draw the same geometry with the same camera, so the labels and
 the depth describe the picture's pixels; the intrinsics and extrinsics are
@@ -40,7 +42,7 @@ from vtkmodules.util import numpy_support
 from vtkmodules.vtkCommonCore import vtkFloatArray, vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkPointGaussianMapper, vtkProp3D,
-                                         vtkProperty)
+                                         vtkProperty, vtkShaderProperty)
 
 from bonesim.session import dataset_spec as spec
 from bonesim.session.dataset_camera import (cam_to_case, depth_from_zbuffer,
@@ -170,6 +172,7 @@ class DatasetRenderer:
             sc.set_hud({})
             sc.set_hint("")
         self._names = {st.name: s for s, st in enumerate(player.model.structures, start=1)}
+        self._plain_shading = vtkShaderProperty()
         self._id_dust = _IdSprites(sc.renderer)
         self._id_water = _IdSprites(sc.renderer)
         self._drawn = None
@@ -292,8 +295,9 @@ class DatasetRenderer:
             k = len(table) - 1
             m = a.GetMapper()
             saved.append((a, a.GetProperty(), m.GetScalarVisibility(), a.GetForceOpaque(),
-                          a.GetForceTranslucent()))
+                          a.GetForceTranslucent(), a.GetShaderProperty()))
             a.SetProperty(_flat_property(k))
+            a.SetShaderProperty(self._plain_shading)     # no custom shader code
             m.ScalarVisibilityOff()
             a.ForceOpaqueOn()
             a.ForceTranslucentOff()
@@ -331,8 +335,9 @@ class DatasetRenderer:
                 a.SetVisibility(vis)
             self._id_dust.actor.SetVisibility(False)
             self._id_water.actor.SetVisibility(False)
-            for a, prop, sv, fo, ft in saved:
+            for a, prop, sv, fo, ft, sh in saved:
                 a.SetProperty(prop)
+                a.SetShaderProperty(sh)
                 a.GetMapper().SetScalarVisibility(sv)
                 a.SetForceOpaque(fo)
                 a.SetForceTranslucent(ft)
@@ -349,11 +354,15 @@ class DatasetRenderer:
         cls_of = np.zeros(n, np.uint8)
         inst_of = np.full(n, spec.NO_INSTANCE, np.int16)
         entry_body = np.full(n, -1, np.int64)
+        fallback = np.zeros(n, np.uint8)
         for k, e in enumerate(table[1:], start=1):
             kind, cid, inst = e
             inst_of[k] = inst
             if kind == _TISSUE:
                 entry_body[k] = inst
+            elif kind == _STRUCTURE:         # its voxels decide, as for the bone's
+                entry_body[k] = inst
+                fallback[k] = cid
             else:
                 cls_of[k] = cid
         cls = cls_of[idx]
@@ -362,7 +371,7 @@ class DatasetRenderer:
             st = self.player.replica.state
             self.stats["label_misses"] += label_image(
                 self.player.grid, st.body, st.pose_m, entry_body, idx, depth, cam["K"],
-                cam["R"], cam["cam_to_case"][:3, 3], cls)
+                cam["R"], cam["cam_to_case"][:3, 3], cls, fallback)
         return cls, inst
 
     def _pixel_rays(self, k):

@@ -1,16 +1,19 @@
 """Which structure a pixel of drawn bone shows: the voxel its ray reaches.
 
 The renderer's label pass (:mod:`bonesim.render.dataset`) tells, per pixel,
-which body's surface the ray through the pixel's centre meets first and at
-what depth. The bone surface's triangles join voxel centres (or points near
-them), so the structure there is read from the voxels: the ray is walked
+which body's surface (or which structure's own mesh, drawn with the main
+body) the ray through the pixel's centre meets first and at what depth. The
+drawn tissue lies within about a voxel of the voxels it was made from (the
+bone surface's vertices near voxel centres, a structure's smoothed mesh
+around its voxels), so the structure there is read from the voxels: the ray is walked
 voxel by voxel (Amanatides and Woo's traversal; a voxel is the cube of edge
 ``spacing`` around its centre) in the body's own frame, from
 :data:`BACK_VOXELS` voxels before the drawn surface to :data:`AHEAD_VOXELS`
 past it, and the first voxel of that body with density > 0 gives the label.
 A ray that finds none there (it grazed the surface's edge) takes the
-nearest occupied voxel of the body around the hit point; ``misses`` counts
-the pixels that found neither (label 0).
+nearest occupied voxel of the body around the hit point; a structure's mesh
+where its voxels were drilled away keeps the structure's label; ``misses``
+counts the pixels that found none of these (label 0).
 """
 from __future__ import annotations
 
@@ -122,10 +125,10 @@ def _walk(keys, vals, density, label, body, shape, origin, h, bods, orgs, dirs, 
 
 
 @njit(cache=True, nogil=True)
-def _label_image(keys, vals, density, label, body, shape, origin, h, entry_body, idx, depth,
-                 kinv, rot, eye, pose_m, back, ahead, out):
-    """Every pixel whose entry is a body's surface (``entry_body[idx] >= 0``):
-    its ray from ``eye`` through the pixel centre, taken into that body's frame."""
+def _label_image(keys, vals, density, label, body, shape, origin, h, entry_body,
+                 entry_fallback, idx, depth, kinv, rot, eye, pose_m, back, ahead, out):
+    """Every pixel whose entry is tissue (``entry_body[idx] >= 0``): its ray from
+    ``eye`` through the pixel centre, taken into that body's frame."""
     misses = 0
     for v in range(idx.shape[0]):
         for u in range(idx.shape[1]):
@@ -154,15 +157,16 @@ def _label_image(keys, vals, density, label, body, shape, origin, h, entry_body,
                             origin[0], origin[1], origin[2], h, b, rx, ry, rz, dx, dy, dz,
                             z * n, back, ahead)
             if lab < 0:
-                misses += 1
-                lab = 0
+                lab = entry_fallback[idx[v, u]]
+                if lab == 0:
+                    misses += 1
             out[v, u] = lab
     return misses
 
 
 def label_image(grid, body, pose_m, entry_body, idx, depth, k, r, eye, out,
-                back=BACK_VOXELS, ahead=AHEAD_VOXELS) -> int:
-    """Label the bone-surface pixels of a frame in place.
+                entry_fallback=None, back=BACK_VOXELS, ahead=AHEAD_VOXELS) -> int:
+    """Label the tissue pixels of a frame in place.
 
     Parameters
     ----------
@@ -172,7 +176,7 @@ def label_image(grid, body, pose_m, entry_body, idx, depth, k, r, eye, out,
         Body-to-case poses (the state's ``pose_m``).
     entry_body : (n_entries,) int64
         The body each entry of the label pass shows, -1 for entries that are
-        not a body's surface.
+        not tissue (a body's surface, or a structure's own mesh: body 0).
     idx : (H, W) int64
         Entry per pixel.
     depth : (H, W) float32
@@ -182,16 +186,24 @@ def label_image(grid, body, pose_m, entry_body, idx, depth, k, r, eye, out,
         eye [mm] (:mod:`bonesim.session.dataset_camera`).
     out : (H, W) uint8
         Receives the labels of those pixels (others untouched).
+    entry_fallback : (n_entries,) uint8, optional
+        The label a pixel of the entry takes when its ray finds no voxel (a
+        structure's mesh: its structure, where its voxels were drilled
+        away); 0 (default) counts it as a miss.
 
     Returns
     -------
     int
-        Pixels whose ray found no voxel of their body (labelled 0).
+        Pixels whose ray found no voxel of their body and have no fallback
+        (labelled 0).
     """
+    n = len(entry_body)
+    fb = np.zeros(n, np.uint8) if entry_fallback is None else entry_fallback
     return int(_label_image(grid.keys, grid.vals, grid.density, grid.label, body,
                             np.asarray(grid.shape, np.int64),
                             np.asarray(grid.origin_mm, np.float64), float(grid.spacing_mm),
                             np.ascontiguousarray(entry_body, np.int64),
+                            np.ascontiguousarray(fb, np.uint8),
                             np.ascontiguousarray(idx, np.int64),
                             np.ascontiguousarray(depth, np.float32),
                             np.linalg.inv(np.asarray(k, np.float64)),

@@ -21,8 +21,8 @@ id           meaning
 0            background (nothing drawn)
 1 .. 199     the case's structure of that label (``header.structures``; the
              bone is a structure of kind ``bone``): the structure of the
-             voxel the ray reaches on a drawn bone surface, or the
-             structure's own mesh
+             voxel the ray reaches on drawn tissue (a bone surface, or a
+             structure's own mesh)
 200          the burr (its sphere)
 201          the drill's shaft
 202          the suction tool

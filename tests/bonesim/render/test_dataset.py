@@ -190,14 +190,35 @@ def test_streams_shapes_and_types(scene):
     assert scene["rend"].stats["label_misses"] == 0
 
 
+def _structure_meshes(rend):
+    """Triangles [mm] of the structures' own meshes the scene draws (static,
+    in the case frame): (points (n, 3), triangles (m, 3))."""
+    from vtkmodules.util import numpy_support
+
+    pts, tris, off = [], [], 0
+    for actor in rend.scene._structures.values():
+        pd = actor.GetMapper().GetInput()
+        p = numpy_support.vtk_to_numpy(pd.GetPoints().GetData()).astype(np.float64)
+        t = numpy_support.vtk_to_numpy(pd.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+        pts.append(p)
+        tris.append(t + off)
+        off += len(p)
+    return np.concatenate(pts), np.concatenate(tris)
+
+
 def test_depth_equals_a_ray_cast_to_the_drawn_surface_and_the_tools(scene):
+    """The bone surface's triangles as the replica holds them (whatever
+    positions its vertices have) plus the structures' own meshes, cast on
+    the CPU; the tools analytically."""
     src, fs = scene["src"], scene["fs"]
     res = scene["eyes"][0]
     cam = res["camera"]
     grid = src.player.grid
     h = grid.spacing_mm
     pos, _, _, tri = src.player.surface.arrays()
-    pos = pos.astype(np.float64)
+    spos, stri = _structure_meshes(scene["rend"])
+    pos = np.concatenate([pos.astype(np.float64), spos])
+    tri = np.concatenate([tri, stri + len(pos) - len(spos)])
     pix = _interior(res["class"], res["depth"])
     dirs, uv1 = _rays(cam, pix)
     eye = cam["cam_to_case"][:3, 3]
@@ -208,10 +229,7 @@ def test_depth_equals_a_ray_cast_to_the_drawn_surface_and_the_tools(scene):
         z = float(res["depth"][v, u])
         norm = float(np.linalg.norm(r1))
         if 1 <= c <= spec.MAX_STRUCTURE_ID:
-            t = _ray_triangles(eye, d, pos, tri)
-            if not math.isfinite(t):            # a structure's own mesh
-                continue
-            errs.append(abs(t / norm - z))
+            errs.append(abs(_ray_triangles(eye, d, pos, tri) / norm - z))
         elif c in tools:
             tool_errs.append(abs(tools[c](eye, d) / norm - z))
     errs, tool_errs = np.array(errs), np.array(tool_errs)
@@ -222,23 +240,38 @@ def test_depth_equals_a_ray_cast_to_the_drawn_surface_and_the_tools(scene):
 
 
 def test_segmentation_is_the_structure_the_ray_reaches_or_the_nearer_tool(scene):
+    """The reference marches each sampled pixel's ray from the eye in steps of
+    1/16 voxel and takes the first voxel holding tissue, unless a tool is
+    nearer. The drawn surface is smoother than the voxels' cubes: where the
+    ray only clips a cube's corner at a rim that the drawn surface rounds
+    off (the first voxel reached lies more than two voxels from the point
+    drawn), the picture shows what lies behind; there the reference marches
+    from a voxel before the drawn depth instead. Such pixels must stay rare."""
     src, fs = scene["src"], scene["fs"]
     res = scene["eyes"][0]
     cam = res["camera"]
     grid = src.player.grid
+    h = grid.spacing_mm
     dens, lab = grid.to_dense()
     pix = _interior(res["class"], res["depth"], step=2)
     dirs, uv1 = _rays(cam, pix)
     eye = cam["cam_to_case"][:3, 3]
     tools = _tools(fs)
-    checked, wrong = 0, []
+    checked, wrong, grazed = 0, [], 0
     counts = {}
-    for (v, u), d in zip(pix, dirs):
+    for (v, u), d, r1 in zip(pix, dirs, uv1):
         c = int(res["class"][v, u])
         if c in (spec.CLASS_DUST, spec.CLASS_WATER):
             continue                          # checked against the sprites below
-        t_vox, want = _voxel_walk(dens, lab, grid, eye, d, 20.0, 120.0,
-                                  grid.spacing_mm / 16)
+        t_hit = float(res["depth"][v, u]) * float(np.linalg.norm(r1))
+        t_vox, want = _voxel_walk(dens, lab, grid, eye, d, 20.0, 120.0, h / 16)
+        first = np.rint((eye + t_vox * d - grid.origin_mm) / h) if math.isfinite(t_vox) \
+            else np.full(3, np.inf)
+        off = np.linalg.norm(grid.origin_mm + h * first - (eye + t_hit * d))
+        if 1 <= c <= spec.MAX_STRUCTURE_ID and off > 2 * h:
+            grazed += 1
+            t_vox, want = _voxel_walk(dens, lab, grid, eye, d, t_hit - h, t_hit + 2 * h,
+                                      h / 16)
         t_tool, tool = min(((f(eye, d), cid) for cid, f in tools), default=(math.inf, 0))
         if t_tool < t_vox:
             want = tool
@@ -248,6 +281,7 @@ def test_segmentation_is_the_structure_the_ray_reaches_or_the_nearer_tool(scene)
             wrong.append(((v, u), c, want))
     assert checked > 500
     assert counts.get(1, 0) > 300 and counts.get(spec.CLASS_BURR, 0) > 5
+    assert grazed <= 0.01 * checked, (grazed, checked)
     assert not wrong, wrong[:10]
 
 
