@@ -98,7 +98,8 @@ def preview(streams: dict, classes, title: str = "") -> np.ndarray:
     for q, c in enumerate(shown):
         x = 6 + (q % 4) * col_w
         yy = y + 16 * (q // 4)
-        dr.rectangle([x, yy + 2, x + 10, yy + 12], fill=tuple(int(v) for v in c.get("rgb", (200, 200, 200))))
+        rgb = tuple(int(v) for v in c.get("rgb", (200, 200, 200)))
+        dr.rectangle([x, yy + 2, x + 10, yy + 12], fill=rgb)
         dr.text((x + 14, yy), f"{c['id']} {c['shown_as']}", fill=(235, 235, 230))
     y += 16 * ((len(shown) + 3) // 4)
     for line in notes:

@@ -364,7 +364,7 @@ def test_intrinsics_reproject_a_known_point(scene):
     """The burr's centre placed in free space in front of the bone: its
     projection with K, R, t is the centre of the burr's pixels, and the
     depth there is the sphere's front."""
-    src, fs, rend = scene["src"], scene["fs"], scene["rend"]
+    fs, rend = scene["fs"], scene["rend"]
     eye, focal, up = fs.cameras[0]
     r0, _ = look_at(eye, focal, up)
     # off the optical axis toward the image's upper right, 15 mm before the
