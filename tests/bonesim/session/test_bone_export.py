@@ -125,3 +125,43 @@ def test_a_run_started_from_the_export_continues_where_the_recording_stopped(run
 def _occupancy_of(player):
     d, lab = player.grid.to_dense()
     return np.where(d > 0, lab, 0)
+
+
+def test_a_moved_fragment_is_written_where_it_lay():
+    """A piece split off as body 1 and moved 8 mm along +x: the export holds its
+    voxels 16 voxels further along x, and none where it was cut from."""
+    from types import SimpleNamespace
+
+    from bonesim.engine.bodies import publish_pose, publish_split_box
+    from bonesim.engine.model import make_state
+    from bonesim.engine.replica import TissueReplica
+    from bonesim.io.loading import load_model
+    from bonesim.session.bone_export import bone_at
+
+    model = load_model("phantom", "cutting-5mm")
+    state = make_state(model)
+    rep = TissueReplica(model, state)
+    lo, hi = (78, 44, 40), (94, 63, 59)
+    b, n = publish_split_box(state, 0, lo, hi, 0.0)
+    publish_pose(state, b, (8.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0), 0.0)
+    rep.drain()
+    player = SimpleNamespace(grid=rep.grid, replica=rep, t=0.0, seek=lambda t: None,
+                             timeline=SimpleNamespace(epoch_at=lambda t: 0))
+    labels, info = bone_at(player, 0.0)
+    dens, lab = model.grid.to_dense()
+    before = np.where(dens > 0, lab, 0)
+    piece = np.zeros(before.shape, bool)
+    piece[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1] = True
+    piece &= before > 0
+    assert info["moved_bodies"] == [b] and piece.sum() == n > 100
+    moved = np.zeros_like(piece)
+    moved[16:] = piece[:-16]                            # 8 mm = 16 voxels along x
+    # the piece's voxels are where it lies now, with their labels ...
+    np.testing.assert_array_equal(labels[moved & (before == 0)],
+                                  np.roll(before, 16, axis=0)[moved & (before == 0)])
+    # ... the place it was cut from is empty but where it now lies again
+    assert not labels[piece & ~moved].any()
+    assert info["remaining_voxels"] == int((before > 0).sum())
+    # voxels landing on tissue that stayed are counted, not written twice
+    assert info["overlapping"] == int((moved & (before > 0) & ~piece).sum()) + int(
+        (piece.sum() - moved.sum()))
