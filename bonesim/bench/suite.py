@@ -509,6 +509,9 @@ BENCHMARKS = {
         "simulated_hand", "spacemouse", "pedal", "adu100_handle", "touch")),
         lambda quick=False: __import__(
             "bonesim.bench.devices", fromlist=["_"]).bench_devices(quick=quick)),
+    **dict.fromkeys(("dataset_frames_per_s_640x480", "dataset_vs_playback_video_fps"),
+                    lambda quick=False: __import__("bonesim.bench.dataset", fromlist=["_"])
+                    .bench_dataset(quick=quick)),
     "cut_plane_stroke_ms": lambda quick=False: __import__(
         "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_cut_plane(quick=quick),
     "dust_irrigated_step_64_ms": lambda quick=False: __import__(

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from bonesim.io.anatomy import clinical_name
 from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
 from bonesim.cli.voxel import apply_voxel_mm, voxel_option
@@ -780,6 +781,7 @@ def build_parser() -> argparse.ArgumentParser:
     sr.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     sr.add_argument("--json", action="store_true", help="print JSON")
     sr.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_sessions_repair"))
+    dataset_parsers(sub, _lazy, ssub)        # bonesim dataset, bonesim sessions export
 
     s = sub.add_parser("replay", help="re-run a session's samples through the engine")
     s.add_argument("file", help="session file (.h5)")

@@ -14,7 +14,7 @@ import numpy as np
 from bonesim.errors import BonesimError
 from bonesim.io.orientation import PATIENT_FRAME, image_geometry, parse_orientation
 
-__all__ = ["EXPORT_FORMATS", "export_case"]
+__all__ = ["EXPORT_FORMATS", "export_case", "export_labels"]
 
 EXPORT_FORMATS = ("dicom", "nrrd", "nifti", "label-stack", "seg-nrrd")
 """Formats :func:`export_case` writes."""
@@ -156,10 +156,11 @@ def code_axes(code: str) -> tuple[int, int, int]:
     return tuple(LETTERS[ch][0] for ch in parse_orientation(code))
 
 
-def _manifest_text(case, fmt, volume, structs, keys, explicit, monitor_explicit) -> str:
+def _manifest_text(case, fmt, volume, structs, keys, explicit, monitor_explicit,
+                   note=None) -> str:
     from bonesim.io.anatomy import classify
 
-    note = f"exported as {fmt} from {case.manifest}"
+    note = note or f"exported as {fmt} from {case.manifest}"
     parts = [f"# bonesim case, {note}\n"]
     if fmt != "label-stack":
         parts.append("# orientation: read from the file's header (patient frame LPS)\n")
@@ -225,28 +226,43 @@ def export_case(case, fmt: str, out_dir: str | Path, overwrite: bool = False,
     Path
         The written ``case.toml``.
     """
-    from bonesim.io.anatomy import load_table
-    from bonesim.io.case_manifest import parse_manifest as parse_case
-    from bonesim.io.case_records import CASE_FILE
+    code = _check_orientation(fmt, orientation)
+    manifest = _manifest_path(out_dir, overwrite)
+    vol = case.load_volume(progress=progress)
+    return _write_case(case.resolved(vol), vol, fmt, Path(out_dir), code, manifest)
 
+
+def _check_orientation(fmt: str, orientation) -> str:
     if fmt not in EXPORT_FORMATS:
         raise BonesimError(f"cannot export to {fmt!r}; formats: {list(EXPORT_FORMATS)}")
     if orientation is not None and fmt != "label-stack":
         raise BonesimError(f"an orientation applies to label stacks only; {fmt} files "
                            "store theirs in the header (always LPS here)")
-    code = PATIENT_FRAME if orientation is None else parse_orientation(
+    return PATIENT_FRAME if orientation is None else parse_orientation(
         orientation, None, "orientation")
-    out = Path(out_dir)
-    manifest = out / CASE_FILE
+
+
+def _manifest_path(out_dir, overwrite: bool) -> Path:
+    from bonesim.io.case_records import CASE_FILE
+
+    manifest = Path(out_dir) / CASE_FILE
     if manifest.exists() and not overwrite:
         raise BonesimError("already exists (choose another folder or overwrite)",
                            manifest)
-    vol = case.load_volume(progress=progress)
-    rc = case.resolved(vol)
+    return manifest
+
+
+def _write_case(rc, vol, fmt: str, out: Path, code: str, manifest: Path,
+                note: str | None = None) -> Path:
+    """Write ``vol`` with the structures of ``rc`` (a resolved case) and the
+    manifest that reloads it with the same colours, monitor flags and camera."""
+    from bonesim.io.anatomy import load_table
+    from bonesim.io.case_manifest import parse_manifest as parse_case
+
     structs = rc.structures
     table = load_table()
     out.mkdir(parents=True, exist_ok=True)
-    volume, keys = _write_volume(case, vol, structs, fmt, out, code)
+    volume, keys = _write_volume(rc, vol, structs, fmt, out, code)
     explicit = {i for i, s in enumerate(structs) if s.color_source == "manifest"}
     if fmt == "label-stack":
         explicit |= {i for i, (s, k) in enumerate(zip(structs, keys))
@@ -255,7 +271,7 @@ def export_case(case, fmt: str, out_dir: str | Path, overwrite: bool = False,
                         if s.monitor != _default_monitor(s, table)}
     for _ in range(_SETTLE_ROUNDS):
         manifest.write_text(_manifest_text(rc, fmt, volume, structs, keys, explicit,
-                                           monitor_explicit), encoding="utf-8")
+                                           monitor_explicit, note), encoding="utf-8")
         back = parse_case(manifest).resolved(vol)
         wrong = {i for i, (a, b) in enumerate(zip(back.structures, structs))
                  if a.display_color != b.display_color}
@@ -263,5 +279,52 @@ def export_case(case, fmt: str, out_dir: str | Path, overwrite: bool = False,
             return manifest
         explicit |= wrong
     manifest.write_text(_manifest_text(rc, fmt, volume, structs, keys, set(range(
-        len(structs))), monitor_explicit), encoding="utf-8")
+        len(structs))), monitor_explicit, note), encoding="utf-8")
     return manifest
+
+
+def export_labels(case, labels, spacing_mm: float, origin_mm, fmt: str, out_dir,
+                  *, overwrite: bool = False, orientation: str | None = None,
+                  camera=None, note: str | None = None) -> Path:
+    """Write a label volume on a case's structures as a case of its own (e.g.
+    the bone as drilled at some moment, :mod:`bonesim.session.bone_export`).
+
+    Parameters
+    ----------
+    case : Case
+        The case the labels index (its structures, resolved: colours as
+        shown; its side, name, target).
+    labels : (nx, ny, nz) uint8
+        Structure index per voxel (0 empty), axes x, y, z of the patient
+        frame (LPS).
+    spacing_mm : float
+        Isotropic voxel edge [mm]; the manifest's ``voxel_mm``, so the case
+        reloads on this very grid.
+    origin_mm : (3,) float
+        Centre of voxel ``(0, 0, 0)`` [mm].
+    fmt, overwrite, orientation
+        As :func:`export_case`.
+    camera : Camera, optional
+        Written as the manifest's ``[camera]`` (default: the case's declared
+        one, if any).
+    note : str, optional
+        The manifest's description and first comment.
+
+    Returns
+    -------
+    Path
+        The written ``case.toml``.
+    """
+    import dataclasses
+
+    from bonesim.io.volumes import CaseVolume
+
+    code = _check_orientation(fmt, orientation)
+    manifest = _manifest_path(out_dir, overwrite)
+    vol = CaseVolume(np.ascontiguousarray(labels, dtype=np.uint8), float(spacing_mm),
+                     np.asarray(origin_mm, dtype=np.float64), f"{fmt} export")
+    rc = case if camera is None else dataclasses.replace(case, declared_camera=camera)
+    if note:
+        rc = dataclasses.replace(rc, description=note)
+    rc._derived.update(getattr(case, "_derived", {}))
+    return _write_case(rc, vol, fmt, Path(out_dir), code, manifest, note)
