@@ -186,7 +186,7 @@ from bonesim.engine import events
 from bonesim.engine.bodies import all_identity
 from bonesim.physics.dust_bodies import case_cells, wall_arrays
 from bonesim.physics.dust_params import DustParams
-from bonesim.physics.dust_sprites import DustSprites, gather_sprites
+from bonesim.physics.dust_sprites import DustSprites, gather_sprites, stamp_arrivals
 from bonesim.physics.dust_water import step_water
 from bonesim.engine.brick_hash import SC_WIDTH, sphere_cells_bound
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
@@ -563,6 +563,21 @@ class DustGrid:
         return gather_sprites(self._species(), tq, cover, int(self._ip[I_DOM]),
                               int(self._ip[I_DSGN]), bool(top_only), float(self.time_s),
                               self.origin_mm, self.spacing_mm, jit)
+
+    def note_arrivals(self, top_only: bool = True) -> int:
+        """Update the cells' arrival times as :meth:`sprites` does, at
+        :attr:`time_s`, without gathering the sprites (a tenth of the cost:
+        for stepping through a recording whose frames are not drawn).
+
+        Returns
+        -------
+        int
+            How many sprites :meth:`sprites` would return.
+        """
+        p = self.params
+        return stamp_arrivals(self._species(), int(math.floor(p.sprite_threshold * Q)),
+                              int(math.floor(p.sprite_cover * Q)), int(self._ip[I_DOM]),
+                              int(self._ip[I_DSGN]), bool(top_only), float(self.time_s))
 
     # ------------------------------------------------------------ updates
     def add_removed(self, ijk, amount=None, *, body=None, bodies=None) -> None:

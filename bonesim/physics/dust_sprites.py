@@ -28,7 +28,7 @@ from numba import njit
 from bonesim.physics.dust_bricks import _FULL_Q, C_HW
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, pack_brick_key
 
-__all__ = ["DustSprites", "cell_jitter", "gather_sprites"]
+__all__ = ["DustSprites", "cell_jitter", "stamp_arrivals", "gather_sprites"]
 
 # splitmix64 constants (a well-mixed integer hash)
 _M1 = np.uint64(0x9E3779B97F4A7C15)
@@ -166,6 +166,18 @@ def _fill(alive, bmass, hw, den, thr, bcoord, nbr, seen, now, dom, up, up_dd, to
             age[n] = now - seen[b, o]
             n += 1
     return n
+
+
+def stamp_arrivals(species, thr_q, cover_q, dom, dsgn, top_only, now) -> int:
+    """Update the cells' arrival times as :func:`gather_sprites` does, without
+    gathering the sprites (a tenth of its cost); returns the sprite count.
+    Arguments as :func:`gather_sprites`."""
+    up = -dsgn
+    up_dd = 2 * dom + (1 if up > 0 else 0)
+    return sum(int(_stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord,
+                          g.nbr, g._seen, g._seen_key, now, dom, up, up_dd, top_only,
+                          cover_q))
+               for g in species)
 
 
 def gather_sprites(species, thr_q, cover_q, dom, dsgn, top_only, now, origin_mm, spacing_mm,

@@ -97,29 +97,6 @@ def irrigation_switches(session) -> np.ndarray:
     return np.sort(np.asarray(out, np.float64))
 
 
-def _note_arrivals(dust) -> None:
-    """What :meth:`DustGrid.sprites` does to the cells' arrival times, without
-    gathering the sprites (the stamp pass of
-    :func:`bonesim.physics.dust_sprites.gather_sprites`, a tenth of its cost)."""
-    import math as _m
-
-    try:
-        from bonesim.physics.dust_bricks import C_HW, I_DOM, I_DSGN, Q
-        from bonesim.physics.dust_sprites import _stamp
-
-        p = dust.params
-        dom, dsgn = int(dust._ip[I_DOM]), int(dust._ip[I_DSGN])
-        up = -dsgn
-        up_dd = 2 * dom + (1 if up > 0 else 0)
-        for g in dust._species():
-            _stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q,
-                   int(_m.floor(p.sprite_threshold * Q)), g.bcoord, g.nbr, g._seen,
-                   g._seen_key, float(dust.time_s), dom, up, up_dd, True,
-                   int(_m.floor(p.sprite_cover * Q)))
-    except (ImportError, AttributeError):       # the dust's insides changed: list them
-        dust.sprites()
-
-
 class FrameSource:
     """The frames of a dataset of one recording, in time order.
 
@@ -238,7 +215,7 @@ class FrameSource:
                         irrigation_pos_mm=wet, irrigation_radius_mm=radius, bodies=st)
         # note when each cell's dust arrived (its age fades it) at every step, so
         # that ages do not depend on the frame rate
-        _note_arrivals(self._dust)
+        self._dust.note_arrivals()
 
     def at(self, t: float) -> FrameState:
         """The frame at playback time ``t`` (times must not decrease from call
