@@ -53,6 +53,7 @@ class ProgressBar:
         self.done = 0
         self._last_draw = -math.inf
         self._last_decile = -1
+        self._final_drawn = False
         isatty = getattr(self.stream, "isatty", None)
         self.tty = bool(isatty and isatty())
 
@@ -82,6 +83,7 @@ class ProgressBar:
                 self.stream.write("\r" + self.text(now=now))
                 self.stream.flush()
                 self._last_draw = now
+                self._final_drawn = self.done >= self.total
         else:
             dec = int(10 * min(self.done / self.total, 1.0))
             if dec > self._last_decile:
@@ -92,7 +94,9 @@ class ProgressBar:
     def close(self) -> None:
         """Draw the final state and end the line."""
         if self.tty:
-            self.stream.write("\r" + self.text() + "\n")
+            # the finished bar is drawn once: a transcript of the terminal shows
+            # no second "done" line
+            self.stream.write("\n" if self._final_drawn else "\r" + self.text() + "\n")
             self.stream.flush()
         elif int(10 * min(self.done / self.total, 1.0)) > self._last_decile:
             self.update(self.done)

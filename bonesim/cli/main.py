@@ -276,7 +276,7 @@ def cmd_run(args) -> int:
                                "warnings; force limits are for the live window (or "
                                "offscreen with --script or --frames)", field="--force-limits")
         return _run_showcase(args)
-    if args.video != "bonesim-run.mp4":
+    if args.video is not None:
         raise BonesimError("--video is the headless main job's time-lapse; the live "
                            "simulator records with --record (bonesim video makes a video "
                            "of a recording)", field="--video")
@@ -353,7 +353,10 @@ def _run_showcase(args) -> int:
     from bonesim.io.case_report import LoadProgress
     from bonesim.apps.showcase import SIZE
 
-    video = None if args.video == "none" else args.video
+    # outputs only when asked: the plain main job writes its time-lapse and its
+    # picture; asked for a picture (--screenshot), it writes that alone
+    video = args.video or (None if args.screenshot else "bonesim-run.mp4")
+    video = None if video == "none" else video
     bar = LoadProgress()
     try:
         out = run_showcase(args.case, args.burr, video=video,
@@ -377,8 +380,10 @@ def _run_showcase(args) -> int:
     if "min_clearance_mm" in out:
         print("closest approach: " + approach_text(out["min_clearance_mm"],
                                                    out["min_clearance_structure"]))
-    print(f"wrote {out['picture']}" + (f" and {out['video']} ({out['frames']} frames, "
-                                       f"{out['speedup']:g}x)" if "video" in out else ""))
+    print(f"wrote {out['picture']}" + (
+        f" and {out['video']} ({out['frames']} frames: a time-lapse running "
+        f"{out['speedup']:g} times faster than the simulated surgery)"
+        if "video" in out else ""))
     return 0
 
 
@@ -706,9 +711,10 @@ def build_parser() -> argparse.ArgumentParser:
     who_opts(s)
     s.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"),
                    help="window size [px] (default 1024 768; headless video 1280 720)")
-    s.add_argument("--video", metavar="FILE.mp4", default="bonesim-run.mp4",
+    s.add_argument("--video", metavar="FILE.mp4",
                    help="headless main job: the time-lapse video (default "
-                        "bonesim-run.mp4; 'none' for no video)")
+                        "bonesim-run.mp4 unless --screenshot is given; 'none' for no "
+                        "video)")
     from bonesim.render.stereo import STEREO_MODES        # (no VTK in that module)
 
     s.add_argument("--seconds", type=float, metavar="S",

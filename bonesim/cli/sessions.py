@@ -50,6 +50,15 @@ def cmd_sessions_info(args) -> int:
 
 
 def cmd_sessions_list(args) -> int:
+    if args.folder is None and not sessions_folder().is_dir():
+        # before the first recording the default folder does not exist yet: that
+        # is no error (a folder asked for by name still has to exist)
+        if args.json:
+            _print_json([])
+        else:
+            print(f"no sessions yet: bonesim run --record saves them in "
+                  f"{sessions_folder()}")
+        return 0
     rows = list_sessions(args.folder)
     if args.json:
         _print_json(rows)

@@ -577,7 +577,7 @@ class SilentSink:
 
 
 def open_output(synth: SoundSynth, device=None, block: int = BLOCK, recorder=None,
-                realtime_fallback: bool = True):
+                realtime_fallback: bool = True, say: bool = True):
     """Play the synthesizer on an audio device, or fall back to silence.
 
     Parameters
@@ -592,12 +592,15 @@ def open_output(synth: SoundSynth, device=None, block: int = BLOCK, recorder=Non
         Also receives every rendered block.
     realtime_fallback : bool
         Whether the silent fallback keeps rendering at real-time pace.
+    say : bool
+        Print the notice to stderr. False where the caller shows it itself (the
+        simulator's HUD and run summary), so that it appears once.
 
     Returns
     -------
     AudioOutput or SilentSink
         Has ``.close()`` and ``.notice`` (None when a device plays; else the
-        text printed, once, to stderr). Never raises for a missing
+        text, printed to stderr when ``say``). Never raises for a missing
         PortAudio library or device.
     """
     errors: tuple = (ImportError, OSError, ValueError)
@@ -628,7 +631,8 @@ def open_output(synth: SoundSynth, device=None, block: int = BLOCK, recorder=Non
         notice = (f"bonesim: no audio output ({reason}); the drill sound is muted"
                   + (f" and still recorded to {recorder.path}." if recorder is not None
                      else ". Use --wav FILE to record it."))
-        print(notice, file=sys.stderr, flush=True)
+        if say:
+            print(notice, file=sys.stderr, flush=True)
         return SilentSink(synth, block, recorder, realtime_fallback, notice)
 
 

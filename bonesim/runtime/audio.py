@@ -66,7 +66,7 @@ def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
         clicks = ClickSynth(synth.sample_rate, monitor[1])
         clicks.sync(float(status["t_s"]))       # provisional: re-anchored once it renders
     out = open_output(synth if clicks is None else MixedSynth(synth, clicks),
-                      recorder=recorder)
+                      recorder=recorder, say=False)   # the simulator notes it once
     astat["silent"] = 0 if out.notice is None else 1
     child.ready()
     burr = 0

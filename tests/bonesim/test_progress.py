@@ -30,5 +30,12 @@ def test_progress_bar_percent_and_eta():
     for k in range(1, 5):
         bar.update(k)
     bar.close()
-    assert tty.getvalue().count("\r") == 5 and tty.getvalue().endswith("\n")
+    assert tty.getvalue().count("\r") == 4 and tty.getvalue().endswith("\n")
     assert "\n" not in tty.getvalue()[:-1]       # redrawn in place
+    assert tty.getvalue().count("done in") == 1  # the finished bar is drawn once
+    cut = io.StringIO()                          # closed early: the last state drawn
+    cut.isatty = lambda: True
+    bar = ProgressBar(4, stream=cut, width=4, min_interval_s=0.0, clock=lambda: now[0])
+    bar.update(2)
+    bar.close()
+    assert cut.getvalue().count("\r") == 2 and cut.getvalue().endswith(" 2/4  ETA 0:00.0\n")

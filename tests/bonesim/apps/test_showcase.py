@@ -67,13 +67,15 @@ def test_main_job_rinses_writes_video_and_picture(tmp_path):
     assert video.stat().st_size > 10_000 and picture.stat().st_size > 10_000
 
 
-def test_headless_run_command(tmp_path, capsys):
+def test_headless_run_command(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     shot = tmp_path / "end.png"
-    assert main(["run", "--offscreen", "--seconds", "2", "--video", "none", "--size",
+    assert main(["run", "--offscreen", "--seconds", "2", "--size",
                  "160", "120", "--screenshot", str(shot), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["simulated_s"] == pytest.approx(2.0, abs=0.01) and "video" not in out
     assert shot.stat().st_size > 1000
+    assert list(tmp_path.iterdir()) == [shot]     # asked for a picture: no video
     assert main(["run", "--offscreen", "--record"]) != 0
     assert "[--record]: --record needs the live simulator" in capsys.readouterr().err
     assert main(["run", "--offscreen", "--frames", "2", "--video", "x.mp4"]) != 0
@@ -91,11 +93,19 @@ def test_headless_run_summary_names_structures(monkeypatch, capsys):
                 "injuries": ["chorda_tympani"], "min_clearance_mm": 1.004,
                 "min_clearance_structure": "sigmoid_sinus", "picture": "x.png"}
 
-    monkeypatch.setattr(S, "run_showcase", fake)
+    asked = []
+    monkeypatch.setattr(S, "run_showcase", lambda *a, **kw: asked.append(kw) or fake())
     assert main(["run", "--offscreen", "--video", "none"]) == 0
     out = capsys.readouterr().out
     assert "removed 5 voxels (Bone 5); injuries: Chorda tympani" in out
     assert "closest approach: 1.00 mm to the Sigmoid sinus" in out
+    # the plain main job writes its time-lapse; a picture asked for comes alone
+    for argv, video in ((["run", "--offscreen"], "bonesim-run.mp4"),
+                        (["run", "--offscreen", "--screenshot", "a.png"], None),
+                        (["run", "--offscreen", "--screenshot", "a.png", "--video", "b.mp4"],
+                         "b.mp4")):
+        assert main(argv) == 0
+        assert asked[-1]["video"] == video
 
 
 def test_bad_seconds():
