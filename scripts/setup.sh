@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up bonesim on a fresh Debian machine: system packages, a virtual
-# environment in .venv, and the package itself (a plain, non-editable install).
+# environment in .venv, and the package itself (an editable install: the
+# command and the tests import the same files, so numba compiles them once).
 #   scripts/setup.sh          runtime only
 #   scripts/setup.sh --test   plus the test tools
 set -euo pipefail
@@ -27,13 +28,9 @@ if command -v apt-get >/dev/null 2>&1; then
 fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q ".${extras}"
-# Compile the numba kernels once (about a minute), so that the first run does
-# not compile them in its four processes at once: the installed package for
-# the runtime set-up, the source tree (what the tests import) with --test.
-if [ -n "${extras}" ]; then
-  .venv/bin/python -m bonesim.cli warmup
-else
-  .venv/bin/bonesim warmup
-fi
+.venv/bin/python -m pip install -q -e ".${extras}"
+# Compile the numba kernels once, here, rather than in the first run's four
+# processes at once; the cache lies beside the sources, which the command and
+# the tests share, so the second set-up finds it warm.
+.venv/bin/bonesim warmup
 echo "bonesim installed in $(pwd)/.venv"

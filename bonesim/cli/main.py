@@ -17,11 +17,12 @@ from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
 from bonesim.cli.voxel import apply_voxel_mm, voxel_option
+from bonesim.cli.warmup import cmd_warmup
 from bonesim.errors import BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
            "cmd_trajectory", "cmd_simulate", "cmd_demo", "cmd_run", "cmd_playback",
-           "cmd_warmup", "cmd_bench", "build_parser", "main"]
+           "cmd_bench", "build_parser", "main"]
 
 DEFAULT_CASE = "phantom"
 
@@ -556,23 +557,6 @@ def _tutor_parser(sub) -> None:
     _trainee_window_args(b)
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
     b.set_defaults(func=_tutor("cmd_playback"))
-
-
-def cmd_warmup(args) -> int:
-    import time
-
-    from bonesim.cli.warmup import warmup_all
-
-    t0 = time.perf_counter()
-    report = None if args.json else (lambda name, sec: print(f"  {name:16s} {sec:7.2f} s",
-                                                              flush=True))
-    parts = warmup_all(report)
-    total = round(time.perf_counter() - t0, 2)
-    if args.json:
-        _print_json({"seconds": parts, "total_s": total})
-    else:
-        print(f"compiled the kernels in {total} s (cached for the next runs)")
-    return 0
 
 
 def cmd_bench(args) -> int:

@@ -10,6 +10,7 @@ kernel may gain a signature.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -84,3 +85,21 @@ def test_warmup_covers_the_types_of_a_real_run():
     assert out.returncode == 0, out.stderr[-3000:]
     new = json.loads(out.stdout.strip().splitlines()[-1])
     assert new == {}, f"kernels compiled after the warm-up: {new}"
+
+
+def test_warmup_says_what_it_does(monkeypatch, capsys):
+    """The one-time compile is announced, and each part is named before it
+    starts (the first part alone takes tens of seconds cold)."""
+    from bonesim.cli.main import main
+
+    W = importlib.import_module("bonesim.cli.warmup")
+    ran = []
+    monkeypatch.setattr(W, "_parts", lambda: [("first", lambda: ran.append(1)),
+                                               ("second", lambda: ran.append(2))])
+    assert main(["warmup"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert ran == [1, 2] and "once" in lines[0] and "cached" in lines[0]
+    assert lines[1].split()[:3] == ["[", "1/2]", "first"] and lines[1].endswith(" s")
+    assert lines[2].split()[:2] == ["[", "2/2]"] and lines[-1].startswith("compiled")
+    assert main(["warmup", "--json"]) == 0
+    assert set(json.loads(capsys.readouterr().out)["seconds"]) == {"first", "second"}
