@@ -141,7 +141,6 @@ class App:
         self.device_name = device
         self.device_record = None
         if device is not None:
-            from bonesim.errors import BonesimError
             from bonesim.io.case import load_case
 
             if script is not None:
@@ -168,8 +167,6 @@ class App:
         pedal_dev = None
         if pedal is not None:
             from bonesim.devices.registry import AUXILIARY, device_record, make_device
-            from bonesim.errors import BonesimError
-
             if pedal not in AUXILIARY:
                 raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
                                    f"{', '.join(AUXILIARY)}", field="--pedal")
