@@ -114,17 +114,18 @@ def check(name: str, value, path: str | Path | None = None, field: str | None = 
         Not a number, NaN or infinite, or outside the bounds.
     """
     b = bound(name)
-    label = what or name
+    label = name if what is None else what
+    lead = f"{label} " if label else ""
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise BonesimError(f"{label} must be a number [{b.unit}], got {value!r}", path,
+        raise BonesimError(f"{lead}must be a number [{b.unit}], got {value!r}", path,
                            field) from None
     if not math.isfinite(v):
-        raise BonesimError(f"{label} must be a finite number [{b.unit}], got {value!r}",
+        raise BonesimError(f"{lead}must be a finite number [{b.unit}], got {value!r}",
                            path, field)
     if not b.min <= v <= b.max:
-        raise BonesimError(f"{label} {v:g} {b.unit} is outside the physical bounds "
+        raise BonesimError(f"{lead}{v:g} {b.unit} is outside the physical bounds "
                            f"{b.text()} ({b.why}; bonesim/data/{LIMITS_FILE})", path, field)
     return v
 

@@ -61,7 +61,7 @@ def test_limits_file_round_trips_with_nan_bins(tmp_path):
 @pytest.mark.parametrize("text, what", [
     ("format = 'x'", "format must be"),
     ("format = 'bonesim-force-limits-1'\nstructure = 'n'", "field 'force' is missing"),
-    ("format = [", "not a TOML file"),
+    ("format = [", "malformed TOML"),
     ("format = 'bonesim-force-limits-1'\nstructure = 'n'\nforce = 'applied'\n"
      "percentile = 95.0\nmax_distance_mm = 4.0\nedges_mm = [0.0, 2.0, 4.0]\n"
      "force_n = [1.0]\nspeed_rpm = [1.0, 2.0]\nn = [1, 1]", "force_n has 1 bins"),
