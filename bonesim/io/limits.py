@@ -26,7 +26,7 @@ __all__ = ["LIMITS_FILE", "Bound", "bound", "check", "check_grid", "setting", "a
 
 #: The data file holding the bounds.
 LIMITS_FILE = "limits.toml"
-_SETTINGS = ("memory", "reading")
+_SETTINGS = ("memory", "reading", "network")
 
 
 @dataclass(frozen=True)

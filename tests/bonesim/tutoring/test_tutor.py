@@ -508,7 +508,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
     model, inst, netw, srv, src, trainee = _session()
     evil = netw.endpoint(("10.6.6.6", 666))
     forger = net.Codec(bytes(32))
-    evil.sendto(forger.encode(net.KIND_JOIN, b"", 5), SERVER)
+    evil.sendto(forger.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), 5), SERVER)
     evil.sendto(b"hello", SERVER)
     inst.step(0.0)
     srv.tick(0.0)
@@ -516,7 +516,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
     # a genuine JOIN gets a WELCOME but no stream until it ACKs with the
     # server's nonce; an ACK with a wrong nonce does not start it
     good = net.Codec(KEY)
-    evil.sendto(good.encode(net.KIND_JOIN, b"", 77), SERVER)
+    evil.sendto(good.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), 77), SERVER)
     srv.tick(0.001)
     c = srv.clients[("10.6.6.6", 666)]
     assert not c.streaming and srv.counters["welcomes"] == 1
