@@ -36,6 +36,20 @@ def _traj(d: Path, name: str, rows) -> str:
     return str(path)
 
 
+def _big_traj(d: Path, rows: int = 2_000_000) -> str:
+    """A long trajectory (2 million rows, 2000 s at 1 kHz, ~90 MB) whose last
+    row has a negative speed: read whole (in chunks, with progress), then refused."""
+    path = d / "big.csv"
+    with open(path, "w") as fh:
+        fh.write(TRAJ_HEAD)
+        block = 100_000
+        for k in range(0, rows, block):
+            fh.write("".join(f"{i / 1000:.3f},{20 + (i % 100) / 100:.2f},0,0,0,0,-1,1,60000\n"
+                             for i in range(k, k + block)))
+        fh.write(f"{rows / 1000:.3f},20,0,0,0,0,-1,1,-5\n")
+    return str(path)
+
+
 def _file(d: Path, name: str, data: bytes) -> str:
     path = d / name
     path.write_bytes(data)
@@ -66,6 +80,29 @@ def cases(d: Path) -> list[tuple[str, list[str], dict]]:
         "Procedural", "Proc\u00e9dural").encode("latin-1"))], {}))
     rows.append(("case binary", ["case-info", _case(d, "binary", "", "", binary)], {}))
     rows.append(("--voxel-mm nan", ["case-info", "phantom", "--voxel-mm", "nan"], {}))
+    family = (ROOT / "burrs" / "cutting.toml").read_text()
+    for d_mm in ("200.0", "1e300"):
+        text = family.replace("[[burr]]\ndiameter_mm = 1.0", f"[[burr]]\ndiameter_mm = {d_mm}", 1)
+        rows.append((f"burr family diameter_mm = {d_mm}", ["simulate", "--burr", _file(
+            d, f"fam_{d_mm}.toml", text.encode()) + f"#cutting-{float(d_mm):g}mm",
+            "--trajectory", ok_traj], {}))
+    stack = d / "label-stack"                     # the phantom as a label stack
+    subprocess.run([sys.executable, "-m", "bonesim", "case-export", "phantom", "--format",
+                    "label-stack", str(stack)], capture_output=True,
+                   env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    if (stack / "case.toml").is_file():
+        text = (stack / "case.toml").read_text().replace('path = "planes"',
+                                                         f'path = "{stack / "planes"}"')
+        for name, new in (("nan", "origin_mm = [nan, 0.0, 0.0]"),
+                          ("1e300", "origin_mm = [1e300, 0.0, 0.0]")):
+            import re as _re
+
+            path = d / f"stack_{name}" / "case.toml"
+            path.parent.mkdir()
+            path.write_text(_re.sub(r"origin_mm = \[.*\]", new, text))
+            rows.append((f"label-stack origin_mm {name}", ["case-info", str(path)], {}))
+            rows.append((f"label-stack origin_mm {name} (simulate)",
+                         ["simulate", "--case", str(path), "--trajectory", ok_traj], {}))
     for d_mm in ("200.0", "nan", "inf", "1e300", "-1.0", "0.0"):
         rows.append((f"burr diameter_mm = {d_mm}", ["simulate", "--burr", _file(
             d, f"burr_{d_mm}.toml", (burr.format(d=d_mm)).encode()), "--trajectory", ok_traj], {}))
@@ -86,10 +123,9 @@ def cases(d: Path) -> list[tuple[str, list[str], dict]]:
                                                "100000", "100000", "--no-sound"], {}))
     rows.append(("run --frames -5", ["run", "--offscreen", "--frames", "-5", "--no-sound"], {}))
     rows.append(("playback --size 99999x99999", ["playback", "x.h5", "--size", "99999x99999"], {}))
-    rows.append(("tutor serve --duration nan", ["tutor", "serve", "--duration", "nan",
-                                                 "--headless"], {}))
     rows.append(("monitor --duration -1", ["monitor", "127.0.0.1", "--duration", "-1",
                                            "--timeout", "0.5"], {}))
+    rows.append(("trajectory 2e6 rows, bad last row", ["simulate", "--trajectory", _big_traj(d)], {}))
     lim = "format = \"bonesim-force-limits-1\"\n"
     for name, data in (("limits non-UTF-8", b"# \xe9\n" + lim.encode()),
                        ("limits binary", binary)):
@@ -97,8 +133,18 @@ def cases(d: Path) -> list[tuple[str, list[str], dict]]:
                             ok_traj, "--force-limits", _file(d, name[7:] + ".toml", data)], {}))
     for name, data in (("devices config non-UTF-8", b"# \xe9\n[devices]\n"),
                        ("devices config binary", binary),
-                       ("devices config nan", b"[devices.spacemouse]\nscale = nan\n")):
-        rows.append((name, ["devices"], {"BONESIM_DEVICES_CONFIG": _file(d, name[15:].replace(" ", "") + ".toml", data)}))
+                       ("devices config nan", b"[devices.simulated-hand]\nscale = nan\n")):
+        rows.append((name, ["run", "--offscreen", "--frames", "1", "--no-sound", "--device",
+                            "simulated-hand"],
+                     {"BONESIM_DEVICES_CONFIG": _file(d, name[15:].replace(" ", "") + ".toml", data)}))
+    lim_ok = ('format = "bonesim-force-limits-1"\nstructure = "{s}"\nforce = "applied"\n'
+              'percentile = 95.0\nmax_distance_mm = 4.0\nedges_mm = [0.0, 2.0, 4.0]\n'
+              'force_n = [{f}, 1.0]\nspeed_rpm = [1.0, 2.0]\nn = [1, 1]\n')
+    for name, data in (("limits unknown structure", lim_ok.format(s="no_such_nerve", f="1.0")),
+                       ("limits negative force", lim_ok.format(s="chorda_tympani", f="-1.0"))):
+        rows.append((name, ["run", "--offscreen", "--frames", "1", "--no-sound", "--script",
+                            ok_traj, "--force-limits", _file(d, name[7:].replace(" ", "") + ".toml",
+                                                             data.encode())], {}))
     rows.append(("participants CSV non-UTF-8", ["metrics", "cohort", str(d), "--participants",
                  _file(d, "p_latin.csv", b"file,participant,group\nx\xe9.h5,a,expert\n")], {}))
     rows.append(("participants CSV binary", ["metrics", "cohort", str(d), "--participants",
@@ -107,6 +153,11 @@ def cases(d: Path) -> list[tuple[str, list[str], dict]]:
                                      "--timeout", "0.5"], {}))
     rows.append(("key file weak", ["monitor", "127.0.0.1", "--key-file", _file(
         d, "weak.key", b"passwordpassword"), "--timeout", "0.5"], {}))
+    rows.append(("key file 16 zero bytes", ["tutor", "join", "127.0.0.1", "--key-file", _file(
+        d, "zero.key", bytes(16)), "--timeout", "0.5", "--headless"], {}))
+    good_key = _file(d, "good.key", bytes(range(3, 255, 8)).hex().encode())
+    rows.append(("tutor serve --duration nan", ["tutor", "serve", "--duration", "nan",
+                                                 "--headless", "--key-file", good_key], {}))
     rows.append(("session file binary", ["sessions", "info", _file(d, "s.h5", binary)], {}))
     return rows
 
@@ -141,7 +192,7 @@ def main() -> int:
             if a.k and a.k not in name:
                 continue
             rc, tb, last = run(argv, env, a.mem_gb, a.timeout)
-            good = rc not in (None, 0) and not tb and rc < 128
+            good = rc is not None and 0 < rc < 128 and not tb
             bad += not good
             print(f"{'ok ' if good else 'BAD'} | {name:32s} | rc={rc} | "
                   f"{'traceback | ' if tb else ''}{last.replace(tmp, '$T')}", flush=True)

@@ -206,9 +206,21 @@ class App:
         self.monitor = None
         self.trace = None
         self.want_monitor = monitor and bool(monitored_structures(self.model))
+        try:                       # a refusal here must not leave the loop's memory
+            self._checked_options(monitor_serve, force_limits)
+        except BaseException:
+            self.loop.close()
+            raise
+        self.want_fragments = bool(fragments)
+        self.fragments = None
+
+    def _checked_options(self, monitor_serve, force_limits) -> None:
+        """The nerve monitor's server and the force limits, checked against
+        the case (one-line errors naming the option or file)."""
         if monitor_serve is not None and not self.want_monitor:
-            raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
-                             "serve (set monitor = true on a nerve in its case.toml)")
+            raise BonesimError(f"case {self.model.name!r} monitors no nerve: nothing to "
+                               "serve (set monitor = true on a nerve in its case.toml)",
+                               field="--monitor-port")
         self.monitor_serve = monitor_serve
         self.watch = None                      # force-near-structure warnings
         if force_limits is not None:
@@ -224,8 +236,6 @@ class App:
             if lim.case and lim.case != self.model.name:
                 self.notices.append(f"force limits learned on case {lim.case!r}, not "
                                     f"{self.model.name!r}")
-        self.want_fragments = bool(fragments)
-        self.fragments = None
 
     # -------------------------------------------------------------- set-up
     def _make_backend(self, name: str, start_mm, view):

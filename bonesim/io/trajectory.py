@@ -445,14 +445,16 @@ def _first_failure(path: Path, rows, names, checks) -> None:
                        _where(line, column))
 
 
-def _chunks(path: Path, fh, chunk_rows: int, max_rows: int, progress):
+def _chunks(path: Path, fh, chunk_rows: int, max_rows, progress):
     """Yield ``(line numbers, data)`` of the data rows after the header, at
     most ``chunk_rows`` rows at a time; the header's column names come first
     (``names`` then the chunks). Only one chunk's text is in memory at once."""
     line = 0
     names = None
+    done_bytes = 0                              # characters read (bytes in ASCII)
     for text in fh:
         line += 1
+        done_bytes += len(text)
         if text.strip():
             names = _read_header(path, [text])[1]
             break
@@ -460,7 +462,6 @@ def _chunks(path: Path, fh, chunk_rows: int, max_rows: int, progress):
         _read_header(path, [])                  # raises: empty file
     yield names
     rows_seen = 0
-    done_bytes = 0
     while True:
         numbers, texts = [], []
         try:
@@ -478,9 +479,10 @@ def _chunks(path: Path, fh, chunk_rows: int, max_rows: int, progress):
         if not texts:
             return
         rows_seen += len(texts)
-        if rows_seen > max_rows:
-            check("trajectory_rows", rows_seen, path, f"line {line}",
-                  what="the number of rows (so far)")
+        if rows_seen > max_rows.max:
+            raise BonesimError(f"the number of rows ({rows_seen} so far) is outside the "
+                               f"physical bounds {max_rows.text()} ({max_rows.why}; "
+                               f"bonesim/data/{LIMITS_FILE})", path, f"line {line}")
         if progress is not None:
             progress(done_bytes)
         rows = list(zip(numbers, (t.rstrip("\r\n") for t in texts)))
@@ -576,7 +578,7 @@ def read_trajectory(path: str | Path, progress=None) -> Trajectory:
     try:
         with fh:
             chunks = _chunks(path, fh, int(setting("reading", "trajectory_chunk_rows")),
-                             int(bound("trajectory_rows").max), progress)
+                             bound("trajectory_rows"), progress)
             try:
                 names = next(chunks)
                 parts = list(chunks)
