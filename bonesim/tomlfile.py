@@ -100,7 +100,7 @@ def get_number(table: dict, key: str, path: Path, where: str, default: Any = Non
         kind = "an integer" if integer else "a number"
         raise BonesimError(f"'{key}' must be {kind}, got {value!r}", path, where)
     if isinstance(value, float) and (math.isnan(value) or (finite and math.isinf(value))):
-        raise BonesimError(f"'{key}' must be a finite number, got {value!r}", path, where)
+        raise BonesimError(f"'{key}' must be finite, got {value!r}", path, where)
     if minimum is not None and value < minimum:
         raise BonesimError(f"'{key}' must be >= {minimum}, got {value}", path, where)
     if maximum is not None and value > maximum:

@@ -27,7 +27,7 @@ def test_bad_bytes_give_one_line_naming_the_file(tmp_path, data, needle):
 @pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
 def test_nan_and_infinity_are_refused_naming_the_key(tmp_path, value):
     path = tmp_path / "m.toml"
-    with pytest.raises(BonesimError, match=r"m.toml \[volume\]: 'x' must be a finite"):
+    with pytest.raises(BonesimError, match=r"m.toml \[volume\]: 'x' must be finite"):
         get_number({"x": value}, "x", path, "volume")
     with pytest.raises(BonesimError, match=r"'v' must hold finite numbers"):
         get_vector({"v": [0.0, value, 1.0]}, "v", path, "volume")
