@@ -21,7 +21,7 @@ from bonesim.errors import BonesimError
 from bonesim.resources import data_path
 from bonesim.tomlfile import read_toml
 
-__all__ = ["LIMITS_FILE", "Bound", "bound", "check", "check_grid", "setting", "available_memory",
+__all__ = ["LIMITS_FILE", "Bound", "bound", "check", "check_grid", "check_burr_lattice", "setting", "available_memory",
            "format_bytes", "check_memory"]
 
 #: The data file holding the bounds.
@@ -245,3 +245,22 @@ def check_grid(extent_mm, voxel_mm: float, path: str | Path | None = None,
     check_memory(voxels * setting("memory", "engine_bytes_per_voxel"),
                  f"a {grid} grid of {voxel_mm:g} mm voxels", path, field)
     return voxels
+
+
+def check_burr_lattice(diameter_mm: float, voxel_mm: float, oversample: int,
+                       path: str | Path | None = None) -> int:
+    """Refuse a burr whose sample lattice (``oversample`` samples per voxel
+    edge across its diameter, a cube) would not fit in memory.
+
+    Returns
+    -------
+    int
+        The lattice's sample count.
+    """
+    check("oversample", oversample, field="oversample")
+    per_axis = 2 * math.ceil(diameter_mm / 2 / (voxel_mm / oversample))
+    samples = per_axis ** 3
+    check_memory(samples * setting("memory", "burr_sample_bytes"),
+                 f"the {diameter_mm:g} mm burr's sample lattice ({per_axis}^3 samples at "
+                 f"{voxel_mm:g} mm voxels, oversample {oversample})", path, "burr")
+    return samples

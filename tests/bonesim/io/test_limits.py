@@ -187,3 +187,12 @@ def re_match(pattern, text) -> bool:
     import re
 
     return re.search(pattern, text) is not None
+
+
+def test_a_burr_lattice_beyond_the_memory_is_refused_before_it_is_built():
+    assert limits.check_burr_lattice(5.0, 0.5, 2) == 20 ** 3
+    with pytest.raises(BonesimError, match=r"\[burr\]: the 12 mm burr's sample lattice "
+                                           r"\(19200\^3 samples .* needs about .* TiB"):
+        limits.check_burr_lattice(12.0, 0.01, 16)
+    with pytest.raises(BonesimError, match="oversample"):
+        limits.check_burr_lattice(1.0, 0.5, 4096)
