@@ -133,7 +133,7 @@ def cases(d: Path) -> list[tuple[str, list[str], dict]]:
                             ok_traj, "--force-limits", _file(d, name[7:] + ".toml", data)], {}))
     for name, data in (("devices config non-UTF-8", b"# \xe9\n[devices]\n"),
                        ("devices config binary", binary),
-                       ("devices config nan", b"[devices.simulated-hand]\nscale = nan\n")):
+                       ("devices config nan", b"[devices.simulated-hand]\nrest_mm = [nan, 0.0, 0.0]\n")):
         rows.append((name, ["run", "--offscreen", "--frames", "1", "--no-sound", "--device",
                             "simulated-hand"],
                      {"BONESIM_DEVICES_CONFIG": _file(d, name[15:].replace(" ", "") + ".toml", data)}))
