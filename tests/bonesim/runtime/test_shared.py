@@ -164,3 +164,34 @@ def test_the_parent_frees_the_block_when_its_child_is_killed():
     os.kill(c.pid, signal.SIGKILL)
     c.close()
     assert not (SHM_DIR / name).exists()
+
+
+@pytest.mark.slow
+@_LINUX_SHM
+def test_kill_9_of_the_process_group_leaves_a_block_the_next_start_reclaims():
+    """Issue 24 as reported: kill -9 of the run's whole process group (owner,
+    child and resource tracker) leaves the block; the next start frees it."""
+    from bonesim.runtime.shared import SHM_DIR
+
+    proc = subprocess.Popen([sys.executable, "-c", _OWNER, str(ROOT)],
+                            stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        name, child, _ = proc.stdout.readline().split()
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    end = time.monotonic() + 20.0
+    while _alive(int(child)) and time.monotonic() < end:
+        time.sleep(0.05)
+    try:
+        assert (SHM_DIR / name).exists()                 # nobody was left to free it
+        nxt = subprocess.run(
+            [sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]);"
+             "from bonesim.runtime.shared import SharedArrays;"
+             "SharedArrays.create([('a', (4,), 'f8')]).close()", str(ROOT)],
+            capture_output=True, text=True, timeout=120)
+        assert nxt.returncode == 0, nxt.stderr
+        assert not (SHM_DIR / name).exists()
+        assert "reclaimed" in nxt.stderr and "left by dead run(s)" in nxt.stderr
+    finally:
+        (SHM_DIR / name).unlink(missing_ok=True)
