@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS, CohortResult
+from metrics.run_identity import distinct_runs
 
 __all__ = ["read_participants", "find_sessions", "score_file", "score_cohort",
            "write_table"]
@@ -499,13 +500,13 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     if scheduler is None and int(workers) < 1:
         raise BonesimError(f"workers must be at least 1, got {workers}")
     people = read_participants(participants)
-    paths = find_sessions(sessions)
+    paths, repeated, copies = distinct_runs(find_sessions(sessions))   # a copy counts once
     cases = Counter(c for c in map(_peek_case, paths) if c is not None)
     case = min(cases, key=lambda c: (-cases[c], c)) if cases else None
     runs, label, n_workers = _run_tasks(paths, structure, case, scheduler, workers, progress)
     t_tasks = time.perf_counter()
 
-    errors = []
+    errors = list(repeated)
     table = []
     seen = set()
     for r in runs:
@@ -548,7 +549,7 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         nb_trained_on=trained_on, structure=structure, errors=errors,
         meta={"scheduler": label, "workers": n_workers,
               "wall_s": time.perf_counter() - t0, "participants_file": str(participants),
-              "sessions": [str(p) for p in paths], "case": case,
+              "sessions": [str(p) for p in paths], "case": case, "copies": copies,
               "damaged": [r["file"] for r in runs if r.get("damage")],
               # the report flags synthetic test data (bonesim cohort synth says so)
               "synthetic": any("synthetic" in r.get("notes", "").lower() for r in runs),

@@ -141,7 +141,6 @@ class App:
         self.device_name = device
         self.device_record = None
         if device is not None:
-            from bonesim.errors import BonesimError
             from bonesim.io.case import load_case
 
             if script is not None:
@@ -168,8 +167,6 @@ class App:
         pedal_dev = None
         if pedal is not None:
             from bonesim.devices.registry import AUXILIARY, device_record, make_device
-            from bonesim.errors import BonesimError
-
             if pedal not in AUXILIARY:
                 raise BonesimError(f"{pedal!r} is no pedal; --pedal takes one of "
                                    f"{', '.join(AUXILIARY)}", field="--pedal")
@@ -209,9 +206,21 @@ class App:
         self.monitor = None
         self.trace = None
         self.want_monitor = monitor and bool(monitored_structures(self.model))
+        try:                       # a refusal here must not leave the loop's memory
+            self._checked_options(monitor_serve, force_limits)
+        except BaseException:
+            self.loop.close()
+            raise
+        self.want_fragments = bool(fragments)
+        self.fragments = None
+
+    def _checked_options(self, monitor_serve, force_limits) -> None:
+        """The nerve monitor's server and the force limits, checked against
+        the case (one-line errors naming the option or file)."""
         if monitor_serve is not None and not self.want_monitor:
-            raise ValueError(f"case {self.model.name!r} monitors no nerve: nothing to "
-                             "serve (set monitor = true on a nerve in its case.toml)")
+            raise BonesimError(f"case {self.model.name!r} monitors no nerve: nothing to "
+                               "serve (set monitor = true on a nerve in its case.toml)",
+                               field="--monitor-port")
         self.monitor_serve = monitor_serve
         self.watch = None                      # force-near-structure warnings
         if force_limits is not None:
@@ -227,8 +236,6 @@ class App:
             if lim.case and lim.case != self.model.name:
                 self.notices.append(f"force limits learned on case {lim.case!r}, not "
                                     f"{self.model.name!r}")
-        self.want_fragments = bool(fragments)
-        self.fragments = None
 
     # -------------------------------------------------------------- set-up
     def _make_backend(self, name: str, start_mm, view):

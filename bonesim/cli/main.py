@@ -15,6 +15,7 @@ from bonesim.io.anatomy import clinical_name
 from bonesim.io.burrs import DEFAULT_BURR
 from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
+from bonesim.cli.bounds import check_options
 from bonesim.cli.research import research_parsers
 from bonesim.cli.voxel import apply_voxel_mm, voxel_option
 from bonesim.cli.warmup import cmd_warmup
@@ -177,7 +178,7 @@ def _run(case, burr, traj, args) -> dict:
 def cmd_simulate(args) -> int:
     from bonesim.io.trajectory import read_trajectory
 
-    traj = read_trajectory(args.trajectory)
+    traj = read_trajectory(args.trajectory, progress="auto")
     case = _checked(args.case, args)
     summary = _run(case, args.burr, traj, args)
     if args.json:
@@ -257,7 +258,7 @@ def cmd_run(args) -> int:
     from bonesim.io.trajectory import read_trajectory
 
     offscreen = args.offscreen
-    script = read_trajectory(args.script) if args.script else None
+    script = read_trajectory(args.script, progress="auto") if args.script else None
     frames = args.frames
     screenshot = args.screenshot
     if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
@@ -834,6 +835,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        check_options(args)                  # numbers within their physical bounds
         apply_voxel_mm(args)
         return int(args.func(args) or 0)
     except BonesimError as exc:

@@ -63,7 +63,21 @@ def load_config(path=None) -> dict:
         for name, v in data[k].items():
             if not isinstance(v, dict):
                 raise BonesimError("must be a table", path, f"{k}.{name}")
+            _check_finite(v, path, f"{k}.{name}")
     return data
+
+
+def _check_finite(value, path: Path, where: str) -> None:
+    """Refuse NaN and infinity anywhere in a settings or calibration table
+    (a device would turn them into a NaN pose or force)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise BonesimError(f"must be a finite number, got {value!r}", path, where)
+    if isinstance(value, dict):
+        for key, v in value.items():
+            _check_finite(v, path, f"{where}.{key}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_finite(v, path, f"{where}[{i}]")
 
 
 def save_config(cfg: dict, path=None) -> Path:

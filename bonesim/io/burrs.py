@@ -56,6 +56,7 @@ import numpy as np
 import burrs as _burr_package
 
 from bonesim.errors import BonesimError
+from bonesim.io.limits import check
 from bonesim.tomlfile import check_keys, get_str, read_toml
 
 __all__ = ["DEFAULT_BURR", "BURR_KINDS", "CONTACT_LEVELS", "Burr", "burr_folder", "load_burr", "load_burr_file",
@@ -308,6 +309,9 @@ _SHARED_FIELDS: dict[str, _Range | _Pairs] = {
     "max_speed_rpm": _POSITIVE,
 }
 _DIAMETER = ("diameter_mm", _POSITIVE)
+# Fields checked against the physical bounds of bonesim/data/limits.toml.
+_BOUNDED = {"diameter_mm": "burr_diameter_mm", "default_speed_rpm": "speed_rpm",
+            "max_speed_rpm": "speed_rpm"}
 _FAMILY_KEYS = ("name", "kind")
 _SINGLE_KEYS = ("family", "kind")
 
@@ -332,6 +336,8 @@ def _check_value(key: str, value: Any, path: Path, where: str) -> Any:
     if not rule.holds(value):
         raise BonesimError(f"'{key}' must be {rule.describe()}, got {value!r}",
                            path, where)
+    if key in _BOUNDED:                 # physical bounds (bonesim/data/limits.toml)
+        check(_BOUNDED[key], value, path, where, what=f"'{key}'")
     return float(value)
 
 

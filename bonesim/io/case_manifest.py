@@ -21,6 +21,7 @@ from bonesim.io.case_records import Fragments
 from bonesim.errors import BonesimError
 from bonesim.io.orientation import parse_orientation
 from bonesim.io.segmentation import SEG_SUFFIX, read_seg_segments, segment_keys
+from bonesim.io.limits import check
 from bonesim.tomlfile import check_keys, get_number, get_str, get_vector, read_toml
 from bonesim.io.volumes import MAX_STRUCTURES, UNKNOWN_COLOR_MODES
 
@@ -64,6 +65,8 @@ def _positive_vector(table, key, path, where) -> tuple[float, float, float]:
     if any(not math.isfinite(v) or v <= 0 for v in vec):
         raise BonesimError(f"'{key}' must be three positive numbers, got {list(vec)}",
                            path, where)
+    for v in vec:                       # physical bounds (bonesim/data/limits.toml)
+        check("case_extent_mm", v, path, where, what=f"'{key}'")
     return tuple(float(v) for v in vec)
 
 
@@ -124,8 +127,9 @@ def _parse_volume(tab, path: Path) -> VolumeSpec:
         spec["unknown_colors"] = get_str(tab, "unknown_colors", path, where,
                                          default="error", choices=UNKNOWN_COLOR_MODES)
         if "origin_mm" in tab:
-            spec["origin_mm"] = tuple(float(v) for v in
-                                      get_vector(tab, "origin_mm", path, where))
+            spec["origin_mm"] = tuple(
+                check("coordinate_mm", v, path, where, what="'origin_mm'")
+                for v in get_vector(tab, "origin_mm", path, where))
         if "orientation" in tab:
             spec["orientation"] = parse_orientation(tab["orientation"], path, where)
         return VolumeSpec(**spec)
@@ -321,7 +325,7 @@ def _parse_target(tab, path: Path, names) -> Target:
         ok = (isinstance(box, list) and len(box) == 2
               and all(isinstance(c, list) and len(c) == 3 for c in box)
               and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                      for c in box for v in c))
+                      and math.isfinite(v) for c in box for v in c))
         if not ok:
             raise BonesimError("'box_mm' must be [[xmin, ymin, zmin], [xmax, ymax, "
                                f"zmax]], got {box!r}", path, where)

@@ -21,6 +21,7 @@ import numpy as np
 from bonesim.errors import BonesimError
 from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
+from bonesim.io.limits import bound, check_grid
 from bonesim.io.orientation import PATIENT_FRAME
 from bonesim.io.segmentation import SEG_SUFFIX
 from bonesim.io.volumes import FORMATS, NATIVE, CaseVolume, load_volume
@@ -39,8 +40,8 @@ CASE_FORMATS = tuple(dict.fromkeys(FORMATS + (SEG_FORMAT,)))
 DEFAULT_VOXEL_MM = 0.5
 DEFAULT_BONE_THRESHOLD_HU = 300.0
 DEFAULT_PATTERN = "*.png"
-MIN_VOXEL_MM = 0.01
-MAX_VOXEL_MM = 10.0
+MIN_VOXEL_MM = bound("voxel_mm").min        # bonesim/data/limits.toml
+MAX_VOXEL_MM = bound("voxel_mm").max
 MAX_LABEL = 65535                     # label maps are at most 16-bit
 ORIENTATION_SOURCES = ("declared", "file", "assumed", "generated")
 """How a case's orientation is known: declared in the manifest, read from the
@@ -483,6 +484,7 @@ class Case:
         if v.format == "phantom":
             size = v.size_mm if v.size_mm is not None else _phantom.DEFAULT_SIZE_MM
             voxel = _phantom.DEFAULT_VOXEL_MM if v.voxel_mm == NATIVE else v.voxel_mm
+            check_grid(size, voxel, self.manifest, "volume")   # before allocating it
             vol = _phantom.phantom_volume(v.seed, voxel, size, names, v.generation)
         else:
             kw = {"progress": progress}

@@ -13,6 +13,7 @@ import numpy as np
 
 from bonesim.engine.bodies import publish_split_box, set_pose, split_body
 from bonesim.io.burrs import load_burr
+from bonesim.io.limits import check_burr_lattice
 from bonesim.physics.clearance import Clearance
 from bonesim.engine.device_caps import SCRIPTED, DeviceCaps
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE
@@ -58,6 +59,7 @@ def load_model(case="phantom", burr: str = "cutting-5mm", *,
     # display colours settled on this volume (neighbours apart); the case keeps
     # the view derived from it, so nothing reads the volume twice
     c = c.resolved(vol)
+    check_burr_lattice(b.diameter_mm, float(vol.spacing_mm), oversample, b.source)
     model = make_model(vol.labels, vol.spacing_mm, c.structures, b,
                        origin_mm=vol.origin_mm, materials=materials, device=device,
                        oversample=oversample, name=c.name, case=c)

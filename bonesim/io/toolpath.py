@@ -180,7 +180,8 @@ def load_demo_plan(path: str | Path | None = None) -> DemoPlan:
             integer = name in _INTEGER_KEYS
             v = get_number(tab, name, path, table, integer=integer,
                            minimum=1 if integer else 0.0,
-                           maximum=0.99 if name == "line_overlap" else None)
+                           maximum=0.99 if name == "line_overlap" else None,
+                           finite=False)       # checked just below, steep_slope may be inf
             finite = math.isfinite(v) or (name == "steep_slope" and v == math.inf)
             if not integer and (not finite or (name in _POSITIVE_KEYS and v <= 0)):
                 raise BonesimError(f"'{name}' must be a finite number > 0, got {v}", path,

@@ -62,6 +62,7 @@ import numpy as np
 
 from bonesim.errors import BonesimError
 from bonesim.engine.model import Sample
+from bonesim.io.limits import LIMITS_FILE, bound, check, check_memory, setting
 
 __all__ = ["COLUMNS", "OPTIONAL_COLUMNS", "Trajectory", "TrajectorySample",
            "read_trajectory", "write_trajectory"]
@@ -357,7 +358,10 @@ class Trajectory:
         if not (math.isfinite(start) and math.isfinite(end)) or end < start:
             raise BonesimError(f"the span [{start}, {end}] s is empty or not finite",
                                field="start_s/end_s")
-        count = int(math.floor((end - start) * rate_hz * (1.0 + _STEP_SLACK))) + 1
+        count = math.floor((end - start) * rate_hz * (1.0 + _STEP_SLACK)) + 1
+        check_memory(count * setting("memory", "sample_bytes"),
+                     f"resampling the trajectory ({end - start:g} s) at {rate_hz:g} Hz "
+                     f"({count:.3g} samples)", field="rate_hz")
         return self.at_times(start + np.arange(count) / rate_hz)
 
 
@@ -441,13 +445,87 @@ def _first_failure(path: Path, rows, names, checks) -> None:
                        _where(line, column))
 
 
-def read_trajectory(path: str | Path) -> Trajectory:
-    """Read and check a trajectory CSV file.
+def _chunks(path: Path, fh, chunk_rows: int, max_rows, progress):
+    """Yield ``(line numbers, data)`` of the data rows after the header, at
+    most ``chunk_rows`` rows at a time; the header's column names come first
+    (``names`` then the chunks). Only one chunk's text is in memory at once."""
+    line = 0
+    names = None
+    done_bytes = 0                              # characters read (bytes in ASCII)
+    for text in fh:
+        line += 1
+        done_bytes += len(text)
+        if text.strip():
+            names = _read_header(path, [text])[1]
+            break
+    if names is None:
+        _read_header(path, [])                  # raises: empty file
+    yield names
+    rows_seen = 0
+    while True:
+        numbers, texts = [], []
+        try:
+            for text in fh:
+                line += 1
+                done_bytes += len(text)
+                if text.strip():
+                    numbers.append(line)
+                    texts.append(text)
+                    if len(texts) >= chunk_rows:
+                        break
+        except UnicodeDecodeError:
+            raise BonesimError(f"not a UTF-8 text (CSV) file (a byte that is not "
+                               f"UTF-8 after line {line})", path) from None
+        if not texts:
+            return
+        rows_seen += len(texts)
+        if rows_seen > max_rows.max:
+            raise BonesimError(f"the number of rows ({rows_seen} so far) is outside the "
+                               f"physical bounds {max_rows.text()} ({max_rows.why}; "
+                               f"bonesim/data/{LIMITS_FILE})", path, f"line {line}")
+        if progress is not None:
+            progress(done_bytes)
+        rows = list(zip(numbers, (t.rstrip("\r\n") for t in texts)))
+        try:
+            data = np.loadtxt(io.StringIO("".join(texts)), dtype=np.float64,
+                              delimiter=_DELIMITER, comments=None, ndmin=2)
+            if data.shape != (len(rows), len(names)):
+                raise ValueError("shape")
+        except ValueError:
+            data = _parse_slowly(path, rows, names)
+        yield np.asarray(numbers, dtype=np.int64), data
+
+
+class _Rows:
+    """Row ``r``'s ``(line number, text)`` of a file read in chunks, read
+    back from the file only when a message needs a cell's text."""
+
+    def __init__(self, path: Path, lines: np.ndarray):
+        self.path, self.lines = path, lines
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    def __getitem__(self, r: int) -> tuple[int, str]:
+        want = int(self.lines[r])
+        with open(self.path, encoding="utf-8-sig", newline=None) as fh:
+            for k, text in enumerate(fh, start=1):
+                if k == want:
+                    return want, text.rstrip("\r\n")
+        return want, ""
+
+
+def read_trajectory(path: str | Path, progress=None) -> Trajectory:
+    """Read and check a trajectory CSV file, in chunks.
 
     Parameters
     ----------
     path : str or Path
         The file (format in the module docstring).
+    progress : callable or "auto", optional
+        ``progress(done_bytes, total_bytes)`` after every chunk; ``"auto"``
+        draws a bar on stderr for files of at least ``[reading]
+        progress_bytes`` (``bonesim/data/limits.toml``).
 
     Returns
     -------
@@ -462,29 +540,58 @@ def read_trajectory(path: str | Path) -> Trajectory:
         increasing, a zero axis, drill, suction or irrigation not 0/1, a burr
         that is not an index 0..255, suction
         or irrigation with the drill running, a negative speed, a direction
-        not +1/-1, or a header without samples.
+        not +1/-1, or a header without samples; and values outside the
+        physical bounds of ``bonesim/data/limits.toml`` (positions, speeds,
+        duration, row count) or more memory than the machine has.
+
+    Notes
+    -----
+    The file is parsed ``[reading] trajectory_chunk_rows`` rows at a time,
+    so only one chunk's text is in memory beside the parsed numbers; the
+    row count is checked against its bound as the chunks come in, and the
+    parsed numbers' memory (estimated from the file size) against the
+    machine's before the first chunk.
     """
     path = Path(path)
     if not path.is_file():
         raise BonesimError("file not found", path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise BonesimError("not a UTF-8 text (CSV) file", path) from None
+        size = path.stat().st_size
+        fh = open(path, encoding="utf-8-sig", newline=None)
     except OSError as exc:
         raise BonesimError(f"cannot read: {exc.strerror}", path) from None
-    lines = text.splitlines()
-    head, names = _read_header(path, lines)
-    rows = [(k + 1, t) for k, t in enumerate(lines) if k > head and t.strip()]
-    if not rows:
-        raise BonesimError("no samples: the file has a header but no data rows", path)
+    shortest_row = 2 * len(COLUMNS)          # "0," per cell
+    check_memory(min(size / shortest_row, bound("trajectory_rows").max)
+                 * setting("memory", "trajectory_row_bytes"), "reading this trajectory",
+                 path)
+    bar = None
+    if progress == "auto":
+        progress = None
+        if size >= setting("reading", "progress_bytes"):
+            from bonesim.progress import ProgressBar
+
+            bar = ProgressBar(size, label=f"reading {path.name}")
+            progress = lambda done: bar.update(done)        # noqa: E731
+    elif progress is not None:
+        report = progress
+        progress = lambda done: report(done, size)           # noqa: E731
     try:
-        data = np.loadtxt(io.StringIO("\n".join(t for _, t in rows)), dtype=np.float64,
-                          delimiter=_DELIMITER, comments=None, ndmin=2)
-        if data.shape != (len(rows), len(names)):
-            raise ValueError("shape")
-    except ValueError:
-        data = _parse_slowly(path, rows, names)
+        with fh:
+            chunks = _chunks(path, fh, int(setting("reading", "trajectory_chunk_rows")),
+                             bound("trajectory_rows"), progress)
+            try:
+                names = next(chunks)
+                parts = list(chunks)
+            except UnicodeDecodeError:
+                raise BonesimError("not a UTF-8 text (CSV) file", path) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    if not parts:
+        raise BonesimError("no samples: the file has a header but no data rows", path)
+    rows = _Rows(path, np.concatenate([p[0] for p in parts]))
+    data = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts])
+    del parts
 
     col = {name: data[:, names.index(name)] for name in names}
     checks = [(~np.isfinite(col[name]), name, "must be finite, got {cell}")
@@ -507,6 +614,15 @@ def read_trajectory(path: str | Path) -> Trajectory:
                            name + " needs the drill off (the tool position is then "
                            "its tip), got 1 with drill 1"))
     checks.append((col["speed_rpm"] < 0, "speed_rpm", "speed_rpm must be >= 0, got {cell}"))
+    speed = bound("speed_rpm")
+    checks.append((col["speed_rpm"] > speed.max, "speed_rpm",
+                   f"speed_rpm {{cell}} is outside the physical bounds {speed.text()} "
+                   f"({speed.why}; bonesim/data/{LIMITS_FILE})"))
+    place = bound("coordinate_mm")
+    for name in _POS_COLUMNS:
+        checks.append(((col[name] < place.min) | (col[name] > place.max), name,
+                       f"{name} {{cell}} is outside the physical bounds {place.text()} "
+                       f"({place.why}; bonesim/data/{LIMITS_FILE})"))
     if "direction" in col:
         checks.append((~np.isin(col["direction"], (_FORWARD, _REVERSE)), "direction",
                        "direction must be +1 or -1, got {cell}"))
@@ -515,6 +631,9 @@ def read_trajectory(path: str | Path) -> Trajectory:
         checks.append(((b != np.round(b)) | (b < 0) | (b > _MAX_BURR), "burr",
                        f"burr must be a burr index 0..{_MAX_BURR}, got {{cell}}"))
     _first_failure(path, rows, names, checks)
+    check("trajectory_duration_s", float(t[-1] - t[0]), path,
+          f"lines {rows.lines[0]}-{rows.lines[-1]}, column 't_s'",
+          what="the duration (last t_s - first t_s)")
 
     pos = np.column_stack([col[c] for c in _POS_COLUMNS])
     direction = col["direction"] if "direction" in col else None

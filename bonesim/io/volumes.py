@@ -55,6 +55,7 @@ import numpy as np
 from bonesim.io.dicom import (DICOM_HU_OFFSET, SLICE_GAP_RTOL,  # noqa: F401 (re-exported)
                               read_dicom_series, write_dicom_series)
 from bonesim.errors import BonesimError
+from bonesim.io.limits import check, check_grid
 from bonesim.io.images import (NRRD_GZIP_LEVEL, read_nifti, read_nrrd,  # noqa: F401
                                write_nifti, write_nrrd)
 from bonesim.io.label_stack import (UNKNOWN_COLOR_MODES, natural_key,  # noqa: F401
@@ -335,6 +336,17 @@ def _same_grid(a: RawVolume, b: RawVolume) -> bool:
             and np.allclose(a.origin_mm, b.origin_mm, atol=GRID_TOL_MM))
 
 
+def _check_source(raw: RawVolume, voxel_mm: float, path) -> None:
+    """The source's origin and extent within the physical bounds, and the
+    engine grid it resamples to within them and the machine's memory
+    (:mod:`bonesim.io.limits`), before the grid is allocated."""
+    for v in np.asarray(raw.origin_mm, dtype=np.float64).reshape(-1):
+        check("coordinate_mm", v, path, "origin", what="the volume's origin")
+    extent = np.asarray(raw.data.shape[:3], np.float64) * np.asarray(raw.spacing_mm,
+                                                                       np.float64)
+    check_grid(extent, voxel_mm, path, "voxel_mm")
+
+
 def _check_bone(labels: np.ndarray, kinds, path, what: str) -> None:
     bone_idx = [s for s, k in enumerate(kinds, start=1) if k == "bone"]
     if not label_counts(labels, MAX_STRUCTURES + 1)[bone_idx].any():
@@ -402,6 +414,7 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
             raw = read_segmentation(path, segment_names, kinds, progress)
             what = "no voxel of the segmentation is in a bone segment"
         voxel = engine_voxel_mm(voxel_mm, raw.spacing_mm)
+        _check_source(raw, voxel, path)
         labels, origin = resample_isotropic(raw.data, raw.spacing_mm, raw.origin_mm,
                                             voxel, order=0)
         _check_bone(labels, kinds, path, what)
@@ -447,6 +460,7 @@ def load_volume(fmt: str, path: Path | None, *, kinds: Sequence[str],
                     grid.spacing_mm, grid.origin_mm, grid.source)
     grid = lmap = raw = None                           # the map is done with: freed
     voxel = engine_voxel_mm(voxel_mm, src.spacing_mm)
+    _check_source(src, voxel, path if path is not None else labels_path)
     labels, origin = resample_isotropic(src.data, src.spacing_mm, src.origin_mm, voxel,
                                         order=0)
     if hu is not None:

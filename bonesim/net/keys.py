@@ -2,20 +2,69 @@
 ``BONESIM_KEY`` environment variable), writing a new one, and fresh nonces."""
 from __future__ import annotations
 
+import math
 import os
 import secrets
+import string
+import zlib
 from pathlib import Path
 
 from bonesim.errors import BonesimError
+from bonesim.io.limits import setting
 
-__all__ = ["MIN_KEY_BYTES", "KEY_ENV", "DEFAULT_KEY_HELP", "load_key", "write_key",
-           "new_nonce"]
+__all__ = ["MIN_KEY_BYTES", "KEY_ENV", "DEFAULT_KEY_HELP", "key_entropy_bits",
+           "min_key_bits", "load_key", "write_key", "new_nonce"]
 
 #: Smallest accepted key [bytes].
 MIN_KEY_BYTES = 16
 #: Environment variable holding the key (hex) when no key file is given.
 KEY_ENV = "BONESIM_KEY"
 DEFAULT_KEY_HELP = f"shared key file (default: ${KEY_ENV}, hex)"
+
+
+#: Alphabets a text key may be drawn from, smallest first, and their bits
+#: per character.
+_ALPHABETS = tuple((frozenset(chars.encode()), math.log2(len(set(chars)))) for chars in (
+    string.digits, string.hexdigits, string.ascii_lowercase, string.ascii_uppercase,
+    string.ascii_letters + string.digits,
+    "".join(chr(c) for c in range(32, 127))))
+
+
+def min_key_bits() -> float:
+    """The least estimated entropy a key may have [bits] (``[network]
+    min_key_entropy_bits`` of ``bonesim/data/limits.toml``)."""
+    return float(setting("network", "min_key_entropy_bits"))
+
+
+def key_entropy_bits(key: bytes) -> float:
+    """An upper estimate of a key's entropy [bits].
+
+    The least of: 8 bits a byte; the key's shortest repeating unit times the
+    bits per character of the smallest alphabet holding it (digits, hex,
+    lower or upper case letters, letters and digits, printable ASCII, any
+    byte); and 8 bits per byte of its raw-deflate compression (repeats and
+    runs compress). ``passwordpassword`` gets 38 bits, 16 zero bytes 8, 16
+    random bytes 128, a ``bonesim tutor keygen`` key 256.
+
+    Parameters
+    ----------
+    key : bytes
+
+    Returns
+    -------
+    float
+        [bits]
+    """
+    n = len(key)
+    if n == 0:
+        return 0.0
+    period = next(p for p in range(1, n + 1)
+                  if all(key[i] == key[i % p] for i in range(n)))
+    chars = set(key)
+    per_char = next((bits for alphabet, bits in _ALPHABETS if chars <= alphabet), 8.0)
+    z = zlib.compressobj(9, zlib.DEFLATED, -15)
+    deflated = len(z.compress(key) + z.flush())
+    return float(min(8 * n, period * per_char, 8 * (deflated + 2)))   # 2: block overhead
 
 
 def _parse_key(raw: bytes) -> bytes:
@@ -46,7 +95,9 @@ def load_key(path: str | Path | None = None) -> bytes:
     Raises
     ------
     BonesimError
-        No key, an unreadable file, or a key shorter than 16 bytes.
+        No key, an unreadable file, a key shorter than 16 bytes, or one
+        with less than :func:`min_key_bits` of estimated entropy
+        (:func:`key_entropy_bits`).
     """
     if path is None:
         env = os.environ.get(KEY_ENV)
@@ -69,6 +120,12 @@ def load_key(path: str | Path | None = None) -> bytes:
     if len(key) < MIN_KEY_BYTES:
         raise BonesimError(f"key is {len(key)} bytes; at least {MIN_KEY_BYTES} are needed "
                            "(32 random bytes recommended)", **where)
+    bits, need = key_entropy_bits(key), min_key_bits()
+    if bits < need:
+        raise BonesimError(f"key is too weak: about {bits:.0f} bits of entropy (a word, a "
+                           f"repeated pattern or few distinct bytes), at least {need:.0f} "
+                           "are needed; 'bonesim tutor keygen FILE' makes a random one",
+                           **where)
     return key
 
 

@@ -45,7 +45,7 @@ __all__ = ["PROTOCOL_VERSION", "MAGIC", "HEADER", "TAG_BYTES", "MAX_DATAGRAM",
            "DEFAULT_PORT", "MONITOR_PORT", "CLOCK_DRIFT", "KIND_JOIN", "KIND_WELCOME",
            "KIND_ACK", "KIND_BYE", "SESSION_KINDS", "REASONS", "PacketError", "Packet",
            "load_key", "write_key", "new_nonce", "Codec", "udp_socket", "COUNTER_OF",
-           "COUNTERS", "Inbox", "WELCOME_NONCE", "datagrams", "Peer", "SessionServer",
+           "COUNTERS", "Inbox", "WELCOME_NONCE", "JOIN_PAD", "datagrams", "Peer", "SessionServer",
            "Welcome", "SessionClient", "pack_records", "unpack_records"]
 
 #: Wire-format version; a packet of any other version is dropped.
@@ -398,6 +398,10 @@ class Inbox:
 # ----------------------------------------------------------------- sessions
 #: WELCOME payload head: the server's nonce for this receiver (then JSON).
 WELCOME_NONCE = struct.Struct("<Q")
+#: A JOIN's payload: zeros up to the largest datagram. A server answers a
+#: JOIN only with a WELCOME no larger than it, so a JOIN replayed from a
+#: forged address earns nothing bigger than itself (no amplification).
+JOIN_PAD = MAX_PAYLOAD
 
 
 def datagrams(sock, buf: bytearray):
@@ -449,8 +453,10 @@ class SessionServer:
     """The sending side of a service's sessions (tutoring, the nerve monitor).
 
     Handles the handshake every service shares: a receiver's ``JOIN``
-    (carrying its fresh nonce) earns a ``WELCOME`` with the server's nonce for
-    it and the JSON description ``info``; everything it sends afterwards must
+    (carrying its fresh nonce, padded to :data:`JOIN_PAD`) earns a ``WELCOME``
+    with the server's nonce for it and the JSON description ``info``, never
+    larger than the JOIN (a smaller JOIN is dropped and counted,
+    ``joins_small``), and naming no local path; everything it sends afterwards must
     carry that nonce and pass an :class:`Inbox` (sequence, staleness); ``BYE``
     ends its session and a peer silent for ``timeout_s`` is forgotten. A
     replayed JOIN earns at most a small WELCOME: a service starts streaming
@@ -488,10 +494,14 @@ class SessionServer:
         self.sock = sock
         self.codec = Codec(key, kinds=(KIND_JOIN, KIND_ACK, KIND_BYE))
         self.info = dict(info)
+        self._info_json = json.dumps(self.info).encode()
+        if WELCOME_NONCE.size + len(self._info_json) > JOIN_PAD:
+            raise ValueError(f"the WELCOME description is {len(self._info_json)} bytes; "
+                             f"at most {JOIN_PAD - WELCOME_NONCE.size} fit a JOIN's size")
         self.stale_s = float(stale_s)
         self.timeout_s = float(timeout_s)
         self.counters = {} if counters is None else counters
-        for k in ("joins", "welcomes", "send_errors", "peers_dropped"):
+        for k in ("joins", "welcomes", "send_errors", "peers_dropped", "joins_small"):
             self.counters.setdefault(k, 0)
         self.make_peer = make_peer
         self.peers: dict = {}
@@ -527,6 +537,10 @@ class SessionServer:
         return acks
 
     def _join(self, peer, addr, p, now: float) -> None:
+        body_len = WELCOME_NONCE.size + len(self._info_json)
+        if len(p.payload) < body_len:                # the WELCOME would be larger
+            self.counters["joins_small"] += 1
+            return
         if peer is not None and p.seq <= peer.join_seq:
             self.rx["duplicate"] += 1                 # a replayed or repeated JOIN
             return
@@ -541,7 +555,7 @@ class SessionServer:
             self.peers[addr] = peer
         peer.join_seq = p.seq
         self.rx["accepted"] += 1
-        body = WELCOME_NONCE.pack(peer.server_nonce) + json.dumps(self.info).encode()
+        body = WELCOME_NONCE.pack(peer.server_nonce) + self._info_json
         self.send(peer, KIND_WELCOME, body)
         self.counters["welcomes"] += 1
 
@@ -663,7 +677,7 @@ class SessionClient:
         self.now = now
         if not self.welcomed or now - self.last_valid_s > self.rejoin_s:
             if now - self._last_join >= self.join_retry_s:
-                self.send(KIND_JOIN, b"")
+                self.send(KIND_JOIN, bytes(JOIN_PAD))
                 self._last_join = now
                 self.counters["joins_sent"] += 1
         out = []

@@ -385,11 +385,15 @@ def tissue_snapshot(initial_density, label, bricks, density, body, pose, alive,
 
 def session_info(model, burrs=()) -> dict:
     """What a trainee needs to rebuild the instructor's tissue (WELCOME),
-    with the tissue-event record version the server streams."""
+    with the tissue-event record version the server streams.
+
+    The case goes by name only: a WELCOME answers a JOIN before its sender
+    has proven the key from its address (a replayed JOIN earns one), so it
+    names no local path. A trainee drilling a case that is not bundled names
+    its own copy (``bonesim tutor join --case``)."""
     case = model.case
     return {"case": getattr(case, "name", model.name),
             "tissue_version": events.TISSUE_EVENT_VERSION,
-            "case_path": str(getattr(case, "manifest", "")) or None,
             "burrs": [model.burr.name] + [b.name for b in burrs],
             "n_bricks": int(model.grid.n_bricks),
             "spacing_mm": float(model.grid.spacing_mm)}

@@ -34,7 +34,6 @@ with an error naming the file and field for anything wrong. ``bonesim run
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +41,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
+from bonesim.tomlfile import parse_toml_bytes
 
 __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "FORCES", "DEFAULT_FORCE",
            "AT_LIMIT_RTOL", "QUANTITIES", "UNITS", "WARN_HOLD_S", "LIMITS_FORMAT",
@@ -197,7 +197,17 @@ class ForceLimits:
             a = np.asarray(getattr(self, col), dtype=dt).reshape(-1)
             if len(a) != nb:
                 raise ValueError(f"{col} has {len(a)} bins, edges_mm {nb}")
+            if col == "n" and np.any(a < 0):
+                raise ValueError(f"n: expert rows per bin cannot be negative, got {a.min()}")
+            if col != "n" and np.any(~np.isnan(a) & ~(a >= 0)):
+                bad = a[~np.isnan(a) & ~(a >= 0)][0]
+                raise ValueError(f"{col}: a limit must be >= 0 (or nan: no limit), got {bad}")
             object.__setattr__(self, col, a)
+        if not (0.0 < float(self.percentile) <= 100.0):
+            raise ValueError(f"percentile must lie in (0, 100], got {self.percentile}")
+        if not (math.isfinite(self.max_distance_mm) and self.max_distance_mm > 0):
+            raise ValueError(f"max_distance_mm must be a finite number > 0, got "
+                             f"{self.max_distance_mm}")
         if self.force not in FORCES:
             raise ValueError(f"force must be one of {sorted(FORCES)}, got {self.force!r}")
         object.__setattr__(self, "source", tuple(str(s) for s in self.source))
@@ -268,12 +278,11 @@ def load_limits(path) -> ForceLimits:
     """
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        raw = path.read_bytes()
     except OSError as exc:
-        raise BonesimError(f"{path}: cannot read the force limits ({exc.strerror or exc})") \
+        raise BonesimError(f"cannot read the force limits ({exc.strerror or exc})", path) \
             from None
-    except tomllib.TOMLDecodeError as exc:
-        raise BonesimError(f"{path}: not a TOML file ({exc})") from None
+    doc = parse_toml_bytes(raw, path)
     if doc.get("format") != LIMITS_FORMAT:
         raise BonesimError(f"{path}: format must be {LIMITS_FORMAT!r}, got "
                            f"{doc.get('format')!r}")
@@ -288,7 +297,10 @@ def load_limits(path) -> ForceLimits:
                            str(doc["force"]), float(doc["max_distance_mm"]),
                            str(doc.get("case", "")), tuple(doc.get("source", ())))
     except (TypeError, ValueError) as exc:
-        raise BonesimError(f"{path}: {exc}") from None
+        field, _, text = str(exc).partition(": ")
+        if not text or " " in field:
+            field, text = None, str(exc)
+        raise BonesimError(text, path, field) from None
 
 
 # ------------------------------------------------------------------ live

@@ -8,16 +8,103 @@ state it writes. :class:`SharedArrays` lays out named numpy arrays in one
 
 Each array has a single writer; readers poll. Ring heads are written after
 the records they publish (see :mod:`bonesim.engine.events`).
+
+Nothing is left behind: every block is named ``bonesim_<owner pid>_<random>``.
+Whichever process survives frees it: the owner when it closes, an attached
+process (a child) when it closes after its owner died (a SIGKILL of the
+parent sends the child SIGTERM, :func:`die_with_parent`). A block whose owner
+and children were all killed at once (``kill -9`` of the process group, the
+resource tracker too) is reclaimed when the next block is created: a block of
+the prefix whose owner pid is no longer alive is unlinked, with one line on
+stderr saying how much was freed (:func:`reclaim_leftovers`).
 """
 from __future__ import annotations
 
+import os
+import re
+import secrets
+import sys
 from multiprocessing import shared_memory
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SharedArrays", "end_process", "die_with_parent"]
+__all__ = ["PREFIX", "SHM_DIR", "SharedArrays", "block_name", "owner_pid", "pid_alive",
+           "reclaim_leftovers", "end_process", "die_with_parent"]
 
 _ALIGN = 64
+#: Prefix of every block's name (``bonesim_<owner pid>_<random hex>``).
+PREFIX = "bonesim_"
+#: Where POSIX shared memory shows as files (Linux).
+SHM_DIR = Path("/dev/shm")
+_NAME = re.compile(rf"^{PREFIX}(\d+)_[0-9a-f]+$")
+_reclaimed = False
+
+
+def block_name(pid: int | None = None) -> str:
+    """A new block name owned by ``pid`` (default this process)."""
+    return f"{PREFIX}{os.getpid() if pid is None else int(pid)}_{secrets.token_hex(6)}"
+
+
+def owner_pid(name: str) -> int | None:
+    """The owner pid a block name carries (None: not one of ours)."""
+    m = _NAME.match(name.lstrip("/"))
+    return int(m.group(1)) if m else None
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, dead but not yet reaped, is not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True                       # someone else's process: alive
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def reclaim_leftovers(shm_dir: Path = SHM_DIR, quiet: bool = False) -> list[tuple[str, int]]:
+    """Unlink blocks left by dead runs: named with :data:`PREFIX` and an
+    owner pid that is no longer alive.
+
+    Parameters
+    ----------
+    shm_dir : Path
+        Where the blocks show as files (``/dev/shm``; nothing is done where
+        it does not exist).
+    quiet : bool
+        Do not print the line on stderr.
+
+    Returns
+    -------
+    list of (name, bytes)
+        What was freed.
+    """
+    freed = []
+    try:
+        entries = list(shm_dir.iterdir())
+    except OSError:
+        return freed
+    for entry in entries:
+        pid = owner_pid(entry.name)
+        if pid is None or pid == os.getpid() or pid_alive(pid):
+            continue
+        try:
+            size = entry.stat().st_size
+            entry.unlink()
+        except OSError:
+            continue                      # another process got it first, or not ours
+        freed.append((entry.name, size))
+    if freed and not quiet:
+        pids = sorted({owner_pid(n) for n, _ in freed})
+        print(f"bonesim: reclaimed {sum(b for _, b in freed) / 1e6:.1f} MB of shared "
+              f"memory in {len(freed)} block(s) left by dead run(s) (pid "
+              f"{', '.join(map(str, pids))})", file=sys.stderr)
+    return freed
 
 
 def _layout(spec):
@@ -51,8 +138,17 @@ class SharedArrays:
 
     @classmethod
     def create(cls, spec) -> "SharedArrays":
+        global _reclaimed
+        if not _reclaimed:                  # once per process: a dead run's blocks
+            _reclaimed = True
+            reclaim_leftovers()
         layout, size = _layout(spec)
-        shm = shared_memory.SharedMemory(create=True, size=size)
+        shm = None
+        while shm is None:
+            try:
+                shm = shared_memory.SharedMemory(name=block_name(), create=True, size=size)
+            except FileExistsError:         # a random name taken: draw again
+                pass
         arr = cls(shm, layout, owner=True)
         for a in arr.arrays.values():
             a.reshape(-1).view(np.uint8).fill(0)     # bytes: structured fields too
@@ -79,7 +175,8 @@ class SharedArrays:
         return self.arrays[name]
 
     def close(self) -> None:
-        """Drop this process's mapping (and free the block if we created it)."""
+        """Drop this process's mapping and free the block if we created it,
+        or if its owner is dead (we are the survivor)."""
         self.arrays = {}
         try:
             self._shm.close()
@@ -90,6 +187,13 @@ class SharedArrays:
                 self._shm.unlink()
             except FileNotFoundError:
                 pass
+        else:
+            pid = owner_pid(self._shm.name)
+            if pid is not None and not pid_alive(pid):
+                try:
+                    self._shm.unlink()
+                except FileNotFoundError:
+                    pass
 
 
 def end_process(proc, timeout_s: float = 5.0) -> None:

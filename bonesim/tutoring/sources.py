@@ -212,13 +212,9 @@ class NetworkSource(Source):
         self._ack(now, False)
 
     def _load_model(self, info: dict):
-        from pathlib import Path
-
         from bonesim.io.loading import load_model
 
         src = self.case or info.get("case")
-        if self.case is None and info.get("case_path") and Path(info["case_path"]).exists():
-            src = str(Path(info["case_path"]).parent)
         burr = (info.get("burrs") or ["cutting-5mm"])[0]
         try:
             return load_model(src, burr)

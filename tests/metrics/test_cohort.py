@@ -83,9 +83,9 @@ def test_table_has_a_row_per_file_and_matches_the_direct_functions(cohort, clean
 
 
 def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_path):
-    """Random bytes, a copy cut at half its size, a file of another case, a
-    run whose participant is not in the table and a participant with no run:
-    one line each, the rest scored. The cluster passed by address stays up."""
+    """Random bytes, a copy cut at half its size (a copy of a run: counted
+    once, issue 24), a file of another case, a run whose participant is not
+    in the table and a participant with no run: one line each, the rest scored. The cluster passed by address stays up."""
     import pandas as pd
     from distributed import Client, LocalCluster
 
@@ -111,7 +111,7 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
         with Client(cluster.scheduler_address) as c:        # still running
             assert c.submit(lambda: 41 + 1).result() == 42
     tb = res.table.set_index(res.table["file"].map(lambda f: os.path.basename(f)))
-    assert len(tb) == len(paths) + 4
+    assert len(tb) == len(paths) + 3                        # the cut copy left out
     assert res.meta["scheduler"] == cluster.scheduler_address
     err = res.errors
 
@@ -119,7 +119,7 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
         return [e for e in err if all(w in e for w in words)]
 
     assert len(one("corrupt.h5", "not an HDF5 file")) == 1
-    assert len(one("cut.h5", "damaged")) == 1
+    assert len(one("cut.h5", "a copy of the same run", paths[3].name, "counted once")) == 1
     assert len(one("other_case.h5", "case 'otherbone' is not the cohort's case 'phantom'")) == 1
     assert len(one("stranger.h5", "'X99'", "not in")) == 1
     assert len(one("'E99'", "has no run")) == 1
@@ -127,9 +127,7 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     assert all("\n" not in e for e in err)
     for f in ("corrupt.h5", "other_case.h5"):
         assert tb.loc[f, "error"] and np.isnan(tb.loc[f, "visible_fraction"])
-    # cut at half (or anywhere: an 8 s file keeps its samples in one chunk at
-    # its end), the file keeps no sample: it fails with its damage line
-    assert "damaged" in tb.loc["cut.h5", "error"]
+    assert "cut.h5" not in tb.index
     s = tb.loc["stranger.h5"]
     assert s["error"] == "" and pd.isna(s["group"]) and np.isfinite(s["visible_fraction"])
     assert np.isnan(s["nb_score"])                          # no group: not scored

@@ -167,3 +167,28 @@ def test_the_hud_shows_the_pedal_state_and_a_handles_angles():
     assert App._pedal_status(app) == {"pedal": "UNPLUGGED - drill off"}   # not stale ones
     app.loop.pedal = None
     assert App._pedal_status(app) == {}
+
+
+# Issue 24, row 6: a limits file naming a structure the case lacks.
+def test_a_structure_the_case_lacks_is_one_line_not_an_unbound_error(tmp_path):
+    """The simulator's check of --force-limits (it raised UnboundLocalError:
+    a local import shadowed BonesimError in App.__init__)."""
+    from types import SimpleNamespace
+
+    from bonesim.apps.simulator import App
+    from bonesim.errors import BonesimError
+    from bonesim.io.loading import load_model
+
+    p = tmp_path / "lim.toml"
+    p.write_text("format = 'bonesim-force-limits-1'\nstructure = 'no_such_nerve'\n"
+                 "force = 'applied'\npercentile = 95.0\nmax_distance_mm = 4.0\n"
+                 "edges_mm = [0.0, 2.0, 4.0]\nforce_n = [1.0, 2.0]\nspeed_rpm = [1.0, 2.0]\n"
+                 "n = [1, 1]\n")
+    fake = SimpleNamespace(model=load_model("phantom", "cutting-5mm"), want_monitor=True,
+                           notices=[])
+    with pytest.raises(BonesimError, match=r"lim.toml \[structure\]: .*'no_such_nerve' is "
+                                           r"not a structure of case 'phantom'"):
+        App._checked_options(fake, None, p)
+    fake.want_monitor = False
+    with pytest.raises(BonesimError, match=r"\[--monitor-port\]: case 'phantom' monitors no"):
+        App._checked_options(fake, {"port": 0}, None)

@@ -237,7 +237,7 @@ def trajectories(draw):
     steps = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 10.0)))
     t0 = draw(st.floats(-100, 100))
     t = t0 + np.cumsum(steps)       # steps >= 1 ms: strictly increasing
-    pos = draw(hnp.arrays(np.float64, (n, 3), elements=finite))
+    pos = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-1000, 1000)))   # limits.toml coordinate_mm
     axis = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-10, 10)))
     axis[np.linalg.norm(axis, axis=1) < 1e-3] = [0.0, 0.0, 1.0]
     drill = draw(hnp.arrays(bool, n))

@@ -246,7 +246,7 @@ def test_server_bye_and_silent_consoles_are_forgotten():
 def test_unauthenticated_joins_get_no_answer():
     netw, srv, con = _pair()
     forger = net.Codec(bytes(32))
-    netw.queues[SERVER].append((forger.encode(net.KIND_JOIN, b"", 1234, t_s=0.0), CONSOLE))
+    netw.queues[SERVER].append((forger.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), 1234, t_s=0.0), CONSOLE))
     netw.queues[SERVER].append((b"junk" * 20, CONSOLE))
     srv.add(0.0, [4.0, 4.0], [9.0, 9.0], [], [])
     srv.poll(0.0)

@@ -188,16 +188,17 @@ def test_key_files(tmp_path, monkeypatch):
     with pytest.raises(BonesimError, match="exists"):
         net.write_key(p)
     raw = tmp_path / "raw.bin"
-    raw.write_bytes(b"\xff" * 20)
-    assert net.load_key(raw) == b"\xff" * 20
+    raw_key = bytes(range(7, 247, 7))                  # 35 distinct raw bytes
+    raw.write_bytes(raw_key)
+    assert net.load_key(raw) == raw_key
     short = tmp_path / "short"
     short.write_text("abcd\n")
     with pytest.raises(BonesimError, match=r"short.*2 bytes"):
         net.load_key(short)
     with pytest.raises(BonesimError, match="not found"):
         net.load_key(tmp_path / "missing")
-    monkeypatch.setenv(net.KEY_ENV, "00" * 16)
-    assert net.load_key() == bytes(16)
+    monkeypatch.setenv(net.KEY_ENV, raw_key.hex())
+    assert net.load_key() == raw_key
     monkeypatch.delenv(net.KEY_ENV)
     with pytest.raises(BonesimError, match=net.KEY_ENV):
         net.load_key()
@@ -245,3 +246,33 @@ def test_fuzz_bit_flips_never_pass(payload, data):
         assert exc.reason in net.REASONS
     else:                      # flips that cancel out restore the original exactly
         assert p.payload == payload and p.t_s == 3.0
+
+
+# Issue 24: 'passwordpassword' and 16 zero bytes ran without a warning.
+@pytest.mark.parametrize("weak", [b"passwordpassword", bytes(16), b"\xff" * 20,
+                                  ("00" * 16).encode(), b"xyz" * 8,
+                                  b"Tr0ub4dor&3xyzab"])
+def test_keys_under_128_bits_of_entropy_are_refused_in_one_line(tmp_path, monkeypatch, weak):
+    p = tmp_path / "weak.key"
+    p.write_bytes(weak)
+    with pytest.raises(BonesimError, match=r"weak.key: key is too weak: about \d+ bits") \
+            as err:
+        net.load_key(p)
+    assert "\n" not in str(err.value) and "keygen" in str(err.value)
+    if b"\0" in weak:
+        return                                  # an environment variable holds no NUL
+    monkeypatch.setenv(net.KEY_ENV, weak.decode("latin-1"))
+    with pytest.raises(BonesimError, match=net.KEY_ENV):
+        net.load_key()
+
+
+def test_key_entropy_estimate():
+    from bonesim.net.keys import key_entropy_bits
+
+    assert key_entropy_bits(b"passwordpassword") == pytest.approx(8 * np.log2(26))
+    assert key_entropy_bits(bytes(16)) <= 8
+    assert key_entropy_bits(bytes(range(16))) == 128          # 16 distinct bytes
+    assert key_entropy_bits(bytes(range(0, 256, 8))) == 256   # 32
+    assert key_entropy_bits(b"") == 0
+    rng = np.random.default_rng(24)
+    assert all(key_entropy_bits(rng.bytes(32)) == 256 for _ in range(200))

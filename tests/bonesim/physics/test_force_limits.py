@@ -61,7 +61,7 @@ def test_limits_file_round_trips_with_nan_bins(tmp_path):
 @pytest.mark.parametrize("text, what", [
     ("format = 'x'", "format must be"),
     ("format = 'bonesim-force-limits-1'\nstructure = 'n'", "field 'force' is missing"),
-    ("format = [", "not a TOML file"),
+    ("format = [", "malformed TOML"),
     ("format = 'bonesim-force-limits-1'\nstructure = 'n'\nforce = 'applied'\n"
      "percentile = 95.0\nmax_distance_mm = 4.0\nedges_mm = [0.0, 2.0, 4.0]\n"
      "force_n = [1.0]\nspeed_rpm = [1.0, 2.0]\nn = [1, 1]", "force_n has 1 bins"),
@@ -154,3 +154,35 @@ def test_watch_equals_a_slow_reference_fed_in_any_chunks(seed, chunks):
 def test_watch_refuses_a_structure_the_case_lacks():
     with pytest.raises(ValueError, match="'chorda_tympani' is not a structure"):
         ForceWatch(_nerve_block(), _limits([1.0], structure="chorda_tympani"))
+
+
+# Issue 24, row 6: negative limits were accepted silently; non-UTF-8 and binary
+# limits files, and a structure the case lacks, gave tracebacks.
+_GOOD = ("format = 'bonesim-force-limits-1'\nstructure = '{s}'\nforce = 'applied'\n"
+         "percentile = {p}\nmax_distance_mm = 4.0\nedges_mm = [0.0, 2.0, 4.0]\n"
+         "force_n = [{f}, nan]\nspeed_rpm = [1.0, 2.0]\nn = [1, {n}]\n")
+
+
+@pytest.mark.parametrize("change, needle", [
+    ({"f": "-1.0"}, r"\[force_n\]: a limit must be >= 0 \(or nan: no limit\), got -1.0"),
+    ({"f": "-inf"}, r"\[force_n\]: a limit must be >= 0"),
+    ({"n": "-3"}, r"\[n\]: expert rows per bin cannot be negative"),
+    ({"p": "250.0"}, r"percentile must lie in \(0, 100\]"),
+])
+def test_negative_limits_are_refused_naming_the_field(tmp_path, change, needle):
+    p = tmp_path / "lim.toml"
+    p.write_text(_GOOD.format(**{"s": "nerve", "f": "1.0", "n": "1", "p": "95.0", **change}))
+    with pytest.raises(BonesimError, match=needle) as err:
+        load_limits(p)
+    assert str(err.value).startswith(str(p)) and "\n" not in str(err.value)
+    p.write_text(_GOOD.format(s="nerve", f="1.0", n="1", p="95.0"))
+    assert np.isnan(load_limits(p).force_n[1])            # nan: no limit, still fine
+
+
+@pytest.mark.parametrize("data", [b"# \xe9\nformat = 'x'\n", bytes(range(256)) * 4])
+def test_non_utf8_and_binary_limits_files_give_one_line(tmp_path, data):
+    p = tmp_path / "lim.toml"
+    p.write_bytes(data)
+    with pytest.raises(BonesimError, match="not a UTF-8 text") as err:
+        load_limits(p)
+    assert str(err.value).startswith(str(p))

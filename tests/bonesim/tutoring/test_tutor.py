@@ -508,7 +508,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
     model, inst, netw, srv, src, trainee = _session()
     evil = netw.endpoint(("10.6.6.6", 666))
     forger = net.Codec(bytes(32))
-    evil.sendto(forger.encode(net.KIND_JOIN, b"", 5), SERVER)
+    evil.sendto(forger.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), 5), SERVER)
     evil.sendto(b"hello", SERVER)
     inst.step(0.0)
     srv.tick(0.0)
@@ -516,7 +516,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
     # a genuine JOIN gets a WELCOME but no stream until it ACKs with the
     # server's nonce; an ACK with a wrong nonce does not start it
     good = net.Codec(KEY)
-    evil.sendto(good.encode(net.KIND_JOIN, b"", 77), SERVER)
+    evil.sendto(good.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), 77), SERVER)
     srv.tick(0.001)
     c = srv.clients[("10.6.6.6", 666)]
     assert not c.streaming and srv.counters["welcomes"] == 1
@@ -814,3 +814,67 @@ def test_bench_tutor_quick_smoke():
     assert r["packets_accepted"] + round(r["loss_fraction"] * 1000) == 1000
     assert 0 < r["p50_ms"] <= r["value"] <= r["max_ms"]
     assert out["tutor_loopback_latency_p50_ms"]["value"] == r["p50_ms"]
+
+
+# ------------------------------------------- amplification and leaks (issue 24)
+def test_a_replayed_join_earns_no_larger_reply_and_no_path_from_any_address():
+    """A captured JOIN replayed from forged addresses: each WELCOME is no
+    larger than the JOIN, names no local path, and starts no stream
+    (before: a 265-byte WELCOME, 5x the JOIN, naming the case path)."""
+    model, inst, netw, srv, src, trainee = _session()
+    _run(model, inst, srv, trainee, 0.0, 0.05)
+    joins = [d for s, dst, d in netw.taps if s == TRAINEE and dst == SERVER
+             and d[4 + 1] == net.KIND_JOIN]
+    assert joins
+    join = joins[0]
+    forged = [("10.9.9.%d" % k, 4000 + k) for k in range(40)]
+    for addr in forged:
+        netw.queues[SERVER].append((join, addr))
+    inst.step(0.06)
+    srv.tick(0.06)
+    inst.step(0.07)
+    srv.tick(0.07)
+    replies = [d for s, dst, d in netw.taps if s == SERVER and dst in forged]
+    assert len(replies) == len(forged)                  # one WELCOME each, no stream
+    assert all(len(r) <= len(join) for r in replies), (len(join), max(map(len, replies)))
+    import json
+
+    codec = net.Codec(KEY)
+    for r in replies:
+        info = json.loads(bytes(codec.decode(r).payload[net.WELCOME_NONCE.size:]))
+        assert "case_path" not in info
+        assert not any(isinstance(v, str) and "/" in v for v in info.values()), info
+    assert not any(srv.clients[a].streaming for a in forged)
+
+
+def test_a_join_smaller_than_its_welcome_is_dropped_and_counted():
+    model, inst, netw, srv, src, trainee = _session()
+    small = net.Codec(KEY).encode(net.KIND_JOIN, b"", 99)
+    for k in range(200):
+        netw.queues[SERVER].append((small, ("10.7.7.7", 5000 + k)))
+    inst.step(0.0)
+    srv.tick(0.0)
+    assert not srv.clients and srv.counters["joins_small"] == 200
+    assert not [d for s, dst, d in netw.taps if s == SERVER]
+
+
+def test_a_flood_of_forged_joins_gets_no_reply():
+    model, inst, netw, srv, src, trainee = _session()
+    forger = net.Codec(bytes(range(32)))
+    for k in range(5000):
+        netw.queues[SERVER].append((forger.encode(net.KIND_JOIN, bytes(net.JOIN_PAD), k),
+                                    ("10.5.5.5", 1000 + k % 50)))
+    inst.step(0.0)
+    srv.tick(0.0)
+    assert not srv.clients and srv.rx["auth"] == 5000
+    assert not [d for s, dst, d in netw.taps if s == SERVER]
+    _run(model, inst, srv, trainee, 0.0, 0.3)            # the real trainee still joins
+    assert srv.counters["welcomes"] >= 1 and TRAINEE in srv.clients
+
+
+def test_the_session_description_names_no_local_path():
+    from bonesim.io.loading import load_model
+
+    info = tutor.session_info(load_model("phantom", "cutting-5mm"))
+    assert info["case"] == "phantom" and "case_path" not in info
+    assert not any(isinstance(v, str) and ("/" in v or "\\" in v) for v in info.values())
