@@ -204,6 +204,8 @@ class App:
         self.record = None if record is None else Path(record)
         self.who = dict(who or {})
         self.recorder = None
+        self.recording = None
+        self._record_said = False
         from bonesim.runtime.monitor import monitored_structures
 
         self.monitor = None
@@ -310,6 +312,8 @@ class App:
         if self.recorder is not None:
             self.recording = self.recorder.close()
             self.recorder = None
+            if self.recording["record_error"] and not self._record_said:
+                self._say_record(self.recording["record_error"])
         if self.audio is not None:
             self.audio.close()
             self.audio = None
@@ -325,6 +329,28 @@ class App:
 
     def __exit__(self, *exc):
         self.close()
+
+    def _say_record(self, line: str) -> None:
+        """A recording that stopped early: one line in the window and on stderr."""
+        import sys
+
+        self._record_said = True
+        self.notices.append(line)
+        print(f"bonesim: {line}", file=sys.stderr, flush=True)
+
+    def record_summary(self) -> dict:
+        """After :meth:`close`: ``record`` (the file), ``record_ok``,
+        ``record_kept`` (what the file holds: ``t0_s``, ``t_s`` [s],
+        ``samples``, ``removals``) and ``record_error`` (one line or None);
+        empty without a recording."""
+        if self.record is None or self.recording is None:
+            return {}
+        r = self.recording
+        out = {"record": str(self.record), "record_ok": r["record_ok"],
+               "record_kept": r["record_kept"], "record_error": r["record_error"]}
+        if r.get("compact_error"):
+            out["record_compact_error"] = r["compact_error"]
+        return out
 
     # -------------------------------------------------------------- frames
     @property
@@ -381,6 +407,9 @@ class App:
         self._device_camera(scene, dt)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
+            line = self.recorder.check()          # the writer died or stopped: say so
+            if line is not None:
+                self._say_record(line)
         inj = ch.injuries
         for lab in inj["label"]:
             name = self.model.structure_name(int(lab))

@@ -17,7 +17,7 @@ from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.research import research_parsers
 from bonesim.cli.voxel import apply_voxel_mm, voxel_option
-from bonesim.errors import BonesimError
+from bonesim.errors import EXIT_RECORDING_LOST, BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
            "cmd_trajectory", "cmd_simulate", "cmd_demo", "cmd_run", "cmd_playback",
@@ -167,7 +167,10 @@ def _run(case, burr, traj, args) -> dict:
     if record is not None:
         from bonesim.runtime.record import make_header
 
+        from bonesim.runtime.disk_guard import check_space
+
         header = make_header(model, extra, input_device="scripted", **_who(args))
+        check_space(record, float(traj.t_s[-1] - traj.t_s[0]), model.haptic_rate_hz)
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
                           mesh_format=args.mesh_format, record=record, header=header,
                           burrs=extra)
@@ -183,7 +186,9 @@ def cmd_simulate(args) -> int:
         _print_json(summary)
     else:
         _print_summary(summary)
-    return 0
+    if summary.get("record_error"):
+        print(f"bonesim: {summary['record_error']}", file=sys.stderr)
+    return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 
 def _shown(names) -> str:
@@ -218,7 +223,7 @@ def _print_summary(s: dict) -> None:
               f"{s['surface_consistent']}")
     if "mesh" in s:
         print(f"wrote {s['mesh']} and {s['summary']}")
-    if "record" in s:
+    if "record" in s and s.get("record_ok", True):
         print(f"recorded the session to {s['record']}")
 
 
@@ -296,6 +301,15 @@ def cmd_run(args) -> int:
         from bonesim.runtime.record import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
+    if record is not None:                     # room to record? (refused or warned)
+        from bonesim.runtime.disk_guard import check_space
+
+        from bonesim.engine.model import HAPTIC_RATE_HZ
+
+        # a window's run lasts as long as the user (or --frames) wants: warn only
+        warn = check_space(record, None, HAPTIC_RATE_HZ)
+        if warn:
+            print(f"bonesim: {warn}", file=sys.stderr, flush=True)
     serve = None
     if args.monitor_port is not None:
         from bonesim.net.packets import load_key
@@ -319,6 +333,7 @@ def cmd_run(args) -> int:
         summary = app.run(frames=frames, screenshot=screenshot)
     finally:
         app.close()
+    summary.update(app.record_summary())      # record_ok, the kept span (after closing)
     if args.json:
         _print_json(summary)
     else:
@@ -333,9 +348,9 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['screenshot']}")
         if "wav" in summary:
             print(f"wrote {summary['wav']}")
-        if "record" in summary:
+        if "record" in summary and summary.get("record_ok", True):
             print(f"recorded the session to {summary['record']}")
-    return 0
+    return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 
 def _run_showcase(args) -> int:

@@ -155,7 +155,7 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
             "t_s": round(float(samples.t_s[drilling[at]]), 3),
             "native_spacing_mm": [round(float(v), 4) for v in model.clearance.spacing_mm]}
     if rec is not None:
-        summary["record"] = rec.close()
+        summary.update(rec.close())
     if check and consumer is not None:
         from bonesim.engine.surface import Surface
 
@@ -210,6 +210,8 @@ class _Recording:
     def push(self, smp, f) -> None:
         from bonesim.runtime.haptic_loop import push_sample
 
+        if self.writer.failed is not None:     # recording stopped: the run goes on
+            return
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
                     smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
         if self.tap is not None:
@@ -218,10 +220,23 @@ class _Recording:
             self.drainer.drain()
             self.writer.flush()
 
-    def close(self) -> str:
-        self.drainer.drain()
+    def close(self) -> dict:
+        """Finish the file; returns ``record`` (its path), ``record_ok``,
+        ``record_kept`` (see :attr:`SessionWriter.kept`) and ``record_error``
+        (one line saying what was kept, or None)."""
+        from bonesim.runtime.record import kept_line
+
+        if self.writer.failed is None:
+            self.drainer.drain()
         self.writer.close()
-        return str(self.writer.path)
+        w = self.writer
+        out = {"record": str(w.path), "record_ok": w.failed is None,
+               "record_kept": dict(w.kept),
+               "record_error": None if w.failed is None else kept_line(w.path, w.failed,
+                                                                       w.kept)}
+        if w.compact_error is not None:
+            out["record_compact_error"] = w.compact_error
+        return out
 
 
 def _same_surface(a, b) -> bool:

@@ -31,7 +31,7 @@ import numpy as np
 from bonesim.errors import BonesimError
 
 __all__ = ["HDF5_SIGNATURE", "lookup3", "Superblock", "read_superblock", "RepairedView",
-           "open_session_file", "read_prefix"]
+           "open_session_file", "read_prefix", "read_prefix_why"]
 
 #: First eight bytes of an HDF5 file.
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -279,7 +279,14 @@ def open_session_file(path: Path, h5py):
 
 
 def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
-    """The leading rows of a dataset whose data are in the file and decode.
+    """The leading rows of a dataset whose data are in the file and decode
+    (:func:`read_prefix_why` without the reason)."""
+    return read_prefix_why(ds, real_size)[0]
+
+
+def read_prefix_why(ds, real_size: int | None = None) -> tuple[np.ndarray, str | None]:
+    """The leading rows of a dataset whose data are in the file and decode,
+    and why the rest do not.
 
     Parameters
     ----------
@@ -287,46 +294,62 @@ def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
         Rows along axis 0.
     real_size : int or None
         Bytes the file really holds when it is read through a
-        :class:`RepairedView` (None: the whole file is there). A chunk that
-        lies past it, or whose index entry can no longer be read, ends the
-        prefix (a chunk never written reads as its fill value).
+        :class:`RepairedView` (None: the whole file is there).
 
     Returns
     -------
-    ndarray
-        All rows when every row reads (one read); else the rows up to the
-        first chunk that is missing or does not decode.
+    rows : ndarray
+        All rows when every row reads; else the rows up to the first chunk
+        that lies past the file's end, was never written (a session file
+        writes every row of every column, so a chunk the index lacks within
+        the declared rows was lost: it would read as zeros), whose index
+        entry can no longer be read, or that fails to decode or fails its
+        checksum (Fletcher32).
+    why : str or None
+        That first bad chunk, in words (``rows 4,096-8,191 fail their
+        checksum``); None when every row reads.
     """
     rows = int(ds.shape[0])
     step = ds.chunks[0] if ds.chunks else max(rows, 1)
-    if real_size is not None and rows:
-        if ds.chunks:
-            # chunk by chunk through the index (a cut-short index still finds
-            # its early chunks; a walk over all of them would fail at once)
-            r = 0
-            while r < rows:
-                try:
-                    info = ds.id.get_chunk_info_by_coord((r,) + (0,) * (ds.ndim - 1))
-                except (OSError, RuntimeError, ValueError, KeyError):
-                    break                        # this part of the index is lost
-                if info.byte_offset is not None and \
-                        info.byte_offset + info.size > real_size:
-                    break                        # the chunk lies past the end
-                r += step                        # (never written: its fill value)
-            rows = min(rows, r)
-        else:
-            off = ds.id.get_offset()
-            if off is None or off + ds.id.get_storage_size() > real_size:
-                rows = 0
+    why = None
+    if rows and ds.chunks:
+        # chunk by chunk through the index (a cut-short index still finds its
+        # early chunks; a walk over all of them would fail at once)
+        r = 0
+        while r < rows:
+            try:
+                info = ds.id.get_chunk_info_by_coord((r,) + (0,) * (ds.ndim - 1))
+            except (OSError, RuntimeError, ValueError, KeyError):
+                why = f"the index of rows from {r:,} is unreadable"
+                break
+            if info.byte_offset is None:
+                why = f"rows from {r:,} were never written"
+                break
+            if real_size is not None and info.byte_offset + info.size > real_size:
+                why = f"rows from {r:,} lie past the file's end"
+                break
+            r += step
+        rows = min(rows, r)
+    elif rows and real_size is not None:
+        off = ds.id.get_offset()
+        if off is None or off + ds.id.get_storage_size() > real_size:
+            rows, why = 0, "its data lie past the file's end"
     try:
-        return ds[:rows]
+        return ds[:rows], why
     except (OSError, ValueError, RuntimeError):
         pass
     parts, r = [], 0                             # up to the first chunk that fails
     while r < rows:
         try:
             parts.append(ds[r:min(r + step, rows)])
-        except (OSError, ValueError, RuntimeError):
+        except (OSError, ValueError, RuntimeError) as exc:
+            low = str(exc).lower()
+            # with Fletcher32 the checksum is the first filter undone on reading
+            checked = "fletcher" in low or "checksum" in low or (
+                bool(getattr(ds, "fletcher32", False)) and "filter" in low)
+            what = "fail their checksum" if checked else "do not decode"
+            why = f"rows {r:,}-{min(r + step, rows) - 1:,} {what}"
             break
         r += step
-    return np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)
+    out = np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)
+    return out, why
