@@ -35,10 +35,99 @@ from pathlib import Path
 
 from bonesim.errors import BonesimError
 
-__all__ = ["SpaceLimits", "load_space_limits", "GuardedFile", "headroom_bytes",
+__all__ = ["HDF5_SIGNATURE", "lookup3", "SpaceLimits", "load_space_limits", "GuardedFile", "headroom_bytes",
            "estimate_bytes", "check_space", "describe_error"]
 
 _MB = 1 << 20
+#: First eight bytes of an HDF5 file.
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_M32 = 0xFFFFFFFF
+
+
+def _rot(x: int, k: int) -> int:
+    return ((x << k) | (x >> (32 - k))) & _M32
+
+
+def lookup3(data: bytes, initval: int = 0) -> int:
+    """Bob Jenkins' lookup3 ``hashlittle``, the checksum of HDF5 metadata.
+
+    Parameters
+    ----------
+    data : bytes
+    initval : int
+
+    Returns
+    -------
+    int
+        The 32-bit hash.
+    """
+    n = len(data)
+    a = b = c = (0xDEADBEEF + n + initval) & _M32
+    i = 0
+    while n > 12:
+        a = (a + int.from_bytes(data[i:i + 4], "little")) & _M32
+        b = (b + int.from_bytes(data[i + 4:i + 8], "little")) & _M32
+        c = (c + int.from_bytes(data[i + 8:i + 12], "little")) & _M32
+        a = (a - c) & _M32
+        a ^= _rot(c, 4)
+        c = (c + b) & _M32
+        b = (b - a) & _M32
+        b ^= _rot(a, 6)
+        a = (a + c) & _M32
+        c = (c - b) & _M32
+        c ^= _rot(b, 8)
+        b = (b + a) & _M32
+        a = (a - c) & _M32
+        a ^= _rot(c, 16)
+        c = (c + b) & _M32
+        b = (b - a) & _M32
+        b ^= _rot(a, 19)
+        a = (a + c) & _M32
+        c = (c - b) & _M32
+        c ^= _rot(b, 4)
+        b = (b + a) & _M32
+        n -= 12
+        i += 12
+    if n == 0:
+        return c
+    tail = data[i:i + n] + bytes(12 - n)
+    a = (a + int.from_bytes(tail[0:4], "little")) & _M32
+    b = (b + int.from_bytes(tail[4:8], "little")) & _M32
+    c = (c + int.from_bytes(tail[8:12], "little")) & _M32
+    c ^= b
+    c = (c - _rot(b, 14)) & _M32
+    a ^= c
+    a = (a - _rot(c, 11)) & _M32
+    b ^= a
+    b = (b - _rot(a, 25)) & _M32
+    c ^= b
+    c = (c - _rot(b, 16)) & _M32
+    a ^= c
+    a = (a - _rot(c, 4)) & _M32
+    b ^= a
+    b = (b - _rot(a, 14)) & _M32
+    c ^= b
+    c = (c - _rot(b, 24)) & _M32
+    return c
+
+
+def _mark_open_for_writing(buf: bytearray) -> None:
+    """Set the "open for writing" flag beside the "open for SWMR writing" one in
+    a superblock (version 2, 3) at the start of ``buf``, checksum recomputed.
+
+    HDF5's ``fileobj`` driver sets only the SWMR bit; readers then refuse to
+    open the live file in SWMR mode ("not already open for SWMR writing").
+    With both bits set (as HDF5's own driver writes them) readers follow the
+    file while it grows; a clean close writes the flags as 0."""
+    if len(buf) < 12 or bytes(buf[:8]) != HDF5_SIGNATURE or buf[8] not in (2, 3):
+        return
+    size = 12 + 4 * buf[9] + 4
+    if len(buf) < size or buf[11] != 4:
+        return
+    buf[11] = 5
+    buf[size - 4:size] = lookup3(bytes(buf[:size - 4])).to_bytes(4, "little")
+
+
 
 
 @dataclass(frozen=True)
@@ -180,6 +269,10 @@ class GuardedFile(io.RawIOBase):
     def write(self, data) -> int:
         view = memoryview(data).cast("B")
         n = len(view)
+        if self._pos == 0 and n >= 12:          # the superblock: see _mark_open_for_writing
+            buf = bytearray(view)
+            _mark_open_for_writing(buf)
+            view = memoryview(buf)
         if self.error is None:
             try:
                 done = 0

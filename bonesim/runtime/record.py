@@ -306,6 +306,7 @@ class SessionWriter:
         self.kept = {"t0_s": None, "t_s": None, "samples": 0, "removals": 0}
         self._pending = dict(self.kept)
         self._next_check = 0.0
+        self._stopping = None
         try:
             f = h5py.File(self.guard, "w", libver="latest")
             self.f = f
@@ -419,7 +420,7 @@ class SessionWriter:
         self.kept = dict(self._pending)
         self.flushes += 1
         now = time.monotonic()
-        if now >= self._next_check:
+        if now >= self._next_check and self._stopping is None:
             from bonesim.runtime.disk_guard import headroom_bytes
 
             self._next_check = now + self.limits.check_every_s
@@ -431,11 +432,11 @@ class SessionWriter:
     def stop(self, why: str) -> None:
         """Stop recording now, cleanly: a ``stopped`` event says why, the file
         is closed complete up to here (:attr:`failed` is ``why``)."""
-        if self.failed is not None or self.f is None:
+        if self.failed is not None or self.f is None or self._stopping is not None:
             return
+        self._stopping = why
         self.append("events", {"t_s": [math.nan], "name": [b"stopped"],
                                "value": [why.encode()[:64]]})
-        self._stopping = why
         self.close()
 
     def close(self) -> None:
@@ -444,7 +445,7 @@ class SessionWriter:
         :attr:`kept`) and not compacted."""
         if self.f is None:
             return
-        stopping = getattr(self, "_stopping", None)
+        stopping = self._stopping
         if self.failed is None:
             self.flush()
         if self.failed is None:
@@ -699,17 +700,22 @@ def _set_kept(status, kept: dict) -> None:
     status["kept_t_s"] = math.nan if kept["t_s"] is None else kept["t_s"]
 
 
-def _fsize_hook() -> None:
+def _fsize_hook() -> bool:
     """Test hook: ``BONESIM_TEST_WRITER_FSIZE`` [bytes] limits the size of
     files the writer process may write (``RLIMIT_FSIZE``; Python ignores
-    SIGXFSZ, so a write past it fails with EFBIG, as on a full disk)."""
+    SIGXFSZ, so a write past it fails with EFBIG, as on a full disk), and
+    the writer then keeps no space back, so that the write itself fails.
+    Returns True when the hook is set."""
     limit = os.environ.get("BONESIM_TEST_WRITER_FSIZE")
-    if limit:
-        import resource
-        import signal
+    if not limit:
+        return False
+    import resource
+    import signal
 
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (int(limit), resource.RLIM_INFINITY))
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (int(limit), hard))
+    return True
 
 
 def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
@@ -722,7 +728,7 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
     """
     from bonesim.runtime.haptic_loop import attach
 
-    _fsize_hook()
+    full_disk_test = _fsize_hook()
     lsh, rings = attach(loop_handle)
     status = child.status
     try:
@@ -745,6 +751,10 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
         rings.clear()
         lsh.close()
         raise
+    if full_disk_test:
+        import dataclasses
+
+        writer.limits = dataclasses.replace(writer.limits, reserve_mb=0.0)
     drainer = Drainer(writer, rings, vis)
     status["kept_t0_s"] = status["kept_t_s"] = math.nan
     child.ready()

@@ -29,81 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from bonesim.errors import BonesimError
+from bonesim.runtime.disk_guard import HDF5_SIGNATURE, lookup3
 
-__all__ = ["HDF5_SIGNATURE", "lookup3", "Superblock", "read_superblock", "RepairedView",
+__all__ = ["Superblock", "read_superblock", "RepairedView",
            "open_session_file", "read_prefix", "read_prefix_why"]
-
-#: First eight bytes of an HDF5 file.
-HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-_M32 = 0xFFFFFFFF
-
-
-def _rot(x: int, k: int) -> int:
-    return ((x << k) | (x >> (32 - k))) & _M32
-
-
-def lookup3(data: bytes, initval: int = 0) -> int:
-    """Bob Jenkins' lookup3 ``hashlittle``, the checksum of HDF5 metadata.
-
-    Parameters
-    ----------
-    data : bytes
-    initval : int
-
-    Returns
-    -------
-    int
-        The 32-bit hash.
-    """
-    n = len(data)
-    a = b = c = (0xDEADBEEF + n + initval) & _M32
-    i = 0
-    while n > 12:
-        a = (a + int.from_bytes(data[i:i + 4], "little")) & _M32
-        b = (b + int.from_bytes(data[i + 4:i + 8], "little")) & _M32
-        c = (c + int.from_bytes(data[i + 8:i + 12], "little")) & _M32
-        a = (a - c) & _M32
-        a ^= _rot(c, 4)
-        c = (c + b) & _M32
-        b = (b - a) & _M32
-        b ^= _rot(a, 6)
-        a = (a + c) & _M32
-        c = (c - b) & _M32
-        c ^= _rot(b, 8)
-        b = (b + a) & _M32
-        a = (a - c) & _M32
-        a ^= _rot(c, 16)
-        c = (c + b) & _M32
-        b = (b - a) & _M32
-        b ^= _rot(a, 19)
-        a = (a + c) & _M32
-        c = (c - b) & _M32
-        c ^= _rot(b, 4)
-        b = (b + a) & _M32
-        n -= 12
-        i += 12
-    if n == 0:
-        return c
-    tail = data[i:i + n] + bytes(12 - n)
-    a = (a + int.from_bytes(tail[0:4], "little")) & _M32
-    b = (b + int.from_bytes(tail[4:8], "little")) & _M32
-    c = (c + int.from_bytes(tail[8:12], "little")) & _M32
-    c ^= b
-    c = (c - _rot(b, 14)) & _M32
-    a ^= c
-    a = (a - _rot(c, 11)) & _M32
-    b ^= a
-    b = (b - _rot(a, 25)) & _M32
-    c ^= b
-    c = (c - _rot(b, 16)) & _M32
-    a ^= c
-    a = (a - _rot(c, 4)) & _M32
-    b ^= a
-    b = (b - _rot(a, 14)) & _M32
-    c ^= b
-    c = (c - _rot(b, 24)) & _M32
-    return c
 
 
 class Superblock:
