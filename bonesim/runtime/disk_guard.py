@@ -347,15 +347,18 @@ def estimate_bytes(duration_s: float, rate_hz: float, limits: SpaceLimits | None
     """
     import numpy as np
 
-    from bonesim.runtime.record import GROUPS
+    from bonesim.engine import events
 
     lim = load_space_limits() if limits is None else limits
 
-    def row(g):
-        return sum(np.dtype(dt).itemsize * int(np.prod(shape)) for dt, shape in GROUPS[g].values())
+    def row(cols):
+        return sum(np.dtype(dt).itemsize * int(np.prod(shape)) for dt, shape in cols.values())
 
-    per_s = (row("samples") * rate_hz + row("tissue") * lim.tissue_rows_per_s
-             + row("camera") * lim.camera_rows_per_s)
+    # the recorder's groups (bonesim.runtime.record.GROUPS): the rings' records,
+    # the tissue rows with their one-byte ``visible``
+    per_s = (row(events.OTHER_RINGS["samples"][1]) * rate_hz
+             + (row(events.TISSUE_FIELDS) + 1) * lim.tissue_rows_per_s
+             + row(events.OTHER_RINGS["camera"][1]) * lim.camera_rows_per_s)
     return int(lim.fixed_mb * _MB + per_s * max(duration_s, 0.0) * (1 + lim.overhead_fraction))
 
 
