@@ -205,10 +205,14 @@ class Session:
                     self.case_version = older
                     return candidate
         if bad is not None:
+            why = ("the case, burr or material files changed since the recording"
+                   if self.checksums else
+                   "the case, burr or material files changed since the recording, or the "
+                   f"header is damaged: schema {self.schema} files carry no checksum to "
+                   "tell which")
             raise BonesimError(
                 f"{self.path}: burr {bad} ({h['burrs'][bad]['name']}) on case "
-                f"{case['name']!r} no longer builds the recorded model (the case, "
-                "burr or material files changed since the recording)")
+                f"{case['name']!r} no longer builds the recorded model ({why})")
         return models
 
     def load_model(self, check: bool = True):
@@ -340,6 +344,24 @@ def _cut_to_one_moment(groups: dict, declared: dict, whole: str) -> None:
             groups[g] = {k: a[keep] for k, a in groups[g].items()}
 
 
+def _check_sample_times(groups: dict, declared: dict, problems: list) -> None:
+    """Sample times must be finite and strictly increasing: a file whose times
+    stop being so is damaged from that row on (kept: the rows before)."""
+    t = groups["samples"]["t_s"]
+    if not len(t):
+        return
+    ok = np.isfinite(t)
+    ok[1:] &= np.diff(t) > 0
+    if ok.all():
+        return
+    q = int(np.argmin(ok))
+    what = (f"sample time {t[q]!r} is not finite" if not np.isfinite(t[q]) else
+            f"sample times go backwards ({t[q - 1]:.6g} s then {t[q]:.6g} s)")
+    problems.append(f"/samples/t_s: {what} at row {q:,}")
+    declared["samples"] = max(declared.get("samples") or 0, len(t))
+    groups["samples"] = {k: a[:q] for k, a in groups["samples"].items()}
+
+
 def read_session(path) -> Session:
     """Read and check a session file.
 
@@ -391,6 +413,7 @@ def read_session(path) -> Session:
     finally:
         if view is not None:
             view.close()
+    _check_sample_times(groups, declared, problems)
     readable = {}
     if problems:
         rows_before = {g: len(groups[g]["t_s"]) for g in spec}

@@ -216,3 +216,19 @@ def test_a_compaction_leftover_is_never_read_as_a_session(synthetic, tmp_path):
         read_session(stray)
     rows = {r["file"]: r for r in list_sessions(folder)}
     assert "leftover" in rows[str(stray)]["error"] and "error" not in rows[str(target)]
+
+
+@pytest.mark.parametrize("how", ["backwards", "nan"])
+def test_sample_times_out_of_order_are_damage(tmp_path, how):
+    """Sample times that go backwards (or turn NaN) end the readable part
+    there: named, never replayed or scored as they are."""
+    path = tmp_path / "order.h5"
+    data = write_synthetic(path, compact=False)
+    with h5py.File(path, "r+") as f:
+        f["samples/t_s"][5000] = 1.0 if how == "backwards" else np.nan
+    s = read_session(path)
+    assert "/samples/t_s: sample time" in s.damage and "at row 5,000" in s.damage
+    assert len(s.samples["t_s"]) == 5000 and np.all(np.diff(s.samples["t_s"]) > 0)
+    assert s.readable["samples"] == (5000, ROWS["samples"])
+    assert coverage(s)["short"] is not None
+    np.testing.assert_array_equal(s.samples["pos_mm"], data["samples"]["pos_mm"][:5000])
