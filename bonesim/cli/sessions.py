@@ -78,6 +78,9 @@ def cmd_replay(args) -> int:
         report = verify(session)
         if args.json:
             _print_json(report)
+        elif not report["samples_checked"]:
+            print(f"{report['file']}: nothing checked: 0 of {report['samples_declared']:,} "
+                  "samples readable")
         else:
             print(f"{report['file']}: checked {report['seconds_checked']} s, "
                   f"{report['samples_checked']:,} of {report['samples_declared']:,} samples; "

@@ -398,8 +398,8 @@ class SessionWriter:
         from bonesim.runtime.disk_guard import describe_error
 
         if self.guard.error is not None:
-            return f"{describe_error(self.guard.error)} writing {self.path}"
-        return f"writing {self.path} failed ({str(exc).splitlines()[0] if exc else '?'})"
+            return describe_error(self.guard.error)
+        return f"a write failed ({str(exc).splitlines()[0] if exc else '?'})"
 
     def flush(self) -> None:
         """Make everything appended so far durable and visible to readers;
@@ -426,8 +426,7 @@ class SessionWriter:
             self._next_check = now + self.limits.check_every_s
             room = headroom_bytes(self.path)
             if room < self.limits.reserve_mb * (1 << 20):
-                self.stop(f"the disk is nearly full ({room / (1 << 20):.1f} MB left for "
-                          f"{self.path})")
+                self.stop(f"the disk is nearly full ({room / (1 << 20):.1f} MB left)")
 
     def stop(self, why: str) -> None:
         """Stop recording now, cleanly: a ``stopped`` event says why, the file

@@ -98,6 +98,10 @@ class Session:
     lost : list of str
         Columns (``/samples/force_n``) whose data could not be read at all;
         they hold NaN (floats) or 0 rows of the group's length.
+    holes : list of str
+        Sample columns a replay does not need (``/samples/force_n``) with
+        chunks that failed their checksum: those rows read as NaN or 0 (the
+        damage names them), the other columns go on.
     stopped : str or None
         Why the writer stopped recording early (its ``stopped`` event: the
         disk nearly full), else None.
@@ -120,6 +124,7 @@ class Session:
     checksums: bool = False
     lost: list = field(default_factory=list)
     stopped: str | None = None
+    holes: list = field(default_factory=list)
 
     @cached_property
     def removals(self) -> dict:
@@ -274,13 +279,15 @@ def _fill(dt, shape, n: int) -> np.ndarray:
     return np.full((n,) + tuple(shape), np.nan if dt.kind == "f" else 0, dt)
 
 
-def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lost: list):
+def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lost: list,
+                holes: list):
     """One group's columns, cut to the rows all of them hold; returns the
     columns and the rows the file declares (rows lost to damage noted).
 
     A column that cannot be opened or read at all is lost alone (``lost``;
-    NaN or 0 rows stand in for it); a column that reads up to a bad chunk
-    cuts the group there (the damage names the chunk)."""
+    NaN or 0 rows stand in for it); a column a replay needs that reads up to
+    a bad chunk cuts the group there (the damage names the chunk); a bad
+    chunk of another sample column reads as NaN or 0 (``holes``)."""
     empty = _no_rows(cols)
     try:
         grp = f[g]
@@ -302,7 +309,9 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lo
                     f"{path}: dataset /{g}/{name} has shape {ds.shape} and type "
                     f"{ds.dtype}; schema {SCHEMA_VERSION} expects (n, "
                     f"{', '.join(map(str, shape))}) {np.dtype(dt)}".replace("(n, )", "(n,)"))
-            data[name], why = read_prefix_why(ds, real_size)
+            data[name], why = read_prefix_why(ds, real_size,
+                                              holes=g == "samples" and name not in
+                                              REPLAY_COLUMNS)
             declared = max(declared, int(ds.shape[0]))
         except (OSError, RuntimeError, KeyError) as exc:
             gone.append(name)
@@ -310,8 +319,10 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lo
                             f"({str(exc).splitlines()[0]})")
             continue
         if why is not None:
-            cut = True
+            cut |= len(data[name]) < ds.shape[0]
             problems.append(f"/{g}/{name}: {why}")
+            if "there)" in why:
+                holes.append(f"/{g}/{name}")
     if not data:                                 # every column lost
         return empty, None
     # a crash between two columns' resizes leaves them uneven: keep the rows
@@ -383,11 +394,12 @@ def read_session(path) -> Session:
     f, damage, real_size, view = open_session_file(path, _h5py())
     problems = [damage] if damage else []
     lost: list = []
+    holes: list = []
     try:
         with f:
             schema, header, header_ok = _check_root(f, path)
             if not header_ok:
-                problems.insert(0, "the header is corrupt (it fails its checksum)")
+                problems.insert(0, "the header is corrupt: it fails its checksum")
             try:
                 repaired = json.loads(f.attrs["repaired"]) if "repaired" in f.attrs \
                     else None
@@ -400,7 +412,7 @@ def read_session(path) -> Session:
                     groups[g], declared[g] = _no_rows(cols), None
                     continue
                 groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems,
-                                                     lost)
+                                                     lost, holes)
             try:
                 closed = read_prefix(f["closed"], real_size)
                 complete = bool(len(closed) and closed[0] == 1)
@@ -434,7 +446,8 @@ def read_session(path) -> Session:
     return Session(path, schema, header, complete, groups["samples"], tissue,
                    groups["camera"], evlist, "; ".join(problems) or None, readable,
                    repaired, groups.get("handle", _no_rows(GROUPS["handle"])),
-                   header_ok=header_ok, checksums=schema >= 3, lost=lost, stopped=stopped)
+                   header_ok=header_ok, checksums=schema >= 3, lost=lost, stopped=stopped,
+                   holes=holes)
 
 
 def damage_notice(session: Session) -> str | None:
@@ -516,6 +529,7 @@ def session_info(session: Session) -> dict:
         else f"none (schema {session.schema})",
         "header_ok": session.header_ok,
         "lost_columns": session.lost or None,
+        "columns_with_holes": session.holes or None,
         "stopped": session.stopped,
         "repaired_from": session.repaired,
         "readable_rows": {g: {"kept": k, "declared": d}
@@ -533,8 +547,8 @@ def session_info(session: Session) -> dict:
         if len(dt) and np.median(dt) > 0 else 0.0,
         "resets": int(s["epoch"][-1]) if len(t) else 0,
         "drill_on_s": round(float(np.sum(dt[s["drill"][:-1] > 0])), 3) if len(dt) else 0.0,
-        "max_force_n": round(float(np.linalg.norm(s["force_n"], axis=1).max()), 3)
-        if len(t) else 0.0,
+        "max_force_n": round(float(np.nanmax(np.linalg.norm(s["force_n"], axis=1))), 3)
+        if len(t) and not np.isnan(s["force_n"]).all() else 0.0,
         "voxels_removed": int(len(session.removals["t_s"])),
         "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
                                  for lab, c in zip(labels, counts)},

@@ -179,6 +179,8 @@ def coverage(session: Session) -> dict:
     lost = [c for c in session.lost if c.startswith(("/samples/", "/tissue/"))]
     if lost:
         why.append(f"{', '.join(lost)} lost")
+    if session.holes:
+        why.append(f"{', '.join(session.holes)} with rows that fail their checksum")
     if session.stopped:
         why.append(f"the recording stopped early ({session.stopped})")
     return {"samples_checked": n, "samples_declared": int(ns),

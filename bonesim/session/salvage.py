@@ -213,7 +213,8 @@ def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
     return read_prefix_why(ds, real_size)[0]
 
 
-def read_prefix_why(ds, real_size: int | None = None) -> tuple[np.ndarray, str | None]:
+def read_prefix_why(ds, real_size: int | None = None,
+                    holes: bool = False) -> tuple[np.ndarray, str | None]:
     """The leading rows of a dataset whose data are in the file and decode,
     and why the rest do not.
 
@@ -224,6 +225,10 @@ def read_prefix_why(ds, real_size: int | None = None) -> tuple[np.ndarray, str |
     real_size : int or None
         Bytes the file really holds when it is read through a
         :class:`RepairedView` (None: the whole file is there).
+    holes : bool
+        A chunk that fails to decode or fails its checksum does not end the
+        rows: its rows read as NaN (floats) or 0 and reading goes on (for
+        columns a replay does not need).
 
     Returns
     -------
@@ -267,18 +272,26 @@ def read_prefix_why(ds, real_size: int | None = None) -> tuple[np.ndarray, str |
         return ds[:rows], why
     except (OSError, ValueError, RuntimeError):
         pass
-    parts, r = [], 0                             # up to the first chunk that fails
+    parts, r, bad = [], 0, []                    # up to the first chunk that fails
     while r < rows:
+        e = min(r + step, rows)
         try:
-            parts.append(ds[r:min(r + step, rows)])
+            parts.append(ds[r:e])
         except (OSError, ValueError, RuntimeError) as exc:
             low = str(exc).lower()
             # with Fletcher32 the checksum is the first filter undone on reading
             checked = "fletcher" in low or "checksum" in low or (
                 bool(getattr(ds, "fletcher32", False)) and "filter" in low)
             what = "fail their checksum" if checked else "do not decode"
-            why = f"rows {r:,}-{min(r + step, rows) - 1:,} {what}"
-            break
+            if not holes:
+                why = f"rows {r:,}-{e - 1:,} {what}"
+                break
+            bad.append(f"rows {r:,}-{e - 1:,} {what}")
+            parts.append(np.full((e - r,) + ds.shape[1:],
+                                 np.nan if ds.dtype.kind == "f" else 0, ds.dtype))
         r += step
+    if bad:
+        fill = "NaN" if ds.dtype.kind == "f" else "0"
+        why = "; ".join(bad) + f" ({fill} there)" + (f"; {why}" if why else "")
     out = np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)
     return out, why

@@ -101,7 +101,7 @@ def test_writer_on_a_full_disk_stops_and_keeps_what_it_says(tmp_path, no_reserve
         w = SessionWriter(p, HEADER)
         sent = _fill_until_failure(w)
         w.close()                                  # nothing raises, no crash
-    assert "largest size allowed" in w.failed and str(p) in w.failed
+    assert "largest size allowed" in w.failed
     kept = w.kept
     assert 0 < kept["samples"] < sent and kept["removals"] > 0
     line = record.kept_line(p, w.failed, kept)
