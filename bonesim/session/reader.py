@@ -298,7 +298,7 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lo
         problems.append(f"/{g} unreadable ({exc})")
         return empty, None
     data, declared, cut = {}, 0, False
-    gone = []
+    gone, named = [], []
     for name, (dt, shape) in cols.items():
         if name not in present:
             raise BonesimError(f"{path}: dataset /{g}/{name} is missing")
@@ -320,9 +320,13 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lo
             continue
         if why is not None:
             cut |= len(data[name]) < ds.shape[0]
-            problems.append(f"/{g}/{name}: {why}")
+            named.append(f"/{g}/{name}: {why}")
             if "there)" in why:
                 holes.append(f"/{g}/{name}")
+    if named:                   # one line: the first column's damage, and how many more
+        more = len(named) - 1
+        problems.append(named[0] + (f" (and {more} more column{'s' * (more > 1)} of /{g})"
+                                    if more else ""))
     if not data:                                 # every column lost
         return empty, None
     # a crash between two columns' resizes leaves them uneven: keep the rows
