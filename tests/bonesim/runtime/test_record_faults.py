@@ -84,6 +84,7 @@ def _check_report(rc, out, err, path, why):
     return res, kept
 
 
+@pytest.mark.slow
 def test_a_killed_writer_stops_the_recording_with_one_line_and_status_3(script, tmp_path):
     path = tmp_path / "killed.h5"
     proc = _run(script, path)
@@ -114,6 +115,7 @@ def test_a_killed_writer_stops_the_recording_with_one_line_and_status_3(script, 
     assert len(s.removals["t_s"]) >= kept["removals"]
 
 
+@pytest.mark.slow
 def test_a_full_disk_in_the_writer_stops_the_recording_with_the_kept_span(script,
                                                                          tmp_path):
     path = tmp_path / "full.h5"
