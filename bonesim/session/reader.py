@@ -506,6 +506,9 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     with SessionWriter(out, src.header, overwrite=overwrite, compact=False) as w:
         for g, cols in groups.items():
             w.append(g, cols)
+    if w.failed is not None:                     # a full disk: no half copy left behind
+        out.unlink(missing_ok=True)
+        raise BonesimError(f"{out}: the repaired copy could not be written: {w.failed}")
     with _h5py().File(out, "r+") as f:           # attributes cannot change under SWMR
         f.attrs["repaired"] = json.dumps({"from": str(Path(path)), "damage": src.damage})
     compact_session(out)

@@ -199,3 +199,16 @@ def test_simulate_on_a_disk_that_fills_exits_non_zero_with_the_kept_span(
     assert np.all(np.diff(t) > 0)
     assert np.all(np.linalg.norm(s.samples["axis"], axis=1) > 0.5)      # no zero rows
     assert len(s.removals["t_s"]) >= kept["removals"]
+
+
+def test_repair_onto_a_full_disk_says_so_and_leaves_nothing(tmp_path):
+    from bonesim.session.reader import repair_session
+
+    src = tmp_path / "src.h5"
+    write_synthetic(src, compact=False)
+    out = tmp_path / "fixed.h5"
+    with file_size_limit(300_000):
+        with pytest.raises(BonesimError, match="repaired copy could not be written: the "
+                                               "file reached the largest size allowed"):
+            repair_session(src, out)
+    assert not out.exists() and not compaction_temp(out).exists()
