@@ -28,6 +28,7 @@ rectangle, facing the view, through the view plane; Return cuts a stroke
 """
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -314,6 +315,8 @@ class App:
             self.recorder = None
             if self.recording["record_error"] and not self._record_said:
                 self._say_record(self.recording["record_error"])
+            elif self.recording.get("compact_error"):     # complete, left uncompressed
+                print(f"bonesim: note: {self.recording['compact_error']}", file=sys.stderr)
         if self.audio is not None:
             self.audio.close()
             self.audio = None

@@ -188,6 +188,8 @@ def cmd_simulate(args) -> int:
         _print_summary(summary)
     if summary.get("record_error"):
         print(f"bonesim: {summary['record_error']}", file=sys.stderr)
+    elif summary.get("record_compact_error"):          # complete, left uncompressed
+        print(f"bonesim: note: {summary['record_compact_error']}", file=sys.stderr)
     return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 

@@ -212,3 +212,50 @@ def test_repair_onto_a_full_disk_says_so_and_leaves_nothing(tmp_path):
                                                "file reached the largest size allowed"):
             repair_session(src, out)
     assert not out.exists() and not compaction_temp(out).exists()
+
+
+_SLOW_COMPACTION = """
+import sys, time, h5py
+from bonesim.runtime import record
+record.COMPACT_CHUNK_ROWS = 256
+orig = h5py.Dataset.__setitem__
+def slow(self, key, value):
+    time.sleep(0.02)
+    return orig(self, key, value)
+h5py.Dataset.__setitem__ = slow
+record.compact_session(sys.argv[1])
+"""
+
+
+def test_a_killed_compaction_leaves_the_session_whole_and_its_leftover_named(tmp_path):
+    """SIGKILL while compacting: the session is untouched and reads whole; the
+    temporary is recognised as a leftover (never read as a session) and the
+    next compaction removes it."""
+    import subprocess
+    import sys
+    import time
+
+    from bonesim.session.reader import list_sessions
+
+    p = tmp_path / "k.h5"
+    data = write_synthetic(p, compact=False)
+    raw = p.read_bytes()
+    tmp = compaction_temp(p)
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_COMPACTION, str(p)])
+    try:
+        end = time.monotonic() + 120
+        while not (tmp.exists() and tmp.stat().st_size > 20_000):
+            assert proc.poll() is None and time.monotonic() < end
+            time.sleep(0.05)
+    finally:
+        proc.kill()
+        proc.wait(30)
+    assert p.read_bytes() == raw and tmp.exists()
+    s = read_session(p)
+    assert s.complete and s.damage is None and len(s.samples["t_s"]) == len(data["samples"]["t_s"])
+    with pytest.raises(BonesimError, match="leftover of an interrupted compaction"):
+        read_session(tmp)
+    rows = {r["file"]: r for r in list_sessions(tmp_path)}
+    assert "leftover" in rows[str(tmp)]["error"] and rows[str(p)]["complete"]
+    compact_session(p)
+    assert not tmp.exists() and read_session(p).damage is None

@@ -245,3 +245,35 @@ def test_sample_times_out_of_order_are_damage(tmp_path, how):
     assert s.readable["samples"] == (5000, ROWS["samples"])
     assert coverage(s)["short"] is not None
     np.testing.assert_array_equal(s.samples["pos_mm"], data["samples"]["pos_mm"][:5000])
+
+
+def _as_schema_2(src, dst):
+    """``src`` rewritten as bonesim wrote files before checksums (schema 2):
+    the same columns, no Fletcher32, no ``header_sha256``."""
+    with h5py.File(src, "r") as f, h5py.File(dst, "w", libver="latest") as g:
+        for k, v in f.attrs.items():
+            if k != "header_sha256":
+                g.attrs[k] = v
+        g.attrs["schema"] = 2
+        for name, item in f.items():
+            if isinstance(item, h5py.Group):
+                grp = g.create_group(name)
+                for col, ds in item.items():
+                    grp.create_dataset(col, data=ds[()], maxshape=(None,) + ds.shape[1:],
+                                       chunks=True)
+            else:
+                g.create_dataset(name, data=item[()])
+    return dst
+
+
+def test_files_written_before_checksums_still_open(synthetic, tmp_path, capsys):
+    path, data = synthetic
+    old = _as_schema_2(path, tmp_path / "v2.h5")
+    s = read_session(old)
+    assert s.schema == 2 and not s.checksums and s.header_ok and s.damage is None
+    assert s.complete and _same_as_written(s, data)
+    assert main(["sessions", "info", str(old), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["checksums"] == "none (schema 2)" and info["header_ok"] is True
+    fixed = repair_session(old, tmp_path / "v3.h5")       # a copy in the current schema
+    assert fixed.schema == SCHEMA_VERSION and fixed.checksums and _same_as_written(fixed, data)
