@@ -521,8 +521,9 @@ class App:
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the
-        recorder's visibility judge counts them (None without a recording)."""
-        if self.recorder is None:
+        recorder's visibility judge counts them (None without a recording, or
+        once it stopped: its counts no longer follow the run)."""
+        if self.recorder is None or self.recorder.failure is not None:
             return None
         st = self.recorder.status
         return int(st["visible"]), int(st["visible"]) + int(st["hidden"])
