@@ -167,10 +167,7 @@ def _run(case, burr, traj, args) -> dict:
     if record is not None:
         from bonesim.runtime.record import make_header
 
-        from bonesim.runtime.disk_guard import check_space
-
         header = make_header(model, extra, input_device="scripted", **_who(args))
-        check_space(record, float(traj.t_s[-1] - traj.t_s[0]), model.haptic_rate_hz)
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
                           mesh_format=args.mesh_format, record=record, header=header,
                           burrs=extra)
@@ -303,15 +300,9 @@ def cmd_run(args) -> int:
         from bonesim.runtime.record import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
-    if record is not None:                     # room to record? (refused or warned)
-        from bonesim.runtime.disk_guard import check_space
-
-        from bonesim.engine.model import HAPTIC_RATE_HZ
-
-        # a window's run lasts as long as the user (or --frames) wants: warn only
-        warn = check_space(record, None, HAPTIC_RATE_HZ)
-        if warn:
-            print(f"bonesim: {warn}", file=sys.stderr, flush=True)
+    if record is not None:         # room to record? (a window's run has no set length: warned)
+        from bonesim.runtime.disk_guard import warn_space
+        warn_space(record)
     serve = None
     if args.monitor_port is not None:
         from bonesim.net.packets import load_key

@@ -36,7 +36,7 @@ from pathlib import Path
 from bonesim.errors import BonesimError
 
 __all__ = ["HDF5_SIGNATURE", "lookup3", "SpaceLimits", "load_space_limits", "GuardedFile", "headroom_bytes",
-           "estimate_bytes", "check_space", "describe_error"]
+           "estimate_bytes", "check_space", "warn_space", "describe_error"]
 
 _MB = 1 << 20
 #: First eight bytes of an HDF5 file.
@@ -410,3 +410,15 @@ def check_space(path, duration_s: float | None, rate_hz: float,
                 f"({room / _MB:.0f} MB can be written there); recording stops, saying so, "
                 "when the space runs out")
     return None
+
+
+def warn_space(path, rate_hz: float | None = None) -> None:
+    """Before an interactive run: print :func:`check_space`'s warning (if any)
+    on stderr as one line (a file that cannot be written at all raises)."""
+    import sys
+
+    from bonesim.engine.model import HAPTIC_RATE_HZ
+
+    warn = check_space(path, None, HAPTIC_RATE_HZ if rate_hz is None else rate_hz)
+    if warn:
+        print(f"bonesim: {warn}", file=sys.stderr, flush=True)

@@ -75,7 +75,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     progress : callable, optional
         Called with the fraction done now and then.
     record : path, optional
-        Record the run to this new session file (:mod:`bonesim.runtime.record`).
+        Record the run to this new session file (:mod:`bonesim.runtime.record`);
+        a run whose estimated file would not fit is refused first
+        (:func:`bonesim.runtime.disk_guard.check_space`). If recording stops
+        early (a full disk), the run goes on and the summary says so.
     header : dict, optional
         The recording's header (default :func:`bonesim.runtime.record.make_header`
         of ``model`` and ``burrs``).
@@ -87,7 +90,8 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     Returns
     -------
     dict
-        JSON-ready summary (see ``bonesim simulate --help``).
+        JSON-ready summary (see ``bonesim simulate --help``); with ``record``,
+        also ``record``, ``record_ok``, ``record_kept`` and ``record_error``.
     """
     wall0 = time.perf_counter()
     rate = model.haptic_rate_hz
@@ -96,6 +100,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     if int(samples.burr.max()) > len(burrs):
         raise ValueError(f"the trajectory uses burr {int(samples.burr.max())}; the run has "
                          f"burrs 0..{len(burrs)}")
+    if record is not None:         # room for the file? (refused with the estimate)
+        from bonesim.runtime import disk_guard
+
+        disk_guard.check_space(record, float(samples.t_s[-1] - samples.t_s[0]), rate)
     if header is None and record is not None:
         from bonesim.runtime.record import make_header
 
