@@ -9,7 +9,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["BonesimError", "ProcessFailed"]
+__all__ = ["BonesimError", "ProcessFailed", "EXIT_ERROR", "EXIT_RECORDING_LOST"]
+
+#: Exit status of a command stopped by a :class:`BonesimError` (one line on stderr).
+EXIT_ERROR = 2
+#: Exit status of a run that went to its end but whose recording did not: the
+#: writer died, a write failed or the disk filled (one line on stderr says
+#: what the file keeps, and up to when).
+EXIT_RECORDING_LOST = 3
 
 
 class BonesimError(Exception):

@@ -56,11 +56,12 @@ def cmd_metrics_run(args) -> int:
     line = damage_notice(s)
     if line:
         print(line, file=sys.stderr)
+    status = 0 if s.damage is None else 1        # scored on a damaged file's readable part
     res = run_metrics(s, experts=args.expert or (), force_profile=args.force_profile,
                       structure=args.structure)
     if args.json:
         print(json.dumps(res, indent=2))
-        return 0
+        return status
     r, v, c = res["run"], res["visibility"], res["conduct"]
     print(f"{r['file']}: {r['participant'] or '(no participant)'}, case {r['case']}, "
           f"{r['duration_s']:.1f} s, {r['removed_voxels']} voxels removed")
@@ -104,7 +105,7 @@ def cmd_metrics_run(args) -> int:
         a = res["alignment"]
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
               f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
-    return 0
+    return status
 
 
 def cmd_metrics_limits(args) -> int:

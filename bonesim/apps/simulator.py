@@ -28,6 +28,7 @@ rectangle, facing the view, through the view plane; Return cuts a stroke
 """
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -201,6 +202,8 @@ class App:
         self.record = None if record is None else Path(record)
         self.who = dict(who or {})
         self.recorder = None
+        self.recording = None
+        self._record_said = False
         from bonesim.runtime.monitor import monitored_structures
 
         self.monitor = None
@@ -317,6 +320,10 @@ class App:
         if self.recorder is not None:
             self.recording = self.recorder.close()
             self.recorder = None
+            if self.recording["record_error"] and not self._record_said:
+                self._say_record(self.recording["record_error"])
+            elif self.recording.get("compact_error"):     # complete, left uncompressed
+                print(f"bonesim: note: {self.recording['compact_error']}", file=sys.stderr)
         if self.audio is not None:
             self.audio.close()
             self.audio = None
@@ -332,6 +339,28 @@ class App:
 
     def __exit__(self, *exc):
         self.close()
+
+    def _say_record(self, line: str) -> None:
+        """A recording that stopped early: one line in the window and on stderr."""
+        import sys
+
+        self._record_said = True
+        self.notices.append(line)
+        print(f"bonesim: {line}", file=sys.stderr, flush=True)
+
+    def record_summary(self) -> dict:
+        """After :meth:`close`: ``record`` (the file), ``record_ok``,
+        ``record_kept`` (what the file holds: ``t0_s``, ``t_s`` [s],
+        ``samples``, ``removals``) and ``record_error`` (one line or None);
+        empty without a recording."""
+        if self.record is None or self.recording is None:
+            return {}
+        r = self.recording
+        out = {"record": str(self.record), "record_ok": r["record_ok"],
+               "record_kept": r["record_kept"], "record_error": r["record_error"]}
+        if r.get("compact_error"):
+            out["record_compact_error"] = r["compact_error"]
+        return out
 
     # -------------------------------------------------------------- frames
     @property
@@ -388,6 +417,9 @@ class App:
         self._device_camera(scene, dt)
         if self.recorder is not None:
             self.recorder.camera(*scene.camera_pose())
+            line = self.recorder.check()          # the writer died or stopped: say so
+            if line is not None:
+                self._say_record(line)
         inj = ch.injuries
         for lab in inj["label"]:
             name = self.model.structure_name(int(lab))
@@ -496,8 +528,9 @@ class App:
 
     def _visible(self):
         """``(visible, judged)`` removals since the case reset, as the
-        recorder's visibility judge counts them (None without a recording)."""
-        if self.recorder is None:
+        recorder's visibility judge counts them (None without a recording, or
+        once it stopped: its counts no longer follow the run)."""
+        if self.recorder is None or self.recorder.failure is not None:
             return None
         st = self.recorder.status
         return int(st["visible"]), int(st["visible"]) + int(st["hidden"])

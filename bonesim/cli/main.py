@@ -19,7 +19,7 @@ from bonesim.cli.bounds import check_options
 from bonesim.cli.research import research_parsers
 from bonesim.cli.voxel import apply_voxel_mm, voxel_option
 from bonesim.cli.warmup import cmd_warmup
-from bonesim.errors import BonesimError
+from bonesim.errors import EXIT_RECORDING_LOST, BonesimError
 
 __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd_burrs",
            "cmd_trajectory", "cmd_simulate", "cmd_demo", "cmd_run", "cmd_playback",
@@ -185,7 +185,11 @@ def cmd_simulate(args) -> int:
         _print_json(summary)
     else:
         _print_summary(summary)
-    return 0
+    if summary.get("record_error"):
+        print(f"bonesim: {summary['record_error']}", file=sys.stderr)
+    elif summary.get("record_compact_error"):          # complete, left uncompressed
+        print(f"bonesim: note: {summary['record_compact_error']}", file=sys.stderr)
+    return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 
 def _shown(names) -> str:
@@ -220,7 +224,7 @@ def _print_summary(s: dict) -> None:
               f"{s['surface_consistent']}")
     if "mesh" in s:
         print(f"wrote {s['mesh']} and {s['summary']}")
-    if "record" in s:
+    if "record" in s and s.get("record_ok", True):
         print(f"recorded the session to {s['record']}")
 
 
@@ -298,6 +302,9 @@ def cmd_run(args) -> int:
         from bonesim.runtime.record import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
+    if record is not None:         # room to record? (a window's run has no set length: warned)
+        from bonesim.runtime.disk_guard import warn_space
+        warn_space(record)
     serve = None
     if args.monitor_port is not None:
         from bonesim.net.packets import load_key
@@ -321,6 +328,7 @@ def cmd_run(args) -> int:
         summary = app.run(frames=frames, screenshot=screenshot)
     finally:
         app.close()
+    summary.update(app.record_summary())      # record_ok, the kept span (after closing)
     if args.json:
         _print_json(summary)
     else:
@@ -335,9 +343,9 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['screenshot']}")
         if "wav" in summary:
             print(f"wrote {summary['wav']}")
-        if "record" in summary:
+        if "record" in summary and summary.get("record_ok", True):
             print(f"recorded the session to {summary['record']}")
-    return 0
+    return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 
 def _run_showcase(args) -> int:

@@ -25,10 +25,15 @@ def _say_damage(session) -> None:
 
 
 def cmd_sessions_info(args) -> int:
-    info = session_info(read_session(args.file))
+    """Print a session's summary; exit status 1 when the file is damaged
+    (one line on stderr says what is wrong and what is used)."""
+    session = read_session(args.file)
+    info = session_info(session)
+    status = 0 if session.damage is None else 1
     if args.json:
         _print_json(info)
-        return 0
+        _say_damage(session)
+        return status
     for k, v in info.items():
         if v is None and k in ("damage", "repaired_from", "readable_rows"):
             continue
@@ -46,7 +51,8 @@ def cmd_sessions_info(args) -> int:
             print(f"{k}: " + (", ".join(f"{kk} {vv}" for kk, vv in v.items()) or "none"))
         else:
             print(f"{k}: {v}")
-    return 0
+    _say_damage(session)
+    return status
 
 
 def cmd_sessions_list(args) -> int:
@@ -81,13 +87,21 @@ def cmd_replay(args) -> int:
         report = verify(session)
         if args.json:
             _print_json(report)
+        elif not report["samples_checked"]:
+            print(f"{report['file']}: nothing checked: 0 of {report['samples_declared']:,} "
+                  "samples readable")
         else:
-            print(f"{report['file']}: replayed {report['samples']} samples; tissue events "
-                  f"{report['events_replayed']} replayed vs {report['events_recorded']} "
-                  f"recorded: {'identical' if report['tissue_match'] else 'DIFFERENT'}; "
+            print(f"{report['file']}: checked {report['seconds_checked']} s, "
+                  f"{report['samples_checked']:,} of {report['samples_declared']:,} samples; "
+                  f"tissue events {report['events_replayed']} replayed vs "
+                  f"{report['events_recorded']} recorded: "
+                  f"{'identical' if report['tissue_match'] else 'DIFFERENT'}; "
                   f"forces {'identical' if report['forces_match'] else 'DIFFERENT'}")
             if report["first_mismatch"]:
                 print(f"first difference: {report['first_mismatch']}")
+        if report["short"]:
+            print(f"bonesim: {report['file']}: not verified in full: {report['short']}",
+                  file=sys.stderr)
         return 0 if report["ok"] else 1
     out = replay(session)
     res = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),

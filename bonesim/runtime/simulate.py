@@ -75,7 +75,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     progress : callable, optional
         Called with the fraction done now and then.
     record : path, optional
-        Record the run to this new session file (:mod:`bonesim.runtime.record`).
+        Record the run to this new session file (:mod:`bonesim.runtime.record`);
+        a run whose estimated file would not fit is refused first
+        (:func:`bonesim.runtime.disk_guard.check_space`). If recording stops
+        early (a full disk), the run goes on and the summary says so.
     header : dict, optional
         The recording's header (default :func:`bonesim.runtime.record.make_header`
         of ``model`` and ``burrs``).
@@ -87,7 +90,8 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     Returns
     -------
     dict
-        JSON-ready summary (see ``bonesim simulate --help``).
+        JSON-ready summary (see ``bonesim simulate --help``); with ``record``,
+        also ``record``, ``record_ok``, ``record_kept`` and ``record_error``.
     """
     wall0 = time.perf_counter()
     rate = model.haptic_rate_hz
@@ -96,6 +100,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     if int(samples.burr.max()) > len(burrs):
         raise ValueError(f"the trajectory uses burr {int(samples.burr.max())}; the run has "
                          f"burrs 0..{len(burrs)}")
+    if record is not None:         # room for the file? (refused with the estimate)
+        from bonesim.runtime import disk_guard
+
+        disk_guard.check_space(record, float(samples.t_s[-1] - samples.t_s[0]), rate)
     if header is None and record is not None:
         from bonesim.runtime.record import make_header
 
@@ -155,7 +163,7 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
             "t_s": round(float(samples.t_s[drilling[at]]), 3),
             "native_spacing_mm": [round(float(v), 4) for v in model.clearance.spacing_mm]}
     if rec is not None:
-        summary["record"] = rec.close()
+        summary.update(rec.close())
     if check and consumer is not None:
         from bonesim.engine.surface import Surface
 
@@ -210,6 +218,8 @@ class _Recording:
     def push(self, smp, f) -> None:
         from bonesim.runtime.haptic_loop import push_sample
 
+        if self.writer.failed is not None:     # recording stopped: the run goes on
+            return
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
                     smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
         if self.tap is not None:
@@ -218,10 +228,23 @@ class _Recording:
             self.drainer.drain()
             self.writer.flush()
 
-    def close(self) -> str:
-        self.drainer.drain()
+    def close(self) -> dict:
+        """Finish the file; returns ``record`` (its path), ``record_ok``,
+        ``record_kept`` (see :attr:`SessionWriter.kept`) and ``record_error``
+        (one line saying what was kept, or None)."""
+        from bonesim.runtime.record import kept_line
+
+        if self.writer.failed is None:
+            self.drainer.drain()
         self.writer.close()
-        return str(self.writer.path)
+        w = self.writer
+        out = {"record": str(w.path), "record_ok": w.failed is None,
+               "record_kept": dict(w.kept),
+               "record_error": None if w.failed is None else kept_line(w.path, w.failed,
+                                                                       w.kept)}
+        if w.compact_error is not None:
+            out["record_compact_error"] = w.compact_error
+        return out
 
 
 def _same_surface(a, b) -> bool:

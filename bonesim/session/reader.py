@@ -9,9 +9,18 @@ every stream cut at the same moment so that replaying its samples gives its
 removals, and the :class:`Session` says what is wrong (:attr:`Session.damage`).
 :func:`repair_session` writes that readable prefix as a clean file.
 
-Files of schema 1 are read too: their removals, injuries, resets and burr
-changes are migrated into the tissue-event stream of schema 2
-(:mod:`bonesim.session.schema_v1`); a repaired copy is written in schema 2.
+Files of schema 3 carry checksums: a SHA-256 of the header
+(:func:`bonesim.runtime.record.header_sha256`) and a Fletcher32 checksum on
+every chunk of every column, so a flipped bit is found and named: a header
+that fails its checksum makes the session refuse to rebuild its model
+(:attr:`Session.header_ok`), a chunk that fails ends that column's readable
+prefix. A column whose metadata is lost loses that column only
+(:attr:`Session.lost`); the other columns read.
+
+Files of schema 1 and 2 are read too (without checksums to check): schema
+1's removals, injuries, resets and burr changes are migrated into the
+tissue-event stream (:mod:`bonesim.session.schema_v1`); a repaired copy is
+written in the current schema.
 """
 from __future__ import annotations
 
@@ -27,8 +36,9 @@ from bonesim.engine import events
 from bonesim.errors import BonesimError
 from bonesim.runtime.record import OPTIONAL_GROUPS
 from bonesim.runtime.record import (FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, SessionWriter, _h5py,
-                                    compact_session, model_sha256, sessions_folder)
-from bonesim.session.salvage import open_session_file, read_prefix
+                                    compact_session, header_sha256, is_compaction_temp,
+                                    model_sha256, sessions_folder)
+from bonesim.session.salvage import open_session_file, read_prefix, read_prefix_why
 from bonesim.session.schema_v1 import GROUPS_V1
 from bonesim.session.schema_v1 import migrate as migrate_v1
 
@@ -39,7 +49,9 @@ __all__ = ["Session", "read_session", "damage_notice", "session_info", "list_ses
 #: must be whole up to the moment a damaged file is cut at.
 _SCHEMAS = {1: ({"samples": GROUPS["samples"], **GROUPS_V1, "camera": GROUPS["camera"],
                  "events": GROUPS["events"]}, "removals"),
-            2: (GROUPS, "tissue")}
+            2: (GROUPS, "tissue"), 3: (GROUPS, "tissue")}
+#: Sample columns a replay cannot do without.
+REPLAY_COLUMNS = ("t_s", "pos_mm", "axis", "drill", "speed_rpm", "direction", "burr", "epoch")
 
 
 @dataclass
@@ -77,6 +89,22 @@ class Session:
     case_version : str or None
         Set when the model was rebuilt from a kept older version of a bundled
         case (``"phantom@2"``), found by the recorded hashes.
+    header_ok : bool
+        False when the header fails its checksum (schema 3): its case, burrs,
+        voxel size and oversampling cannot be trusted, so :meth:`burr_models`
+        refuses.
+    checksums : bool
+        The file carries checksums (schema 3 and later).
+    lost : list of str
+        Columns (``/samples/force_n``) whose data could not be read at all;
+        they hold NaN (floats) or 0 rows of the group's length.
+    holes : list of str
+        Sample columns a replay does not need (``/samples/force_n``) with
+        chunks that failed their checksum: those rows read as NaN or 0 (the
+        damage names them), the other columns go on.
+    stopped : str or None
+        Why the writer stopped recording early (its ``stopped`` event: the
+        disk nearly full), else None.
     """
 
     path: Path
@@ -92,6 +120,11 @@ class Session:
     repaired: dict | None = None
     handle: dict = field(default_factory=lambda: _no_rows(GROUPS["handle"]))
     case_version: str | None = None
+    header_ok: bool = True
+    checksums: bool = False
+    lost: list = field(default_factory=list)
+    stopped: str | None = None
+    holes: list = field(default_factory=list)
 
     @cached_property
     def removals(self) -> dict:
@@ -127,6 +160,10 @@ class Session:
         from bonesim.engine.device_caps import DeviceCaps
         from bonesim.io.loading import load_model
 
+        if not self.header_ok:
+            raise BonesimError(f"{self.path}: the header is corrupt (it fails its checksum): "
+                               "the recorded case, burrs, voxel size and oversampling cannot "
+                               "be trusted, so the run cannot be rebuilt")
         h = self.header
         case = h["case"]
         src = case.get("path") or case["name"]
@@ -173,10 +210,14 @@ class Session:
                     self.case_version = older
                     return candidate
         if bad is not None:
+            why = ("the case, burr or material files changed since the recording"
+                   if self.checksums else
+                   "the case, burr or material files changed since the recording, or the "
+                   f"header is damaged: schema {self.schema} files carry no checksum to "
+                   "tell which")
             raise BonesimError(
                 f"{self.path}: burr {bad} ({h['burrs'][bad]['name']}) on case "
-                f"{case['name']!r} no longer builds the recorded model (the case, "
-                "burr or material files changed since the recording)")
+                f"{case['name']!r} no longer builds the recorded model ({why})")
         return models
 
     def load_model(self, check: bool = True):
@@ -190,7 +231,7 @@ def _no_rows(cols: dict) -> dict:
             for name, (dt, shape) in cols.items()}
 
 
-def _check_root(f, path: Path) -> tuple[int, dict]:
+def _check_root(f, path: Path) -> tuple[int, dict, bool]:
     fmt = f.attrs.get("format")
     if isinstance(fmt, bytes):
         fmt = fmt.decode()
@@ -207,24 +248,47 @@ def _check_root(f, path: Path) -> tuple[int, dict]:
                            f"this bonesim reads ({SCHEMA_VERSION}); upgrade bonesim")
     if schema < 1:
         raise BonesimError(f"{path}: invalid session schema version {schema}")
+    header_ok = True
+    if schema >= 3:
+        try:
+            text, want = f.attrs["header"], f.attrs["header_sha256"]
+            text = text.decode() if isinstance(text, bytes) else str(text)
+            want = want.decode() if isinstance(want, bytes) else str(want)
+            header_ok = header_sha256(fmt, schema, text) == want
+        except (KeyError, OSError, RuntimeError, UnicodeDecodeError):
+            header_ok = False
     try:
         header = json.loads(f.attrs["header"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise BonesimError(f"{path}: the header attribute is missing or not JSON "
+        what = "" if header_ok else " and fails its checksum (corrupt)"
+        raise BonesimError(f"{path}: the header attribute is missing or not JSON{what} "
                            f"({exc})") from None
     if not isinstance(header, dict):
-        raise BonesimError(f"{path}: the header is not a JSON object")
+        raise BonesimError(f"{path}: the header is not a JSON object"
+                           + ("" if header_ok else " (it fails its checksum: corrupt)"))
     missing = [k for k in HEADER_KEYS if k not in header]
     if missing:
-        raise BonesimError(f"{path}: header lacks {', '.join(missing)}")
-    return schema, header
+        raise BonesimError(f"{path}: header lacks {', '.join(missing)}"
+                           + ("" if header_ok else " (it fails its checksum: corrupt)"))
+    return schema, header, header_ok
 
 
-def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list):
+def _fill(dt, shape, n: int) -> np.ndarray:
+    """``n`` rows standing in for a lost column: NaN for floats, else 0."""
+    dt = np.dtype(dt)
+    return np.full((n,) + tuple(shape), np.nan if dt.kind == "f" else 0, dt)
+
+
+def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list, lost: list,
+                holes: list):
     """One group's columns, cut to the rows all of them hold; returns the
-    columns and the rows the file declares (rows lost to damage noted)."""
-    empty = {name: np.zeros((0,) + tuple(shape), np.dtype(dt))
-             for name, (dt, shape) in cols.items()}
+    columns and the rows the file declares (rows lost to damage noted).
+
+    A column that cannot be opened or read at all is lost alone (``lost``;
+    NaN or 0 rows stand in for it); a column a replay needs that reads up to
+    a bad chunk cuts the group there (the damage names the chunk); a bad
+    chunk of another sample column reads as NaN or 0 (``holes``)."""
+    empty = _no_rows(cols)
     try:
         grp = f[g]
         present = set(grp.keys())
@@ -233,7 +297,8 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list):
     except (OSError, RuntimeError) as exc:
         problems.append(f"/{g} unreadable ({exc})")
         return empty, None
-    data, declared, lost = {}, 0, False
+    data, declared, cut = {}, 0, False
+    gone, named = [], []
     for name, (dt, shape) in cols.items():
         if name not in present:
             raise BonesimError(f"{path}: dataset /{g}/{name} is missing")
@@ -244,18 +309,33 @@ def _read_group(f, g: str, cols: dict, path: Path, real_size, problems: list):
                     f"{path}: dataset /{g}/{name} has shape {ds.shape} and type "
                     f"{ds.dtype}; schema {SCHEMA_VERSION} expects (n, "
                     f"{', '.join(map(str, shape))}) {np.dtype(dt)}".replace("(n, )", "(n,)"))
-            data[name] = read_prefix(ds, real_size)
+            data[name], why = read_prefix_why(ds, real_size,
+                                              holes=g == "samples" and name not in
+                                              REPLAY_COLUMNS)
             declared = max(declared, int(ds.shape[0]))
-            lost |= len(data[name]) < ds.shape[0]
-        except (OSError, RuntimeError) as exc:
-            problems.append(f"/{g}/{name} unreadable ({exc})")
-            return empty, None
-    if lost:
-        problems.append(f"rows lost in /{g}")
+        except (OSError, RuntimeError, KeyError) as exc:
+            gone.append(name)
+            problems.append(f"/{g}/{name} unreadable, that column is lost "
+                            f"({str(exc).splitlines()[0]})")
+            continue
+        if why is not None:
+            cut |= len(data[name]) < ds.shape[0]
+            named.append(f"/{g}/{name}: {why}")
+            if "there)" in why:
+                holes.append(f"/{g}/{name}")
+    if named:                   # one line: the first column's damage, and how many more
+        more = len(named) - 1
+        problems.append(named[0] + (f" (and {more} more column{'s' * (more > 1)} of /{g})"
+                                    if more else ""))
+    if not data:                                 # every column lost
+        return empty, None
     # a crash between two columns' resizes leaves them uneven: keep the rows
     # every column has
     n = min(len(a) for a in data.values())
-    return {k: a[:n] for k, a in data.items()}, (declared if lost else None)
+    for name in gone:
+        lost.append(f"/{g}/{name}")
+        data[name] = _fill(*cols[name], n)
+    return {k: data[k][:n] for k in cols}, (declared if cut else None)
 
 
 def _cut_to_one_moment(groups: dict, declared: dict, whole: str) -> None:
@@ -279,6 +359,24 @@ def _cut_to_one_moment(groups: dict, declared: dict, whole: str) -> None:
             groups[g] = {k: a[keep] for k, a in groups[g].items()}
 
 
+def _check_sample_times(groups: dict, declared: dict, problems: list) -> None:
+    """Sample times must be finite and strictly increasing: a file whose times
+    stop being so is damaged from that row on (kept: the rows before)."""
+    t = groups["samples"]["t_s"]
+    if not len(t):
+        return
+    ok = np.isfinite(t)
+    ok[1:] &= np.diff(t) > 0
+    if ok.all():
+        return
+    q = int(np.argmin(ok))
+    what = (f"sample time {t[q]!r} is not finite" if not np.isfinite(t[q]) else
+            f"sample times go backwards ({t[q - 1]:.6g} s then {t[q]:.6g} s)")
+    problems.append(f"/samples/t_s: {what} at row {q:,}")
+    declared["samples"] = max(declared.get("samples") or 0, len(t))
+    groups["samples"] = {k: a[:q] for k, a in groups["samples"].items()}
+
+
 def read_session(path) -> Session:
     """Read and check a session file.
 
@@ -293,11 +391,19 @@ def read_session(path) -> Session:
         header field, group or column, or damaged beyond reading.
     """
     path = Path(path)
+    if is_compaction_temp(path):
+        target = path.with_name(path.name[1:-len(".compacting")])
+        raise BonesimError(f"{path}: a leftover of an interrupted compaction of {target.name}, "
+                           f"not a session ({target.name} holds the recording); delete it")
     f, damage, real_size, view = open_session_file(path, _h5py())
     problems = [damage] if damage else []
+    lost: list = []
+    holes: list = []
     try:
         with f:
-            schema, header = _check_root(f, path)
+            schema, header, header_ok = _check_root(f, path)
+            if not header_ok:
+                problems.insert(0, "the header is corrupt: it fails its checksum")
             try:
                 repaired = json.loads(f.attrs["repaired"]) if "repaired" in f.attrs \
                     else None
@@ -309,7 +415,8 @@ def read_session(path) -> Session:
                 if g in OPTIONAL_GROUPS and g not in f:      # written before it existed
                     groups[g], declared[g] = _no_rows(cols), None
                     continue
-                groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems)
+                groups[g], declared[g] = _read_group(f, g, cols, path, real_size, problems,
+                                                     lost, holes)
             try:
                 closed = read_prefix(f["closed"], real_size)
                 complete = bool(len(closed) and closed[0] == 1)
@@ -322,6 +429,7 @@ def read_session(path) -> Session:
     finally:
         if view is not None:
             view.close()
+    _check_sample_times(groups, declared, problems)
     readable = {}
     if problems:
         rows_before = {g: len(groups[g]["t_s"]) for g in spec}
@@ -334,13 +442,16 @@ def read_session(path) -> Session:
     ev = groups["events"]
     evlist = [(float(t), n.decode(errors="replace"), v.decode(errors="replace"))
               for t, n, v in zip(ev["t_s"], ev["name"], ev["value"])]
+    stopped = next((v for _, n, v in evlist if n == "stopped"), None)
     if schema == 1:
         tissue, evlist = migrate_v1(groups["removals"], groups["injuries"], evlist)
     else:
         tissue = groups["tissue"]
     return Session(path, schema, header, complete, groups["samples"], tissue,
                    groups["camera"], evlist, "; ".join(problems) or None, readable,
-                   repaired, groups.get("handle", _no_rows(GROUPS["handle"])))
+                   repaired, groups.get("handle", _no_rows(GROUPS["handle"])),
+                   header_ok=header_ok, checksums=schema >= 3, lost=lost, stopped=stopped,
+                   holes=holes)
 
 
 def damage_notice(session: Session) -> str | None:
@@ -374,6 +485,16 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     if out.resolve() == Path(path).resolve():
         raise BonesimError(f"{out}: the repaired copy must be a new file, not the one "
                            "read")
+    if not src.header_ok:
+        raise BonesimError(f"{path}: the header is corrupt (it fails its checksum); a "
+                           "repaired copy would carry a header that cannot be trusted")
+    if not len(src.samples["t_s"]):
+        raise BonesimError(f"{path}: nothing readable to repair (no samples"
+                           + (f"; {src.damage})" if src.damage else ")"))
+    if src.lost:
+        raise BonesimError(f"{path}: column{'s' if len(src.lost) > 1 else ''} "
+                           f"{', '.join(src.lost)} lost; a repaired copy would hold stand-in "
+                           "values for them")
     groups = {"samples": src.samples, "tissue": src.tissue, "camera": src.camera,
               "handle": src.handle}
     ev = src.events
@@ -385,6 +506,9 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     with SessionWriter(out, src.header, overwrite=overwrite, compact=False) as w:
         for g, cols in groups.items():
             w.append(g, cols)
+    if w.failed is not None:                     # a full disk: no half copy left behind
+        out.unlink(missing_ok=True)
+        raise BonesimError(f"{out}: the repaired copy could not be written: {w.failed}")
     with _h5py().File(out, "r+") as f:           # attributes cannot change under SWMR
         f.attrs["repaired"] = json.dumps({"from": str(Path(path)), "damage": src.damage})
     compact_session(out)
@@ -408,6 +532,12 @@ def session_info(session: Session) -> dict:
         "schema": session.schema,
         "complete": session.complete,
         "damage": session.damage,
+        "checksums": "header and every chunk" if session.checksums
+        else f"none (schema {session.schema})",
+        "header_ok": session.header_ok,
+        "lost_columns": session.lost or None,
+        "columns_with_holes": session.holes or None,
+        "stopped": session.stopped,
         "repaired_from": session.repaired,
         "readable_rows": {g: {"kept": k, "declared": d}
                           for g, (k, d) in session.readable.items()} or None,
@@ -420,11 +550,12 @@ def session_info(session: Session) -> dict:
         "voxel_mm": h["voxel_mm"],
         "duration_s": round(session.duration_s, 3),
         "samples": int(len(t)),
-        "sample_rate_hz": round(float(1.0 / np.median(dt)), 1) if len(dt) else 0.0,
+        "sample_rate_hz": round(float(1.0 / np.median(dt)), 1)
+        if len(dt) and np.median(dt) > 0 else 0.0,
         "resets": int(s["epoch"][-1]) if len(t) else 0,
         "drill_on_s": round(float(np.sum(dt[s["drill"][:-1] > 0])), 3) if len(dt) else 0.0,
-        "max_force_n": round(float(np.linalg.norm(s["force_n"], axis=1).max()), 3)
-        if len(t) else 0.0,
+        "max_force_n": round(float(np.nanmax(np.linalg.norm(s["force_n"], axis=1))), 3)
+        if len(t) and not np.isnan(s["force_n"]).all() else 0.0,
         "voxels_removed": int(len(session.removals["t_s"])),
         "removed_by_structure": {names.get(int(lab), str(int(lab))): int(c)
                                  for lab, c in zip(labels, counts)},
@@ -448,7 +579,8 @@ def list_sessions(folder=None) -> list[dict]:
     if not folder.is_dir():
         raise BonesimError(f"{folder}: no such sessions folder")
     rows = []
-    for p in sorted(folder.glob("*.h5"), key=lambda q: q.stat().st_mtime, reverse=True):
+    files = list(folder.glob("*.h5")) + list(folder.glob(".*.h5.compacting"))
+    for p in sorted(files, key=lambda q: q.stat().st_mtime, reverse=True):
         try:
             info = session_info(read_session(p))
             rows.append({k: info[k] for k in ("file", "start_time", "participant", "group",

@@ -17,7 +17,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.session.reader import Session
 
-__all__ = ["replay", "verify"]
+__all__ = ["replay", "verify", "coverage"]
 
 
 def replay(session: Session, models=None, progress=None) -> dict:
@@ -41,6 +41,14 @@ def replay(session: Session, models=None, progress=None) -> dict:
     """
     from bonesim.engine.model import Sample, make_state, reset_state, step
 
+    from bonesim.errors import BonesimError
+    from bonesim.session.reader import REPLAY_COLUMNS
+
+    gone = [c for c in session.lost if c.startswith("/samples/")
+            and c.split("/")[-1] in REPLAY_COLUMNS]
+    if gone:
+        raise BonesimError(f"{session.path}: cannot replay: {', '.join(gone)} "
+                           f"{'is' if len(gone) == 1 else 'are'} lost")
     models = session.burr_models() if models is None else models
     s = session.samples
     n = len(s["t_s"])
@@ -143,14 +151,61 @@ def _body_commands(tissue: dict, injury=None) -> list:
     return out
 
 
+def coverage(session: Session) -> dict:
+    """How much of a recorded run a replay can check.
+
+    Returns
+    -------
+    dict
+        ``samples_checked`` (rows readable), ``samples_declared`` (rows the
+        file declares), ``seconds_checked`` [s], ``tissue_checked`` and
+        ``tissue_declared``, and ``short``: why less than the declared run
+        can be checked (None when all of it can).
+    """
+    s = session.samples
+    n = int(len(s["t_s"]))
+    ns = session.readable.get("samples", (n, n))[1]
+    nt = int(len(session.tissue["t_s"]))
+    nt_declared = session.readable.get("tissue", (nt, nt))[1]
+    why = []
+    if not session.header_ok:
+        why.append("the header is corrupt")
+    if n == 0:
+        why.append("the file holds no samples: nothing to verify")
+    elif n < ns:
+        why.append(f"only {n:,} of the {ns:,} samples the file declares are readable")
+    if nt < nt_declared:
+        why.append(f"only {nt:,} of the {nt_declared:,} tissue events are readable")
+    lost = [c for c in session.lost if c.startswith(("/samples/", "/tissue/"))]
+    if lost:
+        why.append(f"{', '.join(lost)} lost")
+    if session.holes:
+        why.append(f"{', '.join(session.holes)} with rows that fail their checksum")
+    if session.stopped:
+        why.append(f"the recording stopped early ({session.stopped})")
+    return {"samples_checked": n, "samples_declared": int(ns),
+            "seconds_checked": round(session.duration_s, 3),
+            "tissue_checked": nt, "tissue_declared": int(nt_declared),
+            "short": "; ".join(why) or None}
+
+
 def verify(session: Session, progress=None) -> dict:
     """Replay ``session`` and compare with the recording bit for bit.
 
     Returns
     -------
     dict
-        ``ok`` and, per stream, whether it matched and the first mismatch.
+        ``ok`` (everything the file declares was checked and matched),
+        ``identical`` (what could be checked matched), :func:`coverage`'s
+        figures and, per stream, whether it matched and the first mismatch.
+        A file with nothing to check, or less than it declares, is not ok.
     """
+    cov = coverage(session)
+    if cov["samples_checked"] == 0:
+        return {"file": str(session.path), "samples": 0, **cov, "identical": False,
+                "tissue_match": False, "forces_match": False, "first_mismatch": None,
+                "removals_recorded": 0, "removals_replayed": 0, "events_recorded": 0,
+                "events_replayed": 0, "ok": False}
     out = replay(session, progress=progress)
     rec = {k: a for k, a in session.tissue.items() if k != "visible"}
     s = session.samples
@@ -183,5 +238,7 @@ def verify(session: Session, progress=None) -> dict:
     report["first_mismatch"] = first
     report["forces_match"] = bool(np.array_equal(s["mag_n"], out["mag_n"])
                                   and np.array_equal(s["tangential_n"], out["tangential_n"]))
-    report["ok"] = report["tissue_match"] and report["forces_match"]
+    report.update(cov)
+    report["identical"] = report["tissue_match"] and report["forces_match"]
+    report["ok"] = report["identical"] and cov["short"] is None
     return report

@@ -29,81 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from bonesim.errors import BonesimError
+from bonesim.runtime.disk_guard import HDF5_SIGNATURE, lookup3
 
-__all__ = ["HDF5_SIGNATURE", "lookup3", "Superblock", "read_superblock", "RepairedView",
-           "open_session_file", "read_prefix"]
-
-#: First eight bytes of an HDF5 file.
-HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-_M32 = 0xFFFFFFFF
-
-
-def _rot(x: int, k: int) -> int:
-    return ((x << k) | (x >> (32 - k))) & _M32
-
-
-def lookup3(data: bytes, initval: int = 0) -> int:
-    """Bob Jenkins' lookup3 ``hashlittle``, the checksum of HDF5 metadata.
-
-    Parameters
-    ----------
-    data : bytes
-    initval : int
-
-    Returns
-    -------
-    int
-        The 32-bit hash.
-    """
-    n = len(data)
-    a = b = c = (0xDEADBEEF + n + initval) & _M32
-    i = 0
-    while n > 12:
-        a = (a + int.from_bytes(data[i:i + 4], "little")) & _M32
-        b = (b + int.from_bytes(data[i + 4:i + 8], "little")) & _M32
-        c = (c + int.from_bytes(data[i + 8:i + 12], "little")) & _M32
-        a = (a - c) & _M32
-        a ^= _rot(c, 4)
-        c = (c + b) & _M32
-        b = (b - a) & _M32
-        b ^= _rot(a, 6)
-        a = (a + c) & _M32
-        c = (c - b) & _M32
-        c ^= _rot(b, 8)
-        b = (b + a) & _M32
-        a = (a - c) & _M32
-        a ^= _rot(c, 16)
-        c = (c + b) & _M32
-        b = (b - a) & _M32
-        b ^= _rot(a, 19)
-        a = (a + c) & _M32
-        c = (c - b) & _M32
-        c ^= _rot(b, 4)
-        b = (b + a) & _M32
-        n -= 12
-        i += 12
-    if n == 0:
-        return c
-    tail = data[i:i + n] + bytes(12 - n)
-    a = (a + int.from_bytes(tail[0:4], "little")) & _M32
-    b = (b + int.from_bytes(tail[4:8], "little")) & _M32
-    c = (c + int.from_bytes(tail[8:12], "little")) & _M32
-    c ^= b
-    c = (c - _rot(b, 14)) & _M32
-    a ^= c
-    a = (a - _rot(c, 11)) & _M32
-    b ^= a
-    b = (b - _rot(a, 25)) & _M32
-    c ^= b
-    c = (c - _rot(b, 16)) & _M32
-    a ^= c
-    a = (a - _rot(c, 4)) & _M32
-    b ^= a
-    b = (b - _rot(a, 14)) & _M32
-    c ^= b
-    c = (c - _rot(b, 24)) & _M32
-    return c
+__all__ = ["Superblock", "read_superblock", "RepairedView",
+           "open_session_file", "read_prefix", "read_prefix_why"]
 
 
 class Superblock:
@@ -279,7 +208,15 @@ def open_session_file(path: Path, h5py):
 
 
 def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
-    """The leading rows of a dataset whose data are in the file and decode.
+    """The leading rows of a dataset whose data are in the file and decode
+    (:func:`read_prefix_why` without the reason)."""
+    return read_prefix_why(ds, real_size)[0]
+
+
+def read_prefix_why(ds, real_size: int | None = None,
+                    holes: bool = False) -> tuple[np.ndarray, str | None]:
+    """The leading rows of a dataset whose data are in the file and decode,
+    and why the rest do not.
 
     Parameters
     ----------
@@ -287,46 +224,74 @@ def read_prefix(ds, real_size: int | None = None) -> np.ndarray:
         Rows along axis 0.
     real_size : int or None
         Bytes the file really holds when it is read through a
-        :class:`RepairedView` (None: the whole file is there). A chunk that
-        lies past it, or whose index entry can no longer be read, ends the
-        prefix (a chunk never written reads as its fill value).
+        :class:`RepairedView` (None: the whole file is there).
+    holes : bool
+        A chunk that fails to decode or fails its checksum does not end the
+        rows: its rows read as NaN (floats) or 0 and reading goes on (for
+        columns a replay does not need).
 
     Returns
     -------
-    ndarray
-        All rows when every row reads (one read); else the rows up to the
-        first chunk that is missing or does not decode.
+    rows : ndarray
+        All rows when every row reads; else the rows up to the first chunk
+        that lies past the file's end, was never written (a session file
+        writes every row of every column, so a chunk the index lacks within
+        the declared rows was lost: it would read as zeros), whose index
+        entry can no longer be read, or that fails to decode or fails its
+        checksum (Fletcher32).
+    why : str or None
+        That first bad chunk, in words (``rows 4,096-8,191 fail their
+        checksum``); None when every row reads.
     """
     rows = int(ds.shape[0])
     step = ds.chunks[0] if ds.chunks else max(rows, 1)
-    if real_size is not None and rows:
-        if ds.chunks:
-            # chunk by chunk through the index (a cut-short index still finds
-            # its early chunks; a walk over all of them would fail at once)
-            r = 0
-            while r < rows:
-                try:
-                    info = ds.id.get_chunk_info_by_coord((r,) + (0,) * (ds.ndim - 1))
-                except (OSError, RuntimeError, ValueError, KeyError):
-                    break                        # this part of the index is lost
-                if info.byte_offset is not None and \
-                        info.byte_offset + info.size > real_size:
-                    break                        # the chunk lies past the end
-                r += step                        # (never written: its fill value)
-            rows = min(rows, r)
-        else:
-            off = ds.id.get_offset()
-            if off is None or off + ds.id.get_storage_size() > real_size:
-                rows = 0
+    why = None
+    if rows and ds.chunks:
+        # chunk by chunk through the index (a cut-short index still finds its
+        # early chunks; a walk over all of them would fail at once)
+        r = 0
+        while r < rows:
+            try:
+                info = ds.id.get_chunk_info_by_coord((r,) + (0,) * (ds.ndim - 1))
+            except (OSError, RuntimeError, ValueError, KeyError):
+                why = f"the index of rows from {r:,} is unreadable"
+                break
+            if info.byte_offset is None:
+                why = f"rows from {r:,} were never written"
+                break
+            if real_size is not None and info.byte_offset + info.size > real_size:
+                why = f"rows from {r:,} lie past the file's end"
+                break
+            r += step
+        rows = min(rows, r)
+    elif rows and real_size is not None:
+        off = ds.id.get_offset()
+        if off is None or off + ds.id.get_storage_size() > real_size:
+            rows, why = 0, "its data lie past the file's end"
     try:
-        return ds[:rows]
+        return ds[:rows], why
     except (OSError, ValueError, RuntimeError):
         pass
-    parts, r = [], 0                             # up to the first chunk that fails
+    parts, r, bad = [], 0, []                    # up to the first chunk that fails
     while r < rows:
+        e = min(r + step, rows)
         try:
-            parts.append(ds[r:min(r + step, rows)])
-        except (OSError, ValueError, RuntimeError):
-            break
+            parts.append(ds[r:e])
+        except (OSError, ValueError, RuntimeError) as exc:
+            low = str(exc).lower()
+            # with Fletcher32 the checksum is the first filter undone on reading
+            checked = "fletcher" in low or "checksum" in low or (
+                bool(getattr(ds, "fletcher32", False)) and "filter" in low)
+            what = "fail their checksum" if checked else "do not decode"
+            if not holes:
+                why = f"rows {r:,}-{e - 1:,} {what}"
+                break
+            bad.append(f"rows {r:,}-{e - 1:,} {what}")
+            parts.append(np.full((e - r,) + ds.shape[1:],
+                                 np.nan if ds.dtype.kind == "f" else 0, ds.dtype))
         r += step
-    return np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)
+    if bad:
+        fill = "NaN" if ds.dtype.kind == "f" else "0"
+        why = "; ".join(bad) + f" ({fill} there)" + (f"; {why}" if why else "")
+    out = np.concatenate(parts) if parts else np.zeros((0,) + ds.shape[1:], ds.dtype)
+    return out, why

@@ -146,10 +146,24 @@ def test_not_hdf5_and_missing_files(tmp_path, capsys):
     assert "no such session file" in capsys.readouterr().err
 
 
+def _resign(f, text: str) -> None:
+    """Set the header to ``text`` with a matching checksum (an edit, not damage)."""
+    from bonesim.runtime.record import FORMAT, header_sha256
+
+    f.attrs["header"] = text
+    f.attrs["header_sha256"] = header_sha256(FORMAT, int(f.attrs["schema"]), text)
+
+
 def test_changed_case_is_refused_on_replay(recorded, tmp_path):
-    bad = _copy_with(recorded[0], tmp_path, lambda f: f.attrs.__setitem__(
-        "header", f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0')))
+    bad = _copy_with(recorded[0], tmp_path, lambda f: _resign(
+        f, f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0')))
     with pytest.raises(BonesimError, match="no longer builds the recorded model"):
+        replay(read_session(bad))
+    # the same edit without its checksum is damage, not a changed case
+    (tmp_path / "unsigned").mkdir()
+    bad = _copy_with(recorded[0], tmp_path / "unsigned", lambda f: f.attrs.__setitem__(
+        "header", f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0')))
+    with pytest.raises(BonesimError, match="header is corrupt"):
         replay(read_session(bad))
 
 
@@ -390,7 +404,7 @@ def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_pa
         raise OSError("disk full")
 
     monkeypatch.setattr(record.os, "replace", boom)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(BonesimError, match="disk full.*kept as it was"):
         record.compact_session(keep)
     monkeypatch.undo()
     _same(before, _contents(keep))

@@ -20,7 +20,8 @@ from bonesim.errors import BonesimError
 from bonesim.runtime.record import SessionWriter, make_header
 from bonesim.session.replay import verify
 from bonesim.session.reader import damage_notice, read_session, repair_session
-from bonesim.session.salvage import lookup3, read_superblock
+from bonesim.runtime.disk_guard import lookup3
+from bonesim.session.salvage import read_superblock
 from bonesim.runtime.simulate import run_trajectory
 from tests.bonesim.runtime.test_record import model, traj  # noqa: F401 (fixtures: an 8 s demo run)
 
@@ -86,7 +87,10 @@ def test_cut_short_reads_one_consistent_prefix(compacted, tmp_path):
         np.testing.assert_array_equal(s.removals["ijk"], whole.removals["ijk"][:m])
         assert m == 0 or s.removals["t_s"][-1] <= s.samples["t_s"][-1]
         report = verify(s)                 # replaying the prefix gives its removals
-        assert report["ok"], report
+        assert report["identical"], report
+        # ... but it is not the run the file declares: not ok, and it says so
+        assert not report["ok"] and "readable" in report["short"]
+        assert report["samples_checked"] == n < report["samples_declared"]
         assert damage_notice(s).startswith(f"{s.path}: damaged (cut short")
     assert seen == sorted(seen) and seen[0] < seen[-1] < len(whole.samples["t_s"])
 
@@ -148,7 +152,12 @@ def test_zeroed_blocks_read_or_say_why(compacted, tmp_path):
                 np.testing.assert_array_equal(a, whole.samples[k])
         outcomes.add("damaged" if s.damage else "intact")
         if s.damage:
-            assert verify(s)["ok"] and n <= len(whole.samples["t_s"])
+            report = verify(s)
+            assert not report["ok"] and report["short"]
+            if n == 0:                            # the /samples group itself is lost
+                assert "nothing to verify" in report["short"]
+            else:                                 # what is readable replays identically
+                assert report["identical"] and n <= len(whole.samples["t_s"])
     assert "damaged" in outcomes
 
 
@@ -223,11 +232,15 @@ def test_commands_on_a_damaged_file_say_so_in_one_line(compacted, tmp_path):
                               capture_output=True, text=True, timeout=180)
 
     info = run("sessions", "info", str(cut))
-    assert info.returncode == 0 and "damage: cut short" in info.stdout
+    assert info.returncode == 1 and "damage: cut short" in info.stdout
     assert "readable: samples" in info.stdout and "Traceback" not in info.stderr
+    assert info.stderr.strip().count("\n") == 0 and "damaged (cut short" in info.stderr
     rep = run("replay", "--verify", str(cut))
-    assert rep.returncode == 0 and "identical" in rep.stdout
-    assert rep.stderr.strip().count("\n") == 0 and "damaged (cut short" in rep.stderr
+    # what it holds replays identically, but less than the run it declares: non-zero
+    assert rep.returncode == 1 and "identical" in rep.stdout and "checked" in rep.stdout
+    lines = rep.stderr.strip().splitlines()
+    assert len(lines) == 2 and "damaged (cut short" in lines[0]
+    assert "not verified in full" in lines[1] and "Traceback" not in rep.stderr
     lst = run("sessions", "list", str(folder), "--json")
     rows = {os.path.basename(r["file"]): r for r in json.loads(lst.stdout)}
     assert rows["good.h5"]["damage"] is None and rows["cut.h5"]["damage"]

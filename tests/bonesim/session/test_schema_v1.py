@@ -65,10 +65,10 @@ def test_a_v1_file_replays_bit_for_bit_and_plays_back():
     assert p.frame().epoch == 1
 
 
-def test_repair_writes_a_v1_file_as_schema_2(tmp_path):
-    out = tmp_path / "v2.h5"
+def test_repair_writes_a_v1_file_in_the_current_schema(tmp_path):
+    out = tmp_path / "v3.h5"
     s2 = repair_session(V1, out)
-    assert s2.schema == SCHEMA_VERSION == 2
+    assert s2.schema == SCHEMA_VERSION == 3 and s2.checksums and s2.header_ok
     s1 = read_session(V1)
     for name in s1.tissue:
         np.testing.assert_array_equal(s1.tissue[name], s2.tissue[name], err_msg=name)
