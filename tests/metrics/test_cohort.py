@@ -132,7 +132,11 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     assert "damaged" in tb.loc["cut.h5", "error"]
     s = tb.loc["stranger.h5"]
     assert s["error"] == "" and pd.isna(s["group"]) and np.isfinite(s["visible_fraction"])
-    assert np.isnan(s["nb_score"])                          # no group: not scored
+    # no group: scored by a model of every labelled run, out of the statistics
+    assert np.isfinite(s["nb_score"]) and np.isfinite(s["nb_score_per_voxel"])
+    labelled = [f for f in tb["file"] if tb.loc[os.path.basename(f), "group"] in
+                ("expert", "novice")]
+    assert sorted(res.nb_trained_on[s["file"]]) == sorted(labelled)
     good = tb.loc[[p.name for p in paths]]
     assert (good["error"] == "").all() and np.isfinite(good["nb_score"]).all()
     assert set(res.stats["expert_n"]) <= {3}
