@@ -37,9 +37,11 @@ Classifier
     already leave-one-participant-out.
 Left out
     Declared exclusions (design constants, one quantity under two names),
-    metrics constant over every run, and a metric whose participant means
+    metrics constant over every run, and a metric whose values over the runs
     are an exact monotone copy of an earlier tested metric's (Spearman
-    rho = 1), each with its reason.
+    rho = 1 over every run with both; run values, not participant means, so
+    that 16 means ranked alike by chance are not taken for a copy), each
+    with its reason.
 """
 from __future__ import annotations
 
@@ -234,7 +236,7 @@ def mixed_model(df, metric: str) -> dict:
     return out
 
 
-def screen_metrics(df, metrics, design: Design, unit: str = "participant") -> dict:
+def screen_metrics(df, metrics, design: Design) -> dict:
     """Metrics that are not tested, with the reason (module docstring).
 
     Parameters
@@ -245,8 +247,6 @@ def screen_metrics(df, metrics, design: Design, unit: str = "participant") -> di
         Candidate metric columns, in table order (an earlier metric keeps
         its place when a later one copies it).
     design : Design
-    unit : str
-        ``participant`` or ``run``: the values compared for a copy.
 
     Returns
     -------
@@ -269,9 +269,7 @@ def screen_metrics(df, metrics, design: Design, unit: str = "participant") -> di
         if np.ptp(v) == 0:
             out[m] = f"constant ({v[0]:.6g}) over every run"
             continue
-        pm = participant_means(df, m) if unit == "participant" else None
-        key = pm.set_index("participant")["value"] if pm is not None else \
-            df.loc[np.isfinite(df[m].astype(float)), m].astype(float)
+        key = df.loc[np.isfinite(df[m].astype(float)), m].astype(float)
         for other, ov in kept.items():
             both = key.index.intersection(ov.index)
             if len(both) >= 3 and np.ptp(key[both]) > 0 and np.ptp(ov[both]) > 0:
@@ -343,7 +341,7 @@ def group_statistics(df, columns: dict, design: Design | None = None):
     from metrics.validity import compare_groups, correlate
 
     design = load_design() if design is None else design
-    excluded = screen_metrics(df, list(columns), design, design.unit)
+    excluded = screen_metrics(df, list(columns), design)
     rows = []
     for name, (unit, better) in columns.items():
         if name in excluded:
