@@ -230,3 +230,35 @@ def test_a_file_cut_short_is_scored_on_its_readable_part(tmp_path):
     assert 0 < part["metrics"]["removed_voxels"] < full["metrics"]["removed_voxels"]
     assert part["metrics"]["duration_s"] < full["metrics"]["duration_s"]
     assert np.isfinite(part["metrics"]["visible_fraction"])
+
+
+def test_cli_exports_with_provenance_and_draws_progress(cohort, tmp_path, capsys):
+    import pandas as pd
+
+    from bonesim.cli.main import main
+
+    d, paths, csv_path = cohort
+    ex = tmp_path / "ex"
+    assert main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--workers",
+                 "1", "--exports", str(ex), "--report", str(tmp_path / "r.html"),
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["unit"] == "participant" and summary["stats_s"] >= 0
+    assert {"duration_s", "drilled_mm3"} <= set(summary["excluded"])
+    auc = summary["naive_bayes_auc"]["nb_score"]
+    assert 0 <= auc["ci"][0] <= auc["auc"] <= auc["ci"][1] <= 1
+    st = pd.read_csv(ex / "stats.csv")
+    assert "duration_s" not in set(st["metric"]) and {"p_t_holm", "p_t_bh"} <= set(st.columns)
+    meta = json.loads((ex / "provenance.json").read_text())
+    prov = meta["provenance"]
+    assert prov["synthesis"]["seed"] == 3 and prov["case"][0]["name"] == "phantom"
+    assert len(prov["participants_sha256"]) == 64 and "--exports" in prov["command"]
+    page = (tmp_path / "r.html").read_text()
+    assert page.index("Design and provenance") < page.index("1. Cohort")
+    assert prov["participants_sha256"] in page and "Naive Bayes as a classifier" in page
+    png = tmp_path / "p.png"
+    assert main(["metrics", "progress", str(d), "--participants", str(csv_path), "--out",
+                 str(png), "--workers", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["png"] == str(png) and png.stat().st_size > 10_000
+    assert "visible_fraction" in out["metrics"]
