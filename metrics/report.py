@@ -7,6 +7,10 @@ anywhere (no scripts, fonts or links), so the page can be mailed or archived
 as is. Sections, after the figures a construct-validity paper shows (the
 thesis' figures 18 to 21 and ``SPEC.md``, "Metrics"):
 
+0. Design and provenance (:func:`metrics.report_design.design_section`):
+   participants and sessions per group, unit of analysis, primary metrics
+   and corrections, metrics left out with the reason, bonesim version, case
+   and burr hashes, participants-file hash, synthesis seed, command line.
 1. Cohort: runs and participants per group, case, how and when it was
    scored (``meta``), a notice when the runs are synthetic test data, and
    every error (failed runs, participants without runs).
@@ -21,9 +25,10 @@ thesis' figures 18 to 21 and ``SPEC.md``, "Metrics"):
    (:func:`metrics.forces.group_bins`).
 5. Visibility views of chosen runs (:func:`metrics.visibility.render_visibility`,
    offscreen OpenGL); skipped with a note where rendering is unavailable.
-6. Every metric's statistics with units and better direction (p < 0.05
-   highlighted), the per-run table and the Naive Bayes training sets (both
-   collapsible).
+6. Every metric's statistics with units and better direction (corrected
+   p < alpha highlighted; :func:`metrics.report_design.stats_section`), the
+   Naive Bayes ROC and the test-retest agreement (ICC, Bland-Altman), the
+   per-run table and the Naive Bayes training sets (both collapsible).
 
 Reading the result: the per-group columns of ``stats`` are taken as
 ``<group>_<n|mean|sd>`` (``expert_mean``; ``mean_expert`` is accepted too);
@@ -559,7 +564,9 @@ def _runs_table(result) -> str:
     from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
 
     t = result.table
-    cols = [c for c in RUN_COLUMNS if c in t] + [m for m in METRIC_COLUMNS if m in t]
+    extra = [c for c in t.columns if c not in RUN_COLUMNS and c not in METRIC_COLUMNS
+             and c != "notes" and np.issubdtype(t[c].dtype, np.number)]
+    cols = [c for c in RUN_COLUMNS if c in t] + [m for m in METRIC_COLUMNS if m in t] + extra
     out = [f"<details><summary>Every run ({len(t)} rows)</summary><table><tr>"]
     out += [f"<th class=\"l\">{_esc(c)}</th>" for c in cols]
     out.append("</tr>")
@@ -570,7 +577,7 @@ def _runs_table(result) -> str:
             v = r[c]
             if c == "file":
                 out.append(f"<td class=\"l\" title=\"{_esc(v)}\">{_esc(_name(v))}</td>")
-            elif c in METRIC_COLUMNS or c == "instructor_score":
+            elif c in METRIC_COLUMNS or c in extra or c in ("instructor_score", "session"):
                 out.append(_cell(_esc(_num(v))))
             else:
                 out.append(_cell(_esc("" if _isnan(v) else v), left=True))
