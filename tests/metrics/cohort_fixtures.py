@@ -95,3 +95,13 @@ def score_serially(folder, *, structure: str = "chorda_tympani") -> CohortResult
                               "workers": 1, "wall_s": math.nan,
                               "participants_file": str(folder / "participants.csv"),
                               "sessions": str(folder / "*.h5")})
+
+
+def extra_row(session, models, path) -> dict:
+    """A per-run row provider for the tests: the run's sample count."""
+    return {"samples_n": float(len(session.samples["t_s"]))}
+
+
+def broken_row(session, models, path) -> dict:
+    """A row provider that fails."""
+    raise RuntimeError("provider exploded")

@@ -262,3 +262,18 @@ def test_cli_exports_with_provenance_and_draws_progress(cohort, tmp_path, capsys
     out = json.loads(capsys.readouterr().out)
     assert out["png"] == str(png) and png.stat().st_size > 10_000
     assert "visible_fraction" in out["metrics"]
+
+
+def test_row_providers_add_columns_and_a_failing_one_says_so(cohort):
+    from bonesim.session.reader import read_session
+    from metrics.cohort import metric_columns, score_file
+
+    _, paths, _ = cohort
+    good = ("tests.metrics.cohort_fixtures", "extra_row", {"samples_n": ("", 0)})
+    bad = ("tests.metrics.cohort_fixtures", "broken_row", {"broken_x": ("", 1)})
+    r = score_file(paths[0], providers=(good, bad))
+    assert r["extra"]["samples_n"] == len(read_session(paths[0]).samples["t_s"])
+    assert np.isnan(r["extra"]["broken_x"])
+    assert len(r["warnings"]) == 1 and "provider exploded" in r["warnings"][0]
+    cols = metric_columns((good, bad))
+    assert list(cols)[-2:] == ["samples_n", "broken_x"] and set(METRIC_COLUMNS) < set(cols)
