@@ -21,14 +21,15 @@ def cmd_cohort_synth(args) -> int:
     """``bonesim cohort synth``: record a synthetic cohort (:mod:`metrics.synth`)."""
     from bonesim.errors import BonesimError
     from bonesim.progress import ProgressBar
-    from metrics.synth import PARTICIPANTS_CSV, synth_cohort
+    from metrics.synth import BEHAVIOURS_FILE, PARTICIPANTS_CSV, synth_cohort
 
     sessions = getattr(args, "sessions", 1)
     bar = ProgressBar(max((args.experts + args.novices) * max(sessions, 1), 1), "recording")
     try:
         paths = synth_cohort(args.out, args.experts, args.novices, seed=args.seed,
                              case=args.case, duration_s=args.duration, sessions=sessions,
-                             behaviours=getattr(args, "behaviours", None),
+                             behaviours=getattr(args, "behaviours", None)
+                             or BEHAVIOURS_FILE,
                              progress=lambda done, _n: bar.update(done))
     except ValueError as exc:
         raise BonesimError(f"cohort synth: {exc}") from None
@@ -191,15 +192,13 @@ def cmd_metrics_cohort(args) -> int:
     from bonesim.progress import ProgressBar
     from metrics.cohort import find_sessions, score_cohort, write_table
 
-    import shlex
-
     n = len(find_sessions(args.sessions))
     bar = ProgressBar(n, "scoring")
     res = score_cohort(args.sessions, args.participants, scheduler=args.scheduler,
                        workers=args.workers, structure=args.structure,
                        progress=lambda done, _n: bar.update(done),
                        design=getattr(args, "design", None),
-                       command=shlex.join(["bonesim", *sys.argv[1:]]))
+                       command=_command(args))
     bar.close()
     for line in res.errors:
         print(line, file=sys.stderr)
@@ -255,6 +254,13 @@ def cmd_metrics_cohort(args) -> int:
     return 0
 
 
+def _command(args) -> str:
+    """The command line that ran, for the provenance."""
+    import shlex
+
+    return shlex.join(["bonesim", *getattr(args, "argv", sys.argv[1:])])
+
+
 def cmd_metrics_progress(args) -> int:
     """``bonesim metrics progress``: learning curves (:mod:`metrics.progress`)."""
     from bonesim.errors import BonesimError
@@ -287,12 +293,10 @@ def cmd_metrics_progress(args) -> int:
 def cmd_metrics_export(args) -> int:
     """``bonesim metrics export``: a run's visibility NRRD and removals
     Parquet with provenance (:func:`metrics.exports.export_run`)."""
-    import shlex
-
     from metrics.exports import export_run
 
     out = export_run(args.file, args.out, participants=args.participants,
-                     command=shlex.join(["bonesim", *sys.argv[1:]]))
+                     command=_command(args))
     if args.json:
         print(json.dumps(out, indent=2))
     else:

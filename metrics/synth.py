@@ -41,8 +41,10 @@ Sessions and learning (:class:`Learning`)
     instructor score of a session follows the skill.
 
 The parameters of every model are data: ``metrics/synth.toml``
-(:func:`load_behaviours`); ``synthesis.json`` beside the cohort records
-the seed, the counts and every parameter used.
+(:func:`load_behaviours`; what ``bonesim cohort synth`` uses; the Python
+function without ``behaviours`` keeps the classes' defaults, the models
+before the thinning phase and the aimed holes); ``synthesis.json`` beside
+the cohort records the seed, the counts and every parameter used.
 
 Every draw comes from one seeded generator: the same seed gives the same
 cohort. The participants' instructor scores are drawn around the reference
@@ -729,7 +731,10 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
     sessions : int
         Sessions per participant (>= 1).
     behaviours : path, optional
-        A behaviours file (default :data:`BEHAVIOURS_FILE`).
+        A behaviours file (:func:`load_behaviours`; ``bonesim cohort synth``
+        passes :data:`BEHAVIOURS_FILE`, the behaviours issue 25 asks for).
+        Default: the classes' defaults (the saucerizing expert without the
+        thinning phase, novices around the focal axis).
     progress : callable, optional
         Called with ``(done, total)`` after each run.
 
@@ -751,7 +756,8 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
         raise ValueError(f"duration_s must be > 0, got {duration_s}")
     if int(sessions) < 1:
         raise ValueError(f"sessions must be at least 1, got {sessions}")
-    d_e, d_n, d_l = load_behaviours(behaviours)
+    d_e, d_n, d_l = load_behaviours(behaviours) if behaviours is not None else \
+        (ExpertModel(), NoviceModel(), Learning())
     expert = d_e if expert is None else expert
     novice = d_n if novice is None else novice
     learning = d_l if learning is None else learning
@@ -792,7 +798,8 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
     (out / "synthesis.json").write_text(json.dumps(
         {"seed": int(seed), "experts": experts, "novices": novices,
          "sessions": int(sessions), "case": str(case), "duration_s": float(duration_s),
-         "behaviours": str(behaviours or BEHAVIOURS_FILE), "expert": asdict(expert),
+         "behaviours": str(behaviours) if behaviours is not None else "class defaults",
+         "expert": asdict(expert),
          "novice": asdict(novice), "learning": asdict(learning),
          "participants": [asdict(p) for p in people]}, indent=2, default=list) + "\n")
     (out / "README.txt").write_text(

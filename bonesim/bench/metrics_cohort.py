@@ -42,12 +42,13 @@ def _cohort(tmp: Path, quick: bool) -> dict:
     from distributed import LocalCluster
 
     from metrics.cohort import score_cohort
-    from metrics.synth import PARTICIPANTS_CSV, synth_cohort
+    from metrics.synth import BEHAVIOURS_FILE, PARTICIPANTS_CSV, synth_cohort
 
     n, k, dur = (2, 2, 4.0) if quick else (8, 3, 6.0)
     d = tmp / "cohort"
     t0 = time.perf_counter()
-    paths = synth_cohort(d, n, n, seed=0, duration_s=dur, sessions=k)
+    paths = synth_cohort(d, n, n, seed=0, duration_s=dur, sessions=k,
+                         behaviours=BEHAVIOURS_FILE)
     record_s = time.perf_counter() - t0
     rates, cold, central, stats_s = {}, {}, {}, {}
     for w in (1, 2):

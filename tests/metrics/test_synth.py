@@ -178,7 +178,10 @@ def test_sessions_learning_and_the_recorded_parameters(tmp_path):
     assert s1 == p and s3.skill == pytest.approx(p.skill + 2 * learn.novice_per_session)
     assert s3.seed != p.seed and s3.instructor_score >= p.instructor_score
     assert session_participant(p, 3, Learning(novice_per_session=0.0)).skill == p.skill
-    paths = synth_cohort(tmp_path, 0, 1, seed=4, duration_s=2.0, sessions=2)
+    from metrics.synth import BEHAVIOURS_FILE
+
+    paths = synth_cohort(tmp_path, 0, 1, seed=4, duration_s=2.0, sessions=2,
+                         behaviours=BEHAVIOURS_FILE)
     assert [q.name for q in paths] == ["N01_s1.h5", "N01_s2.h5"]
     rows = list(csv.DictReader(open(tmp_path / PARTICIPANTS_CSV)))
     assert [(r["id"], r["session"], r["file"]) for r in rows] == \
