@@ -25,10 +25,25 @@ each module says what it measures and how, with units:
     The drilled cavity against a panel of expert runs.
 :mod:`metrics.validity`
     t-test, Mann-Whitney U, effect sizes, correlations.
+:mod:`metrics.group_stats`
+    The declared design (``metrics/design.toml``): participants as the unit,
+    the mixed model over sessions, Holm and Benjamini-Hochberg corrections,
+    metrics left out of the tests with the reason.
+:mod:`metrics.agreement`
+    ICC(2,1), Bland-Altman, ROC and AUC with Newcombe's interval.
+:mod:`metrics.participants`
+    The participants table, with sessions (index or date) and files.
+:mod:`metrics.progress`
+    Learning curves per participant against the experts' band.
+:mod:`metrics.exports` and :mod:`metrics.provenance`
+    Visibility NRRD on the case grid, removals Parquet, statistics CSV, each
+    with the bonesim version, hashes, seed and command line.
 :mod:`metrics.report`
     A scored cohort (:class:`metrics.cohort_result.CohortResult`) as one
-    self-contained HTML page: plots by group, against instructor scores,
-    force against distance, visibility views, every metric's statistics.
+    self-contained HTML page opening with the design and provenance
+    (:mod:`metrics.report_design`): plots by group, against instructor
+    scores, force against distance, visibility views, every metric's
+    statistics, the Naive Bayes ROC, test-retest agreement.
 :mod:`metrics.run`
     Every metric of one run (``bonesim metrics run``).
 :mod:`metrics.cohort`

@@ -14,19 +14,22 @@ import numpy as np
 from bonesim.io.anatomy import clinical_name
 
 __all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits",
-           "cmd_metrics_view"]
+           "cmd_metrics_view", "cmd_metrics_progress", "cmd_metrics_export"]
 
 
 def cmd_cohort_synth(args) -> int:
     """``bonesim cohort synth``: record a synthetic cohort (:mod:`metrics.synth`)."""
     from bonesim.errors import BonesimError
     from bonesim.progress import ProgressBar
-    from metrics.synth import PARTICIPANTS_CSV, synth_cohort
+    from metrics.synth import BEHAVIOURS_FILE, PARTICIPANTS_CSV, synth_cohort
 
-    bar = ProgressBar(max(args.experts + args.novices, 1), "recording")
+    sessions = getattr(args, "sessions", 1)
+    bar = ProgressBar(max((args.experts + args.novices) * max(sessions, 1), 1), "recording")
     try:
         paths = synth_cohort(args.out, args.experts, args.novices, seed=args.seed,
-                             case=args.case, duration_s=args.duration,
+                             case=args.case, duration_s=args.duration, sessions=sessions,
+                             behaviours=getattr(args, "behaviours", None)
+                             or BEHAVIOURS_FILE,
                              progress=lambda done, _n: bar.update(done))
     except ValueError as exc:
         raise BonesimError(f"cohort synth: {exc}") from None
@@ -38,8 +41,9 @@ def cmd_cohort_synth(args) -> int:
         print(json.dumps(out, indent=2))
     else:
         print(f"{len(paths)} synthetic runs ({args.experts} expert-like, {args.novices} "
-              f"novice-like, {args.duration:g} s each) in {paths[0].parent}; participants "
-              f"in {out['participants']}", file=sys.stdout)
+              f"novice-like, {sessions} session(s) each, {args.duration:g} s per run, seed "
+              f"{args.seed}) in {paths[0].parent}; participants in {out['participants']}",
+              file=sys.stdout)
     return 0
 
 
@@ -193,41 +197,111 @@ def cmd_metrics_cohort(args) -> int:
     bar = ProgressBar(n, "scoring")
     res = score_cohort(args.sessions, args.participants, scheduler=args.scheduler,
                        workers=args.workers, structure=args.structure,
-                       progress=lambda done, _n: bar.update(done))
+                       progress=lambda done, _n: bar.update(done),
+                       design=getattr(args, "design", None),
+                       command=_command(args))
     bar.close()
     for line in res.errors:
         print(line, file=sys.stderr)
     out = {}
     if args.out:
         out["table"] = str(write_table(res, args.out))
+    if getattr(args, "exports", None):
+        from metrics.exports import export_cohort
+
+        out["exports"] = export_cohort(res, args.exports)
     if args.report:
         out["report"] = _write_report(res, args.report)
     tb, st = res.table, res.stats
-    sig = st[st["p_t"] < 0.05] if len(st) else st
+    sig = st[st["significant"].astype(bool)] if len(st) else st
     summary = {"runs": int(len(tb)), "scored": int((tb["error"] == "").sum()),
                "failed": int((tb["error"] != "").sum()), "errors": list(res.errors),
                "case": res.meta.get("case"), "scheduler": res.meta["scheduler"],
                "workers": res.meta["workers"], "wall_s": round(res.meta["wall_s"], 2),
-               "significant": [{"metric": r.metric, "expert_mean": _num(r.expert_mean),
+               "unit": res.design.get("unit"), "stats_s": round(res.meta["stats_s"], 3),
+               "significant": [{"metric": r.metric, "family": r.family,
+                                "expert_mean": _num(r.expert_mean),
                                 "novice_mean": _num(r.novice_mean), "p_t": _num(r.p_t),
-                                "d": _num(r.d)} for r in sig.itertuples()], **out}
+                                "p_adjusted": _num(r.p_t_adj), "correction": r.correction,
+                                "d": _num(r.d), "p_mixed_adjusted": _num(r.p_mixed_adj)}
+                               for r in sig.itertuples()],
+               "excluded": dict(res.excluded),
+               "naive_bayes_auc": {k: {"auc": v["auc"], "ci": v["auc_ci"]}
+                                   for k, v in res.classifiers.items()}, **out}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
     print(f"{summary['scored']} of {summary['runs']} runs scored ({summary['failed']} "
           f"failed) on case {summary['case']}, {res.meta['scheduler']} with "
           f"{res.meta['workers']} worker(s), {summary['wall_s']:.1f} s")
+    unit = f"per {summary['unit']}" if summary["unit"] else ""
     if summary["significant"]:
-        print("metrics that differ between experts and novices (t-test p < 0.05):")
+        print(f"metrics that differ between experts and novices ({unit} t-test, "
+              "corrected p < 0.05):")
         for r in summary["significant"]:
-            print(f"  {r['metric']}: expert {_fmt(r['expert_mean'])}, novice "
-                  f"{_fmt(r['novice_mean'])}, p {_fmt(r['p_t'], digits=2)}, d "
-                  f"{_fmt(r['d'])}")
+            print(f"  {r['metric']} ({r['family']}): expert {_fmt(r['expert_mean'])}, novice "
+                  f"{_fmt(r['novice_mean'])}, p {_fmt(r['p_t'], digits=2)}, {r['correction']} "
+                  f"{_fmt(r['p_adjusted'], digits=2)}, d {_fmt(r['d'])}")
     else:
-        print("no metric differs between experts and novices at p < 0.05")
+        print(f"no metric differs between experts and novices ({unit}, corrected p < 0.05)")
+    for k, v in summary["naive_bayes_auc"].items():
+        print(f"{k}: leave-one-participant-out AUC {_fmt(v['auc'])} "
+              f"[{_fmt(v['ci'][0])}, {_fmt(v['ci'][1])}]")
     for k in ("table", "report"):
         if k in out:
             print(out[k] if k == "report" else f"table: {out[k]}")
+    if "exports" in out:
+        print("exports: " + ", ".join(out["exports"].values()))
+    return 0
+
+
+def _command(args) -> str:
+    """The command line that ran, for the provenance."""
+    import shlex
+
+    return shlex.join(["bonesim", *getattr(args, "argv", sys.argv[1:])])
+
+
+def cmd_metrics_progress(args) -> int:
+    """``bonesim metrics progress``: learning curves (:mod:`metrics.progress`)."""
+    from bonesim.errors import BonesimError
+    from bonesim.progress import ProgressBar
+    from metrics.cohort import find_sessions, metric_columns, score_cohort
+    from metrics.progress import draw_progress
+
+    bar = ProgressBar(len(find_sessions(args.sessions)), "scoring")
+    res = score_cohort(args.sessions, args.participants, workers=args.workers,
+                       progress=lambda done, _n: bar.update(done))
+    bar.close()
+    for line in res.errors:
+        print(line, file=sys.stderr)
+    try:
+        out = draw_progress(res.table, args.out, args.metric, metric_columns())
+    except ValueError as exc:
+        raise BonesimError(f"metrics progress: {exc}") from None
+    if args.json:
+        print(json.dumps(out, indent=2, default=_num))
+        return 0
+    print(f"wrote {out['png']}")
+    for m, imp in out["metrics"].items():
+        print(f"  {m}: mean change per session (oriented, + is better): novices "
+              f"{_fmt(imp['novice'])}, experts {_fmt(imp['expert'])}; "
+              f"{_fmt(imp['improving'] * 100 if imp['improving'] == imp['improving'] else None)}"
+              " % of novices improve")
+    return 0
+
+
+def cmd_metrics_export(args) -> int:
+    """``bonesim metrics export``: a run's visibility NRRD and removals
+    Parquet with provenance (:func:`metrics.exports.export_run`)."""
+    from metrics.exports import export_run
+
+    out = export_run(args.file, args.out, participants=args.participants,
+                     command=_command(args))
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"visibility: {out['visibility']}\nremovals: {out['removals']}")
     return 0
 
 

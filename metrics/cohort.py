@@ -1,35 +1,48 @@
 """Score a cohort of recorded runs on a Dask cluster (``bonesim metrics cohort``).
 
 A cohort is a folder (or glob, or list) of session files and a participants
-table (``id, group, instructor_score``). :func:`score_cohort` fills a
+table (``id, group, instructor_score`` and optionally ``session`` and
+``file``: :mod:`metrics.participants`). :func:`score_cohort` fills a
 :class:`metrics.cohort_result.CohortResult`:
 
 Per run, on the cluster
     One Dask task per file reads the session and computes what needs only
     that run: the visible fraction (:func:`metrics.visibility.visibility`),
     the force table near ``structure`` (:func:`metrics.forces.force_vs_distance`)
-    with its mean force [N] and speed [rpm], the share of each skeletonized
+    with its mean force [N], spindle speed [rpm] and tool speed [mm/s], the
+    same within the design's ``close_mm``, the share of its rows at the
+    force clamp (``clamped_share``), the share of each skeletonized
     structure's surface under less than 1 mm of bone
     (:func:`metrics.exposure.exposure`), the conduct scalars
     (:func:`metrics.conduct.conduct`), and the drilled set (the voxels
-    removed in the run's final epoch) the central steps need. A task never
+    removed in the run's final epoch) the central steps need, and the
+    columns of every per-run row provider (:data:`ROW_PROVIDERS`). A task never
     raises: a file that cannot be read, or is of another case than the
     cohort's (the majority case of the files), gives its one-line message
     instead. Each worker keeps the
     models it rebuilt (per recorded case, burrs and model hash), so a
     cohort of one case rebuilds them once per worker.
 Centrally, in the client
-    The Naive Bayes score of every run with a group, leave one participant
-    out (:func:`metrics.regions.loo_scores`); the final product of every run
+    Each run's session (:func:`metrics.participants.assign_sessions`). The
+    Naive Bayes score of every run with a group, leave one participant out
+    (:func:`metrics.regions.loo_scores`), summed and per voxel (over the
+    region's voxels), and of every run without one by a model of all the
+    labelled runs; the final product of every run
     against the *other* participants' expert runs (mean Dice and mean
     symmetric distance [mm], :func:`metrics.final_product.compare`); the
     exceedances of every run against limits learned from the *other*
-    participants' expert force tables (:func:`metrics.forces.learn_limits`);
-    and the group statistics of every metric (:func:`metrics.validity.compare_groups`,
-    :func:`metrics.validity.correlate` against the instructor scores).
+    participants' expert force tables (:func:`metrics.forces.learn_limits`,
+    with the experts' closest approach limiting the bins they never reached);
+    the group statistics of every metric per participant with the mixed
+    model and corrections (:func:`metrics.group_stats.group_statistics`); the
+    ROC of the Naive Bayes scores; test-retest agreement of the primary
+    metrics (ICC, Bland-Altman); the provenance.
 
-Runs whose participant is not in the table are scored where they can be
-(group empty) and left out of everything that needs a group; participants
+Shed specks (removals of specks shed as dust with a cut-off fragment) are
+left out of every per-run metric: visibility, forces, volume, regions.
+
+Runs whose participant is not in the table are scored against the whole
+labelled set (group empty) and left out of the group statistics; participants
 of the table with no run, and salvaged (damaged) files, each give one line in
 ``errors`` too. A salvaged file is scored on its readable part (its row has
 no ``error``; ``meta["damaged"]`` lists it); one with no readable sample
@@ -50,10 +63,11 @@ from pathlib import Path
 import numpy as np
 
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS, CohortResult
+from metrics.participants import assign_sessions, read_participants
 from metrics.run_identity import distinct_runs
 
-__all__ = ["read_participants", "find_sessions", "score_file", "score_cohort",
-           "write_table"]
+__all__ = ["ROW_PROVIDERS", "read_participants", "find_sessions", "score_file",
+           "score_cohort", "write_table", "metric_columns"]
 
 #: Remaining bone [mm] of the exposure columns.
 EXPOSURE_MM = 1.0
@@ -61,79 +75,28 @@ EXPOSURE_MM = 1.0
 EXPOSURE_STRUCTURES = ("facial_nerve", "sigmoid_sinus", "middle_fossa_dura")
 #: Burr gap [mm] of ``time_near_critical_1mm_s``.
 NEAR_MM = 1.0
+#: A force row within this share of the clamp is "at the clamp".
+CLAMP_RTOL = 1e-3
 
-_COLUMNS = ("id", "group", "instructor_score")
+#: Per-run row providers: extra columns joined to each run's row. An entry
+#: is ``(module, function, columns)``: ``module.function(session, models,
+#: path) -> dict`` runs in the worker after the built-in metrics (``models``:
+#: one engine model per burr) and returns a value per column; ``columns``
+#: maps each column to ``(unit, better)`` as :data:`METRIC_COLUMNS` does.
+#: Its columns follow the built-in ones in the table and are tested like them.
+#: A provider that raises leaves its columns NaN and gives one error line.
+ROW_PROVIDERS: tuple = ()
 
 
-# ----------------------------------------------------------------- inputs
-def read_participants(path) -> dict:
-    """Read and check a participants table.
-
-    Parameters
-    ----------
-    path : path
-        A CSV with a header row naming at least ``id``, ``group`` (``expert``
-        or ``novice``, any case) and ``instructor_score`` (a number, or empty).
-
-    Returns
-    -------
-    dict
-        ``id -> {"group": str, "instructor_score": float}`` (NaN for an empty
-        score), in file order.
-
-    Raises
-    ------
-    BonesimError
-        Naming the file, line and column: a missing file or column, an empty
-        or repeated id, a group other than expert/novice, a score that is not
-        a number.
-    """
-    from bonesim.errors import BonesimError
-
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise BonesimError(f"{path}: cannot read the participants table "
-                           f"({getattr(exc, 'strerror', None) or exc})") from None
-    out = {}
-    rd = csv.reader(io.StringIO(text, newline=""))
-    head = next(rd, None)
-    if head is None:
-        raise BonesimError(f"{path}: line 1: empty file; expected the columns "
-                           f"{', '.join(_COLUMNS)}")
-    head = [h.strip().lower() for h in head]
-    for c in _COLUMNS:
-        if c not in head:
-            raise BonesimError(f"{path}: line 1: column {c!r} is missing (the header "
-                               f"names {', '.join(repr(h) for h in head)})")
-    col = {c: head.index(c) for c in _COLUMNS}
-    for row in rd:
-        line = rd.line_num
-        if not any(x.strip() for x in row):
-            continue
-        cell = {c: (row[k].strip() if k < len(row) else "") for c, k in col.items()}
-        if not cell["id"]:
-            raise BonesimError(f"{path}: line {line}, column 'id': empty participant id")
-        if cell["id"] in out:
-            raise BonesimError(f"{path}: line {line}, column 'id': participant "
-                               f"{cell['id']!r} is listed twice")
-        g = cell["group"].lower()
-        if g not in ("expert", "novice"):
-            raise BonesimError(f"{path}: line {line}, column 'group': {cell['group']!r} "
-                               "is not 'expert' or 'novice'")
-        s = cell["instructor_score"]
-        try:
-            score = float(s) if s else math.nan
-        except ValueError:
-            score = None
-        if score is None or math.isinf(score):
-            raise BonesimError(f"{path}: line {line}, column 'instructor_score': "
-                               f"{s!r} is not a number")
-        out[cell["id"]] = {"group": g, "instructor_score": score}
+def metric_columns(providers=None) -> dict:
+    """The built-in metric columns and every provider's, in table order."""
+    out = dict(METRIC_COLUMNS)
+    for _mod, _fn, cols in (ROW_PROVIDERS if providers is None else providers):
+        out.update(cols)
     return out
 
 
+# ----------------------------------------------------------------- inputs
 def find_sessions(sessions) -> list:
     """The session files of a cohort, sorted by file name.
 
@@ -210,7 +173,8 @@ def _one_line(exc) -> str:
     return msg if type(exc).__name__ == "BonesimError" else f"{type(exc).__name__}: {msg}"
 
 
-def score_file(path, structure: str = "chorda_tympani", case: str | None = None) -> dict:
+def score_file(path, structure: str = "chorda_tympani", case: str | None = None,
+               close_mm: float = 8.0, providers=None) -> dict:
     """The per-run part of the cohort's metrics for one file (one Dask task).
 
     Parameters
@@ -221,6 +185,10 @@ def score_file(path, structure: str = "chorda_tympani", case: str | None = None)
         Structure of the force table.
     case : str, optional
         The cohort's case; a file of another case is refused.
+    close_mm : float
+        Distance [mm] of the ``*_close_*`` columns.
+    providers : sequence, optional
+        Row providers (default :data:`ROW_PROVIDERS`).
 
     Returns
     -------
@@ -231,12 +199,15 @@ def score_file(path, structure: str = "chorda_tympani", case: str | None = None)
         :data:`metrics.cohort_result.METRIC_COLUMNS`), ``force_table``
         (:class:`metrics.forces.ForceTable` or None) and ``drilled`` (flat
         voxel indices removed in the final epoch: the Naive Bayes region and
-        the final product's set); for one that did not, ``error`` (one
+        the final product's set), ``start_time``, ``header`` (case and burrs
+        with their hashes, bonesim version), ``extra`` (the providers'
+        columns) and ``warnings``; for one that did not, ``error`` (one
         line). Never raises.
     """
     path = Path(path)
     try:
-        return _score_file(path, structure, case)
+        return _score_file(path, structure, case, close_mm,
+                           ROW_PROVIDERS if providers is None else providers)
     except Exception as exc:                # one line per failed run, never a crash
         msg = _one_line(exc)
         if str(path) not in msg:
@@ -244,7 +215,7 @@ def score_file(path, structure: str = "chorda_tympani", case: str | None = None)
         return {"file": str(path), "error": msg}
 
 
-def _score_file(path, structure, case):
+def _score_file(path, structure, case, close_mm, providers):
     from bonesim.engine import events
     from bonesim.session.reader import damage_notice, read_session
     from metrics.conduct import conduct
@@ -270,13 +241,24 @@ def _score_file(path, structure, case):
     m["duration_s"] = float(t[-1] - t[0]) if len(t) else 0.0
     # drilled removals: specks shed as dust with a cut-off fragment are not
     m["removed_voxels"] = float(np.count_nonzero(events.drilled(s.tissue)))
-    m["visible_fraction"] = float(visibility(s, models=models).fraction)
+    # visible share of the drilled removals (shed specks left out, as everywhere)
+    vis = visibility(s, models=models)
+    drilled = events.drilled(s.tissue)[np.asarray(s.tissue["kind"]) == events.REMOVED]
+    judged = vis.visible[drilled]
+    m["visible_fraction"] = float(np.mean(judged == 1)) if len(judged) else nan
     table = None
     if structure in names:
         table = force_vs_distance(s, structure, model=model)
         if len(table):
             m["force_near_n"] = float(np.mean(table.force_n))
             m["speed_near_rpm"] = float(np.mean(table.speed_rpm))
+            m["tool_speed_near_mm_s"] = float(np.mean(table.tool_mm_s))
+            clamp = min(float(x.max_force_n) for x in models)
+            m["clamped_share"] = float(np.mean(table.force_n >= clamp * (1 - CLAMP_RTOL)))
+            close = table.distance_mm <= close_mm
+            if close.any():
+                m["force_close_n"] = float(np.mean(table.force_n[close]))
+                m["tool_speed_close_mm_s"] = float(np.mean(table.tool_mm_s[close]))
     wanted = [n for n in EXPOSURE_STRUCTURES if n in names]
     for n, e in (exposure(s, wanted, model=model) if wanted else {}).items():
         k = list(e.thresholds_mm).index(EXPOSURE_MM) if EXPOSURE_MM in e.thresholds_mm \
@@ -296,11 +278,23 @@ def _score_file(path, structure, case):
         key = f"< {NEAR_MM:g} mm"
         m["time_near_critical_1mm_s"] = float(sum(v[key] for v in c["time_near_s"].values()))
     m["injuries"] = float(sum(v["injuries"] for v in c["contacts"].values()))
+    extra, warn = {}, []
+    for mod, fn, cols in providers:
+        extra.update({k: nan for k in cols})
+        try:
+            import importlib
+
+            got = getattr(importlib.import_module(mod), fn)(s, models, path)
+            extra.update({k: float(got[k]) for k in cols if k in got})
+        except Exception as exc:            # its columns stay NaN; say so
+            warn.append(f"{path}: {mod}.{fn}: {_one_line(exc)}")
     return {"file": str(path), "participant": str(h.get("participant", "") or ""),
             "case": mine, "damage": damage_notice(s), "shape": tuple(h["shape"]),
-            "notes": str(h.get("notes", "") or ""),
+            "notes": str(h.get("notes", "") or ""), "start_time": str(h.get("start_time", "")),
+            "header": {"bonesim_version": h.get("bonesim_version"), "case": h["case"],
+                       "burrs": h["burrs"]},
             "voxel_mm": float(h["voxel_mm"]), "metrics": m, "force_table": table,
-            "drilled": drilled_set(s)}
+            "drilled": drilled_set(s), "extra": extra, "warnings": warn}
 
 
 # --------------------------------------------------------------- cluster
@@ -329,13 +323,13 @@ def _client(scheduler, workers):
         raise
 
 
-def _run_tasks(paths, structure, case, scheduler, workers, progress):
+def _run_tasks(paths, structure, case, scheduler, workers, progress, close_mm, providers):
     from distributed import as_completed
 
     client, cluster, label = _client(scheduler, workers)
     try:
-        futs = [client.submit(score_file, str(p), structure, case, pure=False)
-                for p in paths]
+        futs = [client.submit(score_file, str(p), structure, case, close_mm, providers,
+                              pure=False) for p in paths]
         where = {f.key: q for q, f in enumerate(futs)}
         out = [None] * len(futs)
         n_workers = len(client.scheduler_info().get("workers", {}))
@@ -362,7 +356,9 @@ def _nanmean(v) -> float:
 
 
 def _naive_bayes(runs, table, errors, trained_on):
-    from metrics.regions import RegionRun, loo_scores
+    """Leave-one-participant-out scores of the labelled runs; the others are
+    scored by a model of every labelled run. Summed [nats] and per voxel."""
+    from metrics.regions import RegionRun, fit_regions, loo_scores
 
     idx = [q for q, r in enumerate(runs) if r.get("group")]
     if not idx:
@@ -374,9 +370,22 @@ def _naive_bayes(runs, table, errors, trained_on):
     except ValueError as exc:
         errors.append(f"naive bayes: not scored ({exc})")
         return
+
+    def put(q, score):
+        n = len(runs[q]["drilled"])
+        table[q]["nb_score"] = float(score)
+        table[q]["nb_score_per_voxel"] = float(score) / n if n else math.nan
+
     for k, q in enumerate(idx):
-        table[q]["nb_score"] = float(loo.scores[k])
+        put(q, loo.scores[k])
         trained_on[runs[q]["file"]] = [runs[idx[j]]["file"] for j in loo.trained_on[k]]
+    others = [q for q, r in enumerate(runs) if "error" not in r and not r.get("group")]
+    if others:
+        model = fit_regions(rr)
+        for q in others:
+            if tuple(runs[q]["shape"]) == model.shape:
+                put(q, model.score(runs[q]["drilled"]))
+                trained_on[runs[q]["file"]] = [runs[j]["file"] for j in idx]
 
 
 def _final_product(runs, table):
@@ -393,8 +402,11 @@ def _final_product(runs, table):
             table[q]["final_mean_mm"] = _nanmean([x["mean_mm"] for x in res])
 
 
-def _exceedances(runs, table, errors):
-    from metrics.forces import exceedances, learn_limits
+def _exceedances(runs, table, errors, close_mm, found):
+    """Exceedances of every run against limits of the *other* participants'
+    expert runs; the bins without a force limit are limited by the experts'
+    closest approach."""
+    from metrics.forces import closest_approach, exceedances, learn_limits
 
     experts = [q for q, r in enumerate(runs)
                if r.get("group") == "expert" and r.get("force_table") is not None]
@@ -406,60 +418,67 @@ def _exceedances(runs, table, errors):
         if not others:
             continue
         if others not in cache:
+            tabs = [runs[e]["force_table"] for e in others]
             try:
-                cache[others] = learn_limits([runs[e]["force_table"] for e in others])
+                cache[others] = (learn_limits(tabs), closest_approach(tabs))
             except ValueError as exc:
                 cache[others] = None
                 errors.append(f"exceedances: no limits without {r['participant']!r} ({exc})")
         if cache[others] is not None:
-            table[q]["exceedances"] = float(len(exceedances(r["force_table"], cache[others])))
+            lim, closest = cache[others]
+            ex = exceedances(r["force_table"], lim, closest_mm=closest)
+            found[r["file"]] = ex
+            table[q]["exceedances"] = float(len(ex))
+            table[q]["exceedances_close"] = float(np.count_nonzero(ex.distance_mm <= close_mm))
 
 
-def _stats(df):
-    import pandas as pd
+def _classifiers(df) -> dict:
+    """ROC of the Naive Bayes scores (already leave-one-participant-out) on
+    the participants' means."""
+    from metrics.agreement import roc_auc
+    from metrics.group_stats import participant_means
 
-    from metrics.validity import compare_groups, correlate
+    out = {}
+    for m in ("nb_score", "nb_score_per_voxel"):
+        pm = participant_means(df, m)
+        e = (pm["group"] == "expert").to_numpy()
+        if e.sum() and (~e).sum():
+            r = roc_auc(pm["value"].to_numpy(float), e)
+            r["unit"] = "participant (mean of their runs)"
+            r["validation"] = "leave one participant out"
+            out[m] = r
+    return out
 
-    rows = []
-    g = df["group"]
-    score = df["instructor_score"].to_numpy(float)
-    for name, (unit, better) in METRIC_COLUMNS.items():
-        v = df[name].to_numpy(float)
-        a = v[(g == "expert").to_numpy() & np.isfinite(v)]
-        b = v[(g == "novice").to_numpy() & np.isfinite(v)]
-        if len(a) < 2 or len(b) < 2:
+
+def _agreement(df, metrics) -> dict:
+    """Test-retest of ``metrics``: each participant's first against last session."""
+    from metrics.agreement import bland_altman, icc
+
+    out = {}
+    d = df[df["group"].isin(["expert", "novice"]) & np.isfinite(df["session"].astype(float))]
+    for m in metrics:
+        if m not in d:
             continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                r = compare_groups(a, b)
-            except ValueError:
-                continue
-            row = {"metric": name, "unit": unit, "better": better}
-            for grp in ("expert", "novice"):
-                for k in ("n", "mean", "sd"):
-                    row[f"{grp}_{k}"] = r[grp][k]
-            row.update(t=r["t"], p_t=r["p_t"], u=r["u"], p_u=r["p_u"],
-                       u_method=r["u_method"], d=r["d"], d_lo=r["d_ci"][0],
-                       d_hi=r["d_ci"][1])
-            ok = np.isfinite(v) & np.isfinite(score) & g.isin(["expert", "novice"]).to_numpy()
-            c = None
-            if ok.sum() >= 3:
-                try:
-                    c = correlate(v[ok], score[ok])
-                except ValueError:
-                    c = None
-            for k in ("rho", "p_rho", "r", "p_r"):
-                row[k] = c[k] if c else math.nan
-        rows.append(row)
-    cols = ["metric", "unit", "better", "expert_n", "expert_mean", "expert_sd", "novice_n",
-            "novice_mean", "novice_sd", "t", "p_t", "u", "p_u", "u_method", "d", "d_lo",
-            "d_hi", "rho", "p_rho", "r", "p_r"]
-    return pd.DataFrame(rows, columns=cols)
+        x = d[np.isfinite(d[m].astype(float))].sort_values("session")
+        g = x.groupby("participant")
+        pairs = g[m].agg(["first", "last", "size"])
+        pairs = pairs[pairs["size"] >= 2]
+        if len(pairs) < 3:
+            continue
+        a, b = pairs["first"].to_numpy(float), pairs["last"].to_numpy(float)
+        rec = {"participants": int(len(pairs)), "sessions": "first and last"}
+        try:
+            rec["icc"] = icc(np.column_stack([a, b]))
+        except ValueError as exc:
+            rec["icc"] = {"note": str(exc)}
+        rec["bland_altman"] = bland_altman(b, a)
+        out[m] = rec
+    return out
 
 
 def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
-                 structure: str = "chorda_tympani", progress=None) -> CohortResult:
+                 structure: str = "chorda_tympani", progress=None, design=None,
+                 command: str | None = None) -> CohortResult:
     """Score every run of a cohort (module docstring).
 
     Parameters
@@ -467,7 +486,7 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     sessions : path, str or sequence of path
         A folder (all its ``*.h5``), a glob pattern, or the session files.
     participants : path
-        The participants table (:func:`read_participants`).
+        The participants table (:func:`metrics.participants.read_participants`).
     scheduler : str, optional
         Address of a running Dask scheduler to use (left running). Default:
         a ``LocalCluster`` of ``workers`` processes on 127.0.0.1, no
@@ -478,72 +497,92 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         Structure of the force tables and ``force_near_n``.
     progress : callable, optional
         Called with ``(done, total)`` as the per-run tasks finish.
+    design : path or metrics.group_stats.Design, optional
+        The statistical design (default ``metrics/design.toml``).
+    command : str, optional
+        The command line, for the provenance (default ``sys.argv``).
 
     Returns
     -------
     CohortResult
         As :mod:`metrics.cohort_result` documents it; ``meta`` also holds
         ``case`` (the cohort's), ``damaged`` (files salvaged and scored
-        on their readable part) and ``central_s`` (wall time of the steps
-        after the per-run tasks [s]).
+        on their readable part), ``central_s`` (wall time of the steps
+        after the per-run tasks [s]) and ``stats_s`` (of the statistics).
 
     Raises
     ------
     BonesimError
-        On a bad participants table, no session files, or ``workers < 1``.
+        On a bad participants table or design, no session files, or
+        ``workers < 1``.
     """
     import pandas as pd
 
     from bonesim.errors import BonesimError
+    from metrics.group_stats import Design, group_statistics, load_design
+    from metrics.provenance import provenance
 
     t0 = time.perf_counter()
     if scheduler is None and int(workers) < 1:
         raise BonesimError(f"workers must be at least 1, got {workers}")
+    design = design if isinstance(design, Design) else load_design(design)
     people = read_participants(participants)
     paths, repeated, copies = distinct_runs(find_sessions(sessions))   # a copy counts once
     cases = Counter(c for c in map(_peek_case, paths) if c is not None)
     case = min(cases, key=lambda c: (-cases[c], c)) if cases else None
-    runs, label, n_workers = _run_tasks(paths, structure, case, scheduler, workers, progress)
+    providers = tuple(ROW_PROVIDERS)
+    runs, label, n_workers = _run_tasks(paths, structure, case, scheduler, workers, progress,
+                                        design.close_mm, providers)
     t_tasks = time.perf_counter()
+    columns = metric_columns(providers)
 
     errors = list(repeated)
     table = []
     seen = set()
+    where, bad = assign_sessions(people, runs, str(participants))
     for r in runs:
-        row = {"file": r["file"], "participant": None, "group": None,
+        row = {"file": r["file"], "participant": None, "group": None, "session": math.nan,
                "instructor_score": math.nan, "case": None, "error": ""}
-        row.update({k: math.nan for k in METRIC_COLUMNS})
+        row.update({k: math.nan for k in columns})
         if "error" in r:
             row["error"] = r["error"]
             errors.append(r["error"])
         else:
             p = r["participant"]
-            row.update(participant=p, case=r["case"], **r["metrics"])
+            row.update(participant=p, case=r["case"], **r["metrics"], **r["extra"])
+            errors.extend(r["warnings"])
             if r["damage"]:
                 errors.append(r["damage"])
             if p in people:
                 seen.add(p)
                 r["group"] = people[p]["group"]
-                row.update(group=r["group"], instructor_score=people[p]["instructor_score"])
+                row.update(group=r["group"], **where[r["file"]])
             else:
                 r["group"] = None
-                errors.append(f"{r['file']}: participant {p!r} is not in {participants}")
+                errors.append(f"{r['file']}: participant {p!r} is not in {participants}; "
+                              "scored against every labelled run, left out of the statistics")
         table.append(row)
+    errors.extend(bad)
     for p in people:
         if p not in seen:
             errors.append(f"{participants}: participant {p!r} has no run")
 
-    trained_on = {}
+    trained_on, found = {}, {}
     _naive_bayes(runs, table, errors, trained_on)
     _final_product(runs, table)
-    _exceedances(runs, table, errors)
+    _exceedances(runs, table, errors, design.close_mm, found)
 
-    df = pd.DataFrame(table, columns=[*RUN_COLUMNS, *METRIC_COLUMNS])
-    for k in METRIC_COLUMNS:
+    df = pd.DataFrame(table, columns=[*RUN_COLUMNS, *columns])
+    for k in (*columns, "session", "instructor_score"):
         df[k] = df[k].astype(float)
-    df["instructor_score"] = df["instructor_score"].astype(float)
+    t_stats = time.perf_counter()
+    stats, excluded = group_statistics(df, columns, design)
+    classifiers = _classifiers(df)
+    agreement = _agreement(df, design.primary)
+    stats_s = time.perf_counter() - t_stats
+    headers = [r["header"] for r in runs if "header" in r]
     return CohortResult(
-        table=df, stats=_stats(df),
+        table=df, stats=stats,
         force_tables={r["file"]: r["force_table"] for r in runs
                       if r.get("force_table") is not None},
         nb_trained_on=trained_on, structure=structure, errors=errors,
@@ -553,7 +592,20 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
               "damaged": [r["file"] for r in runs if r.get("damage")],
               # the report flags synthetic test data (bonesim cohort synth says so)
               "synthetic": any("synthetic" in r.get("notes", "").lower() for r in runs),
-              "central_s": time.perf_counter() - t_tasks})
+              "participants": len(people),
+              "sessions_per_participant": _sessions_summary(df),
+              "central_s": time.perf_counter() - t_tasks, "stats_s": stats_s},
+        excluded=excluded, design=design.summary(), classifiers=classifiers,
+        agreement=agreement, exceedances=found,
+        provenance=provenance(headers, participants, command=command))
+
+
+def _sessions_summary(df) -> dict:
+    """Runs per labelled participant: min, max, and how many participants."""
+    d = df[df["group"].isin(["expert", "novice"])]
+    n = d.groupby("participant").size()
+    return {"min": int(n.min()) if len(n) else 0, "max": int(n.max()) if len(n) else 0,
+            "participants": int(len(n))}
 
 
 def write_table(result: CohortResult, path) -> Path:

@@ -30,6 +30,15 @@ Force [N]
     not a force the user pushes against on average).
 Speed [rpm]
     The spindle speed of the step (``speed_rpm``).
+Tool speed [mm/s]
+    How fast the burr's centre moved at the step (``tool_mm_s``): the norm of
+    :func:`numpy.gradient` of the sampled positions over the sample times
+    (central differences). The thesis' velocities near a structure; the
+    spindle speed is set by the burr, this one by the hand.
+Shed specks
+    Removals marked shed (specks shed as dust with a cut-off fragment,
+    :data:`bonesim.engine.events.REMOVED_SHED`) were not drilled and give no
+    row, as in every cohort metric (visibility, volume, Naive Bayes).
 Bins
     Bin ``b`` holds distances in ``[b w, (b + 1) w)`` for width ``w``
     (default :data:`BIN_MM`); the last bin also holds ``max_distance_mm``.
@@ -44,7 +53,11 @@ Limits
     rows (force and speed separately; linear interpolation): a high
     percentile rather than mean + k sd because forces are non-negative and
     skewed. Bins with fewer than :data:`MIN_LIMIT_SAMPLES` expert rows have no
-    limit (NaN) and flag nothing.
+    force limit (NaN); there the closest approach of the expert rows
+    (:func:`closest_approach`) is the limit: a row closer to the structure
+    than every expert ever came, in a bin without a force limit, is an
+    exceedance of quantity ``"approach_mm"`` (value its distance, limit the
+    closest expert distance, excess how much closer).
 Exceedance
     A row whose force (speed) is above its bin's limit by more than
     :data:`AT_LIMIT_RTOL` of it (a force clamped at the device's maximum
@@ -75,7 +88,7 @@ __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "CONFIDENCE", "FORC
            "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "AT_LIMIT_RTOL", "QUANTITIES",
            "ForceTable", "BinStats", "Limits", "Exceedances", "bin_edges", "bin_index",
            "structure_label", "force_vs_distance", "group_bins", "learn_limits",
-           "exceedances", "expert_limits"]
+           "exceedances", "expert_limits", "tool_speed", "closest_approach"]
 
 #: Confidence level of the per-bin intervals.
 CONFIDENCE = 0.95
@@ -114,6 +127,8 @@ class ForceTable:
         Key of :data:`FORCES`.
     group, participant, case, name : str
         From the session header (``name``: the file).
+    tool_mm_s : (n,) float64, optional
+        Burr centre's speed at the step [mm/s] (NaN where not measured).
     """
 
     t_s: np.ndarray
@@ -130,9 +145,12 @@ class ForceTable:
     participant: str = ""
     case: str = ""
     name: str = ""
+    tool_mm_s: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.t_s)
+        if self.tool_mm_s is None:
+            object.__setattr__(self, "tool_mm_s", np.full(n, np.nan))
         for col in ("voxel_mm", "pos_mm"):
             a = np.asarray(getattr(self, col), dtype=np.float64).reshape(-1, 3)
             if len(a) != n:
@@ -140,7 +158,7 @@ class ForceTable:
             object.__setattr__(self, col, a)
         for col, dt in (("t_s", np.float64), ("distance_mm", np.float64),
                         ("force_n", np.float64), ("speed_rpm", np.float64),
-                        ("epoch", np.int32)):
+                        ("epoch", np.int32), ("tool_mm_s", np.float64)):
             a = np.asarray(getattr(self, col), dtype=dt).reshape(-1)
             if len(a) != n:
                 raise ValueError(f"{col} has {len(a)} rows, t_s {n}")
@@ -173,7 +191,7 @@ def _distance_field(session, label: int, model, clearance):
 
 def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
                       max_distance_mm: float = MAX_DISTANCE_MM, force: str = DEFAULT_FORCE,
-                      model=None, clearance=None) -> ForceTable:
+                      model=None, clearance=None, include_shed: bool = False) -> ForceTable:
     """Force and speed at every removal within ``max_distance_mm`` of ``structure``.
 
     Parameters
@@ -192,6 +210,9 @@ def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
         it to score many runs of one case without rebuilding it each time.
     clearance : Clearance, optional
         Distances to use instead of the model's (it must hold the structure).
+    include_shed : bool
+        Keep the removals of shed specks too (default: drilled removals only,
+        module notes).
 
     Returns
     -------
@@ -215,6 +236,10 @@ def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
     label = structure_label(h["structures"], structure, case)
     field = _distance_field(session, label, model, clearance)
     rem = session.removals
+    if not include_shed and "shed" in rem:
+        drop = np.asarray(rem["shed"], bool)
+        rem = {k: (np.asarray(v)[~drop] if np.ndim(v) and len(v) == len(drop) else v)
+               for k, v in rem.items()}
     s = session.samples
     t = s["t_s"]
     idx = np.clip(np.searchsorted(t, rem["t_s"]), 0, max(len(t) - 1, 0))
@@ -232,7 +257,27 @@ def force_vs_distance(session, structure: str = DEFAULT_STRUCTURE, *,
                       force_magnitude(s, force)[idx], s["speed_rpm"][idx], s["epoch"][idx],
                       structure, d_max, force, str(h.get("group", "")).strip().lower(),
                       str(h.get("participant", "")), case,
-                      str(getattr(session, "path", "") or ""))
+                      str(getattr(session, "path", "") or ""), tool_speed(s)[idx])
+
+
+def tool_speed(samples) -> np.ndarray:
+    """Burr centre speed per sample [mm/s] (module notes): ``(n,)`` from
+    ``samples["pos_mm"]`` ``(n, 3)`` [mm] and ``samples["t_s"]`` ``(n,)`` [s];
+    0 for a single sample; repeated times take their first sample's speed."""
+    t = np.asarray(samples["t_s"], np.float64)
+    p = np.asarray(samples["pos_mm"], np.float64).reshape(-1, 3)
+    u, first = np.unique(t, return_index=True)
+    if len(u) < 2:
+        return np.zeros(len(t))
+    v = np.linalg.norm(np.gradient(p[first], u, axis=0), axis=1)
+    return v[np.searchsorted(u, t)] if len(u) < len(t) else v
+
+
+def closest_approach(expert_tables) -> float:
+    """The smallest distance [mm] of any row of ``expert_tables`` (inf
+    without rows): the limit of the bins without a force limit."""
+    d = [tb.distance_mm for tb in expert_tables if len(tb)]
+    return float(np.min(np.concatenate(d))) if d else math.inf
 
 
 def _check_tables(tables, what: str) -> list:
@@ -446,10 +491,13 @@ class Exceedances:
     bin : (m,) int64
         Its distance bin.
     quantity : (m,) str
-        ``"force_n"`` [N] or ``"speed_rpm"`` [rpm] (:data:`QUANTITIES`).
+        ``"force_n"`` [N] or ``"speed_rpm"`` [rpm] (:data:`QUANTITIES`), or
+        ``"approach_mm"`` [mm] (closer than any expert, in a bin without a
+        force limit).
     value, limit, excess : (m,) float64
         What was applied, the bin's limit, and ``value - limit`` (> 0), in
-        the quantity's unit.
+        the quantity's unit; for ``"approach_mm"`` the row's distance, the
+        experts' closest approach and ``limit - value`` (> 0).
     """
 
     t_s: np.ndarray
@@ -467,7 +515,7 @@ class Exceedances:
 
 
 def exceedances(session_or_table, limits: Limits, *, model=None,
-                clearance=None) -> Exceedances:
+                clearance=None, closest_mm: float | None = None) -> Exceedances:
     """Where a run's force or speed exceeded the limits of its distance bin.
 
     Parameters
@@ -478,6 +526,11 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
         ``clearance`` are passed on).
     limits : Limits
         From :func:`learn_limits`.
+    closest_mm : float, optional
+        The experts' closest approach [mm] (:func:`closest_approach` of the
+        tables that trained ``limits``): rows in a bin without a force limit
+        and closer than this are ``"approach_mm"`` exceedances. Default:
+        none are checked.
 
     Returns
     -------
@@ -516,18 +569,31 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
         first[1:] = tb.t_s[rows[1:]] != tb.t_s[rows[:-1]]
         rows = rows[first]
         parts.append((rows, qn, val[rows], lim_row[rows]))
+    if closest_mm is not None and math.isfinite(closest_mm):
+        bare = ~np.isfinite(limit_rows(b, limits.force_n))
+        over = np.flatnonzero(bare & (tb.distance_mm < float(closest_mm)))
+        if len(over):
+            # per step: the closest row
+            order = np.lexsort((tb.distance_mm[over], tb.t_s[over]))
+            rows = over[order]
+            first = np.ones(len(rows), bool)
+            first[1:] = tb.t_s[rows[1:]] != tb.t_s[rows[:-1]]
+            rows = rows[first]
+            parts.append((rows, "approach_mm", tb.distance_mm[rows],
+                          np.full(len(rows), float(closest_mm))))
     if not parts:
         z = np.zeros(0)
         return Exceedances(z, np.zeros((0, 3)), np.zeros((0, 3)), z, np.zeros(0, np.int64),
-                           np.zeros(0, "<U9"), z, z, z)
+                           np.zeros(0, "<U11"), z, z, z)
     rows = np.concatenate([p[0] for p in parts])
-    qty = np.concatenate([np.full(len(p[0]), p[1], "<U9") for p in parts])
+    qty = np.concatenate([np.full(len(p[0]), p[1], "<U11") for p in parts])
     val = np.concatenate([p[2] for p in parts])
     lim = np.concatenate([p[3] for p in parts])
     order = np.lexsort((qty, tb.t_s[rows]))
     rows, qty, val, lim = rows[order], qty[order], val[order], lim[order]
+    excess = np.where(qty == "approach_mm", lim - val, val - lim)
     return Exceedances(tb.t_s[rows], tb.pos_mm[rows], tb.voxel_mm[rows], tb.distance_mm[rows],
-                       b[rows], qty, val, lim, val - lim)
+                       b[rows], qty, val, lim, excess)
 
 
 def expert_limits(paths, participants=None, *, structure: str = DEFAULT_STRUCTURE,

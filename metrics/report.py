@@ -7,6 +7,10 @@ anywhere (no scripts, fonts or links), so the page can be mailed or archived
 as is. Sections, after the figures a construct-validity paper shows (the
 thesis' figures 18 to 21 and ``SPEC.md``, "Metrics"):
 
+0. Design and provenance (:func:`metrics.report_design.design_section`):
+   participants and sessions per group, unit of analysis, primary metrics
+   and corrections, metrics left out with the reason, bonesim version, case
+   and burr hashes, participants-file hash, synthesis seed, command line.
 1. Cohort: runs and participants per group, case, how and when it was
    scored (``meta``), a notice when the runs are synthetic test data, and
    every error (failed runs, participants without runs).
@@ -21,9 +25,10 @@ thesis' figures 18 to 21 and ``SPEC.md``, "Metrics"):
    (:func:`metrics.forces.group_bins`).
 5. Visibility views of chosen runs (:func:`metrics.visibility.render_visibility`,
    offscreen OpenGL); skipped with a note where rendering is unavailable.
-6. Every metric's statistics with units and better direction (p < 0.05
-   highlighted), the per-run table and the Naive Bayes training sets (both
-   collapsible).
+6. Every metric's statistics with units and better direction (corrected
+   p < alpha highlighted; :func:`metrics.report_design.stats_section`), the
+   Naive Bayes ROC and the test-retest agreement (ICC, Bland-Altman), the
+   per-run table and the Naive Bayes training sets (both collapsible).
 
 Reading the result: the per-group columns of ``stats`` are taken as
 ``<group>_<n|mean|sd>`` (``expert_mean``; ``mean_expert`` is accepted too);
@@ -384,6 +389,9 @@ def _header(result, groups) -> str:
         out.append("<p class=\"notice\">SYNTHETIC TEST DATA: these runs were scripted by "
                    "behaviour models (bonesim cohort synth), not performed by people. The "
                    "numbers below test the pipeline; they say nothing about surgeons.</p>")
+    from metrics.report_design import design_section
+
+    out.append(design_section(result))
     out.append("<h2>1. Cohort</h2><table><tr><th class=\"l\">group</th><th>runs</th>"
                "<th>participants</th><th>failed runs</th><th>with instructor score</th></tr>")
     err = t["error"].fillna("").astype(str).str.len() > 0 if "error" in t else None
@@ -403,6 +411,8 @@ def _header(result, groups) -> str:
     out.append(f"<dt>case</dt><dd>{_esc(', '.join(cases) or NA)}</dd>")
     out.append(f"<dt>structure (forces)</dt><dd>{_esc(result.structure)}</dd>")
     for k, v in meta.items():
+        if k == "sessions" and isinstance(v, list):
+            v = f"{len(v)} files"
         out.append(f"<dt>{_esc(k)}</dt><dd>{_esc(_num(v) if isinstance(v, float) else v)}</dd>")
     now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     out.append(f"<dt>report written</dt><dd>{_esc(now)}</dd></dl>")
@@ -537,50 +547,26 @@ def _better(b) -> str:
 
 
 def _stats_table(result, groups) -> str:
+    """The statistics table (:func:`metrics.report_design.stats_section`),
+    over the built-in metric columns and any extra ones the table holds."""
     from metrics.cohort_result import METRIC_COLUMNS
+    from metrics.report_design import stats_section
 
-    gs = [g for g in GROUP_ORDER]
-    head = ["metric", "unit", "better"] + [f"{g} {k}" for g in gs for k in ("n", "mean", "sd")] \
-        + ["t", "p (t)", "U", "p (U)", "d [95% CI]", "rho", "p (rho)", "R", "p (R)"]
-    out = ["<h2>6. Statistics of every metric</h2>",
-           (f"<p>Two-tailed Student t-test and Mann-Whitney U between groups, Cohen's d "
-           f"(expert minus novice, pooled sd) with its confidence interval, Spearman's rho "
-           f"and Pearson's R against the instructor score. p &lt; {ALPHA:g} highlighted; "
-           f"n/a: not defined or not computed.</p><table><tr>")]
-    left = ' class="l"'
-    out += [f"<th{left if q == 0 else ''}>{_esc(h)}</th>" for q, h in enumerate(head)]
-    out.append("</tr>")
-    for m, (unit, better) in METRIC_COLUMNS.items():
-        row = _stats_row(result, m)
-        cells = [_cell(_esc(m), left=True), _cell(_esc(row.get("unit", unit) or "-")),
-                 _cell(_esc(_better(row.get("better", better))))]
-        for g in gs:
-            for k in ("n", "mean", "sd"):
-                cells.append(_cell(_esc(_num(_group_stat(row, g, k)))))
-        cells.append(_cell(_esc(_num(row.get("t")))))
-        cells.append(_cell(_esc(_p(row.get("p_t"))), sig=_sig(row.get("p_t"))))
-        cells.append(_cell(_esc(_num(row.get("u")))))
-        pu = _cell(_esc(_p(row.get("p_u"))), sig=_sig(row.get("p_u")))
-        if row.get("u_method") and not _isnan(row.get("u_method")):
-            pu = pu.replace("<td", f"<td title=\"{_esc(row['u_method'])}\"", 1)
-        cells.append(pu)
-        d = _num(row.get("d"))
-        if d != NA:
-            d += f" [{_num(row.get('d_lo'))}, {_num(row.get('d_hi'))}]"
-        cells.append(_cell(_esc(d)))
-        for k in ("rho", "r"):
-            cells.append(_cell(_esc(_num(row.get(k)))))
-            cells.append(_cell(_esc(_p(row.get(f"p_{k}"))), sig=_sig(row.get(f"p_{k}"))))
-        out.append("<tr>" + "".join(cells) + "</tr>")
-    out.append("</table>")
-    return "\n".join(out)
+    cols = dict(METRIC_COLUMNS)
+    st = result.stats
+    if st is not None and len(st) and "metric" in st:
+        for r in st.to_dict("records"):
+            cols.setdefault(r["metric"], (r.get("unit", ""), r.get("better", 0)))
+    return stats_section(result, cols)
 
 
 def _runs_table(result) -> str:
     from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
 
     t = result.table
-    cols = [c for c in RUN_COLUMNS if c in t] + [m for m in METRIC_COLUMNS if m in t]
+    extra = [c for c in t.columns if c not in RUN_COLUMNS and c not in METRIC_COLUMNS
+             and c != "notes" and np.issubdtype(t[c].dtype, np.number)]
+    cols = [c for c in RUN_COLUMNS if c in t] + [m for m in METRIC_COLUMNS if m in t] + extra
     out = [f"<details><summary>Every run ({len(t)} rows)</summary><table><tr>"]
     out += [f"<th class=\"l\">{_esc(c)}</th>" for c in cols]
     out.append("</tr>")
@@ -591,7 +577,7 @@ def _runs_table(result) -> str:
             v = r[c]
             if c == "file":
                 out.append(f"<td class=\"l\" title=\"{_esc(v)}\">{_esc(_name(v))}</td>")
-            elif c in METRIC_COLUMNS or c == "instructor_score":
+            elif c in METRIC_COLUMNS or c in extra or c in ("instructor_score", "session"):
                 out.append(_cell(_esc(_num(v))))
             else:
                 out.append(_cell(_esc("" if _isnan(v) else v), left=True))
@@ -652,10 +638,13 @@ def write_report(result, path, *, visibility_runs=None, png_dir=None) -> Path:
         raise ValueError(f"result.table lacks the columns {missing}")
     figs = _Figures(png_dir)
     groups = _groups(t)
+    from metrics.report_design import agreement_section, classifier_section
+
     body = [_header(result, groups), _group_section(result, groups, figs),
             _scatter_section(result, groups, figs), _force_section(result, figs),
             _visibility_section(result, visibility_runs, figs),
-            _stats_table(result, groups), "<h2>7. Runs</h2>", _runs_table(result),
+            _stats_table(result, groups), classifier_section(result, figs),
+            agreement_section(result, figs), "<h2>7. Runs</h2>", _runs_table(result),
             _nb_section(result)]
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<title>bonesim cohort report</title>"

@@ -85,7 +85,9 @@ def compare_groups(a, b, *, names=("expert", "novice"), confidence: float = CONF
     dict
         JSON-ready: per-group ``n, mean, sd``; ``t``, ``p_t``, ``df``,
         ``welch_t``, ``p_welch``; ``u``, ``p_u``, ``u_method``; ``d``,
-        ``d_ci``, ``g``, ``rank_biserial``.
+        ``d_ci``, ``g``, ``rank_biserial``; ``d``, ``d_ci`` and ``g`` are NaN,
+        and ``d_note`` says why, when a group has no variance (Cohen's d of
+        a metric constant within a group is not a finite effect size).
     """
     a, b = _values(a, names[0]), _values(b, names[1])
     if len(a) < 2 or len(b) < 2:
@@ -100,8 +102,15 @@ def compare_groups(a, b, *, names=("expert", "novice"), confidence: float = CONF
     u = stats.mannwhitneyu(a, b, alternative="two-sided",
                            method="exact" if exact else "asymptotic")
     sp = math.sqrt(((n1 - 1) * a.var(ddof=1) + (n2 - 1) * b.var(ddof=1)) / (n1 + n2 - 2))
-    d = (a.mean() - b.mean()) / sp if sp > 0 else math.copysign(math.inf, a.mean() - b.mean())
-    lo, hi = cohens_d_ci(d, n1, n2, confidence) if math.isfinite(d) else (d, d)
+    flat = [nm for nm, v in zip(names, (a, b)) if np.ptp(v) == 0]
+    if flat:                     # a standardized difference needs spread in both groups
+        d = lo = hi = math.nan
+        note = (f"undefined: no variance within the {' and the '.join(flat)} group"
+                f"{'s' if len(flat) > 1 else ''}")
+    else:
+        d = (a.mean() - b.mean()) / sp
+        lo, hi = cohens_d_ci(d, n1, n2, confidence)
+        note = ""
     j = 1.0 - 3.0 / (4.0 * (n1 + n2) - 9.0)          # Hedges' small-sample correction
     return {names[0]: {"n": n1, "mean": float(a.mean()), "sd": float(a.std(ddof=1))},
             names[1]: {"n": n2, "mean": float(b.mean()), "sd": float(b.std(ddof=1))},
@@ -110,6 +119,7 @@ def compare_groups(a, b, *, names=("expert", "novice"), confidence: float = CONF
             "u": float(u.statistic), "p_u": float(u.pvalue),
             "u_method": "exact" if exact else "normal approximation (ties or large groups)",
             "d": float(d), "d_ci": [float(lo), float(hi)], "g": float(d * j),
+            "d_note": note,
             "rank_biserial": float(1.0 - 2.0 * u.statistic / (n1 * n2)),
             "confidence": confidence}
 

@@ -498,7 +498,8 @@ BENCHMARKS = {
     "visibility_offline_removals_per_s": lambda quick=False: __import__(
         "bonesim.bench.metrics_visibility",
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
-    **dict.fromkeys(("cohort_sessions_per_s", "metrics_run_s"), lambda quick=False: __import__(
+    **dict.fromkeys(("cohort_sessions_per_s", "cohort_stats_s", "metrics_run_s"),
+                    lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
     **dict.fromkeys(("fragment_local_ms", "fragment_global_256_ms",
                      "fragment_global_256_scipy_ms", "fragment_global_vs_scipy",

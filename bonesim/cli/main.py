@@ -842,6 +842,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)   # for provenance records
     try:
         check_options(args)                  # numbers within their physical bounds
         apply_voxel_mm(args)

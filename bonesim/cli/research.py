@@ -1,6 +1,7 @@
 """The research commands' arguments: ``bonesim cohort synth``, ``bonesim
-metrics run``, ``bonesim metrics cohort``, ``bonesim metrics limits`` and
-``bonesim metrics view``.
+metrics run``, ``bonesim metrics cohort``, ``bonesim metrics progress``,
+``bonesim metrics export``, ``bonesim metrics limits`` and ``bonesim metrics
+view``.
 
 Their handlers live with the research metrics (:mod:`metrics.cli`, beside the
 package) and are named here by module path only: the simulator never imports
@@ -26,6 +27,10 @@ def research_parsers(sub, _lazy) -> None:
     cs.add_argument("--duration", type=float, default=180.0, metavar="S",
                     help="length of each run [s] (default 180)")
     cs.add_argument("--case", default="phantom", help="case name or case.toml path")
+    cs.add_argument("--sessions", type=int, default=1, metavar="K",
+                    help="sessions per participant (default 1)")
+    cs.add_argument("--behaviours", metavar="FILE.toml",
+                    help="behaviour parameters (default metrics/synth.toml)")
     cs.add_argument("--json", action="store_true", help="print JSON")
     cs.set_defaults(func=_lazy("metrics.cli", "cmd_cohort_synth"))
 
@@ -55,8 +60,35 @@ def research_parsers(sub, _lazy) -> None:
                     help="worker processes of the local cluster (default 2)")
     mc.add_argument("--structure", default="chorda_tympani",
                     help="structure of the force tables (default chorda_tympani)")
+    mc.add_argument("--design", metavar="FILE.toml",
+                    help="statistical design: primary metrics, corrections, exclusions "
+                    "(default metrics/design.toml)")
+    mc.add_argument("--exports", metavar="DIR",
+                    help="write stats.csv, runs.csv and provenance.json here")
     mc.add_argument("--json", action="store_true", help="print the summary as JSON")
     mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
+    mp = msub.add_parser("progress", help="learning curves: each participant's metrics "
+                         "session by session against the experts' band (PNG)")
+    mp.add_argument("sessions", metavar="DIR_OR_GLOB",
+                    help="a folder of session files (*.h5) or a glob pattern")
+    mp.add_argument("--participants", required=True, metavar="CSV",
+                    help="participants table with a session (or file) per run")
+    mp.add_argument("--out", default="progress.png", metavar="FILE.png",
+                    help="picture to write (default progress.png)")
+    mp.add_argument("--metric", action="append", metavar="NAME",
+                    help="metric to draw (repeatable; default the primary ones and more)")
+    mp.add_argument("--workers", type=int, default=2, metavar="N",
+                    help="worker processes scoring the runs (default 2)")
+    mp.add_argument("--json", action="store_true", help="print JSON")
+    mp.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_progress"))
+    mx = msub.add_parser("export", help="a run's per-voxel visibility as NRRD on the "
+                         "case grid and its removals as Parquet, with provenance")
+    mx.add_argument("file", help="session file (.h5)")
+    mx.add_argument("--out", required=True, metavar="DIR", help="folder to write into")
+    mx.add_argument("--participants", metavar="CSV",
+                    help="participants table (its hash goes in the provenance)")
+    mx.add_argument("--json", action="store_true", help="print JSON")
+    mx.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_export"))
     ml = msub.add_parser("limits", help="learn per-distance force and speed limits from "
                          "expert runs, for the window's live warnings (run --force-limits)")
     ml.add_argument("sessions", metavar="DIR_OR_GLOB",

@@ -5,7 +5,7 @@ shaped as that module documents, from a folder that
 :func:`metrics.synth.synth_cohort` recorded, with the metrics functions
 themselves (no Dask): visible fraction, leave-one-participant-out Naive
 Bayes score, force near the chorda, a few conduct numbers, and the group
-statistics of every metric with values in both groups. It is a test helper,
+statistics of every metric (:func:`metrics.group_stats.group_statistics`). It is a test helper,
 not the cohort runner (that is :mod:`metrics.cohort`).
 """
 from __future__ import annotations
@@ -14,7 +14,6 @@ import csv
 import math
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS, CohortResult
@@ -46,7 +45,6 @@ def score_serially(folder, *, structure: str = "chorda_tympani") -> CohortResult
     from bonesim.session.reader import read_session
     from metrics.forces import force_vs_distance
     from metrics.regions import loo_scores, region_run
-    from metrics.validity import compare_groups, correlate
     from metrics.visibility import visible_fraction
 
     folder = Path(folder)
@@ -86,29 +84,24 @@ def score_serially(folder, *, structure: str = "chorda_tympani") -> CohortResult
         trained[row["file"]] = [rows[k]["file"] for k in loo.trained_on[q]]
     table = pd.DataFrame(rows, columns=list(RUN_COLUMNS) + list(METRIC_COLUMNS))
     table["notes"] = notes
-    stats = []
-    for m, (unit, better) in METRIC_COLUMNS.items():
-        e = table.loc[table.group == "expert", m].dropna().to_numpy(float)
-        n = table.loc[table.group == "novice", m].dropna().to_numpy(float)
-        if len(e) < 2 or len(n) < 2:
-            continue
-        c = compare_groups(e, n)
-        rec = {"metric": m, "unit": unit, "better": better}
-        for g in ("expert", "novice"):
-            for k in ("n", "mean", "sd"):
-                rec[f"{g}_{k}"] = c[g][k]
-        rec.update({k: c[k] for k in ("t", "p_t", "u", "p_u", "u_method", "d")})
-        rec["d_lo"], rec["d_hi"] = c["d_ci"]
-        ok = table[[m, "instructor_score"]].dropna()
-        if len(ok) >= 3 and np.ptp(ok[m].to_numpy(float)) > 0:
-            r = correlate(ok[m], ok["instructor_score"])
-            rec.update({k: r[k] for k in ("rho", "p_rho", "r", "p_r")})
-        else:
-            rec.update({k: math.nan for k in ("rho", "p_rho", "r", "p_r")})
-        stats.append(rec)
-    return CohortResult(table=table, stats=pd.DataFrame(stats), force_tables=tables,
+    from metrics.group_stats import group_statistics, load_design
+
+    design = load_design()
+    stats, excluded = group_statistics(table, METRIC_COLUMNS, design)
+    return CohortResult(table=table, stats=stats, force_tables=tables, excluded=excluded,
+                        design=design.summary(),
                         nb_trained_on=trained, structure=structure, errors=errors,
                         meta={"scheduler": "serial (tests/metrics/cohort_fixtures.py)",
                               "workers": 1, "wall_s": math.nan,
                               "participants_file": str(folder / "participants.csv"),
                               "sessions": str(folder / "*.h5")})
+
+
+def extra_row(session, models, path) -> dict:
+    """A per-run row provider for the tests: the run's sample count."""
+    return {"samples_n": float(len(session.samples["t_s"]))}
+
+
+def broken_row(session, models, path) -> dict:
+    """A row provider that fails."""
+    raise RuntimeError("provider exploded")

@@ -100,3 +100,20 @@ def test_metrics_view_writes_a_png_or_opens_a_window(tmp_path, capsys, xdisplay)
                        capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr
     assert not (tmp_path / "visibility.png").exists()          # it showed, wrote nothing
+
+
+def test_metrics_export_writes_the_volume_and_the_rows(tmp_path, capsys):
+    import nrrd
+
+    from metrics.synth import synth_cohort
+
+    (n,) = synth_cohort(tmp_path / "c", 0, 1, seed=5, duration_s=3.0)
+    assert main(["metrics", "export", str(n), "--out", str(tmp_path / "x"), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["provenance"]["command"].startswith("bonesim ")
+    assert res["provenance"]["session_file"] == str(n)
+    hdr = nrrd.read_header(res["visibility"])
+    assert "bonesim_provenance" in hdr
+    assert main(["metrics", "export", str(tmp_path / "missing.h5"), "--out",
+                 str(tmp_path / "y")]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1

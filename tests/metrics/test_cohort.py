@@ -130,7 +130,11 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     assert "cut.h5" not in tb.index
     s = tb.loc["stranger.h5"]
     assert s["error"] == "" and pd.isna(s["group"]) and np.isfinite(s["visible_fraction"])
-    assert np.isnan(s["nb_score"])                          # no group: not scored
+    # no group: scored by a model of every labelled run, out of the statistics
+    assert np.isfinite(s["nb_score"]) and np.isfinite(s["nb_score_per_voxel"])
+    labelled = [f for f in tb["file"] if tb.loc[os.path.basename(f), "group"] in
+                ("expert", "novice")]
+    assert sorted(res.nb_trained_on[s["file"]]) == sorted(labelled)
     good = tb.loc[[p.name for p in paths]]
     assert (good["error"] == "").all() and np.isfinite(good["nb_score"]).all()
     assert set(res.stats["expert_n"]) <= {3}
@@ -224,3 +228,50 @@ def test_a_file_cut_short_is_scored_on_its_readable_part(tmp_path):
     assert 0 < part["metrics"]["removed_voxels"] < full["metrics"]["removed_voxels"]
     assert part["metrics"]["duration_s"] < full["metrics"]["duration_s"]
     assert np.isfinite(part["metrics"]["visible_fraction"])
+
+
+def test_cli_exports_with_provenance_and_draws_progress(cohort, tmp_path, capsys):
+    import pandas as pd
+
+    from bonesim.cli.main import main
+
+    d, paths, csv_path = cohort
+    ex = tmp_path / "ex"
+    assert main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--workers",
+                 "1", "--exports", str(ex), "--report", str(tmp_path / "r.html"),
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["unit"] == "participant" and summary["stats_s"] >= 0
+    assert {"duration_s", "drilled_mm3"} <= set(summary["excluded"])
+    auc = summary["naive_bayes_auc"]["nb_score"]
+    assert 0 <= auc["ci"][0] <= auc["auc"] <= auc["ci"][1] <= 1
+    st = pd.read_csv(ex / "stats.csv")
+    assert "duration_s" not in set(st["metric"]) and {"p_t_holm", "p_t_bh"} <= set(st.columns)
+    meta = json.loads((ex / "provenance.json").read_text())
+    prov = meta["provenance"]
+    assert prov["synthesis"]["seed"] == 3 and prov["case"][0]["name"] == "phantom"
+    assert len(prov["participants_sha256"]) == 64 and "--exports" in prov["command"]
+    page = (tmp_path / "r.html").read_text()
+    assert page.index("Design and provenance") < page.index("1. Cohort")
+    assert prov["participants_sha256"] in page and "Naive Bayes as a classifier" in page
+    png = tmp_path / "p.png"
+    assert main(["metrics", "progress", str(d), "--participants", str(csv_path), "--out",
+                 str(png), "--workers", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["png"] == str(png) and png.stat().st_size > 10_000
+    assert "visible_fraction" in out["metrics"]
+
+
+def test_row_providers_add_columns_and_a_failing_one_says_so(cohort):
+    from bonesim.session.reader import read_session
+    from metrics.cohort import metric_columns, score_file
+
+    _, paths, _ = cohort
+    good = ("tests.metrics.cohort_fixtures", "extra_row", {"samples_n": ("", 0)})
+    bad = ("tests.metrics.cohort_fixtures", "broken_row", {"broken_x": ("", 1)})
+    r = score_file(paths[0], providers=(good, bad))
+    assert r["extra"]["samples_n"] == len(read_session(paths[0]).samples["t_s"])
+    assert np.isnan(r["extra"]["broken_x"])
+    assert len(r["warnings"]) == 1 and "provider exploded" in r["warnings"][0]
+    cols = metric_columns((good, bad))
+    assert list(cols)[-2:] == ["samples_n", "broken_x"] and set(METRIC_COLUMNS) < set(cols)

@@ -325,3 +325,40 @@ def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
     np.testing.assert_array_equal([w.value for w in got], want.value)
     np.testing.assert_array_equal([w.limit for w in got], want.limit)
     np.testing.assert_array_equal([w.distance_mm for w in got], want.distance_mm)
+
+
+def test_a_bin_without_expert_rows_flags_approaches_closer_than_any_expert():
+    """Experts never came under 5 mm: the bins there have no force limit, and a
+    trainee's rows closer than the closest expert row are flagged, one per
+    step (the closest), however light the force."""
+    from metrics.forces import closest_approach, exceedances, learn_limits
+
+    rng = np.random.default_rng(0)
+    d = rng.uniform(5.0, 20.0, 300)
+    ex = _table(d, rng.uniform(0.5, 1.0, 300))
+    lim = learn_limits([ex])
+    closest = closest_approach([ex])
+    assert closest == pytest.approx(d.min())
+    assert np.isnan(lim.force_n[:2]).all()               # 0-2 and 2-4 mm: no limit
+    tr = _table(np.array([0.8, 0.9, 3.5, 4.9, 12.0]), np.array([0.1, 0.1, 0.1, 0.1, 0.1]),
+                t=np.array([1.0, 1.0, 2.0, 3.0, 4.0]), group="novice")
+    none = exceedances(tr, lim)                          # without the rule: nothing
+    assert len(none) == 0
+    got = exceedances(tr, lim, closest_mm=closest)
+    # 4.9 mm lies in the 4-6 mm bin, which has expert rows (a force limit): not flagged
+    assert list(got.quantity) == ["approach_mm"] * 2
+    np.testing.assert_allclose(got.value, [0.8, 3.5])         # the closest row of t = 1 s
+    np.testing.assert_allclose(got.excess, closest - got.value)
+    assert (got.limit == closest).all() and (got.excess > 0).all()
+
+
+def test_tool_speed_is_the_burr_centres_speed():
+    from metrics.forces import tool_speed
+
+    t = np.arange(0.0, 1.0, 0.001)
+    pos = np.stack([3.0 * t, 4.0 * t, 0 * t], axis=1)        # 5 mm/s
+    np.testing.assert_allclose(tool_speed({"t_s": t, "pos_mm": pos}), 5.0, rtol=1e-9)
+    tt = np.repeat(t[:10], 2)                                # repeated times
+    v = tool_speed({"t_s": tt, "pos_mm": np.repeat(pos[:10], 2, axis=0)})
+    np.testing.assert_allclose(v, 5.0, rtol=1e-9)
+    assert tool_speed({"t_s": np.zeros(1), "pos_mm": np.zeros((1, 3))}).tolist() == [0.0]

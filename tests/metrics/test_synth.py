@@ -164,3 +164,31 @@ def test_the_expert_takes_the_fine_burr_for_the_deep_passes(models, tmp_path):
     assert s.tissue["n"][s.tissue["kind"] == events.BURR].tolist() == [1]
     assert set(np.unique(s.samples["burr"]).tolist()) == {0, 1}
     assert verify(s)["ok"]
+
+
+def test_sessions_learning_and_the_recorded_parameters(tmp_path):
+    import json
+
+    from metrics.synth import Learning, load_behaviours, session_participant
+
+    e, n, learn = load_behaviours()
+    assert e.near_share > 0 and n.aim_share > 0 and learn.novice_per_session > 0
+    p = draw_participants(0, 1, seed=1)[0]
+    s1, s3 = session_participant(p, 1, learn), session_participant(p, 3, learn)
+    assert s1 == p and s3.skill == pytest.approx(p.skill + 2 * learn.novice_per_session)
+    assert s3.seed != p.seed and s3.instructor_score >= p.instructor_score
+    assert session_participant(p, 3, Learning(novice_per_session=0.0)).skill == p.skill
+    from metrics.synth import BEHAVIOURS_FILE
+
+    paths = synth_cohort(tmp_path, 0, 1, seed=4, duration_s=2.0, sessions=2,
+                         behaviours=BEHAVIOURS_FILE)
+    assert [q.name for q in paths] == ["N01_s1.h5", "N01_s2.h5"]
+    rows = list(csv.DictReader(open(tmp_path / PARTICIPANTS_CSV)))
+    assert [(r["id"], r["session"], r["file"]) for r in rows] == \
+        [("N01", "1", "N01_s1.h5"), ("N01", "2", "N01_s2.h5")]
+    rec = json.loads((tmp_path / "synthesis.json").read_text())
+    assert rec["seed"] == 4 and rec["sessions"] == 2 and rec["novice"]["aim_share"] == n.aim_share
+    bad = tmp_path / "b.toml"
+    bad.write_text("[novice]\nwings = 2\n")
+    with pytest.raises(BonesimError, match=r"b\.toml: \[novice\] 'wings'"):
+        load_behaviours(bad)

@@ -29,8 +29,14 @@ def test_group_comparison_matches_the_formulas(a, b):
     u = sum(1.0 if x > y else 0.5 if x == y else 0.0 for x, y in product(a, b))
     assert r["u"] == pytest.approx(u)
     assert r["rank_biserial"] == pytest.approx(1 - 2 * u / (len(a) * len(b)))
+    flat = [g for g, v in (("expert", a), ("novice", b)) if np.ptp(v) == 0]
+    if flat:                                       # a group without spread: d undefined
+        assert math.isnan(r["d"]) and all(math.isnan(x) for x in r["d_ci"])
+        assert r["d_note"].startswith("undefined: no variance within the")
+        assert all(g in r["d_note"] for g in flat)
+        return
     d = (a.mean() - b.mean()) / math.sqrt(sp2)
-    assert r["d"] == pytest.approx(d, rel=1e-9, abs=1e-12)
+    assert r["d"] == pytest.approx(d, rel=1e-9, abs=1e-12) and r["d_note"] == ""
     assert r["d_ci"][0] <= r["d"] <= r["d_ci"][1]
 
 
