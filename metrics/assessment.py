@@ -41,7 +41,7 @@ from metrics import assessment_measure as M
 from metrics.assessment_items import Scale, load_scale
 
 __all__ = ["ItemResult", "Assessment", "assess_tissue", "assess_grid", "assess_session",
-           "final_present", "assessment_row", "checklist", "ROW_PREFIX"]
+           "final_present", "assessment_row", "checklist", "structure_masks", "ROW_PREFIX"]
 
 #: Prefix of the cohort table's assessment columns.
 ROW_PREFIX = "assess_"
@@ -233,6 +233,17 @@ def _groups(box, structures, landmarks, params) -> tuple[dict, set]:
     for g1 in ("sinus", "tegmen", "dura"):      # split from a merged label elsewhere
         if g1 in landmarks.masks:
             has.add(g1)
+    teg = landmarks.get("tegmen")
+    if "tegmen" not in landmarks.masks and "dura" in has and teg is not None \
+            and teg.confidence != "estimated":
+        # dura without a tegmen of its own: the tegmen is the dura at and above
+        # the lowest dura over the mastoid (the landmark's height)
+        has.add("tegmen")
+        if "dura" in out:
+            z = box.origin_mm[2] + box.h * np.arange(box.labels.shape[2])
+            up = (z >= teg.point_mm[2] - box.h / 2)[None, None, :]
+            out["tegmen"] = out["dura"] & up
+            out["dura"] = out["dura"] & ~up
     if "ear_canal" not in out:
         lumen = _canal_lumen(box, landmarks, params)
         if lumen is not None:
@@ -307,7 +318,7 @@ def _measure(item, box, lm, params, has):
             p = lm.point({"sinus": "sigmoid_sinus"}.get(t, t))
         crit = {c.quantity: c for c in item.criteria}.get("thinnest_mm")
         thin = crit.partial if crit is not None else 1.0
-        q = M.cover_quantities(box, surf, params, thin, drilled_only=t == "ear_canal")
+        q = M.cover_quantities(box, surf, params, thin, drilled_only=item.against == "drilled")
         cov, ijk = q.pop("_cover"), q.pop("_ijk")
         show = cov <= max(thin, q["thinnest_mm"] + 0.5 if math.isfinite(q["thinnest_mm"])
                           else -1.0)
@@ -444,6 +455,24 @@ def assess_tissue(labels0, present, spacing_mm: float, origin_mm, structures, la
                                    None if anchor is None else np.asarray(anchor, float)))
     removed = float(np.count_nonzero(box.removed) * h ** 3) if bounds is not None else 0.0
     return Assessment(tuple(results), case, h, removed)
+
+
+def structure_masks(labels0, spacing_mm: float, origin_mm, structures, landmarks, *,
+                    scale: Scale | None = None) -> dict:
+    """The structure groups the assessment measures on, over the whole grid:
+    ``sinus``, ``tegmen``, ``dura`` (merged labels split as the landmarks
+    split them), ``facial_nerve``, ``chorda_tympani``, ``labyrinth``,
+    ``incus`` and ``ear_canal`` (the canal's lumen: its label, else the air
+    of the canal found in the cortex), those the case has; (nx, ny, nz) bool."""
+    scale = load_scale() if scale is None else scale
+    labels0 = np.asarray(labels0)
+    t0 = labels0 > 0
+    is_bone = np.array([False] + [s.kind == "bone" for s in structures])
+    box = M.Box(lo=np.zeros(3, int), h=float(spacing_mm),
+                origin_mm=np.asarray(origin_mm, float).reshape(3), labels=labels0,
+                tissue0=t0, present=t0, removed=np.zeros_like(t0),
+                bone0=t0 & is_bone[labels0])
+    return _groups(box, structures, landmarks, dict(scale.measure))[0]
 
 
 def assess_grid(model, grid, *, scale: Scale | None = None) -> Assessment:

@@ -91,6 +91,9 @@ class Item:
     advice : dict of str -> str
         One sentence per outcome (``done``, ``partial``, ``missed``,
         ``violated``).
+    against : str
+        What a ``cover`` is measured to: ``"cavity"`` (the drilled voxels and
+        the air they opened) or ``"drilled"`` (the drilled voxels alone).
     """
 
     name: str
@@ -100,6 +103,7 @@ class Item:
     criteria: tuple
     violations: tuple
     advice: dict
+    against: str = "cavity"
 
     def score(self, quantities: dict) -> tuple[int, str]:
         """``(score, outcome)`` of measured ``quantities`` (module docstring)."""
@@ -134,8 +138,8 @@ def _item(name, tab, path) -> Item:
     from bonesim.tomlfile import check_keys, get_str
 
     where = f"items.{name}"
-    check_keys(tab, ("title", "measure", "target", "criteria", "violations", "advice"), path,
-               where, required=("title", "measure", "target", "advice"))
+    check_keys(tab, ("title", "measure", "target", "against", "criteria", "violations",
+                     "advice"), path, where, required=("title", "measure", "target", "advice"))
     measure = get_str(tab, "measure", path, where)
     if measure not in MEASURES:
         raise BonesimError(f"unknown measure {measure!r} (one of {', '.join(MEASURES)})",
@@ -169,8 +173,10 @@ def _item(name, tab, path) -> Item:
     adv = tab["advice"]
     check_keys(adv, OUTCOMES[:4], path, f"{where}.advice", required=OUTCOMES[:4])
     advice = {k: get_str(adv, k, path, f"{where}.advice") for k in OUTCOMES[:4]}
+    against = get_str(tab, "against", path, where, default="cavity",
+                      choices=("cavity", "drilled"))
     return Item(name, get_str(tab, "title", path, where), measure,
-                get_str(tab, "target", path, where), tuple(crit), tuple(viol), advice)
+                get_str(tab, "target", path, where), tuple(crit), tuple(viol), advice, against)
 
 
 @functools.lru_cache(maxsize=4)
