@@ -28,7 +28,8 @@ Entry points
     epoch taken away.
 :func:`assessment_row`
     One flat row per run for the cohort table (``assess_total``,
-    ``assess_<item>``...).
+    ``assess_<item>``...); :func:`assessment_progress` those rows over a
+    resident's sessions, in order.
 """
 from __future__ import annotations
 
@@ -41,7 +42,8 @@ from metrics import assessment_measure as M
 from metrics.assessment_items import Scale, load_scale
 
 __all__ = ["ItemResult", "Assessment", "assess_tissue", "assess_grid", "assess_session",
-           "final_present", "assessment_row", "checklist", "structure_masks", "ROW_PREFIX"]
+           "final_present", "assessment_row", "assessment_columns", "assessment_progress",
+           "checklist", "structure_masks", "ROW_PREFIX"]
 
 #: Prefix of the cohort table's assessment columns.
 ROW_PREFIX = "assess_"
@@ -533,13 +535,29 @@ def assess_session(session, *, model=None, scale: Scale | None = None) -> Assess
                          case.camera.eye_mm, density0=d0, scale=scale, case=model.name)
 
 
-def assessment_row(assessment, prefix: str = ROW_PREFIX) -> dict:
+def assessment_columns(scale: Scale | None = None, prefix: str = ROW_PREFIX) -> tuple:
+    """The columns :func:`assessment_row` fills, in order (for a table's
+    schema: ``assess_total``, ``assess_max``, ``assess_share``, then one per
+    item of the scale)."""
+    scale = load_scale() if scale is None else scale
+    return (f"{prefix}total", f"{prefix}max", f"{prefix}share") + \
+        tuple(f"{prefix}{it.name}" for it in scale.items)
+
+
+def assessment_row(assessment, prefix: str = ROW_PREFIX, *, model=None) -> dict:
     """One flat row of a run's assessment for the cohort table.
+
+    The cohort's per-run scorer joins it to a run's metrics row (e.g. in
+    :func:`metrics.cohort._score_file`: ``m.update(assessment_row(s,
+    model=model))``, with :func:`assessment_columns` added to the table's
+    columns).
 
     Parameters
     ----------
     assessment : Assessment, Session or path
         A session is assessed first (:func:`assess_session`).
+    model : Model, optional
+        The session's model, when the caller has rebuilt it already.
 
     Returns
     -------
@@ -548,9 +566,42 @@ def assessment_row(assessment, prefix: str = ROW_PREFIX) -> dict:
         max, NaN when nothing applies) and ``assess_<item>`` (0, 1, 2; NaN
         when not applicable) per item of the scale.
     """
-    a = assessment if isinstance(assessment, Assessment) else assess_session(assessment)
+    a = assessment if isinstance(assessment, Assessment) else \
+        assess_session(assessment, model=model)
     row = {f"{prefix}total": a.total, f"{prefix}max": a.max_total,
            f"{prefix}share": a.total / a.max_total if a.max_total else float("nan")}
     for it in a.items:
         row[f"{prefix}{it.name}"] = float("nan") if it.score is None else float(it.score)
     return row
+
+
+def assessment_progress(sessions) -> list[dict]:
+    """A resident's items over sessions: one :func:`assessment_row` per
+    session file with ``file``, ``participant``, ``start_time`` and
+    ``session`` (1, 2, ... per participant in order of start time), sorted by
+    participant and start time; a file that cannot be read or assessed gives
+    a row with ``error`` (one line).
+
+    Parameters
+    ----------
+    sessions : iterable of path
+    """
+    from bonesim.session.reader import read_session
+
+    rows = []
+    for p in sessions:
+        try:
+            s = read_session(p)
+            row = {"file": str(p), "participant": str(s.header.get("participant") or ""),
+                   "start_time": str(s.header.get("start_time") or ""),
+                   **assessment_row(assess_session(s))}
+        except Exception as exc:            # one line per bad file, never a crash
+            row = {"file": str(p), "participant": "", "start_time": "",
+                   "error": " ".join(str(exc).split())}
+        rows.append(row)
+    rows.sort(key=lambda r: (r["participant"], r["start_time"], r["file"]))
+    n: dict = {}
+    for r in rows:
+        n[r["participant"]] = n.get(r["participant"], 0) + 1
+        r["session"] = n[r["participant"]]
+    return rows
