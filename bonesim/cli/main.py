@@ -337,7 +337,7 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['wav']}")
         if "record" in summary:
             print(f"recorded the session to {summary['record']}")
-        print_checklist(summary["assessment"])
+        print_checklist(summary.get("assessment"))
     return 0
 
 
@@ -382,7 +382,7 @@ def _run_showcase(args) -> int:
                                                    out["min_clearance_structure"]))
     print(f"wrote {out['picture']}" + (f" and {out['video']} ({out['frames']} frames, "
                                        f"{out['speedup']:g}x)" if "video" in out else ""))
-    print_checklist(out["assessment"])
+    print_checklist(out.get("assessment"))
     return 0
 
 
