@@ -443,7 +443,9 @@ def assess_tissue(labels0, present, spacing_mm: float, origin_mm, structures, la
                 bone0=tissue0[sl] & is_bone[np.minimum(lab, len(is_bone) - 1)])
     groups, has = _groups(box, structures, landmarks, params)
     box.groups = groups
-    box.cavity = box.removed | M.opened_air(box, params["hull_mm"], params["opened_reach_mm"])
+    box.occluder = M.occluder(box, params)
+    box.cavity = box.removed | M.opened_air(box, params["hull_mm"], params["opened_reach_mm"],
+                                            params["_eye"], params["step_voxels"])
     results = []
     for item in scale.items:
         q, reg, anchor, why = _measure(item, box, landmarks, params, has)

@@ -133,6 +133,7 @@ class Box:
     bone0: np.ndarray
     groups: dict = field(default_factory=dict)
     cavity: np.ndarray | None = None
+    occluder: np.ndarray | None = None
     _dist: dict = field(default_factory=dict, repr=False)
 
     def centres(self, ijk) -> np.ndarray:
@@ -167,8 +168,10 @@ def make_box(labels0, present, h: float, origin_mm, pad_mm: float) -> tuple:
     return lo, hi
 
 
-def opened_air(box: Box, hull_mm: float, reach_mm: float) -> np.ndarray:
-    """Air the run opened (module docstring), box voxels, bool."""
+def opened_air(box: Box, hull_mm: float, reach_mm: float, eye_mm=None,
+               step_voxels: float = 0.5) -> np.ndarray:
+    """Air the run opened (module docstring), box voxels, bool; with
+    ``eye_mm``, only the part the eye sees (``box.occluder`` hides)."""
     air = ~box.tissue0
     inside = air & inside_hull(box.tissue0, int(round(hull_mm / box.h)))
     if not inside.any() or not box.removed.any():
@@ -178,7 +181,12 @@ def opened_air(box: Box, hull_mm: float, reach_mm: float) -> np.ndarray:
     touch = touch[touch > 0]
     out = np.isin(lab, touch)
     near = box.distance_to("removed", box.removed) <= reach_mm
-    return out & near
+    out &= near
+    if eye_mm is not None and out.any():
+        ijk = np.argwhere(out)
+        seen = clear_to_eye(box, ijk, eye_mm, box.occluder, step_voxels)
+        out[tuple(ijk[~seen].T)] = False
+    return out
 
 
 def surface_of(box: Box, mask: np.ndarray) -> np.ndarray:
@@ -213,6 +221,42 @@ def cover_quantities(box: Box, surface: np.ndarray, params: dict, thin_mm: float
             "surface_mm2": float(len(cov) * a), "_cover": cov, "_ijk": ijk}
 
 
+def occluder(box: Box, params: dict) -> np.ndarray:
+    """Remaining tissue at least ``occluder_depth_voxels`` deep (module
+    docstring), box voxels, bool."""
+    depth = int(params["occluder_depth_voxels"])
+    if depth <= 0:
+        return box.present
+    return ndimage.binary_erosion(box.present, iterations=depth, border_value=1)
+
+
+def clear_to_eye(box: Box, ijk, eye_mm, occ, step_voxels: float, hits=None) -> np.ndarray:
+    """Whether the sight line from each box voxel ``ijk`` (n, 3) to the eye
+    misses ``occ`` (module docstring), (n,) bool; the occluder voxels the
+    blocked lines meet are set in ``hits`` (bool, box shape) when given."""
+    ijk = np.asarray(ijk).reshape(-1, 3)
+    shape = np.array(occ.shape)
+    n_steps = int(math.ceil(float(np.linalg.norm(shape)) / step_voxels)) + 1
+    eye_v = (np.asarray(eye_mm, float) - box.origin_mm) / box.h   # eye in box voxels
+    ts = step_voxels * np.arange(1, n_steps + 1)
+    seen = np.zeros(len(ijk), bool)
+    for c0 in range(0, len(ijk), _CHUNK):
+        p = ijk[c0:c0 + _CHUNK].astype(float)
+        d = eye_v - p
+        dist = np.linalg.norm(d, axis=1)
+        d /= dist[:, None]
+        q = np.rint(p[:, None, :] + ts[None, :, None] * d[:, None, :]).astype(np.int64)
+        inside = np.all((q >= 0) & (q < shape), axis=2) & (ts[None, :] < dist[:, None])
+        qc = np.where(inside[..., None], q, 0)
+        blocked = occ[qc[..., 0], qc[..., 1], qc[..., 2]] & inside
+        any_b = blocked.any(axis=1)
+        seen[c0:c0 + _CHUNK] = ~any_b
+        if hits is not None and any_b.any():
+            b = qc[blocked]
+            hits[b[:, 0], b[:, 1], b[:, 2]] = True
+    return seen
+
+
 def sightlines(box: Box, eye_mm, params: dict) -> dict:
     """Overhang and hidden wall (module docstring).
 
@@ -225,33 +269,12 @@ def sightlines(box: Box, eye_mm, params: dict) -> dict:
     """
     h = box.h
     depth = int(params["occluder_depth_voxels"])
-    occ = box.present
-    if depth > 0:
-        occ = ndimage.binary_erosion(box.present, iterations=depth, border_value=1)
+    occ = occluder(box, params) if box.occluder is None else box.occluder
     starts = box.removed & face_adjacent(box.present)
     wall = box.present & face_adjacent(box.removed)
     ijk = np.argwhere(starts)
-    shape = np.array(box.present.shape)
-    step = float(params["step_voxels"])            # in voxels
-    n_steps = int(math.ceil(float(np.linalg.norm(shape)) / step)) + 1
-    eye_v = (np.asarray(eye_mm, float) - box.origin_mm) / h   # eye in box voxels
-    seen = np.zeros(len(ijk), bool)
     hit = np.zeros(box.present.shape, bool)
-    ts = step * np.arange(1, n_steps + 1)
-    for c0 in range(0, len(ijk), _CHUNK):
-        p = ijk[c0:c0 + _CHUNK].astype(float)
-        d = eye_v - p
-        dist = np.linalg.norm(d, axis=1)
-        d /= dist[:, None]
-        q = np.rint(p[:, None, :] + ts[None, :, None] * d[:, None, :]).astype(np.int64)
-        inside = np.all((q >= 0) & (q < shape), axis=2) & (ts[None, :] < dist[:, None])
-        qc = np.where(inside[..., None], q, 0)
-        blocked = occ[qc[..., 0], qc[..., 1], qc[..., 2]] & inside
-        any_b = blocked.any(axis=1)
-        seen[c0:c0 + _CHUNK] = ~any_b
-        if any_b.any():
-            b = qc[blocked]
-            hit[b[:, 0], b[:, 1], b[:, 2]] = True
+    seen = clear_to_eye(box, ijk, eye_mm, occ, float(params["step_voxels"]), hit)
     if depth > 0 and hit.any():
         hit = ndimage.binary_dilation(hit, iterations=depth, mask=box.present)
     seen_vox = np.zeros(box.present.shape, bool)

@@ -124,7 +124,8 @@ def expose_sinus(present, enter: bool = False) -> np.ndarray:
 
 def overhang(present, depth_mm: float = 2.5) -> np.ndarray:
     """Put a lid back: the removed bone less than ``depth_mm`` under the
-    cortex in the cavity's anterosuperior quadrant (an undercut rim)."""
+    cortex in the cavity's posterosuperior quadrant (an undercut rim; not
+    over the antrum, which a lid would hide with the lateral canal)."""
     ph = phantom()
     rem = _removed(ph, present) & ph.bone0
     c = ph.centres
@@ -135,7 +136,7 @@ def overhang(present, depth_mm: float = 2.5) -> np.ndarray:
                 cx["height"].shape[1] - 1)
     depth = cx["height"][j, k] - c[..., 0]          # left ear: lateral is +x
     ys, zs = c[..., 1][rem], c[..., 2][rem]
-    lid = rem & (depth < depth_mm) & (c[..., 1] < np.median(ys)) & (c[..., 2] > np.median(zs))
+    lid = rem & (depth < depth_mm) & (c[..., 1] > np.median(ys)) & (c[..., 2] > np.median(zs))
     out = present.copy()
     out[lid] = True
     return out
