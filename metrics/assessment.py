@@ -372,7 +372,8 @@ def _measure(item, box, lm, params, has):
         for n in names:
             if n in g:
                 mask |= g[n]
-        q = M.injury_quantities(box, mask)
+        q = M.injury_quantities(box, mask, show_exposed=any(
+            c.quantity == "exposed_mm2" for c in item.criteria))
         reg = q.pop("_ijk")
         anchor = box.centres(reg.mean(0)) if len(reg) else None
         return q, reg, anchor, ""

@@ -364,14 +364,14 @@ def tip_gap(box: Box, tip_z_mm: float) -> dict:
     return {"gap_mm": max(0.0, z - float(tip_z_mm)), "_at": low}
 
 
-def injury_quantities(box: Box, mask: np.ndarray) -> dict:
+def injury_quantities(box: Box, mask: np.ndarray, show_exposed: bool = True) -> dict:
     """``removed_mm3`` (the structure's voxels removed) and ``exposed_mm2``
-    (its surface face to face with the cavity); ``_ijk`` the voxels of
-    either, for the picture."""
+    (its surface face to face with a removed voxel); ``_ijk`` the removed
+    voxels and (``show_exposed``) the exposed ones, for the picture."""
     m = np.asarray(mask, bool)
     rem = m & box.removed
     d = box.distance_to("removed", box.removed)
     exposed = surface_of(box, m) & (d <= box.h)
     return {"removed_mm3": float(np.count_nonzero(rem) * box.h ** 3),
             "exposed_mm2": float(np.count_nonzero(exposed) * box.h ** 2),
-            "_ijk": np.argwhere(rem | exposed)}
+            "_ijk": np.argwhere(rem | (exposed if show_exposed else False))}
