@@ -43,13 +43,14 @@ Sight lines
     From the centre of each removed voxel face to face with remaining tissue
     (the cavity's surface) toward the eye, sampled every ``step_voxels * h``
     to the box's edge, nearest voxel. A sample hides it when it falls in an
-    *occluder*: remaining tissue at least ``occluder_depth_voxels`` deep
-    (eroded by that many voxels), so the staircase of a wall seen edge-on
-    and rims thinner than that never hide. The *hidden wall share* is the
+    *occluder*: remaining tissue more than ``occluder_depth_voxels`` face
+    steps from any removed voxel (the cavity's own skin is peeled off), so
+    the voxel staircase of a wall seen edge-on never hides, while a rim over
+    an undercut hides by its upper layers. The *hidden wall share* is the
     share of the cavity's wall (remaining voxels face to face with removed
     ones) none of whose removed neighbours sees the eye; the *overhang* is
-    the remaining tissue hit by blocked sight lines, grown back by the
-    erosion within the remaining tissue [mm^3].
+    the remaining tissue hit by blocked sight lines, grown back over the
+    peeled skin within the remaining tissue [mm^3].
 """
 from __future__ import annotations
 
@@ -222,12 +223,12 @@ def cover_quantities(box: Box, surface: np.ndarray, params: dict, thin_mm: float
 
 
 def occluder(box: Box, params: dict) -> np.ndarray:
-    """Remaining tissue at least ``occluder_depth_voxels`` deep (module
-    docstring), box voxels, bool."""
+    """Remaining tissue more than ``occluder_depth_voxels`` face steps from
+    the removed voxels (module docstring), box voxels, bool."""
     depth = int(params["occluder_depth_voxels"])
-    if depth <= 0:
+    if depth <= 0 or not box.removed.any():
         return box.present
-    return ndimage.binary_erosion(box.present, iterations=depth, border_value=1)
+    return box.present & ~ndimage.binary_dilation(box.removed, iterations=depth)
 
 
 def clear_to_eye(box: Box, ijk, eye_mm, occ, step_voxels: float, hits=None) -> np.ndarray:

@@ -78,19 +78,32 @@ def carve(ph: Phantom, pos_mm, radii_mm) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=1)
-def planned_present() -> np.ndarray:
-    """The phantom's planned mastoidectomy (the main job's plan: cutting burr,
-    then diamond burr) carved into the tissue: its drilling samples, every
-    0.1 mm of travel."""
-    from bonesim.io.burrs import load_burr
+def _plan():
     from bonesim.io.toolpath import plan_mastoidectomy
 
+    return plan_mastoidectomy(phantom().case)
+
+
+@functools.lru_cache(maxsize=4)
+def planned_present(keep_off: str | None = None, keep_mm: float = 0.0) -> np.ndarray:
+    """The phantom's planned mastoidectomy (the main job's plan: cutting burr,
+    then diamond burr) carved into the tissue: its drilling samples, every
+    0.1 mm of travel; with ``keep_off``, without the samples whose burr comes
+    within ``keep_mm`` of that structure (a run that stays off it)."""
+    from bonesim.io.burrs import load_burr
+
     ph = phantom()
-    run = plan_mastoidectomy(ph.case)
+    run = _plan()
     tr = run.trajectory
     radii = np.array([load_burr(b).radius_mm for b in run.burrs])[tr.burr]
     on = tr.drill.astype(bool)
     pos, rad = tr.pos_mm[on], radii[on]
+    if keep_off is not None:
+        d = ph.dist_to(ph.labels == ph.label(keep_off))
+        q = np.clip(np.rint((pos - ph.origin) / ph.h).astype(int), 0,
+                    np.array(ph.labels.shape) - 1)
+        ok = d[tuple(q.T)] - rad - ph.h >= keep_mm
+        pos, rad = pos[ok], rad[ok]
     keep = np.ones(len(pos), bool)
     last = pos[0]
     for q in range(1, len(pos)):            # every 0.1 mm of travel
