@@ -298,7 +298,8 @@ def _measure(item, box, lm, params, has):
     if item.measure == "sightlines":
         q = M.sightlines(box, params["_eye"], params)
         reg = np.concatenate([q.pop("_overhang"), q.pop("_hidden")])
-        anchor = box.centres(np.argwhere(box.removed).mean(0)) if box.removed.any() else None
+        anchor = box.centres(reg.mean(0)) if len(reg) else \
+            box.centres(np.argwhere(box.removed).mean(0)) if box.removed.any() else None
         return q, reg, anchor, ""
     if item.measure == "cover":
         if t == "lateral_canal":

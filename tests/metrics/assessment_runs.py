@@ -169,38 +169,6 @@ def short_of_antrum(present, keep_mm: float = 3.0) -> np.ndarray:
     return out
 
 
-def thick_over(present, structure: str, keep_mm: float, away_from: str | None = None,
-               away_mm: float = 6.0) -> np.ndarray:
-    """Leave thick bone over a structure: put back the removed bone within
-    ``keep_mm`` of it (but not within ``away_mm`` of ``away_from``)."""
-    ph = phantom()
-    near = ph.dist_to(ph.labels == ph.label(structure)) <= keep_mm
-    if away_from is not None:
-        near &= ph.dist_to(ph.labels == ph.label(away_from)) > away_mm
-    near = _up_to_eye(near & ph.bone0 & ~present)
-    out = present.copy()
-    out[near & ph.bone0] = True
-    return out
-
-
-def _up_to_eye(mask) -> np.ndarray:
-    """``mask`` and every voxel between it and the eye (sight lines sampled
-    every quarter voxel): bone put back there leaves no overhang."""
-    ph = phantom()
-    ijk = np.argwhere(mask)
-    out = np.asarray(mask, bool).copy()
-    ts = np.arange(0.0, 30.0, ph.h / 4)
-    for c0 in range(0, len(ijk), 1024):
-        p = ph.origin + ph.h * ijk[c0:c0 + 1024]
-        d = ph.eye - p
-        d /= np.linalg.norm(d, axis=1)[:, None]
-        q = np.rint((p[:, None, :] + ts[None, :, None] * d[:, None, :] - ph.origin)
-                    / ph.h).astype(np.int64).reshape(-1, 3)
-        q = q[np.all((q >= 0) & (q < ph.labels.shape), axis=1)]
-        out[q[:, 0], q[:, 1], q[:, 2]] = True
-    return out
-
-
 def perforate_canal(present, lumen, radius_mm: float = 0.75) -> np.ndarray:
     """Drill through the posterior canal wall where it is thinnest (away from
     the chorda tympani, which runs behind the wall): a shaft along the line
