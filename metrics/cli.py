@@ -109,6 +109,8 @@ def cmd_metrics_run(args) -> int:
         a = res["alignment"]
         print(f"force profile: residual {_fmt(a['rms_n'], ' N')} after alignment "
               f"({_fmt(a['unaligned_rms_n'], ' N')} before)")
+    for ln in res.get("assessment", {}).get("checklist", []):
+        print(ln)
     return status
 
 

@@ -27,6 +27,10 @@ gathers, JSON-ready:
     :func:`metrics.forces.exceedances`): how many, and the
     :data:`WORST_SHOWN` largest by excess with time [s], burr position [mm],
     distance [mm], value, limit and excess.
+``assessment``
+    :func:`metrics.assessment.assess_session`: the final product item by
+    item (score, measurement, advice), with ``checklist``, the resident's
+    lines.
 ``alignment`` (with an expert run for the force profile)
     :func:`metrics.alignment.align_sessions` of this run's force against
     the expert's, summarized.
@@ -172,6 +176,10 @@ def run_metrics(session, *, experts=(), force_profile=None, structure: str | Non
 
             out["exceedances"] = _exceedances(
                 run_table, [force_vs_distance(e, structure, model=model) for e in panel])
+    from metrics.assessment import assess_session, checklist
+
+    a = assess_session(s, model=model)
+    out["assessment"] = {**a.as_dict(), "checklist": checklist(a)}
     if force_profile is not None:
         from metrics.alignment import align_sessions
 

@@ -342,7 +342,7 @@ class Showcase:
 def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
                  picture="bonesim-run.png", size=SIZE, video_s: float = VIDEO_S,
                  fps: float = VIDEO_FPS, monitor: bool = True, seconds: float | None = None,
-                 trajectory=None, progress=None) -> dict:
+                 trajectory=None, progress=None, assess=None) -> dict:
     """Drill the whole demo plan in simulated time; write a video and a picture.
 
     Parameters
@@ -367,12 +367,16 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
         Another tool path than the demo plan.
     progress : callable, optional
         Called as ``progress(done, total, what)`` after each frame.
+    assess : callable, optional
+        Called as ``assess(model, grid)`` with the tissue at the end; what it
+        returns is the summary's ``assessment`` (``bonesim run`` passes the
+        final-product assessment, :func:`bonesim.cli.assess.checklist_of_grid`).
 
     Returns
     -------
     dict
-        :meth:`Showcase.summary` plus ``frames``, ``speedup``, ``wall_s`` and
-        the files written.
+        :meth:`Showcase.summary` plus ``frames``, ``speedup``, ``wall_s``,
+        the files written and (with ``assess``) ``assessment``.
     """
     from bonesim.session.video import VideoWriter
 
@@ -399,6 +403,8 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
                 writer.abort()
             raise
         out = show.summary()
+        if assess is not None:
+            out["assessment"] = assess(show.model, show.state.grid)
         out["frames"] = n
         out["speedup"] = round((end - show.start_s) / video_s, 2)
         if picture is not None:

@@ -498,6 +498,8 @@ BENCHMARKS = {
     "visibility_offline_removals_per_s": lambda quick=False: __import__(
         "bonesim.bench.metrics_visibility",
         fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
+    "assess_run_s": lambda quick=False: __import__(
+        "bonesim.bench.metrics_assessment", fromlist=["_"]).bench_assess_run(quick=quick),
     **dict.fromkeys(("cohort_sessions_per_s", "cohort_stats_s", "metrics_run_s"),
                     lambda quick=False: __import__(
         "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from bonesim.io.anatomy import clinical_name
 from bonesim.io.burrs import DEFAULT_BURR
+from bonesim.cli.assess import assess_parsers, checklist_of_grid, print_checklist
 from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
 from bonesim.cli.bounds import check_options
@@ -326,6 +327,7 @@ def cmd_run(args) -> int:
             print(f"bonesim: nerve monitor on {args.monitor_host}:{app.monitor.port} "
                   f"({_shown(app.monitor.names)})", file=sys.stderr, flush=True)
         summary = app.run(frames=frames, screenshot=screenshot)
+        summary["assessment"] = checklist_of_grid(app.model, app.consumer.grid)
     finally:
         app.close()
     summary.update(app.record_summary())      # record_ok, the kept span (after closing)
@@ -345,6 +347,7 @@ def cmd_run(args) -> int:
             print(f"wrote {summary['wav']}")
         if "record" in summary and summary.get("record_ok", True):
             print(f"recorded the session to {summary['record']}")
+        print_checklist(summary.get("assessment"))
     return 0 if summary.get("record_ok", True) else EXIT_RECORDING_LOST
 
 
@@ -373,7 +376,7 @@ def _run_showcase(args) -> int:
                            picture=args.screenshot or "bonesim-run.png",
                            size=tuple(args.size) if args.size else SIZE,
                            monitor=not args.no_monitor, seconds=args.seconds,
-                           progress=bar)
+                           progress=bar, assess=checklist_of_grid)
     finally:
         bar.close()
     if args.json:
@@ -394,6 +397,7 @@ def _run_showcase(args) -> int:
         f" and {out['video']} ({out['frames']} frames: a time-lapse running "
         f"{out['speedup']:g} times faster than the simulated surgery)"
         if "video" in out else ""))
+    print_checklist(out.get("assessment"))
     return 0
 
 
@@ -822,6 +826,7 @@ def build_parser() -> argparse.ArgumentParser:
     _tutor_parser(sub)
 
     research_parsers(sub, _lazy)
+    assess_parsers(sub, _lazy)
     device_parsers(sub)
 
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "

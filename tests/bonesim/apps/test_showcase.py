@@ -76,6 +76,10 @@ def test_headless_run_command(tmp_path, capsys, monkeypatch):
     assert out["simulated_s"] == pytest.approx(2.0, abs=0.01) and "video" not in out
     assert shot.stat().st_size > 1000
     assert list(tmp_path.iterdir()) == [shot]     # asked for a picture: no video
+    # the final product, item by item (two seconds of the plan: little done)
+    a = out["assessment"]
+    assert a["checklist"][0].startswith(f"final product: {a['total']} of {a['max_total']}")
+    assert len(a["checklist"]) == 1 + len(a["items"]) and a["total"] < a["max_total"]
     assert main(["run", "--offscreen", "--record"]) != 0
     assert "[--record]: --record needs the live simulator" in capsys.readouterr().err
     assert main(["run", "--offscreen", "--frames", "2", "--video", "x.mp4"]) != 0
@@ -106,6 +110,19 @@ def test_headless_run_summary_names_structures(monkeypatch, capsys):
                          "b.mp4")):
         assert main(argv) == 0
         assert asked[-1]["video"] == video
+
+    def fake_assessed(*a, assess=None, **kw):
+        out = fake()
+        out["assessment"] = {"checklist": ["final product: 3 of 28 (14 items scored)",
+                                           "  [0/2]  Antrum opened (...). Deepen."]}
+        assert assess is not None
+        return out
+
+    monkeypatch.setattr(S, "run_showcase", fake_assessed)
+    assert main(["run", "--offscreen", "--video", "none"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-2:] == ["final product: 3 of 28 (14 items scored)",
+                        "  [0/2]  Antrum opened (...). Deepen."]
 
 
 def test_bad_seconds():

@@ -128,6 +128,10 @@ def test_window_timer_loop_under_xvfb(xdisplay, script, tmp_path):
     assert out["surface_updates"] > 0                 # the mesh followed the drilling
     assert re.search(r"haptic\s+\d+ Hz\s+frame\s+\d+ Hz", out["hud"]), out["hud"]
     assert "no display" not in res.stderr             # it really used the X server
+    # the window's run ends with the final product's checklist
+    a = out["assessment"]
+    assert a["checklist"][0].startswith(f"final product: {a['total']} of {a['max_total']}")
+    assert {i["name"] for i in a["items"]} >= {"antrum", "sigmoid_sinus", "facial_nerve"}
     from bonesim.session.reader import read_session
 
     s = read_session(out["record"])                  # --record: the sessions folder
