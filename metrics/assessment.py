@@ -42,6 +42,7 @@ from metrics import assessment_measure as M
 from metrics.assessment_items import Scale, load_scale
 
 __all__ = ["ItemResult", "Assessment", "assess_tissue", "assess_grid", "assess_session",
+           "cohort_row", "cohort_columns",
            "final_present", "assessment_row", "assessment_columns", "assessment_progress",
            "checklist", "structure_masks", "ROW_PREFIX"]
 
@@ -577,6 +578,22 @@ def assessment_row(assessment, prefix: str = ROW_PREFIX, *, model=None) -> dict:
     for it in a.items:
         row[f"{prefix}{it.name}"] = float("nan") if it.score is None else float(it.score)
     return row
+
+
+def cohort_row(session, models, path) -> dict:
+    """The cohort's per-run row provider (:data:`metrics.cohort.ROW_PROVIDERS`):
+    :func:`assessment_row` of a session whose burr models the worker has
+    rebuilt already (``models[0]``); ``path`` is not needed."""
+    return assessment_row(session, model=models[0] if models else None)
+
+
+def cohort_columns(scale: Scale | None = None) -> dict:
+    """:func:`assessment_columns` as the cohort table's column record:
+    ``column -> (unit, better)``; every item and the total are better higher."""
+    units = {f"{ROW_PREFIX}total": "points", f"{ROW_PREFIX}max": "points",
+             f"{ROW_PREFIX}share": ""}
+    return {c: (units.get(c, "0-2"), 0 if c == f"{ROW_PREFIX}max" else +1)
+            for c in assessment_columns(scale)}
 
 
 def assessment_progress(sessions) -> list[dict]:

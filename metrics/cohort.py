@@ -63,6 +63,7 @@ from pathlib import Path
 import numpy as np
 
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS, CohortResult
+from metrics.assessment import cohort_columns
 from metrics.participants import assign_sessions, read_participants
 from metrics.run_identity import distinct_runs
 
@@ -85,7 +86,10 @@ CLAMP_RTOL = 1e-3
 #: maps each column to ``(unit, better)`` as :data:`METRIC_COLUMNS` does.
 #: Its columns follow the built-in ones in the table and are tested like them.
 #: A provider that raises leaves its columns NaN and gives one error line.
-ROW_PROVIDERS: tuple = ()
+#: The final-product assessment (:mod:`metrics.assessment`) is one: its
+#: ``assess_*`` columns put each item of the scale beside the metrics, per run
+#: and so per participant and session (the learning curves).
+ROW_PROVIDERS: tuple = (("metrics.assessment", "cohort_row", cohort_columns()),)
 
 
 def metric_columns(providers=None) -> dict:

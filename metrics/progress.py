@@ -21,7 +21,8 @@ __all__ = ["DEFAULT_METRICS", "improvement", "draw_progress"]
 
 #: Panels drawn by default (those the table has).
 DEFAULT_METRICS = ("visible_fraction", "nb_score_per_voxel", "force_close_n",
-                   "tool_speed_close_mm_s", "mean_plunge", "exceedances_close")
+                   "tool_speed_close_mm_s", "mean_plunge", "exceedances_close",
+                   "assess_share")    # the final product's share of the scale's points
 _COLOURS = {"expert": "#1f77b4", "novice": "#d62728"}
 
 
