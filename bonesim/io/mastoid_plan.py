@@ -273,7 +273,7 @@ def _cortex_x(lm, y, z):
 
 
 # ------------------------------------------------------------------ strokes
-def strokes(mask: np.ndarray, step_cells: float) -> list[np.ndarray]:
+def strokes(mask: np.ndarray, step_cells: float, _depth: int = 0) -> list[np.ndarray]:
     """Contour-parallel strokes over a region of lattice cells.
 
     Parameters
@@ -290,7 +290,9 @@ def strokes(mask: np.ndarray, step_cells: float) -> list[np.ndarray]:
         contour lines of the distance to the region's edge at ``(k + 1/2)
         step`` (the middle line alone when the region is narrower), each a
         sequence of neighbouring cells of the region (consecutive duplicates
-        removed; a closed contour ends where it starts).
+        removed; a closed contour ends where it starts). Cells that no level
+        reaches within a spacing (a narrow arm) get strokes of their own, after
+        the rest.
     """
     from scipy import ndimage
     from skimage.measure import find_contours
@@ -324,6 +326,17 @@ def strokes(mask: np.ndarray, step_cells: float) -> list[np.ndarray]:
             out.append(idx[keep])
     if not out:                                  # a sliver: its cells in order
         out.append(np.argwhere(mask))
+    # a lobe thinner than the outer level (a narrow arm of the region) holds no
+    # contour at the region's levels: its cells, farther than a spacing from
+    # every stroke, get strokes of their own (the middle line of a thin lobe)
+    if _depth < 8:
+        hit = np.zeros(mask.shape, bool)
+        cells = np.concatenate(out)
+        hit[cells[:, 0], cells[:, 1]] = True
+        far = mask & (ndimage.distance_transform_edt(~hit) > step_cells)
+        lab, n = ndimage.label(far)
+        for k in range(1, n + 1):
+            out.extend(strokes(lab == k, step_cells, _depth=_depth + 1))
     return out
 
 
