@@ -147,7 +147,7 @@ class ExpertModel:
     margin_mm: float = 1.2
     margin_sd_mm: float = 0.15
     centre_sd_mm: float = 0.8
-    slow_within_mm: float = 12.0
+    slow_within_mm: float = 4.0
     slow_share: float = 0.15
     fine_burr: str = "diamond-4mm"
     fine_within_mm: float = 3.0
@@ -417,7 +417,7 @@ def expert_trajectory(case, clearance, participant: Participant,
     bonesim.io.trajectory.Trajectory
         Burr centres [mm], case frame; cut at ``duration_s`` [s] if given.
     """
-    from bonesim.io.toolpath import demo_trajectory, load_demo_plan
+    from bonesim.io.toolpath import load_demo_plan, plan_mastoidectomy
 
     rng = np.random.default_rng(participant.seed)
     s = participant.skill
@@ -433,8 +433,11 @@ def expert_trajectory(case, clearance, participant: Participant,
     cam = case.camera
     moved = replace(case, declared_camera=replace(
         cam, eye_mm=tuple(np.add(cam.eye_mm, off)), focal_mm=tuple(np.add(cam.focal_mm, off))))
-    traj = _slow_near_structures(demo_trajectory(moved, model.burr, plan), case, clearance,
-                                 plan.margin_mm, model)
+    # the planned mastoidectomy as a surgeon drills it: the cutting burr for
+    # the bulk, the diamond burr for the finishing strokes near the structures
+    planned = plan_mastoidectomy(moved, model.burr, model.fine_burr, plan).trajectory
+    traj = _slow_near_structures(planned, case, clearance, plan.margin_mm, model,
+                                 stages=planned.burr)
     if model.near_share > 0 and duration_s is not None and grid is not None:
         t1 = (1.0 - model.near_share) * duration_s
         first = traj.at_times(traj.t_s[traj.t_s <= t1])
@@ -562,13 +565,13 @@ def _near_phase(first, case, grid, clearance, rng, model, duration_s):
                       np.concatenate([burr0, burr[keep]]))
 
 
-def _slow_near_structures(traj, case, clearance, margin_mm, model):
+def _slow_near_structures(traj, case, clearance, margin_mm, model, stages=None):
     """``traj`` retimed and with its burr stages: each drilling step takes
     ``1 / f`` as long, ``f`` falling linearly from 1 (burr surface
     ``margin + slow_within_mm`` from a structure) to ``slow_share`` (at the
     margin); a drilling pass that comes within ``fine_within_mm`` of the
     margin uses the fine burr (burr 1), changed while the drill rests before
-    it."""
+    it; or, given ``stages`` (a burr per sample: a plan's own), those burrs."""
     from bonesim.io.burrs import load_burr
     from bonesim.io.trajectory import Trajectory
 
@@ -581,7 +584,8 @@ def _slow_near_structures(traj, case, clearance, margin_mm, model):
     f = np.where(traj.drill, f, 1.0)
     dt = np.diff(traj.t_s) / f[1:]
     t = np.concatenate(([traj.t_s[0]], traj.t_s[0] + np.cumsum(dt)))
-    burr = _burr_stages(traj.drill, gap - margin_mm, model.fine_within_mm)
+    burr = (_burr_stages(traj.drill, gap - margin_mm, model.fine_within_mm)
+            if stages is None else np.asarray(stages, np.uint8))
     speed = np.where(burr == 1, fine.default_speed_rpm, big.default_speed_rpm)
     return Trajectory(t, traj.pos_mm, traj.axis, traj.drill, speed, traj.direction,
                       traj.suction, traj.irrigation, burr)
