@@ -195,6 +195,21 @@ class Streamer:
             c.last_sent_sample = head
         return sent
 
+    def drain(self, clock, period_s: float, timeout_s: float = 0.5) -> bool:
+        """Before the BYE: go on ticking until every streaming trainee holds
+        every logged tissue event (acknowledged), or ``timeout_s`` [s] has
+        passed; ``clock`` is the ticks' clock [s], ``period_s`` their spacing.
+        Returns whether all trainees hold all events (the session's last
+        removals are not lost by ending it)."""
+        end = clock() + float(timeout_s)
+        while True:
+            self.tick(clock())
+            if all(c.acked >= self.log.n for c in self.clients.values() if c.streaming):
+                return True
+            if clock() >= end:
+                return False
+            time.sleep(period_s)
+
     def bye(self) -> None:
         """Tell every trainee the session ends."""
         self.session.bye()
@@ -261,6 +276,7 @@ def _run_server(child, loop_handle, host, port, key, rate_hz, info, initial_dens
                 time.sleep(rest)
             elif rest < -10 * period:                 # fell far behind: do not burst
                 deadline = clock()
+        streamer.drain(clock, period)          # the last events reach every trainee
         streamer.bye()
         stats = streamer.stats()
         stats["ticks"] = ticks

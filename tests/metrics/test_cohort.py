@@ -13,6 +13,7 @@ import shutil
 import numpy as np
 import pytest
 
+from metrics.cohort import metric_columns
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
 
 
@@ -46,6 +47,11 @@ def _edit_header(path, **change):
             else:
                 h[k] = v
         f.attrs["header"] = json.dumps(h)
+        if "header_sha256" in f.attrs:       # an edit made on purpose: signed again
+            from bonesim.runtime.record import header_sha256
+
+            f.attrs["header_sha256"] = header_sha256(f.attrs["format"], f.attrs["schema"],
+                                                     f.attrs["header"])
 
 
 def test_table_has_a_row_per_file_and_matches_the_direct_functions(cohort, clean):
@@ -56,7 +62,8 @@ def test_table_has_a_row_per_file_and_matches_the_direct_functions(cohort, clean
     _, paths, csv_path = cohort
     res, seen = clean
     tb = res.table
-    assert list(tb.columns) == [*RUN_COLUMNS, *METRIC_COLUMNS]
+    assert list(tb.columns) == [*RUN_COLUMNS, *metric_columns()]
+    assert np.isfinite(tb["assess_total"].astype(float)).all()   # the final product joins
     assert list(tb["file"]) == sorted(str(p) for p in paths)
     assert (tb["error"] == "").all() and res.errors == []
     assert seen[-1] == (6, 6) and [s[0] for s in seen] == list(range(1, 7))
@@ -176,7 +183,7 @@ def test_cli_writes_parquet_and_prints_json(cohort, tmp_path, capsys):
     assert summary["table"] == str(out)
     assert any(s["metric"] == "nb_score" for s in summary["significant"])
     tb = pd.read_parquet(out)
-    assert list(tb.columns) == [*RUN_COLUMNS, *METRIC_COLUMNS] and len(tb) == 6
+    assert list(tb.columns) == [*RUN_COLUMNS, *metric_columns()] and len(tb) == 6
     assert "scoring" in cap.err
 
 
