@@ -126,7 +126,7 @@ def assessment_picture(path, present, labels, spacing_mm: float, origin_mm, stru
                    (0.92, 0.92, 0.88), fs)]
         lines += [(clinical_name(st.name), np.array(st.display_color[:3]) / 255.0, fs)
                   for st in drawn]
-        add_legend(scene.renderer, lines, size[1] - 8)
+        add_legend(top, lines, size[1] - 8)   # over the regions, which lie in the top layer
         eye, focal, up = (np.asarray(v, float) for v in camera)
         scene.set_case_camera(focal + (eye - focal) / ZOOM, focal, up)
         return scene.screenshot(path)
