@@ -29,6 +29,13 @@ fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".${extras}"
+# an earlier non-editable install replaced by it leaves numba's caches in
+# site-packages: those folders would shadow the editable package
+for pkg in bonesim metrics ct_cases burrs; do
+  for dir in .venv/lib/python3*/site-packages/"$pkg"; do
+    if [ -d "$dir" ] && [ ! -e "$dir/__init__.py" ]; then rm -rf "$dir"; fi
+  done
+done
 # Compile the numba kernels once, here, rather than in the first run's four
 # processes at once; the cache lies beside the sources, which the command and
 # the tests share, so the second set-up finds it warm.

