@@ -60,7 +60,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["FACES", "Box", "make_box", "face_adjacent", "inside_hull", "opened_air",
+from bonesim.io.landmarks import inside_hull
+
+__all__ = ["FACES", "Box", "make_box", "face_adjacent", "opened_air",
            "thinnest", "cover_quantities", "sightlines", "antrum_quantities",
            "angle_gap", "reach_gap", "tip_gap", "injury_quantities", "surface_of"]
 
@@ -85,20 +87,6 @@ def face_adjacent(mask: np.ndarray) -> np.ndarray:
     out = np.zeros_like(m)
     for off in FACES:
         out |= _shift(m, off)
-    return out
-
-
-def inside_hull(solid: np.ndarray, reach: int) -> np.ndarray:
-    """Voxels with a ``solid`` voxel within ``reach`` voxels along each of the
-    six axis directions (inside the solid's hull, not out in the open)."""
-    out = np.ones(solid.shape, bool)
-    for a in range(3):
-        for flip in (False, True):
-            m = np.flip(solid, axis=a) if flip else solid
-            idx = np.arange(m.shape[a]).reshape([-1 if b == a else 1 for b in range(3)])
-            last = np.maximum.accumulate(np.where(m, idx, -10 ** 6), axis=a)
-            ok = (idx - last) <= reach
-            out &= np.flip(ok, axis=a) if flip else ok
     return out
 
 

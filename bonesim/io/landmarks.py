@@ -89,7 +89,8 @@ from bonesim.tomlfile import read_toml
 
 __all__ = ["GROUPS", "CONFIDENCES", "Landmark", "Landmarks", "LandmarkParams",
            "load_params", "analysis_grid", "structure_groups", "split_channel",
-           "group_masks", "lateral_height_map", "find_canal_pits", "find_landmarks"]
+           "group_masks", "lateral_height_map", "find_canal_pits", "find_landmarks",
+           "inside_hull"]
 
 #: Landmark groups and the anatomical classes (``anatomy.toml``) that feed them.
 GROUPS = {
@@ -553,9 +554,22 @@ def _pct(values, q):
     return float(np.percentile(values, q))
 
 
-def _inside_hull(solid: np.ndarray, reach: int) -> np.ndarray:
-    """Cells with a ``solid`` cell within ``reach`` cells along each of the
-    six axis directions (inside the solid's hull, not out in the open)."""
+def inside_hull(solid: np.ndarray, reach: int) -> np.ndarray:
+    """Cells inside a solid's hull, not out in the open.
+
+    Parameters
+    ----------
+    solid : (nx, ny, nz) bool
+        The solid's cells (any axis order: the test is the same along each).
+    reach : int
+        How far a solid cell may lie [cells].
+
+    Returns
+    -------
+    (nx, ny, nz) bool
+        Cells with a ``solid`` cell within ``reach`` cells along each of the six
+        axis directions.
+    """
     out = np.ones(solid.shape, bool)
     for a in range(3):
         for flip in (False, True):
@@ -853,7 +867,7 @@ def _find_antrum(lab, bone, h, origin, lat, expect, wall, y_back, z_low, z_top, 
     sub = lab[box]
     air = sub == 0
     radius = ndimage.distance_transform_edt(air, sampling=h)
-    inside = _inside_hull(bone[box] | (sub > 0), int(round(a["hull_mm"] / h)))
+    inside = inside_hull(bone[box] | (sub > 0), int(round(a["hull_mm"] / h)))
     peak = (radius == ndimage.maximum_filter(radius, size=3)) & inside \
         & (radius >= a["min_radius_mm"])
     ijk = np.argwhere(peak)

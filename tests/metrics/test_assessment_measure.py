@@ -69,15 +69,6 @@ def test_cover_equals_the_kd_tree_reference():
     assert M.thinnest(np.array([0.3]), 0.5, 1.0) == math.inf
 
 
-def test_inside_hull_equals_the_landmarks_reference():
-    from bonesim.io.landmarks import _inside_hull
-
-    rng = np.random.default_rng(1)
-    solid = rng.random((20, 18, 16)) < 0.3
-    for reach in (1, 3, 7):
-        assert np.array_equal(M.inside_hull(solid, reach), _inside_hull(solid, reach))
-
-
 def _block(n=24, top=16):
     """A block of bone (z below ``top``) under air; the eye far above."""
     present = np.zeros((n, n, n), bool)

@@ -185,3 +185,30 @@ def test_missing_landmarks_are_said(tmp_path):
     assert "sigmoid sinus" in text and "facial nerve" in text and "labyrinth" in text
     assert lm.get("tegmen").confidence == "estimated"
     assert lm.get("ear_canal").confidence == "found"        # the opening in the cortex
+
+
+def _inside_hull_slow(solid, reach):
+    """Cell by cell: along each of the six axis directions, a solid cell at a
+    distance of at most ``reach`` cells (the cell itself included)."""
+    out = np.zeros(solid.shape, bool)
+    for i, j, k in np.ndindex(solid.shape):
+        ok = True
+        for axis in range(3):
+            for sign in (-1, 1):
+                seen = False
+                for d in range(reach + 1):
+                    p = [i, j, k]
+                    p[axis] += sign * d
+                    if 0 <= p[axis] < solid.shape[axis] and solid[tuple(p)]:
+                        seen = True
+                        break
+                ok &= seen
+        out[i, j, k] = ok
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10 ** 6), st.floats(0.05, 0.6), st.integers(0, 6))
+def test_inside_hull_matches_a_cell_by_cell_search(seed, density, reach):
+    solid = np.random.default_rng(seed).random((9, 8, 7)) < density
+    assert np.array_equal(L.inside_hull(solid, reach), _inside_hull_slow(solid, reach))
