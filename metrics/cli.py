@@ -98,9 +98,11 @@ def cmd_metrics_run(args) -> int:
         near = clinical_name(e["structure"])
         print(f"above the experts' limits near the {near} ({e['percentile']:g}th "
               f"percentile per 2 mm bin): force {e['count']['force_n']} time(s), speed "
-              f"{e['count']['speed_rpm']} time(s)")
+              f"{e['count']['speed_rpm']} time(s), closer than any expert "
+              f"({_fmt(e['closest_mm'], ' mm')}) {e['count']['approach_mm']} time(s)")
         for w in e["worst"]:
-            unit, f = (" N", ".3f") if w["quantity"] == "force_n" else (" rpm", ",.0f")
+            unit, f = {"force_n": (" N", ".3f"), "approach_mm": (" mm", ".2f")}.get(
+                w["quantity"], (" rpm", ",.0f"))
             print(f"  at {w['t_s']:.3f} s, {w['distance_mm']:.1f} mm from the {near}, burr at "
                   f"({', '.join(f'{v:.1f}' for v in w['pos_mm'])}) mm: "
                   f"{w['value']:{f}}{unit} against {w['limit']:{f}}{unit} "
@@ -132,15 +134,18 @@ def cmd_metrics_limits(args) -> int:
     save_limits(args.out, lim)
     have = int(np.count_nonzero(np.isfinite(lim.force_n)))
     out = {"limits": str(args.out), "structure": lim.structure, "case": lim.case,
-           "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n)}
+           "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n),
+           "closest_mm": float(lim.closest_mm) if np.isfinite(lim.closest_mm) else None}
     if args.json:
         print(json.dumps(out, indent=2))
     else:
         print(f"{args.out}: force and speed limits near the {clinical_name(lim.structure)} "
               f"({lim.percentile:g}th "
               f"percentile, {have} of {len(lim.force_n)} bins of "
-              f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm) from {len(lim.source)} expert "
-              f"run(s) of case {lim.case!r}; use it with bonesim run --force-limits")
+              f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm; closer than "
+              f"{_fmt(out['closest_mm'], ' mm')} in a bin without one) from "
+              f"{len(lim.source)} expert run(s) of case {lim.case!r}; use it with bonesim run "
+              "--force-limits")
     return 0
 
 

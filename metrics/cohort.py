@@ -410,7 +410,7 @@ def _exceedances(runs, table, errors, close_mm, found):
     """Exceedances of every run against limits of the *other* participants'
     expert runs; the bins without a force limit are limited by the experts'
     closest approach."""
-    from metrics.forces import closest_approach, exceedances, learn_limits
+    from metrics.forces import exceedances, learn_limits
 
     experts = [q for q, r in enumerate(runs)
                if r.get("group") == "expert" and r.get("force_table") is not None]
@@ -424,13 +424,12 @@ def _exceedances(runs, table, errors, close_mm, found):
         if others not in cache:
             tabs = [runs[e]["force_table"] for e in others]
             try:
-                cache[others] = (learn_limits(tabs), closest_approach(tabs))
+                cache[others] = learn_limits(tabs)     # closest_mm: the experts' closest
             except ValueError as exc:
                 cache[others] = None
                 errors.append(f"exceedances: no limits without {r['participant']!r} ({exc})")
         if cache[others] is not None:
-            lim, closest = cache[others]
-            ex = exceedances(r["force_table"], lim, closest_mm=closest)
+            ex = exceedances(r["force_table"], cache[others])
             found[r["file"]] = ex
             table[q]["exceedances"] = float(len(ex))
             table[q]["exceedances_close"] = float(np.count_nonzero(ex.distance_mm <= close_mm))
