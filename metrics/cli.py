@@ -195,18 +195,46 @@ def _write_report(result, path) -> str:
     return f"report: {path}"
 
 
+def _instructor_summary(ins: dict) -> dict:
+    """``instructors``: the ICCs and the bias in brief (empty without ratings)."""
+    if not ins:
+        return {}
+    br, ag = ins["between_raters"], ins["against"]
+    out = {"raters": br["raters"], "between_raters_runs": br["runs"]}
+    if "icc" in br:
+        out["between_raters_icc2_1"] = br["icc"]["icc2_1"]
+        out["between_raters_icc2_1_ci"] = br["icc"]["icc2_1_ci"]
+    out.update(against=ag["metric"], against_runs=ag["runs"])
+    if "icc" in ag:
+        out["against_icc2_1"] = ag["icc"]["icc2_1"]
+        out["against_icc2_1_ci"] = ag["icc"]["icc2_1_ci"]
+    if "bland_altman" in ag:
+        out["against_bias"] = ag["bland_altman"]["bias"]
+        out["against_loa"] = ag["bland_altman"]["loa"]
+    notes = [x for x in (br.get("note"), ag.get("note")) if x]
+    if notes:
+        out["notes"] = notes
+    return {"instructors": out}
+
+
 def cmd_metrics_cohort(args) -> int:
     """``bonesim metrics cohort``: score a cohort (:mod:`metrics.cohort`)."""
     from bonesim.progress import ProgressBar
     from metrics.cohort import find_sessions, score_cohort, write_table
 
+    if getattr(args, "ratings", None):      # a bad file: one line before anything else
+        from metrics.participants import read_participants
+        from metrics.raters import read_ratings
+
+        read_ratings(args.ratings, read_participants(args.participants))
     n = len(find_sessions(args.sessions))
     bar = ProgressBar(n, "scoring")
     res = score_cohort(args.sessions, args.participants, scheduler=args.scheduler,
                        workers=args.workers, structure=args.structure,
                        progress=lambda done, _n: bar.update(done),
                        design=getattr(args, "design", None),
-                       command=_command(args))
+                       command=_command(args), ratings=getattr(args, "ratings", None),
+                       cache=getattr(args, "cache", None))
     bar.close()
     for line in res.errors:
         print(line, file=sys.stderr)
@@ -234,7 +262,8 @@ def cmd_metrics_cohort(args) -> int:
                                for r in sig.itertuples()],
                "excluded": dict(res.excluded),
                "naive_bayes_auc": {k: {"auc": v["auc"], "ci": v["auc_ci"]}
-                                   for k, v in res.classifiers.items()}, **out}
+                                   for k, v in res.classifiers.items()},
+               **_instructor_summary(res.instructors), **out}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -254,6 +283,20 @@ def cmd_metrics_cohort(args) -> int:
     for k, v in summary["naive_bayes_auc"].items():
         print(f"{k}: leave-one-participant-out AUC {_fmt(v['auc'])} "
               f"[{_fmt(v['ci'][0])}, {_fmt(v['ci'][1])}]")
+    ins = summary.get("instructors")
+    if ins:
+        if "between_raters_icc2_1" in ins:
+            lo, hi = ins["between_raters_icc2_1_ci"]
+            print(f"between {len(ins['raters'])} raters over {ins['between_raters_runs']} runs: "
+                  f"ICC(2,1) {_fmt(ins['between_raters_icc2_1'])} [{_fmt(lo)}, {_fmt(hi)}]")
+        if "against_icc2_1" in ins:
+            lo, hi = ins["against_icc2_1_ci"]
+            print(f"{ins['against']} against the instructors over {ins['against_runs']} runs: "
+                  f"ICC(2,1) {_fmt(ins['against_icc2_1'])} [{_fmt(lo)}, {_fmt(hi)}], bias "
+                  f"{_fmt(ins['against_bias'])} (limits {_fmt(ins['against_loa'][0])} to "
+                  f"{_fmt(ins['against_loa'][1])})")
+        for n in ins.get("notes", []):
+            print(f"instructor scores: {n}")
     for k in ("table", "report"):
         if k in out:
             print(out[k] if k == "report" else f"table: {out[k]}")
@@ -276,10 +319,16 @@ def cmd_metrics_progress(args) -> int:
     from metrics.cohort import find_sessions, metric_columns, score_cohort
     from metrics.progress import draw_progress
 
+    from metrics.run_cache import default_cache_dir
+
+    cache = None if args.no_cache else (args.cache or default_cache_dir())
     bar = ProgressBar(len(find_sessions(args.sessions)), "scoring")
     res = score_cohort(args.sessions, args.participants, workers=args.workers,
-                       progress=lambda done, _n: bar.update(done))
+                       progress=lambda done, _n: bar.update(done), cache=cache)
     bar.close()
+    if cache is not None:
+        print(f"{res.meta['cached']} of {len(res.table)} runs read from the cache {cache}",
+              file=sys.stderr)
     for line in res.errors:
         print(line, file=sys.stderr)
     try:
