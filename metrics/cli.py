@@ -234,6 +234,7 @@ def cmd_metrics_cohort(args) -> int:
                        progress=lambda done, _n: bar.update(done),
                        design=getattr(args, "design", None),
                        command=_command(args), ratings=getattr(args, "ratings", None),
+                       ratings_against=getattr(args, "ratings_against", "assess_total"),
                        cache=getattr(args, "cache", None))
     bar.close()
     for line in res.errors:

@@ -515,7 +515,8 @@ def _agreement(df, metrics) -> dict:
 
 def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
                  structure: str = "chorda_tympani", progress=None, design=None,
-                 command: str | None = None, ratings=None, cache=None) -> CohortResult:
+                 command: str | None = None, ratings=None, ratings_against: str = "assess_total",
+                 cache=None) -> CohortResult:
     """Score every run of a cohort (module docstring).
 
     Parameters
@@ -541,7 +542,9 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     ratings : path, optional
         Instructors' scores (``participant,session,rater,score``,
         :func:`metrics.raters.read_ratings`): between-rater ICC and the
-        simulator's ``assess_total`` against them (``instructors``).
+        simulator's ``ratings_against`` column against them (``instructors``).
+    ratings_against : str
+        The simulator's column on the raters' scale.
     cache : path, optional
         A folder of per-run results (:class:`metrics.run_cache.RunCache`):
         a run whose file, bonesim version, scoring code and settings are
@@ -636,7 +639,7 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         from metrics.raters import instructor_agreement
 
         instructors = {"file": str(ratings), "sha256": file_sha256(ratings),
-                       **instructor_agreement(rated, df)}
+                       **instructor_agreement(rated, df, ratings_against)}
         for u in instructors["against"]["unmatched"]:
             errors.append(f"{ratings}: {u} has instructor scores but no scored run")
     stats_s = time.perf_counter() - t_stats

@@ -54,10 +54,11 @@ Limits
     percentile rather than mean + k sd because forces are non-negative and
     skewed. Bins with fewer than :data:`MIN_LIMIT_SAMPLES` expert rows have no
     force limit (NaN); there the closest approach of the expert rows
-    (:func:`closest_approach`, kept in the limits as ``closest_mm``) is the limit: a row closer to the structure
-    than every expert ever came, in a bin without a force limit, is an
-    exceedance of quantity ``"approach_mm"`` (value its distance, limit the
-    closest expert distance, excess how much closer).
+    (:func:`closest_approach`, kept in the limits as ``closest_mm``) is the
+    limit: a row closer to the structure than every expert ever came, in a
+    bin without a force limit, is an exceedance of quantity
+    ``"approach_mm"`` (value its distance, limit the closest expert
+    distance, excess how much closer).
 Exceedance
     A row whose force (speed) is above its bin's limit by more than
     :data:`AT_LIMIT_RTOL` of it (a force clamped at the device's maximum

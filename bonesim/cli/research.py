@@ -71,6 +71,8 @@ def research_parsers(sub, _lazy) -> None:
     mc.add_argument("--ratings", metavar="CSV",
                     help="instructors' scores (participant,session,rater,score): "
                     "between-rater ICC and the simulator's score against them")
+    mc.add_argument("--ratings-against", default="assess_total", metavar="COLUMN",
+                    help="the simulator's column on the raters' scale (default assess_total)")
     mc.add_argument("--json", action="store_true", help="print the summary as JSON")
     mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
     mp = msub.add_parser("progress", help="learning curves: each participant's metrics "

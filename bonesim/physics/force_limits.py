@@ -416,8 +416,10 @@ class ForceWatch:
     """Checks a live run's removals against force limits as they happen.
 
     Feed it the haptic loop's tissue events and samples in order, in any
-    batches (:meth:`feed` says the one rule); each removal near the structure is measured and checked exactly
-    as :func:`metrics.forces.exceedances` checks a recorded one.
+    batches (:meth:`feed` says how); each removal near the structure is
+    measured and checked by :func:`judge`, the rule
+    :func:`metrics.forces.exceedances` applies to a recorded run, with the
+    same limits (the experts' closest approach included).
 
     Parameters
     ----------
