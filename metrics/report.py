@@ -311,8 +311,9 @@ def _group_plot(result, metric, groups, big: bool):
     row = _stats_row(result, metric)
     p_t, p_mixed = row.get("p_t_adj"), row.get("p_mixed_adj")
     corr = f" {row.get('correction')}" if not _isnan(p_t) else ""
-    ax.set_title(f"{metric}\nper participant t-test{corr} {_p_is(p_t)}, "
-                 f"mixed model {_p_is(p_mixed)}", fontsize=9 if not big else 11)
+    sep = ", " if big else "\n"                  # small panels: one test a line
+    ax.set_title(f"{metric}\nper participant t-test{corr} {_p_is(p_t)}{sep}"
+                 f"mixed model {_p_is(p_mixed)}", fontsize=8 if not big else 11)
     ax.grid(axis="y", alpha=0.3)
     if big:
         ax.legend(fontsize=7, loc="best", framealpha=0.6)
