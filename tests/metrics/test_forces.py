@@ -300,7 +300,7 @@ def recorded_40s(tmp_path_factory):
     return _record_demo(tmp_path_factory.mktemp("forces4"), 4000)
 
 
-def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
+def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s, tmp_path):
     """The window's ForceWatch, fed the recorded streams as the window drains
     them (tissue before samples, in frame-sized batches), warns at the same
     steps, with the same values, as the offline exceedances: forces over the
@@ -326,7 +326,11 @@ def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
     want = exceedances(sess, lim, model=model)
     assert 0 < len(want) < len(np.unique(tb.t_s)) * 3
     assert {"force_n", "approach_mm"} <= set(want.quantity.tolist())
-    watch = ForceWatch(model, lim)
+    # the window reads the limits from the file bonesim metrics limits writes
+    from bonesim.physics.force_limits import load_limits, save_limits
+
+    watch = ForceWatch(model, load_limits(save_limits(tmp_path / "limits.toml", lim)))
+    assert watch.limits.closest_mm == lim.closest_mm
     got = []
     tis, s = sess.tissue, sess.samples
     edges = np.arange(0.0, s["t_s"][-1] + 2 / 30, 1 / 30)          # 30 frames a second
