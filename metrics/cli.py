@@ -98,9 +98,11 @@ def cmd_metrics_run(args) -> int:
         near = clinical_name(e["structure"])
         print(f"above the experts' limits near the {near} ({e['percentile']:g}th "
               f"percentile per 2 mm bin): force {e['count']['force_n']} time(s), speed "
-              f"{e['count']['speed_rpm']} time(s)")
+              f"{e['count']['speed_rpm']} time(s), closer than any expert "
+              f"({_fmt(e['closest_mm'], ' mm')}) {e['count']['approach_mm']} time(s)")
         for w in e["worst"]:
-            unit, f = (" N", ".3f") if w["quantity"] == "force_n" else (" rpm", ",.0f")
+            unit, f = {"force_n": (" N", ".3f"), "approach_mm": (" mm", ".2f")}.get(
+                w["quantity"], (" rpm", ",.0f"))
             print(f"  at {w['t_s']:.3f} s, {w['distance_mm']:.1f} mm from the {near}, burr at "
                   f"({', '.join(f'{v:.1f}' for v in w['pos_mm'])}) mm: "
                   f"{w['value']:{f}}{unit} against {w['limit']:{f}}{unit} "
@@ -132,15 +134,18 @@ def cmd_metrics_limits(args) -> int:
     save_limits(args.out, lim)
     have = int(np.count_nonzero(np.isfinite(lim.force_n)))
     out = {"limits": str(args.out), "structure": lim.structure, "case": lim.case,
-           "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n)}
+           "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n),
+           "closest_mm": float(lim.closest_mm) if np.isfinite(lim.closest_mm) else None}
     if args.json:
         print(json.dumps(out, indent=2))
     else:
         print(f"{args.out}: force and speed limits near the {clinical_name(lim.structure)} "
               f"({lim.percentile:g}th "
               f"percentile, {have} of {len(lim.force_n)} bins of "
-              f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm) from {len(lim.source)} expert "
-              f"run(s) of case {lim.case!r}; use it with bonesim run --force-limits")
+              f"{lim.edges_mm[1] - lim.edges_mm[0]:g} mm; closer than "
+              f"{_fmt(out['closest_mm'], ' mm')} in a bin without one) from "
+              f"{len(lim.source)} expert run(s) of case {lim.case!r}; use it with bonesim run "
+              "--force-limits")
     return 0
 
 
@@ -190,18 +195,47 @@ def _write_report(result, path) -> str:
     return f"report: {path}"
 
 
+def _instructor_summary(ins: dict) -> dict:
+    """``instructors``: the ICCs and the bias in brief (empty without ratings)."""
+    if not ins:
+        return {}
+    br, ag = ins["between_raters"], ins["against"]
+    out = {"raters": br["raters"], "between_raters_runs": br["runs"]}
+    if "icc" in br:
+        out["between_raters_icc2_1"] = br["icc"]["icc2_1"]
+        out["between_raters_icc2_1_ci"] = br["icc"]["icc2_1_ci"]
+    out.update(against=ag["metric"], against_runs=ag["runs"])
+    if "icc" in ag:
+        out["against_icc2_1"] = ag["icc"]["icc2_1"]
+        out["against_icc2_1_ci"] = ag["icc"]["icc2_1_ci"]
+    if "bland_altman" in ag:
+        out["against_bias"] = ag["bland_altman"]["bias"]
+        out["against_loa"] = ag["bland_altman"]["loa"]
+    notes = [x for x in (br.get("note"), ag.get("note")) if x]
+    if notes:
+        out["notes"] = notes
+    return {"instructors": out}
+
+
 def cmd_metrics_cohort(args) -> int:
     """``bonesim metrics cohort``: score a cohort (:mod:`metrics.cohort`)."""
     from bonesim.progress import ProgressBar
     from metrics.cohort import find_sessions, score_cohort, write_table
 
+    if getattr(args, "ratings", None):      # a bad file: one line before anything else
+        from metrics.participants import read_participants
+        from metrics.raters import read_ratings
+
+        read_ratings(args.ratings, read_participants(args.participants))
     n = len(find_sessions(args.sessions))
     bar = ProgressBar(n, "scoring")
     res = score_cohort(args.sessions, args.participants, scheduler=args.scheduler,
                        workers=args.workers, structure=args.structure,
                        progress=lambda done, _n: bar.update(done),
                        design=getattr(args, "design", None),
-                       command=_command(args))
+                       command=_command(args), ratings=getattr(args, "ratings", None),
+                       ratings_against=getattr(args, "ratings_against", "assess_total"),
+                       cache=getattr(args, "cache", None))
     bar.close()
     for line in res.errors:
         print(line, file=sys.stderr)
@@ -229,7 +263,8 @@ def cmd_metrics_cohort(args) -> int:
                                for r in sig.itertuples()],
                "excluded": dict(res.excluded),
                "naive_bayes_auc": {k: {"auc": v["auc"], "ci": v["auc_ci"]}
-                                   for k, v in res.classifiers.items()}, **out}
+                                   for k, v in res.classifiers.items()},
+               **_instructor_summary(res.instructors), **out}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -249,6 +284,20 @@ def cmd_metrics_cohort(args) -> int:
     for k, v in summary["naive_bayes_auc"].items():
         print(f"{k}: leave-one-participant-out AUC {_fmt(v['auc'])} "
               f"[{_fmt(v['ci'][0])}, {_fmt(v['ci'][1])}]")
+    ins = summary.get("instructors")
+    if ins:
+        if "between_raters_icc2_1" in ins:
+            lo, hi = ins["between_raters_icc2_1_ci"]
+            print(f"between {len(ins['raters'])} raters over {ins['between_raters_runs']} runs: "
+                  f"ICC(2,1) {_fmt(ins['between_raters_icc2_1'])} [{_fmt(lo)}, {_fmt(hi)}]")
+        if "against_icc2_1" in ins:
+            lo, hi = ins["against_icc2_1_ci"]
+            print(f"{ins['against']} against the instructors over {ins['against_runs']} runs: "
+                  f"ICC(2,1) {_fmt(ins['against_icc2_1'])} [{_fmt(lo)}, {_fmt(hi)}], bias "
+                  f"{_fmt(ins['against_bias'])} (limits {_fmt(ins['against_loa'][0])} to "
+                  f"{_fmt(ins['against_loa'][1])})")
+        for n in ins.get("notes", []):
+            print(f"instructor scores: {n}")
     for k in ("table", "report"):
         if k in out:
             print(out[k] if k == "report" else f"table: {out[k]}")
@@ -271,10 +320,16 @@ def cmd_metrics_progress(args) -> int:
     from metrics.cohort import find_sessions, metric_columns, score_cohort
     from metrics.progress import draw_progress
 
+    from metrics.run_cache import default_cache_dir
+
+    cache = None if args.no_cache else (args.cache or default_cache_dir())
     bar = ProgressBar(len(find_sessions(args.sessions)), "scoring")
     res = score_cohort(args.sessions, args.participants, workers=args.workers,
-                       progress=lambda done, _n: bar.update(done))
+                       progress=lambda done, _n: bar.update(done), cache=cache)
     bar.close()
+    if cache is not None:
+        print(f"{res.meta['cached']} of {len(res.table)} runs read from the cache {cache}",
+              file=sys.stderr)
     for line in res.errors:
         print(line, file=sys.stderr)
     try:

@@ -352,6 +352,40 @@ def _run_tasks(paths, structure, case, scheduler, workers, progress, close_mm, p
             cluster.close()
 
 
+def _cached_tasks(paths, structure, case, scheduler, workers, progress, close_mm, providers,
+                  cache):
+    """:func:`_run_tasks` for the runs ``cache`` does not hold; the clean new
+    results are kept in it. Returns ``(runs, label, workers, cached)``."""
+    if cache is None:
+        return (*_run_tasks(paths, structure, case, scheduler, workers, progress, close_mm,
+                            providers), 0)
+    from metrics.run_cache import RunCache
+
+    rc = RunCache(cache, {"structure": structure, "case": case, "close_mm": close_mm,
+                          "providers": [[m, f, sorted(c)] for m, f, c in providers]})
+    got = {q: r for q, r in ((q, rc.get(p)) for q, p in enumerate(paths)) if r is not None}
+    todo = [p for q, p in enumerate(paths) if q not in got]
+    if progress is not None and got:
+        progress(len(got), len(paths))
+    if todo:
+        step = None if progress is None else \
+            (lambda done, _n: progress(len(got) + done, len(paths)))
+        fresh, label, n_workers = _run_tasks(todo, structure, case, scheduler, workers, step,
+                                             close_mm, providers)
+    else:
+        fresh, label, n_workers = [], "cache", 0
+    new = iter(fresh)
+    runs = []
+    for q, p in enumerate(paths):
+        if q in got:
+            runs.append(got[q])
+        else:
+            r = next(new)
+            rc.put(p, r)
+            runs.append(r)
+    return runs, label, n_workers, len(got)
+
+
 # --------------------------------------------------------------- central
 def _nanmean(v) -> float:
     v = np.asarray(v, float)
@@ -410,7 +444,7 @@ def _exceedances(runs, table, errors, close_mm, found):
     """Exceedances of every run against limits of the *other* participants'
     expert runs; the bins without a force limit are limited by the experts'
     closest approach."""
-    from metrics.forces import closest_approach, exceedances, learn_limits
+    from metrics.forces import exceedances, learn_limits
 
     experts = [q for q, r in enumerate(runs)
                if r.get("group") == "expert" and r.get("force_table") is not None]
@@ -424,13 +458,12 @@ def _exceedances(runs, table, errors, close_mm, found):
         if others not in cache:
             tabs = [runs[e]["force_table"] for e in others]
             try:
-                cache[others] = (learn_limits(tabs), closest_approach(tabs))
+                cache[others] = learn_limits(tabs)     # closest_mm: the experts' closest
             except ValueError as exc:
                 cache[others] = None
                 errors.append(f"exceedances: no limits without {r['participant']!r} ({exc})")
         if cache[others] is not None:
-            lim, closest = cache[others]
-            ex = exceedances(r["force_table"], lim, closest_mm=closest)
+            ex = exceedances(r["force_table"], cache[others])
             found[r["file"]] = ex
             table[q]["exceedances"] = float(len(ex))
             table[q]["exceedances_close"] = float(np.count_nonzero(ex.distance_mm <= close_mm))
@@ -482,7 +515,8 @@ def _agreement(df, metrics) -> dict:
 
 def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
                  structure: str = "chorda_tympani", progress=None, design=None,
-                 command: str | None = None) -> CohortResult:
+                 command: str | None = None, ratings=None, ratings_against: str = "assess_total",
+                 cache=None) -> CohortResult:
     """Score every run of a cohort (module docstring).
 
     Parameters
@@ -505,6 +539,17 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         The statistical design (default ``metrics/design.toml``).
     command : str, optional
         The command line, for the provenance (default ``sys.argv``).
+    ratings : path, optional
+        Instructors' scores (``participant,session,rater,score``,
+        :func:`metrics.raters.read_ratings`): between-rater ICC and the
+        simulator's ``ratings_against`` column against them (``instructors``).
+    ratings_against : str
+        The simulator's column on the raters' scale.
+    cache : path, optional
+        A folder of per-run results (:class:`metrics.run_cache.RunCache`):
+        a run whose file, bonesim version, scoring code and settings are
+        unchanged is read from it instead of scored; ``meta["cached"]``
+        counts them. Default: every run is scored.
 
     Returns
     -------
@@ -531,12 +576,17 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
         raise BonesimError(f"workers must be at least 1, got {workers}")
     design = design if isinstance(design, Design) else load_design(design)
     people = read_participants(participants)
+    rated = None
+    if ratings is not None:                 # a bad file stops before any scoring
+        from metrics.raters import read_ratings
+
+        rated = read_ratings(ratings, people)
     paths, repeated, copies = distinct_runs(find_sessions(sessions))   # a copy counts once
     cases = Counter(c for c in map(_peek_case, paths) if c is not None)
     case = min(cases, key=lambda c: (-cases[c], c)) if cases else None
     providers = tuple(ROW_PROVIDERS)
-    runs, label, n_workers = _run_tasks(paths, structure, case, scheduler, workers, progress,
-                                        design.close_mm, providers)
+    runs, label, n_workers, cached = _cached_tasks(paths, structure, case, scheduler, workers,
+                                                   progress, design.close_mm, providers, cache)
     t_tasks = time.perf_counter()
     columns = metric_columns(providers)
 
@@ -583,6 +633,15 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
     stats, excluded = group_statistics(df, columns, design)
     classifiers = _classifiers(df)
     agreement = _agreement(df, design.primary)
+    instructors = {}
+    if rated is not None:
+        from metrics.provenance import file_sha256
+        from metrics.raters import instructor_agreement
+
+        instructors = {"file": str(ratings), "sha256": file_sha256(ratings),
+                       **instructor_agreement(rated, df, ratings_against)}
+        for u in instructors["against"]["unmatched"]:
+            errors.append(f"{ratings}: {u} has instructor scores but no scored run")
     stats_s = time.perf_counter() - t_stats
     headers = [r["header"] for r in runs if "header" in r]
     return CohortResult(
@@ -598,10 +657,20 @@ def score_cohort(sessions, participants, *, scheduler=None, workers: int = 2,
               "synthetic": any("synthetic" in r.get("notes", "").lower() for r in runs),
               "participants": len(people),
               "sessions_per_participant": _sessions_summary(df),
-              "central_s": time.perf_counter() - t_tasks, "stats_s": stats_s},
+              "central_s": time.perf_counter() - t_tasks, "stats_s": stats_s,
+              "cached": cached},
         excluded=excluded, design=design.summary(), classifiers=classifiers,
-        agreement=agreement, exceedances=found,
-        provenance=provenance(headers, participants, command=command))
+        agreement=agreement, exceedances=found, instructors=instructors,
+        provenance=_with_ratings(provenance(headers, participants, command=command),
+                                 instructors))
+
+
+def _with_ratings(prov: dict, instructors: dict) -> dict:
+    """The provenance with the ratings file and its SHA-256 (when given)."""
+    if instructors:
+        prov = {**prov, "ratings_file": instructors["file"],
+                "ratings_sha256": instructors["sha256"]}
+    return prov
 
 
 def _sessions_summary(df) -> dict:

@@ -116,6 +116,10 @@ class CohortResult:
     exceedances : dict
         ``file -> metrics.forces.Exceedances`` of every run scored against
         the other participants' expert limits.
+    instructors : dict
+        With a ratings file (:mod:`metrics.raters`): ``file``, ``sha256``
+        and :func:`metrics.raters.instructor_agreement` (``between_raters``,
+        ``against``); empty without one.
     """
 
     table: object
@@ -131,3 +135,4 @@ class CohortResult:
     agreement: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     exceedances: dict = field(default_factory=dict)
+    instructors: dict = field(default_factory=dict)

@@ -150,6 +150,18 @@ def export_run(path, out_dir, *, command: str | None = None, participants=None) 
     return {"visibility": str(nrrd_path), "removals": str(pq_path), "provenance": prov}
 
 
+def _agreement_record(ins: dict) -> dict:
+    """The instructor agreement without the Bland-Altman points (the numbers)."""
+    out = {k: v for k, v in ins.items() if k != "against"}
+    if "against" in ins:
+        a = dict(ins["against"])
+        if "bland_altman" in a:
+            a["bland_altman"] = {k: v for k, v in a["bland_altman"].items()
+                                 if k not in ("mean", "diff")}
+        out["against"] = a
+    return out
+
+
 def export_cohort(result, out_dir) -> dict:
     """Write a scored cohort's ``stats.csv``, ``runs.csv`` and
     ``provenance.json`` into ``out_dir`` (module docstring)."""
@@ -163,6 +175,7 @@ def export_cohort(result, out_dir) -> dict:
                                                   "ci_method", "validation", "note")
                                 if q in v}
                             for k, v in result.classifiers.items()},
+            "instructors": _agreement_record(getattr(result, "instructors", None) or {}),
             "files": {"stats": "stats.csv", "runs": "runs.csv"}}
     (out / "provenance.json").write_text(_json(meta) + "\n")
     return {"stats": str(out / "stats.csv"), "runs": str(out / "runs.csv"),

@@ -54,10 +54,11 @@ Limits
     percentile rather than mean + k sd because forces are non-negative and
     skewed. Bins with fewer than :data:`MIN_LIMIT_SAMPLES` expert rows have no
     force limit (NaN); there the closest approach of the expert rows
-    (:func:`closest_approach`) is the limit: a row closer to the structure
-    than every expert ever came, in a bin without a force limit, is an
-    exceedance of quantity ``"approach_mm"`` (value its distance, limit the
-    closest expert distance, excess how much closer).
+    (:func:`closest_approach`, kept in the limits as ``closest_mm``) is the
+    limit: a row closer to the structure than every expert ever came, in a
+    bin without a force limit, is an exceedance of quantity
+    ``"approach_mm"`` (value its distance, limit the closest expert
+    distance, excess how much closer).
 Exceedance
     A row whose force (speed) is above its bin's limit by more than
     :data:`AT_LIMIT_RTOL` of it (a force clamped at the device's maximum
@@ -66,9 +67,12 @@ Exceedance
     quantity only the row with the largest excess is kept (one report per
     moment, not one per voxel removed in it).
 
-The distance, force, bin and over-the-limit definitions are the simulator's
-(:mod:`bonesim.physics.force_limits`), so that the window's live warnings and
-these exceedances are one law.
+The distance, force, bin, over-the-limit, closest-approach and one-per-step
+definitions are the simulator's (:mod:`bonesim.physics.force_limits`,
+:func:`~bonesim.physics.force_limits.judge`), so that the window's live
+warnings and these exceedances are one law. A limits file (``bonesim metrics
+limits``) carries the closest approach, so the window flags an approach closer
+than any expert's exactly where the cohort's exceedances count one.
 """
 from __future__ import annotations
 
@@ -81,8 +85,7 @@ from scipy import stats
 from bonesim.physics.force_limits import (AT_LIMIT_RTOL, BIN_MM, DEFAULT_FORCE,
                                           DEFAULT_STRUCTURE, FORCES, MAX_DISTANCE_MM,
                                           QUANTITIES, ForceLimits, bin_edges, bin_index,
-                                          force_magnitude, limit_rows, over_limit,
-                                          structure_label)
+                                          force_magnitude, judge, structure_label)
 
 __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "CONFIDENCE", "FORCES",
            "DEFAULT_FORCE", "LIMIT_PERCENTILE", "MIN_LIMIT_SAMPLES", "AT_LIMIT_RTOL", "QUANTITIES",
@@ -438,6 +441,8 @@ def learn_limits(expert_tables, *, percentile: float = LIMIT_PERCENTILE,
     Returns
     -------
     Limits
+        With ``closest_mm`` the experts' closest approach
+        (:func:`closest_approach`).
 
     Raises
     ------
@@ -470,7 +475,8 @@ def learn_limits(expert_tables, *, percentile: float = LIMIT_PERCENTILE,
         lim_v[q] = np.percentile(v[m], p)
     return Limits(edges, lim_f, lim_v, n, p, tables[0].structure, tables[0].force,
                   float(max_distance_mm), case=tables[0].case,
-                  source=tuple(tb.name for tb in tables))
+                  source=tuple(tb.name for tb in tables),
+                  closest_mm=closest_approach(tables))
 
 
 # ------------------------------------------------------------------ exceedances
@@ -527,15 +533,17 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
     limits : Limits
         From :func:`learn_limits`.
     closest_mm : float, optional
-        The experts' closest approach [mm] (:func:`closest_approach` of the
-        tables that trained ``limits``): rows in a bin without a force limit
-        and closer than this are ``"approach_mm"`` exceedances. Default:
-        none are checked.
+        The experts' closest approach [mm]: rows in a bin without a force
+        limit and closer than this are ``"approach_mm"`` exceedances
+        (``inf``: none are checked). Default ``limits.closest_mm``, which
+        :func:`learn_limits` sets to :func:`closest_approach` of its tables.
 
     Returns
     -------
     Exceedances
-        Per haptic step and quantity, the row with the largest excess.
+        Per haptic step and quantity, the row with the largest excess
+        (:func:`bonesim.physics.force_limits.judge`, the rule the live
+        window's warnings use).
 
     Raises
     ------
@@ -553,47 +561,13 @@ def exceedances(session_or_table, limits: Limits, *, model=None,
         raise ValueError(f"session_or_table: measures {tb.force} force against "
                          f"{tb.structure!r}, the limits {limits.force} force against "
                          f"{limits.structure!r}")
-    b = bin_index(tb.distance_mm, limits.edges_mm)
-    parts = []
-    for qn, lim in (("force_n", limits.force_n), ("speed_rpm", limits.speed_rpm)):
-        val = getattr(tb, qn)
-        lim_row = limit_rows(b, lim)
-        over = np.flatnonzero(over_limit(val, lim_row))    # NaN limits flag nothing
-        if not len(over):
-            continue
-        exc = val[over] - lim_row[over]
-        # per step: the row of the largest excess (first on ties)
-        order = np.lexsort((-exc, tb.t_s[over]))
-        rows = over[order]
-        first = np.ones(len(rows), bool)
-        first[1:] = tb.t_s[rows[1:]] != tb.t_s[rows[:-1]]
-        rows = rows[first]
-        parts.append((rows, qn, val[rows], lim_row[rows]))
-    if closest_mm is not None and math.isfinite(closest_mm):
-        bare = ~np.isfinite(limit_rows(b, limits.force_n))
-        over = np.flatnonzero(bare & (tb.distance_mm < float(closest_mm)))
-        if len(over):
-            # per step: the closest row
-            order = np.lexsort((tb.distance_mm[over], tb.t_s[over]))
-            rows = over[order]
-            first = np.ones(len(rows), bool)
-            first[1:] = tb.t_s[rows[1:]] != tb.t_s[rows[:-1]]
-            rows = rows[first]
-            parts.append((rows, "approach_mm", tb.distance_mm[rows],
-                          np.full(len(rows), float(closest_mm))))
-    if not parts:
-        z = np.zeros(0)
-        return Exceedances(z, np.zeros((0, 3)), np.zeros((0, 3)), z, np.zeros(0, np.int64),
-                           np.zeros(0, "<U11"), z, z, z)
-    rows = np.concatenate([p[0] for p in parts])
-    qty = np.concatenate([np.full(len(p[0]), p[1], "<U11") for p in parts])
-    val = np.concatenate([p[2] for p in parts])
-    lim = np.concatenate([p[3] for p in parts])
-    order = np.lexsort((qty, tb.t_s[rows]))
-    rows, qty, val, lim = rows[order], qty[order], val[order], lim[order]
-    excess = np.where(qty == "approach_mm", lim - val, val - lim)
+    if closest_mm is not None:
+        limits = replace(limits, closest_mm=float(closest_mm))
+    got = judge(tb.t_s, tb.distance_mm, {"force_n": tb.force_n, "speed_rpm": tb.speed_rpm},
+                limits)
+    rows = got["rows"]
     return Exceedances(tb.t_s[rows], tb.pos_mm[rows], tb.voxel_mm[rows], tb.distance_mm[rows],
-                       b[rows], qty, val, lim, excess)
+                       got["bin"], got["quantity"], got["value"], got["limit"], got["excess"])
 
 
 def expert_limits(paths, participants=None, *, structure: str = DEFAULT_STRUCTURE,

@@ -16,8 +16,10 @@ Participants as the unit
     anti-conservative way; the report says so).
 Mixed model
     ``value ~ group + session`` with a random intercept per participant
-    (:class:`statsmodels.regression.mixed_linear_model.MixedLM`, REML) over
-    every run: the novice-minus-expert group effect and the per-session
+    (:class:`statsmodels.regression.mixed_linear_model.MixedLM`, REML; a fit
+    the default optimizer leaves unconverged, as happens when the
+    participant variance lies at its bound of 0, is refitted with Powell's
+    method and says so) over every run: the novice-minus-expert group effect and the per-session
     effect with their standard errors and Wald p-values, and whether the fit
     converged. A metric with fewer than two participants per group, or one
     run per participant everywhere, is fitted without the session term.
@@ -211,17 +213,32 @@ def mixed_model(df, metric: str) -> dict:
     # fit on the standardized metric (stable optimizer), report in its unit
     mu = float(d["y"].mean())
     z = d.assign(y=(d["y"] - mu) / sd)
+    model = MixedLM.from_formula(formula, z, groups=z["participant"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            fit = MixedLM.from_formula(formula, z, groups=z["participant"]).fit(reml=True)
+            fit = model.fit(reml=True)
         except (np.linalg.LinAlgError, ValueError) as exc:
             out["note"] = f"not fitted ({' '.join(str(exc).split())})"
             return out
+    refit = ""
+    if not getattr(fit, "converged", False):
+        # a participant variance at its bound of 0 stalls the gradient
+        # methods; Powell's derivative-free search converges there
+        with warnings.catch_warnings(record=True) as again:
+            warnings.simplefilter("always")
+            try:
+                alt = model.fit(reml=True, method="powell", maxiter=5000)
+            except (np.linalg.LinAlgError, ValueError):
+                alt = None
+        if alt is not None and getattr(alt, "converged", False):
+            fit, caught, refit = alt, again, "refitted with Powell's method (converged)"
     out["converged"] = bool(getattr(fit, "converged", False))
     notes = sorted({str(w.message).split("\n")[0] for w in caught
                     if "converge" in str(w.message).lower()
                     or "boundary" in str(w.message).lower()})
+    if refit:
+        notes.append(refit)
     if notes:
         out["note"] = "; ".join(notes)
     fe, se, p = fit.fe_params, fit.bse_fe, fit.pvalues

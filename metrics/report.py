@@ -261,73 +261,115 @@ def _axis_label(metric: str) -> str:
     return f"{metric} [{unit}]" if unit else metric
 
 
+def _people(table, metric, group):
+    """``(participant means, their runs)`` of ``group``: each participant's
+    mean of ``metric`` over their runs (the unit of the statistics,
+    :func:`metrics.group_stats.participant_means`) and the runs' own values
+    with the index of their participant in the means, ``(p,)``, ``(r,)``, ``(r,)``."""
+    from metrics.group_stats import participant_means
+
+    pm = participant_means(table, metric)
+    pm = pm[pm["group"] == group].reset_index(drop=True)
+    t = table[(table["group"].fillna("") == group) &
+              np.isfinite(table[metric].astype(float))]
+    where = {p: q for q, p in enumerate(pm["participant"])}
+    idx = np.array([where[p] for p in t["participant"]], np.int64)
+    return pm["value"].to_numpy(float), t[metric].to_numpy(float), idx
+
+
 def _group_plot(result, metric, groups, big: bool):
-    """Per-run points over group mean +- CI of one metric."""
+    """One point per participant (the mean over their sessions, the unit the
+    tests use) over the group mean +- CI of those means; each session a faint
+    small dot on its participant's vertical."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=FIG_SIZE if big else SMALL_FIG_SIZE)
     rng = np.random.default_rng(0)
+    counts = []
     for q, g in enumerate(groups):
-        v = _values(result.table, metric, g)
+        people, runs, who = _people(result.table, metric, g)
+        counts.append((len(people), len(runs)))
         c = _colour(g)
-        if len(v):
-            ax.scatter(q + rng.uniform(-JITTER, JITTER, len(v)), v, s=22, color=c,
-                       alpha=0.7, zorder=3, edgecolor="none")
+        if len(people):
+            x = q + rng.uniform(-JITTER, JITTER, len(people))
+            ax.scatter(x[who], runs, s=7, color=c, alpha=0.25, zorder=2, edgecolor="none",
+                       label="a session" if q == 0 else None)
+            ax.scatter(x, people, s=30, color=c, alpha=0.9, zorder=3, edgecolor="white",
+                       linewidth=0.5, label="a participant (mean)" if q == 0 else None)
         else:
             ax.text(q, 0.5, "no values", ha="center", va="center", color=c,
                     transform=ax.get_xaxis_transform())
-        m, lo, hi = _mean_ci(v)
+        m, lo, hi = _mean_ci(people)
         if not _isnan(m):
             err = None if _isnan(lo) else [[m - lo], [hi - m]]
             ax.errorbar(q + 0.3, m, yerr=err, fmt="s", color=c, capsize=6, ms=7,
                         zorder=4, lw=1.8)
     ax.set_xticks(range(len(groups)))
-    ax.set_xticklabels([f"{_label(g)}\n(n = {len(_values(result.table, metric, g))})"
-                        for g in groups])
+    ax.set_xticklabels([f"{_label(g)}\n({n} people, {r} runs)"
+                        for g, (n, r) in zip(groups, counts)])
     ax.set_xlim(-0.5, len(groups) - 0.3)
     ax.set_ylabel(_axis_label(metric))
     row = _stats_row(result, metric)
-    ax.set_title(f"{metric}\nt-test {_p_is(row.get('p_t'))}, "
-                 f"Mann-Whitney {_p_is(row.get('p_u'))}", fontsize=9 if not big else 11)
+    p_t, p_mixed = row.get("p_t_adj"), row.get("p_mixed_adj")
+    corr = f" {row.get('correction')}" if not _isnan(p_t) else ""
+    sep = ", " if big else "\n"                  # small panels: one test a line
+    ax.set_title(f"{metric}\nper participant t-test{corr} {_p_is(p_t)}{sep}"
+                 f"mixed model {_p_is(p_mixed)}", fontsize=8 if not big else 11)
     ax.grid(axis="y", alpha=0.3)
+    if big:
+        ax.legend(fontsize=7, loc="best", framealpha=0.6)
     return fig
 
 
 def _correlation(result, metric):
-    """(r, p_r) of ``metric`` against the instructor score: ``stats``, else computed."""
+    """(r, p_r) of ``metric`` against the instructor score over the participants'
+    means: ``stats``, else computed."""
     row = _stats_row(result, metric)
     if not _isnan(row.get("r")):
         return float(row["r"]), row.get("p_r", math.nan)
     from metrics.validity import correlate
 
-    ok = result.table[[metric, "instructor_score"]].astype(float).dropna()
+    ok = _scatter_means(result.table, metric)
     try:
-        c = correlate(ok[metric], ok["instructor_score"])
+        c = correlate(ok["y"], ok["x"])
     except ValueError:
         return math.nan, math.nan
     return c["r"], c["p_r"]
 
 
+def _scatter_means(table, metric):
+    """Per labelled participant with both: the mean instructor score and the
+    mean ``metric`` over their runs, as the statistics' correlation takes them
+    (:func:`metrics.group_stats.group_statistics`); columns ``group, x, y``."""
+    from metrics.group_stats import participant_means
+
+    pm = participant_means(table, metric).set_index("participant")
+    sc = table[["participant", "instructor_score"]].assign(
+        instructor_score=lambda d: d["instructor_score"].astype(float)
+    ).groupby("participant")["instructor_score"].mean()
+    both = pm.join(sc, how="inner").dropna(subset=["value", "instructor_score"])
+    return both.rename(columns={"instructor_score": "x", "value": "y"})[["group", "x", "y"]]
+
+
 def _scatter_plot(result, metric, groups):
-    """Instructor score (x) against one metric (y), as the thesis' figures 19 and 21."""
+    """Instructor score (x) against one metric (y), as the thesis' figures 19
+    and 21, one point per participant (their means over the sessions)."""
     plt = _pyplot()
-    t = result.table
+    pm = _scatter_means(result.table, metric)
     fig, ax = plt.subplots(figsize=FIG_SIZE)
-    ok = t[["instructor_score", metric]].astype(float).notna().all(axis=1)
     for g in groups:
-        sel = ok & (t["group"].fillna("") == g)
-        ax.scatter(t.loc[sel, "instructor_score"].astype(float), t.loc[sel, metric].astype(float),
-                   color=_colour(g), label=f"{_label(g)} (n = {int(sel.sum())})", s=30,
-                   zorder=3, alpha=0.8)
-    x = t.loc[ok, "instructor_score"].to_numpy(float)
-    y = t.loc[ok, metric].to_numpy(float)
+        sel = pm["group"] == g
+        ax.scatter(pm.loc[sel, "x"], pm.loc[sel, "y"], color=_colour(g),
+                   label=f"{_label(g)} (n = {int(sel.sum())} people)", s=30, zorder=3,
+                   alpha=0.8)
+    x, y = pm["x"].to_numpy(float), pm["y"].to_numpy(float)
     if len(x) >= 2 and np.ptp(x) > 0:
         k, c = np.polyfit(x, y, 1)
         xs = np.linspace(x.min(), x.max(), 2)
         ax.plot(xs, k * xs + c, color="k", lw=1.2, label="least squares")
     r, p = _correlation(result, metric)
     ax.set_title(f"Instructor score vs {metric}: R = {_num(r)}, {_p_is(p)}")
-    ax.set_xlabel("instructor score")
-    ax.set_ylabel(_axis_label(metric))
+    ax.set_xlabel("instructor score (participant mean)")
+    ax.set_ylabel(_axis_label(metric) + " (participant mean)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     return fig
@@ -439,10 +481,13 @@ def _group_section(result, groups, figs) -> str:
     from metrics.cohort_result import METRIC_COLUMNS
 
     out = ["<h2>2. Scores by group</h2>",
-           (f"<p>Each dot is one run (jittered sideways); the square and bars are the group "
-           f"mean and its {CONFIDENCE:.0%} t confidence interval. Titles give the two-tailed "
-           "Student t-test and Mann-Whitney U p-values (n/a: the metric lacks values in a "
-           "group).</p>")]
+           (f"<p>Each solid dot is one participant: the mean of their sessions, the unit "
+           "every group test uses (jittered sideways); the faint small dots above and below "
+           "it are that participant's sessions. The square and bars are the group mean of "
+           f"the participants and its {CONFIDENCE:.0%} t confidence interval. Titles give the "
+           "per-participant two-tailed t-test p-value after the design's correction across "
+           "metrics (uncorrected for a metric outside the tests), and the mixed model's "
+           "corrected group p-value over every run (n/a: not tested or not fitted).</p>")]
     metrics = _plotted_metrics(result)
     key = [m for m in metrics if m in KEY_METRICS]
     rest = [m for m in metrics if m not in KEY_METRICS]
@@ -462,8 +507,10 @@ def _group_section(result, groups, figs) -> str:
 
 def _scatter_section(result, groups, figs) -> str:
     out = ["<h2>3. Instructor score against the metrics</h2>",
-           ("<p>Each dot is one run; the line is the least-squares fit over all runs; R is "
-           "Pearson's correlation with its two-tailed p.</p><div class=\"grid\">")]
+           ("<p>Each dot is one participant (the means of their sessions' instructor scores "
+           "and metric); the line is the least-squares fit over the participants; R is "
+           "Pearson's correlation of those means with its two-tailed p.</p>"
+           "<div class=\"grid\">")]
     for m in SCATTER_METRICS:
         ok = result.table[["instructor_score", m]].astype(float).notna().all(axis=1) \
             if m in result.table else None
@@ -638,13 +685,15 @@ def write_report(result, path, *, visibility_runs=None, png_dir=None) -> Path:
         raise ValueError(f"result.table lacks the columns {missing}")
     figs = _Figures(png_dir)
     groups = _groups(t)
-    from metrics.report_design import agreement_section, classifier_section
+    from metrics.report_design import (agreement_section, classifier_section,
+                                       instructor_section)
 
     body = [_header(result, groups), _group_section(result, groups, figs),
             _scatter_section(result, groups, figs), _force_section(result, figs),
             _visibility_section(result, visibility_runs, figs),
             _stats_table(result, groups), classifier_section(result, figs),
-            agreement_section(result, figs), "<h2>7. Runs</h2>", _runs_table(result),
+            agreement_section(result, figs), instructor_section(result, figs),
+            "<h2>7. Runs</h2>", _runs_table(result),
             _nb_section(result)]
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<title>bonesim cohort report</title>"

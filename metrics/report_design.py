@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-__all__ = ["design_section", "stats_section", "classifier_section", "agreement_section"]
+__all__ = ["design_section", "stats_section", "classifier_section", "agreement_section",
+           "instructor_section"]
 
 _NA = "n/a"
 
@@ -103,6 +104,9 @@ def design_section(result) -> str:
                  ("participants file", f"{prov.get('participants_file')} sha256 "
                                        f"{prov.get('participants_sha256')}"),
                  ("synthesis seed", syn.get("seed", _NA) if syn else "not synthetic"),
+                 ("instructor ratings", f"{prov.get('ratings_file')} sha256 "
+                                        f"{prov.get('ratings_sha256')}"
+                  if prov.get("ratings_file") else "none given"),
                  ("command", prov.get("command")), ("created", prov.get("created"))]
         out += [f"<dt>{_esc(k)}</dt><dd>{_esc(v if v is not None else _NA)}</dd>"
                 for k, v in items]
@@ -249,6 +253,65 @@ def agreement_section(result, figs) -> str:
         plots.append(f"<figure>{figs.fig(fig, f'bland_altman_{m}', f'Bland-Altman {m}')}"
                      "</figure>")
     out.append("</table><div class=\"grid\">" + "".join(plots) + "</div>")
+    return "\n".join(out)
+
+
+def _icc_text(i: dict) -> str:
+    ic = _num(i.get("icc2_1"))
+    if ic != _NA:
+        ic += f" [{_num(i['icc2_1_ci'][0])}, {_num(i['icc2_1_ci'][1])}]"
+    return ic
+
+
+def instructor_section(result, figs) -> str:
+    """Instructor scores (``--ratings``): ICC(2,1) between the raters, and of
+    the simulator's score against their mean with a Bland-Altman plot."""
+    ins = dict(getattr(result, "instructors", None) or {})
+    out = ["<h2>Agreement with the instructors</h2>"]
+    if not ins:
+        out.append("<p class=\"note\">No instructor ratings given (bonesim metrics cohort "
+                   "--ratings CSV with the columns participant, session, rater, score).</p>")
+        return "\n".join(out)
+    br, ag = ins["between_raters"], ins["against"]
+    out.append(f"<p>Ratings: {_esc(ins['file'])} (SHA-256 {_esc(str(ins['sha256'])[:16])}...). "
+               "ICC(2,1): two-way random effects, absolute agreement, single rater "
+               "(Shrout &amp; Fleiss), with its 95 % interval. Each run scored is one "
+               "target.</p><table><tr><th class=\"l\">comparison</th><th>runs</th>"
+               "<th>ICC(2,1) [95% CI]</th><th>bias [95% CI]</th><th>limits of agreement</th>"
+               "<th class=\"l\">note</th></tr>")
+    note = br.get("note", "")
+    if br.get("runs_left_out"):
+        note = "; ".join(x for x in (note, f"{br['runs_left_out']} run(s) not scored by "
+                                     "every rater, left out") if x)
+    out.append(f"<tr><td class=\"l\">between the raters ({_esc(', '.join(br['raters']))})"
+               f"</td><td>{br['runs']}</td><td>{_esc(_icc_text(br.get('icc', {})))}</td>"
+               f"<td></td><td></td><td class=\"l\">{_esc(note)}</td></tr>")
+    b = ag.get("bland_altman")
+    bias = loa = ""
+    if b:
+        bias = f"{_num(b['bias'])} [{_num(b['bias_ci'][0])}, {_num(b['bias_ci'][1])}]"
+        loa = f"{_num(b['loa'][0])} to {_num(b['loa'][1])}"
+    out.append(f"<tr><td class=\"l\">{_esc(ag['metric'])} (simulator) against the raters' "
+               f"mean</td><td>{ag['runs']}</td><td>{_esc(_icc_text(ag.get('icc', {})))}</td>"
+               f"<td>{_esc(bias)}</td><td>{_esc(loa)}</td>"
+               f"<td class=\"l\">{_esc(ag.get('note', ''))}</td></tr></table>")
+    if b:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(4.2, 3.4))
+        ax.scatter(b["mean"], b["diff"], s=14, color="#444")
+        for y, ls in ((b["bias"], "-"), (b["loa"][0], "--"), (b["loa"][1], "--")):
+            ax.axhline(y, ls=ls, color="#d62728" if ls == "-" else "#888")
+        ax.set_xlabel("mean of simulator and instructors")
+        ax.set_ylabel("simulator minus instructors")
+        ax.set_title(f"Bland-Altman: {ag['metric']} vs instructors", fontsize=9)
+        fig.tight_layout()
+        img = figs.fig(fig, "bland_altman_instructors",
+                       "Bland-Altman simulator against instructors")
+        out.append(f"<div class=\"grid\"><figure>{img}</figure></div>")
     return "\n".join(out)
 
 

@@ -91,7 +91,9 @@ def _exceedances(run_table, expert_tables):
     out = {"structure": lim.structure, "percentile": lim.percentile,
            "limited_bins": int(np.count_nonzero(~np.isnan(lim.force_n))),
            "count": {q: int(np.count_nonzero(ex.quantity == q))
-                     for q in ("force_n", "speed_rpm")}, "worst": []}
+                     for q in ("force_n", "speed_rpm", "approach_mm")},
+           "closest_mm": float(lim.closest_mm) if np.isfinite(lim.closest_mm) else None,
+           "worst": []}
     for q in np.argsort(-ex.excess, kind="stable")[:WORST_SHOWN]:
         out["worst"].append({"t_s": float(ex.t_s[q]), "pos_mm": ex.pos_mm[q].tolist(),
                              "distance_mm": float(ex.distance_mm[q]),

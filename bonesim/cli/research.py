@@ -65,6 +65,14 @@ def research_parsers(sub, _lazy) -> None:
                     "(default metrics/design.toml)")
     mc.add_argument("--exports", metavar="DIR",
                     help="write stats.csv, runs.csv and provenance.json here")
+    mc.add_argument("--cache", metavar="DIR",
+                    help="keep per-run results here by file content, bonesim version and "
+                    "code; unchanged runs are read back instead of scored (default: none)")
+    mc.add_argument("--ratings", metavar="CSV",
+                    help="instructors' scores (participant,session,rater,score): "
+                    "between-rater ICC and the simulator's score against them")
+    mc.add_argument("--ratings-against", default="assess_total", metavar="COLUMN",
+                    help="the simulator's column on the raters' scale (default assess_total)")
     mc.add_argument("--json", action="store_true", help="print the summary as JSON")
     mc.set_defaults(func=_lazy("metrics.cli", "cmd_metrics_cohort"))
     mp = msub.add_parser("progress", help="learning curves: each participant's metrics "
@@ -77,6 +85,10 @@ def research_parsers(sub, _lazy) -> None:
                     help="picture to write (default progress.png)")
     mp.add_argument("--metric", action="append", metavar="NAME",
                     help="metric to draw (repeatable; default the primary ones and more)")
+    mp.add_argument("--cache", metavar="DIR",
+                    help="per-run results kept by file content, bonesim version and code "
+                    "(default ~/.cache/bonesim/runs): unchanged runs are not scored again")
+    mp.add_argument("--no-cache", action="store_true", help="score every run, keep nothing")
     mp.add_argument("--workers", type=int, default=2, metavar="N",
                     help="worker processes scoring the runs (default 2)")
     mp.add_argument("--json", action="store_true", help="print JSON")

@@ -22,7 +22,18 @@ Over the limit
     A value above its bin's limit by more than :data:`AT_LIMIT_RTOL` of it
     (a force clamped at the device's maximum equals an expert's clamped force
     up to rounding: that is at the limit, not above it). A NaN limit (a bin
-    the experts left too empty) flags nothing (:func:`over_limit`).
+    the experts left too empty) flags no force or speed (:func:`over_limit`).
+Closer than any expert
+    In a bin without a force limit, a removal closer to the structure than
+    the closest expert removal (:attr:`ForceLimits.closest_mm`) is over the
+    limit of quantity ``"approach_mm"`` (value its distance, limit the
+    experts' closest, excess how much closer): the bins the experts never
+    reached are the most dangerous, so they flag any approach.
+One report per step
+    Per haptic step and quantity only the removal with the largest excess is
+    reported (the closest for ``"approach_mm"``; the first on ties).
+    :func:`judge` is this whole rule; :func:`metrics.forces.exceedances` (a
+    recorded run) and :class:`ForceWatch` (the live window) both call it.
 
 Limits files
 ------------
@@ -46,8 +57,8 @@ from bonesim.tomlfile import parse_toml_bytes
 __all__ = ["DEFAULT_STRUCTURE", "MAX_DISTANCE_MM", "BIN_MM", "FORCES", "DEFAULT_FORCE",
            "AT_LIMIT_RTOL", "QUANTITIES", "UNITS", "WARN_HOLD_S", "LIMITS_FORMAT",
            "ForceLimits", "bin_edges", "bin_index", "force_magnitude", "structure_label",
-           "limit_rows", "over_limit", "save_limits", "load_limits", "LimitWarning",
-           "ForceWatch"]
+           "limit_rows", "over_limit", "judge", "save_limits", "load_limits",
+           "LimitWarning", "ForceWatch"]
 
 #: Structure the forces are measured against by default.
 DEFAULT_STRUCTURE = "chorda_tympani"
@@ -67,8 +78,8 @@ DEFAULT_FORCE = "applied"
 AT_LIMIT_RTOL = 1e-9
 #: The quantities limited (a column of the haptic samples and of the tables).
 QUANTITIES = ("force_n", "speed_rpm")
-#: Unit of each quantity.
-UNITS = {"force_n": "N", "speed_rpm": "rpm"}
+#: Unit of each quantity (``approach_mm``: closer than any expert, :func:`judge`).
+UNITS = {"force_n": "N", "speed_rpm": "rpm", "approach_mm": "mm"}
 #: The window keeps showing a warning this long after the last exceedance [s].
 WARN_HOLD_S = 2.0
 #: ``format`` written in a limits file and required on reading it.
@@ -174,6 +185,10 @@ class ForceLimits:
         Case the limits were learned on ("" if not said).
     source : tuple of str
         The runs that trained them (file names).
+    closest_mm : float
+        The experts' closest approach [mm]: in a bin without a force limit a
+        removal closer than this is over the limit (:func:`judge`); ``inf``
+        checks no approach.
     """
 
     edges_mm: np.ndarray
@@ -186,6 +201,7 @@ class ForceLimits:
     max_distance_mm: float
     case: str = ""
     source: tuple = ()
+    closest_mm: float = math.inf
 
     def __post_init__(self):
         e = np.asarray(self.edges_mm, np.float64).reshape(-1)
@@ -211,6 +227,11 @@ class ForceLimits:
         if self.force not in FORCES:
             raise ValueError(f"force must be one of {sorted(FORCES)}, got {self.force!r}")
         object.__setattr__(self, "source", tuple(str(s) for s in self.source))
+        c = float(self.closest_mm)
+        if math.isnan(c) or c < 0:
+            raise ValueError(f"closest_mm must be >= 0 (or inf: no approach checked), got "
+                             f"{self.closest_mm}")
+        object.__setattr__(self, "closest_mm", c)
 
     def per_bin(self, quantity: str) -> np.ndarray:
         """The limits of ``quantity`` (a :data:`QUANTITIES` entry), ``(b,)``."""
@@ -234,6 +255,67 @@ def over_limit(values, limits) -> np.ndarray:
     lim = np.asarray(limits, np.float64)
     with np.errstate(invalid="ignore"):
         return v > lim + AT_LIMIT_RTOL * np.abs(lim)
+
+
+def _one_per_step(rows, t_s, key):
+    """Of ``rows``, per distinct ``t_s[rows]`` the one of the smallest ``key``
+    (the first on ties), in time order."""
+    if not len(rows):
+        return rows
+    order = np.lexsort((key, t_s[rows]))           # stable: the first on ties
+    rows = rows[order]
+    first = np.ones(len(rows), bool)
+    first[1:] = t_s[rows[1:]] != t_s[rows[:-1]]
+    return rows[first]
+
+
+def judge(t_s, distance_mm, values: dict, limits: "ForceLimits") -> dict:
+    """The one rule (module notes): which removals were over a limit.
+
+    Parameters
+    ----------
+    t_s : (n,) float64
+        Step time of each removal [s] (removals of one step share it).
+    distance_mm : (n,) float64
+        Each removed voxel's distance to ``limits.structure`` [mm]; NaN for a
+        removal not measured (it flags nothing).
+    values : dict
+        ``quantity -> (n,) float64`` for each of :data:`QUANTITIES`: the
+        step's force [N] (``limits.force``) and spindle speed [rpm].
+    limits : ForceLimits
+
+    Returns
+    -------
+    dict
+        ``rows`` (m,) int64 indices of the reported removals, ``quantity``
+        (m,) str, ``value``, ``limit``, ``excess`` (m,) float64 (``> 0``) and
+        ``bin`` (m,) int64; ordered by time, then quantity.
+    """
+    t = np.asarray(t_s, np.float64).reshape(-1)
+    d = np.asarray(distance_mm, np.float64).reshape(-1)
+    d = np.where(d <= limits.max_distance_mm, d, np.nan)
+    b = bin_index(d, limits.edges_mm)
+    parts = []
+    for q in QUANTITIES:
+        val = np.asarray(values[q], np.float64).reshape(-1)
+        lim = limit_rows(b, limits.per_bin(q))
+        over = np.flatnonzero(over_limit(val, lim))
+        rows = _one_per_step(over, t, -(val[over] - lim[over]))
+        parts.append((rows, q, val[rows], lim[rows]))
+    if math.isfinite(limits.closest_mm):
+        bare = (b >= 0) & ~np.isfinite(limit_rows(b, limits.force_n))
+        over = np.flatnonzero(bare & (d < limits.closest_mm))
+        rows = _one_per_step(over, t, d[over])
+        parts.append((rows, "approach_mm", d[rows], np.full(len(rows), limits.closest_mm)))
+    rows = np.concatenate([p[0] for p in parts]).astype(np.int64)
+    qty = np.concatenate([np.full(len(p[0]), p[1], "<U11") for p in parts])
+    val = np.concatenate([p[2] for p in parts]).astype(np.float64)
+    lim = np.concatenate([p[3] for p in parts]).astype(np.float64)
+    order = np.lexsort((qty, t[rows]))
+    rows, qty, val, lim = rows[order], qty[order], val[order], lim[order]
+    excess = np.where(qty == "approach_mm", lim - val, val - lim)
+    return {"rows": rows, "quantity": qty, "value": val, "limit": lim, "excess": excess,
+            "bin": b[rows]}
 
 
 # ------------------------------------------------------------------ files
@@ -260,7 +342,8 @@ def save_limits(path, limits: ForceLimits) -> Path:
              "force_n = [" + ", ".join(_toml_float(x) for x in limits.force_n) + "]",
              "speed_rpm = [" + ", ".join(_toml_float(x) for x in limits.speed_rpm) + "]",
              "n = [" + ", ".join(str(int(x)) for x in limits.n) + "]",
-             "source = [" + ", ".join(_toml_str(s) for s in limits.source) + "]"]
+             "source = [" + ", ".join(_toml_str(s) for s in limits.source) + "]",
+             f"closest_mm = {'inf' if math.isinf(limits.closest_mm) else repr(limits.closest_mm)}"]
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("# per-bin force and speed limits near a structure, learned from "
                    "expert runs\n" + "\n".join(lines) + "\n")
@@ -295,7 +378,8 @@ def load_limits(path) -> ForceLimits:
         return ForceLimits(doc["edges_mm"], doc["force_n"], doc["speed_rpm"], doc["n"],
                            float(doc["percentile"]), str(doc["structure"]),
                            str(doc["force"]), float(doc["max_distance_mm"]),
-                           str(doc.get("case", "")), tuple(doc.get("source", ())))
+                           str(doc.get("case", "")), tuple(doc.get("source", ())),
+                           float(doc.get("closest_mm", math.inf)))
     except (TypeError, ValueError) as exc:
         field, _, text = str(exc).partition(": ")
         if not text or " " in field:
@@ -313,9 +397,10 @@ class LimitWarning:
     t_s : float
         Step time [s].
     quantity : str
-        ``"force_n"`` or ``"speed_rpm"``.
+        ``"force_n"``, ``"speed_rpm"`` or ``"approach_mm"`` (:func:`judge`).
     value, limit : float
-        Applied and allowed, in the quantity's unit (:data:`UNITS`).
+        Applied and allowed, in the quantity's unit (:data:`UNITS`); for
+        ``"approach_mm"`` the distance and the experts' closest approach.
     distance_mm : float
         The removed voxel's distance to the structure [mm].
     """
@@ -331,8 +416,10 @@ class ForceWatch:
     """Checks a live run's removals against force limits as they happen.
 
     Feed it the haptic loop's tissue events and samples in order, in any
-    batches (:meth:`feed` says the one rule); each removal near the structure is measured and checked exactly
-    as :func:`metrics.forces.exceedances` checks a recorded one.
+    batches (:meth:`feed` says how); each removal near the structure is
+    measured and checked by :func:`judge`, the rule
+    :func:`metrics.forces.exceedances` applies to a recorded run, with the
+    same limits (the experts' closest approach included).
 
     Parameters
     ----------
@@ -344,7 +431,7 @@ class ForceWatch:
     Attributes
     ----------
     count : dict of str -> int
-        Steps above the limit so far, per quantity.
+        Steps above the limit so far, per quantity (:data:`UNITS`' keys).
     last : LimitWarning or None
         The latest.
     """
@@ -363,7 +450,7 @@ class ForceWatch:
         self.clearance = cl
         self.origin_mm = np.asarray(model.grid.origin_mm, np.float64)
         self.voxel_mm = float(model.grid.spacing_mm)
-        self.count = {q: 0 for q in QUANTITIES}
+        self.count = {q: 0 for q in UNITS}
         self.last: LimitWarning | None = None
         self._held = events.empty_events()
         self._t = np.zeros(0)
@@ -402,24 +489,14 @@ class ForceWatch:
         idx = np.clip(np.searchsorted(self._t, rem["t_s"]), 0, len(self._t) - 1)
         found = self._t[idx] == rem["t_s"]           # a removal always has its step's sample
         centre = self.origin_mm + self.voxel_mm * np.asarray(rem["ijk"], np.float64)
-        dist = self.clearance.distance(centre, [self.label])
-        b = bin_index(np.where(found, dist, np.nan), self.limits.edges_mm)
-        b = np.where(dist <= self.limits.max_distance_mm, b, -1)
-        warn = []
-        for q, col in (("force_n", self._force), ("speed_rpm", self._speed)):
-            val = col[idx]
-            lim = limit_rows(b, self.limits.per_bin(q))
-            rows = np.flatnonzero(over_limit(val, lim))
-            if not len(rows):
-                continue
-            t = rem["t_s"][rows]
-            exc = val[rows] - lim[rows]
-            for ts in np.unique(t):                      # one warning per step
-                r = rows[t == ts][int(np.argmax(exc[t == ts]))]
-                warn.append(LimitWarning(float(ts), q, float(val[r]), float(lim[r]),
-                                     float(dist[r])))
-                self.count[q] += 1
-        warn.sort(key=lambda w: (w.t_s, w.quantity))
+        dist = np.where(found, self.clearance.distance(centre, [self.label]), np.nan)
+        got = judge(rem["t_s"], dist, {"force_n": self._force[idx],
+                                       "speed_rpm": self._speed[idx]}, self.limits)
+        warn = [LimitWarning(float(rem["t_s"][r]), str(q), float(v), float(lim), float(dist[r]))
+                for r, q, v, lim in zip(got["rows"], got["quantity"], got["value"],
+                                        got["limit"])]
+        for w in warn:
+            self.count[w.quantity] += 1
         if warn:
             self.last = warn[-1]
         return warn

@@ -136,6 +136,8 @@ def _force_limit(v: dict) -> list:
         return [_line("limit", f"{name}: {state}")]
     if w.quantity == "force_n":
         text = f"{w.value:.2f} > {w.limit:.2f} N"
+    elif w.quantity == "approach_mm":           # closer than any expert came
+        text = f"{w.value:.1f} < {w.limit:.1f} mm"
     else:
         text = f"{w.value:,.0f} > {w.limit:,.0f} rpm"
     return [_line("LIMIT!", text), f"{WRAP_INDENT}{w.distance_mm:.1f} mm from {name}"]

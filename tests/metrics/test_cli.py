@@ -66,6 +66,8 @@ def test_metrics_limits_learns_from_the_experts_and_writes_a_file_the_window_rea
     want = learn_limits([force_vs_distance(x, model=model) for x in s])
     assert np.array_equal(lim.force_n, want.force_n, equal_nan=True)
     assert np.array_equal(lim.speed_rpm, want.speed_rpm, equal_nan=True)
+    # the experts' closest approach goes to the window too (one rule, live and offline)
+    assert lim.closest_mm == want.closest_mm and res["closest_mm"] == want.closest_mm
     assert [p.rsplit("/", 1)[-1] for p in lim.source] == [p.name for p in paths[:2]]
     # the participants table decides who is an expert: here nobody is
     csv = tmp_path / "p.csv"

@@ -146,6 +146,13 @@ def naive_exceedances(tb, lim):
                 exc = vals[q] - limits[b]
                 if key not in best or exc > best[key][0]:
                     best[key] = (exc, q, b)
+        # no force limit in the bin: closer than the closest expert is over
+        if np.isnan(lim.force_n[b]) and np.isfinite(lim.closest_mm) and \
+                tb.distance_mm[q] < lim.closest_mm:
+            key = (tb.t_s[q], "approach_mm")
+            exc = lim.closest_mm - tb.distance_mm[q]
+            if key not in best or exc > best[key][0]:
+                best[key] = (exc, q, b)
     return [(t, name, q, b, exc) for (t, name), (exc, q, b) in sorted(best.items())]
 
 
@@ -164,7 +171,7 @@ def test_exceedances_match_a_loop(expert, trainee, per_step):
         assert got.t_s[k] == t_s and got.quantity[k] == name and got.bin[k] == b
         assert got.excess[k] == pytest.approx(exc) and got.excess[k] > 0
         np.testing.assert_array_equal(got.pos_mm[k], tb.pos_mm[q])
-        assert got.value[k] - got.limit[k] == pytest.approx(got.excess[k])
+        assert abs(got.value[k] - got.limit[k]) == pytest.approx(got.excess[k])
 
 
 def test_a_force_at_the_limit_up_to_rounding_is_not_above_it():
@@ -293,10 +300,12 @@ def recorded_40s(tmp_path_factory):
     return _record_demo(tmp_path_factory.mktemp("forces4"), 4000)
 
 
-def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
+def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s, tmp_path):
     """The window's ForceWatch, fed the recorded streams as the window drains
     them (tissue before samples, in frame-sized batches), warns at the same
-    steps, with the same values, as the offline exceedances."""
+    steps, with the same values, as the offline exceedances: forces over the
+    bins' limits and, in a bin without one, approaches closer than the
+    experts' closest (both from one rule, force_limits.judge)."""
     from bonesim.physics.force_limits import ForceWatch
 
     sess, model = recorded_40s
@@ -307,10 +316,21 @@ def test_the_live_watch_warns_exactly_where_the_recording_exceeds(recorded_40s):
     from dataclasses import replace
 
     lim = learn_limits([replace(tb, group="expert")], percentile=50.0, min_samples=1)
-    lim = replace(lim, force_n=0.99 * lim.force_n)
+    # the closest bin reached as if the experts had left it empty: there the
+    # rule is the experts' closest approach (half way into the bin's rows)
+    b = bin_index(tb.distance_mm, lim.edges_mm)
+    near = int(b.min())
+    f = 0.99 * lim.force_n
+    f[near] = np.nan
+    lim = replace(lim, force_n=f, closest_mm=float(np.median(tb.distance_mm[b == near])))
     want = exceedances(sess, lim, model=model)
-    assert 0 < len(want) < len(np.unique(tb.t_s)) * 2
-    watch = ForceWatch(model, lim)
+    assert 0 < len(want) < len(np.unique(tb.t_s)) * 3
+    assert {"force_n", "approach_mm"} <= set(want.quantity.tolist())
+    # the window reads the limits from the file bonesim metrics limits writes
+    from bonesim.physics.force_limits import load_limits, save_limits
+
+    watch = ForceWatch(model, load_limits(save_limits(tmp_path / "limits.toml", lim)))
+    assert watch.limits.closest_mm == lim.closest_mm
     got = []
     tis, s = sess.tissue, sess.samples
     edges = np.arange(0.0, s["t_s"][-1] + 2 / 30, 1 / 30)          # 30 frames a second
@@ -338,13 +358,13 @@ def test_a_bin_without_expert_rows_flags_approaches_closer_than_any_expert():
     ex = _table(d, rng.uniform(0.5, 1.0, 300))
     lim = learn_limits([ex])
     closest = closest_approach([ex])
-    assert closest == pytest.approx(d.min())
+    assert closest == pytest.approx(d.min()) and lim.closest_mm == closest   # kept in the limits
     assert np.isnan(lim.force_n[:2]).all()               # 0-2 and 2-4 mm: no limit
     tr = _table(np.array([0.8, 0.9, 3.5, 4.9, 12.0]), np.array([0.1, 0.1, 0.1, 0.1, 0.1]),
                 t=np.array([1.0, 1.0, 2.0, 3.0, 4.0]), group="novice")
-    none = exceedances(tr, lim)                          # without the rule: nothing
+    none = exceedances(tr, lim, closest_mm=math.inf)     # without the rule: nothing
     assert len(none) == 0
-    got = exceedances(tr, lim, closest_mm=closest)
+    got = exceedances(tr, lim)                           # the limits' own closest approach
     # 4.9 mm lies in the 4-6 mm bin, which has expert rows (a force limit): not flagged
     assert list(got.quantity) == ["approach_mm"] * 2
     np.testing.assert_allclose(got.value, [0.8, 3.5])         # the closest row of t = 1 s

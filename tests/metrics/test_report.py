@@ -154,3 +154,40 @@ def test_a_cohort_without_statistics_or_forces_still_reports(scored, tmp_path):
     assert "No run to show." in page
     assert re.search(r'<td class="l">novice</td><td>3</td>', page)
     assert "<td>n/a</td>" in page
+
+
+def test_group_plots_draw_one_point_per_participant_over_faint_sessions():
+    """The statistics' unit: each participant's mean is one solid point; the
+    sessions are a faint layer on their participant's vertical; the group
+    mean and interval are over the participants' means."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from metrics.report import _group_plot
+
+    t = pd.DataFrame({"participant": ["E1"] * 3 + ["E2"] * 3 + ["N1"] * 2 + ["N2"],
+                      "group": ["expert"] * 6 + ["novice"] * 3,
+                      "session": [1, 2, 3, 1, 2, 3, 1, 2, 1.0],
+                      "m": [1.0, 2.0, 3.0, 5.0, 5.0, np.nan, 10.0, 12.0, 20.0]})
+    fig = _group_plot(SimpleNamespace(table=t, stats=None), "m", ["expert", "novice"], True)
+    ax = fig.axes[0]
+    from matplotlib.collections import PathCollection
+
+    dots = [c for c in ax.collections if isinstance(c, PathCollection)]
+    faint = [np.asarray(c.get_offsets()) for c in dots if c.get_alpha() < 0.5]
+    solid = [np.asarray(c.get_offsets()) for c in dots if c.get_alpha() >= 0.5]
+    # expert: 5 finite sessions, 2 people (means 2 and 5); novice: 3 sessions, 2 people
+    assert [len(p) for p in faint] == [5, 3]
+    assert sorted(solid[0][:, 1]) == [2.0, 5.0] and sorted(solid[1][:, 1]) == [11.0, 20.0]
+    # a participant's sessions share the participant's x
+    for f, s in zip(faint, solid):
+        assert set(np.round(f[:, 0], 12)) == set(np.round(s[:, 0], 12))
+    labels = [tk.get_text() for tk in ax.get_xticklabels()]
+    assert labels == ["expert\n(2 people, 5 runs)", "novice\n(2 people, 3 runs)"]
+    # the square is the mean of the participants' means, not of the runs
+    sq = [ln.get_ydata()[0] for ln in ax.lines if ln.get_marker() == "s"]
+    assert sq == pytest.approx([3.5, 15.5])
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

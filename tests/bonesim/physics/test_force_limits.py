@@ -17,12 +17,12 @@ from bonesim.physics.force_limits import (AT_LIMIT_RTOL, ForceLimits, ForceWatch
 from tests.bonesim.fakes import BONE, NERVE, block_model
 
 
-def _limits(force, speed=None, width=2.0, structure="nerve"):
+def _limits(force, speed=None, width=2.0, structure="nerve", closest=math.inf):
     nb = len(force)
     return ForceLimits(width * np.arange(nb + 1), force,
                        np.full(nb, np.nan) if speed is None else speed, np.full(nb, 9),
                        95.0, structure, "applied", width * nb, case="block",
-                       source=("a.h5", "b.h5"))
+                       source=("a.h5", "b.h5"), closest_mm=closest)
 
 
 def test_over_limit_is_strictly_above_beyond_rounding_and_nan_flags_nothing():
@@ -55,7 +55,18 @@ def test_limits_file_round_trips_with_nan_bins(tmp_path):
         assert np.array_equal(getattr(back, f), getattr(lim, f), equal_nan=True), f
     assert (back.structure, back.force, back.percentile, back.max_distance_mm, back.case,
             back.source) == ("nerve", "applied", 95.0, 6.0, "block", ("a.h5", "b.h5"))
+    assert math.isinf(back.closest_mm)                  # no approach checked
     assert not list(tmp_path.glob("*.tmp"))
+    # the experts' closest approach travels with the limits to the window
+    p = save_limits(tmp_path / "near.toml", _limits([np.nan, 2.0], closest=1.0 / 3.0))
+    assert load_limits(p).closest_mm == 1.0 / 3.0
+    # a file written before the rule existed: no approach checked
+    old = "\n".join(ln for ln in p.read_text().splitlines() if not ln.startswith("closest"))
+    (tmp_path / "old.toml").write_text(old)
+    assert math.isinf(load_limits(tmp_path / "old.toml").closest_mm)
+    (tmp_path / "neg.toml").write_text(old + "\nclosest_mm = -1.0\n")
+    with pytest.raises(BonesimError, match="closest_mm must be >= 0"):
+        load_limits(tmp_path / "neg.toml")
 
 
 @pytest.mark.parametrize("text, what", [
@@ -108,15 +119,23 @@ def _reference(model, lim, tissue, samples):
                 key = (t, name)
                 if key not in best or val - L > best[key][1] - best[key][2]:
                     best[key] = (name, val, L, d)
+        # a bin without a force limit: closer than the closest expert is over
+        if math.isnan(lim.force_n[b]) and math.isfinite(lim.closest_mm) and d < lim.closest_mm:
+            key = (t, "approach_mm")
+            if key not in best or d < best[key][1]:
+                best[key] = ("approach_mm", d, lim.closest_mm, d)
     return [(t, *best[(t, name)]) for (t, name) in sorted(best)]
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), chunks=st.integers(1, 6))
-def test_watch_equals_a_slow_reference_fed_in_any_chunks(seed, chunks):
+@given(seed=st.integers(0, 2**31 - 1), chunks=st.integers(1, 6),
+       closest=st.sampled_from([math.inf, 0.7, 1.6, 3.0]))
+def test_watch_equals_a_slow_reference_fed_in_any_chunks(seed, chunks, closest):
+    """Force, speed and the closer-than-any-expert rule (a bin without a force
+    limit), live in any feeds, against the slow reference."""
     rng = np.random.default_rng(seed)
     model = _nerve_block()
-    lim = _limits([1.0, 1.5, 2.0], [50000.0, np.nan, 70000.0])
+    lim = _limits([np.nan, 1.5, 2.0], [50000.0, np.nan, 70000.0], closest=closest)
     n = 40
     t = np.round(np.cumsum(rng.uniform(0.5e-3, 2e-3, n)), 6)
     samples = {"t_s": t, "force_n": rng.uniform(-2, 2, (n, 3)),
@@ -145,7 +164,7 @@ def test_watch_equals_a_slow_reference_fed_in_any_chunks(seed, chunks):
     want = _reference(model, lim, tissue, samples)
     assert [(w.t_s, w.quantity) for w in got] == [(w[0], w[1]) for w in want]
     for w, r in zip(got, want):
-        assert w.value == pytest.approx(r[2], abs=1e-12)
+        assert w.value == pytest.approx(r[2], abs=1e-9)
         assert w.limit == r[3] and w.distance_mm == pytest.approx(r[4], abs=1e-9)
     assert sum(watch.count.values()) == len(want)
     assert watch.last == (got[-1] if got else None)

@@ -72,6 +72,9 @@ def test_hud_force_limit_line_ok_over_and_warning():
     w = LimitWarning(1.0, "speed_rpm", 80000.0, 60000.0, 12.0)
     assert format_hud({"force_limit": {"structure": "x", "count": 1, "warning": w}}
                       ).splitlines()[0] == "LIMIT! 80,000 > 60,000 rpm"
+    w = LimitWarning(1.0, "approach_mm", 0.84, 2.5, 0.84)    # closer than any expert
+    assert format_hud({"force_limit": {"structure": "x", "count": 1, "warning": w}}
+                      ).splitlines()[0] == "LIMIT! 0.8 < 2.5 mm"
 
 
 def test_hud_names_structures_by_their_clinical_names():
