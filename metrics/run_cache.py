@@ -86,7 +86,9 @@ class RunCache:
         from bonesim import __version__
 
         self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        # entries are pickles: the folder is the user's own (mode 0700), like
+        # any cache whose entries are loaded back
+        self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         self._salt = json.dumps({"bonesim": __version__, "code": code_fingerprint(),
                                  "settings": settings}, sort_keys=True, default=str)
         self.hits = self.misses = self.stored = 0

@@ -12,10 +12,12 @@ import pytest
 
 @pytest.fixture(scope="session", autouse=True)
 def _sessions_folder(tmp_path_factory):
-    """Interactive runs record by default; keep their files out of $HOME."""
+    """Interactive runs record by default and cohorts cache their runs' scores:
+    keep their files out of $HOME."""
     import os
 
     os.environ["BONESIM_SESSIONS"] = str(tmp_path_factory.mktemp("sessions"))
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
     yield
 
 
