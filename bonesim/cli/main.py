@@ -168,7 +168,7 @@ def _run(case, burr, traj, args) -> dict:
     record = getattr(args, "record", None)
     header = None
     if record is not None:
-        from bonesim.runtime.record import make_header
+        from bonesim.session.header import make_header
 
         header = make_header(model, extra, input_device="scripted", **_who(args))
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
@@ -300,11 +300,11 @@ def cmd_run(args) -> int:
         screenshot = screenshot or "bonesim-run.png"
     record = None if args.no_record else args.record   # --no-record: the old opt-out
     if record == "":
-        from bonesim.runtime.record import default_session_path
+        from bonesim.session.header import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
     if record is not None:         # room to record? (a window's run has no set length: warned)
-        from bonesim.runtime.disk_guard import warn_space
+        from bonesim.session.disk_guard import warn_space
         warn_space(record)
     serve = None
     if args.monitor_port is not None:

@@ -10,7 +10,7 @@ import sys
 
 from bonesim.io.anatomy import clinical_name
 from bonesim.cli.main import _print_json, _table
-from bonesim.runtime.record import sessions_folder
+from bonesim.session.header import sessions_folder
 from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
                                     session_info)
 

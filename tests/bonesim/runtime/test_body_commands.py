@@ -15,7 +15,8 @@ from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.engine.haptics import O_MAG
 from bonesim.io.loading import load_model
 from bonesim.engine.model import Sample, make_state, reset_state, step
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.replay import replay, verify
 from bonesim.engine.replica import TissueReplica
 from bonesim.session.reader import read_session

@@ -19,7 +19,8 @@ from bonesim.io.loading import load_model
 from bonesim.runtime.commands import ShedPart, SplitBox, SplitPart
 from bonesim.runtime.fragment_finder import FragmentFinder, speck_voxels_of
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
 from tests.bonesim.waiting import wait_until

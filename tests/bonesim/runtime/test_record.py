@@ -24,7 +24,9 @@ from bonesim.io.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import SCHEMA_VERSION, Recorder, make_header
+from bonesim.session.schema import SCHEMA_VERSION
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.replay import replay, verify
 from bonesim.session.reader import read_session, session_info
 from bonesim.runtime.shared import SharedArrays
@@ -148,7 +150,8 @@ def test_not_hdf5_and_missing_files(tmp_path, capsys):
 
 def _resign(f, text: str) -> None:
     """Set the header to ``text`` with a matching checksum (an edit, not damage)."""
-    from bonesim.runtime.record import FORMAT, header_sha256
+    from bonesim.session.schema import FORMAT
+    from bonesim.session.header import header_sha256
 
     f.attrs["header"] = text
     f.attrs["header_sha256"] = header_sha256(FORMAT, int(f.attrs["schema"]), text)
@@ -375,20 +378,20 @@ def _same(a, b):
 
 def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_path,
                                                             monkeypatch):
-    from bonesim.runtime import record
+    from bonesim.session import writer
 
     raw = tmp_path / "raw.h5"
     run_trajectory(model, traj, surface=False, record=raw, header=make_header(model))
     # the same run written raw (as a live writer leaves it before closing)
     live = tmp_path / "live.h5"
-    monkeypatch.setattr(record.SessionWriter.__init__, "__defaults__", (False, False))
+    monkeypatch.setattr(writer.SessionWriter.__init__, "__defaults__", (False, False))
     run_trajectory(model, traj, surface=False, record=live, header=make_header(model))
     monkeypatch.undo()
     with h5py.File(live, "r") as f:
         assert f["samples/pos_mm"].compression is None
     before = _contents(live)
     raw_size = live.stat().st_size
-    size = record.compact_session(live)
+    size = writer.compact_session(live)
     assert size == live.stat().st_size < raw_size / 2
     with h5py.File(live, "r") as f:
         assert f["samples/pos_mm"].compression == "gzip"
@@ -403,9 +406,9 @@ def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_pa
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(record.os, "replace", boom)
+    monkeypatch.setattr(writer.os, "replace", boom)
     with pytest.raises(BonesimError, match="disk full.*kept as it was"):
-        record.compact_session(keep)
+        writer.compact_session(keep)
     monkeypatch.undo()
     _same(before, _contents(keep))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.h5", "live.h5", "raw.h5"]

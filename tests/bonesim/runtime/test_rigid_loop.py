@@ -13,7 +13,8 @@ from bonesim.io.case import load_case
 from bonesim.io.loading import load_model
 from bonesim.runtime.commands import SplitBox
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify

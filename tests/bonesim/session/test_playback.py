@@ -344,7 +344,8 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     from bonesim.io.case import load_case
     from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.io.loading import load_model
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
     from bonesim.session.replay import replay
     from bonesim.session.reader import read_session
     import time

@@ -16,7 +16,8 @@ from bonesim.io.loading import load_model
 from bonesim.runtime.commands import CutPlane, MoveBody
 from bonesim.runtime.fragment_finder import FragmentFinder
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
