@@ -34,7 +34,8 @@ GROUPS = {
     "events": events.OTHER_RINGS["ui"][1],
 }
 #: Optional groups (a file may lack them;
-#: :func:`bonesim.session.reader.read_session` then gives them no rows): ``handle``, an instrumented handle's readings
+#: :func:`bonesim.session.reader.read_session` then gives them no rows):
+#: ``handle``, an instrumented handle's readings
 #: (:mod:`bonesim.runtime.handle_stream`).
 GROUPS["handle"] = events.OTHER_RINGS["handle"][1]
 OPTIONAL_GROUPS = ("handle",)

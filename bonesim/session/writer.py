@@ -19,8 +19,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
-from bonesim.session.disk_guard import (GuardedFile, describe_error, headroom_bytes,
-                                        load_space_limits)
+from bonesim.session import disk_guard
 from bonesim.session.header import header_sha256
 from bonesim.session.schema import FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, require_h5py
 
@@ -46,7 +45,8 @@ class SessionWriter:
     Fletcher32 checksum (a flipped bit in any chunk is found on reading): a
     live writer flushing small batches (every
     :data:`bonesim.runtime.record.FLUSH_S`) would otherwise rewrite its partly
-    filled compressed chunks into new space at every flush. The header carries a SHA-256 of itself (:func:`header_sha256`).
+    filled compressed chunks into new space at every flush. The header
+    carries a SHA-256 of itself (:func:`header_sha256`).
     When the writer closes, the file is compacted (:func:`compact_session`):
     rewritten compressed and put in place atomically, so a crash at any
     moment leaves either the raw file or the compacted one, both complete.
@@ -93,10 +93,10 @@ class SessionWriter:
         missing = [k for k in HEADER_KEYS if k not in header]
         if missing:
             raise ValueError(f"session header lacks {missing}")
-        self.limits = load_space_limits()
+        self.limits = disk_guard.load_space_limits()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.guard = GuardedFile(self.path, overwrite=overwrite)
+            self.guard = disk_guard.GuardedFile(self.path, overwrite=overwrite)
         except OSError as exc:
             raise BonesimError(f"{self.path}: cannot create the session file ({exc})") from exc
         self.failed = None
@@ -136,7 +136,7 @@ class SessionWriter:
             self._abandon()
             self.path.unlink(missing_ok=True)
             raise BonesimError(f"{self.path}: cannot create the session file: "
-                               f"{describe_error(err)}")
+                               f"{disk_guard.describe_error(err)}")
         self.flushes = 0
 
     def _abandon(self) -> None:
@@ -192,7 +192,7 @@ class SessionWriter:
 
     def _why(self, exc=None) -> str:
         if self.guard.error is not None:
-            return describe_error(self.guard.error)
+            return disk_guard.describe_error(self.guard.error)
         return f"a write failed ({str(exc).splitlines()[0] if exc else '?'})"
 
     def flush(self) -> None:
@@ -216,7 +216,7 @@ class SessionWriter:
         now = time.monotonic()
         if now >= self._next_check and self._stopping is None:
             self._next_check = now + self.limits.check_every_s
-            room = headroom_bytes(self.path)
+            room = disk_guard.headroom_bytes(self.path)
             if room < self.limits.reserve_mb * (1 << 20):
                 self.stop(f"the disk is nearly full ({room / (1 << 20):.1f} MB left)")
 
@@ -319,7 +319,7 @@ def compact_session(path) -> int:
     tmp.unlink(missing_ok=True)
     guard = None
     try:
-        guard = GuardedFile(tmp)
+        guard = disk_guard.GuardedFile(tmp)
         with h5py.File(path, "r") as src, \
                 h5py.File(guard, "w", libver="latest", rdcc_nbytes=0) as dst:
             for k, v in src.attrs.items():
@@ -354,8 +354,9 @@ def compact_session(path) -> int:
                     break                     # the disk filled: stop copying
         guard.sync()
         if guard.error is not None:
-            raise BonesimError(f"{path}: compacting stopped: {describe_error(guard.error)}; "
-                               "the uncompressed recording is kept as it was")
+            why = disk_guard.describe_error(guard.error)
+            raise BonesimError(f"{path}: compacting stopped: {why}; the uncompressed "
+                               "recording is kept as it was")
         guard.close()
         os.replace(tmp, path)
     except (OSError, RuntimeError, ValueError) as exc:
