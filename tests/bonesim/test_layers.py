@@ -290,3 +290,55 @@ def test_bonesim_names_metrics_only_from_the_cli_and_the_bench():
              if imp.startswith("bonesim") and t.startswith("metrics")
              and not imp.startswith(("bonesim.cli.", "bonesim.bench."))]
     assert not wrong, wrong
+
+
+# --- private names stay private ---------------------------------------------
+#: Private imports left for another branch to remove (module: names). Each
+#: entry is a known defect, not a licence: bonesim/tutoring is being reworked
+#: on the tutoring branch, which owns servo.py's import of sources._LatencyLog.
+PRIVATE_IMPORTS_PENDING = {"bonesim.tutoring.servo": {"_LatencyLog"}}
+
+
+def private_imports(source: str) -> set[str]:
+    """Private (single underscore) names ``source`` takes from bonesim or
+    metrics modules: ``from x import _y`` and ``module._y`` of a module it
+    imported (``import a as _b`` imports a public name under a private alias
+    and is fine)."""
+    import ast
+
+    tree = ast.parse(source)
+    found, modules = set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(("bonesim",
+                                                                               "metrics")):
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__"):
+                    found.add(a.name)
+                modules.add(a.asname or a.name)
+        elif isinstance(node, ast.Import):
+            modules |= {(a.asname or a.name).split(".")[0] for a in node.names
+                        if a.name.startswith(("bonesim", "metrics"))}
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                and not node.attr.startswith("__") and isinstance(node.value, ast.Name)
+                and node.value.id in modules and node.value.id not in ("self", "cls")):
+            found.add(node.attr)
+    return found
+
+
+def test_private_import_scan_finds_planted_ones():
+    src = ("from bonesim.engine import haptics\n"
+           "from bonesim.io import anatomy as _anatomy\n"
+           "from metrics.cohort import _client, find_sessions\n"
+           "haptics._begin(1)\n")
+    assert private_imports(src) == {"_client", "_begin"}
+
+
+def test_no_module_imports_another_modules_private_names():
+    wrong = {}
+    for p in sorted([*(ROOT / "bonesim").rglob("*.py"), *(ROOT / "metrics").rglob("*.py")]):
+        mod = ".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        names = private_imports(p.read_text()) - PRIVATE_IMPORTS_PENDING.get(mod, set())
+        if names:
+            wrong[mod] = sorted(names)
+    assert not wrong, f"private names imported from other modules: {wrong}"
