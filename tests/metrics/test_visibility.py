@@ -23,6 +23,7 @@ from metrics.visibility import (StructureVisibility, VisibilityResult, recompute
                                 visibility, visible_fraction)
 
 from tests.bonesim.fakes import MATERIALS, FakeBurr, FakeStructure
+from tests.bonesim.waiting import wait_drill_off
 
 
 # ------------------------------------------------------------ recorded runs
@@ -395,7 +396,7 @@ def test_offline_equals_live_on_a_live_loop_recording_with_a_moving_camera(tmp_p
             rec.camera(focal + _rotate(eye0 - focal, cam.up, a), focal, cam.up)
             time.sleep(1 / 120)
         loop.set_drill(False)
-        time.sleep(0.1)
+        assert wait_drill_off(loop)
         rec.close()
     finally:
         loop.close()

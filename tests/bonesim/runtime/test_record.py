@@ -31,6 +31,7 @@ from bonesim.session.replay import replay, verify
 from bonesim.session.reader import read_session, session_info
 from bonesim.runtime.shared import SharedArrays
 from bonesim.runtime.simulate import run_trajectory
+from tests.bonesim.waiting import wait_drill_off, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -220,7 +221,8 @@ from bonesim.io.case import load_case
 from bonesim.io.toolpath import demo_trajectory
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 import numpy as np
 m = load_model("phantom", "cutting-5mm")
 t = demo_trajectory(load_case("phantom"), "cutting-5mm")
@@ -293,27 +295,21 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
     loop = HapticLoop(model, burrs=[burr2])
     rec = Recorder(loop, path, make_header(model, [burr2], input_device="mouse"))
 
-    def wait(cond):
-        end = time.monotonic() + 20.0
-        while not cond() and time.monotonic() < end:
-            time.sleep(0.01)
-        return cond()
-
     try:
         rec.start()
         loop.start()
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait(lambda: loop.state.n_removed > 20)
+        assert wait_until(lambda: loop.state.n_removed > 20)
         loop.set_burr(1)
         n0 = loop.state.n_removed
-        assert wait(lambda: loop.state.n_removed > n0 + 5)
+        assert wait_until(lambda: loop.state.n_removed > n0 + 5)
         epoch = loop.reset()
-        assert wait(lambda: loop.status["epoch"] == epoch)
+        assert wait_until(lambda: loop.status["epoch"] == epoch)
         n1 = loop.state.n_removed
-        assert wait(lambda: loop.state.n_removed > n1 + 20)
+        assert wait_until(lambda: loop.state.n_removed > n1 + 20)
         loop.set_drill(False)
-        time.sleep(0.1)
+        assert wait_drill_off(loop)
         rec.close()
         seen = (int(rec.status["visible"]), int(rec.status["hidden"]))
         ev = loop.state.tissue.read(0)
