@@ -238,6 +238,14 @@ while True:
 """
 
 
+def _rows(path) -> int:
+    """Samples a live session file holds so far (0 before it can be read)."""
+    try:
+        return len(read_session(path).samples["t_s"])
+    except (BonesimError, OSError):
+        return 0
+
+
 @pytest.mark.slow
 def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     path = tmp_path / "killed.h5"
@@ -247,13 +255,13 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     try:
         handles = {k: pickle.loads(bytes.fromhex(v)) if k != "writer" else v
                    for k, v in json.loads(proc.stdout.readline()).items()}
-        time.sleep(1.5)
         # readable while being written (SWMR), and growing
-        n1 = len(read_session(path).samples["t_s"])
-        time.sleep(0.5)
-        n2 = len(read_session(path).samples["t_s"])
+        assert wait_until(lambda: _rows(path) > 0, 60.0)
+        n1 = _rows(path)
+        assert wait_until(lambda: _rows(path) > n1, 60.0)
+        n2 = _rows(path)
         assert 0 < n1 < n2
-        time.sleep(0.3)
+        assert wait_until(lambda: _rows(path) > n2, 60.0)     # killed mid-run
     finally:
         os.killpg(proc.pid, signal.SIGKILL)      # the app, the loop and the writer
         proc.wait(10)
