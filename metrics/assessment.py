@@ -308,7 +308,7 @@ def _measure(item, box, lm, params, has):
             if p is None or "labyrinth" not in has:
                 return None, None, None, "no lateral canal found (no labyrinth label)"
             lab = g.get("labyrinth", np.zeros(box.present.shape, bool))
-            surf = M.surface_of(box, lab) & M._ball(box, p, params["lateral_canal_near_mm"])
+            surf = M.surface_of(box, lab) & M.ball_mask(box, p, params["lateral_canal_near_mm"])
         else:
             if t not in has:
                 return None, None, None, f"the case has no {t.replace('_', ' ')}"

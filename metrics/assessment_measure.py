@@ -277,7 +277,7 @@ def sightlines(box: Box, eye_mm, params: dict) -> dict:
             "_overhang": np.argwhere(hit), "_hidden": np.argwhere(hidden)}
 
 
-def _ball(box: Box, centre_mm, radius_mm: float) -> np.ndarray:
+def ball_mask(box: Box, centre_mm, radius_mm: float) -> np.ndarray:
     """Box voxels whose centre lies within ``radius_mm`` of ``centre_mm``."""
     c = (np.asarray(centre_mm, float) - box.origin_mm) / box.h
     r = radius_mm / box.h
@@ -298,8 +298,8 @@ def antrum_region(box: Box, centre_mm, radius_mm: float, found: bool,
     plus ``antrum_extra_mm`` (found), else a ball of
     ``antrum_estimated_radius_mm``."""
     if not found:
-        return _ball(box, centre_mm, params["antrum_estimated_radius_mm"])
-    air = _ball(box, centre_mm, radius_mm + params["antrum_extra_mm"]) & ~box.tissue0
+        return ball_mask(box, centre_mm, params["antrum_estimated_radius_mm"])
+    air = ball_mask(box, centre_mm, radius_mm + params["antrum_extra_mm"]) & ~box.tissue0
     lab, _ = ndimage.label(air)
     c = box.index_of(centre_mm)[0]
     if np.all((c >= 0) & (c < air.shape)) and lab[tuple(c)] > 0:

@@ -172,7 +172,7 @@ def _models(session):
     return _MODELS[key]
 
 
-def _one_line(exc) -> str:
+def one_line(exc) -> str:
     msg = " ".join(str(exc).split()) or type(exc).__name__
     return msg if type(exc).__name__ == "BonesimError" else f"{type(exc).__name__}: {msg}"
 
@@ -213,7 +213,7 @@ def score_file(path, structure: str = "chorda_tympani", case: str | None = None,
         return _score_file(path, structure, case, close_mm,
                            ROW_PROVIDERS if providers is None else providers)
     except Exception as exc:                # one line per failed run, never a crash
-        msg = _one_line(exc)
+        msg = one_line(exc)
         if str(path) not in msg:
             msg = f"{path}: {msg}"
         return {"file": str(path), "error": msg}
@@ -291,7 +291,7 @@ def _score_file(path, structure, case, close_mm, providers):
             got = getattr(importlib.import_module(mod), fn)(s, models, path)
             extra.update({k: float(got[k]) for k in cols if k in got})
         except Exception as exc:            # its columns stay NaN; say so
-            warn.append(f"{path}: {mod}.{fn}: {_one_line(exc)}")
+            warn.append(f"{path}: {mod}.{fn}: {one_line(exc)}")
     return {"file": str(path), "participant": str(h.get("participant", "") or ""),
             "case": mine, "damage": damage_notice(s), "shape": tuple(h["shape"]),
             "notes": str(h.get("notes", "") or ""), "start_time": str(h.get("start_time", "")),
@@ -302,7 +302,7 @@ def _score_file(path, structure, case, close_mm, providers):
 
 
 # --------------------------------------------------------------- cluster
-def _client(scheduler, workers):
+def dask_client(scheduler, workers):
     """``(client, cluster or None, label)``: connect to ``scheduler`` or start a
     local cluster of ``workers`` single-threaded processes."""
     import logging
@@ -330,7 +330,7 @@ def _client(scheduler, workers):
 def _run_tasks(paths, structure, case, scheduler, workers, progress, close_mm, providers):
     from distributed import as_completed
 
-    client, cluster, label = _client(scheduler, workers)
+    client, cluster, label = dask_client(scheduler, workers)
     try:
         futs = [client.submit(score_file, str(p), structure, case, close_mm, providers,
                               pure=False) for p in paths]
@@ -342,7 +342,7 @@ def _run_tasks(paths, structure, case, scheduler, workers, progress, close_mm, p
             try:
                 out[q] = fut.result()
             except Exception as exc:        # a worker died, the task was lost ...
-                out[q] = {"file": str(paths[q]), "error": f"{paths[q]}: {_one_line(exc)}"}
+                out[q] = {"file": str(paths[q]), "error": f"{paths[q]}: {one_line(exc)}"}
             if progress is not None:
                 progress(done, len(futs))
         return out, label, n_workers

@@ -79,7 +79,7 @@ def render_many(runs, out_dir, options, *, layout: str = "h5", scheduler=None,
     """
     from distributed import as_completed
 
-    from metrics.cohort import _client, _one_line, find_sessions
+    from metrics.cohort import dask_client, one_line, find_sessions
 
     paths = find_sessions(runs)
     out_dir = Path(out_dir)
@@ -92,7 +92,7 @@ def render_many(runs, out_dir, options, *, layout: str = "h5", scheduler=None,
             results[q] = {"file": str(p), "error": f"{dst}: exists; choose an empty folder"}
         else:
             todo.append((q, p, dst))
-    client, cluster, label = _client(scheduler, workers)
+    client, cluster, label = dask_client(scheduler, workers)
     try:
         opts = options.to_dict()
         futs = [client.submit(render_run, str(p), str(dst), opts, pure=False)
@@ -105,7 +105,7 @@ def render_many(runs, out_dir, options, *, layout: str = "h5", scheduler=None,
             try:
                 results[q] = fut.result()
             except Exception as exc:        # a worker died, the task was lost ...
-                results[q] = {"file": str(paths[q]), "error": f"{paths[q]}: {_one_line(exc)}"}
+                results[q] = {"file": str(paths[q]), "error": f"{paths[q]}: {one_line(exc)}"}
             done += 1
             if progress is not None:
                 progress(done, len(paths))

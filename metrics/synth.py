@@ -753,7 +753,7 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
     from bonesim.errors import BonesimError
     from bonesim.io.burrs import load_burr
     from bonesim.io.loading import load_model
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.runtime.simulate import run_trajectory
 
     if not duration_s > 0:

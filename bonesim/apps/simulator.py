@@ -264,7 +264,8 @@ class App:
 
         gl.start_probe(offscreen=self.offscreen)      # overlaps with the loop's warm-up
         if self.record is not None:
-            from bonesim.runtime.record import Recorder, make_header
+            from bonesim.runtime.record import Recorder
+            from bonesim.session.header import make_header
 
             header = make_header(self.model, self.burrs[1:],
                                  input_device=self.device_name or (
@@ -501,7 +502,7 @@ class App:
             if self.recorder is not None:
                 self.recorder.event("pedal", "unplugged" if gone else "connected")
         out = {"pedal": "UNPLUGGED - drill off"} if gone else {}
-        from bonesim.runtime.handle_stream import handle_text
+        from bonesim.session.playback import handle_text
 
         angles = handle_text(self.loop.status["handle_deg"])   # an instrumented handle's
         if angles is not None and not gone:                      # (stale while away)

@@ -59,20 +59,20 @@ def bench_cut_plane(quick=False) -> dict:
 
 
 def _irrigated_scene(rng):
-    from bonesim.bench.dust import EDGE, FLOOR, _scene
+    from bonesim.bench.dust import EDGE, FLOOR, dust_scene
     from bonesim.physics.dust import Q
-    from bonesim.physics.dust_water import _water_grid
+    from bonesim.physics.dust_water import water_grid
 
-    bone, dust = _scene(rng, full=False)
+    bone, dust = dust_scene(rng, full=False)
     ax = [np.arange(8, 8 + EDGE), np.arange(8, 8 + EDGE), np.arange(FLOOR, FLOOR + EDGE)]
     ijk = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
-    _water_grid(dust)._add_q(ijk, (rng.random(len(ijk)) * Q).astype(np.int64))
+    water_grid(dust)._add_q(ijk, (rng.random(len(ijk)) * Q).astype(np.int64))
     return bone, dust
 
 
 def bench_irrigated_dust(quick=False) -> dict:
     """The irrigated dust step on a 64^3 region, next to the plain one."""
-    from bonesim.bench.dust import DT_S, EDGE, FLOOR, _time_steps
+    from bonesim.bench.dust import DT_S, EDGE, FLOOR, time_steps
     from bonesim.physics.dust import warmup
 
     warmup()
@@ -92,7 +92,7 @@ def bench_irrigated_dust(quick=False) -> dict:
         dust.step(bone, DT_S, tool, 2.5, suction, 1.5, irrigation_pos_mm=centre + (0, 0, 12.0),
                   irrigation_radius_mm=2.0)
         ms[q] = (time.perf_counter() - t0) * 1e3
-    dry, _ = _time_steps(rng, n, per_reset=per_reset, full=False)
+    dry, _ = time_steps(rng, n, per_reset=per_reset, full=False)
     return {"dust_irrigated_step_64_ms": {
         "value": round(float(np.median(ms)), 3), "unit": "ms",
         "p90_ms": round(float(np.percentile(ms, 90)), 3), "steps": int(n),

@@ -23,7 +23,7 @@ FLOOR = 8
 DT_S = 1e-3
 
 
-def _scene(rng, full: bool):
+def dust_scene(rng, full: bool):
     from bonesim.physics.dust import DustGrid
     from bonesim.engine.grid import Grid
 
@@ -39,14 +39,14 @@ def _scene(rng, full: bool):
     return bone, dust
 
 
-def _time_steps(rng, n: int, per_reset: int, full: bool):
+def time_steps(rng, n: int, per_reset: int, full: bool):
     ms = np.empty(n)
     bone = dust = None
     centre = np.array([8 + EDGE / 2, 8 + EDGE / 2, FLOOR + EDGE / 2]) * 0.5   # [mm]
     perf = time.perf_counter
     for q in range(n):
         if q % per_reset == 0:
-            bone, dust = _scene(rng, full)
+            bone, dust = dust_scene(rng, full)
             dust.step(bone, DT_S)              # first step allocates the halo
         tool = centre + 6.0 * np.array([np.cos(q * 0.05), np.sin(q * 0.05), 0.0])
         suction = centre + np.array([0.0, 0.0, 8.0])
@@ -63,8 +63,8 @@ def bench_dust(quick=False) -> dict:
     warmup()
     rng = np.random.default_rng(0)
     n = 60 if quick else 400
-    ms, dust = _time_steps(rng, n, per_reset=100, full=False)
-    ms_full, _ = _time_steps(rng, max(20, n // 4), per_reset=100, full=True)
+    ms, dust = time_steps(rng, n, per_reset=100, full=False)
+    ms_full, _ = time_steps(rng, max(20, n // 4), per_reset=100, full=True)
     return {
         "dust_step_64_ms": {
             "value": round(float(np.median(ms)), 3), "unit": "ms",

@@ -37,7 +37,9 @@ def bench_recording(quick=False) -> dict:
     from bonesim.runtime.haptic_loop import push_sample
     from bonesim.engine.model import Sample, make_state, step
     from bonesim.io.loading import load_model, warmup
-    from bonesim.runtime.record import FLUSH_S, Drainer, SessionWriter, make_header
+    from bonesim.runtime.record import Drainer, FLUSH_S
+    from bonesim.session.writer import SessionWriter
+    from bonesim.session.header import make_header
 
     warmup()
     model = load_model("phantom", "cutting-5mm")

@@ -24,7 +24,7 @@ __all__ = ["CT_SHAPE", "bench_haptic_step", "bench_surface", "synthetic_ct",
            "bench_ct512", "bench_simulate", "bench_haptic_loop",
            "bench_haptic_loop_rendering", "bench_render", "bench_audio", "bench_dust",
            "bench_recording", "bench_tutor", "bench_monitor", "bench_load",
-           "BENCHMARKS", "run_benchmarks"]
+           "ByName", "BENCHMARKS", "run_benchmarks"]
 
 #: Synthetic CT size for the tessellation benchmarks [voxels].
 CT_SHAPE = (512, 512, 300)
@@ -454,6 +454,60 @@ def bench_load(quick=False) -> dict:
     return run(quick=quick)
 
 
+class ByName:
+    """A benchmark found by its dotted name, imported only when it runs.
+
+    Parameters
+    ----------
+    ref : str
+        ``"package.module:function"``; the function takes ``quick`` and
+        returns ``{figure name: {"value": ..., "unit": ..., ...}}``.
+
+    The bench reaches the research package's benchmarks (``metrics/bench``)
+    this way: ``bonesim`` never imports ``metrics`` (the import-linter
+    contracts in ``pyproject.toml``), and ``tests/bonesim/test_layers.py``
+    checks that every name in :data:`BENCHMARKS` resolves.
+    """
+
+    def __init__(self, ref: str):
+        module, _, function = ref.partition(":")
+        if not module or not function:
+            raise ValueError(f"benchmark reference {ref!r} is not 'module:function'")
+        self.ref = ref
+        self.module = module
+        self.__name__ = function
+
+    def resolve(self):
+        """The benchmark function (imports its module); a missing module is
+        one line (:class:`~bonesim.errors.BonesimError`)."""
+        import importlib
+
+        from bonesim.errors import BonesimError
+
+        try:
+            mod = importlib.import_module(self.module)
+        except ImportError as exc:
+            raise BonesimError(f"benchmark {self.ref} cannot be loaded ({exc}); the "
+                               "research benchmarks need the metrics package beside "
+                               "bonesim") from None
+        return getattr(mod, self.__name__)
+
+    def __call__(self, quick=False) -> dict:
+        return self.resolve()(quick=quick)
+
+    def __repr__(self) -> str:
+        return f"ByName({self.ref!r})"
+
+
+def _by_name(names, ref: str) -> dict:
+    """``names`` (one or several figures one run gives) -> one :class:`ByName`."""
+    fn = ByName(ref)
+    return dict.fromkeys((names,) if isinstance(names, str) else names, fn)
+
+
+#: The benchmarks: figure name -> a function of ``quick`` returning that
+#: figure (and maybe others; one run gives them all). Benchmarks outside this
+#: module are named by their dotted names (:class:`ByName`).
 BENCHMARKS = {
     "haptic_step_7mm_p50_us": bench_haptic_step,
     "haptic_step_7mm_p99_us": bench_haptic_step,
@@ -467,8 +521,7 @@ BENCHMARKS = {
     "retessellate_speedup_vs_full": bench_surface,
     "retessellate_one_voxel_us": bench_surface,
     "tessellate_phantom_s": bench_surface,
-    "surface_roughness_deg": lambda quick=False: __import__(
-        "bonesim.bench.surface_quality", fromlist=["_"]).bench_surface_roughness(quick=quick),
+    **_by_name("surface_roughness_deg", "bonesim.bench.surface_quality:bench_surface_roughness"),
     "tessellate_ct512_s": bench_ct512,
     "marching_cubes_ct512_s": bench_ct512,
     "simulate_warm_s": bench_simulate,
@@ -476,8 +529,7 @@ BENCHMARKS = {
     "haptic_loop_period_p99_ms_rendering": bench_haptic_loop_rendering,
     "render_update_1000_ms": bench_render,
     "first_frame_s": bench_render,
-    "render_fps_1024x768": lambda quick=False: __import__(
-        "bonesim.render.bench", fromlist=["bench_fps"]).bench_fps(quick=quick),
+    **_by_name("render_fps_1024x768", "bonesim.render.bench:bench_fps"),
     "audio_rtf_p99": bench_audio,
     "dust_step_64_ms": bench_dust,
     "recording_overhead_us": bench_recording,
@@ -490,39 +542,27 @@ BENCHMARKS = {
     "monitor_loopback_loss_fraction": bench_monitor,
     "load_labelstack_512_s": bench_load,
     "load_labelstack_512_peak_mb": bench_load,
-    **dict.fromkeys(("load_native_256_s", "load_native_256_peak_mb", "load_native_512_s",
-                     "load_native_512_peak_mb"), lambda quick=False: __import__(
-                         "bonesim.bench.load", fromlist=["_"]).bench_load_native(quick=quick)),
-    "dp_align_1000_ms": lambda quick=False: __import__(
-        "bonesim.bench.metrics_alignment", fromlist=["_"]).bench_dp_align(quick=quick),
-    "visibility_offline_removals_per_s": lambda quick=False: __import__(
-        "bonesim.bench.metrics_visibility",
-        fromlist=["bench_metrics_visibility"]).bench_metrics_visibility(quick=quick),
-    "assess_run_s": lambda quick=False: __import__(
-        "bonesim.bench.metrics_assessment", fromlist=["_"]).bench_assess_run(quick=quick),
-    **dict.fromkeys(("cohort_sessions_per_s", "cohort_stats_s", "metrics_run_s"),
-                    lambda quick=False: __import__(
-        "bonesim.bench.metrics_cohort", fromlist=["_"]).bench_metrics_cohort(quick=quick)),
-    **dict.fromkeys(("fragment_local_ms", "fragment_global_256_ms",
-                     "fragment_global_256_scipy_ms", "fragment_global_vs_scipy",
-                     "fragment_split_8000_ms"),
-                    lambda quick=False: __import__(
-                        "bonesim.bench.fragments", fromlist=["_"]).bench_fragments(quick=quick)),
-    **dict.fromkeys(tuple(f"device_overhead_us_{b}" for b in (
+    **_by_name(("load_native_256_s", "load_native_256_peak_mb", "load_native_512_s",
+                "load_native_512_peak_mb"), "bonesim.bench.load:bench_load_native"),
+    **_by_name("dp_align_1000_ms", "metrics.bench.alignment:bench_dp_align"),
+    **_by_name("visibility_offline_removals_per_s",
+               "metrics.bench.visibility:bench_metrics_visibility"),
+    **_by_name("assess_run_s", "metrics.bench.assessment:bench_assess_run"),
+    **_by_name(("cohort_sessions_per_s", "cohort_stats_s", "metrics_run_s"),
+               "metrics.bench.cohort:bench_metrics_cohort"),
+    **_by_name(("fragment_local_ms", "fragment_global_256_ms", "fragment_global_256_scipy_ms",
+                "fragment_global_vs_scipy", "fragment_split_8000_ms"),
+               "bonesim.bench.fragments:bench_fragments"),
+    **_by_name(tuple(f"device_overhead_us_{b}" for b in (
         "simulated_hand", "spacemouse", "pedal", "adu100_handle", "touch")),
-        lambda quick=False: __import__(
-            "bonesim.bench.devices", fromlist=["_"]).bench_devices(quick=quick)),
-    **dict.fromkeys(("dataset_frames_per_s_640x480", "dataset_vs_playback_video_fps"),
-                    lambda quick=False: __import__("bonesim.bench.dataset", fromlist=["_"])
-                    .bench_dataset(quick=quick)),
-    "cut_plane_stroke_ms": lambda quick=False: __import__(
-        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_cut_plane(quick=quick),
-    "dust_irrigated_step_64_ms": lambda quick=False: __import__(
-        "bonesim.bench.cut_irrigation", fromlist=["_"]).bench_irrigated_dust(quick=quick),
+        "bonesim.bench.devices:bench_devices"),
+    **_by_name(("dataset_frames_per_s_640x480", "dataset_vs_playback_video_fps"),
+               "bonesim.bench.dataset:bench_dataset"),
+    **_by_name("cut_plane_stroke_ms", "bonesim.bench.cut_irrigation:bench_cut_plane"),
+    **_by_name("dust_irrigated_step_64_ms", "bonesim.bench.cut_irrigation:bench_irrigated_dust"),
     # the loop's period while a fragment moves, and still, in one run
-    **dict.fromkeys(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
-                    lambda quick=False: __import__("bonesim.bench.rigid", fromlist=["_"])
-                    .bench_rigid_loop(quick=quick)),
+    **_by_name(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
+               "bonesim.bench.rigid:bench_rigid_loop"),
 }
 
 

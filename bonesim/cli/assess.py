@@ -2,8 +2,10 @@
 checklist printed at the end of ``bonesim run``.
 
 The assessment itself is research code (:mod:`metrics.assessment`, beside
-the package); it is imported only when a command asks for it, so a machine
-that only drills never loads it before the end of a run.
+the package); it is imported by name only when a command asks for it
+(:func:`bonesim.cli.research.research_module`: ``bonesim`` never imports
+``metrics``), so a machine that only drills never loads it before the end of
+a run.
 """
 from __future__ import annotations
 
@@ -32,9 +34,11 @@ def assess_parsers(sub, _lazy) -> None:
 
 def cmd_assess(args) -> int:
     """Handler of ``bonesim assess``."""
+    from bonesim.cli.research import research_module
     from bonesim.errors import BonesimError
     from bonesim.session.reader import damage_notice, read_session
-    from metrics.assessment import assess_tissue, checklist, final_present
+
+    m = research_module("metrics.assessment", "bonesim assess")
 
     s = read_session(args.file)
     line = damage_notice(s)
@@ -47,8 +51,8 @@ def cmd_assess(args) -> int:
     model = s.load_model()
     case = model.case
     d0, lab0 = model.grid.to_dense()
-    present = final_present(s, model)
-    a = assess_tissue(lab0, present, model.spacing_mm, model.grid.origin_mm,
+    present = m.final_present(s, model)
+    a = m.assess_tissue(lab0, present, model.spacing_mm, model.grid.origin_mm,
                       model.structures, case.landmarks, case.camera.eye_mm, density0=d0,
                       case=model.name)
     out = a.as_dict()
@@ -69,7 +73,7 @@ def cmd_assess(args) -> int:
         return 0
     print(f"{s.path}: case {model.name}" + (f", {s.header.get('participant')}"
                                             if s.header.get("participant") else ""))
-    for ln in checklist(a):
+    for ln in m.checklist(a):
         print(ln)
     if "png" in out:
         print(f"wrote {out['png']}")
@@ -82,13 +86,14 @@ def checklist_of_grid(model, grid) -> dict:
     (:meth:`metrics.assessment.Assessment.as_dict`) with ``checklist``, its
     lines; only ``checklist`` (one line saying why) when the model has no
     case to assess against."""
-    from metrics.assessment import assess_grid, checklist
+    from bonesim.cli.research import research_module
 
+    m = research_module("metrics.assessment", "the final-product checklist")
     try:
-        a = assess_grid(model, grid)
+        a = m.assess_grid(model, grid)
     except ValueError as exc:
         return {"checklist": [f"final product: not assessed ({exc})"]}
-    return {**a.as_dict(), "checklist": checklist(a)}
+    return {**a.as_dict(), "checklist": m.checklist(a)}
 
 
 def print_checklist(assessment, file=None) -> None:

@@ -136,13 +136,9 @@ def cmd_dataset(args) -> int:
 
     opts = options_from_args(args)
     if not _one_run(args.runs):
-        import importlib
+        from bonesim.cli.research import research_module
 
-        try:
-            mod = importlib.import_module("metrics.dataset_cluster")
-        except ImportError as exc:
-            raise BonesimError(f"rendering many runs needs the research package "
-                               f"(metrics/, Dask): {exc}") from None
+        mod = research_module("metrics.dataset_cluster", "rendering many runs (Dask)")
         return mod.cmd_dataset_many(args, opts)
     if not Path(args.runs).is_file():
         raise BonesimError("no such session file", args.runs)

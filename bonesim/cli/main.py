@@ -30,11 +30,11 @@ DEFAULT_CASE = "phantom"
 
 
 
-def _print_json(obj) -> None:
+def print_json(obj) -> None:
     print(json.dumps(obj, indent=2))
 
 
-def _table(rows: list[dict], cols: list[str]) -> None:
+def print_table(rows: list[dict], cols: list[str]) -> None:
     widths = [max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols]
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
     for r in rows:
@@ -49,9 +49,9 @@ def cmd_cases(args) -> int:
              "manifest": str(c.manifest), "description": c.description}
             for c in list_cases()]
     if args.json:
-        _print_json(rows)
+        print_json(rows)
     else:
-        _table(rows, ["name", "side", "format", "description"])
+        print_table(rows, ["name", "side", "format", "description"])
     return 0
 
 
@@ -70,7 +70,7 @@ def cmd_case_info(args) -> int:
 
         info["png"] = str(landmarks_picture(case, args.png))
     if args.json:
-        _print_json(info)
+        print_json(info)
     else:
         print_case_info(info)
         if args.png:
@@ -102,11 +102,11 @@ def cmd_burrs(args) -> int:
 
     rows = burr_table(list_burrs())
     if args.json:
-        _print_json(rows)
+        print_json(rows)
     else:
         cols = [c for c in ("name", "kind", "diameter_mm", "max_force_n",
                             "default_speed_rpm") if c in rows[0]]
-        _table(rows, cols)
+        print_table(rows, cols)
     return 0
 
 
@@ -168,7 +168,7 @@ def _run(case, burr, traj, args) -> dict:
     record = getattr(args, "record", None)
     header = None
     if record is not None:
-        from bonesim.runtime.record import make_header
+        from bonesim.session.header import make_header
 
         header = make_header(model, extra, input_device="scripted", **_who(args))
     return run_trajectory(model, traj, check=args.check, out_dir=args.out,
@@ -183,7 +183,7 @@ def cmd_simulate(args) -> int:
     case = _checked(args.case, args)
     summary = _run(case, args.burr, traj, args)
     if args.json:
-        _print_json(summary)
+        print_json(summary)
     else:
         _print_summary(summary)
     if summary.get("record_error"):
@@ -300,11 +300,11 @@ def cmd_run(args) -> int:
         screenshot = screenshot or "bonesim-run.png"
     record = None if args.no_record else args.record   # --no-record: the old opt-out
     if record == "":
-        from bonesim.runtime.record import default_session_path
+        from bonesim.session.header import default_session_path
 
         record = default_session_path(load_case(args.case).name, args.participant or "")
     if record is not None:         # room to record? (a window's run has no set length: warned)
-        from bonesim.runtime.disk_guard import warn_space
+        from bonesim.session.disk_guard import warn_space
         warn_space(record)
     serve = None
     if args.monitor_port is not None:
@@ -332,7 +332,7 @@ def cmd_run(args) -> int:
         app.close()
     summary.update(app.record_summary())      # record_ok, the kept span (after closing)
     if args.json:
-        _print_json(summary)
+        print_json(summary)
     else:
         print(f"case {summary['case']}, burr {summary['burr']}: {summary['frames']} frames "
               f"at {summary['frame_hz']} Hz; haptic loop {summary['haptic_rate_hz']} Hz "
@@ -380,7 +380,7 @@ def _run_showcase(args) -> int:
     finally:
         bar.close()
     if args.json:
-        _print_json(out)
+        print_json(out)
         return 0
     print(f"case {out['case']}, burr {out['burr']}: the demo mastoidectomy, "
           f"{out['simulated_s']:.0f} s of simulated surgery in {out['steps']} haptic steps "
@@ -430,7 +430,7 @@ def cmd_playback(args) -> int:
                            progress=not args.no_progress, notices=notices)
         out["file"] = str(session.path)
         if args.json:
-            _print_json(out)
+            print_json(out)
         else:
             print(f"wrote {out['video']}: {out['frames']} frames, {size[0]}x{size[1]} at "
                   f"{args.fps:g} fps ({out['start_s']:.2f}-{out['end_s']:.2f} s of the "
@@ -461,7 +461,7 @@ def cmd_playback(args) -> int:
         app.close()
     out["file"] = str(session.path)
     if args.json:
-        _print_json(out)
+        print_json(out)
     else:
         print(f"{out['file']}: {out['frames']} frames; stopped at {out['t_s']:.2f} of "
               f"{out['duration_s']:.2f} s")
@@ -577,7 +577,7 @@ def cmd_bench(args) -> int:
 
     results = run_benchmarks(only=args.only, quick=args.quick)
     if args.json:
-        _print_json(results)
+        print_json(results)
     else:
         for name, r in results.items():
             print(f"{name:34s} {r['value']:>12.4g} {r['unit']}")

@@ -6,11 +6,43 @@ view``.
 Their handlers live with the research metrics (:mod:`metrics.cli`, beside the
 package) and are named here by module path only: the simulator never imports
 the metrics, and a machine that only drills never loads scipy's statistics,
-Dask or pandas.
+Dask or pandas. A command that runs research code itself (``bonesim
+assess``, ``bonesim dataset`` of many runs) gets its module through
+:func:`research_module`, by name too; every import made from a string is
+listed beside the import-linter contracts in ``pyproject.toml``
+(``[tool.bonesim.string-imports]``), and ``tests/bonesim/test_layers.py``
+checks that each resolves.
 """
 from __future__ import annotations
 
-__all__ = ["research_parsers"]
+__all__ = ["research_module", "research_parsers"]
+
+
+def research_module(name: str, needed_for: str):
+    """The research module ``name`` (``metrics.*``), imported by name.
+
+    Parameters
+    ----------
+    name : str
+        Dotted module name, e.g. ``"metrics.assessment"``.
+    needed_for : str
+        What asked for it (``"bonesim assess"``), for the error line.
+
+    Raises
+    ------
+    BonesimError
+        One line when the research package (or a library it needs) is not
+        installed.
+    """
+    import importlib
+
+    from bonesim.errors import BonesimError
+
+    try:
+        return importlib.import_module(name)
+    except ImportError as exc:
+        raise BonesimError(f"{needed_for} needs the research package (metrics/, beside "
+                           f"bonesim): {exc}") from None
 
 
 def research_parsers(sub, _lazy) -> None:

@@ -9,8 +9,8 @@ from __future__ import annotations
 import sys
 
 from bonesim.io.anatomy import clinical_name
-from bonesim.cli.main import _print_json, _table
-from bonesim.runtime.record import sessions_folder
+from bonesim.cli.main import print_json, print_table
+from bonesim.session.header import sessions_folder
 from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
                                     session_info)
 
@@ -31,7 +31,7 @@ def cmd_sessions_info(args) -> int:
     info = session_info(session)
     status = 0 if session.damage is None else 1
     if args.json:
-        _print_json(info)
+        print_json(info)
         _say_damage(session)
         return status
     for k, v in info.items():
@@ -60,18 +60,18 @@ def cmd_sessions_list(args) -> int:
         # before the first recording the default folder does not exist yet: that
         # is no error (a folder asked for by name still has to exist)
         if args.json:
-            _print_json([])
+            print_json([])
         else:
             print(f"no sessions yet: bonesim run --record saves them in "
                   f"{sessions_folder()}")
         return 0
     rows = list_sessions(args.folder)
     if args.json:
-        _print_json(rows)
+        print_json(rows)
     elif not rows:
         print(f"no sessions in {args.folder or sessions_folder()}")
     else:
-        _table(rows, ["file", "start_time", "participant", "group", "case", "duration_s",
+        print_table(rows, ["file", "start_time", "participant", "group", "case", "duration_s",
                       "voxels_removed", "injuries", "complete", "damage", "error"])
     return 0
 
@@ -86,7 +86,7 @@ def cmd_replay(args) -> int:
     if args.verify:
         report = verify(session)
         if args.json:
-            _print_json(report)
+            print_json(report)
         elif not report["samples_checked"]:
             print(f"{report['file']}: nothing checked: 0 of {report['samples_declared']:,} "
                   "samples readable")
@@ -107,7 +107,7 @@ def cmd_replay(args) -> int:
     res = {"file": str(session.path), "samples": int(len(session.samples["t_s"])),
            "voxels_removed": int(len(out["removals"]["t_s"]))}
     if args.json:
-        _print_json(res)
+        print_json(res)
     else:
         print(f"{res['file']}: replayed {res['samples']} samples, "
               f"{res['voxels_removed']} voxels removed")
@@ -126,7 +126,7 @@ def cmd_sessions_repair(args) -> int:
     fixed = repair_session(args.file, out, overwrite=args.force)
     info = session_info(fixed)
     if args.json:
-        _print_json(info)
+        print_json(info)
         return 0
     src = fixed.repaired or {}
     what = f"damaged: {src['damage']}" if src.get("damage") else "no damage found"

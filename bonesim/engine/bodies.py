@@ -43,7 +43,7 @@ from numba import njit
 
 from bonesim.engine.events import POSE, SPLIT, push_event
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
-from bonesim.engine.haptics import _push_event
+from bonesim.engine.haptics import push_event_kernel
 
 __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spec",
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
@@ -349,7 +349,7 @@ def _split_box(keys, vals, body, density, lo, hi, src, dst, t, bounds,
                         bounds[dst, 3] = max(bounds[dst, 3], i)
                         bounds[dst, 4] = max(bounds[dst, 4], j)
                         bounds[dst, 5] = max(bounds[dst, 5], k)
-                        _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                        push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                     ev_head, SPLIT, dst, 0, t, i, j, k, n, float(src), 0.0,
                                     0.0)
                     m += 1

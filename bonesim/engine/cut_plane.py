@@ -63,7 +63,7 @@ from bonesim.engine.events import CUT as _EV_CUT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
-from bonesim.engine.haptics import _push_event
+from bonesim.engine.haptics import push_event_kernel
 
 __all__ = ["SAMPLES_PER_VOXEL", "SIZE_QUANTUM_MM", "MAX_SIZE_MM", "plane_pose",
            "plane_axes", "quantize_size", "sample_offsets", "cut_plane", "publish_cut",
@@ -233,7 +233,7 @@ def _walk(keys, vals, density, label, body, b, y0, dy, length, lo, hi, t, remove
                     lab = label[bk, off]
                     removed_by_label[lab] += 1
                     lost[b, lab] += 1
-                    _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                    push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                 ev_head, _EV_REMOVED, b, lab, t, i0, i1, i2, 0, 0.0, 0.0, 0.0)
                     n += 1
             tc = tn
@@ -304,7 +304,7 @@ def _cut_kernel(keys, vals, density, label, body, alive, pose_m, bounds, shape, 
         if n_b > 0:
             for lab in range(lost.shape[1]):
                 if lost[b, lab] > 0 and injury[lab] != 0:
-                    _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                    push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                 ev_head, _EV_INJURY, b, lab, t, 0, 0, 0, lost[b, lab],
                                 centre[0], centre[1], centre[2])
         total += n_b

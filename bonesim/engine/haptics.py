@@ -365,7 +365,7 @@ def _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab, body, lab
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+def push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
                 kind, bod, lab, t, i, j, k, n, px, py, pz):
     """Append one tissue event (see :mod:`bonesim.engine.events`); head moves last."""
     h = ev_head[0] & (ev_kind.shape[0] - 1)
@@ -384,7 +384,7 @@ def _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_hea
 # The start and end of a pass, shared by the per-sample kernel below and the
 # row kernel (bonesim.engine.haptics_rows).
 @njit(cache=True, nogil=True)
-def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis, group,
+def begin_pass(keys, vals, density, label, body, origin, spacing, params, pos, axis, group,
            gsel, first, last, R, n_vox, lbrick, ldens, llab, contact, prev_contact, lost,
            out):
     """Start of a pass (as in :func:`haptic_kernel`): clear the outputs, build
@@ -416,7 +416,7 @@ def _begin(keys, vals, density, label, body, origin, spacing, params, pos, axis,
 
 
 @njit(cache=True, nogil=True)
-def _finish(density, label, body, touched_flag, injury, params, drill, direction,
+def finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
             ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
@@ -488,7 +488,7 @@ def _finish(density, label, body, touched_flag, injury, params, drill, direction
             lost[lab] += 1
             bod = body[b, off]
             lab_body[lab] = bod
-            _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+            push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
                         _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
             n_rem += 1
         else:
@@ -510,11 +510,11 @@ def _finish(density, label, body, touched_flag, injury, params, drill, direction
             if touching and prev_contact[lab] == 0:
                 bod = _label_body(lo0, lo1, lo2, b0, b1, b2, n_vox, lbrick, ldens, llab,
                                   body, lab)
-                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                             ev_head, _EV_CONTACT, bod, lab, t, 0, 0, 0, 0,
                             case_pos[0], case_pos[1], case_pos[2])
             if lost[lab] > 0:
-                _push_event(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                             ev_head, _EV_INJURY, lab_body[lab], lab, t, 0, 0, 0, lost[lab],
                             case_pos[0], case_pos[1], case_pos[2])
         prev_contact[lab] = 1 if touching else 0
@@ -612,7 +612,7 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         ``(tx, ty, tz)`` [N], normal magnitude ``|F|`` [N], immersed volume
         [mm^3], immersed samples, voxels removed, voxels touched.
     """
-    lo0, lo1, lo2, any_brick = _begin(keys, vals, density, label, body, origin, spacing,
+    lo0, lo1, lo2, any_brick = begin_pass(keys, vals, density, label, body, origin, spacing,
                                       params, pos, axis, group, gsel, first, last, R,
                                       n_vox, lbrick, ldens, llab, contact, prev_contact,
                                       lost, out)
@@ -659,7 +659,7 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
                     dirty[n_dirty] = li
                     n_dirty += 1
                 acc[li] += a
-    _finish(density, label, body, touched_flag, injury, params, drill, direction,
+    finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
             ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,

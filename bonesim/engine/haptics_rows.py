@@ -42,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from bonesim.engine.haptics import _begin, _finish
+from bonesim.engine.haptics import begin_pass, finish_pass
 
 __all__ = ["ROWS_MIN_OVERSAMPLE", "haptic_rows_kernel"]
 
@@ -103,7 +103,7 @@ def haptic_rows_kernel(keys, vals, density, label, body, touched_flag, origin, s
 
     All other parameters and outputs: see :func:`bonesim.engine.haptics.haptic_kernel`.
     """
-    lo0, lo1, lo2, any_brick = _begin(keys, vals, density, label, body, origin, spacing,
+    lo0, lo1, lo2, any_brick = begin_pass(keys, vals, density, label, body, origin, spacing,
                                       params, pos, axis, group, gsel, first, last, R,
                                       n_vox, lbrick, ldens, llab, contact, prev_contact,
                                       lost, out)
@@ -182,7 +182,7 @@ def haptic_rows_kernel(keys, vals, density, label, body, touched_flag, origin, s
             if k2 == kb:
                 v2 += s2
                 k2 = _next_cross(a2, d2, id2, v2, e2, n)
-    _finish(density, label, body, touched_flag, injury, params, drill, direction,
+    finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
             ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,

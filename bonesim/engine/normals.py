@@ -21,7 +21,7 @@ Vertex normal
     linear density ramp of slope 1 per voxel gives ``|g| = 1``. The sums
     are evaluated separably in float32, innermost along k, then j, then i,
     folding the symmetric terms (``S[0] v0 + S[1] (v-1 + v1) + ...`` and
-    ``D[1] (v1 - v-1) + ...``; see :func:`_kj_plane`), so a configuration
+    ``D[1] (v1 - v-1) + ...``; see :func:`kj_plane`), so a configuration
     symmetric about the vertex gives an exactly zero component. If ``|g| <=``
     :data:`GRAD_EPS` the normal is the normalised sum of the offsets
     ``(di, dj, dk)`` toward the empty 26-neighbours, and if that sum is zero
@@ -47,11 +47,11 @@ Vertex position
     falls, so a drilled floor is as smooth as the burr left it, not a
     staircase of voxel centres. The clip keeps thin plates (where ``f``
     never reaches ``iso``) from collapsing: each face moves at most
-    ``max_in`` into the bone. :func:`_vertex_shift` computes ``s`` in
+    ``max_in`` into the bone. :func:`vertex_shift` computes ``s`` in
     float64 from the float32 ``f`` and ``g``.
 
-The kernels (:func:`_kj_plane`, :func:`_i_plane`, :func:`_unit`,
-:func:`_fallback_normal`) are used by :mod:`bonesim.engine.shading` for the full
+The kernels (:func:`kj_plane`, :func:`i_plane`, :func:`unit_normal`,
+:func:`fallback_normal`) are used by :mod:`bonesim.engine.shading` for the full
 shading and for the refresh alike, so both give the same bits.
 """
 from __future__ import annotations
@@ -69,7 +69,7 @@ NORMAL_RADIUS = 3
 #: Gradients with a norm at most this [density per voxel] are treated as zero
 #: (fallback normal).
 GRAD_EPS = 1e-6
-#: Components of the field per voxel that :func:`_i_plane` writes: the
+#: Components of the field per voxel that :func:`i_plane` writes: the
 #: gradient's three and the smoothed density.
 N_FIELD = 4
 
@@ -102,7 +102,7 @@ def stencil_weights(sigma_voxels: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
+def kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
     """Passes along k and j of the gradient for plane ``x`` of a dense box.
 
     ``d`` holds the float32 densities of an ``(X, Y, Z)`` box (flat, z
@@ -160,13 +160,13 @@ def _kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
 
 
 @njit(cache=True, nogil=True)
-def _i_plane(ring, first, n_pl, W, g):
+def i_plane(ring, first, n_pl, W, g):
     """Pass along i: the gradient and smoothed density of the plane between
     the ring's planes ``first .. first + 6`` (slot ``p % 7`` holds plane
-    ``p``, see :func:`_kj_plane`): ``g[0:n]`` = D-pass of ``tx``, ``g[n:2n]``
+    ``p``, see :func:`kj_plane`): ``g[0:n]`` = D-pass of ``tx``, ``g[n:2n]``
     and ``g[2n:3n]`` the S-passes of ``ty`` and ``tz``, ``g[3n:4n]`` the
     S-pass of ``tx`` (``f``) (``n = Yo Zo``, float32, left to right as in
-    :func:`_kj_plane`; ``g`` holds :data:`N_FIELD` ``n`` values)."""
+    :func:`kj_plane`; ``g`` holds :data:`N_FIELD` ``n`` values)."""
     s0 = W[0]
     s1 = W[1]
     s2 = W[2]
@@ -194,9 +194,9 @@ def _i_plane(ring, first, n_pl, W, g):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _unit(gx, gy, gz):
+def unit_normal(gx, gy, gz):
     """``(-g / |g|, True)`` in float64, or ``(+z, False)`` when ``|g| <=
-    GRAD_EPS`` (then :func:`_fallback_normal` decides)."""
+    GRAD_EPS`` (then :func:`fallback_normal` decides)."""
     gx = np.float64(gx)
     gy = np.float64(gy)
     gz = np.float64(gz)
@@ -207,7 +207,7 @@ def _unit(gx, gy, gz):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _vertex_shift(f, gx, gy, gz, iso, max_out, max_in):
+def vertex_shift(f, gx, gy, gz, iso, max_out, max_in):
     """Newton step ``s`` [voxels] from a voxel centre to the level set
     ``f = iso`` along the normal ``-g / |g|`` (module docstring), in
     float64 from the float32 field values; 0 when ``|g| <= GRAD_EPS``."""
@@ -222,7 +222,7 @@ def _vertex_shift(f, gx, gy, gz, iso, max_out, max_in):
 
 
 @njit(cache=True, nogil=True)
-def _fallback_normal(d, c0, Y, Z):
+def fallback_normal(d, c0, Y, Z):
     """Normal of the box voxel ``d[c0]`` (box ``(., Y, Z)``) without a
     gradient: the normalised sum of the offsets toward its empty
     26-neighbours, or ``+z``."""

@@ -121,7 +121,7 @@ FRICTION_COEFF = 0.6
 #: radius): a safety net against a rigid started deep inside bone.
 MAX_SPEED_MM_S = 500.0
 # most bodies one rigid's contact pass looks at (the candidates that overlap)
-_MAX_CAND = 64
+MAX_CAND = 64
 
 # slot modes and kinds
 FREE, ASLEEP, DYNAMIC, GRABBED, AFFIXED = range(5)
@@ -145,7 +145,7 @@ def gravity_direction(model) -> np.ndarray:
 
 # ------------------------------------------------------------- pose helpers
 @njit(cache=True, nogil=True)
-def _pose_m(p, m):
+def pose_matrix_kernel(p, m):
     # the same expressions, in the same order, as bodies.pose_matrix
     tx, ty, tz, w, x, y, z = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
     m[0, 0] = 1 - 2 * (y * y + z * z)
@@ -165,7 +165,7 @@ def _pose_m(p, m):
 def pose_matrix_into(pose, out) -> np.ndarray:
     """:func:`bonesim.engine.bodies.pose_matrix` written into ``out`` (3, 4)
     without allocating; bit-identical to it."""
-    _pose_m(np.asarray(pose, np.float64), out)
+    pose_matrix_kernel(np.asarray(pose, np.float64), out)
     return out
 
 
@@ -179,7 +179,7 @@ def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
 
 # ------------------------------------------------------------ voxel queries
 @njit(cache=True, nogil=True)
-def _solid(keys, vals, body, density, bid, i, j, k):
+def solid_at(keys, vals, body, density, bid, i, j, k):
     if i < 0 or j < 0 or k < 0:
         return False
     b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
@@ -197,7 +197,7 @@ def _depth(keys, vals, body, density, bid, gx, gy, gz, ux, uy, uz, max_t):
     most ``max_t``."""
     cx, cy, cz = gx + 0.5, gy + 0.5, gz + 0.5
     ix, iy, iz = int(math.floor(cx)), int(math.floor(cy)), int(math.floor(cz))
-    if not _solid(keys, vals, body, density, bid, ix, iy, iz):
+    if not solid_at(keys, vals, body, density, bid, ix, iy, iz):
         return -1.0
     inf = 1e300
     sx = 1 if ux > 0 else -1
@@ -224,7 +224,7 @@ def _depth(keys, vals, body, density, bid, gx, gy, gz, ux, uy, uz, max_t):
             tz += dz
         if t >= max_t:
             return max_t
-        if not _solid(keys, vals, body, density, bid, ix, iy, iz):
+        if not solid_at(keys, vals, body, density, bid, ix, iy, iz):
             return t
 
 
@@ -282,7 +282,7 @@ def _contact(keys, vals, body, density, alive, pose_m, bounds, origin, spacing,
             for a in range(-1, 2):
                 for bb in range(-1, 2):
                     for cc in range(-1, 2):
-                        if not _solid(keys, vals, body, density, b, ix + a, iy + bb, iz + cc):
+                        if not solid_at(keys, vals, body, density, b, ix + a, iy + bb, iz + cc):
                             ex += a
                             ey += bb
                             ez += cc
@@ -360,14 +360,14 @@ def contact(state, smp_case, nrm_case, com_mm, k_n_mm: float, exclude: int = -1,
              np.zeros(3), com, np.asarray(vel_mm_s, np.float64),
              np.asarray(omega_rad_s, np.float64), float(radius_mm), int(exclude),
              float(k_n_mm) * N_TO_INTERNAL, float(c_n_s_mm) * N_TO_INTERNAL,
-             np.zeros(_MAX_CAND, np.int32), out)
+             np.zeros(MAX_CAND, np.int32), out)
     return {"force_n": out[:3] / N_TO_INTERNAL, "torque_nmm": out[3:6] / N_TO_INTERNAL,
             "n_contact": int(out[6])}
 
 
 # ------------------------------------------------------------- the tool's push
 @njit(cache=True, nogil=True)
-def _tool_push(keys, vals, body, density, alive, pose_m, bounds, origin, spacing, tool,
+def tool_push_kernel(keys, vals, body, density, alive, pose_m, bounds, origin, spacing, tool,
                radius, gain, first, out):
     """Per body ``b >= first`` within reach: the reaction of the tool sphere's
     contact, ``out[b] = (fx, fy, fz, cx, cy, cz, pen)`` case frame (kg mm/s^2,
@@ -406,7 +406,7 @@ def _tool_push(keys, vals, body, density, alive, pose_m, bounds, origin, spacing
                     rr = math.sqrt(ex * ex + ey * ey + ez * ez)
                     if rr >= rv or rr == 0.0:
                         continue
-                    if not _solid(keys, vals, body, density, b, i, j, k):
+                    if not solid_at(keys, vals, body, density, b, i, j, k):
                         continue
                     n += 1
                     sx += ex / rr
@@ -466,7 +466,7 @@ def tool_push(state, tool_mm, radius_mm: float, gain_n_mm3: float, out=None) -> 
     if out is None:
         out = np.zeros((len(state.alive), 7))
     g = state.grid
-    _tool_push(g.keys, g.vals, state.body, g.density, state.alive, state.pose_m,
+    tool_push_kernel(g.keys, g.vals, state.body, g.density, state.alive, state.pose_m,
                state.bounds, g.origin_mm, g.spacing_mm, np.asarray(tool_mm, np.float64),
                float(radius_mm), float(gain_n_mm3) * N_TO_INTERNAL, 1, out)
     out[:, :3] /= N_TO_INTERNAL
@@ -490,7 +490,7 @@ def _publish(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head, 
 
 
 @njit(cache=True, nogil=True)
-def _compose(a, b, out):
+def compose_poses(a, b, out):
     # out = a o b (poses (t, q)): R_a t_b + t_a, q_a q_b
     w, x, y, z = a[3], a[4], a[5], a[6]
     r00 = 1 - 2 * (y * y + z * z)
@@ -573,7 +573,7 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
         if md == FREE or md == ASLEEP:
             continue
         if md == AFFIXED:
-            _compose(pose[host[s]], rel[s], cur)
+            compose_poses(pose[host[s]], rel[s], cur)
             n_moved += _plate_moved(s, host[s] + 1, md, t, cur, rpose, tag, cat, ev_kind,
                                     ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head)
             continue
@@ -581,7 +581,7 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
         ob = owner[s]
         for q in range(7):
             cur[q] = pose[ob, q] if frag else rpose[s, q]
-        _pose_m(cur, pm)
+        pose_matrix_kernel(cur, pm)
         for a in range(3):
             com_w[a] = (pm[a, 0] * com_b[s, 0] + pm[a, 1] * com_b[s, 1]
                         + pm[a, 2] * com_b[s, 2] + pm[a, 3])
@@ -652,7 +652,7 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
             qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
             cur[3], cur[4], cur[5], cur[6] = q0 / qn, q1 / qn, q2 / qn, q3 / qn
             cur[0] = cur[1] = cur[2] = 0.0
-            _pose_m(cur, pm)
+            pose_matrix_kernel(cur, pm)
             for a in range(3):
                 cur[a] = com_w[a] - (pm[a, 0] * com_b[s, 0] + pm[a, 1] * com_b[s, 1]
                                      + pm[a, 2] * com_b[s, 2])
@@ -678,7 +678,7 @@ def _advance(keys, vals, body, density, alive, pose, pose_m, bounds, origin, spa
             if not same:
                 for q in range(7):
                     pose[ob, q] = cur[q]
-                _pose_m(cur, pose_m[ob])
+                pose_matrix_kernel(cur, pose_m[ob])
                 _publish(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
                          POSE, ob, 0, t, 0, 0, 0, 0, cur)
                 n_moved += 1

@@ -20,7 +20,7 @@ from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_
                                   GRABBED,
                                   GRAVITY_MM_S2, KIND_FRAGMENT, KIND_PLATE, MAX_SAMPLES,
                                   MAX_SPEED_MM_S, N_TO_INTERNAL, SLEEP_MM, SLEEP_STEPS,
-                                  SUBSTEPS, _MAX_CAND, _compose, _pose_m, _solid, _tool_push,
+                                  SUBSTEPS, MAX_CAND, compose_poses, pose_matrix_kernel, solid_at, tool_push_kernel,
                                   advance_kernel)
 
 __all__ = ["body_samples", "mesh_samples", "mass_properties", "RigidSet", "publish_plate",
@@ -33,7 +33,7 @@ def _body_voxels(keys, vals, body, density, bid, lo, hi, ijk, surf, nrm):
     for i in range(lo[0], hi[0] + 1):
         for j in range(lo[1], hi[1] + 1):
             for k in range(lo[2], hi[2] + 1):
-                if not _solid(keys, vals, body, density, bid, i, j, k):
+                if not solid_at(keys, vals, body, density, bid, i, j, k):
                     continue
                 ijk[n, 0], ijk[n, 1], ijk[n, 2] = i, j, k
                 gx = gy = gz = 0.0
@@ -43,7 +43,7 @@ def _body_voxels(keys, vals, body, density, bid, lo, hi, ijk, surf, nrm):
                         for c in range(-1, 2):
                             if a == 0 and b == 0 and c == 0:
                                 continue
-                            if not _solid(keys, vals, body, density, bid, i + a, j + b,
+                            if not solid_at(keys, vals, body, density, bid, i + a, j + b,
                                           k + c):
                                 gx += a
                                 gy += b
@@ -175,7 +175,7 @@ def _sample_bodies(keys, vals, body, density, alive, pose_m, origin, spacing, pt
                                 + pose_m[b, 2, 1] * dz - origin[1]) / spacing + 0.5))
             k = int(math.floor((pose_m[b, 0, 2] * dx + pose_m[b, 1, 2] * dy
                                 + pose_m[b, 2, 2] * dz - origin[2]) / spacing + 0.5))
-            if _solid(keys, vals, body, density, b, i, j, k):
+            if solid_at(keys, vals, body, density, b, i, j, k):
                 out[s] = b
                 break
 
@@ -253,7 +253,7 @@ class RigidSet:
         self._any = False                        # some slot holds a rigid
         self.last_plate = -1                     # the plate placed last
         self.tool = np.zeros(3)
-        self._cand = np.zeros(_MAX_CAND, np.int32)
+        self._cand = np.zeros(MAX_CAND, np.int32)
         self._cout = np.zeros(7)
         self._pm = np.zeros((3, 4))
         self._cur = np.zeros(7)
@@ -418,7 +418,7 @@ class RigidSet:
             else state.pose[self.owner[s]]
         if self.kind[s] == KIND_FRAGMENT and state is None:
             raise ValueError("rigid: a fragment's centre needs the state")
-        _pose_m(np.asarray(p, np.float64), self._pm)
+        pose_matrix_kernel(np.asarray(p, np.float64), self._pm)
         self._com[:] = self._pm[:, :3] @ self.com_b[s] + self._pm[:, 3]
         return self._com
 
@@ -426,7 +426,7 @@ class RigidSet:
         """Slot ``s``'s samples and normals in the case frame, ((n, 3), (n, 3))."""
         self._check(s)
         m = np.zeros((3, 4))
-        _pose_m(np.asarray(self._pose_of(state, s), np.float64), m)
+        pose_matrix_kernel(np.asarray(self._pose_of(state, s), np.float64), m)
         n = self.n_smp[s]
         return self.smp[s, :n] @ m[:, :3].T + m[:, 3], self.nrm[s, :n] @ m[:, :3].T
 
@@ -476,7 +476,7 @@ class RigidSet:
             second = -1
         # the plate's pose relative to its host: host^-1 o plate
         inv = _invert(state.pose[host])
-        _compose(inv, self.rpose[s], self.rel[s])
+        compose_poses(inv, self.rpose[s], self.rel[s])
         self.host[s] = host
         self.tag[s] = second
         if second >= 0:
@@ -499,7 +499,7 @@ class RigidSet:
             raise ValueError("rigid: the distractor's second footplate is on body 0, "
                              "which never moves (affix it the other way round)")
         m = np.zeros((3, 4))
-        _pose_m(self.rpose[s], m)
+        pose_matrix_kernel(self.rpose[s], m)
         out = self.base[s].copy()
         out[:3] += float(length_mm) * (m[:, :3] @ self.axis[s])
         return out
@@ -526,7 +526,7 @@ class RigidSet:
         self.tool[:] = tool_mm
         g = state.grid
         if many and not drill:
-            n = _tool_push(g.keys, g.vals, state.body, g.density, state.alive, state.pose_m,
+            n = tool_push_kernel(g.keys, g.vals, state.body, g.density, state.alive, state.pose_m,
                            state.bounds, g.origin_mm, g.spacing_mm, self.tool,
                            float(tool_radius_mm), float(tool_gain_n_mm3) * N_TO_INTERNAL,
                            1, self.push)
@@ -570,7 +570,7 @@ def _invert(pose) -> np.ndarray:
     p = np.asarray(pose, np.float64)
     q = np.array([p[3], -p[4], -p[5], -p[6]])
     m = np.zeros((3, 4))
-    _pose_m(np.r_[0.0, 0.0, 0.0, q], m)
+    pose_matrix_kernel(np.r_[0.0, 0.0, 0.0, q], m)
     return np.r_[-(m[:, :3] @ p[:3]), q]
 
 

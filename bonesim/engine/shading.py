@@ -76,12 +76,12 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from bonesim.errors import BonesimError
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
-from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, _fallback_normal, _i_plane,
-                                    _kj_plane, _unit, _vertex_shift, normal_weights,
+from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, fallback_normal, i_plane,
+                                    kj_plane, unit_normal, vertex_shift, normal_weights,
                                     stencil_weights)
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
-from bonesim.engine.thin_bone import (TP_MAX, TP_TAN, _as_bone, _near_structure, _ray_dir,
-                                      _structure_bits, _tint, beneath, bone_labels, cone_table,
+from bonesim.engine.thin_bone import (TP_MAX, TP_TAN, as_bone, near_structure, ray_dir,
+                                      structure_bits, tint_vertex, beneath, bone_labels, cone_table,
                                       near_radius, ray_params, tint_reach, tint_weight)
 
 __all__ = ["NORMAL_RADIUS", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
@@ -191,9 +191,9 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                     _gather_halo(density, nbr, b, box)
                     gathered = True
                 for pl in range(max(have, x), x + 7):
-                    _kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
+                    kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
                 have = x + 7
-                _i_plane(ring, x, n_pl, W, g)
+                i_plane(ring, x, n_pl, W, g)
                 for q in range(n_pl):
                     o = x * n_pl + q
                     v = vmap[b, o]
@@ -207,11 +207,11 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                     gx = g[q]
                     gy = g[n_pl + q]
                     gz = g[2 * n_pl + q]
-                    nx, ny, nz, ok = _unit(gx, gy, gz)
+                    nx, ny, nz, ok = unit_normal(gx, gy, gz)
                     if not ok:
-                        nx, ny, nz = _fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
+                        nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
                                                       + z + _HALO, _LB, _LB)
-                    sh = _vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
+                    sh = vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
                     nrm[v, 0] = nx
                     nrm[v, 1] = ny
                     nrm[v, 2] = nz
@@ -229,7 +229,7 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                     if tint_on:
                         if bone[lab] != 0:
                             if (near[b, x] >> np.uint64(q)) & one:
-                                w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors,
+                                w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone, colors,
                                                       origin, spacing, tp, cone, i, j, k,
                                                       nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
                     cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
@@ -426,9 +426,9 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
         if not any_n:
             continue
         for pl in range(max(have, xo), xo + 7):
-            _kj_plane(ld, pl, Y, Z, W, rs, rd, ring, pl % 7)
+            kj_plane(ld, pl, Y, Z, W, rs, rd, ring, pl % 7)
         have = xo + 7
-        _i_plane(ring, xo, n_pl, W, g)
+        i_plane(ring, xo, n_pl, W, g)
         i = wlo[0] + x
         for y in range(wd1):
             bits = rows[NR + x * wd1 + y]
@@ -451,10 +451,10 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                 gx = g[q]
                 gy = g[n_pl + q]
                 gz = g[2 * n_pl + q]
-                nx, ny, nz, ok = _unit(gx, gy, gz)
+                nx, ny, nz, ok = unit_normal(gx, gy, gz)
                 if not ok:
-                    nx, ny, nz = _fallback_normal(ld, ((x - off) * Y + y - off) * Z + z - off, Y, Z)
-                sv = _vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
+                    nx, ny, nz = fallback_normal(ld, ((x - off) * Y + y - off) * Z + z - off, Y, Z)
+                sv = vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
                 nrm[v, 0] = nx
                 nrm[v, 1] = ny
                 nrm[v, 2] = nz
@@ -474,7 +474,7 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                 if tint_on:
                     if bone[lab] != 0:
                         if (near[b, o >> 6] >> np.uint64(o & 63)) & one:
-                            w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors,
+                            w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone, colors,
                                                   origin, spacing, tp, cone, i, j, k, nrm[v, 0],
                                                   nrm[v, 1], nrm[v, 2], shf[v])
                 cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar, ag, ab)
@@ -520,7 +520,7 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                     if rq == 0:
                         dx, dy, dz = nx, ny, nz
                     else:
-                        dx, dy, dz, _ = _ray_dir(nx, ny, nz, tanc, cone[rq - 1, 0],
+                        dx, dy, dz, _ = ray_dir(nx, ny, nz, tanc, cone[rq - 1, 0],
                                                  cone[rq - 1, 1])
                     # the ray's box must meet the inputs' box grown by a voxel
                     ex = i - reach * dx
@@ -535,7 +535,7 @@ def _refresh(keys, vals, density, label, vmap, bone, near, colors, W, fp, tp, co
                         break
                 if not hit:
                     continue
-                w, ar, ag, ab = _tint(keys, vals, density, label, bone, colors, origin, spacing,
+                w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone, colors, origin, spacing,
                                       tp, cone, i, j, k, nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
                 cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar, ag, ab)
                 col[v, 0] = cr
@@ -601,7 +601,7 @@ class Shader:
         self._origin = np.asarray(grid.origin_mm, dtype=np.float64).copy()
         self.tint_on = bone is not None
         n_rows = colors.shape[0]
-        self.bone = _as_bone(bone, n_rows) if bone is not None else np.zeros(n_rows, np.uint8)
+        self.bone = as_bone(bone, n_rows) if bone is not None else np.zeros(n_rows, np.uint8)
         self.reach = tint_reach(p, self.spacing) if self.tint_on else 0
         if self.reach > MAX_REACH_VOXELS:
             raise BonesimError(
@@ -614,9 +614,9 @@ class Shader:
         self._near = np.zeros((grid.n_bricks, BRICK), dtype=np.uint64)
         if self.tint_on:
             bits = np.empty((grid.n_bricks, BRICK), dtype=np.uint64)
-            if _structure_bits(grid.label, self.bone, bits):
+            if structure_bits(grid.label, self.bone, bits):
                 # (C order: the warm-up's one-brick grid compiles this layout)
-                _near_structure(grid.keys, grid.vals, np.ascontiguousarray(grid.bricks), bits,
+                near_structure(grid.keys, grid.vals, np.ascontiguousarray(grid.bricks), bits,
                                 near_radius(p, self.spacing), self._near)
         self._fp = np.zeros(_N_F)
         self._fp[_F_ORIGIN:_F_ORIGIN + 3] = self._origin

@@ -138,16 +138,16 @@ import numpy as np
 from bonesim.engine.grid import (BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (_CHUNK, _build_count, _build_triangles, _build_vertices)
+from bonesim.engine.surface_build import (CHUNK, build_count, build_triangles, build_vertices)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
-                                           _N_STATS, qualifying_triples,
-                                           _S_CELLS, _S_ERR, _S_NEED_T, _S_NEED_V, _S_STATUS,
-                                           _S_T_ADD, _S_T_DEL, _S_V_ADD, _S_V_DEL, _TR_FILL, _TR_KEY,
-                                           _TR_NEXT, _TR_ONEXT, _TR_WIDTH, _T_ALIVE, _T_HW, _VR_HEAD,
-                                           _VR_OHEAD, _V_ALIVE, _V_HW, _brick_neighbours, _link_all,
-                                           _orient_all, _orient_of, _triangles_of_vertex)
-from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, _update
-from bonesim.engine.surface_window import _N_ROWSETS
+                                           N_STATS, qualifying_triples,
+                                           S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
+                                           S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_FILL, TR_KEY,
+                                           TR_NEXT, TR_ONEXT, TR_WIDTH, T_ALIVE, T_HW, VR_HEAD,
+                                           VR_OHEAD, V_ALIVE, V_HW, brick_neighbours, link_all,
+                                           orient_all, orient_of, triangles_of_vertex)
+from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, update_tiles
+from bonesim.engine.surface_window import N_ROWSETS
 
 __all__ = ["Surface", "CanonicalSurface", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
@@ -354,7 +354,7 @@ class Surface:
         # tiles to exercise the tiling on small grids)
         self._win_limit = WINDOW_MIN_VOXELS
         self._tile_shift = TILE_SHIFT
-        self._stats = np.zeros(_N_STATS, dtype=np.int64)
+        self._stats = np.zeros(N_STATS, dtype=np.int64)
         self._grow_scratch(4096, 256)
         self.shader = shader
 
@@ -390,11 +390,11 @@ class Surface:
             raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
                              f"label {int(grid.label.max())}")
         n_b = grid.n_bricks
-        nbr = _brick_neighbours(grid.keys, grid.vals, grid.bricks)
+        nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
         shader = Shader(grid, nbr, colors, bone, shading)
         nv = np.zeros(n_b, dtype=np.int64)
         nt = np.zeros(n_b, dtype=np.int64)
-        _build_count(grid.density, nbr, nv, nt)
+        build_count(grid.density, nbr, nv, nt)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -408,23 +408,23 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        _build_vertices(grid.density, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
+        build_vertices(grid.density, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
                         vmap, pos, ijk)
-        trec = np.empty((tcap, _TR_WIDTH), dtype=np.int32)
-        trec[:] = _TR_FILL
-        err = np.zeros(max(1, (n_b + _CHUNK - 1) // _CHUNK), dtype=np.int64)
-        _build_triangles(grid.density, nbr, toff, vmap, trec, err)
+        trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
+        trec[:] = TR_FILL
+        err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
+        build_triangles(grid.density, nbr, toff, vmap, trec, err)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         alive = np.zeros(vcap, dtype=np.uint8)
         alive[:n_v] = 1
         vrec = np.full((vcap, 2), -1, dtype=np.int32)
-        _link_all(trec, vrec, n_t)
+        link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
         shift = np.zeros(vcap, dtype=np.float32)
         shader.shade_all(grid, vmap, pos, nrm, shift, col)
         tflip = np.zeros(tcap, dtype=np.uint8)
-        _orient_all(trec, n_t, pos, nrm, tflip)
+        orient_all(trec, n_t, pos, nrm, tflip)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
                    np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), tflip,
                    cnt, grid.origin_mm, grid.spacing_mm, shader)
@@ -484,35 +484,35 @@ class Surface:
         stats = self._stats
         resume = False
         while True:
-            _update(grid.keys, grid.vals, grid.density, self._origin, self._spacing,
+            update_tiles(grid.keys, grid.vals, grid.density, self._origin, self._spacing,
                     removed, touched, self._win_limit, self._tile_shift, resume,
                     self.vmap, self.pos, self.ijk, self.alive, self._vrec, self._vfree,
                     self._trec, self._tfree, self._cnt, stats,
                     self._sf32, self._si32, self._su8, self._su64)
             st = stats.tolist()
-            status = st[_S_STATUS]
+            status = st[S_STATUS]
             if status == 0:
                 break
             if status == 1:
-                self._grow(st[_S_NEED_V], st[_S_NEED_T])
+                self._grow(st[S_NEED_V], st[S_NEED_T])
             elif status == 2:
-                self._grow_scratch(st[_S_NEED_V], st[_S_NEED_T])
+                self._grow_scratch(st[S_NEED_V], st[S_NEED_T])
             else:
                 name = "removed" if status == 4 else "touched"
                 raise ValueError(f"{name} has voxel coordinates beyond +-{COORD_LIMIT}")
             resume = True
-        if st[_S_ERR]:
-            raise RuntimeError(f"surface update found {st[_S_ERR]} inconsistencies")
+        if st[S_ERR]:
+            raise RuntimeError(f"surface update found {st[S_ERR]} inconsistencies")
         n_shaded = self.shader.refresh(grid, self.vmap, self.pos, self.nrm, self.shift, self.col,
                                        removed, touched, self._orient)
-        return {"vertices_added": st[_S_V_ADD], "vertices_removed": st[_S_V_DEL],
-                "triangles_added": st[_S_T_ADD], "triangles_removed": st[_S_T_DEL],
-                "vertices_reshaded": n_shaded, "cells_visited": st[_S_CELLS]}
+        return {"vertices_added": st[S_V_ADD], "vertices_removed": st[S_V_DEL],
+                "triangles_added": st[S_T_ADD], "triangles_removed": st[S_T_DEL],
+                "vertices_reshaded": n_shaded, "cells_visited": st[S_CELLS]}
 
     def _orient(self, vlist):
         """Drawn winding of the triangles of the vertices a refresh moved
         (new triangles' corners are all among them)."""
-        _orient_of(self._vrec, self._trec, vlist, self.pos, self.nrm, self.tflip)
+        orient_of(self._vrec, self._trec, vlist, self.pos, self.nrm, self.tflip)
 
     def _grow_scratch(self, vol, nrows):
         """Scratch of the update for windows of ``vol`` voxels, ``nrows`` rows."""
@@ -523,18 +523,18 @@ class Surface:
             self._si32 = np.zeros(3 * v, dtype=np.int32)
             self._su8 = np.zeros(2 * v, dtype=np.uint8)
         cur = getattr(self, "_su64", None)
-        if cur is None or cur.shape[0] < _N_ROWSETS * nrows:
-            n = nrows if cur is None else max(nrows, 2 * cur.shape[0] // _N_ROWSETS)
-            self._su64 = np.zeros(_N_ROWSETS * n, dtype=np.uint64)
+        if cur is None or cur.shape[0] < N_ROWSETS * nrows:
+            n = nrows if cur is None else max(nrows, 2 * cur.shape[0] // N_ROWSETS)
+            self._su64 = np.zeros(N_ROWSETS * n, dtype=np.uint64)
 
     def _record_views(self):
         """Public views of the packed vertex / triangle records."""
-        self.vhead = self._vrec[:, _VR_HEAD]
-        self._ohead = self._vrec[:, _VR_OHEAD]
+        self.vhead = self._vrec[:, VR_HEAD]
+        self._ohead = self._vrec[:, VR_OHEAD]
         self.tri = self._trec[:, 0:3]
-        self.tri_key = self._trec[:, _TR_KEY]
-        self.tnext = self._trec[:, _TR_NEXT:_TR_NEXT + 3]
-        self._onext = self._trec[:, _TR_ONEXT]
+        self.tri_key = self._trec[:, TR_KEY]
+        self.tnext = self._trec[:, TR_NEXT:TR_NEXT + 3]
+        self._onext = self._trec[:, TR_ONEXT]
 
     def _grow(self, need_v, need_t):
         if need_v > 0:
@@ -550,9 +550,9 @@ class Surface:
         if need_t > 0:
             cap = max(2 * self.tri.shape[0], self.tri.shape[0] + need_t)
             old = self._trec
-            self._trec = np.empty((cap, _TR_WIDTH), dtype=np.int32)
+            self._trec = np.empty((cap, TR_WIDTH), dtype=np.int32)
             self._trec[:old.shape[0]] = old
-            self._trec[old.shape[0]:] = _TR_FILL
+            self._trec[old.shape[0]:] = TR_FILL
             self._tfree = _grown(self._tfree, cap, 0)
             self.tflip = _grown(self.tflip, cap, 0)
         self._record_views()
@@ -561,22 +561,22 @@ class Surface:
     @property
     def n_vertices(self) -> int:
         """Number of live vertices (= surface voxels)."""
-        return int(self._cnt[_V_ALIVE])
+        return int(self._cnt[V_ALIVE])
 
     @property
     def n_triangles(self) -> int:
         """Number of live triangles."""
-        return int(self._cnt[_T_ALIVE])
+        return int(self._cnt[T_ALIVE])
 
     @property
     def vertex_slots(self) -> np.ndarray:
         """Indices of the live vertex slots, ascending."""
-        return np.flatnonzero(self.alive[:self._cnt[_V_HW]])
+        return np.flatnonzero(self.alive[:self._cnt[V_HW]])
 
     @property
     def triangle_slots(self) -> np.ndarray:
         """Indices of the live triangle slots, ascending."""
-        return np.flatnonzero(self.tri_key[:self._cnt[_T_HW]] >= 0)
+        return np.flatnonzero(self.tri_key[:self._cnt[T_HW]] >= 0)
 
     def vertex_at(self, i: int, j: int, k: int) -> int:
         """Vertex slot of voxel ``(i, j, k)``, or -1 if it is not a surface voxel."""
@@ -589,10 +589,10 @@ class Surface:
         if not (0 <= v < self.alive.shape[0]) or not self.alive[v]:
             raise IndexError(f"no live vertex in slot {v}")
         out = np.empty(4 * MAX_PER_CELL * 2, dtype=np.int32)
-        n = _triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
+        n = triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
         if n > out.shape[0]:
             out = np.empty(n, dtype=np.int32)
-            _triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
+            triangles_of_vertex(self.vhead, self.tri, self.tnext, v, out)
         return out[:n].copy()
 
     def triangle_owner(self, t: int):

@@ -8,14 +8,14 @@ from numba import njit, prange
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
 from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
-                                           _LOW_HALF_X, _LOW_HALF_Y, _LOW_HALF_Z, _TR_KEY)
+                                           LOW_HALF_X, LOW_HALF_Y, LOW_HALF_Z, TR_KEY)
 
 __all__ = []
 
 # ----------------------------------------------------------------------------
 # Full tessellation, per brick
 # ----------------------------------------------------------------------------
-_CHUNK = 32            # bricks per parallel work item
+CHUNK = 32            # bricks per parallel work item
 _L = BRICK + 2         # local box: brick plus a one-voxel halo on each side
 
 
@@ -80,23 +80,23 @@ def _owned_count(codes, x, y, z):
     code = codes[x, y, z]
     n = QUAL_N[code]
     if n > 0:
-        if codes[x - 1, y, z] & _LOW_HALF_X == 0:
+        if codes[x - 1, y, z] & LOW_HALF_X == 0:
             n -= QUAL_NMIN[code, 0]
-        if codes[x, y - 1, z] & _LOW_HALF_Y == 0:
+        if codes[x, y - 1, z] & LOW_HALF_Y == 0:
             n -= QUAL_NMIN[code, 1]
-        if codes[x, y, z - 1] & _LOW_HALF_Z == 0:
+        if codes[x, y, z - 1] & LOW_HALF_Z == 0:
             n -= QUAL_NMIN[code, 2]
     return n
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _build_count(density, nbr, nv, nt):
+def build_count(density, nbr, nv, nt):
     nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
         loc = np.empty((_L, _L, _L), dtype=np.float32)
         codes = np.empty((_L - 1, _L - 1, _L - 1), dtype=np.int64)
-        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
             n_up, n_all = _gather_local(density, nbr, b, loc)
             if n_up == 0 or n_all == _L * _L * _L:
                 nv[b] = 0
@@ -119,12 +119,12 @@ def _build_count(density, nbr, nv, nt):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _build_vertices(density, nbr, bricks, origin, spacing, voff, vmap, pos, vijk):
+def build_vertices(density, nbr, bricks, origin, spacing, voff, vmap, pos, vijk):
     nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
         loc = np.empty((_L, _L, _L), dtype=np.float32)
-        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
             for o in range(BRICK_VOXELS):
                 vmap[b, o] = -1
             if voff[b + 1] == voff[b]:
@@ -154,13 +154,13 @@ def _build_vertices(density, nbr, bricks, origin, spacing, voff, vmap, pos, vijk
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _build_triangles(density, nbr, toff, vmap, trec, err):
+def build_triangles(density, nbr, toff, vmap, trec, err):
     nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
+    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
         loc = np.empty((_L, _L, _L), dtype=np.float32)
         codes = np.empty((_L - 1, _L - 1, _L - 1), dtype=np.int64)
-        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
             if toff[b + 1] == toff[b]:
                 continue
             _gather_local(density, nbr, b, loc)
@@ -173,9 +173,9 @@ def _build_triangles(density, nbr, toff, vmap, trec, err):
                         n = QUAL_N[code]
                         if n == 0:
                             continue
-                        low0 = codes[x - 1, y, z] & _LOW_HALF_X == 0
-                        low1 = codes[x, y - 1, z] & _LOW_HALF_Y == 0
-                        low2 = codes[x, y, z - 1] & _LOW_HALF_Z == 0
+                        low0 = codes[x - 1, y, z] & LOW_HALF_X == 0
+                        low1 = codes[x, y - 1, z] & LOW_HALF_Y == 0
+                        low2 = codes[x, y, z - 1] & LOW_HALF_Z == 0
                         for q in range(n):
                             key = QUAL_KEY[code, q]
                             tid = key >> 1
@@ -201,5 +201,5 @@ def _build_triangles(density, nbr, toff, vmap, trec, err):
                                 if v < 0:
                                     err[ch] += 1
                                 trec[t, s] = v
-                            trec[t, _TR_KEY] = key
+                            trec[t, TR_KEY] = key
                             t += 1

@@ -36,9 +36,9 @@ N_TRIPLES = TRIPLE_CORNERS.shape[0]
 # Code bits of the corners with coordinate 0 along x, y, z (a cell's low half):
 # the cell below C along that axis has its far half empty iff its code has
 # none of these bits.
-_LOW_HALF_X = 0x0F
-_LOW_HALF_Y = 0x33
-_LOW_HALF_Z = 0x55
+LOW_HALF_X = 0x0F
+LOW_HALF_Y = 0x33
+LOW_HALF_Z = 0x55
 
 
 def _triple_face(t):
@@ -141,30 +141,30 @@ TRIPLE_FACE, QUAL_N, QUAL_KEY, QUAL_NMIN = _build_tables()
 # triangle slot holding everything the update reads about it, so a step along
 # a list touches one cache line: corners (tri), key, the next triangle on
 # each corner's vertex list (tnext) and on the owner list.
-_TR_KEY = 3
-_TR_NEXT = 4
-_TR_ONEXT = 7
-_TR_WIDTH = 8
-_TR_FILL = np.array([0, 0, 0, -1, -1, -1, -1, -1], dtype=np.int32)
+TR_KEY = 3
+TR_NEXT = 4
+TR_ONEXT = 7
+TR_WIDTH = 8
+TR_FILL = np.array([0, 0, 0, -1, -1, -1, -1, -1], dtype=np.int32)
 # Vertex records: Surface._vrec is (vcap, 2) int32: head of the vertex list
 # (vhead) and of the owner list.
-_VR_HEAD = 0
-_VR_OHEAD = 1
+VR_HEAD = 0
+VR_OHEAD = 1
 
 # counters kept in Surface._cnt
-_V_HW, _V_NFREE, _T_HW, _T_NFREE, _V_ALIVE, _T_ALIVE = range(6)
-# status / statistics slots of the update kernel (_S_RESUME: where an update
+V_HW, V_NFREE, T_HW, T_NFREE, V_ALIVE, T_ALIVE = range(6)
+# status / statistics slots of the update kernel (S_RESUME: where an update
 # that stopped for room goes on)
-(_S_STATUS, _S_NEED_V, _S_NEED_T, _S_V_ADD, _S_V_DEL, _S_T_ADD, _S_T_DEL,
- _S_RESHADE, _S_CELLS, _S_ERR, _S_RESUME) = range(11)
-_N_STATS = 11
+(S_STATUS, S_NEED_V, S_NEED_T, S_V_ADD, S_V_DEL, S_T_ADD, S_T_DEL,
+ _S_RESHADE, S_CELLS, S_ERR, S_RESUME) = range(11)
+N_STATS = 11
 
 
 # ----------------------------------------------------------------------------
 # Small kernels of the surface's lists
 # ----------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
-def _brick_neighbours(keys, vals, bricks):
+def brick_neighbours(keys, vals, bricks):
     """(n_bricks, 27) int32: index of each brick's 26 neighbours and itself
     (slot ``9 * (di + 1) + 3 * (dj + 1) + (dk + 1)``), -1 when absent."""
     n = bricks.shape[0]
@@ -190,7 +190,7 @@ def _slot_of(tri, t, v):
 
 
 @njit(cache=True, nogil=True)
-def _triangles_of_vertex(vhead, tri, tnext, v, out):
+def triangles_of_vertex(vhead, tri, tnext, v, out):
     """Fill ``out`` with the triangles of vertex ``v``; return their number
     (which may exceed ``out``'s length; then only the first ones are written)."""
     n = 0
@@ -204,17 +204,17 @@ def _triangles_of_vertex(vhead, tri, tnext, v, out):
 
 
 @njit(cache=True, nogil=True)
-def _link_all(trec, vrec, n_t):
+def link_all(trec, vrec, n_t):
     for t in range(n_t - 1, -1, -1):
-        if trec[t, _TR_KEY] < 0:
+        if trec[t, TR_KEY] < 0:
             continue
         for s in range(3):
             v = trec[t, s]
-            trec[t, _TR_NEXT + s] = vrec[v, _VR_HEAD]
-            vrec[v, _VR_HEAD] = t
+            trec[t, TR_NEXT + s] = vrec[v, VR_HEAD]
+            vrec[v, VR_HEAD] = t
         v = trec[t, 0]
-        trec[t, _TR_ONEXT] = vrec[v, _VR_OHEAD]
-        vrec[v, _VR_OHEAD] = t
+        trec[t, TR_ONEXT] = vrec[v, VR_OHEAD]
+        vrec[v, VR_OHEAD] = t
 
 
 # ----------------------------------------------------------------------------
@@ -241,21 +241,21 @@ def _flip_of(trec, t, pos, nrm):
 
 
 @njit(cache=True, nogil=True)
-def _orient_all(trec, n_t, pos, nrm, tflip):
+def orient_all(trec, n_t, pos, nrm, tflip):
     """``tflip[t]`` for every live triangle slot below ``n_t``."""
     for t in range(n_t):
-        if trec[t, _TR_KEY] >= 0:
+        if trec[t, TR_KEY] >= 0:
             tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
 
 
 @njit(cache=True, nogil=True)
-def _orient_of(vrec, trec, vlist, pos, nrm, tflip):
+def orient_of(vrec, trec, vlist, pos, nrm, tflip):
     """``tflip`` of every triangle of the vertices ``vlist`` (their vertex
     lists; a triangle met twice is set twice, to the same value)."""
     for q in range(vlist.shape[0]):
         v = vlist[q]
-        t = vrec[v, _VR_HEAD]
+        t = vrec[v, VR_HEAD]
         while t >= 0:
             tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
             s = 0 if trec[t, 0] == v else (1 if trec[t, 1] == v else 2)
-            t = trec[t, _TR_NEXT + s]
+            t = trec[t, TR_NEXT + s]

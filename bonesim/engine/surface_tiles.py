@@ -39,7 +39,7 @@ change nothing here (only the shading, :meth:`bonesim.engine.shading.Shader.refr
 their coordinates are still checked.
 
 An update that runs out of room stops before the tile that needs it and
-records where it stopped (``stats[_S_RESUME]``); the caller grows the arrays
+records where it stopped (``stats[S_RESUME]``); the caller grows the arrays
 and calls again with ``resume`` set, and the update goes on from that tile.
 """
 from __future__ import annotations
@@ -48,8 +48,8 @@ import numpy as np
 from numba import njit
 
 from bonesim.engine.brick_hash import BRICK, pack_brick_key
-from bonesim.engine.surface_tables import _S_RESUME, _S_STATUS
-from bonesim.engine.surface_window import WINDOW_DEPTH, WINDOW_MARGIN, _window_pass
+from bonesim.engine.surface_tables import S_RESUME, S_STATUS
+from bonesim.engine.surface_window import WINDOW_DEPTH, WINDOW_MARGIN, window_pass
 
 __all__ = ["WINDOW_MIN_VOXELS", "WINDOW_VOXELS_PER_INPUT", "TILE_SHIFT", "COORD_LIMIT"]
 
@@ -86,7 +86,7 @@ def _out_of_range(ijk):
 
 
 @njit(cache=True, nogil=True)
-def _update(keys, vals, density, origin, spacing, removed, touched, win_limit, tile_shift,
+def update_tiles(keys, vals, density, origin, spacing, removed, touched, win_limit, tile_shift,
             resume, vmap, pos, vijk, valive, vrec, vfree, trec, tfree, cnt, stats,
             sf32, si32, su8, su64):
     """Re-tessellate around ``removed`` (int32 (n, 3)), one window or tiles.
@@ -95,7 +95,7 @@ def _update(keys, vals, density, origin, spacing, removed, touched, win_limit, t
     tests) and ``tile_shift`` ``TILE_SHIFT`` (1 to 5). Unless ``resume``,
     ``stats`` is cleared first; counts are added to it.
 
-    Sets ``stats[_S_STATUS]``: 0 done, 1 vertex / triangle arrays too small,
+    Sets ``stats[S_STATUS]``: 0 done, 1 vertex / triangle arrays too small,
     2 scratch too small (sizes in ``stats[_S_NEED_V]``, ``stats[_S_NEED_T]``;
     call again with ``resume`` after growing), 4 / 5 a removed / touched
     voxel has a coordinate of magnitude ``COORD_LIMIT`` or more (nothing
@@ -104,12 +104,12 @@ def _update(keys, vals, density, origin, spacing, removed, touched, win_limit, t
     if not resume:
         for s in range(stats.shape[0]):
             stats[s] = 0
-    stats[_S_STATUS] = 0
+    stats[S_STATUS] = 0
     if _out_of_range(removed):
-        stats[_S_STATUS] = 4
+        stats[S_STATUS] = 4
         return
     if _out_of_range(touched):
-        stats[_S_STATUS] = 5
+        stats[S_STATUS] = 5
         return
     nr = removed.shape[0]
     if nr == 0:
@@ -128,7 +128,7 @@ def _update(keys, vals, density, origin, spacing, removed, touched, win_limit, t
         vol *= hi[a] - lo[a] + 1 + 2 * WINDOW_MARGIN
     if (win_limit >= 0 and hi[2] - lo[2] + 1 + 2 * WINDOW_MARGIN <= WINDOW_DEPTH
             and vol <= win_limit + WINDOW_VOXELS_PER_INPUT * nr):
-        stats[_S_STATUS] = _window_pass(keys, vals, density, origin, spacing, removed,
+        stats[S_STATUS] = window_pass(keys, vals, density, origin, spacing, removed,
                                         vmap, pos, vijk, valive, vrec, vfree, trec, tfree,
                                         cnt, stats, sf32, si32, su8, su64)
         return
@@ -148,13 +148,13 @@ def _update(keys, vals, density, origin, spacing, removed, touched, win_limit, t
             start[n_tiles] = q
             n_tiles += 1
     start[n_tiles] = nr
-    first = stats[_S_RESUME] if resume else 0
+    first = stats[S_RESUME] if resume else 0
     for t in range(first, n_tiles):
-        st = _window_pass(keys, vals, density, origin, spacing, srt[start[t]:start[t + 1]],
+        st = window_pass(keys, vals, density, origin, spacing, srt[start[t]:start[t + 1]],
                           vmap, pos, vijk, valive, vrec, vfree, trec, tfree, cnt, stats,
                           sf32, si32, su8, su64)
         if st != 0:
-            stats[_S_STATUS] = st
-            stats[_S_RESUME] = t
+            stats[S_STATUS] = st
+            stats[S_RESUME] = t
             return
-    stats[_S_RESUME] = 0
+    stats[S_RESUME] = 0

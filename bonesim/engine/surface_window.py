@@ -11,10 +11,10 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset)
 from bonesim.engine.surface_tables import (N_TRIPLES, QUAL_KEY, QUAL_N, TRIPLE_CORNERS, TRIPLE_FACE,
-                                           _S_CELLS, _S_ERR, _S_NEED_T, _S_NEED_V,
-                                           _S_T_ADD, _S_T_DEL, _S_V_ADD, _S_V_DEL, _TR_KEY, _TR_NEXT,
-                                           _TR_ONEXT, _T_ALIVE, _T_HW, _T_NFREE, _VR_HEAD, _VR_OHEAD,
-                                           _V_ALIVE, _V_HW, _V_NFREE)
+                                           S_CELLS, S_ERR, S_NEED_T, S_NEED_V,
+                                           S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_KEY, TR_NEXT,
+                                           TR_ONEXT, T_ALIVE, T_HW, T_NFREE, VR_HEAD, VR_OHEAD,
+                                           V_ALIVE, V_HW, V_NFREE)
 
 __all__ = ["WINDOW_DEPTH", "WINDOW_MARGIN"]
 
@@ -63,7 +63,7 @@ WINDOW_DEPTH = 64
 # bit-row sets (_R_T0.. are temporaries of the dilations)
 (_R_REM, _R_SRC, _R_AFF, _R_CELL, _R_TOPO, _R_OCC, _R_HASV, _R_NEED,
  _R_DIRTY, _R_LIST, _R_T0, _R_T1, _R_T2, _R_T3, _R_T4) = range(15)
-_N_ROWSETS = 15
+N_ROWSETS = 15
 # per-slot bit masks of the qualifying triples lying in the minimum face along a
 _QUAL_FMASK = np.zeros((256, 3), dtype=np.uint8)
 for _code in range(256):
@@ -347,11 +347,11 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
                 vw &= vw - one
                 v = np.uint64(lv[ur * uwd2 + z])
                 prev = -1
-                t = vrec[v, _VR_OHEAD]
+                t = vrec[v, VR_OHEAD]
                 while t >= 0:
                     ut = np.uint64(t)
-                    nxt = trec[ut, _TR_ONEXT]
-                    key = np.uint64(trec[ut, _TR_KEY])
+                    nxt = trec[ut, TR_ONEXT]
+                    key = np.uint64(trec[ut, TR_KEY])
                     c0 = np.uint64(TRIPLE_CORNERS[key >> one, 0])
                     urc = ur - (c0 >> np.uint64(2)) * uw1 - ((c0 >> one) & one)
                     zc = z - (c0 & one)
@@ -372,9 +372,9 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
                     # (an emptied corner's vertex goes with all its triangles:
                     # its list is dropped whole in _fw_vertices)
                     if prev < 0:
-                        vrec[v, _VR_OHEAD] = nxt
+                        vrec[v, VR_OHEAD] = nxt
                     else:
-                        trec[prev, _TR_ONEXT] = nxt
+                        trec[prev, TR_ONEXT] = nxt
                     tid = key >> one
                     for s in range(3):
                         c = np.uint64(TRIPLE_CORNERS[tid, s])
@@ -385,11 +385,11 @@ def _fw_cells(clist, nl, wd, ld, lv, lcode, lact, rows, nr_p, trec, vrec, tfree,
                             continue
                         rows[np.uint64(D) + urc + ca * uw1 + cb] |= one << (zc + cc)
                         n_dead += 1
-                    trec[t, _TR_KEY] = -1
-                    tfree[cnt[_T_NFREE]] = t
-                    cnt[_T_NFREE] += 1
-                    cnt[_T_ALIVE] -= 1
-                    stats[_S_T_DEL] += 1
+                    trec[t, TR_KEY] = -1
+                    tfree[cnt[T_NFREE]] = t
+                    cnt[T_NFREE] += 1
+                    cnt[T_ALIVE] -= 1
+                    stats[S_T_DEL] += 1
                     t = nxt
     na = 0
     for q in range(nl):
@@ -423,15 +423,15 @@ def _fw_unlink_dead(rows, nr_p, wd, lv, trec, vrec):
                 v = lv[r * wd2 + z]
                 prev = -1
                 prev_s = 0
-                cur = vrec[v, _VR_HEAD]
+                cur = vrec[v, VR_HEAD]
                 while cur >= 0:
                     s = 0 if trec[cur, 0] == v else (1 if trec[cur, 1] == v else 2)
-                    nxt = trec[cur, _TR_NEXT + s]
-                    if trec[cur, _TR_KEY] < 0:
+                    nxt = trec[cur, TR_NEXT + s]
+                    if trec[cur, TR_KEY] < 0:
                         if prev < 0:
-                            vrec[v, _VR_HEAD] = nxt
+                            vrec[v, VR_HEAD] = nxt
                         else:
-                            trec[prev, _TR_NEXT + prev_s] = nxt
+                            trec[prev, TR_NEXT + prev_s] = nxt
                         n += 1
                     else:
                         prev = cur
@@ -480,12 +480,12 @@ def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, p
                     o = voxel_offset(i, j, k)
                     li = r * wd2 + z
                     if create:                              # became surface
-                        if cnt[_V_NFREE] > 0:
-                            cnt[_V_NFREE] -= 1
-                            v = vfree[cnt[_V_NFREE]]
+                        if cnt[V_NFREE] > 0:
+                            cnt[V_NFREE] -= 1
+                            v = vfree[cnt[V_NFREE]]
                         else:
-                            v = cnt[_V_HW]
-                            cnt[_V_HW] += 1
+                            v = cnt[V_HW]
+                            cnt[V_HW] += 1
                         vmap[b, o] = v
                         lv[li] = v
                         vijk[v, 0] = i
@@ -494,23 +494,23 @@ def _fw_vertices(rows, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, p
                         pos[v, 0] = origin[0] + spacing * i
                         pos[v, 1] = origin[1] + spacing * j
                         pos[v, 2] = origin[2] + spacing * k
-                        vrec[v, _VR_HEAD] = -1
-                        vrec[v, _VR_OHEAD] = -1
+                        vrec[v, VR_HEAD] = -1
+                        vrec[v, VR_OHEAD] = -1
                         valive[v] = 1
-                        cnt[_V_ALIVE] += 1
-                        stats[_S_V_ADD] += 1
+                        cnt[V_ALIVE] += 1
+                        stats[S_V_ADD] += 1
                     else:                                   # a source
                         v = lv[li]
-                        if vrec[v, _VR_OHEAD] >= 0:
-                            stats[_S_ERR] += 1
-                        vrec[v, _VR_HEAD] = -1              # its triangles are all gone
+                        if vrec[v, VR_OHEAD] >= 0:
+                            stats[S_ERR] += 1
+                        vrec[v, VR_HEAD] = -1              # its triangles are all gone
                         vmap[b, o] = -1
                         lv[li] = -1
                         valive[v] = 0
-                        vfree[cnt[_V_NFREE]] = v
-                        cnt[_V_NFREE] += 1
-                        cnt[_V_ALIVE] -= 1
-                        stats[_S_V_DEL] += 1
+                        vfree[cnt[V_NFREE]] = v
+                        cnt[V_NFREE] += 1
+                        cnt[V_ALIVE] -= 1
+                        stats[S_V_DEL] += 1
 
 
 @njit(cache=True, nogil=True)
@@ -525,12 +525,12 @@ def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
             if not (rest >> slot) & 1:
                 continue
             key = QUAL_KEY[code, slot]
-            if cnt[_T_NFREE] > 0:
-                cnt[_T_NFREE] -= 1
-                t = tfree[cnt[_T_NFREE]]
+            if cnt[T_NFREE] > 0:
+                cnt[T_NFREE] -= 1
+                t = tfree[cnt[T_NFREE]]
             else:
-                t = cnt[_T_HW]
-                cnt[_T_HW] += 1
+                t = cnt[T_HW]
+                cnt[T_HW] += 1
             tid = key >> 1
             for s in range(3):
                 cs = s
@@ -539,21 +539,21 @@ def _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats):
                 cn = TRIPLE_CORNERS[tid, cs]
                 v = lv[li + (cn >> 2) * sx + ((cn >> 1) & 1) * sy + (cn & 1)]
                 if v < 0:
-                    stats[_S_ERR] += 1
+                    stats[S_ERR] += 1
                     v = 0
                 trec[t, s] = v
-                trec[t, _TR_NEXT + s] = vrec[v, _VR_HEAD]
-                vrec[v, _VR_HEAD] = t
-            trec[t, _TR_KEY] = key
+                trec[t, TR_NEXT + s] = vrec[v, VR_HEAD]
+                vrec[v, VR_HEAD] = t
+            trec[t, TR_KEY] = key
             v = trec[t, 0]
-            trec[t, _TR_ONEXT] = vrec[v, _VR_OHEAD]
-            vrec[v, _VR_OHEAD] = t
-            cnt[_T_ALIVE] += 1
-            stats[_S_T_ADD] += 1
+            trec[t, TR_ONEXT] = vrec[v, VR_OHEAD]
+            vrec[v, VR_OHEAD] = t
+            cnt[T_ALIVE] += 1
+            stats[S_T_ADD] += 1
 
 
 @njit(cache=True, nogil=True)
-def _window_pass(keys, vals, density, origin, spacing, removed,
+def window_pass(keys, vals, density, origin, spacing, removed,
                  vmap, pos, vijk, valive, vrec, vfree, trec, tfree, cnt, stats,
                  sf32, si32, su8, su64):
     """The update on dense copies of the window around ``removed`` (see
@@ -561,9 +561,9 @@ def _window_pass(keys, vals, density, origin, spacing, removed,
     at most ``WINDOW_DEPTH`` deep along k).
 
     Adds its counts to ``stats``. Returns 0 when done, 1 when the vertex /
-    triangle arrays are too small (``stats[_S_NEED_V]``, ``stats[_S_NEED_T]``
-    extra slots needed), 2 when the scratch is too small (``stats[_S_NEED_V]``
-    voxels, ``stats[_S_NEED_T]`` rows); then nothing changed.
+    triangle arrays are too small (``stats[S_NEED_V]``, ``stats[S_NEED_T]``
+    extra slots needed), 2 when the scratch is too small (``stats[S_NEED_V]``
+    voxels, ``stats[S_NEED_T]`` rows); then nothing changed.
     """
     nr = removed.shape[0]
     lo0 = hi0 = np.int64(removed[0, 0])
@@ -595,9 +595,9 @@ def _window_pass(keys, vals, density, origin, spacing, removed,
     vol_p = nr_p * wd[2]
     nwb = bd[0] * bd[1] * bd[2]
     if sf32.shape[0] < vol_p or si32.shape[0] < 2 * vol_p + nwb or su8.shape[0] < 2 * vol_p \
-            or su64.shape[0] < _N_ROWSETS * nr_p:
-        stats[_S_NEED_V] = vol_p
-        stats[_S_NEED_T] = nr_p
+            or su64.shape[0] < N_ROWSETS * nr_p:
+        stats[S_NEED_V] = vol_p
+        stats[S_NEED_T] = nr_p
         return 2
     ld = sf32
     lv = si32[:vol_p]
@@ -620,19 +620,19 @@ def _window_pass(keys, vals, density, origin, spacing, removed,
     nl, tbound, n_vadd, n_vdel, ncells = _fw_plan(su64, nr_p, wd, lcode, lact, clist)
 
     # ---- room? (triangles: bound, ignoring the ones that will be freed) ------
-    v_room = cnt[_V_NFREE] + (vijk.shape[0] - cnt[_V_HW]) + n_vdel
-    t_room = cnt[_T_NFREE] + (trec.shape[0] - cnt[_T_HW])
+    v_room = cnt[V_NFREE] + (vijk.shape[0] - cnt[V_HW]) + n_vdel
+    t_room = cnt[T_NFREE] + (trec.shape[0] - cnt[T_HW])
     if n_vadd > v_room or tbound > t_room:
-        stats[_S_NEED_V] = max(0, n_vadd - v_room)
-        stats[_S_NEED_T] = max(0, tbound - t_room)
+        stats[S_NEED_V] = max(0, n_vadd - v_room)
+        stats[S_NEED_T] = max(0, tbound - t_room)
         return 1
 
     # ---- edit ------------------------------------------------------------------
-    stats[_S_CELLS] += ncells
+    stats[S_CELLS] += ncells
     na, n_dead = _fw_cells(clist, nl, wd, ld, lv, lcode, lact, su64, nr_p, trec, vrec, tfree,
                            cnt, stats)
     if _fw_unlink_dead(su64, nr_p, wd, lv, trec, vrec) != n_dead:
-        stats[_S_ERR] += 1
+        stats[S_ERR] += 1
     _fw_vertices(su64, nr_p, wd, wlo, wbr, blo, bd, lv, origin, spacing, vmap, pos, vijk,
                  valive, vrec, vfree, cnt, stats)
     _fw_add(clist, na, wd, lv, lcode, lact, trec, vrec, tfree, cnt, stats)

@@ -50,7 +50,7 @@ Static mask
     A ray's samples lie within ``start_mm`` of its start and each reads the
     voxel whose centre is nearest, so a ray can only meet a structure voxel
     whose centre lies within :func:`near_radius` ``= start_mm / spacing_mm +
-    sqrt(3) / 2`` voxels (Euclidean) of its start. :func:`_near_structure`
+    sqrt(3) / 2`` voxels (Euclidean) of its start. :func:`near_structure`
     marks, per brick as a 512-bit mask, the voxels with a voxel of a
     non-bone label that close (labels never change, so the mask holds for
     the grid's life), and rays are cast from those voxels only. (A ball, not
@@ -244,7 +244,7 @@ def _basis(nx, ny, nz):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ray_dir(nx, ny, nz, tanc, cq, sq):
+def ray_dir(nx, ny, nz, tanc, cq, sq):
     """Unit direction ``d`` of a cone ray (module docstring) and ``m = 1 /
     (d . n)``; ``tanc = 0`` gives ``(n, 1)``."""
     b1x, b1y, b1z, b2x, b2y, b2z = _basis(nx, ny, nz)
@@ -273,7 +273,7 @@ def _ray_thickness(keys, vals, density, label, bone, origin, spacing, tp, i, j, 
 
 
 @njit(cache=True, nogil=True)
-def _tint(keys, vals, density, label, bone, colors, origin, spacing, tp, cone, i, j, k,
+def tint_vertex(keys, vals, density, label, bone, colors, origin, spacing, tp, cone, i, j, k,
           nx, ny, nz, shift):
     """``(W, R, G, B)`` of the bone vertex at voxel ``(i, j, k)`` with the
     (float32) normal ``n`` and ``shift``: the blend weight toward the
@@ -293,7 +293,7 @@ def _tint(keys, vals, density, label, bone, colors, origin, spacing, tp, cone, i
         if q == 0:
             dx, dy, dz, m = nx, ny, nz, 1.0
         else:
-            dx, dy, dz, m = _ray_dir(nx, ny, nz, tp[TP_TAN], cone[q - 1, 0], cone[q - 1, 1])
+            dx, dy, dz, m = ray_dir(nx, ny, nz, tp[TP_TAN], cone[q - 1, 0], cone[q - 1, 1])
         t, met = _ray_thickness(keys, vals, density, label, bone, origin, spacing, tp,
                                 i, j, k, dx, dy, dz, m, shift)
         if met <= 0 or met >= ncol:
@@ -308,7 +308,7 @@ def _tint(keys, vals, density, label, bone, colors, origin, spacing, tp, cone, i
 
 
 @njit(cache=True, nogil=True)
-def _structure_bits(label, bone, bits):
+def structure_bits(label, bone, bits):
     """``bits[b]``: 512-bit mask of the voxels of brick ``b`` whose label is
     neither 0 nor bone (bit ``o & 63`` of word ``o >> 6``, so word ``x``
     holds the ``(y, z)`` plane ``x`` of the brick, bit ``8 y + z``).
@@ -328,8 +328,8 @@ def _structure_bits(label, bone, bits):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _near_structure(keys, vals, bricks, bits, radius, near):
-    """``near[b]``: 512-bit mask (as in :func:`_structure_bits`) of the
+def near_structure(keys, vals, bricks, bits, radius, near):
+    """``near[b]``: 512-bit mask (as in :func:`structure_bits`) of the
     voxels within ``radius`` voxels (Euclidean, centre to centre) of a
     structure voxel of ``bits``. Labels never change, so this holds for the
     grid's whole life.
@@ -417,7 +417,7 @@ def _beneath_many(keys, vals, density, label, bone, origin, spacing, tp, ijk, nr
         s_out[q] = max(s, 0)
 
 
-def _as_bone(bone, n_rows):
+def as_bone(bone, n_rows):
     b = np.asarray(bone)
     if b.shape != (n_rows,):
         raise ValueError(f"bone must have one entry per colour row ({n_rows}), got shape "
@@ -467,7 +467,7 @@ def beneath(grid, ijk, normals, bone, params: ShadingParams | None = None, shift
         raise ValueError("ijk and normals must have the same length")
     sh = np.ascontiguousarray(np.broadcast_to(np.asarray(shift, dtype=np.float32),
                                               (ijk.shape[0],)))
-    bone_u8 = _as_bone(bone, len(bone))
+    bone_u8 = as_bone(bone, len(bone))
     if grid.label.size and int(grid.label.max()) >= len(bone_u8):
         raise ValueError(f"bone has {len(bone_u8)} entries but the grid uses label "
                          f"{int(grid.label.max())}")

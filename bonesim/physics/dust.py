@@ -173,15 +173,15 @@ from dataclasses import replace
 
 import numpy as np
 
-from bonesim.physics.dust_bricks import (_MAX_RATE_Q, _MIN_GRAVITY_COMPONENT, _N_CTR, _N_FP, _N_IP, _W_ONE,
+from bonesim.physics.dust_bricks import (MAX_RATE_Q, MIN_GRAVITY_COMPONENT, N_CTR, N_FP, N_IP, W_ONE,
                                          C_ADDED, C_CUR, C_HW, C_NALIVE, C_NEED, C_NFREE, C_PUSHED, C_SUCKED,
                                          C_SUCKED_STEP, C_WETTED, F_H, F_OX, F_OZ, F_SR, F_SX, F_SZ, F_TR,
                                          F_TX, F_TZ, F_UX, F_UZ, F_WR, F_WX, F_WZ, FULL, I_DOM, I_DSGN, I_GAX,
                                          I_GSG, I_GWQ, I_KQ, I_LAT0, I_LAT1, I_NG, I_RATE, I_REPOSE, I_SEARCH,
                                          I_SRATE, I_SUCTION, I_TOOL, I_WRATE, MAX_SPILL_FRACTION, Q, Q_SHIFT,
-                                         STAGE_DONE, STAGE_GRAVITY, _ensure_bricks, _recycle,
-                                         _refresh_bone_bricks, _rehash)
-from bonesim.physics.dust_rules import _SC_SIZE, _add, _recount, _step_kernel, _wet_out
+                                         STAGE_DONE, STAGE_GRAVITY, ensure_bricks, recycle_bricks,
+                                         refresh_bone_bricks, rehash_bricks)
+from bonesim.physics.dust_rules import SC_SIZE, add_dust, recount, step_kernel, wet_out
 from bonesim.engine import events
 from bonesim.engine.bodies import all_identity
 from bonesim.physics.dust_bodies import case_cells, wall_arrays
@@ -211,7 +211,7 @@ def _nonneg(v, name) -> float:
 
 
 def _to_q(x: float) -> int:
-    return int(min(round(x * Q), _MAX_RATE_Q))
+    return int(min(round(x * Q), MAX_RATE_Q))
 
 
 class DustGrid:
@@ -275,15 +275,15 @@ class DustGrid:
         self.wet = self.water = None        # species: wet dust, irrigation water
         if bounds_vox is not None:
             self.set_bounds(*bounds_vox)
-        self._ip = np.zeros(_N_IP, dtype=np.int64)
-        self._fp = np.zeros(_N_FP, dtype=np.float64)
-        self._sc = np.zeros(_SC_SIZE, dtype=np.int64)
+        self._ip = np.zeros(N_IP, dtype=np.int64)
+        self._fp = np.zeros(N_FP, dtype=np.float64)
+        self._sc = np.zeros(SC_SIZE, dtype=np.int64)
         self._cells = np.zeros((0, SC_WIDTH), dtype=np.int64)   # sphere_cells scratch
         self._wall = np.zeros(BRICK_VOXELS, dtype=np.uint8)
         self._elig = np.zeros(BRICK_VOXELS, dtype=np.uint8)
         self._flux = np.zeros(BRICK_VOXELS, dtype=np.int64)
         self.set_gravity(gravity)
-        self._ctr = np.zeros(_N_CTR, dtype=np.int64)
+        self._ctr = np.zeros(N_CTR, dtype=np.int64)
         self._alloc(int(self.params.initial_bricks))
         self._no_bone = (np.full(16, -1, np.int64), np.full(16, -1, np.int32))
         self._bkeys, self._bvals = self._no_bone
@@ -326,7 +326,7 @@ class DustGrid:
         ip[I_DSGN] = 1 if g[dom] > 0 else -1
         lat = [a for a in range(3) if a != dom]
         ip[I_LAT0], ip[I_LAT1] = lat
-        axes = [a for a in range(3) if abs(g[a]) > _MIN_GRAVITY_COMPONENT] \
+        axes = [a for a in range(3) if abs(g[a]) > MIN_GRAVITY_COMPONENT] \
             if self.params.split_gravity else [dom]
         tot = sum(abs(g[a]) for a in axes)
         ip[I_NG] = len(axes)
@@ -335,8 +335,8 @@ class DustGrid:
         for q, a in enumerate(axes):
             ip[I_GAX + q] = a
             ip[I_GSG + q] = 1 if g[a] > 0 else -1
-            ip[I_GWQ + q] = int(math.floor(abs(g[a]) / tot * _W_ONE)) if len(axes) > 1 \
-                else _W_ONE
+            ip[I_GWQ + q] = int(math.floor(abs(g[a]) / tot * W_ONE)) if len(axes) > 1 \
+                else W_ONE
         self._fp[F_UX:F_UZ + 1] = -g
         if self.wet is not None:
             self.wet.set_gravity(g)
@@ -370,7 +370,7 @@ class DustGrid:
         hw = int(self._ctr[C_HW])
         keys = np.full(tcap, -1, dtype=np.int64)
         vals = np.full(tcap, -1, dtype=np.int32)
-        _rehash(keys, vals, self.bcoord, self.alive, hw)
+        rehash_bricks(keys, vals, self.bcoord, self.alive, hw)
         self.keys, self.vals = keys, vals
 
         def grown(a, fill, axis=0):
@@ -402,7 +402,7 @@ class DustGrid:
         """Make ``need`` bricks free: recycle dead bricks, else grow."""
         if need <= self._ctr[C_NFREE]:
             return
-        _recycle(self.keys, self.vals, self.bcoord, self.nbr, self.alive, self.bmass,
+        recycle_bricks(self.keys, self.vals, self.bcoord, self.nbr, self.alive, self.bmass,
                  self.free, self._ctr)
         if need > self._ctr[C_NFREE]:
             self._grow(need)
@@ -410,7 +410,7 @@ class DustGrid:
     def recycle(self) -> int:
         """Return bricks without dust (and without dusty neighbours) to the pool;
         returns how many."""
-        return sum(int(_recycle(g.keys, g.vals, g.bcoord, g.nbr, g.alive, g.bmass, g.free,
+        return sum(int(recycle_bricks(g.keys, g.vals, g.bcoord, g.nbr, g.alive, g.bmass, g.free,
                                 g._ctr)) for g in self._species())
 
     def _use_bone(self, grid) -> None:
@@ -427,7 +427,7 @@ class DustGrid:
         else:
             self._bkeys, self._bvals = self._no_bone
         self._bone_src = src
-        _refresh_bone_bricks(self.bcoord, self.alive, int(self._ctr[C_HW]), self._bkeys,
+        refresh_bone_bricks(self.bcoord, self.alive, int(self._ctr[C_HW]), self._bkeys,
                              self._bvals, self.bone_b)
 
     # ------------------------------------------------------------ queries
@@ -468,7 +468,7 @@ class DustGrid:
 
     def recount_q(self) -> int:
         """Total dust summed cell by cell [1/Q cells] (checks the per-brick totals)."""
-        return sum(int(_recount(g.alive, int(g._ctr[C_HW]), g.density_q))
+        return sum(int(recount(g.alive, int(g._ctr[C_HW]), g.density_q))
                    for g in self._species())
 
     @property
@@ -720,7 +720,7 @@ class DustGrid:
         fp[F_WX:F_WZ + 1] = pos
         fp[F_WR] = rad
         out_ijk, out_q = self._wet_out
-        n = int(_wet_out(self.keys, self.vals, self.dens, self.bmass, self._ctr, ip, fp,
+        n = int(wet_out(self.keys, self.vals, self.dens, self.bmass, self._ctr, ip, fp,
                          self._cells, out_ijk, out_q))
         if n:
             self.wet._add_q(out_ijk[:n], out_q[:n])
@@ -737,13 +737,13 @@ class DustGrid:
         """Add ``amount_q`` [1/Q cells] to cells ``ijk`` (n, 3) int64 (valid)."""
         coords = np.unique(ijk >> BRICK_SHIFT, axis=0)
         while True:
-            need = _ensure_bricks(self.keys, self.vals, self.bcoord, self.nbr, self.alive,
+            need = ensure_bricks(self.keys, self.vals, self.bcoord, self.nbr, self.alive,
                                   self.dens, self.bmass, self.bone_b, self.free, self._ctr,
                                   self._bkeys, self._bvals, coords)
             if not need:
                 break
             self._reserve(int(need))
-        _add(self.keys, self.vals, self.dens, self.bmass, self._ctr, ijk, amount_q)
+        add_dust(self.keys, self.vals, self.dens, self.bmass, self._ctr, ijk, amount_q)
 
     def _step_own(self, bone_grid, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
                   suction_radius_mm, suction_rate, walls) -> float:
@@ -757,7 +757,7 @@ class DustGrid:
         p = self.params
         ip, fp = self._ip, self._fp
         ip[I_RATE] = _to_q(p.settle_rate * dt)
-        ip[I_KQ] = int(math.floor(min(p.spill_rate * dt, MAX_SPILL_FRACTION) * _W_ONE))
+        ip[I_KQ] = int(math.floor(min(p.spill_rate * dt, MAX_SPILL_FRACTION) * W_ONE))
         ip[I_REPOSE] = _to_q(p.repose)
         ip[I_SEARCH] = int(p.push_search)
         rate = p.suction_rate if suction_rate is None else _nonneg(suction_rate,
@@ -777,7 +777,7 @@ class DustGrid:
                              fp[F_SR] if ip[I_SUCTION] else 0.0)
         stage = STAGE_GRAVITY
         while True:
-            stage = _step_kernel(stage, self.keys, self.vals, self.bcoord, self.nbr,
+            stage = step_kernel(stage, self.keys, self.vals, self.bcoord, self.nbr,
                                  self.alive, self.dens, self.bmass, self.bone_b, self.free,
                                  self._ctr, self._bkeys, self._bvals, bone_dens,
                                  walls[0], walls[1], self._active, self.bounds, ip, fp, self._sc,

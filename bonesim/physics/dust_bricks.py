@@ -30,41 +30,41 @@ Q_SHIFT = 20
 Q = 1 << Q_SHIFT
 #: A full cell [cells].
 FULL = 1.0
-_FULL_Q = Q
+FULL_Q = Q
 #: Fixed-point shift of the rule weights (gravity shares, spill fraction).
-_W_SHIFT = 16
-_W_ONE = 1 << _W_SHIFT
+W_SHIFT = 16
+W_ONE = 1 << W_SHIFT
 #: A fifth in fixed point (rounded down): the share of a cell's room that
 #: each of its (at most five) spill sources may fill.
-_ROOM_SHARE = _W_ONE // 5
+ROOM_SHARE = W_ONE // 5
 #: Largest spill fraction per step (explicit-diffusion stability bound 1/5).
 MAX_SPILL_FRACTION = 0.2
 #: Largest fixed-point rate per step, to keep products inside int64.
-_MAX_RATE_Q = 1 << 40
+MAX_RATE_Q = 1 << 40
 #: Gravity components smaller than this do not move dust.
-_MIN_GRAVITY_COMPONENT = 1e-6
+MIN_GRAVITY_COMPONENT = 1e-6
 
 # counters (int64 array ``ctr``)
 (C_NFREE, C_HW, C_CUR, C_ADDED, C_SUCKED, C_NEED, C_NALIVE, C_PUSHED,
  C_SUCKED_STEP, C_WETTED) = range(10)
-_N_CTR = 10
+N_CTR = 10
 # integer step parameters (int64 array ``ip``)
 (I_RATE, I_KQ, I_REPOSE, I_NG, I_DOM, I_DSGN, I_LAT0, I_LAT1, I_SEARCH,
  I_SRATE, I_TOOL, I_SUCTION, I_GAX, I_GSG, I_GWQ) = (0, 1, 2, 3, 4, 5, 6, 7, 8,
                                                       9, 10, 11, 12, 15, 18)
 I_WRATE = 21
-_N_IP = 22
+N_IP = 22
 # float step parameters (float64 array ``fp``)
 (F_TX, F_TY, F_TZ, F_TR, F_SX, F_SY, F_SZ, F_SR, F_OX, F_OY, F_OZ, F_H,
  F_UX, F_UY, F_UZ, F_WX, F_WY, F_WZ, F_WR) = range(19)
-_N_FP = 19
+N_FP = 19
 # step stages (a kernel that runs out of bricks returns the stage to resume)
 STAGE_GRAVITY, STAGE_SPILL, STAGE_TOOL, STAGE_SUCTION, STAGE_DONE = range(5)
 
 
 # ====================================================================== table
 @njit(cache=True, nogil=True)
-def _rehash(keys, vals, bcoord, alive, hw):
+def rehash_bricks(keys, vals, bcoord, alive, hw):
     for b in range(hw):
         if alive[b]:
             table_insert(keys, vals,
@@ -72,14 +72,14 @@ def _rehash(keys, vals, bcoord, alive, hw):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _brick_in_domain(bi, bj, bk, bounds):
+def brick_in_domain(bi, bj, bk, bounds):
     return ((bi << BRICK_SHIFT) < bounds[3] and (bi << BRICK_SHIFT) + BRICK > bounds[0]
             and (bj << BRICK_SHIFT) < bounds[4] and (bj << BRICK_SHIFT) + BRICK > bounds[1]
             and (bk << BRICK_SHIFT) < bounds[5] and (bk << BRICK_SHIFT) + BRICK > bounds[2])
 
 
 @njit(cache=True, nogil=True)
-def _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
+def insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                   bkeys, bvals, bi, bj, bk):
     """Take a brick from the pool for ``(bi, bj, bk)`` (absent; pool not empty),
     zero it in both buffers, link its face neighbours and its bone brick."""
@@ -113,7 +113,7 @@ def _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr
 
 
 @njit(cache=True, nogil=True)
-def _ensure_bricks(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
+def ensure_bricks(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                    bkeys, bvals, coords):
     """Allocate the bricks ``coords`` (n, 3) that are missing.
 
@@ -127,13 +127,13 @@ def _ensure_bricks(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ct
         return need
     for q in range(coords.shape[0]):
         if find_brick(keys, vals, coords[q, 0], coords[q, 1], coords[q, 2]) < 0:
-            _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
+            insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                           bkeys, bvals, coords[q, 0], coords[q, 1], coords[q, 2])
     return 0
 
 
 @njit(cache=True, nogil=True)
-def _recycle(keys, vals, bcoord, nbr, alive, bmass, free, ctr):
+def recycle_bricks(keys, vals, bcoord, nbr, alive, bmass, free, ctr):
     """Return dead bricks (no dust, no face neighbour with dust) to the pool."""
     hw = ctr[C_HW]
     freed = 0
@@ -162,7 +162,7 @@ def _recycle(keys, vals, bcoord, nbr, alive, bmass, free, ctr):
 
 
 @njit(cache=True, nogil=True)
-def _refresh_bone_bricks(bcoord, alive, hw, bkeys, bvals, bone_b):
+def refresh_bone_bricks(bcoord, alive, hw, bkeys, bvals, bone_b):
     for b in range(hw):
         if alive[b]:
             bone_b[b] = find_brick(bkeys, bvals, bcoord[b, 0], bcoord[b, 1], bcoord[b, 2])

@@ -12,13 +12,13 @@ import math
 import numpy as np
 from numba import njit
 
-from bonesim.physics.dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_SHIFT, C_ADDED, C_CUR, C_HW, C_NEED,
+from bonesim.physics.dust_bricks import (FULL_Q, ROOM_SHARE, W_SHIFT, C_ADDED, C_CUR, C_HW, C_NEED,
                                          C_NFREE, C_PUSHED, C_SUCKED, C_SUCKED_STEP, C_WETTED, F_H, F_OX,
                                          F_OY, F_OZ, F_SR, F_SX, F_SY, F_SZ, F_TR, F_TX, F_TY, F_TZ, F_UX,
                                          F_UY, F_UZ, F_WR, F_WX, F_WY, F_WZ, I_DOM, I_DSGN, I_GAX, I_GSG,
                                          I_GWQ, I_KQ, I_LAT0, I_LAT1, I_NG, I_RATE, I_REPOSE, I_SEARCH,
                                          I_SRATE, I_SUCTION, I_TOOL, I_WRATE, STAGE_DONE, STAGE_GRAVITY,
-                                         STAGE_SPILL, STAGE_TOOL, _brick_in_domain, _insert_brick)
+                                         STAGE_SPILL, STAGE_TOOL, brick_in_domain, insert_brick)
 from bonesim.engine.brick_hash import SC_BRICK, SC_I, SC_J, SC_K, SC_OFF, sphere_cells
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
 
@@ -27,7 +27,7 @@ __all__ = []
 
 # ================================================================ step rules
 @njit(cache=True, nogil=True)
-def _collect_active(alive, bmass, hw, active):
+def collect_active(alive, bmass, hw, active):
     n = 0
     for b in range(hw):
         if alive[b] and bmass[b] != 0:
@@ -37,7 +37,7 @@ def _collect_active(alive, bmass, hw, active):
 
 
 @njit(cache=True, nogil=True)
-def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys, bvals,
+def add_halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys, bvals,
           active, n_active, bounds):
     """Allocate the missing in-domain face neighbours of the active bricks.
 
@@ -53,7 +53,7 @@ def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
             ni = bcoord[b, 0] + (s if a == 0 else 0)
             nj = bcoord[b, 1] + (s if a == 1 else 0)
             nk = bcoord[b, 2] + (s if a == 2 else 0)
-            if _brick_in_domain(ni, nj, nk, bounds):
+            if brick_in_domain(ni, nj, nk, bounds):
                 need += 1
     if need == 0:
         return 0
@@ -69,8 +69,8 @@ def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
             ni = bcoord[b, 0] + (s if a == 0 else 0)
             nj = bcoord[b, 1] + (s if a == 1 else 0)
             nk = bcoord[b, 2] + (s if a == 2 else 0)
-            if _brick_in_domain(ni, nj, nk, bounds):
-                _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
+            if brick_in_domain(ni, nj, nk, bounds):
+                insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
                               ctr, bkeys, bvals, ni, nj, nk)
     return 0
 
@@ -93,11 +93,11 @@ def _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
 # cells of the face toward the neighbour brick one by one. The hot loops take
 # no array argument of an inlined helper (that costs reference counting per
 # call).
-_SC_SIZE = 24
+SC_SIZE = 24
 
 
 @njit(cache=True, nogil=True)
-def _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall):
+def load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall):
     """Fill ``sc`` for brick ``b`` and its wall mask (1 = outside the domain or
     bone)."""
     inside = 1
@@ -161,17 +161,17 @@ def _face_off(a, edge, u, v):
 
 @njit(cache=True, nogil=True, inline="always")
 def _gravity_flux(d, dn, rate, w):
-    room = _FULL_Q - dn
+    room = FULL_Q - dn
     m = d if d < rate else rate
     if room < m:
         m = room
-    return (w * m) >> _W_SHIFT
+    return (w * m) >> W_SHIFT
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _spill_flux(excess, dn, kq):
-    r5 = ((_FULL_Q - dn) * _ROOM_SHARE) >> _W_SHIFT
-    f = (excess * kq) >> _W_SHIFT
+    r5 = ((FULL_Q - dn) * ROOM_SHARE) >> W_SHIFT
+    f = (excess * kq) >> W_SHIFT
     return f if f < r5 else r5
 
 
@@ -198,13 +198,13 @@ def _gravity(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, act
         return
     for t in range(n_active):
         b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
+        load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         srow = src[b]
         drow = dst[b]
-        lo_d = np.int64(_FULL_Q)
+        lo_d = np.int64(FULL_Q)
         for off in range(BRICK_VOXELS):
             lo_d = min(lo_d, np.int64(srow[off]))
-        inner = lo_d < _FULL_Q            # else no cell of the brick has room
+        inner = lo_d < FULL_Q            # else no cell of the brick has room
         for q in range(ng):
             a = ip[I_GAX + q]
             s = ip[I_GSG + q]
@@ -261,16 +261,16 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
         return
     for t in range(n_active):
         b = np.int64(active[t])
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
+        load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         srow = src[b]
         drow = dst[b]
         # eligible sources: above the repose, not in a wall, and overfull or
         # supported (the cell below is a wall or full)
-        lo_d = np.int64(_FULL_Q)
+        lo_d = np.int64(FULL_Q)
         hi_d = np.int64(0)
         for off in range(BRICK_VOXELS):
             v = np.int64(srow[off])
-            elig[off] = (v > _FULL_Q) & (wall[off] == 0)
+            elig[off] = (v > FULL_Q) & (wall[off] == 0)
             lo_d = min(lo_d, v)
             hi_d = max(hi_d, v)
         delta, edge, sh, o0, o1 = _dir_geometry(dom, dsgn)
@@ -280,7 +280,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
         wn = wall[o0 + delta:o1 + delta]
         el = elig[o0:o1]
         for i in range(el.shape[0]):
-            sup = (wn[i] != 0) | (sn[i] >= _FULL_Q)
+            sup = (wn[i] != 0) | (sn[i] >= FULL_Q)
             e = sup & (ss[i] > repose) & (ws[i] == 0) & ((((o0 + i) >> sh) & 7) != edge)
             el[i] = el[i] | e
         dd = 2 * dom + (1 if dsgn > 0 else 0)
@@ -295,7 +295,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
                     continue
                 if okx == 0 or (bbn >= 0 and bone_dens[bbn, noff] > 0.0 and (
                         allw or wall_body[bone_body[bbn, noff]] != 0)) \
-                        or src[nb, noff] >= _FULL_Q:
+                        or src[nb, noff] >= FULL_Q:
                     elig[off] = 1
         n_elig = 0
         for off in range(BRICK_VOXELS):
@@ -304,7 +304,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
             continue
         # nothing overfull and no difference above the repose: no flux between
         # cells of this brick (only across its faces)
-        inner = hi_d > _FULL_Q or hi_d - lo_d > repose
+        inner = hi_d > FULL_Q or hi_d - lo_d > repose
         # four lateral directions, then up (overfull cells only)
         for q in range(5):
             lateral = q < 4
@@ -324,7 +324,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
                 for i in range(fl.shape[0]):
                     d = np.int64(ss[i])
                     dn = np.int64(sn[i])
-                    excess = d - dn - repose if lateral else d - _FULL_Q
+                    excess = d - dn - repose if lateral else d - FULL_Q
                     f = _spill_flux(excess, dn, kq)
                     ok = (f > 0) & (el[i] != 0) & ((((o0 + i) >> sh) & 7) != edge) & \
                         (wn[i] == 0)
@@ -347,7 +347,7 @@ def _spill(src, dst, nbr, bcoord, bone_b, bone_dens, bone_body, wall_body, activ
                         continue
                     d = np.int64(srow[off])
                     dn = np.int64(src[nb, noff])
-                    excess = d - dn - repose if lateral else d - _FULL_Q
+                    excess = d - dn - repose if lateral else d - FULL_Q
                     f = _spill_flux(excess, dn, kq)
                     if f > 0:
                         drow[off] -= f
@@ -364,8 +364,8 @@ def _jacobi(rule, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr
     """Run rule 1 (``rule == 0``) or 2 as a Jacobi update of the current buffer.
 
     Returns 0, or (changing nothing) the bricks the halo needs."""
-    n_active = _collect_active(alive, bmass, ctr[C_HW], active)
-    need = _halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
+    n_active = collect_active(alive, bmass, ctr[C_HW], active)
+    need = add_halo(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr, bkeys,
                  bvals, active, n_active, bounds)
     if need:
         return need
@@ -400,7 +400,7 @@ def _cell_ok(ci, cj, ck, lo0, lo1, lo2, hi0, hi1, hi2):
 
 
 @njit(cache=True, nogil=True)
-def _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, i, j, k):
+def bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, i, j, k):
     bb = find_brick(bkeys, bvals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
     if bb < 0:
         return False
@@ -437,7 +437,7 @@ def _push_target(ci, cj, ck, fp, search, bounds, bkeys, bvals, bone_dens, bone_b
         if not _cell_ok(ti, tj, tk, bounds[0], bounds[1], bounds[2], bounds[3], bounds[4],
                         bounds[5]):
             continue
-        if _bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, ti, tj, tk):
+        if bone_at(bkeys, bvals, bone_dens, bone_body, wall_body, ti, tj, tk):
             continue
         return True, ti, tj, tk
     return False, 0, 0, 0
@@ -484,7 +484,7 @@ def _tool_push(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                     need += 1
             elif mode == 1:
                 if tb < 0:
-                    _insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
+                    insert_brick(keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free,
                                   ctr, bkeys, bvals, ti >> BRICK_SHIFT, tj >> BRICK_SHIFT,
                                   tk >> BRICK_SHIFT)
             else:
@@ -555,7 +555,7 @@ def _suction(keys, vals, dens, bmass, ctr, ip, fp, cells):
 
 
 @njit(cache=True, nogil=True)
-def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
+def step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, free, ctr,
                  bkeys, bvals, bone_dens, bone_body, wall_body, active, bounds, ip, fp, sc, wall,
                  elig, flux, cells):
     """Rules 1-4 from ``stage`` on. Returns :data:`STAGE_DONE`, or the stage to
@@ -588,7 +588,7 @@ def _step_kernel(stage, keys, vals, bcoord, nbr, alive, dens, bmass, bone_b, fre
 
 # ============================================================ add and output
 @njit(cache=True, nogil=True)
-def _add(keys, vals, dens, bmass, ctr, ijk, amount_q):
+def add_dust(keys, vals, dens, bmass, ctr, ijk, amount_q):
     """Add ``amount_q[q]`` units to cell ``ijk[q]`` (bricks allocated)."""
     cur = ctr[C_CUR]
     den = dens[cur]
@@ -602,7 +602,7 @@ def _add(keys, vals, dens, bmass, ctr, ijk, amount_q):
 
 
 @njit(cache=True, nogil=True)
-def _recount(alive, hw, den):
+def recount(alive, hw, den):
     t = np.int64(0)
     for b in range(hw):
         if alive[b]:
@@ -612,7 +612,7 @@ def _recount(alive, hw, den):
 
 
 @njit(cache=True, nogil=True)
-def _wet_out(keys, vals, dens, bmass, ctr, ip, fp, cells, out_ijk, out_q):
+def wet_out(keys, vals, dens, bmass, ctr, ip, fp, cells, out_ijk, out_q):
     """Rule 5 (wetting), in place on the current buffer: every cell whose
     centre lies within the irrigation radius of its centre loses
     ``min(d, wet_rate)``; the cells and amounts are written to ``out_ijk``

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from bonesim.physics.dust_bricks import _FULL_Q, C_HW
+from bonesim.physics.dust_bricks import FULL_Q, C_HW
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, pack_brick_key
 
 __all__ = ["DustSprites", "cell_jitter", "stamp_arrivals", "gather_sprites"]
@@ -141,7 +141,7 @@ def _fill(alive, bmass, hw, den, thr, bcoord, nbr, seen, now, dom, up, up_dd, to
           cover, origin, h, jitter, salt, pos, val, age, start):
     """Write the sprites from index ``start`` on; returns the next index."""
     n = start
-    inv_q = 1.0 / _FULL_Q
+    inv_q = 1.0 / FULL_Q
     amp = jitter * h
     for b in range(hw):
         if not alive[b] or bmass[b] == 0:

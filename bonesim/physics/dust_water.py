@@ -50,15 +50,15 @@ import numpy as np
 from numba import njit
 
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
-from bonesim.physics.dust_bricks import (_FULL_Q, _ROOM_SHARE, _W_ONE, _W_SHIFT, C_ADDED,
+from bonesim.physics.dust_bricks import (FULL_Q, ROOM_SHARE, W_ONE, W_SHIFT, C_ADDED,
                                          C_CUR, C_HW, C_NEED, C_NFREE, C_SUCKED, C_SUCKED_STEP,
                                          C_WETTED, F_H, F_OX, F_OZ, F_SR, F_SX, F_SZ, F_TR,
                                          F_TX, F_TZ, I_DOM, I_DSGN, I_LAT0, I_LAT1, I_SRATE,
                                          I_SUCTION, I_TOOL, MAX_SPILL_FRACTION, Q,
-                                         STAGE_DONE, STAGE_TOOL, _brick_in_domain,
-                                         _insert_brick)
-from bonesim.physics.dust_rules import (_bone_at, _collect_active, _halo, _load_brick,
-                                        _step_kernel)
+                                         STAGE_DONE, STAGE_TOOL, brick_in_domain,
+                                         insert_brick)
+from bonesim.physics.dust_rules import (bone_at, collect_active, add_halo, load_brick,
+                                        step_kernel)
 from bonesim.physics.dust_sprites import DustSprites, gather_sprites
 
 __all__ = ["POUR_SEARCH", "step_water", "water_totals_q", "water_cells", "water_sprites"]
@@ -74,7 +74,7 @@ def _ensure_wet(bcoord, alive, bmass, hw, active, bounds, wkeys, wvals, wbcoord,
     """Allocate the wet-dust bricks at every water brick holding water and
     its in-domain face neighbours. Returns 0, or (allocating nothing) an
     upper bound on the bricks the wet species needs."""
-    n = _collect_active(alive, bmass, hw, active)
+    n = collect_active(alive, bmass, hw, active)
     for mode in range(2):
         need = 0
         for t in range(n):
@@ -87,14 +87,14 @@ def _ensure_wet(bcoord, alive, bmass, hw, active, bounds, wkeys, wvals, wbcoord,
                     bi += s if a == 0 else 0
                     bj += s if a == 1 else 0
                     bk += s if a == 2 else 0
-                if not _brick_in_domain(bi, bj, bk, bounds):
+                if not brick_in_domain(bi, bj, bk, bounds):
                     continue
                 if find_brick(wkeys, wvals, bi, bj, bk) >= 0:
                     continue
                 if mode == 0:
                     need += 1
                 else:
-                    _insert_brick(wkeys, wvals, wbcoord, wnbr, walive, wdens, wbmass,
+                    insert_brick(wkeys, wvals, wbcoord, wnbr, walive, wdens, wbmass,
                                   wbone_b, wfree, wctr, bkeys, bvals, bi, bj, bk)
         if mode == 0 and need > wctr[C_NFREE]:
             return need
@@ -124,10 +124,10 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
            kq, wb, sc, wall):
     """Rule 7 (a) (``stage`` 0) or (b) as one Jacobi update of the water and
     the wet dust (``wb``: (7,) scratch for the wet bricks of a brick and its
-    face neighbours; ``sc``, ``wall``: the scratch of :func:`_load_brick`).
+    face neighbours; ``sc``, ``wall``: the scratch of :func:`load_brick`).
     The bricks must be allocated (halo, :func:`_ensure_wet`)."""
-    n = _collect_active(alive, bmass, ctr[C_HW], active)
-    nw = _collect_active(walive, wbmass, wctr[C_HW], wactive)
+    n = collect_active(alive, bmass, ctr[C_HW], active)
+    nw = collect_active(walive, wbmass, wctr[C_HW], wactive)
     cur = ctr[C_CUR]
     src = dens[cur]
     dst = dens[1 - cur]
@@ -147,7 +147,7 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
     lat0, lat1 = ip[I_LAT0], ip[I_LAT1]
     for t in range(n):
         b = active[t]
-        _load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
+        load_brick(b, nbr, bone_b, bcoord, bounds, bone_dens, bone_body, wall_body, sc, wall)
         wb[6] = find_brick(wkeys, wvals, bcoord[b, 0], bcoord[b, 1], bcoord[b, 2])
         for d in range(6):
             m = nbr[b, d]
@@ -172,7 +172,7 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
                 else:
                     nb = b
                     free = wall[noff] == 0
-                if free and src[nb, noff] < _FULL_Q:
+                if free and src[nb, noff] < FULL_Q:
                     continue
             s = np.int64(wsrc[wself, off]) if wself >= 0 else np.int64(0)
             left = s
@@ -200,12 +200,12 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
                     wn_b = wself
                 wn = np.int64(src[nb, noff])
                 if stage == 0:
-                    f = min(w, rate, _FULL_Q - wn)
+                    f = min(w, rate, FULL_Q - wn)
                 else:
                     if wn >= w:
                         continue
-                    f = min(((w - wn) * kq) >> _W_SHIFT,
-                            ((_FULL_Q - wn) * _ROOM_SHARE) >> _W_SHIFT)
+                    f = min(((w - wn) * kq) >> W_SHIFT,
+                            ((FULL_Q - wn) * ROOM_SHARE) >> W_SHIFT)
                 if f <= 0:
                     continue
                 dst[b, off] -= f
@@ -217,9 +217,9 @@ def _carry(stage, bcoord, nbr, alive, dens, bmass, ctr, active, bone_b, wkeys, w
 
                     # the dust goes as far as its room lets it (one source
                     # below, five at most beside): the rest settles out
-                    room = _FULL_Q - np.int64(wsrc[wn_b, noff])
+                    room = FULL_Q - np.int64(wsrc[wn_b, noff])
                     if stage == 1:
-                        room = (room * _ROOM_SHARE) >> _W_SHIFT
+                        room = (room * ROOM_SHARE) >> W_SHIFT
                     fd = min(fd, room, left)
                     if fd > 0:
                         left -= fd
@@ -249,7 +249,7 @@ def _soak(bcoord, alive, dens, bmass, ctr, active, min_q, rate, keys, vals, dden
     cell with at least ``min_q`` water (wet bricks allocated)."""
     if rate <= 0:
         return
-    n = _collect_active(alive, bmass, ctr[C_HW], active)
+    n = collect_active(alive, bmass, ctr[C_HW], active)
     src = dens[ctr[C_CUR]]
     dcur = ddens[dctr[C_CUR]]
     doth = ddens[1 - dctr[C_CUR]]
@@ -280,7 +280,7 @@ def _soak(bcoord, alive, dens, bmass, ctr, active, min_q, rate, keys, vals, dden
 
 
 # ================================================================ python
-def _water_grid(dust):
+def water_grid(dust):
     """The water species of ``dust``, made on first use."""
     if dust.water is None:
         p = dust.params
@@ -305,7 +305,7 @@ def _pour(dust, water, bone_grid, walls, pos_mm, dt) -> None:
     for _ in range(POUR_SEARCH + 1):
         if ((cell < lo) | (cell >= hi)).any():
             return
-        if not _bone_at(bkeys, bvals, dens, walls[0], walls[1], *(int(c) for c in cell)):
+        if not bone_at(bkeys, bvals, dens, walls[0], walls[1], *(int(c) for c in cell)):
             break
         cell[dom] -= dsgn
     else:
@@ -315,7 +315,7 @@ def _pour(dust, water, bone_grid, walls, pos_mm, dt) -> None:
     if b >= 0:
         have = int(water.density_q[b, voxel_offset(*(int(c) for c in cell))])
     flow = p.water_flow_mm3_s / dust.spacing_mm ** 3          # [cells/s]
-    amount = min(int(round(flow * dt * Q)), _FULL_Q - have)
+    amount = min(int(round(flow * dt * Q)), FULL_Q - have)
     if amount > 0:
         water._add_q(cell.reshape(1, 3), np.array([amount], np.int64))
 
@@ -347,7 +347,7 @@ def step_water(dust, bone_grid, walls, dt, irrigation_pos_mm, tool_pos_mm, tool_
     """
     if irrigation_pos_mm is None and dust.water is None:
         return 0.0
-    water = _water_grid(dust)
+    water = water_grid(dust)
     wet = dust._wet_grid()
     if not np.array_equal(water.gravity, dust.gravity):
         water.set_gravity(dust.gravity)
@@ -360,13 +360,13 @@ def step_water(dust, bone_grid, walls, dt, irrigation_pos_mm, tool_pos_mm, tool_
     if irrigation_pos_mm is not None:
         _pour(dust, water, bone_grid, walls, irrigation_pos_mm, dt)
     rate = int(min(round(p.settle_rate * dt * Q), 1 << 40))
-    kq = int(math.floor(min(p.spill_rate * dt, MAX_SPILL_FRACTION) * _W_ONE))
+    kq = int(math.floor(min(p.spill_rate * dt, MAX_SPILL_FRACTION) * W_ONE))
     for stage in (0, 1):
         while True:            # water's halo, then the wet bricks under the water
-            need = _halo(water.keys, water.vals, water.bcoord, water.nbr, water.alive,
+            need = add_halo(water.keys, water.vals, water.bcoord, water.nbr, water.alive,
                          water.dens, water.bmass, water.bone_b, water.free, water._ctr,
                          water._bkeys, water._bvals, water._active,
-                         _collect_active(water.alive, water.bmass, water._ctr[C_HW],
+                         collect_active(water.alive, water.bmass, water._ctr[C_HW],
                                          water._active), water.bounds)
             if need:
                 water._reserve(int(need))
@@ -415,7 +415,7 @@ def _push_and_suck(water, bone_dens, walls, dt, tool_pos_mm, tool_radius_mm, suc
     water._sphere_scratch(fp[F_TR] if ip[I_TOOL] else 0.0, fp[F_SR] if ip[I_SUCTION] else 0.0)
     stage = STAGE_TOOL
     while True:
-        stage = _step_kernel(stage, water.keys, water.vals, water.bcoord, water.nbr, water.alive,
+        stage = step_kernel(stage, water.keys, water.vals, water.bcoord, water.nbr, water.alive,
                              water.dens, water.bmass, water.bone_b, water.free, water._ctr,
                              water._bkeys, water._bvals, bone_dens, walls[0], walls[1],
                              water._active, water.bounds, ip, fp, water._sc, water._wall,

@@ -70,7 +70,7 @@ def assessment_picture(path, present, labels, spacing_mm: float, origin_mm, stru
     from bonesim.io.anatomy import clinical_name
     from bonesim.render.geometry import structure_polydata
     from bonesim.render.scene import Scene
-    from bonesim.render.visibility_view import _cubes, add_legend, legend_font_px
+    from bonesim.render.visibility_view import cubes_actor, add_legend, legend_font_px
 
     present = np.asarray(present, bool)
     labels = np.asarray(labels)
@@ -109,7 +109,7 @@ def assessment_picture(path, present, labels, spacing_mm: float, origin_mm, stru
             if it.score is None:
                 continue
             if len(reg):
-                top.AddActor(_cubes(reg, CUBE_FILL * h, np.asarray(
+                top.AddActor(cubes_actor(reg, CUBE_FILL * h, np.asarray(
                     OUTCOME_RGB[it.outcome]), REGION_OPACITY))
             if it.anchor_mm is not None:
                 t = vtkBillboardTextActor3D()

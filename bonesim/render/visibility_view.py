@@ -96,7 +96,7 @@ def visibility_scene(model, centre_mm, visible, chosen, title: str, lines, *,
         for sel, rgb, opacity in ((visible == 1, VISIBLE_RGB, VISIBLE_OPACITY),
                                   (visible != 1, HIDDEN_RGB, 1.0)):
             if sel.any():
-                scene.renderer.AddActor(_cubes(centre_mm[sel], e, rgb, opacity))
+                scene.renderer.AddActor(cubes_actor(centre_mm[sel], e, rgb, opacity))
         cam = getattr(getattr(model, "case", None), "camera", None)
         if view is not None:
             scene.set_camera(*view)
@@ -188,7 +188,7 @@ def show_visibility(scene, frames: int | None = None, screenshot=None) -> dict:
     return out
 
 
-def _cubes(centre_mm, edge_mm, rgb, opacity):
+def cubes_actor(centre_mm, edge_mm, rgb, opacity):
     """One actor of cubes of edge ``edge_mm`` at ``centre_mm`` (n, 3) [mm]."""
     from vtkmodules.util import numpy_support
     from vtkmodules.vtkCommonCore import vtkPoints

@@ -14,18 +14,11 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["HANDLE_RECORD_S", "HandleTap", "handle_of", "handle_text"]
+__all__ = ["HANDLE_RECORD_S", "HandleTap", "handle_of"]
 
 #: Shortest interval between two recorded handle readings [s] (100 Hz: the
 #: box answers one channel per USB round trip of a few milliseconds).
 HANDLE_RECORD_S = 0.01
-
-
-def handle_text(angles_deg) -> str | None:
-    """The HUD's ``handle`` line: the angles with a value [deg], e.g.
-    ``"7.5 / 90.0 deg"``; None if none has one."""
-    a = [float(x) for x in angles_deg if x == x]
-    return " / ".join(f"{x:.1f}" for x in a) + " deg" if a else None
 
 
 def handle_of(pedal):

@@ -77,10 +77,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     record : path, optional
         Record the run to this new session file (:mod:`bonesim.runtime.record`);
         a run whose estimated file would not fit is refused first
-        (:func:`bonesim.runtime.disk_guard.check_space`). If recording stops
+        (:func:`bonesim.session.disk_guard.check_space`). If recording stops
         early (a full disk), the run goes on and the summary says so.
     header : dict, optional
-        The recording's header (default :func:`bonesim.runtime.record.make_header`
+        The recording's header (default :func:`bonesim.session.header.make_header`
         of ``model`` and ``burrs``).
     burrs : sequence of Burr
         Burrs 1, 2, ... the trajectory's ``burr`` column may switch to (0 is
@@ -101,11 +101,11 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
         raise ValueError(f"the trajectory uses burr {int(samples.burr.max())}; the run has "
                          f"burrs 0..{len(burrs)}")
     if record is not None:         # room for the file? (refused with the estimate)
-        from bonesim.runtime import disk_guard
+        from bonesim.session import disk_guard
 
         disk_guard.check_space(record, float(samples.t_s[-1] - samples.t_s[0]), rate)
     if header is None and record is not None:
-        from bonesim.runtime.record import make_header
+        from bonesim.session.header import make_header
 
         header = make_header(model, burrs, input_device="scripted")
     if burrs:
@@ -192,7 +192,9 @@ class _Recording:
     records them, :mod:`bonesim.runtime.handle_stream`)."""
 
     def __init__(self, model, state, path, header, handle=None):
-        from bonesim.runtime.record import Drainer, SessionWriter, make_header
+        from bonesim.runtime.record import Drainer
+        from bonesim.session.writer import SessionWriter
+        from bonesim.session.header import make_header
 
         self.state = state
         self.ring = events.Ring.create(1 << 12, **events.OTHER_RINGS["samples"][1])
@@ -232,7 +234,7 @@ class _Recording:
         """Finish the file; returns ``record`` (its path), ``record_ok``,
         ``record_kept`` (see :attr:`SessionWriter.kept`) and ``record_error``
         (one line saying what was kept, or None)."""
-        from bonesim.runtime.record import kept_line
+        from bonesim.session.writer import kept_line
 
         if self.writer.failed is None:
             self.drainer.drain()

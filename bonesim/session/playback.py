@@ -53,7 +53,7 @@ from bonesim.progress import format_clock
 from bonesim.engine.replica import TissueReplica
 
 __all__ = ["SPEEDS", "INJURY_NOTICE_S", "SEEK_SHORT_S", "SEEK_LONG_S", "Timeline",
-           "Frame", "Player", "hud_info", "PlaybackClock"]
+           "Frame", "Player", "hud_info", "handle_text", "PlaybackClock"]
 
 #: Playback speeds offered by :meth:`PlaybackClock.faster` / ``slower``.
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -528,13 +528,18 @@ def hud_info(frame: Frame, model, *, speed: float | None = None,
         removed += f" since reset {frame.epoch}"
     info["removed"] = removed
     if frame.handle_deg is not None:
-        from bonesim.runtime.handle_stream import handle_text
-
         info["handle"] = handle_text(frame.handle_deg)
     lines = [f"INJURY {r}" for r in frame.recent] + [str(n) for n in notices]
     if lines:
         info["message"] = "\n".join(lines)
     return info
+
+
+def handle_text(angles_deg) -> str | None:
+    """The HUD's ``handle`` line: the angles with a value [deg], e.g.
+    ``"7.5 / 90.0 deg"``; None if none has one."""
+    a = [float(x) for x in angles_deg if x == x]
+    return " / ".join(f"{x:.1f}" for x in a) + " deg" if a else None
 
 
 # --------------------------------------------------------------------- clock

@@ -1,6 +1,6 @@
 """Reading session files: the schema check, summaries, and damaged files.
 
-:func:`read_session` reads a file written by :mod:`bonesim.runtime.record` and checks
+:func:`read_session` reads a file written by :mod:`bonesim.session.writer` and checks
 it against the schema (``docs/session_schema.md``). It never waits on a file
 that no writer holds and never ends in a raw HDF5 error: a damaged file (cut
 short, zeroed blocks, left open by a writer that died; see
@@ -10,7 +10,7 @@ removals, and the :class:`Session` says what is wrong (:attr:`Session.damage`).
 :func:`repair_session` writes that readable prefix as a clean file.
 
 Files of schema 3 carry checksums: a SHA-256 of the header
-(:func:`bonesim.runtime.record.header_sha256`) and a Fletcher32 checksum on
+(:func:`bonesim.session.header.header_sha256`) and a Fletcher32 checksum on
 every chunk of every column, so a flipped bit is found and named: a header
 that fails its checksum makes the session refuse to rebuild its model
 (:attr:`Session.header_ok`), a chunk that fails ends that column's readable
@@ -34,10 +34,10 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
-from bonesim.runtime.record import OPTIONAL_GROUPS
-from bonesim.runtime.record import (FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, SessionWriter, _h5py,
-                                    compact_session, header_sha256, is_compaction_temp,
-                                    model_sha256, sessions_folder)
+from bonesim.session.schema import OPTIONAL_GROUPS
+from bonesim.session.schema import FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, require_h5py
+from bonesim.session.writer import SessionWriter, compact_session, is_compaction_temp
+from bonesim.session.header import header_sha256, model_sha256, sessions_folder
 from bonesim.session.salvage import open_session_file, read_prefix, read_prefix_why
 from bonesim.session.schema_v1 import GROUPS_V1
 from bonesim.session.schema_v1 import migrate as migrate_v1
@@ -395,7 +395,7 @@ def read_session(path) -> Session:
         target = path.with_name(path.name[1:-len(".compacting")])
         raise BonesimError(f"{path}: a leftover of an interrupted compaction of {target.name}, "
                            f"not a session ({target.name} holds the recording); delete it")
-    f, damage, real_size, view = open_session_file(path, _h5py())
+    f, damage, real_size, view = open_session_file(path, require_h5py())
     problems = [damage] if damage else []
     lost: list = []
     holes: list = []
@@ -509,7 +509,7 @@ def repair_session(path, out, overwrite: bool = False) -> Session:
     if w.failed is not None:                     # a full disk: no half copy left behind
         out.unlink(missing_ok=True)
         raise BonesimError(f"{out}: the repaired copy could not be written: {w.failed}")
-    with _h5py().File(out, "r+") as f:           # attributes cannot change under SWMR
+    with require_h5py().File(out, "r+") as f:           # attributes cannot change under SWMR
         f.attrs["repaired"] = json.dumps({"from": str(Path(path)), "damage": src.damage})
     compact_session(out)
     return read_session(out)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from bonesim.errors import BonesimError
-from bonesim.runtime.disk_guard import HDF5_SIGNATURE, lookup3
+from bonesim.session.disk_guard import HDF5_SIGNATURE, lookup3
 
 __all__ = ["Superblock", "read_superblock", "RepairedView",
            "open_session_file", "read_prefix", "read_prefix_why"]

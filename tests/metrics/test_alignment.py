@@ -232,7 +232,7 @@ def two_runs(tmp_path_factory):
     from bonesim.io.loading import load_model
     from bonesim.io.toolpath import demo_trajectory
     from bonesim.io.trajectory import Trajectory
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.runtime.simulate import run_trajectory
 
     model = load_model("phantom", "cutting-5mm")

@@ -103,7 +103,7 @@ def test_main_job_plan_recorded_scores_full_marks(tmp_path):
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.io.toolpath import plan_mastoidectomy
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.runtime.simulate import run_trajectory
     from metrics.assessment import assess_session
 

@@ -48,7 +48,7 @@ def _edit_header(path, **change):
                 h[k] = v
         f.attrs["header"] = json.dumps(h)
         if "header_sha256" in f.attrs:       # an edit made on purpose: signed again
-            from bonesim.runtime.record import header_sha256
+            from bonesim.session.header import header_sha256
 
             f.attrs["header_sha256"] = header_sha256(f.attrs["format"], f.attrs["schema"],
                                                      f.attrs["header"])

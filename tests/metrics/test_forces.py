@@ -252,7 +252,7 @@ def _record_demo(folder, steps: int):
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.io.toolpath import demo_trajectory
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.runtime.simulate import run_trajectory
     from bonesim.session.reader import read_session
 

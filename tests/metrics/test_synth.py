@@ -137,7 +137,7 @@ def test_the_expert_takes_the_fine_burr_for_the_deep_passes(models, tmp_path):
     recorded, the change is a burr change in the session, and the run
     replays bit for bit."""
     from bonesim.io.burrs import load_burr
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.runtime.simulate import run_trajectory
     from bonesim.session.replay import verify
 

@@ -23,6 +23,7 @@ from metrics.visibility import (StructureVisibility, VisibilityResult, recompute
                                 visibility, visible_fraction)
 
 from tests.bonesim.fakes import MATERIALS, FakeBurr, FakeStructure
+from tests.bonesim.waiting import wait_drill_off
 
 
 # ------------------------------------------------------------ recorded runs
@@ -51,7 +52,9 @@ def record_run(path, n_traj=1500, *, camera_turn_deg=0.0, reset_at=None, burr_at
     from bonesim.io.toolpath import demo_trajectory
     from bonesim.physics.visibility import VisibilityTracker
     from bonesim.runtime.haptic_loop import push_sample
-    from bonesim.runtime.record import Drainer, SessionWriter, make_header
+    from bonesim.runtime.record import Drainer
+    from bonesim.session.writer import SessionWriter
+    from bonesim.session.header import make_header
 
     case = load_case("phantom")
     model = load_model("phantom", "cutting-5mm")
@@ -372,7 +375,8 @@ def test_offline_equals_live_on_a_live_loop_recording_with_a_moving_camera(tmp_p
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.runtime.haptic_loop import HapticLoop
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
 
     model = load_model("phantom", "cutting-5mm")
     cam = load_case("phantom").camera
@@ -392,7 +396,7 @@ def test_offline_equals_live_on_a_live_loop_recording_with_a_moving_camera(tmp_p
             rec.camera(focal + _rotate(eye0 - focal, cam.up, a), focal, cam.up)
             time.sleep(1 / 120)
         loop.set_drill(False)
-        time.sleep(0.1)
+        assert wait_drill_off(loop)
         rec.close()
     finally:
         loop.close()

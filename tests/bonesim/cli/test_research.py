@@ -24,3 +24,17 @@ def test_research_commands_parse():
     assert a.expert == ["e1.h5", "e2.h5"] and not a.json
     a = p.parse_args(["cohort", "synth", "--out", "d", "--experts", "2"])
     assert (a.experts, a.novices, a.duration) == (2, 6, 180.0)
+
+
+def test_research_code_is_reached_by_name_and_missing_research_is_one_line(monkeypatch):
+    import pytest
+
+    from bonesim.cli.research import research_module
+    from bonesim.errors import BonesimError
+
+    assert research_module("metrics.assessment", "bonesim assess").__name__ == \
+        "metrics.assessment"
+    monkeypatch.setitem(sys.modules, "metrics.no_such", None)     # import fails
+    with pytest.raises(BonesimError) as e:
+        research_module("metrics.no_such", "bonesim assess")
+    assert "\n" not in str(e.value) and "bonesim assess needs the research package" in str(e.value)

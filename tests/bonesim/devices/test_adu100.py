@@ -158,7 +158,7 @@ def test_a_recorded_handle_run_keeps_its_angles_replays_and_plays_back(model, tm
     from bonesim.engine.events import HANDLE_CHANNELS
     from bonesim.io.case import load_case
     from bonesim.runtime.handle_stream import HANDLE_RECORD_S
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify
@@ -283,9 +283,11 @@ class CountingHandle:
 def test_the_haptic_loop_records_a_handles_angles(model, tmp_path):
     """Through the loop's process and the recorder's: the ``handle`` ring
     into ``/handle`` at HANDLE_RECORD_S, each row the reading of its step."""
-    from bonesim.runtime.handle_stream import HANDLE_RECORD_S, handle_text
+    from bonesim.runtime.handle_stream import HANDLE_RECORD_S
+    from bonesim.session.playback import handle_text
     from bonesim.runtime.haptic_loop import HapticLoop
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
     from bonesim.session.reader import read_session
 
     loop = HapticLoop(model, device=("null", (0.0, 0.0, 60.0), (0.0, 0.0, -1.0)),

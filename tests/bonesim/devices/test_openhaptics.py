@@ -79,7 +79,7 @@ def test_full_run_pose_in_force_out_unplug_and_replug(stub, model, tmp_path):
     from bonesim.devices.openhaptics import OpenHapticsDevice
     from bonesim.devices.registry import device_record, probe
     from bonesim.io.case import load_case
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify
@@ -160,7 +160,8 @@ def test_a_run_through_the_haptic_loop_records_the_devices_own_limits(stub, tmp_
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.runtime.haptic_loop import HapticLoop
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify

@@ -101,7 +101,7 @@ def test_a_recorded_pedal_run_replays_and_plays_back(monkeypatch, model, tmp_pat
     from bonesim.devices.null import NullDevice
     from bonesim.devices.registry import device_record
     from bonesim.io.case import load_case
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify

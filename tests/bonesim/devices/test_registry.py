@@ -103,7 +103,8 @@ def test_a_run_with_a_device_backend_records_it_replays_and_plays_back(cfg_file,
     from bonesim.io.case import load_case
     from bonesim.io.loading import load_model
     from bonesim.runtime.haptic_loop import HapticLoop
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify

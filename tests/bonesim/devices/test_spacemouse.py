@@ -193,7 +193,7 @@ def test_a_hung_report_stream_stops_the_tool(monkeypatch, model):
 
 def test_a_recorded_spacemouse_run_replays_and_plays_back(monkeypatch, model, tmp_path):
     from bonesim.devices.registry import device_record
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from bonesim.session.playback import Player
     from bonesim.session.reader import read_session
     from bonesim.session.replay import verify

@@ -10,7 +10,7 @@ from hypothesis import strategies as hs
 
 from bonesim.engine.grid import Grid, density_at
 from bonesim.physics.dust import DustGrid, DustParams, Q
-from bonesim.physics.dust_water import (_water_grid, water_cells, water_sprites,
+from bonesim.physics.dust_water import (water_grid, water_cells, water_sprites,
                                         water_totals_q)
 
 N = 24
@@ -71,7 +71,7 @@ def test_water_and_dust_are_conserved_exactly(seed, dust, water, steps, gravity)
         amt = np.array([int(a * Q) for _, a in water], np.int64)
         free = np.array([density_at(g.keys, g.vals, g.density, *c) == 0 for c in ijk])
         if free.any():
-            _water_grid(d)._add_q(ijk[free], amt[free])
+            water_grid(d)._add_q(ijk[free], amt[free])
     for irr, suc, tool, dt in steps:
         d.step(g, dt, irrigation_pos_mm=None if irr is None else _mm(irr),
                irrigation_radius_mm=1.0,

@@ -24,7 +24,7 @@ def _run(name, model, path, tmp):
     from bonesim.devices.registry import device_record
     from bonesim.devices.safety import SafetyLimits
     from bonesim.io.case import load_case
-    from bonesim.runtime.record import make_header
+    from bonesim.session.header import make_header
     from tests.bonesim.devices.drive import drive, finish
 
     cam = load_case("phantom").camera

@@ -2,7 +2,6 @@
 recorded, replayed bit for bit, and followed by replicas."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -15,11 +14,12 @@ from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.engine.haptics import O_MAG
 from bonesim.io.loading import load_model
 from bonesim.engine.model import Sample, make_state, reset_state, step
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.replay import replay, verify
 from bonesim.engine.replica import TissueReplica
 from bonesim.session.reader import read_session
-from tests.bonesim.waiting import wait_until
+from tests.bonesim.waiting import wait_drill_off, wait_steps, wait_until
 
 
 #: Drilling after the cut [s].
@@ -75,7 +75,7 @@ def split_run(model, tmp_path_factory):
         loop.set_target(target - 20.0 * view, view)
         assert wait_until(lambda: np.linalg.norm(np.asarray(loop.status["pos_mm"]) - target) > 15.0)
         loop.set_drill(False)
-        time.sleep(0.05)
+        assert wait_drill_off(loop)
         # a replica following the loop holds its tissue
         live.drain()
         np.testing.assert_array_equal(live.grid.density == 0, loop.state.grid.density == 0)
@@ -83,7 +83,7 @@ def split_run(model, tmp_path_factory):
         pose = np.array([0.0, 0.0, 80.0, *IDENTITY_POSE[3:]])
         loop.send(MoveBody, body=1, pose=pose)
         assert wait_until(lambda: loop.state.pose[1][2] == 80.0)
-        time.sleep(0.05)
+        assert wait_steps(loop, 50)
         rec.close()
         live.drain()
         np.testing.assert_array_equal(live.state.pose, loop.state.pose)

@@ -2,7 +2,6 @@
 replayed bit for bit, followed by a replica."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -14,10 +13,11 @@ from bonesim.io.case import load_case
 from bonesim.io.loading import load_model
 from bonesim.runtime.commands import CutPlane, SetTool, TOOLS
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
-from tests.bonesim.waiting import wait_until
+from tests.bonesim.waiting import wait_drill_off, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,7 @@ def cut_run(model, tmp_path_factory):
         loop.set_target(target + 6.0 * view, view)      # on to the bone under the cut
         assert wait_until(lambda: loop.state.n_removed > n1 + 50)
         loop.set_drill(False)
-        time.sleep(0.05)
+        assert wait_drill_off(loop)
         live.drain()
         np.testing.assert_array_equal(live.grid.density == 0, loop.state.grid.density == 0)
         rec.close()

@@ -19,10 +19,11 @@ from bonesim.io.loading import load_model
 from bonesim.runtime.commands import ShedPart, SplitBox, SplitPart
 from bonesim.runtime.fragment_finder import FragmentFinder, speck_voxels_of
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
-from tests.bonesim.waiting import wait_until
+from tests.bonesim.waiting import wait_drill_off, wait_steps, wait_until
 
 BONE = SimpleNamespace(name="bone", kind="bone", display_color=(230, 220, 200))
 
@@ -229,9 +230,9 @@ def fragment_run(model, tmp_path_factory):
         assert loop.state.n_removed > n0 + 100
         for _ in range(5):
             finder.poll(loop.send)
-            time.sleep(0.02)
+            assert wait_steps(loop, 20)
         loop.set_drill(False)
-        time.sleep(0.05)
+        assert wait_drill_off(loop)
         rec.close()
         finder.poll(loop.send)
         body = loop.state.body.copy()

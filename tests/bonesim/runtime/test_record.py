@@ -24,11 +24,14 @@ from bonesim.io.toolpath import demo_trajectory
 from bonesim.errors import BonesimError
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import SCHEMA_VERSION, Recorder, make_header
+from bonesim.session.schema import SCHEMA_VERSION
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.session.replay import replay, verify
 from bonesim.session.reader import read_session, session_info
 from bonesim.runtime.shared import SharedArrays
 from bonesim.runtime.simulate import run_trajectory
+from tests.bonesim.waiting import wait_drill_off, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +151,8 @@ def test_not_hdf5_and_missing_files(tmp_path, capsys):
 
 def _resign(f, text: str) -> None:
     """Set the header to ``text`` with a matching checksum (an edit, not damage)."""
-    from bonesim.runtime.record import FORMAT, header_sha256
+    from bonesim.session.schema import FORMAT
+    from bonesim.session.header import header_sha256
 
     f.attrs["header"] = text
     f.attrs["header_sha256"] = header_sha256(FORMAT, int(f.attrs["schema"]), text)
@@ -217,7 +221,8 @@ from bonesim.io.case import load_case
 from bonesim.io.toolpath import demo_trajectory
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 import numpy as np
 m = load_model("phantom", "cutting-5mm")
 t = demo_trajectory(load_case("phantom"), "cutting-5mm")
@@ -233,6 +238,14 @@ while True:
 """
 
 
+def _rows(path) -> int:
+    """Samples a live session file holds so far (0 before it can be read)."""
+    try:
+        return len(read_session(path).samples["t_s"])
+    except (BonesimError, OSError):
+        return 0
+
+
 @pytest.mark.slow
 def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     path = tmp_path / "killed.h5"
@@ -242,13 +255,13 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     try:
         handles = {k: pickle.loads(bytes.fromhex(v)) if k != "writer" else v
                    for k, v in json.loads(proc.stdout.readline()).items()}
-        time.sleep(1.5)
         # readable while being written (SWMR), and growing
-        n1 = len(read_session(path).samples["t_s"])
-        time.sleep(0.5)
-        n2 = len(read_session(path).samples["t_s"])
+        assert wait_until(lambda: _rows(path) > 0, 60.0)
+        n1 = _rows(path)
+        assert wait_until(lambda: _rows(path) > n1, 60.0)
+        n2 = _rows(path)
         assert 0 < n1 < n2
-        time.sleep(0.3)
+        assert wait_until(lambda: _rows(path) > n2, 60.0)     # killed mid-run
     finally:
         os.killpg(proc.pid, signal.SIGKILL)      # the app, the loop and the writer
         proc.wait(10)
@@ -290,27 +303,21 @@ def test_live_recording_across_a_reset_and_a_burr_change(model, tmp_path):
     loop = HapticLoop(model, burrs=[burr2])
     rec = Recorder(loop, path, make_header(model, [burr2], input_device="mouse"))
 
-    def wait(cond):
-        end = time.monotonic() + 20.0
-        while not cond() and time.monotonic() < end:
-            time.sleep(0.01)
-        return cond()
-
     try:
         rec.start()
         loop.start()
         loop.set_target(target, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait(lambda: loop.state.n_removed > 20)
+        assert wait_until(lambda: loop.state.n_removed > 20)
         loop.set_burr(1)
         n0 = loop.state.n_removed
-        assert wait(lambda: loop.state.n_removed > n0 + 5)
+        assert wait_until(lambda: loop.state.n_removed > n0 + 5)
         epoch = loop.reset()
-        assert wait(lambda: loop.status["epoch"] == epoch)
+        assert wait_until(lambda: loop.status["epoch"] == epoch)
         n1 = loop.state.n_removed
-        assert wait(lambda: loop.state.n_removed > n1 + 20)
+        assert wait_until(lambda: loop.state.n_removed > n1 + 20)
         loop.set_drill(False)
-        time.sleep(0.1)
+        assert wait_drill_off(loop)
         rec.close()
         seen = (int(rec.status["visible"]), int(rec.status["hidden"]))
         ev = loop.state.tissue.read(0)
@@ -375,20 +382,20 @@ def _same(a, b):
 
 def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_path,
                                                             monkeypatch):
-    from bonesim.runtime import record
+    from bonesim.session import writer
 
     raw = tmp_path / "raw.h5"
     run_trajectory(model, traj, surface=False, record=raw, header=make_header(model))
     # the same run written raw (as a live writer leaves it before closing)
     live = tmp_path / "live.h5"
-    monkeypatch.setattr(record.SessionWriter.__init__, "__defaults__", (False, False))
+    monkeypatch.setattr(writer.SessionWriter.__init__, "__defaults__", (False, False))
     run_trajectory(model, traj, surface=False, record=live, header=make_header(model))
     monkeypatch.undo()
     with h5py.File(live, "r") as f:
         assert f["samples/pos_mm"].compression is None
     before = _contents(live)
     raw_size = live.stat().st_size
-    size = record.compact_session(live)
+    size = writer.compact_session(live)
     assert size == live.stat().st_size < raw_size / 2
     with h5py.File(live, "r") as f:
         assert f["samples/pos_mm"].compression == "gzip"
@@ -403,9 +410,9 @@ def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_pa
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(record.os, "replace", boom)
+    monkeypatch.setattr(writer.os, "replace", boom)
     with pytest.raises(BonesimError, match="disk full.*kept as it was"):
-        record.compact_session(keep)
+        writer.compact_session(keep)
     monkeypatch.undo()
     _same(before, _contents(keep))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.h5", "live.h5", "raw.h5"]

@@ -2,7 +2,6 @@
 real haptic loop, recorded and replayed bit for bit."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -13,11 +12,12 @@ from bonesim.io.case import load_case
 from bonesim.io.loading import load_model
 from bonesim.runtime.commands import SplitBox
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
-from tests.bonesim.waiting import wait_until
+from tests.bonesim.waiting import SETTLE_STEPS, wait_steps, wait_tool_at, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def run(tmp_path_factory):
         loop.start()
         loop.set_drill(False)
         loop.set_target(target - 4.0 * view, view)          # above the bone
-        time.sleep(0.2)
+        assert wait_tool_at(loop, target - 4.0 * view)
         # the bone under the tool, 12 voxels across, made a fragment
         c = np.rint((target - model.grid.origin_mm) / model.spacing_mm).astype(int)
         loop.send(SplitBox, lo=c - 6, hi=c + 6, body=0)
@@ -43,14 +43,15 @@ def run(tmp_path_factory):
         # the stopped tool presses on it
         loop.set_target(target + 2.0 * view, view)
         assert wait_until(lambda: tuple(loop.state.pose[1]) != IDENTITY_POSE)
-        time.sleep(0.3)
+        assert wait_steps(loop, 300)                        # it is pushed a while
         loop.set_target(target - 6.0 * view, view)          # the tool away
-        time.sleep(0.2)
+        assert wait_tool_at(loop, target - 6.0 * view)
         loop.send(PlacePlate, plate="straight-4")
-        time.sleep(1.5)                                     # it falls and rests
+        assert wait_until(lambda: int(loop.status["commands_applied"]) == 2)
+        assert wait_steps(loop, SETTLE_STEPS)               # it falls and rests
         loop.send(AffixPlate)
         assert wait_until(lambda: int(loop.status["commands_applied"]) == 3)
-        time.sleep(0.2)
+        assert wait_steps(loop, 200)
         rejected = int(loop.status["commands_rejected"])
         error = bytes(loop.status["command_error"]).decode(errors="replace")
         rec.close()

@@ -18,7 +18,8 @@ import json, sys, time
 sys.path.insert(0, sys.argv[2])
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 m = load_model("phantom", "cutting-5mm")
 loop = HapticLoop(m, device=("null",))
 rec = Recorder(loop, sys.argv[1], make_header(m)).start()

@@ -1,5 +1,5 @@
 """Small session files for the fault matrix: written by the real
-:class:`~bonesim.runtime.record.SessionWriter` from synthetic rows (no
+:class:`~bonesim.session.writer.SessionWriter` from synthetic rows (no
 engine), so hundreds of damaged copies read in seconds."""
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ import shutil
 import numpy as np
 
 from bonesim.engine import events
-from bonesim.runtime import record
-from bonesim.runtime.record import GROUPS, HEADER_KEYS, SessionWriter
+from bonesim.session import writer
+from bonesim.session.schema import GROUPS, HEADER_KEYS
+from bonesim.session.writer import SessionWriter
 
 __all__ = ["HEADER", "ROWS", "write_synthetic", "flip_bit", "cut"]
 
@@ -50,9 +51,9 @@ def write_synthetic(path, compact: bool, seed: int = 0, chunk_rows: int | None =
     rows written per group."""
     rng = np.random.default_rng(seed)
     data = {g: _rows(g, n, rng) for g, n in ROWS.items()}
-    old = record.COMPACT_CHUNK_ROWS
+    old = writer.COMPACT_CHUNK_ROWS
     if chunk_rows is not None:
-        record.COMPACT_CHUNK_ROWS = chunk_rows
+        writer.COMPACT_CHUNK_ROWS = chunk_rows
     try:
         with SessionWriter(path, HEADER, compact=compact) as w:
             for q in range(3):                     # a few flushes, as a live writer does
@@ -62,7 +63,7 @@ def write_synthetic(path, compact: bool, seed: int = 0, chunk_rows: int | None =
                     w.append(g, {k: v[a:b] for k, v in cols.items()})
                 w.flush()
     finally:
-        record.COMPACT_CHUNK_ROWS = old
+        writer.COMPACT_CHUNK_ROWS = old
     return data
 
 

@@ -344,10 +344,11 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     from bonesim.io.case import load_case
     from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.io.loading import load_model
-    from bonesim.runtime.record import Recorder, make_header
+    from bonesim.runtime.record import Recorder
+    from bonesim.session.header import make_header
     from bonesim.session.replay import replay
     from bonesim.session.reader import read_session
-    import time
+    from tests.bonesim.waiting import wait_drill_off, wait_until
 
     model = load_model("phantom", "cutting-5mm")
     cam = load_case("phantom").camera
@@ -358,25 +359,19 @@ def test_live_recording_with_a_reset_and_a_burr_change_plays_back(tmp_path):
     loop = HapticLoop(model, burrs=[burr2])
     rec = Recorder(loop, path, make_header(model, [burr2], input_device="mouse"))
 
-    def wait(cond):
-        end = time.monotonic() + 30.0
-        while not cond() and time.monotonic() < end:
-            time.sleep(0.01)
-        return cond()
-
     try:
         rec.start()
         loop.start()
         loop.set_target(np.array([23.0, 3.0, -2.0]) + 3.0 * view, view)
         loop.set_drill(True, speed_rpm=60000.0)
-        assert wait(lambda: loop.state.n_removed > 30)
+        assert wait_until(lambda: loop.state.n_removed > 30, 30.0)
         epoch = loop.reset()
-        assert wait(lambda: loop.status["epoch"] == epoch)
+        assert wait_until(lambda: loop.status["epoch"] == epoch, 30.0)
         loop.set_burr(1)
         n1 = loop.state.n_removed
-        assert wait(lambda: loop.state.n_removed > n1 + 20)
+        assert wait_until(lambda: loop.state.n_removed > n1 + 20, 30.0)
         loop.set_drill(False)
-        time.sleep(0.1)
+        assert wait_drill_off(loop)
         rec.close()
     finally:
         loop.close()

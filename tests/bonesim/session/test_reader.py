@@ -14,13 +14,14 @@ import h5py
 import numpy as np
 import pytest
 
-from bonesim.runtime import record
+from bonesim.session import schema, writer
 from bonesim.cli.main import main
 from bonesim.errors import BonesimError
-from bonesim.runtime.record import SessionWriter, make_header
+from bonesim.session.writer import SessionWriter
+from bonesim.session.header import make_header
 from bonesim.session.replay import verify
 from bonesim.session.reader import damage_notice, read_session, repair_session
-from bonesim.runtime.disk_guard import lookup3
+from bonesim.session.disk_guard import lookup3
 from bonesim.session.salvage import read_superblock
 from bonesim.runtime.simulate import run_trajectory
 from tests.bonesim.runtime.test_record import model, traj  # noqa: F401 (fixtures: an 8 s demo run)
@@ -34,7 +35,7 @@ def compacted(model, traj, tmp_path_factory):
     """A closed, compacted 8 s recording in chunks of SMALL_CHUNKS rows."""
     path = tmp_path_factory.mktemp("damaged") / "run.h5"
     mp = pytest.MonkeyPatch()
-    mp.setattr(record, "COMPACT_CHUNK_ROWS", SMALL_CHUNKS)
+    mp.setattr(writer, "COMPACT_CHUNK_ROWS", SMALL_CHUNKS)
     try:
         run_trajectory(model, traj, surface=False, record=path, header=make_header(model))
     finally:
@@ -194,7 +195,7 @@ def test_empty_not_hdf5_and_newer_schema(model, tmp_path):
     with SessionWriter(tmp_path / "new.h5", make_header(model), compact=False):
         pass
     with h5py.File(tmp_path / "new.h5", "r+") as f:
-        f.attrs["schema"] = record.SCHEMA_VERSION + 1
+        f.attrs["schema"] = schema.SCHEMA_VERSION + 1
     with pytest.raises(BonesimError, match="newer than this bonesim reads"):
         read_session(tmp_path / "new.h5")
 

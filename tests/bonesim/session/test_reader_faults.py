@@ -15,7 +15,8 @@ import pytest
 
 from bonesim.cli.main import main
 from bonesim.errors import BonesimError
-from bonesim.runtime.record import SCHEMA_VERSION, compaction_temp
+from bonesim.session.schema import SCHEMA_VERSION
+from bonesim.session.writer import compaction_temp
 from bonesim.session.reader import list_sessions, read_session, repair_session, session_info
 from bonesim.session.replay import coverage, verify
 from tests.bonesim.session.fault_files import ROWS, cut, flip_bit, write_synthetic

@@ -4,7 +4,6 @@ is placed on it and affixed, and the block is lifted out with the plate. The
 recording replays bit for bit and plays back to where the run left things."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -16,11 +15,12 @@ from bonesim.io.loading import load_model
 from bonesim.runtime.commands import CutPlane, MoveBody
 from bonesim.runtime.fragment_finder import FragmentFinder
 from bonesim.runtime.haptic_loop import HapticLoop
-from bonesim.runtime.record import Recorder, make_header
+from bonesim.runtime.record import Recorder
+from bonesim.session.header import make_header
 from bonesim.runtime.rigid_commands import AffixPlate, PlacePlate
 from bonesim.session.reader import read_session
 from bonesim.session.replay import replay, verify
-from tests.bonesim.waiting import wait_until
+from tests.bonesim.waiting import SETTLE_STEPS, wait_steps, wait_tool_at, wait_until
 
 #: A block of the lateral cortex (the face at x of about 20 mm, looked at
 #: along -x): its outer face's centre 1 mm off the bone [mm], its size along
@@ -69,27 +69,30 @@ def run(tmp_path_factory):
         loop.start()
         loop.set_drill(False)
         loop.set_target(CENTRE_MM - 30.0 * INTO, INTO)      # well off the bone: a stopped
-        time.sleep(0.5)                                     # tool would push the block
+        assert wait_tool_at(loop, CENTRE_MM - 30.0 * INTO)  # tool would push the block
         finder = FragmentFinder(model, loop.state, loop.status, snapshot=False)
         for params in _strokes():
             loop.send(CutPlane, **params)
         assert wait_until(lambda: loop.state.n_bodies >= 2,
                      poll=lambda: finder.poll(loop.send)), "the block was not split off"
-        time.sleep(0.3)
+        assert wait_steps(loop, 300)
         finder.poll(loop.send)                              # any specks of the cuts
-        time.sleep(0.3)
+        assert wait_steps(loop, 300)
         body = _largest_new_body(loop.state)               # the block
         # a plate dropped onto the block, left to settle, affixed
+        applied = int(loop.status["commands_applied"])
         loop.send(PlacePlate, plate="straight-4", pose=PLATE_POSE)
-        time.sleep(1.5)
+        assert wait_until(lambda: int(loop.status["commands_applied"]) > applied)
+        assert wait_steps(loop, SETTLE_STEPS)
         loop.send(AffixPlate)
-        time.sleep(0.3)
+        assert wait_until(lambda: int(loop.status["commands_applied"]) > applied + 1)
+        assert wait_steps(loop, 300)
         # the block lifted out along the line of sight, the plate with it
         pose = np.array(IDENTITY_POSE, float)
         pose[:3] = -LIFT_MM * INTO
         loop.send(MoveBody, body=body, pose=pose)
         assert wait_until(lambda: tuple(loop.state.pose[body][:3]) == tuple(pose[:3]))
-        time.sleep(0.2)
+        assert wait_steps(loop, 200)
         rejected = int(loop.status["commands_rejected"])
         error = bytes(loop.status["command_error"]).decode(errors="replace")
         stats = dict(finder.stats)

@@ -15,7 +15,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.cli.main import main
 from bonesim.session.playback import Player
-from bonesim.runtime.record import SCHEMA_VERSION
+from bonesim.session.schema import SCHEMA_VERSION
 from bonesim.session.replay import replay, verify
 from bonesim.session.reader import read_session, repair_session
 from bonesim.session.schema_v1 import GROUPS_V1

@@ -6,7 +6,10 @@ from bonesim.io.burrs import load_burr
 from bonesim.runtime.haptic_loop import push_sample
 from bonesim.engine.model import Sample, make_state, reset_state, step
 from bonesim.io.loading import load_model
-from bonesim.runtime.record import Drainer, SessionWriter, make_header, SCHEMA_VERSION
+from bonesim.runtime.record import Drainer
+from bonesim.session.writer import SessionWriter
+from bonesim.session.header import make_header
+from bonesim.session.schema import SCHEMA_VERSION
 from bonesim.io.toolpath import demo_trajectory
 assert SCHEMA_VERSION == 1
 out = sys.argv[1]

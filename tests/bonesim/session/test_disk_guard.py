@@ -17,10 +17,10 @@ import pytest
 
 from bonesim.cli.main import main
 from bonesim.errors import EXIT_RECORDING_LOST, BonesimError
-from bonesim.runtime import disk_guard, record
-from bonesim.runtime.disk_guard import (GuardedFile, SpaceLimits, check_space, estimate_bytes,
+from bonesim.session import disk_guard
+from bonesim.session.disk_guard import (GuardedFile, SpaceLimits, check_space, estimate_bytes,
                                         headroom_bytes, load_space_limits)
-from bonesim.runtime.record import SessionWriter, compact_session, compaction_temp
+from bonesim.session.writer import SessionWriter, compact_session, compaction_temp, kept_line
 from bonesim.session.reader import read_session
 from bonesim.session.replay import coverage
 from tests.bonesim.session.fault_files import HEADER, write_synthetic
@@ -104,7 +104,7 @@ def test_writer_on_a_full_disk_stops_and_keeps_what_it_says(tmp_path, no_reserve
     assert "largest size allowed" in w.failed
     kept = w.kept
     assert 0 < kept["samples"] < sent and kept["removals"] > 0
-    line = record.kept_line(p, w.failed, kept)
+    line = kept_line(p, w.failed, kept)
     assert "\n" not in line and f"{kept['samples']:,} samples" in line
     s = read_session(p)                            # the file holds at least that
     assert not s.complete and s.damage is not None
@@ -216,14 +216,14 @@ def test_repair_onto_a_full_disk_says_so_and_leaves_nothing(tmp_path):
 
 _SLOW_COMPACTION = """
 import sys, time, h5py
-from bonesim.runtime import record
-record.COMPACT_CHUNK_ROWS = 256
+from bonesim.session import writer
+writer.COMPACT_CHUNK_ROWS = 256
 orig = h5py.Dataset.__setitem__
 def slow(self, key, value):
     time.sleep(0.02)
     return orig(self, key, value)
 h5py.Dataset.__setitem__ = slow
-record.compact_session(sys.argv[1])
+writer.compact_session(sys.argv[1])
 """
 
 

@@ -1,4 +1,4 @@
-"""The cohort benchmarks (bonesim.bench.metrics_cohort): registered as one entry
+"""The cohort benchmarks (metrics.bench.cohort): registered as one entry
 point, and their figures describe what they scored (no timing is asserted)."""
 from __future__ import annotations
 

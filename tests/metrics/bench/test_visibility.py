@@ -1,4 +1,4 @@
-"""The offline visibility benchmark (bonesim.bench.metrics_visibility): registered,
+"""The offline visibility benchmark (metrics.bench.visibility): registered,
 and its figures describe the run it recomputed (no timing is asserted)."""
 from __future__ import annotations
 

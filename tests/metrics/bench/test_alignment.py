@@ -1,10 +1,10 @@
-"""The alignment benchmark (bonesim.bench.metrics_alignment): registered,
+"""The alignment benchmark (metrics.bench.alignment): registered,
 reports its figures, and its pure-Python reference agrees with the kernel."""
 from __future__ import annotations
 
 import numpy as np
 
-from bonesim.bench.metrics_alignment import _naive_cost
+from metrics.bench.alignment import _naive_cost
 
 
 def test_the_bench_reports_the_1000_square_dp():

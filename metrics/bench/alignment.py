@@ -9,7 +9,7 @@
     recurrence, cost only) on a :data:`NAIVE_N`-square table for scale,
     compared per cell.
 
-``metrics`` is imported inside the function: ``bonesim`` does not depend on it.
+``bonesim bench`` finds it by name (:data:`bonesim.bench.suite.BENCHMARKS`).
 Figures are wall-clock on whatever machine runs them.
 """
 from __future__ import annotations

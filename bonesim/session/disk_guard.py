@@ -354,7 +354,7 @@ def estimate_bytes(duration_s: float, rate_hz: float, limits: SpaceLimits | None
     def row(cols):
         return sum(np.dtype(dt).itemsize * int(np.prod(shape)) for dt, shape in cols.values())
 
-    # the recorder's groups (bonesim.runtime.record.GROUPS): the rings' records,
+    # the recorder's groups (bonesim.session.schema.GROUPS): the rings' records,
     # the tissue rows with their one-byte ``visible``
     per_s = (row(events.OTHER_RINGS["samples"][1]) * rate_hz
              + (row(events.TISSUE_FIELDS) + 1) * lim.tissue_rows_per_s
