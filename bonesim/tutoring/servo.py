@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from bonesim.errors import BonesimError
+from bonesim.tutoring.ideal import InstructorLog, ideal_follow, tracking_vs_ideal
 from bonesim.tutoring.law import link_gain, tutor_force
 from bonesim.net.tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, SERVO_HZ
 from bonesim.tutoring.sources import Source, _LatencyLog
@@ -67,6 +68,7 @@ class Trainee:
         self._last = math.nan
         self.err = _LatencyLog()                      # tracking error [mm]
         self.fmag = _LatencyLog()
+        self.instr = InstructorLog()                  # for the ideal follower
         self.device_pos = np.zeros(3)
 
     @property
@@ -119,6 +121,7 @@ class Trainee:
         if not lost and st.valid:
             d = st.pos_mm - r.pos_mm
             self.err.add(math.sqrt(d @ d))
+            self.instr.add(st.t_s, st.pos_mm, st.force_n)
         self.fmag.add(m)
         self._last = now_s
         self.ticks += 1
@@ -160,8 +163,23 @@ class Trainee:
         if len(f):
             out["force_n"] = {"mean": round(float(f.mean()), 4),
                               "max": round(float(f.max()), 4)}
+        if len(e):
+            out["tracking_vs_ideal"] = self.vs_ideal()
+        dev = self.device
+        if hasattr(dev, "state_name"):                # behind the safety layer
+            out["device"] = {"state": dev.state_name, "rejected": dict(dev.rejected),
+                             "unplugs": dev.unplugs, "replugs": dev.replugs}
         out.update(self.source.stats())
         return out
+
+    def vs_ideal(self) -> dict:
+        """The tracking error beside the ideal follower's on the instructor
+        samples received (:func:`bonesim.tutoring.ideal.tracking_vs_ideal`):
+        the same law, gain and force cap on a point mass with no link
+        delay, no lost or stale packets and no hand holding it."""
+        t, p, f = self.instr.arrays()
+        ideal = ideal_follow(t, p, f, self.kp, self.max_force_n)
+        return tracking_vs_ideal(self.err.values(), ideal)
 
     def follow(self, duration_s: float = math.inf, stop=None, on_tick=None) -> dict:
         """Run until the source ends, ``duration_s`` [s] passes or ``stop()``
