@@ -14,6 +14,7 @@ import numpy as np
 
 from bonesim.errors import BonesimError
 from bonesim.net import packets as net
+from bonesim.net.tutor_protocol import GLOSSARY
 from bonesim.tutoring.tutor import (
     NetworkSource,
     RecordingSource,
@@ -187,17 +188,6 @@ def _loop_device_status(loop) -> dict:
             out[name] = (STATES[int(v)] if name == "state" and 0 <= int(v) < len(STATES)
                          else v.tolist() if hasattr(v, "tolist") else v)
     return out
-
-
-#: One line for each word the summaries and the HUD use.
-GLOSSARY = {
-    "stale": "stale: a packet older than 100 ms on arrival (behind a later one or held up "
-             "by a busy machine), dropped: the trainee follows only fresh data",
-    "go-back": "go-back: a trainee missed tissue events and asked for them again; the "
-               "instructor resent its event log from the first one missing",
-    "link lost": "link lost: no valid instructor data for 20 ms; the force then ramps to "
-                 "zero within 45 ms and fades back in over 0.2 s when data returns",
-}
 
 
 def _glossary_lines(server: dict | None, trainee: dict | None) -> list:
