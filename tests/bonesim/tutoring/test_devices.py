@@ -193,3 +193,66 @@ def test_instructor_log_keeps_each_sample_once_in_time_order():
     np.testing.assert_array_equal(t, [2.0, 3.0, 4.0, 5.0])  # the last four, sorted
     np.testing.assert_array_equal(p[:, 0], t)
     np.testing.assert_array_equal(f[:, 2], t)
+
+
+# ------------------------------------------------------------------- CLI
+@pytest.mark.slow
+def test_cli_serve_with_a_device_records_its_record_in_the_header(tmp_path, capsys,
+                                                                  monkeypatch):
+    import json
+
+    from bonesim.cli.main import main
+    from bonesim.devices.config import CONFIG_ENV
+    from bonesim.devices.simulated_hand import SIM_HAND_CAPS
+    from bonesim.net import packets as net
+    from bonesim.session.reader import read_session
+
+    monkeypatch.setenv(CONFIG_ENV, str(tmp_path / "devices.toml"))
+    key = net.write_key(tmp_path / "k")
+    h5 = tmp_path / "instructor.h5"
+    rc = main(["tutor", "serve", "--headless", "--device", "simulated-hand", "--duration",
+               "1", "--host", "127.0.0.1", "--port", "0", "--key-file", str(key),
+               "--record", str(h5), "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    s = json.loads(out.out)
+    assert s["device_record"]["backend"] == "simulated-hand" and s["record"] == str(h5)
+    assert s["device"]["state"] in ("waiting", "ramping", "active")
+    head = read_session(h5).header
+    assert head["device_record"]["backend"] == "simulated-hand"
+    assert head["device_record"]["caps"]["max_force_n"] == SIM_HAND_CAPS.max_force_n
+    assert head["input"] == "simulated-hand"
+
+
+def test_bench_entries_registered_and_main_job_runs_only_when_named(monkeypatch):
+    from bonesim.bench import suite
+
+    assert "tutor_tracking_vs_ideal" in suite.BENCHMARKS
+    assert "main_job_s" in suite.BENCHMARKS and "main_job_s" in suite.ON_REQUEST
+    ran = []
+
+    def fake(name):
+        def run(quick=False):
+            ran.append(name)
+            return {name: {"value": 1.0, "unit": "x"}}
+        return run
+
+    monkeypatch.setattr(suite, "BENCHMARKS", {"a": fake("a"), "main_job_s": fake("main_job_s")})
+    assert set(suite.run_benchmarks()) == {"a"} and ran == ["a"]
+    assert set(suite.run_benchmarks(only=["main_job_s"])) == {"main_job_s"}
+
+
+def test_summaries_explain_the_words_they_show_once():
+    from bonesim.cli.tutor import _glossary_lines, _trainee_lines
+    from bonesim.net.tutor_protocol import GLOSSARY
+
+    s = {"ticks": 10, "packets": {"accepted": 5, "stale": 3}, "link_lost_events": 1,
+         "link_lost": True, "hud": "LINK LOST",
+         "tracking_vs_ideal": tracking_vs_ideal([2.0, 3.0], [1.0, 2.0])}
+    lines = _trainee_lines(s)
+    assert sum(GLOSSARY["stale"] in x for x in lines) == 1
+    assert sum(GLOSSARY["link lost"] in x for x in lines) == 1
+    assert any("ideal follower" in x and "ratio 1.667" in x for x in lines)
+    assert _glossary_lines({"go_backs": 2, "received": {"stale": 0}}, None) == \
+        ["  " + GLOSSARY["go-back"]]
+    assert _glossary_lines({"go_backs": 0, "received": {}}, {"packets": {}}) == []
