@@ -82,8 +82,8 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
     j.add_argument("--device", metavar="NAME",
                    help="the trainee's device, driven by the tutoring law through the "
                         "safety layer of 'bonesim run --device' (a force-feedback backend: "
-                        "touch, simulated-hand; forces start once the stylus is held still "
-                        "at the instructor's tool). Default: a simulated hand that picks "
+                        "touch, simulated-hand; forces start once the stylus is held still, "
+                        "then ramp in). Default: a simulated hand that picks "
                         "up the stylus at the instructor's tool")
     _trainee_window_args(j)
     j.add_argument("--duration", type=float, metavar="S",
@@ -104,8 +104,8 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
     b.add_argument("--device", metavar="NAME",
                    help="the trainee's device, driven by the tutoring law through the "
                         "safety layer of 'bonesim run --device' (a force-feedback backend: "
-                        "touch, simulated-hand; forces start once the stylus is held still "
-                        "at the instructor's tool). Default: a simulated hand that picks "
+                        "touch, simulated-hand; forces start once the stylus is held still, "
+                        "then ramp in). Default: a simulated hand that picks "
                         "up the stylus at the instructor's tool")
     b.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
     b.add_argument("--start", type=float, default=0.0, metavar="S",

@@ -10,7 +10,9 @@ record, as ``run`` does. The instructor's goes to the haptic loop as
 bad samples, unplugging) with the mouse as fallback. The trainee's is put
 behind the same :class:`~bonesim.devices.safety.SafeDevice` here, with no
 fallback (an unplugged trainee device holds its last pose and gets no
-force). Each side's :func:`~bonesim.devices.registry.device_record` is what
+force) and a safe start that waits for a still stylus but not for a small
+commanded force (the law pulls toward a moving instructor: that force may
+never be small); the force then ramps in over the layer's ramp time. Each side's :func:`~bonesim.devices.registry.device_record` is what
 its session header (or summary) keeps.
 """
 from __future__ import annotations
@@ -80,7 +82,7 @@ def trainee_device(name: str, start_mm, case):
     """
     import math
 
-    from bonesim.devices.safety import SafeDevice
+    from bonesim.devices.safety import SafeDevice, SafetyLimits
 
     _, view = case_frame(case)
     dev, record = _backend(name, np.asarray(start_mm, float), view,
@@ -89,6 +91,10 @@ def trainee_device(name: str, start_mm, case):
         raise BonesimError(f"the trainee device {name!r} renders no force; tutoring drives "
                            "the trainee's device (a Touch, or the simulated hand)",
                            field="--device")
-    safe = SafeDevice(dev)
+    # the safe start waits for a still stylus only: the law's force pulls
+    # toward a moving instructor (it may never be small), and ramps in over
+    # ramp_s (with the link gain's own fade-in)
+    limits = SafetyLimits(start_force_n=math.inf)
+    safe = SafeDevice(dev, limits=limits)
     safe.open()
     return safe, record
