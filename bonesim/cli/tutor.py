@@ -271,6 +271,36 @@ def _trainee_window(args, source: tuple) -> dict:
     return s
 
 
+def _write_record(args, s: dict, source: tuple, model=None) -> None:
+    """``--record FILE.json``: the trainee's session record, a header as a
+    recording's (:func:`bonesim.runtime.record.make_header`: case, model,
+    ``device_record``) and the summary ``s``; ``s["record"]`` names it.
+    Without ``model`` (the window's process had it) the header keeps the
+    device record and the source only."""
+    path = getattr(args, "record", None)
+    if not path:
+        return
+    from pathlib import Path
+
+    rec = s.get("device_record")
+    if model is not None:
+        from bonesim.runtime.record import make_header
+
+        header = make_header(model, input_device=rec["backend"] if rec else "",
+                             device_record=rec)
+    else:
+        header = {"device_record": rec}
+    header["role"] = "trainee"
+    header["source"] = list(source)
+    try:
+        Path(path).write_text(json.dumps({"header": header, "summary": s}, indent=2,
+                                         default=str))
+    except OSError as exc:
+        raise BonesimError(f"cannot write the trainee's record: {exc.strerror or exc}",
+                           path=path) from None
+    s["record"] = str(path)
+
+
 def _check_device(name) -> None:
     """Refuse an unknown or unsuitable trainee device before connecting (one
     line naming --device)."""
@@ -314,6 +344,7 @@ def cmd_join(args) -> int:
     if _window_mode(args):
         s = _trainee_window(args, ("network", args.host, args.port, key, args.case,
                                    args.timeout))
+        _write_record(args, s, ("network", args.host, args.port))
         _print(s, args.json, _trainee_lines(s) + _window_lines(s))
         return 0
     warmup()
@@ -333,6 +364,7 @@ def cmd_join(args) -> int:
             trainee.device.close()
         else:
             src.close()
+    _write_record(args, s, ("network", args.host, args.port), src.model)
     _print(s, args.json, _trainee_lines(s))
     return 0
 
@@ -348,6 +380,7 @@ def cmd_playback(args) -> int:
         s["file"] = str(args.file)
         if recall is not None:
             s["recall"] = recall
+        _write_record(args, s, ("recording", str(args.file)))
         _print(s, args.json, _playback_lines(s, args.file) + _window_lines(s)
                + _recall_lines(recall))
         return 0
@@ -370,6 +403,7 @@ def cmd_playback(args) -> int:
         trainee.device.close()
     if recall is not None:
         s["recall"] = recall
+    _write_record(args, s, ("recording", str(args.file)), src.model)
     _print(s, args.json, _playback_lines(s, args.file) + _recall_lines(recall))
     return 0
 

@@ -85,6 +85,10 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
                         "touch, simulated-hand; forces start once the stylus is held still, "
                         "then ramp in). Default: a simulated hand that picks "
                         "up the stylus at the instructor's tool")
+    j.add_argument("--record", metavar="FILE.json",
+                   help="write the trainee's session record: a header as a recording's "
+                        "(case, model, the trainee device's capability record) and the "
+                        "summary (tracking against the ideal follower, packets, device)")
     _trainee_window_args(j)
     j.add_argument("--duration", type=float, metavar="S",
                    help="stop after S seconds (default: when the instructor stops)")
@@ -115,6 +119,10 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
                    help="the trainee's own recorded run of the case: score its force "
                         "against this recording's force profile (force-trajectory "
                         "alignment: residual after and before warping time)")
+    b.add_argument("--record", metavar="FILE.json",
+                   help="write the trainee's session record: a header as a recording's "
+                        "(case, model, the trainee device's capability record) and the "
+                        "summary (tracking against the ideal follower, packets, device)")
     _trainee_window_args(b)
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
     b.set_defaults(func=_tutor("cmd_playback"))

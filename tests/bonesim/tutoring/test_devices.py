@@ -14,6 +14,7 @@ import pytest
 
 from bonesim.errors import BonesimError
 from bonesim.tutoring import tutor
+from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 from tests.bonesim.waiting import wait_until
 from bonesim.tutoring.ideal import (IdealParams, InstructorLog, error_summary, ideal_follow,
                                     ideal_params, tracking_vs_ideal)
@@ -256,3 +257,28 @@ def test_summaries_explain_the_words_they_show_once():
     assert _glossary_lines({"go_backs": 2, "received": {"stale": 0}}, None) == \
         ["  " + GLOSSARY["go-back"]]
     assert _glossary_lines({"go_backs": 0, "received": {}}, {"packets": {}}) == []
+
+
+def test_cli_playback_with_a_device_writes_the_trainees_record(demo_file, tmp_path, capsys,
+                                                                monkeypatch):
+    import json
+
+    from bonesim.cli.main import main
+    from bonesim.devices.config import CONFIG_ENV
+    from bonesim.devices.simulated_hand import SIM_HAND_CAPS
+
+    monkeypatch.setenv(CONFIG_ENV, str(tmp_path / "devices.toml"))
+    out_json = tmp_path / "trainee.json"
+    rc = main(["tutor", "playback", str(demo_file), "--headless", "--device",
+               "simulated-hand", "--duration", "1.5", "--record", str(out_json), "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    s = json.loads(out.out)
+    assert s["record"] == str(out_json) and s["device"]["state"] in ("ramping", "active")
+    rec = json.loads(out_json.read_text())
+    head = rec["header"]
+    assert head["role"] == "trainee" and head["input"] == "simulated-hand"
+    assert head["device_record"]["backend"] == "simulated-hand"
+    assert head["device_record"]["caps"]["max_force_n"] == SIM_HAND_CAPS.max_force_n
+    assert head["case"]["name"] and head["source"] == ["recording", str(demo_file)]
+    assert rec["summary"]["tracking_vs_ideal"]["ideal"]["n"] > 0
