@@ -87,7 +87,8 @@ def bench_main_job(quick: bool = False) -> dict:
                                 else "")
     with tempfile.TemporaryDirectory(prefix="bonesim-main-job-") as d:
         t0 = time.perf_counter()
-        p = subprocess.run([sys.executable, "-m", "bonesim", "run", "--offscreen"], cwd=d, env=env, capture_output=True, text=True)
+        p = subprocess.run([sys.executable, "-m", "bonesim", "run", "--offscreen"], cwd=d,
+                           env=env, capture_output=True, text=True)
         wall = time.perf_counter() - t0
         outputs = sorted(os.listdir(d))
     if p.returncode != 0:

@@ -59,7 +59,8 @@ from bonesim.engine.bodies import IDENTITY_POSE
 
 __all__ = ["KP_N_PER_MM", "LOSS_S", "RAMP_S", "RECOVER_S", "SERVO_HZ", "DEFAULT_PORT",
            "STALE_S", "JOIN_RETRY_S", "KEEPALIVE_S", "NACK_HOLD_S", "REJOIN_S",
-           "CLIENT_TIMEOUT_S", "GLOSSARY", "KIND_STATE", "FLAG_NACK", "STATE", "RECORD", "MAX_EVENTS",
+           "CLIENT_TIMEOUT_S", "GLOSSARY", "KIND_STATE", "FLAG_NACK", "STATE", "RECORD",
+           "MAX_EVENTS",
            "MAX_BURST", "ACK", "InstructorState", "pack_state", "unpack_state",
            "check_tissue_version", "TissueLog", "tissue_snapshot", "session_info"]
 

@@ -12,7 +12,8 @@ behind the same :class:`~bonesim.devices.safety.SafeDevice` here, with no
 fallback (an unplugged trainee device holds its last pose and gets no
 force) and a safe start that waits for a still stylus but not for a small
 commanded force (the law pulls toward a moving instructor: that force may
-never be small); the force then ramps in over the layer's ramp time. Each side's :func:`~bonesim.devices.registry.device_record` is what
+never be small); the force then ramps in over the layer's ramp time. Each
+side's :func:`~bonesim.devices.registry.device_record` is what
 its session header (or summary) keeps.
 """
 from __future__ import annotations
