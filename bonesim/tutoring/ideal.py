@@ -119,8 +119,9 @@ def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
     The follower starts at rest on the instructor's first position (as the
     trainee's hand picks up the stylus). Servo ticks come every
     ``1 / rate_hz`` from the first sample time to the last; at each tick the
-    latest instructor sample at or before it (no delay) gives
-    ``P_instructor`` and ``F_instructor``, the error ``|P_i - x|`` is taken,
+    instructor's motion at that time (no delay; linear between samples, so
+    that samples the link lost leave no steps) gives ``P_instructor`` and
+    ``F_instructor``, the error ``|P_i - x|`` is taken,
     the law's force (link gain 1) is computed with :func:`tutor_force` and
     held while the point mass moves to the next tick (semi-implicit Euler).
 
@@ -158,7 +159,11 @@ def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
     prm = ideal_params() if params is None else params
     dt = 1.0 / rate_hz
     ticks = t[0] + dt * np.arange(int(math.floor((t[-1] - t[0]) / dt)) + 1)
-    idx = np.searchsorted(t, ticks, side="right") - 1
+    # the motion at each tick, linear between samples (repeated times: the last)
+    last = np.r_[t[1:] != t[:-1], True]
+    tu, pu, fu = t[last], p[last], f[last]
+    pt = np.stack([np.interp(ticks, tu, pu[:, a]) for a in range(3)], axis=1)
+    ft = np.stack([np.interp(ticks, tu, fu[:, a]) for a in range(3)], axis=1)
     n_sub = max(1, int(math.ceil(dt / prm.max_substep_s)))
     h = dt / n_sub
     acc_per_n = 1000.0 / prm.mass_kg                    # [mm/s^2 per N]
@@ -167,11 +172,11 @@ def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
     v = np.zeros(3)
     out = np.zeros(3)
     err = np.empty(len(ticks))
-    for k, i in enumerate(idx):
-        pi = p[i]
+    for k in range(len(ticks)):
+        pi = pt[k]
         d = pi - x
         err[k] = math.sqrt(d @ d)
-        tutor_force(pi, x, f[i], kp_n_per_mm, max_force_n, 1.0, out)
+        tutor_force(pi, x, ft[k], kp_n_per_mm, max_force_n, 1.0, out)
         for _ in range(n_sub):
             v += h * acc_per_n * (out - b * v)
             x += h * v

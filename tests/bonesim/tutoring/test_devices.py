@@ -136,9 +136,11 @@ def _reference(t, p, f, kp, fmax, prm, rate):
     k = 0
     while t[0] + k * dt <= t[-1] + 1e-12:
         tk = t[0] + k * dt
-        i = max(j for j in range(len(t)) if t[j] <= tk + 1e-12)
-        out.append(np.linalg.norm(p[i] - x))
-        F = kp * (p[i] - x) + f[i]
+        i = min(max(j for j in range(len(t)) if t[j] <= tk + 1e-12), len(t) - 2)
+        w = (tk - t[i]) / (t[i + 1] - t[i])                # linear between samples
+        pk, fk = (1 - w) * p[i] + w * p[i + 1], (1 - w) * f[i] + w * f[i + 1]
+        out.append(np.linalg.norm(pk - x))
+        F = kp * (pk - x) + fk
         if np.linalg.norm(F) > fmax:
             F *= fmax / np.linalg.norm(F)
         for _ in range(n_sub):
