@@ -11,8 +11,11 @@ pushes the follower off the instructor's tool by about ``|F_i| / K_p``) and
 the force cap limits the acceleration. :func:`ideal_follow` runs that law,
 with the same gain and cap, on an *ideal follower*: a point mass with no
 link delay (it sees each instructor sample at the instructor's own sample
-time), no lost or stale packets, and no hand holding it (no damping, no
-spring to a rest point). Its tracking error is what the law alone accounts
+time), no lost or stale packets, and no hand holding it (no spring to a
+rest point). The law has no damping term and an undamped mass swings about
+the instructor's tool, so the follower is the best of a few passive point
+masses that differ only in their damping (:func:`best_ideal`: the least
+median error on the same motion). Its tracking error is what the law alone accounts
 for; a real session's error beside it (:func:`tracking_vs_ideal`) shows
 what the link and the trainee's hand add.
 
@@ -28,7 +31,8 @@ import numpy as np
 from bonesim.net.tutor_protocol import KP_N_PER_MM, SERVO_HZ
 from bonesim.tutoring.law import tutor_force
 
-__all__ = ["InstructorLog", "IdealParams", "ideal_params", "ideal_follow", "error_summary",
+__all__ = ["InstructorLog", "IdealParams", "ideal_params", "ideal_follow", "best_ideal",
+           "error_summary",
            "tracking_vs_ideal"]
 
 
@@ -78,13 +82,20 @@ class IdealParams:
     mass_kg : float
         Moving mass [kg].
     damping_ns_per_mm : float
-        Viscous damping [N s/mm] (the law's only partner; see the data file).
+        Viscous damping [N s/mm].
+    dampings_ns_per_mm : tuple of float
+        The dampings :func:`best_ideal` tries [N s/mm] (``damping_ns_per_mm``
+        alone by default).
     max_substep_s : float
         Longest integration step [s].
     """
 
-    def __init__(self, mass_kg: float, damping_ns_per_mm: float, max_substep_s: float):
-        if not (mass_kg > 0 and max_substep_s > 0 and damping_ns_per_mm >= 0):
+    def __init__(self, mass_kg: float, damping_ns_per_mm: float, max_substep_s: float,
+                 dampings_ns_per_mm=()):
+        self.dampings_ns_per_mm = tuple(float(b) for b in dampings_ns_per_mm) \
+            or (float(damping_ns_per_mm),)
+        if not (mass_kg > 0 and max_substep_s > 0 and damping_ns_per_mm >= 0
+                and min(self.dampings_ns_per_mm) >= 0):
             raise ValueError("ideal follower: mass and sub-step must be positive, damping "
                              "non-negative")
         self.mass_kg = float(mass_kg)
@@ -96,6 +107,7 @@ def ideal_params(path=None) -> IdealParams:
     """The ideal follower's parameters from ``tutoring.toml`` (or ``path``)."""
     from pathlib import Path
 
+    from bonesim.errors import BonesimError
     from bonesim.resources import data_path
     from bonesim.tomlfile import check_keys, get_number, read_toml
 
@@ -103,12 +115,16 @@ def ideal_params(path=None) -> IdealParams:
     doc = read_toml(path)
     check_keys(doc, ("ideal_follower",), path, "top level", required=("ideal_follower",))
     d = doc["ideal_follower"]
-    keys = ("mass_kg", "damping_ns_per_mm", "max_substep_s")
+    keys = ("mass_kg", "dampings_ns_per_mm", "max_substep_s")
     check_keys(d, keys, path, "ideal_follower", required=keys)
     w = "ideal_follower"
-    return IdealParams(get_number(d, "mass_kg", path, w, minimum=1e-6),
-                       get_number(d, "damping_ns_per_mm", path, w, minimum=0.0),
-                       get_number(d, "max_substep_s", path, w, minimum=1e-7))
+    bs = d["dampings_ns_per_mm"]
+    if not isinstance(bs, list) or not bs:
+        raise BonesimError("'dampings_ns_per_mm' must be a list of numbers", path, w)
+    bs = [get_number({"d": b}, "d", path, f"{w}.dampings_ns_per_mm", minimum=0.0)
+          for b in bs]
+    return IdealParams(get_number(d, "mass_kg", path, w, minimum=1e-6), bs[0],
+                       get_number(d, "max_substep_s", path, w, minimum=1e-7), bs)
 
 
 def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
@@ -181,6 +197,29 @@ def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
             v += h * acc_per_n * (out - b * v)
             x += h * v
     return err
+
+
+def best_ideal(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
+               max_force_n: float = 3.3, params: IdealParams | None = None,
+               rate_hz: float = SERVO_HZ) -> tuple:
+    """The best ideal follower on this motion: :func:`ideal_follow` with
+    each of ``params.dampings_ns_per_mm``, keeping the least median error.
+
+    Returns
+    -------
+    err : (m,) float64
+        Its tracking error at each tick [mm].
+    damping_ns_per_mm : float
+        Its damping [N s/mm] (NaN without samples).
+    """
+    prm = ideal_params() if params is None else params
+    best, best_b = np.zeros(0), math.nan
+    for b in prm.dampings_ns_per_mm:
+        one = IdealParams(prm.mass_kg, b, prm.max_substep_s)
+        e = ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm, max_force_n, one, rate_hz)
+        if len(e) and (best_b != best_b or np.median(e) < np.median(best)):
+            best, best_b = e, b
+    return best, best_b
 
 
 def error_summary(err_mm) -> dict:

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from bonesim.errors import BonesimError
-from bonesim.tutoring.ideal import InstructorLog, ideal_follow, tracking_vs_ideal
+from bonesim.tutoring.ideal import InstructorLog, best_ideal, tracking_vs_ideal
 from bonesim.tutoring.law import link_gain, tutor_force
 from bonesim.net.tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, SERVO_HZ
 from bonesim.tutoring.sources import Source, _LatencyLog
@@ -174,12 +174,15 @@ class Trainee:
 
     def vs_ideal(self) -> dict:
         """The tracking error beside the ideal follower's on the instructor
-        samples received (:func:`bonesim.tutoring.ideal.tracking_vs_ideal`):
-        the same law, gain and force cap on a point mass with no link
-        delay, no lost or stale packets and no hand holding it."""
+        samples received (:func:`bonesim.tutoring.ideal.tracking_vs_ideal`,
+        :func:`~bonesim.tutoring.ideal.best_ideal`): the same law, gain and
+        force cap on a point mass with no link delay, no lost or stale
+        packets and no hand holding it."""
         t, p, f = self.instr.arrays()
-        ideal = ideal_follow(t, p, f, self.kp, self.max_force_n)
-        return tracking_vs_ideal(self.err.values(), ideal)
+        ideal, b = best_ideal(t, p, f, self.kp, self.max_force_n)
+        out = tracking_vs_ideal(self.err.values(), ideal)
+        out["ideal"]["damping_ns_per_mm"] = None if b != b else b
+        return out
 
     def follow(self, duration_s: float = math.inf, stop=None, on_tick=None) -> dict:
         """Run until the source ends, ``duration_s`` [s] passes or ``stop()``

@@ -16,8 +16,8 @@ from bonesim.errors import BonesimError
 from bonesim.tutoring import tutor
 from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 from tests.bonesim.waiting import wait_until
-from bonesim.tutoring.ideal import (IdealParams, InstructorLog, error_summary, ideal_follow,
-                                    ideal_params, tracking_vs_ideal)
+from bonesim.tutoring.ideal import (IdealParams, InstructorLog, best_ideal, error_summary,
+                                    ideal_follow, ideal_params, tracking_vs_ideal)
 
 KEY = bytes(range(32))
 STUB_OWN = (0.88, 160.0, 120.0, 70.0, 0.39)          # hd_stub.c's record
@@ -176,12 +176,20 @@ def test_ideal_follower_inputs_and_summary():
     assert v["ratio_p50"] == 2.0 and v["session"]["p95"] == pytest.approx(3.8)
     assert tracking_vs_ideal([1.0], [0.0])["ratio_p50"] is None
     prm = ideal_params()
-    assert prm.mass_kg > 0 and prm.damping_ns_per_mm >= 0
+    assert prm.mass_kg > 0 and len(prm.dampings_ns_per_mm) > 1
+    bad = IdealParams(0.15, 0.0, 0.0005, (0.0, 0.004, 0.02))
+    t = np.arange(0, 2.0, 0.001)
+    p = np.stack([30.0 * np.sin(2 * np.pi * 0.5 * t), 0 * t, 0 * t], axis=1)
+    f = np.zeros_like(p)
+    e, b = best_ideal(t, p, f, params=bad)
+    each = [np.median(ideal_follow(t, p, f, params=IdealParams(0.15, x, 0.0005)))
+            for x in bad.dampings_ns_per_mm]
+    assert np.median(e) == min(each) and b == bad.dampings_ns_per_mm[int(np.argmin(each))]
 
 
 def test_ideal_params_refuse_a_bad_file_in_one_line(tmp_path):
     bad = tmp_path / "t.toml"
-    bad.write_text("[ideal_follower]\nmass_kg = -1\ndamping_ns_per_mm = 0\n"
+    bad.write_text("[ideal_follower]\nmass_kg = -1\ndampings_ns_per_mm = [0.0]\n"
                    "max_substep_s = 0.001\n")
     with pytest.raises(BonesimError, match="mass_kg") as e:
         ideal_params(bad)
