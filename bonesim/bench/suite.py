@@ -20,7 +20,7 @@ import numpy as np
 
 from bonesim.bench.tools import ball_offsets, floor_scratch, remove_voxels, stencil_density_pass
 
-__all__ = ["CT_SHAPE", "bench_haptic_step", "bench_surface", "synthetic_ct",
+__all__ = ["ON_REQUEST", "CT_SHAPE", "bench_haptic_step", "bench_surface", "synthetic_ct",
            "bench_ct512", "bench_simulate", "bench_haptic_loop",
            "bench_haptic_loop_rendering", "bench_render", "bench_audio", "bench_dust",
            "bench_recording", "bench_tutor", "bench_monitor", "bench_load",
@@ -563,14 +563,19 @@ BENCHMARKS = {
     # the loop's period while a fragment moves, and still, in one run
     **_by_name(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
                "bonesim.bench.rigid:bench_rigid_loop"),
+    **_by_name("tutor_tracking_vs_ideal", "bonesim.bench.tutor_tracking:bench_tutor_tracking"),
+    **_by_name("main_job_s", "bonesim.bench.tutor_tracking:bench_main_job"),
 }
+#: Entries that take minutes: run only when named (``--only NAME``).
+ON_REQUEST = ("main_job_s",)
 
 
 def run_benchmarks(only=None, quick=False) -> dict:
-    """Run the named benchmarks (all by default) and return their figures."""
+    """Run the named benchmarks (by default all but the :data:`ON_REQUEST`
+    ones) and return their figures."""
     from bonesim.errors import BonesimError
 
-    names = list(BENCHMARKS) if not only else list(only)
+    names = [n for n in BENCHMARKS if n not in ON_REQUEST] if not only else list(only)
     unknown = [n for n in names if n not in BENCHMARKS]
     if unknown:
         raise BonesimError(f"unknown benchmark(s) {unknown}; known: {list(BENCHMARKS)}",
@@ -583,7 +588,7 @@ def run_benchmarks(only=None, quick=False) -> dict:
             continue
         done.add(fn)
         for k, v in fn(quick=quick).items():
-            if k in names or not only:
+            if k in names or (not only and k not in ON_REQUEST):
                 results[k] = v
     machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                "quick": bool(quick)}

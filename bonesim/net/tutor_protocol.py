@@ -59,7 +59,8 @@ from bonesim.engine.bodies import IDENTITY_POSE
 
 __all__ = ["KP_N_PER_MM", "LOSS_S", "RAMP_S", "RECOVER_S", "SERVO_HZ", "DEFAULT_PORT",
            "STALE_S", "JOIN_RETRY_S", "KEEPALIVE_S", "NACK_HOLD_S", "REJOIN_S",
-           "CLIENT_TIMEOUT_S", "KIND_STATE", "FLAG_NACK", "STATE", "RECORD", "MAX_EVENTS",
+           "CLIENT_TIMEOUT_S", "GLOSSARY", "KIND_STATE", "FLAG_NACK", "STATE", "RECORD",
+           "MAX_EVENTS",
            "MAX_BURST", "ACK", "InstructorState", "pack_state", "unpack_state",
            "check_tissue_version", "TissueLog", "tissue_snapshot", "session_info"]
 
@@ -89,6 +90,17 @@ SERVO_HZ = 1000.0
 DEFAULT_PORT = net.DEFAULT_PORT
 #: Packets delayed more than this beyond the fastest delivery are dropped [s].
 STALE_S = 0.1
+#: One line for each word the tutoring summaries and the HUD show.
+GLOSSARY = {
+    "stale": f"stale: a packet more than {STALE_S * 1e3:.0f} ms older on arrival than the "
+             "link's usual delay (held up by a busy machine or network), dropped: the "
+             "trainee follows only fresh data",
+    "go-back": "go-back: a trainee missed tissue events and asked for them again; the "
+               "instructor resent its event log from the first one missing",
+    "link lost": f"link lost: no valid instructor data for {LOSS_S * 1e3:.0f} ms; the force "
+                 f"ramps to zero within {(LOSS_S + RAMP_S) * 1e3:.0f} ms and fades back in "
+                 f"over {RECOVER_S:g} s when data returns",
+}
 #: A not-yet-welcomed trainee repeats its JOIN this often [s].
 JOIN_RETRY_S = 0.25
 #: A trainee acknowledges (keep-alive) this often [s].

@@ -25,6 +25,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.replica import TissueReplica
+from bonesim.net.tutor_protocol import GLOSSARY
 from bonesim.render.hud import format_help
 
 __all__ = ["TRAINEE_KEYS", "TRAINEE_MOUSE_HELP", "TraineeView", "TraineeApp"]
@@ -133,6 +134,8 @@ class TraineeView:
             info["message"] = f"{p.lost_text}: the session is over (q quits)"
         elif s["lost"]:
             info["message"] = p.lost_text
+            if p.source[0] == "network":             # what the words mean, on the HUD
+                info["message"] += " - " + GLOSSARY["link lost"].split(": ", 1)[1]
         return info
 
     def show(self) -> dict:

@@ -9,9 +9,10 @@ import time
 import numpy as np
 
 from bonesim.errors import BonesimError
+from bonesim.tutoring.ideal import InstructorLog, best_ideal, tracking_vs_ideal
 from bonesim.tutoring.law import link_gain, tutor_force
 from bonesim.net.tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, SERVO_HZ
-from bonesim.tutoring.sources import Source, _LatencyLog
+from bonesim.tutoring.sources import Source, LatencyLog
 
 __all__ = ["Trainee", "warmup"]
 
@@ -65,8 +66,9 @@ class Trainee:
         self.lost_events = 0
         self._t0 = math.nan
         self._last = math.nan
-        self.err = _LatencyLog()                      # tracking error [mm]
-        self.fmag = _LatencyLog()
+        self.err = LatencyLog()                      # tracking error [mm]
+        self.fmag = LatencyLog()
+        self.instr = InstructorLog()                  # for the ideal follower
         self.device_pos = np.zeros(3)
 
     @property
@@ -119,6 +121,7 @@ class Trainee:
         if not lost and st.valid:
             d = st.pos_mm - r.pos_mm
             self.err.add(math.sqrt(d @ d))
+            self.instr.add(st.t_s, st.pos_mm, st.force_n)
         self.fmag.add(m)
         self._last = now_s
         self.ticks += 1
@@ -160,7 +163,25 @@ class Trainee:
         if len(f):
             out["force_n"] = {"mean": round(float(f.mean()), 4),
                               "max": round(float(f.max()), 4)}
+        if len(e):
+            out["tracking_vs_ideal"] = self.vs_ideal()
+        dev = self.device
+        if hasattr(dev, "state_name"):                # behind the safety layer
+            out["device"] = {"state": dev.state_name, "rejected": dict(dev.rejected),
+                             "unplugs": dev.unplugs, "replugs": dev.replugs}
         out.update(self.source.stats())
+        return out
+
+    def vs_ideal(self) -> dict:
+        """The tracking error beside the ideal follower's on the instructor
+        samples received (:func:`bonesim.tutoring.ideal.tracking_vs_ideal`,
+        :func:`~bonesim.tutoring.ideal.best_ideal`): the same law, gain and
+        force cap on a point mass with no link delay, no lost or stale
+        packets and no hand holding it."""
+        t, p, f = self.instr.arrays()
+        ideal, b = best_ideal(t, p, f, self.kp, self.max_force_n)
+        out = tracking_vs_ideal(self.err.values(), ideal)
+        out["ideal"]["damping_ns_per_mm"] = None if b != b else b
         return out
 
     def follow(self, duration_s: float = math.inf, stop=None, on_tick=None) -> dict:

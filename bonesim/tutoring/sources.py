@@ -82,7 +82,7 @@ class Source:
         pass
 
 
-class _LatencyLog:
+class LatencyLog:
     """Preallocated ring of delays [s] (p50/p99 over the last ``n``)."""
 
     def __init__(self, n: int = 1 << 16):
@@ -158,7 +158,7 @@ class NetworkSource(Source):
         #: ``now - t_s`` of every STATE packet [s]: the one-way latency on one
         #: machine (shared monotonic clock); across machines it also holds the
         #: clocks' offset, and only its spread (``delay_over_fastest_ms``) means much.
-        self.latency = _LatencyLog()
+        self.latency = LatencyLog()
 
     # session state, kept by the link
     @property

@@ -135,9 +135,8 @@ def _publisher(status: np.ndarray):
     return publish
 
 
-def _run_trainee(child, spec, duration_s: float) -> None:
+def _run_trainee(child, spec, duration_s: float, device: str | None = None) -> None:
     """Body of the trainee's process (:meth:`TraineeProcess.run`)."""
-    from bonesim.devices.simulated_hand import SimulatedHandDevice
     from bonesim.tutoring.tutor import Trainee, warmup
 
     src = trainee = None
@@ -148,7 +147,17 @@ def _run_trainee(child, spec, duration_s: float) -> None:
             src.changes = changes_ring(child.arrays)
             if timeout_s is not None:
                 src.connect(timeout_s)
-            trainee = Trainee(src, SimulatedHandDevice())
+            if spec[0] == "recording":
+                tl = src.timeline
+                start = tl.samples["pos_mm"][tl.sample_index(src.start_s)]
+            else:
+                start = src.state.pos_mm
+            dev, record = open_trainee_device(device, src, start)
+            try:
+                trainee = Trainee(src, dev)
+            except BaseException:
+                dev.close()
+                raise
         except BaseException:
             if src is not None:
                 src.close()
@@ -167,10 +176,27 @@ def _run_trainee(child, spec, duration_s: float) -> None:
                     "duration_s": getattr(getattr(src, "timeline", None), "duration",
                                           math.nan)})
         stats = trainee.follow(duration_s, stop=lambda: child.quit, on_tick=publish)
+        stats["device_record"] = record
         child.send({"stats": stats})
     finally:
         if trainee is not None:
             trainee.close()
+            trainee.device.close()
+
+
+def open_trainee_device(name, src, start_mm) -> tuple:
+    """``(device, record)``: the bare simulated hand when ``name`` is None,
+    else the backend behind the safety layer
+    (:func:`bonesim.tutoring.devices.trainee_device`)."""
+    if name is None:
+        from bonesim.devices.registry import device_record
+        from bonesim.devices.simulated_hand import SimulatedHandDevice
+
+        hand = SimulatedHandDevice()
+        return hand, device_record("simulated-hand", hand)
+    from bonesim.tutoring.devices import trainee_device
+
+    return trainee_device(name, np.array(start_mm, float), src.model.case)
 
 
 class TraineeProcess(ChildProcess):
@@ -185,6 +211,8 @@ class TraineeProcess(ChildProcess):
         ``("recording", path, speed, start_s)`` for haptic playback.
     duration_s : float
         Stop after this long [s] (default: when the source ends).
+    device : str, optional
+        The trainee's device backend (default: the bare simulated hand).
     capacity : int
         Tissue events the changes ring holds (a power of two).
 
@@ -216,8 +244,9 @@ class TraineeProcess(ChildProcess):
     STATUS = STATUS
 
     def __init__(self, source: tuple, duration_s: float = math.inf,
-                 capacity: int = CHANGES_CAPACITY):
+                 capacity: int = CHANGES_CAPACITY, device: str | None = None):
         self.source = tuple(source)
+        self.device = device
         self.duration_s = float(duration_s)
         self.capacity = int(capacity)
         super().__init__()
@@ -234,7 +263,7 @@ class TraineeProcess(ChildProcess):
         return events.ring_arrays_spec("changes", self.capacity)
 
     def child_args(self) -> dict:
-        return {"spec": self.source, "duration_s": self.duration_s}
+        return {"spec": self.source, "duration_s": self.duration_s, "device": self.device}
 
     @classmethod
     def run(cls, child, **kwargs) -> None:

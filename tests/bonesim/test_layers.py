@@ -293,10 +293,6 @@ def test_bonesim_names_metrics_only_from_the_cli_and_the_bench():
 
 
 # --- private names stay private ---------------------------------------------
-#: Private imports left for another branch to remove (module: names). Each
-#: entry is a known defect, not a licence: bonesim/tutoring is being reworked
-#: on the tutoring branch, which owns servo.py's import of sources._LatencyLog.
-PRIVATE_IMPORTS_PENDING = {"bonesim.tutoring.servo": {"_LatencyLog"}}
 
 
 def private_imports(source: str) -> set[str]:
@@ -338,7 +334,7 @@ def test_no_module_imports_another_modules_private_names():
     wrong = {}
     for p in sorted([*(ROOT / "bonesim").rglob("*.py"), *(ROOT / "metrics").rglob("*.py")]):
         mod = ".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-        names = private_imports(p.read_text()) - PRIVATE_IMPORTS_PENDING.get(mod, set())
+        names = private_imports(p.read_text())
         if names:
             wrong[mod] = sorted(names)
     assert not wrong, f"private names imported from other modules: {wrong}"

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from bonesim.engine import events
+from bonesim.net.tutor_protocol import GLOSSARY
 from bonesim.tutoring import trainee as T
 from bonesim.runtime.child import BASE_STATUS, record_dtype
 from bonesim.render.scene import Scene
@@ -144,7 +145,9 @@ def test_tool_hand_and_hud_come_from_the_status(view):
     assert "latency: 0.25 ms" in text and "drill  ON" in text
     s["lost"] = 1
     v.show()
-    assert sc.hud_text.splitlines()[-1] == "LINK LOST"
+    # the words explained where they are shown
+    assert last_message(sc.hud_text) == "LINK LOST - " + \
+        GLOSSARY["link lost"].split(": ", 1)[1], sc.hud_text
     s["done"] = 1
     v.show()
     assert last_message(sc.hud_text).startswith("LINK LOST: the session is over")
