@@ -68,7 +68,7 @@ from metrics.participants import assign_sessions, read_participants
 from metrics.run_identity import distinct_runs
 
 __all__ = ["ROW_PROVIDERS", "read_participants", "find_sessions", "score_file",
-           "score_cohort", "write_table", "metric_columns"]
+           "score_cohort", "write_table", "metric_columns", "local_cluster"]
 
 #: Remaining bone [mm] of the exposure columns.
 EXPOSURE_MM = 1.0
@@ -302,12 +302,24 @@ def _score_file(path, structure, case, close_mm, providers):
 
 
 # --------------------------------------------------------------- cluster
+def local_cluster(workers: int):
+    """A Dask ``LocalCluster`` of ``workers`` single-threaded processes on
+    127.0.0.1, with no dashboard and the scheduler's own HTTP endpoint on a
+    free loopback port (not 8787, which another cluster may hold)."""
+    import logging
+
+    from distributed import LocalCluster
+
+    return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                        dashboard_address=None, host="127.0.0.1",
+                        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                        silence_logs=logging.ERROR)
+
+
 def dask_client(scheduler, workers):
     """``(client, cluster or None, label)``: connect to ``scheduler`` or start a
     local cluster of ``workers`` single-threaded processes."""
-    import logging
-
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler:
         try:
@@ -317,9 +329,7 @@ def dask_client(scheduler, workers):
 
             raise BonesimError(f"cannot reach the Dask scheduler {scheduler} "
                                f"({' '.join(str(exc).split()) or type(exc).__name__})") from None
-    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                           dashboard_address=None, host="127.0.0.1",
-                           silence_logs=logging.ERROR)
+    cluster = local_cluster(workers)
     try:
         return Client(cluster, set_as_default=False), cluster, "LocalCluster"
     except Exception:

@@ -315,7 +315,7 @@ def _group_plot(result, metric, groups, big: bool):
     ax.set_title(f"{metric}\nper participant t-test{corr} {_p_is(p_t)}{sep}"
                  f"mixed model {_p_is(p_mixed)}", fontsize=8 if not big else 11)
     ax.grid(axis="y", alpha=0.3)
-    if big:
+    if big and ax.get_legend_handles_labels()[0]:      # no legend with nothing drawn
         ax.legend(fontsize=7, loc="best", framealpha=0.6)
     return fig
 

@@ -37,11 +37,7 @@ __all__ = ["bench_metrics_cohort"]
 
 
 def _cohort(tmp: Path, quick: bool) -> dict:
-    import logging
-
-    from distributed import LocalCluster
-
-    from metrics.cohort import score_cohort
+    from metrics.cohort import local_cluster, score_cohort
     from metrics.synth import BEHAVIOURS_FILE, PARTICIPANTS_CSV, synth_cohort
 
     n, k, dur = (2, 2, 4.0) if quick else (8, 3, 6.0)
@@ -53,9 +49,7 @@ def _cohort(tmp: Path, quick: bool) -> dict:
     rates, cold, central, stats_s = {}, {}, {}, {}
     for w in (1, 2):
         t0 = time.perf_counter()
-        with LocalCluster(n_workers=w, threads_per_worker=1, processes=True,
-                          dashboard_address=None, host="127.0.0.1",
-                          silence_logs=logging.ERROR) as cluster:
+        with local_cluster(w) as cluster:
             score_cohort(d, d / PARTICIPANTS_CSV, scheduler=cluster.scheduler_address)
             cold[w] = time.perf_counter() - t0
             t0 = time.perf_counter()

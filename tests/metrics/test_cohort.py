@@ -94,9 +94,9 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     once, issue 24), a file of another case, a run whose participant is not
     in the table and a participant with no run: one line each, the rest scored. The cluster passed by address stays up."""
     import pandas as pd
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    from metrics.cohort import score_cohort
+    from metrics.cohort import local_cluster, score_cohort
 
     _, paths, csv_path = cohort
     for p in paths:
@@ -112,8 +112,7 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     table = tmp_path / "people.csv"
     table.write_text(csv_path.read_text() + "E99,expert,4.0\n")
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                      dashboard_address=None, host="127.0.0.1") as cluster:
+    with local_cluster(1) as cluster:
         res = score_cohort(str(tmp_path / "*.h5"), table, scheduler=cluster.scheduler_address)
         with Client(cluster.scheduler_address) as c:        # still running
             assert c.submit(lambda: 41 + 1).result() == 42
