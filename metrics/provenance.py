@@ -18,20 +18,26 @@ import shlex
 import sys
 from pathlib import Path
 
-__all__ = ["SYNTHESIS_JSON", "file_sha256", "provenance"]
+__all__ = ["SYNTHESIS_JSON", "sha256_of", "file_sha256", "provenance"]
 
 #: Written beside a synthetic cohort's participants table.
 SYNTHESIS_JSON = "synthesis.json"
 
 
+def sha256_of(path) -> str:
+    """SHA-256 of a file's bytes (hex), read in 1 MiB chunks (OSError when it
+    cannot be read)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def file_sha256(path) -> str | None:
     """SHA-256 of a file's bytes (hex), or None if it cannot be read."""
     try:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        return h.hexdigest()
+        return sha256_of(path)
     except OSError:
         return None
 

@@ -31,6 +31,8 @@ import pickle
 from functools import lru_cache
 from pathlib import Path
 
+from metrics.provenance import sha256_of
+
 __all__ = ["default_cache_dir", "code_fingerprint", "RunCache"]
 
 
@@ -55,14 +57,6 @@ def code_fingerprint() -> str:
             h.update(b"\0")
             h.update(p.read_bytes())
             h.update(b"\0")
-    return h.hexdigest()
-
-
-def _file_sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
     return h.hexdigest()
 
 
@@ -100,7 +94,7 @@ class RunCache:
         p = str(path)
         if p not in self._keys:
             h = hashlib.sha256(self._salt.encode())
-            h.update(_file_sha256(p).encode())
+            h.update(sha256_of(p).encode())
             self._keys[p] = h.hexdigest()
         return self._keys[p]
 
