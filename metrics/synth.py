@@ -178,6 +178,12 @@ class NoviceModel:
         Hole centres lie within this distance of the focal axis [mm].
     plunge_mm_s, plunge_sd_mm_s : float
         Feed of the plunge along the line of sight [mm/s].
+    plunge_learning : float
+        Share of the plunge feed that skill takes off: the feed is
+        ``plunge_mm_s * (1 - plunge_learning * tanh(skill))`` (a lighter
+        touch as a novice learns; faster than ``plunge_mm_s`` below skill 0).
+    min_plunge_mm_s : float
+        Slowest plunge [mm/s].
     margin_mm, margin_sd_mm : float
         Margin from the structures at which a plunge or sweep stops [mm].
     overshoot_p, overshoot_mm : float
@@ -209,6 +215,8 @@ class NoviceModel:
     spread_mm: float = 5.0
     plunge_mm_s: float = 6.0
     plunge_sd_mm_s: float = 1.0
+    plunge_learning: float = 0.12
+    min_plunge_mm_s: float = 2.0
     margin_mm: float = 0.3
     margin_sd_mm: float = 0.15
     overshoot_p: float = 0.35
@@ -649,7 +657,8 @@ def novice_trajectory(case, grid, clearance, participant: Participant,
     margin = -model.overshoot_mm if overshoot else max(
         0.05, model.margin_mm + model.margin_sd_mm * (0.5 * s + rng.standard_normal()))
     # skill slows the plunge and shortens the undercut
-    plunge = max(2.0, model.plunge_mm_s * (1.0 - 0.12 * np.tanh(s))
+    plunge = max(model.min_plunge_mm_s,
+                 model.plunge_mm_s * (1.0 - model.plunge_learning * np.tanh(s))
                  + model.plunge_sd_mm_s * rng.standard_normal())
     under = model.undercut_mm * max(0.2, 1.0 - 0.3 * np.tanh(s))
     targets = _near_targets(case, grid, model.near_targets, model.near_depth_mm) \

@@ -197,3 +197,31 @@ def test_sessions_learning_and_the_recorded_parameters(tmp_path):
     bad.write_text("[novice]\nwings = 2\n")
     with pytest.raises(BonesimError, match=r"b\.toml: \[novice\] 'wings'"):
         load_behaviours(bad)
+
+
+def test_skill_lightens_the_novices_plunge(models):
+    """With the shipped behaviours a skilled novice plunges slower (toward the
+    experts' light touch), so force and speed near the nerves can improve over
+    sessions."""
+    from dataclasses import replace
+
+    from metrics.synth import load_behaviours
+
+    _, novice, _ = load_behaviours()
+    assert novice.plunge_learning > NoviceModel().plunge_learning
+    mn = models["novice"]
+    p = draw_participants(0, 1, seed=3)[0]
+
+    def slow_feed(skill, model):
+        t = novice_trajectory(mn.case, mn.grid, mn.clearance, replace(p, skill=skill),
+                              model, duration_s=RUN_S)
+        v = np.linalg.norm(np.diff(t.pos_mm, axis=0), axis=1) / np.diff(t.t_s)
+        on = t.drill[1:].astype(bool) & (v > 1e-6)
+        return float(np.percentile(v[on], 10))        # the plunges, not the sweeps
+
+    assert slow_feed(2.0, novice) < 0.5 * slow_feed(-0.5, novice)
+    # the parameter does it: the same skilled novice at the classes' default
+    # learning plunges more than twice as fast
+    old = replace(novice, plunge_learning=NoviceModel().plunge_learning,
+                  min_plunge_mm_s=NoviceModel().min_plunge_mm_s)
+    assert slow_feed(2.0, old) > 2.0 * slow_feed(2.0, novice)
