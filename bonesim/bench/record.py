@@ -11,6 +11,11 @@
     process sees at 1 kHz (one flush per
     :data:`~bonesim.runtime.record.FLUSH_S`), samples plus removals, including the
     flush. It must stay far above the 1 kHz the loop produces.
+``session_bytes_per_minute``
+    Size of a finished (compacted) session file per minute of drilling: the
+    phantom's planned mastoidectomy from its first drilling sample, recorded
+    through :func:`bonesim.runtime.simulate.run_trajectory` (samples, tissue
+    events, the header), 60 s (20 s with ``quick``).
 """
 from __future__ import annotations
 
@@ -20,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["bench_recording"]
+__all__ = ["bench_recording", "bench_session_size"]
 
 
 def _demo_samples(model, n: int):
@@ -102,3 +107,30 @@ def bench_recording(quick=False) -> dict:
             "headroom_vs_1khz": round(rows / wall / model.haptic_rate_hz, 1),
             "bytes_per_sample": round(size / n, 1)},
     }
+
+
+def bench_session_size(quick=False) -> dict:
+    """``session_bytes_per_minute``: see the module docstring."""
+    from bonesim.io.loading import load_model
+    from bonesim.runtime.simulate import run_trajectory
+
+    model = load_model("phantom", "cutting-5mm")
+    traj, _ = _demo_samples(model, 0)
+    run_s = 20.0 if quick else 60.0
+    part = traj.at_times(traj.t_s[traj.t_s <= traj.t_s[0] + run_s])
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "run.h5"
+        out = run_trajectory(model, part, record=path, surface=False)
+        if not out.get("record_ok", False):
+            from bonesim.errors import BonesimError
+
+            raise BonesimError(f"session_bytes_per_minute: the recording did not complete "
+                               f"({out.get('record_error')})")
+        size = path.stat().st_size
+    minutes = float(part.t_s[-1] - part.t_s[0]) / 60.0
+    return {"session_bytes_per_minute": {
+        "value": round(size / minutes), "unit": "bytes/min",
+        "file_bytes": int(size), "run_s": round(minutes * 60.0, 3),
+        "removed_voxels": int(out.get("voxels_removed", 0)),
+        "what": "a compacted session file of the phantom's planned mastoidectomy "
+                "(cutting burr from its first drilling sample), per minute"}}

@@ -534,6 +534,7 @@ BENCHMARKS = {
     "dust_step_64_ms": bench_dust,
     "recording_overhead_us": bench_recording,
     "recording_writer_rows_per_s": bench_recording,
+    **_by_name("session_bytes_per_minute", "bonesim.bench.record:bench_session_size"),
     "tutor_loopback_latency_p99_ms": bench_tutor,
     "tutor_loopback_latency_p50_ms": bench_tutor,
     "tutor_loopback_loss_fraction": bench_tutor,

@@ -5,6 +5,13 @@ from __future__ import annotations
 
 __all__ = ["tutor_parsers"]
 
+#: ``--device`` of ``tutor join`` and ``tutor playback``.
+TRAINEE_DEVICE_HELP = ("the trainee's device, driven by the tutoring law through the "
+                       "safety layer of 'bonesim run --device' (a force-feedback backend: "
+                       "touch, simulated-hand; forces start once the stylus is held still, "
+                       "then ramp in). Default: a simulated hand that picks up the stylus "
+                       "at the instructor's tool")
+
 
 def _trainee_window_args(p) -> None:
     """The trainee's window options (``tutor join`` and ``tutor playback``)."""
@@ -79,12 +86,7 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
     j.add_argument("--port", type=int, default=DEFAULT_PORT,
                    help=f"UDP port (default {DEFAULT_PORT})")
     j.add_argument("--case", help="load this case instead of the one the instructor names")
-    j.add_argument("--device", metavar="NAME",
-                   help="the trainee's device, driven by the tutoring law through the "
-                        "safety layer of 'bonesim run --device' (a force-feedback backend: "
-                        "touch, simulated-hand; forces start once the stylus is held still, "
-                        "then ramp in). Default: a simulated hand that picks "
-                        "up the stylus at the instructor's tool")
+    j.add_argument("--device", metavar="NAME", help=TRAINEE_DEVICE_HELP)
     j.add_argument("--record", metavar="FILE.json",
                    help="write the trainee's session record: a header as a recording's "
                         "(case, model, the trainee device's capability record) and the "
@@ -105,12 +107,7 @@ def tutor_parsers(sub, _lazy, DEFAULT_CASE: str, DEFAULT_BURR: str) -> None:
                                  "'tutor join' (headless without a display); the force "
                                  "ramps out when the recording ends.")
     b.add_argument("file", help="session file (.h5)")
-    b.add_argument("--device", metavar="NAME",
-                   help="the trainee's device, driven by the tutoring law through the "
-                        "safety layer of 'bonesim run --device' (a force-feedback backend: "
-                        "touch, simulated-hand; forces start once the stylus is held still, "
-                        "then ramp in). Default: a simulated hand that picks "
-                        "up the stylus at the instructor's tool")
+    b.add_argument("--device", metavar="NAME", help=TRAINEE_DEVICE_HELP)
     b.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
     b.add_argument("--start", type=float, default=0.0, metavar="S",
                    help="start S seconds into the recording")
