@@ -343,15 +343,12 @@ def conduct(session, model=None) -> dict:
         The session's model (default ``session.load_model()``); its
         clearance gives the distances.
     """
-    from bonesim.io.burrs import load_burr
-
     h = session.header
-    burr_names = [b["name"] for b in h["burrs"]]
     if model is None:
         models = session.burr_models()
         model, burrs = models[0], [m.burr for m in models]
     else:
-        burrs = [load_burr(n) for n in burr_names]
+        burrs = session.recorded_burrs()
     names = [s.name for s in model.structures]
     critical = [k for k, s in enumerate(model.structures, start=1) if s.kind != "bone"]
     smp, rem = last_epoch(session)
@@ -391,7 +388,7 @@ def conduct(session, model=None) -> dict:
         out["time_near_s"] = {names[s - 1]: {f"< {thr:g} mm": float(tn[c, q])
                                              for q, thr in enumerate(NEAR_MM)}
                               for c, s in enumerate(critical)}
-    out["burr"] = burr_stages(smp, burr_names,
+    out["burr"] = burr_stages(smp, [b["name"] for b in h["burrs"]],
                               gaps.min(axis=1) if gaps is not None and gaps.size else None,
                               [b.diameter_mm for b in burrs])
     out["contacts"] = injuries_by_structure(session, names)

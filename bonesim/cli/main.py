@@ -680,6 +680,9 @@ def build_parser() -> argparse.ArgumentParser:
     si = ssub.add_parser("info", help="summarize a session file (schema checked)")
     si.add_argument("file", help="session file (.h5)")
     si.add_argument("--json", action="store_true", help="print JSON")
+    si.add_argument("--against-current", action="store_true",
+                    help="also list what differs between the case, burr and material "
+                         "files it was recorded on and today's")
     si.set_defaults(func=_lazy("bonesim.cli.sessions", "cmd_sessions_info"))
     sl = ssub.add_parser("list", help="list the session files in a folder")
     sl.add_argument("folder", nargs="?",

@@ -30,6 +30,10 @@ def cmd_sessions_info(args) -> int:
     session = read_session(args.file)
     info = session_info(session)
     status = 0 if session.damage is None else 1
+    if getattr(args, "against_current", False):
+        from bonesim.session.drift import against_current
+
+        info["against_current"] = against_current(session)
     if args.json:
         print_json(info)
         _say_damage(session)
@@ -37,7 +41,9 @@ def cmd_sessions_info(args) -> int:
     for k, v in info.items():
         if v is None and k in ("damage", "repaired_from", "readable_rows"):
             continue
-        if k == "readable_rows":
+        if k == "against_current":
+            _print_drift(v)
+        elif k == "readable_rows":
             print("readable: " + ", ".join(f"{g} {r['kept']} of {r['declared']} rows"
                                            for g, r in v.items()))
         elif k == "injuries":
@@ -53,6 +59,16 @@ def cmd_sessions_info(args) -> int:
             print(f"{k}: {v}")
     _say_damage(session)
     return status
+
+
+def _print_drift(d: dict) -> None:
+    """``--against-current`` as lines: one per recorded file that differs."""
+    print(f"against today's files (bonesim {d['recorded_version']} recorded it, this is "
+          f"{d['current_version']}): {d['differs']} of {len(d['items'])} differ"
+          + ("; the file carries its model, so it plays back, replays and scores as "
+             "recorded" if d["self_contained"] and d["differs"] else ""))
+    for i in d["items"]:
+        print(f"  {i['what']}: {i['status']}" + (f" ({i['detail']})" if i["detail"] else ""))
 
 
 def cmd_sessions_list(args) -> int:
@@ -82,7 +98,7 @@ def cmd_replay(args) -> int:
 
     session = read_session(args.file)
     _say_damage(session)
-    warmup()
+    warmup(session.recorded_burrs()[0])
     if args.verify:
         report = verify(session)
         if args.json:

@@ -164,7 +164,8 @@ class VolumeSpec:
     Attributes
     ----------
     format : str
-        One of :data:`CASE_FORMATS`.
+        One of :data:`CASE_FORMATS`, or ``"session"`` for a case a session
+        file carries (:mod:`bonesim.io.embedded`; never in a manifest).
     path : Path or None
         Volume file / folder (None for the phantom and label-only cases).
     voxel_mm : float or "native"
@@ -486,6 +487,11 @@ class Case:
             voxel = _phantom.DEFAULT_VOXEL_MM if v.voxel_mm == NATIVE else v.voxel_mm
             check_grid(size, voxel, self.manifest, "volume")   # before allocating it
             vol = _phantom.phantom_volume(v.seed, voxel, size, names, v.generation)
+        elif v.format == "session":       # carried by a session file (bonesim.io.embedded)
+            from bonesim.io.embedded import read_volume
+
+            # the reader hands over what it read with the file open (once)
+            vol = self._derived.pop("session_volume", None) or read_volume(v.path)
         else:
             kw = {"progress": progress}
             kinds = [s.kind for s in self.structures]

@@ -67,15 +67,17 @@ def load_model(case="phantom", burr: str = "cutting-5mm", *,
     return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
 
 
-def warmup_model(oversample: int = DEFAULT_OVERSAMPLE) -> Model:
-    """A 12³ slab of bone (0.5 mm voxels, the 1 mm cutting burr) on which the
-    warm-ups compile kernels for a real model's array types."""
+def warmup_model(oversample: int = DEFAULT_OVERSAMPLE, burr=None) -> Model:
+    """A 12³ slab of bone (0.5 mm voxels, ``burr`` or else the shipped 1 mm
+    cutting burr) on which the warm-ups compile kernels for a real model's
+    array types."""
     from types import SimpleNamespace
 
     labels = np.zeros((12, 12, 12), dtype=np.uint8)
     labels[:, :, :6] = 1
     bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
-    return make_model(labels, 0.5, [bone], load_burr("cutting-1mm"), oversample=oversample)
+    burr = load_burr("cutting-1mm") if burr is None else burr
+    return make_model(labels, 0.5, [bone], burr, oversample=oversample)
 
 
 def warmup_sample(model: Model) -> Sample:
@@ -84,9 +86,11 @@ def warmup_sample(model: Model) -> Sample:
                   True, model.burr.default_speed_rpm, 1)
 
 
-def warmup() -> None:
-    """Compile every kernel :func:`bonesim.engine.model.step` uses (cached on disk after the first run)."""
-    m = warmup_model()
+def warmup(burr=None) -> None:
+    """Compile every kernel :func:`bonesim.engine.model.step` uses (cached on
+    disk after the first run); ``burr``: as :func:`warmup_model` (a recorded
+    run's own burr needs no burr file)."""
+    m = warmup_model(burr=burr)
     s = make_state(m)
     step(m, s, warmup_sample(m))
     clear_touched(s, s.touched.read(0)["ijk"])
@@ -99,5 +103,5 @@ def warmup() -> None:
     set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
     step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))
-    m4 = warmup_model(ROWS_MIN_OVERSAMPLE)             # the row kernel of fine stencils
+    m4 = warmup_model(ROWS_MIN_OVERSAMPLE, burr)       # the row kernel of fine stencils
     step(m4, make_state(m4), warmup_sample(m4))

@@ -23,6 +23,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.runtime.child import ChildProcess
+from bonesim.session.header import recorded_volume
 from bonesim.session.writer import SessionWriter, kept_line
 
 __all__ = ["FLUSH_S", "WRITER_NICE", "WHY_BYTES", "Drainer", "Recorder"]
@@ -154,7 +155,7 @@ def _fsize_hook() -> bool:
 
 
 def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
-                eye_mm) -> None:
+                eye_mm, model) -> None:
     """Body of the recorder's writer process (:meth:`Recorder.run`).
 
     A write that fails (or the space running out) stops the recording: the
@@ -181,7 +182,8 @@ def _run_writer(child, loop_handle, path, header, flush_s, overwrite, models,
         vis = VisibilityTracker([model] + [model.with_burr(b) for b in burrs], eye_mm)
         vis.warm()                     # before ready, not at the first removal
     try:
-        writer = SessionWriter(path, header, overwrite=overwrite)
+        writer = SessionWriter(path, header, overwrite=overwrite,
+                               volume=recorded_volume(model, header))
     except BaseException:
         rings.clear()
         lsh.close()
@@ -286,7 +288,8 @@ class Recorder(ChildProcess):
                       "flush_s": flush_s, "overwrite": overwrite,
                       "models": ((loop.model, [b for b in loop.burrs[1:]]) if judge
                                  else None),
-                      "eye_mm": np.asarray(cam.eye_mm, float) if judge else None}
+                      "eye_mm": np.asarray(cam.eye_mm, float) if judge else None,
+                      "model": loop.model}
 
     def child_args(self) -> dict:
         return self._args

@@ -194,12 +194,12 @@ class _Recording:
     def __init__(self, model, state, path, header, handle=None):
         from bonesim.runtime.record import Drainer
         from bonesim.session.writer import SessionWriter
-        from bonesim.session.header import make_header
+        from bonesim.session.header import make_header, recorded_volume
 
         self.state = state
         self.ring = events.Ring.create(1 << 12, **events.OTHER_RINGS["samples"][1])
         header = make_header(model, input_device="scripted") if header is None else header
-        self.writer = SessionWriter(path, header)
+        self.writer = SessionWriter(path, header, volume=recorded_volume(model, header))
         vis = None
         cam = getattr(getattr(model, "case", None), "camera", None)
         if cam is not None:                # judged from the case camera's eye
@@ -216,12 +216,22 @@ class _Recording:
             self.tap = HandleTap(rings["handle"], handle)
         self.drainer = Drainer(self.writer, rings, vis)
         self.zero = np.zeros(3)
+        # the eye the removals are judged from, stored with the run (one row
+        # at its first sample: a scripted run's view never moves)
+        self.eye = cam
+
+    def _log_eye(self, t_s: float) -> None:
+        cam, self.eye = self.eye, None
+        self.writer.append("camera", {"t_s": [t_s], "eye_mm": [cam.eye_mm],
+                                      "focal_mm": [cam.focal_mm], "up": [cam.up]})
 
     def push(self, smp, f) -> None:
         from bonesim.runtime.haptic_loop import push_sample
 
         if self.writer.failed is not None:     # recording stopped: the run goes on
             return
+        if self.eye is not None:
+            self._log_eye(float(smp.t_s))
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
                     smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
         if self.tap is not None:

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["case_sha256", "burr_sha256", "model_sha256", "header_sha256", "make_header",
+__all__ = ["case_sha256", "recorded_case_sha256", "burr_sha256", "model_sha256",
+           "header_sha256", "make_header", "model_record", "recorded_volume",
            "sessions_folder", "default_session_path"]
 
 
@@ -32,13 +33,28 @@ def _hash_path(h, path: Path) -> None:
 
 
 def case_sha256(case) -> str:
-    """Content hash of a case: its manifest and the volume files it names."""
+    """Content hash of a case: its manifest and the volume files it names
+    (for a case a session file carries, the hash recorded there)."""
+    from bonesim.io.embedded import SESSION_FORMAT
+
+    if case.volume.format == SESSION_FORMAT:
+        return recorded_case_sha256(case.manifest)
     h = hashlib.sha256()
     h.update(Path(case.manifest).read_bytes())
     for p in (case.volume.path, case.volume.labels):
         if p is not None:
             _hash_path(h, Path(p))
     return h.hexdigest()
+
+
+def recorded_case_sha256(path) -> str | None:
+    """The case hash a session file's header records (None if it has none)."""
+    from bonesim.session.schema import require_h5py
+
+    with require_h5py().File(path, "r") as f:
+        text = f.attrs.get("header", "{}")
+    text = text.decode() if isinstance(text, bytes) else str(text)
+    return json.loads(text).get("case", {}).get("sha256")
 
 
 def burr_sha256(burr) -> str:
@@ -127,9 +143,41 @@ def make_header(model, burrs=(), *, participant: str = "", group: str = "",
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
                     "numpy": np.__version__, "numba": numba.__version__},
     }
+    if case is not None:
+        head["model"] = model_record(model, burrs)
     if device_record is not None:
         head["device_record"] = json.loads(json.dumps(device_record))   # JSON-ready now
     return head
+
+
+def model_record(model, burrs=()) -> dict:
+    """What rebuilds ``model`` (burr 0) and ``burrs`` besides the tissue arrays
+    (:func:`bonesim.io.embedded.write_volume`): the case record, the burr table
+    with every value, the materials per kind and the body limit (header key
+    ``model``; the oversampling, device limits and rate are the header's)."""
+    from bonesim.io.embedded_case import burr_record, case_record, materials_record
+
+    return {"case": case_record(model.case, model.spacing_mm),
+            "burrs": [burr_record(b) for b in [model.burr] + list(burrs)],
+            "materials": materials_record(model),
+            "max_bodies": int(model.max_bodies)}
+
+
+def recorded_volume(model, header: dict):
+    """The initial tissue a session of ``model`` with ``header`` stores (its
+    case's volume, loaded again: :class:`~bonesim.io.volumes.CaseVolume`), or
+    None for a model built from arrays or a header without a ``model`` record.
+    Checked against the model's grid."""
+    case = model.case
+    if case is None or "model" not in header:
+        return None
+    vol = case.load_volume()
+    g = model.grid
+    if tuple(vol.labels.shape) != tuple(g.shape) or float(vol.spacing_mm) != g.spacing_mm \
+            or not np.array_equal(vol.origin_mm, np.asarray(g.origin_mm, float)):
+        raise ValueError(f"case {case.name!r} no longer loads the grid its model was "
+                         "built on; the session cannot store it")
+    return vol
 
 
 def sessions_folder() -> Path:

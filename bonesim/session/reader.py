@@ -34,6 +34,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
+from bonesim.io.embedded import MODEL_GROUP
 from bonesim.session.schema import OPTIONAL_GROUPS
 from bonesim.session.schema import FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, require_h5py
 from bonesim.session.writer import SessionWriter, compact_session, is_compaction_temp
@@ -49,7 +50,7 @@ __all__ = ["Session", "read_session", "damage_notice", "session_info", "list_ses
 #: must be whole up to the moment a damaged file is cut at.
 _SCHEMAS = {1: ({"samples": GROUPS["samples"], **GROUPS_V1, "camera": GROUPS["camera"],
                  "events": GROUPS["events"]}, "removals"),
-            2: (GROUPS, "tissue"), 3: (GROUPS, "tissue")}
+            2: (GROUPS, "tissue"), 3: (GROUPS, "tissue"), 4: (GROUPS, "tissue")}
 #: Sample columns a replay cannot do without.
 REPLAY_COLUMNS = ("t_s", "pos_mm", "axis", "drill", "speed_rpm", "direction", "burr", "epoch")
 
@@ -105,6 +106,14 @@ class Session:
     stopped : str or None
         Why the writer stopped recording early (its ``stopped`` event: the
         disk nearly full), else None.
+    carries_model : bool
+        The file holds the model it was recorded on (schema 4: the header's
+        ``model`` record and the ``/model`` tissue arrays,
+        :mod:`bonesim.io.embedded`): :meth:`burr_models` needs no case, burr
+        or material file.
+    model_source : str or None
+        Set when a file carries a model that cannot be read and
+        :meth:`burr_models` built it from today's case files instead (why).
     """
 
     path: Path
@@ -125,6 +134,8 @@ class Session:
     lost: list = field(default_factory=list)
     stopped: str | None = None
     holes: list = field(default_factory=list)
+    carries_model: bool = False
+    model_source: str | None = None
 
     @cached_property
     def removals(self) -> dict:
@@ -153,27 +164,96 @@ class Session:
         return float(t[-1] - t[0]) if len(t) else 0.0
 
     def burr_models(self, check: bool = True) -> list:
-        """One :class:`~bonesim.engine.model.Model` per burr index, rebuilt from the
-        recorded case and burrs; with ``check``, their physics must hash to
-        what was recorded."""
-        from bonesim.io.burrs import load_burr
-        from bonesim.engine.device_caps import DeviceCaps
-        from bonesim.io.loading import load_model
-
+        """One :class:`~bonesim.engine.model.Model` per burr index, rebuilt from
+        the file alone when it carries its model (:attr:`carries_model`), else
+        from the recorded case and burr files (a changed bundled case: from its
+        kept older versions, found by the hashes); with ``check``, their
+        physics must hash to what was recorded."""
         if not self.header_ok:
             raise BonesimError(f"{self.path}: the header is corrupt (it fails its checksum): "
                                "the recorded case, burrs, voxel size and oversampling cannot "
                                "be trusted, so the run cannot be rebuilt")
+        if self.carries_model:
+            try:
+                return self._carried_models(check)
+            except BonesimError as exc:
+                # a damaged /model: today's case files may still build the run
+                try:
+                    models = self._models_from_files(check)
+                except (BonesimError, OSError, ValueError):
+                    raise exc from None
+                self.model_source = f"the case files ({exc})"
+                return models
+        return self._models_from_files(check)
+
+    def recorded_burrs(self) -> list:
+        """The run's burr table (:class:`~bonesim.io.burrs.Burr`, by index): the
+        file's own record when it carries its model, else today's burr files."""
+        if self.carries_model:
+            from bonesim.io.embedded_case import burr_from_record
+
+            return [burr_from_record(b, f"{self.path}: header model.burrs[{q}]")
+                    for q, b in enumerate(self.header["model"]["burrs"])]
+        from bonesim.io.burrs import load_burr
+
+        return [load_burr(b["name"]) for b in self.header["burrs"]]
+
+    def _device_caps(self):
+        from bonesim.engine.device_caps import DeviceCaps
+
+        dev = self.header["device"]
+        inf = math.inf
+        return DeviceCaps(dev["name"], dev["max_force_n"] or inf,
+                          tuple(x or inf for x in dev["workspace_mm"]),
+                          dev["max_stiffness_n_per_mm"] or inf, dev["rate_hz"])
+
+    def _carried_models(self, check: bool) -> list:
+        """The models rebuilt from the file's own record (schema 4)."""
+        from dataclasses import replace
+
+        from bonesim.io.embedded import read_volume
+        from bonesim.io.embedded_case import embedded_case, materials_from_record
+        from bonesim.io.loading import load_model
+
+        h = self.header
+        rec = h["model"]
+        case = embedded_case(self.path, rec["case"])
+        f, _, _, view = open_session_file(self.path, require_h5py())
+        try:
+            with f:
+                case._derived["session_volume"] = read_volume(self.path, f)
+        finally:
+            if view is not None:
+                view.close()
+        burrs = self.recorded_burrs()
+        m = load_model(case, burrs[0], device=self._device_caps(),
+                       oversample=int(h["oversample"]),
+                       materials=materials_from_record(rec["materials"]))
+        m = replace(m, max_bodies=int(rec.get("max_bodies", m.max_bodies)))
+        models = [m] + [m.with_burr(b) for b in burrs[1:]]
+        bad = next((q for q, (mm, want) in enumerate(zip(models, h["model_sha256"]))
+                    if model_sha256(mm) != want), None) if check else None
+        if bad is not None:
+            from bonesim import __version__
+
+            raise BonesimError(
+                f"{self.path}: burr {bad} ({rec['burrs'][bad]['name']}): the model rebuilt "
+                f"from the file's own record does not hash to the recorded one; bonesim "
+                f"{__version__} builds the physics differently from the version that "
+                f"recorded it ({h.get('bonesim_version', '?')})")
+        return models
+
+    def _models_from_files(self, check: bool) -> list:
+        """The models rebuilt from today's case and burr files (schemas 1-3)."""
+        from bonesim.io.burrs import load_burr
+        from bonesim.io.loading import load_model
+
         h = self.header
         case = h["case"]
         src = case.get("path") or case["name"]
         if case.get("path") and not Path(case["path"]).exists():
             src = case["name"]
-        dev = h["device"]
-        inf = math.inf
-        caps = DeviceCaps(dev["name"], dev["max_force_n"] or inf,
-                          tuple(x or inf for x in dev["workspace_mm"]),
-                          dev["max_stiffness_n_per_mm"] or inf, dev["rate_hz"])
+        caps = self._device_caps()
         burrs = []
         for b in h["burrs"]:
             p = b.get("path")
@@ -410,6 +490,7 @@ def read_session(path) -> Session:
             except (TypeError, ValueError):
                 repaired = None
             spec, whole = _SCHEMAS[schema]
+            carries = MODEL_GROUP in f and "model" in header
             groups, declared = {}, {}
             for g, cols in spec.items():
                 if g in OPTIONAL_GROUPS and g not in f:      # written before it existed
@@ -451,7 +532,7 @@ def read_session(path) -> Session:
                    groups["camera"], evlist, "; ".join(problems) or None, readable,
                    repaired, groups.get("handle", _no_rows(GROUPS["handle"])),
                    header_ok=header_ok, checksums=schema >= 3, lost=lost, stopped=stopped,
-                   holes=holes)
+                   holes=holes, carries_model=carries)
 
 
 def damage_notice(session: Session) -> str | None:
@@ -568,6 +649,7 @@ def session_info(session: Session) -> dict:
                       "kind": events.INJURY_KINDS[int(k)] if int(k) < 2 else str(int(k))}
                      for ti, lab, k in zip(inj["t_s"], inj["label"], inj["kind"])],
         "camera_frames": int(len(session.camera["t_s"])),
+        "self_contained": session.carries_model,
         "events": len(session.events),
     }
 

@@ -236,8 +236,12 @@ def verify(session: Session, progress=None) -> dict:
                  "replayed": int(len(got["t_s"]))}
     report["tissue_match"] = first is None
     report["first_mismatch"] = first
-    report["forces_match"] = bool(np.array_equal(s["mag_n"], out["mag_n"])
-                                  and np.array_equal(s["tangential_n"], out["tangential_n"]))
+    # rows of a column with holes read as NaN (their chunk failed its
+    # checksum; coverage names them): they cannot be compared, the rest can
+    ok_rows = np.isfinite(s["mag_n"]) & np.isfinite(s["tangential_n"]).all(axis=1)
+    report["forces_match"] = bool(
+        np.array_equal(s["mag_n"][ok_rows], out["mag_n"][ok_rows])
+        and np.array_equal(s["tangential_n"][ok_rows], out["tangential_n"][ok_rows]))
     report.update(cov)
     report["identical"] = report["tissue_match"] and report["forces_match"]
     report["ok"] = report["identical"] and cov["short"] is None

@@ -19,7 +19,7 @@ __all__ = ["SCHEMA_VERSION", "FORMAT", "GROUPS", "OPTIONAL_GROUPS", "HEADER_KEYS
            "require_h5py"]
 
 #: Version of the file layout written here (``docs/session_schema.md``).
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: Value of the root attribute ``format``.
 FORMAT = "bonesim-session"
 #: Columns of each group: name -> (dtype, trailing shape). ``samples``,

@@ -19,6 +19,7 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.errors import BonesimError
+from bonesim.io.embedded import MODEL_GROUP, write_volume
 from bonesim.session import disk_guard
 from bonesim.session.header import header_sha256
 from bonesim.session.schema import FORMAT, GROUPS, HEADER_KEYS, SCHEMA_VERSION, require_h5py
@@ -68,6 +69,11 @@ class SessionWriter:
     overwrite : bool
     compact : bool
         Compact the file on :meth:`close`.
+    volume : CaseVolume, optional
+        The initial tissue of the recorded case
+        (:func:`bonesim.session.header.recorded_volume`), stored in the group
+        ``/model`` (:func:`bonesim.io.embedded.write_volume`) so that the file,
+        with its header's ``model`` record, rebuilds the model on its own.
 
     Attributes
     ----------
@@ -82,7 +88,7 @@ class SessionWriter:
     """
 
     def __init__(self, path, header: dict, overwrite: bool = False,
-                 compact: bool = True):
+                 compact: bool = True, volume=None):
         h5py = require_h5py()
         self.compact = compact
         self.path = Path(path)
@@ -113,6 +119,8 @@ class SessionWriter:
             f.attrs["schema"] = SCHEMA_VERSION
             f.attrs["header"] = text
             f.attrs["header_sha256"] = header_sha256(FORMAT, SCHEMA_VERSION, text)
+            if volume is not None:
+                write_volume(f, volume, header["case"]["name"])
             self.rows = {}
             for g, cols in GROUPS.items():
                 grp = f.create_group(g)
@@ -326,6 +334,9 @@ def compact_session(path) -> int:
                 dst.attrs[k] = v
             pieces = []                       # (start time, group, row) per chunk
             for name, item in src.items():
+                if name == MODEL_GROUP:       # the recorded case: compressed already
+                    src.copy(item, dst, name=name)
+                    continue
                 if not isinstance(item, h5py.Group):
                     dst.create_dataset(name, data=item[()], fletcher32=True,
                                        chunks=item.shape or None)

@@ -161,6 +161,17 @@ def _resign(f, text: str) -> None:
 def test_changed_case_is_refused_on_replay(recorded, tmp_path):
     bad = _copy_with(recorded[0], tmp_path, lambda f: _resign(
         f, f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0')))
+    # the file's own model (schema 4) no longer matches its recorded hash
+    with pytest.raises(BonesimError, match="own record does not hash to the recorded one"):
+        replay(read_session(bad))
+    # a file without its model (as schemas 1-3) is rebuilt from the case files
+    (tmp_path / "files").mkdir()
+
+    def no_model(f):
+        del f["model"]
+        _resign(f, f.attrs["header"].replace('"model_sha256": ["', '"model_sha256": ["0'))
+
+    bad = _copy_with(recorded[0], tmp_path / "files", no_model)
     with pytest.raises(BonesimError, match="no longer builds the recorded model"):
         replay(read_session(bad))
     # the same edit without its checksum is damage, not a changed case
@@ -388,7 +399,7 @@ def test_closing_compacts_the_file_losslessly_and_atomically(model, traj, tmp_pa
     run_trajectory(model, traj, surface=False, record=raw, header=make_header(model))
     # the same run written raw (as a live writer leaves it before closing)
     live = tmp_path / "live.h5"
-    monkeypatch.setattr(writer.SessionWriter.__init__, "__defaults__", (False, False))
+    monkeypatch.setattr(writer.SessionWriter.__init__, "__defaults__", (False, False, None))
     run_trajectory(model, traj, surface=False, record=live, header=make_header(model))
     monkeypatch.undo()
     with h5py.File(live, "r") as f:

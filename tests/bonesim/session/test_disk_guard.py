@@ -182,14 +182,15 @@ def test_simulate_on_a_disk_that_fills_exits_non_zero_with_the_kept_span(
     write_trajectory(script, t.at_times(t.t_s[start:start + 1400]))
     monkeypatch.setattr(disk_guard, "check_space", lambda *a, **k: None)
     out = tmp_path / "sim.h5"
-    with file_size_limit(int(1.5 * MB)):
+    # (room for the header, the recorded case and the first chunks of each stream)
+    with file_size_limit(int(1.8 * MB)):
         rc = main(["simulate", "--trajectory", str(script), "--record", str(out), "--json"])
     cap = capsys.readouterr()
     assert rc == EXIT_RECORDING_LOST == 3
     res = json.loads(cap.out)
     assert res["record_ok"] is False and res["voxels_removed"] > 0
     kept = res["record_kept"]
-    assert 0 < kept["samples"] < res["steps"]
+    assert 0 < kept["samples"] < res["steps"], (res, cap.err)
     err = [ln for ln in cap.err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("bonesim: recording stopped at")
     assert "largest size allowed" in err[0] and "Traceback" not in cap.err

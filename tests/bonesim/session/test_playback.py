@@ -323,7 +323,7 @@ def test_recorded_file_seeks_match_the_engine(demo_file):
     p = Player(s)
     assert p.timeline.duration == pytest.approx(s.duration_s) and p.timeline.duration > 7
     # hundreds of removal batches to seek through (412 over the phantom's mastoid cortex)
-    assert len(p.timeline.rem_t) > 300 and p.timeline.cam_t.size == 0   # scripted: no camera
+    assert len(p.timeline.rem_t) > 300 and p.timeline.cam_t.size == 1   # scripted: the one eye
     for t in (6.0, 2.5, 4.0):                    # forward, backward, forward
         p.seek(t)
         live = _engine_density(p.model, s, t)

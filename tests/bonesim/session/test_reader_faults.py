@@ -51,7 +51,7 @@ def _offsets(size: int) -> list[int]:
 def test_synthetic_file_reads_back_whole_with_checksums(synthetic):
     path, data = synthetic
     s = read_session(path)
-    assert s.schema == SCHEMA_VERSION == 3 and s.complete and s.damage is None
+    assert s.schema == SCHEMA_VERSION == 4 and s.complete and s.damage is None
     assert s.checksums and s.header_ok and not s.lost
     assert _same_as_written(s, data)
     with h5py.File(path, "r") as f:        # every chunked column carries Fletcher32

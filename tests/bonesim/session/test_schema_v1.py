@@ -68,7 +68,7 @@ def test_a_v1_file_replays_bit_for_bit_and_plays_back():
 def test_repair_writes_a_v1_file_in_the_current_schema(tmp_path):
     out = tmp_path / "v3.h5"
     s2 = repair_session(V1, out)
-    assert s2.schema == SCHEMA_VERSION == 3 and s2.checksums and s2.header_ok
+    assert s2.schema == SCHEMA_VERSION == 4 and s2.checksums and s2.header_ok
     s1 = read_session(V1)
     for name in s1.tissue:
         np.testing.assert_array_equal(s1.tissue[name], s2.tissue[name], err_msg=name)
