@@ -199,15 +199,19 @@ class Session:
         if not check:
             return models
         bad = mismatch(models)
-        if bad is not None and src == case["name"]:
+        if bad is not None:
             # a bundled case that changed since: the kept older versions, newest
-            # first, found by the recorded hashes
+            # first, found by the recorded hashes (also when the recorded
+            # manifest path still exists but holds another version: a checkout
+            # or install updated in place; today's bundled case is tried first)
             from bonesim.io.case import case_versions
 
-            for older in case_versions(case["name"]):
-                candidate = build(older)
+            older = case_versions(case["name"])
+            first = [None] if older and src != case["name"] else []
+            for version in first + older:
+                candidate = build(case["name"] if version is None else version)
                 if mismatch(candidate) is None:
-                    self.case_version = older
+                    self.case_version = version
                     return candidate
         if bad is not None:
             why = ("the case, burr or material files changed since the recording"
