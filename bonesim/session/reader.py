@@ -545,7 +545,7 @@ def session_info(session: Session) -> dict:
         "repaired_from": session.repaired,
         "readable_rows": {g: {"kept": k, "declared": d}
                           for g, (k, d) in session.readable.items()} or None,
-        "bonesim_version": h["bonesim_version"],
+        "recorded_with": h["bonesim_version"],
         "start_time": h["start_time"],
         "participant": h["participant"], "group": h["group"], "notes": h["notes"],
         "case": h["case"]["name"],
