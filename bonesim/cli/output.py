@@ -23,9 +23,9 @@ def with_version(obj, items: str = "items") -> dict:
     Parameters
     ----------
     obj : dict or list
-        What the command outputs. A dict must not hold :data:`VERSION_KEY`
-        already (a recording's own version goes under another name, such as
-        ``recorded_with``).
+        What the command outputs. A dict may hold :data:`VERSION_KEY` only
+        with this version (a recording's own version goes under another
+        name, such as ``recorded_with``).
     items : str
         The key a list is put under.
 
@@ -38,8 +38,9 @@ def with_version(obj, items: str = "items") -> dict:
     from bonesim import __version__
 
     if isinstance(obj, dict):
-        if VERSION_KEY in obj:
-            raise ValueError(f"output already holds {VERSION_KEY!r}")
+        if obj.get(VERSION_KEY, __version__) != __version__:
+            raise ValueError(f"output holds {VERSION_KEY!r} {obj[VERSION_KEY]!r}, not this "
+                             f"bonesim's {__version__!r}")
         return {VERSION_KEY: __version__, **obj}
     if isinstance(obj, (list, tuple)):
         return {VERSION_KEY: __version__, items: list(obj)}

@@ -204,10 +204,12 @@ class Session:
             # first, found by the recorded hashes (also when the recorded
             # manifest path still exists but holds another version: a checkout
             # or install updated in place; today's bundled case is tried first)
-            from bonesim.io.case import case_versions
+            from bonesim.io.case import CASE_FILE, case_versions, cases_dir
 
             older = case_versions(case["name"])
-            first = [None] if older and src != case["name"] else []
+            today = cases_dir() / case["name"] / CASE_FILE
+            first = [None] if older and src != case["name"] and \
+                Path(src).resolve() != today.resolve() else []
             for version in first + older:
                 candidate = build(case["name"] if version is None else version)
                 if mismatch(candidate) is None:

@@ -47,7 +47,8 @@ def test_with_version(capsys):
     assert with_version({"a": 1}) == {VERSION_KEY: v, "a": 1}
     assert list(with_version({"a": 1})) == [VERSION_KEY, "a"]          # first
     assert with_version([1, 2], "cases") == {VERSION_KEY: v, "cases": [1, 2]}
-    with pytest.raises(ValueError, match="already holds"):
+    assert with_version({"a": 1, VERSION_KEY: v}) == {VERSION_KEY: v, "a": 1}
+    with pytest.raises(ValueError, match="not this bonesim's"):
         with_version({VERSION_KEY: "0.0.1"})
     with pytest.raises(TypeError, match="object or a list"):
         with_version("text")

@@ -119,19 +119,23 @@ def test_old_files_through_the_cli(old, capsys):
 
 
 def test_a_recorded_path_that_now_holds_another_version(tmp_path):
-    """A file recorded on an install whose case was since updated in place
-    names a manifest that exists but builds another model: the kept versions
-    are tried all the same (schema 1 and 2 headers carry no checksum, so the
-    copy's header may be edited to say so)."""
+    """A file recorded on an install or checkout whose case was since updated
+    in place names a manifest that exists but builds another model: the
+    kept versions are tried all the same (schema 1 and 2 headers carry no
+    checksum, so the copy's header may be edited to say so)."""
     from bonesim.io.case import cases_dir
 
-    copy = tmp_path / "moved.h5"
-    shutil.copy(DATA / "phantom2_schema2.h5", copy)
-    with h5py.File(copy, "r+") as f:
-        header = json.loads(f.attrs["header"])
-        header["case"]["path"] = str(cases_dir() / "phantom" / "case.toml")
-        f.attrs["header"] = json.dumps(header)
-    s = read_session(copy)
-    s.burr_models()
-    assert s.case_version == "phantom@2"
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    shutil.copy(cases_dir() / "phantom" / "case.toml", checkout / "case.toml")
+    for manifest in (cases_dir() / "phantom" / "case.toml", checkout / "case.toml"):
+        copy = tmp_path / "moved.h5"
+        shutil.copy(DATA / "phantom2_schema2.h5", copy)
+        with h5py.File(copy, "r+") as f:
+            header = json.loads(f.attrs["header"])
+            header["case"]["path"] = str(manifest)
+            f.attrs["header"] = json.dumps(header)
+        s = read_session(copy)
+        s.burr_models()
+        assert s.case_version == "phantom@2", manifest
     assert verify(s)["ok"]
