@@ -13,7 +13,12 @@ library, and loads the engine modules only when first used.
 """
 from __future__ import annotations
 
-__version__ = "0.1.0"
+#: The package version, written into every session file's header and every
+#: JSON output of the command line. It changes whenever the bundled data (a
+#: case, burr or material: a new kept version such as ``phantom@1``) or the
+#: session schema changes, so that files and outputs tell the versions apart.
+#: pyproject.toml reads it from here.
+__version__ = "0.2.0"
 
 _LAZY = {
     "Model": "bonesim.engine.model",

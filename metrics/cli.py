@@ -6,11 +6,11 @@ simulator never imports the metrics.
 """
 from __future__ import annotations
 
-import json
 import sys
 
 import numpy as np
 
+from bonesim.cli.output import print_json
 from bonesim.io.anatomy import clinical_name
 
 __all__ = ["cmd_cohort_synth", "cmd_metrics_run", "cmd_metrics_cohort", "cmd_metrics_limits",
@@ -38,7 +38,7 @@ def cmd_cohort_synth(args) -> int:
            "participants": str(paths[0].parent / PARTICIPANTS_CSV),
            "synthetic": True}
     if args.json:
-        print(json.dumps(out, indent=2))
+        print_json(out)
     else:
         print(f"{len(paths)} synthetic runs ({args.experts} expert-like, {args.novices} "
               f"novice-like, {sessions} session(s) each, {args.duration:g} s per run, seed "
@@ -64,7 +64,7 @@ def cmd_metrics_run(args) -> int:
     res = run_metrics(s, experts=args.expert or (), force_profile=args.force_profile,
                       structure=args.structure)
     if args.json:
-        print(json.dumps(res, indent=2))
+        print_json(res)
         return status
     r, v, c = res["run"], res["visibility"], res["conduct"]
     print(f"{r['file']}: {r['participant'] or '(no participant)'}, case {r['case']}, "
@@ -137,7 +137,7 @@ def cmd_metrics_limits(args) -> int:
            "experts": len(lim.source), "bins_with_limit": have, "bins": len(lim.force_n),
            "closest_mm": float(lim.closest_mm) if np.isfinite(lim.closest_mm) else None}
     if args.json:
-        print(json.dumps(out, indent=2))
+        print_json(out)
     else:
         print(f"{args.out}: force and speed limits near the {clinical_name(lim.structure)} "
               f"({lim.percentile:g}th "
@@ -266,7 +266,7 @@ def cmd_metrics_cohort(args) -> int:
                                    for k, v in res.classifiers.items()},
                **_instructor_summary(res.instructors), **out}
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print_json(summary)
         return 0
     print(f"{summary['scored']} of {summary['runs']} runs scored ({summary['failed']} "
           f"failed) on case {summary['case']}, {res.meta['scheduler']} with "
@@ -337,7 +337,7 @@ def cmd_metrics_progress(args) -> int:
     except ValueError as exc:
         raise BonesimError(f"metrics progress: {exc}") from None
     if args.json:
-        print(json.dumps(out, indent=2, default=_num))
+        print_json(out, default=_num)
         return 0
     print(f"wrote {out['png']}")
     for m, imp in out["metrics"].items():
@@ -356,7 +356,7 @@ def cmd_metrics_export(args) -> int:
     out = export_run(args.file, args.out, participants=args.participants,
                      command=_command(args))
     if args.json:
-        print(json.dumps(out, indent=2))
+        print_json(out)
     else:
         print(f"visibility: {out['visibility']}\nremovals: {out['removals']}")
     return 0

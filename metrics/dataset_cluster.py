@@ -119,8 +119,7 @@ def render_many(runs, out_dir, options, *, layout: str = "h5", scheduler=None,
 
 def cmd_dataset_many(args, options) -> int:
     """``bonesim dataset DIR_OR_GLOB --out DIR`` (called by :mod:`bonesim.cli.dataset`)."""
-    import json
-
+    from bonesim.cli.output import print_json
     from bonesim.progress import ProgressBar
     from metrics.cohort import find_sessions
 
@@ -134,7 +133,7 @@ def cmd_dataset_many(args, options) -> int:
         if bar is not None:
             bar.close()
     if args.json:
-        print(json.dumps(res, indent=2))
+        print_json(res)
     else:
         for r in res["runs"]:
             if "error" in r:

@@ -9,8 +9,9 @@ a run.
 """
 from __future__ import annotations
 
-import json
 import sys
+
+from bonesim.cli.output import print_json
 
 __all__ = ["assess_parsers", "cmd_assess", "checklist_of_grid", "print_checklist"]
 
@@ -69,7 +70,7 @@ def cmd_assess(args) -> int:
                                             a.items, (cam.eye_mm, cam.focal_mm, cam.up),
                                             title, size=size))
     if args.json:
-        print(json.dumps(out, indent=2))
+        print_json(out)
         return 0
     print(f"{s.path}: case {model.name}" + (f", {s.header.get('participant')}"
                                             if s.header.get("participant") else ""))

@@ -13,17 +13,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from bonesim.cli.output import print_json
 from bonesim.errors import BonesimError
 
 __all__ = ["dataset_parsers", "options_from_args", "cmd_dataset", "cmd_sessions_export"]
 
 _STREAM_FLAGS = ("rgb", "depth", "seg", "normals", "points")
-
-
-def _print_json(obj) -> None:
-    import json
-
-    print(json.dumps(obj, indent=2))
 
 
 def dataset_parsers(sub, _lazy, sessions_sub) -> None:
@@ -170,7 +165,7 @@ def cmd_dataset(args) -> int:
                           f"{d.frames['t_s'][i]:.2f} s")
         res["preview"] = str(args.preview)
     if args.json:
-        _print_json(res)
+        print_json(res)
     else:
         for line in res["notes"]:
             print(line, file=sys.stderr)
@@ -193,7 +188,7 @@ def cmd_sessions_export(args) -> int:
     res = export_bone(session, args.at, args.format, args.out, overwrite=args.force,
                       orientation=args.orientation)
     if args.json:
-        _print_json(res)
+        print_json(res)
     else:
         print(f"{args.file}: the bone at {res['at_s']:.3f} s, {res['remaining_voxels']:,} "
               f"voxels ({res['removed_voxels']:,} removed) -> {res['case']}")

@@ -2,7 +2,7 @@
 connected, what each needs) and ``bonesim run --device NAME``'s option."""
 from __future__ import annotations
 
-import json
+from bonesim.cli.output import print_json
 
 __all__ = ["cmd_devices", "cmd_calibrate", "device_parsers", "device_option"]
 
@@ -13,7 +13,7 @@ def cmd_devices(args) -> int:
 
     rows = [describe(n) for n in backend_names()]
     if args.json:
-        print(json.dumps({"config": str(config_path()), "backends": rows}, indent=2))
+        print_json({"config": str(config_path()), "backends": rows})
         return 0
     w = max(len(r["name"]) for r in rows)
     for r in rows:

@@ -7,7 +7,6 @@ problem, with exit status 2; no traceback.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from bonesim.io.burrs import DEFAULT_BURR
 from bonesim.cli.assess import assess_parsers, checklist_of_grid, print_checklist
 from bonesim.cli.dataset import dataset_parsers
 from bonesim.cli.devices import device_option, device_parsers
+from bonesim.cli.output import print_json
 from bonesim.cli.bounds import check_options
 from bonesim.cli.research import research_parsers
 from bonesim.cli.tutor_args import tutor_parsers
@@ -29,10 +29,6 @@ __all__ = ["DEFAULT_CASE", "cmd_cases", "cmd_case_info", "cmd_case_export", "cmd
 
 DEFAULT_CASE = "phantom"
 
-
-
-def print_json(obj) -> None:
-    print(json.dumps(obj, indent=2))
 
 
 def print_table(rows: list[dict], cols: list[str]) -> None:
@@ -50,7 +46,7 @@ def cmd_cases(args) -> int:
              "manifest": str(c.manifest), "description": c.description}
             for c in list_cases()]
     if args.json:
-        print_json(rows)
+        print_json(rows, "cases")
     else:
         print_table(rows, ["name", "side", "format", "description"])
     return 0
@@ -103,7 +99,7 @@ def cmd_burrs(args) -> int:
 
     rows = burr_table(list_burrs())
     if args.json:
-        print_json(rows)
+        print_json(rows, "burrs")
     else:
         cols = [c for c in ("name", "kind", "diameter_mm", "max_force_n",
                             "default_speed_rpm") if c in rows[0]]
@@ -673,7 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="without a terminal: print the readings every S seconds "
                         "(0: only the summary)")
     s.add_argument("--json", action="store_true", help="print the statistics as JSON")
-    s.set_defaults(func=_lazy("bonesim.net.monitor_link", "cmd_monitor"))
+    s.set_defaults(func=_lazy("bonesim.cli.monitor", "cmd_monitor"))
 
     s = sub.add_parser("sessions", help="recorded sessions (HDF5 files)")
     ssub = s.add_subparsers(dest="sessions_cmd", metavar="ACTION", required=True)

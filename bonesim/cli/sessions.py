@@ -9,7 +9,8 @@ from __future__ import annotations
 import sys
 
 from bonesim.io.anatomy import clinical_name
-from bonesim.cli.main import print_json, print_table
+from bonesim.cli.main import print_table
+from bonesim.cli.output import print_json
 from bonesim.session.header import sessions_folder
 from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
                                     session_info)
@@ -76,14 +77,14 @@ def cmd_sessions_list(args) -> int:
         # before the first recording the default folder does not exist yet: that
         # is no error (a folder asked for by name still has to exist)
         if args.json:
-            print_json([])
+            print_json([], "sessions")
         else:
             print(f"no sessions yet: bonesim run --record saves them in "
                   f"{sessions_folder()}")
         return 0
     rows = list_sessions(args.folder)
     if args.json:
-        print_json(rows)
+        print_json(rows, "sessions")
     elif not rows:
         print(f"no sessions in {args.folder or sessions_folder()}")
     else:

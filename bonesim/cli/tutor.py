@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from bonesim.cli.output import print_json
 from bonesim.errors import BonesimError
 from bonesim.net import packets as net
 from bonesim.net.tutor_protocol import GLOSSARY
@@ -29,7 +30,7 @@ __all__ = ["GLOSSARY", "cmd_keygen", "cmd_serve", "cmd_join", "cmd_playback",
 
 def _print(obj, as_json: bool, lines) -> None:
     if as_json:
-        print(json.dumps(obj, indent=2))
+        print_json(obj)
     else:
         for line in lines:
             print(line)

@@ -141,9 +141,9 @@ def cmd_warmup(args) -> int:
     parts = warmup_all(report, starting)
     total = round(time.perf_counter() - t0, 2)
     if args.json:
-        import json
+        from bonesim.cli.output import print_json
 
-        print(json.dumps({"seconds": parts, "total_s": total}, indent=2))
+        print_json({"seconds": parts, "total_s": total})
     else:
         print(f"compiled the kernels in {total} s (cached for the next runs)")
     return 0

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from bonesim.io import phantom_v1 as _v1
 from bonesim.io.volumes import CaseVolume
 
 __all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
@@ -74,13 +75,14 @@ PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
 DEFAULT_SEED = 0
 DEFAULT_VOXEL_MM = 0.5
 DEFAULT_SIZE_MM = (52.0, 52.0, 52.0)
-#: Generations of the phantom's shape this module still builds: 2, the
-#: temporal bone whose posterior fossa opened behind the mastoid (the sinus
+#: Generations of the phantom's shape still built: 1, the first phantom (a
+#: rounded block; frozen in :mod:`bonesim.io.phantom_v1`, which builds it); 2,
+#: the temporal bone whose posterior fossa opened behind the mastoid (the sinus
 #: bulging out of the bone); 3, the posterior fossa closed by a wall of bone
 #: behind the mastoid (``OCCIPITAL_*``, ``PF_TABLE_MM``) so the sinus lies
 #: inside the bone. Recordings made on an older generation replay on it
-#: (bundled as ``phantom@2``).
-GENERATIONS = (2, 3)
+#: (bundled as ``phantom@1``, ``phantom@2``).
+GENERATIONS = (1, 2, 3)
 LATEST_GENERATION = GENERATIONS[-1]
 
 # ------------------------------------------------------------ outer cortex
@@ -715,16 +717,21 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     size_mm : (3,) float
         Grid extent ``(x, y, z)`` [mm], centred on the frame origin.
     generation : int
-        Which shape (:data:`GENERATIONS`; default the latest).
+        Which shape (:data:`GENERATIONS`; default the latest). Generation 1
+        is built by the frozen :mod:`bonesim.io.phantom_v1`.
 
     Returns
     -------
     PhantomParts
+        For generation 1, :class:`bonesim.io.phantom_v1.PhantomParts` (the
+        same fields).
     """
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
     if generation not in GENERATIONS:
         raise ValueError(f"phantom generation {generation!r} is not one of {GENERATIONS}")
+    if generation == _v1.GENERATION:
+        return _v1.build_phantom(seed, voxel_mm, size_mm)
     shape = np.maximum(1, np.round(np.asarray(size_mm, float) / voxel_mm)).astype(int)
     cv = _Canvas(shape, voxel_mm)
     rng = np.random.default_rng(seed)
@@ -808,6 +815,8 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     unknown = [s for s in structures if s not in PARTS]
     if unknown:
         raise ValueError(f"unknown phantom part(s) {unknown}; known: {list(PARTS)}")
+    if generation == _v1.GENERATION:
+        return _v1.phantom_volume(seed, voxel_mm, size_mm, structures)
     parts = build_phantom(seed, voxel_mm, size_mm, generation)
     labels = np.zeros(parts.hu.shape, dtype=np.uint8)
     hu = parts.hu

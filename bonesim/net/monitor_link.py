@@ -34,7 +34,6 @@ sound a click per spike (:mod:`bonesim.physics.clicks`).
 """
 from __future__ import annotations
 
-import json
 import math
 import struct
 import time
@@ -48,7 +47,7 @@ from bonesim.errors import BonesimError
 from bonesim.io.anatomy import clinical_name
 
 __all__ = ["DEFAULT_PORT", "STREAM_HZ", "MonitorServer", "MonitorConsole",
-           "pack_data", "unpack_data"]
+           "pack_data", "unpack_data", "run_console"]
 
 #: Default UDP port of the monitor server (the tutoring port + 1).
 DEFAULT_PORT = net.MONITOR_PORT
@@ -555,8 +554,11 @@ def _console_clicks(con: MonitorConsole, wav=None):
     return synth, out, recorder
 
 
-def cmd_monitor(args) -> int:
-    """``bonesim monitor HOST``: the monitoring technician's console."""
+def run_console(args) -> dict:
+    """The monitoring technician's console (``bonesim monitor HOST``,
+    :mod:`bonesim.cli.monitor`): connect, show the readings until the
+    simulator stops or ``args.duration`` [s] ends, and return the link's
+    statistics (:meth:`MonitorConsole.stats`, with ``clicks`` when sounded)."""
     import select
     import sys
 
@@ -600,12 +602,4 @@ def cmd_monitor(args) -> int:
         if recorder is not None:
             recorder.close()
         con.close()
-    if args.json:
-        print(json.dumps(s, indent=2))
-    else:
-        lat = s["latency_ms"]
-        print(f"{s['data']} packets ({s['lost']} lost, {s['loss_fraction'] * 100:.2f} %), "
-              f"{s['spikes']} spikes; latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} "
-              f"ms; link lost {s['link_lost']} time(s)"
-              + ("; server ended the session" if s["byes"] else ""))
-    return 0
+    return s

@@ -279,15 +279,21 @@ class Session:
         if not check:
             return models
         bad = mismatch(models)
-        if bad is not None and src == case["name"]:
+        if bad is not None:
             # a bundled case that changed since: the kept older versions, newest
-            # first, found by the recorded hashes
-            from bonesim.io.case import case_versions
+            # first, found by the recorded hashes (also when the recorded
+            # manifest path still exists but holds another version: a checkout
+            # or install updated in place; today's bundled case is tried first)
+            from bonesim.io.case import CASE_FILE, case_versions, cases_dir
 
-            for older in case_versions(case["name"]):
-                candidate = build(older)
+            older = case_versions(case["name"])
+            today = cases_dir() / case["name"] / CASE_FILE
+            first = [None] if older and src != case["name"] and \
+                Path(src).resolve() != today.resolve() else []
+            for version in first + older:
+                candidate = build(case["name"] if version is None else version)
                 if mismatch(candidate) is None:
-                    self.case_version = older
+                    self.case_version = version
                     return candidate
         if bad is not None:
             why = ("the case, burr or material files changed since the recording"
@@ -622,7 +628,7 @@ def session_info(session: Session) -> dict:
         "repaired_from": session.repaired,
         "readable_rows": {g: {"kept": k, "declared": d}
                           for g, (k, d) in session.readable.items()} or None,
-        "bonesim_version": h["bonesim_version"],
+        "recorded_with": h["bonesim_version"],
         "start_time": h["start_time"],
         "participant": h["participant"], "group": h["group"], "notes": h["notes"],
         "case": h["case"]["name"],

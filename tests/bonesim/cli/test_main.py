@@ -37,9 +37,9 @@ def test_parser_lists_all_subcommands():
 
 def test_cases_and_burrs_json(capsys):
     code, out, _ = run_cli(capsys, "cases", "--json")
-    assert code == 0 and "phantom" in [c["name"] for c in json.loads(out)]
+    assert code == 0 and "phantom" in [c["name"] for c in json.loads(out)["cases"]]
     code, out, _ = run_cli(capsys, "burrs", "--json")
-    names = [b["name"] for b in json.loads(out)]
+    names = [b["name"] for b in json.loads(out)["burrs"]]
     assert code == 0
     assert {f"cutting-{d}mm" for d in range(1, 8)} <= set(names)
     assert {f"diamond-{d}mm" for d in range(1, 6)} <= set(names)

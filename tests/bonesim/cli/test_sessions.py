@@ -1,6 +1,9 @@
 """``bonesim sessions`` commands (bonesim.cli.sessions)."""
 from __future__ import annotations
 
+import json
+
+import bonesim
 from bonesim.cli.main import main
 
 
@@ -21,4 +24,5 @@ def test_list_before_the_first_recording(tmp_path, monkeypatch, capsys):
 def test_list_json_before_the_first_recording(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("BONESIM_SESSIONS", str(tmp_path / "not-yet"))
     assert main(["sessions", "list", "--json"]) == 0
-    assert capsys.readouterr().out.strip() == "[]"
+    assert json.loads(capsys.readouterr().out) == {"bonesim_version": bonesim.__version__,
+                                                   "sessions": []}

@@ -362,7 +362,7 @@ def test_sessions_list_shows_good_and_broken_files(recorded, tmp_path, capsys):
     shutil.copy(recorded[0], tmp_path / "a.h5")
     (tmp_path / "b.h5").write_bytes(b"junk")
     assert main(["sessions", "list", str(tmp_path), "--json"]) == 0
-    rows = {Path(r["file"]).name: r for r in json.loads(capsys.readouterr().out)}
+    rows = {Path(r["file"]).name: r for r in json.loads(capsys.readouterr().out)["sessions"]}
     assert rows["a.h5"]["participant"] == "p07" and rows["a.h5"]["complete"]
     assert "not an HDF5 file" in rows["b.h5"]["error"]
     assert main(["sessions", "list", str(tmp_path / "none")]) == 2

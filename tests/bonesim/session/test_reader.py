@@ -247,7 +247,7 @@ def test_commands_on_a_damaged_file_say_so_in_one_line(compacted, tmp_path):
     assert len(lines) == 2 and "damaged (cut short" in lines[0]
     assert "not verified in full" in lines[1] and "Traceback" not in rep.stderr
     lst = run("sessions", "list", str(folder), "--json")
-    rows = {os.path.basename(r["file"]): r for r in json.loads(lst.stdout)}
+    rows = {os.path.basename(r["file"]): r for r in json.loads(lst.stdout)["sessions"]}
     assert rows["good.h5"]["damage"] is None and rows["cut.h5"]["damage"]
     assert "empty file" in rows["empty.h5"]["error"]
     bad = run("sessions", "info", str(folder / "empty.h5"))
