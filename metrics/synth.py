@@ -808,8 +808,10 @@ def synth_cohort(out_dir, experts: int = 6, novices: int = 6, *, seed: int = 0,
         wr = csv.writer(f)
         wr.writerow(["id", "group", "instructor_score", "session", "file"])
         wr.writerows(rows)
+    from bonesim import __version__
+
     (out / "synthesis.json").write_text(json.dumps(
-        {"seed": int(seed), "experts": experts, "novices": novices,
+        {"bonesim_version": __version__, "seed": int(seed), "experts": experts, "novices": novices,
          "sessions": int(sessions), "case": str(case), "duration_s": float(duration_s),
          "behaviours": str(behaviours) if behaviours is not None else "class defaults",
          "expert": asdict(expert),

@@ -181,7 +181,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
         summary["summary"] = str(out / "summary.json")
     summary["wall_s"] = round(time.perf_counter() - wall0, 3)
     if out_dir is not None and consumer is not None:
-        Path(summary["summary"]).write_text(json.dumps(summary, indent=2) + "\n")
+        from bonesim import __version__
+
+        Path(summary["summary"]).write_text(json.dumps(
+            {"bonesim_version": __version__, **summary}, indent=2) + "\n")
     return summary
 
 

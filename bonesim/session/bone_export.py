@@ -162,6 +162,9 @@ def export_bone(session, at: float | None, fmt: str, out_dir, *, overwrite: bool
                        "burr": str(getattr(f.burr, "name", "?")), "drill": bool(f.drill)},
               "camera": {"eye_mm": list(camera.eye_mm), "focal_mm": list(camera.focal_mm),
                          "up": list(camera.up)}, **info}
+    from bonesim import __version__
+
+    record["bonesim_version"] = __version__
     (Path(out_dir) / EXPORT_JSON).write_text(json.dumps(record, indent=1, sort_keys=True)
                                              + "\n", encoding="utf-8")
     record["case"] = str(manifest)
