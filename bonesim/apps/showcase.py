@@ -78,7 +78,7 @@ class Showcase:
 
     def __init__(self, case="phantom", burr="cutting-5mm", *, trajectory=None,
                  size=SIZE, monitor: bool = True):
-        from bonesim.physics.dust import DustGrid
+        from bonesim.physics.dust.grid import DustGrid
         from bonesim.io.burrs import load_burr
         from bonesim.io.loading import load_model
         from bonesim.engine.model import make_state

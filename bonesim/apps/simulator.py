@@ -36,7 +36,7 @@ import numpy as np
 
 from bonesim.errors import BonesimError
 from bonesim.engine.cut_plane import plane_pose
-from bonesim.physics.dust_water import water_sprites
+from bonesim.physics.dust.water import water_sprites
 from bonesim.physics.sightline import depth_below_surface_mm
 from bonesim.runtime.commands import CutPlane
 from bonesim.runtime.haptic_loop import HapticLoop
@@ -250,7 +250,7 @@ class App:
         return backend
 
     def _fresh_consumers(self):
-        from bonesim.physics.dust import DustGrid
+        from bonesim.physics.dust.grid import DustGrid
         from bonesim.engine.replica import TissueReplica
 
         self.consumer = TissueReplica(self.model, self.loop.state, surface=True)
@@ -370,7 +370,7 @@ class App:
 
     def on_frame(self, scene) -> None:
         from bonesim.engine.bodies import all_identity, voxel_bodies
-        from bonesim.physics.dust import DustGrid
+        from bonesim.physics.dust.grid import DustGrid
 
         st = self.loop.status
         if self.fragments is not None:        # the finder's splits: this thread sends

@@ -1,5 +1,5 @@
 """Benchmarks of the cut plane (:mod:`bonesim.engine.cut_plane`) and of the
-irrigated dust step (:mod:`bonesim.physics.dust_water`).
+irrigated dust step (:mod:`bonesim.physics.dust.water`).
 
 ``cut_plane_stroke_ms``
     Wall time of one 20 x 20 mm stroke 5 mm deep into the phantom's lateral
@@ -60,8 +60,8 @@ def bench_cut_plane(quick=False) -> dict:
 
 def _irrigated_scene(rng):
     from bonesim.bench.dust import EDGE, FLOOR, dust_scene
-    from bonesim.physics.dust import Q
-    from bonesim.physics.dust_water import water_grid
+    from bonesim.physics.dust.grid import Q
+    from bonesim.physics.dust.water import water_grid
 
     bone, dust = dust_scene(rng, full=False)
     ax = [np.arange(8, 8 + EDGE), np.arange(8, 8 + EDGE), np.arange(FLOOR, FLOOR + EDGE)]
@@ -73,7 +73,7 @@ def _irrigated_scene(rng):
 def bench_irrigated_dust(quick=False) -> dict:
     """The irrigated dust step on a 64^3 region, next to the plain one."""
     from bonesim.bench.dust import DT_S, EDGE, FLOOR, time_steps
-    from bonesim.physics.dust import warmup
+    from bonesim.physics.dust.grid import warmup
 
     warmup()
     rng = np.random.default_rng(0)

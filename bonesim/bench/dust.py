@@ -1,4 +1,4 @@
-"""Benchmark of the Eulerian dust step (:mod:`bonesim.physics.dust`).
+"""Benchmark of the Eulerian dust step (:mod:`bonesim.physics.dust.grid`).
 
 ``dust_step_64_ms``: wall time of one :meth:`DustGrid.step` on an active
 region of 64^3 cells: a 64^3 box of dust resting on a bone floor, every cell
@@ -24,7 +24,7 @@ DT_S = 1e-3
 
 
 def dust_scene(rng, full: bool):
-    from bonesim.physics.dust import DustGrid
+    from bonesim.physics.dust.grid import DustGrid
     from bonesim.engine.grid import Grid
 
     shape = (EDGE + 16, EDGE + 16, FLOOR + EDGE + 8)
@@ -58,7 +58,7 @@ def time_steps(rng, n: int, per_reset: int, full: bool):
 
 def bench_dust(quick=False) -> dict:
     """Dust step on a 64^3 active region (median wall time [ms])."""
-    from bonesim.physics.dust import warmup
+    from bonesim.physics.dust.grid import warmup
 
     warmup()
     rng = np.random.default_rng(0)

@@ -3,7 +3,7 @@
 A block of ``BLOCK`` samples at ``SAMPLE_RATE`` must be rendered well within
 its own duration (256 / 48000 s = 5.33 ms), or the callback underruns and
 the sound clicks. ``audio_rtf_p99`` is the 99th percentile of the time one
-:meth:`bonesim.physics.sound.SoundSynth.render` call takes divided by the block's
+:meth:`bonesim.sound.drill.SoundSynth.render` call takes divided by the block's
 duration (target <= 0.1). The parameters change before every block, as the
 haptic loop would change them (sweeping force through all contact levels,
 speed, thickness, and the drill switching off and on), so the ramps and the
@@ -37,7 +37,7 @@ def bench_audio(quick: bool = False) -> dict:
         with the p50 / p99 / max block times [us] and the block duration.
     """
     from bonesim.io.burrs import load_burr
-    from bonesim.physics.sound import SoundSynth, warmup
+    from bonesim.sound.drill import SoundSynth, warmup
 
     warmup()
     burrs = [load_burr("cutting-5mm"), load_burr("diamond-3mm")]

@@ -72,11 +72,11 @@ def _loop() -> None:
 
 
 def _parts():
-    from bonesim.physics import clicks
-    from bonesim.physics import dust
+    from bonesim.sound import clicks
+    from bonesim.physics.dust import grid as dust
     from bonesim.io import label_slices, loading, neighbours
     from bonesim.runtime import simulate
-    from bonesim.physics import sound
+    from bonesim.sound import drill as sound
     from bonesim.engine import surface
     from bonesim.engine import thickness
     from bonesim.tutoring import tutor

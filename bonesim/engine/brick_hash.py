@@ -1,5 +1,5 @@
 """The brick hash table and the sphere-over-voxels walk shared by the bone
-grid (:mod:`bonesim.engine.grid`) and the dust grid (:mod:`bonesim.physics.dust`).
+grid (:mod:`bonesim.engine.grid`) and the dust grid (:mod:`bonesim.physics.dust.grid`).
 
 Hash table
 ----------

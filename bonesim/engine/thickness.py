@@ -1,7 +1,7 @@
 """Bone thickness under the burr, by ray casting through the voxel grid.
 
 The drill sound rises in pitch as the bone under the burr gets thin (see
-:mod:`bonesim.physics.sound`). This module measures that thickness:
+:mod:`bonesim.sound.drill`). This module measures that thickness:
 
 1. **Contacted surface voxels**: voxels with density > 0 whose centre lies
    within ``radius + voxel / 2`` of the burr centre and that have at least one

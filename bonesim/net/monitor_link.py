@@ -30,7 +30,7 @@ Wire protocol
 The console keeps a history in the same form as
 :meth:`bonesim.runtime.monitor.MonitorView.history`, says when the link is lost
 (no data for :data:`LINK_LOSS_S`), measures the packet latency, and can
-sound a click per spike (:mod:`bonesim.physics.clicks`).
+sound a click per spike (:mod:`bonesim.sound.clicks`).
 """
 from __future__ import annotations
 
@@ -535,9 +535,9 @@ REFRESH_S = 0.1
 def _console_clicks(con: MonitorConsole, wav=None):
     """A click per received spike, on the sound device (or a silent sink that
     still writes ``wav``). The click delay covers two stream periods."""
-    from bonesim.physics.clicks import DELAY_S, ClickSynth
-    from bonesim.physics.clicks import warmup as clicks_warmup
-    from bonesim.physics.sound import SAMPLE_RATE, WavRecorder, open_output
+    from bonesim.sound.clicks import DELAY_S, ClickSynth
+    from bonesim.sound.clicks import warmup as clicks_warmup
+    from bonesim.sound.drill import SAMPLE_RATE, WavRecorder, open_output
 
     clicks_warmup()
     stream_hz = float(con.info.get("stream_hz") or STREAM_HZ)

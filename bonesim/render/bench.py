@@ -242,7 +242,7 @@ def _drill_from_camera(model, state) -> np.ndarray:
 
 def bench_fps(quick: bool = False) -> dict:
     """``render_fps_1024x768`` (see the module docstring)."""
-    from bonesim.physics.dust import DustGrid
+    from bonesim.physics.dust.grid import DustGrid
     from bonesim.io.loading import load_model
     from bonesim.engine.model import make_state
     from bonesim.physics.sightline import depth_below_surface_mm

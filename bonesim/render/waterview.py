@@ -1,6 +1,6 @@
 """Irrigation water on screen: the pools' surfaces as a translucent sheet.
 
-The water (:mod:`bonesim.physics.dust_water`) is drawn like the dust
+The water (:mod:`bonesim.physics.dust.water`) is drawn like the dust
 (:mod:`bonesim.render.dustview`: depth-tested, alpha-blended round sprites
 facing the camera, one per cell of the water's top layer) but larger, so
 that neighbouring sprites merge into a continuous sheet over a pool, and in

@@ -2,7 +2,7 @@
 
 Audio callbacks need the interpreter lock every few milliseconds; in the
 window's process VTK holds it for whole frames, and the haptic process must
-not be disturbed. So the synthesizer (:mod:`bonesim.physics.sound`) runs in a small
+not be disturbed. So the synthesizer (:mod:`bonesim.sound.drill`) runs in a small
 process of its own. It reads the haptic loop's shared status (drill, speed,
 applied force, tool position, burr) at :data:`CONTROL_HZ`, estimates the bone
 thickness under the burr by ray casting (:mod:`bonesim.engine.thickness`) on the
@@ -13,7 +13,7 @@ device) renders blocks in its own callback. ``wav`` records exactly what is rend
 
 With a nerve monitor (:class:`bonesim.runtime.monitor.MonitorProcess`) the same
 process also drains the monitor's spikes and mixes a click per spike into the
-same stream (:mod:`bonesim.physics.clicks`), ``clicks.DELAY_S`` after the spike.
+same stream (:mod:`bonesim.sound.clicks`), ``clicks.DELAY_S`` after the spike.
 """
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
     """Body of the audio process (:meth:`AudioProcess.run`)."""
     from bonesim.engine.bodies import Bodies
     from bonesim.engine.grid import Grid
-    from bonesim.physics.sound import SoundSynth, WavRecorder, open_output
-    from bonesim.physics.sound import warmup as sound_warmup
+    from bonesim.sound.drill import SoundSynth, WavRecorder, open_output
+    from bonesim.sound.drill import warmup as sound_warmup
     from bonesim.engine.thickness import bone_thickness_mm
     from bonesim.engine.thickness import warmup as thickness_warmup
 
@@ -55,8 +55,8 @@ def _run_audio(child, loop_handle, model, burrs, wav, monitor=None) -> None:
     recorder = WavRecorder(wav, synth.sample_rate) if wav else None
     clicks = None
     if monitor is not None:                 # (handle, nerves): clicks for its spikes
-        from bonesim.physics.clicks import ClickSynth, MixedSynth
-        from bonesim.physics.clicks import warmup as clicks_warmup
+        from bonesim.sound.clicks import ClickSynth, MixedSynth
+        from bonesim.sound.clicks import warmup as clicks_warmup
         from bonesim.runtime.monitor import shared_rings
 
         clicks_warmup()

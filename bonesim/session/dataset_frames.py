@@ -185,7 +185,7 @@ class FrameSource:
 
     # ---------------------------------------------------------------- dust
     def _new_dust(self):
-        from bonesim.physics.dust import DustGrid
+        from bonesim.physics.dust.grid import DustGrid
 
         return DustGrid.for_grid(self._walls.grid, gravity=self._gravity)
 
@@ -220,7 +220,7 @@ class FrameSource:
     def at(self, t: float) -> FrameState:
         """The frame at playback time ``t`` (times must not decrease from call
         to call: the dust only goes forward)."""
-        from bonesim.physics.dust_water import water_sprites
+        from bonesim.physics.dust.water import water_sprites
 
         t = float(t)
         if t < self._last_t:

@@ -84,7 +84,7 @@ def irrigated_dust(grid, removed):
     """The dust of one in :data:`DUST_KEPT` of ``removed`` settled 1 s along
     :data:`GRAVITY`, then irrigated for :data:`IRRIGATE_S` and left
     :data:`SETTLE_S`."""
-    from bonesim.physics.dust import DustGrid
+    from bonesim.physics.dust.grid import DustGrid
 
     dust = DustGrid.for_grid(grid, GRAVITY)
     dust.add_removed(removed[::DUST_KEPT])
@@ -103,7 +103,7 @@ def water_scene(model):
     from bonesim.engine.cut_plane import plane_pose, publish_cut
     from bonesim.engine.model import make_state
     from bonesim.engine.surface import Surface
-    from bonesim.physics.dust_water import water_sprites
+    from bonesim.physics.dust.water import water_sprites
     from bonesim.render.scene import Scene
 
     state = make_state(model)

@@ -66,7 +66,7 @@ def drilling_dust(grid, removed):
     app's gravity is the view direction): settled for 1 s, then the nerve's
     cavity irrigated for 0.5 s and drained for 0.5 s, then 0.3 s of suction
     at the sinus cavity's floor."""
-    from bonesim.physics.dust import DustGrid
+    from bonesim.physics.dust.grid import DustGrid
 
     g = np.subtract(CLOSE_FOCAL, CLOSE_EYE)
     dust = DustGrid.for_grid(grid, g)

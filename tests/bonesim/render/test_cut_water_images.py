@@ -56,7 +56,7 @@ def bluish(img):
 
 
 def test_pictures_show_what_they_claim(rendered):
-    from bonesim.physics.dust_water import water_cells
+    from bonesim.physics.dust.water import water_cells
 
     # the cuts change the picture of the intact cortex: dark grooves and a recess
     res = compare_images(rendered["cut_plane"], rendered["cut_intact"])

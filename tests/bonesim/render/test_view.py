@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonesim.physics.dust import DustGrid
+from bonesim.physics.dust.grid import DustGrid
 from bonesim.render.scene import Scene
 from bonesim.physics.sightline import depth_below_surface_mm
 from bonesim.engine.surface import Surface

@@ -358,7 +358,7 @@ def test_monitor_process_follows_a_scripted_loop(phantom_model, phantom_monitor,
 
 
 # ---------------------------------------------------------------------- clicks
-from bonesim.physics import clicks as K  # noqa: E402
+from bonesim.sound import clicks as K  # noqa: E402
 
 FS = 48000
 
@@ -447,7 +447,7 @@ def test_clicks_mix_into_the_drill_sound_and_record_to_wav(tmp_path):
     import wave
 
     from bonesim.io.burrs import load_burr
-    from bonesim.physics.sound import SoundSynth, WavRecorder
+    from bonesim.sound.drill import SoundSynth, WavRecorder
 
     burr = load_burr("cutting-5mm")
     drill = SoundSynth(burr, FS, seed=4)

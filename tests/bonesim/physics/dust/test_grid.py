@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as hs
 
 from bonesim.engine import events
-from bonesim.physics.dust import Q, DustGrid, DustParams, warmup
+from bonesim.physics.dust.grid import Q, DustGrid, DustParams, warmup
 from bonesim.engine.grid import Grid, voxel_offset
 
 H = 0.5                                 # cell edge [mm]
@@ -28,7 +28,7 @@ def _compiled():
 # ------------------------------------------------------------------ reference
 # Dense int64 arrays over the domain box; ``wall`` is bone (everything
 # outside the box is a wall too). Same integer formulas as documented in
-# bonesim.physics.dust, written the obvious way.
+# bonesim.physics.dust.grid, written the obvious way.
 def _pairs(shape, a, s):
     """Slices (S, D) with D = S + s e_a."""
     n = shape[a]
@@ -528,7 +528,7 @@ def test_sprites_show_the_top_layer_only(g):
 
 
 def test_sprites_are_jittered_inside_their_cells_the_same_every_frame():
-    from bonesim.physics.dust_sprites import cell_jitter
+    from bonesim.physics.dust.sprites import cell_jitter
 
     bone, dust = _floor_case()
     ijk = np.stack(np.meshgrid(np.arange(4, 16), np.arange(4, 16), [4],

@@ -150,7 +150,7 @@ do not limit each other's room (water fills the pores of dry dust).
    before the wet species' step). Wet dust never dries in this model.
 
 The tool pushes (rule 3) and suction takes (rule 4) both species. Water
-(rules 6-9, :mod:`bonesim.physics.dust_water`) carries the wet dust.
+(rules 6-9, :mod:`bonesim.physics.dust.water`) carries the wet dust.
 Conservation holds for the pair: ``total == added - suctioned`` with
 ``total`` and ``suctioned`` summed over both (:meth:`DustGrid.totals_q`),
 as an exact integer identity.
@@ -159,12 +159,12 @@ Sprites
 -------
 :meth:`DustGrid.sprites` lists what the window draws: one sprite per dusty
 cell of the top layer, jittered inside its cell, with its density, the age
-of its dust and whether it is wet (see :mod:`bonesim.physics.dust_sprites`); how a
+of its dust and whether it is wet (see :mod:`bonesim.physics.dust.sprites`); how a
 sprite looks is the renderer's business (:meth:`bonesim.render.scene.Scene.set_dust`).
 
 Modules: this one holds the model and its Python API; the kernels live in
-:mod:`bonesim.physics.dust_bricks` (storage), :mod:`bonesim.physics.dust_rules` (rules 1-5)
-and :mod:`bonesim.physics.dust_sprites` (rendering output).
+:mod:`bonesim.physics.dust.bricks` (storage), :mod:`bonesim.physics.dust.rules` (rules 1-5)
+and :mod:`bonesim.physics.dust.sprites` (rendering output).
 """
 from __future__ import annotations
 
@@ -173,7 +173,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from bonesim.physics.dust_bricks import (MAX_RATE_Q, MIN_GRAVITY_COMPONENT, N_CTR, N_FP, N_IP, W_ONE,
+from bonesim.physics.dust.bricks import (MAX_RATE_Q, MIN_GRAVITY_COMPONENT, N_CTR, N_FP, N_IP, W_ONE,
                                          C_ADDED, C_CUR, C_HW, C_NALIVE, C_NEED, C_NFREE, C_PUSHED, C_SUCKED,
                                          C_SUCKED_STEP, C_WETTED, F_H, F_OX, F_OZ, F_SR, F_SX, F_SZ, F_TR,
                                          F_TX, F_TZ, F_UX, F_UZ, F_WR, F_WX, F_WZ, FULL, I_DOM, I_DSGN, I_GAX,
@@ -181,13 +181,13 @@ from bonesim.physics.dust_bricks import (MAX_RATE_Q, MIN_GRAVITY_COMPONENT, N_CT
                                          I_SRATE, I_SUCTION, I_TOOL, I_WRATE, MAX_SPILL_FRACTION, Q, Q_SHIFT,
                                          STAGE_DONE, STAGE_GRAVITY, ensure_bricks, recycle_bricks,
                                          refresh_bone_bricks, rehash_bricks)
-from bonesim.physics.dust_rules import SC_SIZE, add_dust, recount, step_kernel, wet_out
+from bonesim.physics.dust.rules import SC_SIZE, add_dust, recount, step_kernel, wet_out
 from bonesim.engine import events
 from bonesim.engine.bodies import all_identity
-from bonesim.physics.dust_bodies import case_cells, wall_arrays
-from bonesim.physics.dust_params import DustParams
-from bonesim.physics.dust_sprites import DustSprites, gather_sprites, stamp_arrivals
-from bonesim.physics.dust_water import step_water
+from bonesim.physics.dust.bodies import case_cells, wall_arrays
+from bonesim.physics.dust.params import DustParams
+from bonesim.physics.dust.sprites import DustSprites, gather_sprites, stamp_arrivals
+from bonesim.physics.dust.water import step_water
 from bonesim.engine.brick_hash import SC_WIDTH, sphere_cells_bound
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, gather_box
 
@@ -550,7 +550,7 @@ class DustGrid:
         DustSprites
             ``positions, density, cell_mm, age_s, wet`` (dry sprites first).
             Calling this also updates the cells' arrival times (see
-            :mod:`bonesim.physics.dust_sprites`), at the simulated time
+            :mod:`bonesim.physics.dust.sprites`), at the simulated time
             :attr:`time_s`.
         """
         p = self.params

@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from bonesim.physics.sound import SAMPLE_RATE
+from bonesim.sound.drill import SAMPLE_RATE
 
 __all__ = ["CLICK_HZ", "CLICK_DECAY_S", "CLICK_S", "CLICK_GAIN", "NERVE_PITCH_STEP",
            "DELAY_S", "SYNC_TOLERANCE_S", "SYNC_HOLD_S", "SYNC_JUMP_S", "click_template", "ClickSynth", "MixedSynth"]
@@ -256,7 +256,7 @@ class ClickSynth:
 class MixedSynth:
     """One renderer from several: the first fills the block, the others add
     (their ``render_add``). Has the ``render`` / ``sample_rate`` interface
-    :func:`bonesim.physics.sound.open_output` plays.
+    :func:`bonesim.sound.drill.open_output` plays.
 
     Parameters
     ----------

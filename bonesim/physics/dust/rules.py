@@ -2,8 +2,8 @@
 
 Gravity, piling and spilling, the tool's push, suction and irrigation's
 wetting, plus adding dust, all as integer moves between cells in fixed point
-(see :mod:`bonesim.physics.dust` for the rules and their exact formulas, and
-:mod:`bonesim.physics.dust_bricks` for the storage they work on).
+(see :mod:`bonesim.physics.dust.grid` for the rules and their exact formulas, and
+:mod:`bonesim.physics.dust.bricks` for the storage they work on).
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from bonesim.physics.dust_bricks import (FULL_Q, ROOM_SHARE, W_SHIFT, C_ADDED, C_CUR, C_HW, C_NEED,
+from bonesim.physics.dust.bricks import (FULL_Q, ROOM_SHARE, W_SHIFT, C_ADDED, C_CUR, C_HW, C_NEED,
                                          C_NFREE, C_PUSHED, C_SUCKED, C_SUCKED_STEP, C_WETTED, F_H, F_OX,
                                          F_OY, F_OZ, F_SR, F_SX, F_SY, F_SZ, F_TR, F_TX, F_TY, F_TZ, F_UX,
                                          F_UY, F_UZ, F_WR, F_WX, F_WY, F_WZ, I_DOM, I_DSGN, I_GAX, I_GSG,

@@ -1,7 +1,7 @@
 """The dust model's constants (:class:`DustParams`), checked on creation.
 
 Used by :class:`bonesim.physics.dust.DustGrid`; the rules that use them are in
-:mod:`bonesim.physics.dust_rules`.
+:mod:`bonesim.physics.dust.rules`.
 """
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ class DustParams:
         Size of the brick pool at construction (it grows as needed).
     water_flow_mm3_s : float
         Irrigation water poured per second [mm^3/s] (about 0.9 mL/min;
-        :mod:`bonesim.physics.dust_water`).
+        :mod:`bonesim.physics.dust.water`).
     water_settle_rate : float
         Most water gravity moves across one cell face per second [cells/s].
     water_spread_rate : float

@@ -11,7 +11,7 @@ the bodies at the identity pose, the domain's faces).
 
 Rules, run by :meth:`DustGrid.step` after the dry species' rules 1-4 and the
 spray's wetting (rule 5), before the wet species' step; ``dt`` the step [s],
-constants in :class:`~bonesim.physics.dust_params.DustParams`:
+constants in :class:`~bonesim.physics.dust.params.DustParams`:
 
 6. **Pouring** (``water_flow_mm3_s`` [mm^3/s], i.e. ``water_flow_mm3_s /
    spacing_mm**3`` cells/s). While irrigating, the cell of the
@@ -50,16 +50,16 @@ import numpy as np
 from numba import njit
 
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, find_brick, voxel_offset
-from bonesim.physics.dust_bricks import (FULL_Q, ROOM_SHARE, W_ONE, W_SHIFT, C_ADDED,
+from bonesim.physics.dust.bricks import (FULL_Q, ROOM_SHARE, W_ONE, W_SHIFT, C_ADDED,
                                          C_CUR, C_HW, C_NEED, C_NFREE, C_SUCKED, C_SUCKED_STEP,
                                          C_WETTED, F_H, F_OX, F_OZ, F_SR, F_SX, F_SZ, F_TR,
                                          F_TX, F_TZ, I_DOM, I_DSGN, I_LAT0, I_LAT1, I_SRATE,
                                          I_SUCTION, I_TOOL, MAX_SPILL_FRACTION, Q,
                                          STAGE_DONE, STAGE_TOOL, brick_in_domain,
                                          insert_brick)
-from bonesim.physics.dust_rules import (bone_at, collect_active, add_halo, load_brick,
+from bonesim.physics.dust.rules import (bone_at, collect_active, add_halo, load_brick,
                                         step_kernel)
-from bonesim.physics.dust_sprites import DustSprites, gather_sprites
+from bonesim.physics.dust.sprites import DustSprites, gather_sprites
 
 __all__ = ["POUR_SEARCH", "step_water", "water_totals_q", "water_cells", "water_sprites"]
 
@@ -332,7 +332,7 @@ def step_water(dust, bone_grid, walls, dt, irrigation_pos_mm, tool_pos_mm, tool_
     bone_grid : Grid or None
         The bone (walls), as for the dust.
     walls : tuple
-        ``(bone_body, wall_body)`` of :func:`bonesim.physics.dust_bodies.wall_arrays`.
+        ``(bone_body, wall_body)`` of :func:`bonesim.physics.dust.bodies.wall_arrays`.
     dt : float
         Step [s].
     irrigation_pos_mm : (3,) float or None
@@ -399,7 +399,7 @@ def step_water(dust, bone_grid, walls, dt, irrigation_pos_mm, tool_pos_mm, tool_
 
 def _push_and_suck(water, bone_dens, walls, dt, tool_pos_mm, tool_radius_mm, suction_pos_mm,
                    suction_radius_mm) -> None:
-    """Rules 3-4 of the dust (:mod:`bonesim.physics.dust`) on the water."""
+    """Rules 3-4 of the dust (:mod:`bonesim.physics.dust.grid`) on the water."""
     ip, fp = water._ip, water._fp
     ip[I_SRATE] = int(min(round(water.params.suction_rate * dt * Q), 1 << 40))
     ip[I_TOOL] = 0 if tool_pos_mm is None else 1

@@ -6,7 +6,7 @@ open-addressing table (:mod:`bonesim.engine.brick_hash`), which here grows at ru
 time and also loses bricks; each brick keeps the indices of
 its six face neighbours. This module holds the fixed-point constants, the
 layout of the counter and parameter arrays shared by every dust kernel, and
-the kernels that insert, link and recycle bricks. See :mod:`bonesim.physics.dust`
+the kernels that insert, link and recycle bricks. See :mod:`bonesim.physics.dust.grid`
 for the model.
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ point of its cell, with the age of the dust in it:
 
 * **Which cells.** Cells holding more than ``thr`` dust; with ``top_only``
   only those whose neighbour *above* (against gravity's dominant axis, see
-  :mod:`bonesim.physics.dust`) holds less than ``cover`` dust: the top layer of
+  :mod:`bonesim.physics.dust.grid`) holds less than ``cover`` dust: the top layer of
   every pile. Deeper cells would only stack more translucent sprites on one
   another, and the dust would hide the cavity floor (the app's gravity runs
   along the view direction, so "above" is "toward the eye").
@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from bonesim.physics.dust_bricks import FULL_Q, C_HW
+from bonesim.physics.dust.bricks import FULL_Q, C_HW
 from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, pack_brick_key
 
 __all__ = ["DustSprites", "cell_jitter", "stamp_arrivals", "gather_sprites"]

@@ -1,4 +1,4 @@
-"""Irrigation water (bonesim.physics.dust_water): poured, drains down, pools,
+"""Irrigation water (bonesim.physics.dust.water): poured, drains down, pools,
 carries the wet dust, is taken by suction; water and dust are accounted
 for exactly."""
 from __future__ import annotations
@@ -9,8 +9,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hs
 
 from bonesim.engine.grid import Grid, density_at
-from bonesim.physics.dust import DustGrid, DustParams, Q
-from bonesim.physics.dust_water import (water_grid, water_cells, water_sprites,
+from bonesim.physics.dust.grid import DustGrid, DustParams, Q
+from bonesim.physics.dust.water import (water_grid, water_cells, water_sprites,
                                         water_totals_q)
 
 N = 24

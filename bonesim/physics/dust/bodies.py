@@ -3,7 +3,7 @@
 The dust lattice is the case frame; a body's voxels stay where they were cut,
 in the body's own frame (:mod:`bonesim.engine.bodies`). These helpers put a
 moved body's removals on the lattice and tell the step kernels which bone is
-a wall (see "Bodies" in :mod:`bonesim.physics.dust`).
+a wall (see "Bodies" in :mod:`bonesim.physics.dust.grid`).
 """
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from bonesim.io.burrs import load_burr
-from bonesim.physics.sound import (DECAY_S, NYQUIST_FRACTION, OUTPUT_GAIN, SilentSink, SoundSynth,
+from bonesim.sound.drill import (DECAY_S, NYQUIST_FRACTION, OUTPUT_GAIN, SilentSink, SoundSynth,
                                    WavRecorder, fundamental_hz, open_output, render_seconds)
 
 FS = 48000
@@ -363,7 +363,7 @@ def test_silent_sink_records_at_real_time_pace(tmp_path):
 
 
 def test_importing_does_not_load_sounddevice():
-    code = ("import sys, bonesim, bonesim.physics.sound, bonesim.physics.vibration, bonesim.engine.thickness, "
+    code = ("import sys, bonesim, bonesim.sound.drill, bonesim.physics.vibration, bonesim.engine.thickness, "
             "bonesim.bench.sound; print('sounddevice' in sys.modules)")
     repo = Path(__file__).resolve().parents[3]
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
