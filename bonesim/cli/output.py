@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 
-__all__ = ["VERSION_KEY", "with_version", "print_json"]
+__all__ = ["VERSION_KEY", "with_version", "print_json", "print_table"]
 
 #: The key every JSON output carries.
 VERSION_KEY = "bonesim_version"
@@ -51,3 +51,11 @@ def print_json(obj, items: str = "items", default=None) -> None:
     """Print :func:`with_version` of ``obj`` as indented JSON on stdout
     (``default`` as for :func:`json.dumps`, for values JSON lacks)."""
     print(json.dumps(with_version(obj, items), indent=2, default=default))
+
+
+def print_table(rows: list[dict], cols: list[str]) -> None:
+    """Print ``rows`` as text columns ``cols``, each as wide as its widest cell."""
+    widths = [max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols]
+    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    for r in rows:
+        print("  ".join(str(r.get(c, "")).ljust(w) for c, w in zip(cols, widths)))

@@ -7,15 +7,17 @@ saying what is wrong and the command works on its readable part.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
+from bonesim.cli.output import print_json, print_table
+from bonesim.errors import BonesimError
 from bonesim.io.anatomy import clinical_name
-from bonesim.cli.main import print_table
-from bonesim.cli.output import print_json
 from bonesim.session.header import sessions_folder
 from bonesim.session.reader import (damage_notice, list_sessions, read_session, repair_session,
                                     session_info)
 
-__all__ = ["cmd_sessions_info", "cmd_sessions_list", "cmd_sessions_repair", "cmd_replay"]
+__all__ = ["cmd_sessions_info", "cmd_sessions_list", "cmd_sessions_repair", "cmd_replay",
+           "cmd_playback"]
 
 
 def _say_damage(session) -> None:
@@ -132,10 +134,6 @@ def cmd_replay(args) -> int:
 
 
 def cmd_sessions_repair(args) -> int:
-    from pathlib import Path
-
-    from bonesim.errors import BonesimError
-
     out = Path(args.out)
     if out.exists() and not args.force:
         raise BonesimError(f"{out}: exists; choose a new file or pass --force",
@@ -150,4 +148,72 @@ def cmd_sessions_repair(args) -> int:
     print(f"{args.file}: {what}")
     print(f"wrote {out}: {info['duration_s']} s, {info['samples']} samples, "
           f"{info['voxels_removed']} removals, {len(info['injuries'])} injuries")
+    return 0
+
+
+def cmd_playback(args) -> int:
+    import os
+
+    from bonesim.session.playback import Player
+    from bonesim.session.video import parse_size
+    from bonesim.session.reader import read_session
+
+    from bonesim.session.reader import damage_notice
+
+    session = read_session(args.file)
+    notices = [] if session.complete else [
+        "recording incomplete: the writer did not close the file (shown up to its last "
+        "flush)"]
+    if session.damage:
+        print(damage_notice(session), file=sys.stderr)
+        notices = [f"damaged file: {session.damage}"]
+    if args.speed is not None and not args.speed > 0:
+        raise BonesimError(f"speed must be positive, got {args.speed:g}", field="--speed")
+    speed = 1.0 if args.speed is None else args.speed
+    if args.video is not None:
+        from bonesim.render.playback import export_video
+
+        size = parse_size(args.size or "1280x720")
+        out = export_video(Player(session), args.video, fps=args.fps, size=size,
+                           speed=speed, start=args.start, end=args.end,
+                           progress=not args.no_progress, notices=notices)
+        out["file"] = str(session.path)
+        if args.json:
+            print_json(out)
+        else:
+            print(f"wrote {out['video']}: {out['frames']} frames, {size[0]}x{size[1]} at "
+                  f"{args.fps:g} fps ({out['start_s']:.2f}-{out['end_s']:.2f} s of the "
+                  f"recording at {speed:g}x), {out['frames_per_s']} frames/s")
+        return 0
+    offscreen = args.offscreen
+    if not offscreen and not os.environ.get("DISPLAY") and not os.environ.get(
+            "WAYLAND_DISPLAY"):
+        raise BonesimError("no display found for the playback window; export a video "
+                           "instead (--video OUT.mp4), or render a frame with --offscreen "
+                           "--screenshot FILE.png")
+    from bonesim.render.playback import PlaybackApp
+
+    size = parse_size(args.size or "1280x720", even=False)
+    player = Player(session)
+    start = 0.0 if args.start is None else args.start
+    if not 0.0 <= start <= player.timeline.duration:
+        raise BonesimError(f"start {start:g} s lies outside the recording (0 .. "
+                           f"{player.timeline.duration:.3f} s)", field="--start")
+    app = PlaybackApp(player, size=size, offscreen=offscreen, speed=speed, start=start,
+                      play=not args.paused, notices=notices)
+    try:
+        app.start()
+        frames = args.frames if args.frames is not None else (1 if offscreen else None)
+        screenshot = args.screenshot or ("bonesim-playback.png" if offscreen else None)
+        out = app.run(frames=frames, screenshot=screenshot)
+    finally:
+        app.close()
+    out["file"] = str(session.path)
+    if args.json:
+        print_json(out)
+    else:
+        print(f"{out['file']}: {out['frames']} frames; stopped at {out['t_s']:.2f} of "
+              f"{out['duration_s']:.2f} s")
+        if "screenshot" in out:
+            print(f"wrote {out['screenshot']}")
     return 0

@@ -81,7 +81,7 @@ def test_distance_lines_name_their_structure():
 def test_simulate_summary_names_the_structure(model, capsys):
     """The human summary of ``bonesim simulate`` names the closest structure
     by its clinical name; ``--json`` keeps the code name beside it."""
-    from bonesim.cli.main import _print_summary
+    from bonesim.cli.drilling import _print_summary
 
     s = {"case": "phantom", "burr": "cutting-4mm", "steps": 10, "duration_s": 0.01,
          "wall_s": 0.1, "voxels_removed": 3, "volume_removed_mm3": 0.375,
