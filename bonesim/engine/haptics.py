@@ -416,6 +416,60 @@ def begin_pass(keys, vals, density, label, body, origin, spacing, params, pos, a
 
 
 @njit(cache=True, nogil=True)
+def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale, lo0, lo1,
+                  lo2, n_vox, lbrick, t, lost, lab_body, ev_kind, ev_body, ev_label, ev_t,
+                  ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head):
+    """Voxel removal: take each local voxel's accumulated removal weight
+    ``acc[dirty[:n_dirty]]`` times ``scale`` from its density (the weights are
+    cleared). A voxel whose density reaches 0 is removed: counted in
+    ``lost`` per label (``lab_body``: its body), published as a ``REMOVED``
+    event at time ``t`` [s]; one that keeps some density is published once
+    in the touched ring (until a consumer clears its flag). ``lo0..lo2`` is
+    the local block's first voxel, ``n_vox`` its edge, ``lbrick`` its bricks.
+
+    Returns
+    -------
+    (int, int)
+        Voxels removed and newly touched.
+    """
+    nn = n_vox * n_vox
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    n_rem = 0
+    n_tch = 0
+    tcap = tch_ijk.shape[0] - 1
+    for q in range(n_dirty):
+        li = dirty[q]
+        amount = acc[li] * scale
+        acc[li] = 0.0
+        if amount <= 0.0:
+            continue
+        i = lo0 + li // nn
+        j = lo1 + (li // n_vox) % n_vox
+        k = lo2 + li % n_vox
+        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
+        off = voxel_offset(i, j, k)
+        d = density[b, off] - amount
+        if d <= 0.0:
+            density[b, off] = 0.0
+            lab = label[b, off]
+            lost[lab] += 1
+            bod = body[b, off]
+            lab_body[lab] = bod
+            push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                        _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
+            n_rem += 1
+        else:
+            density[b, off] = np.float32(d)
+            if touched_flag[b, off] == 0:
+                touched_flag[b, off] = 1
+                h = tch_head[0] & tcap
+                tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
+                tch_head[0] += 1
+                n_tch += 1
+    return n_rem, n_tch
+
+
+@njit(cache=True, nogil=True)
 def finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
@@ -429,7 +483,6 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
     the weighted count and ``n_imm`` the immersed samples; ``acc[dirty[:n_dirty]]``
     the removal weights per local voxel (see :func:`haptic_kernel`).
     """
-    nn = n_vox * n_vox
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     h3 = params[P_H3]
     volume = wsum * h3
@@ -467,38 +520,10 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
     out[O_N_IMMERSED] = n_imm
     # removal: each immersed sample took lat*m*f*phi*dt of its voxel's share
     scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
-    n_rem = 0
-    n_tch = 0
-    tcap = tch_ijk.shape[0] - 1
-    for q in range(n_dirty):
-        li = dirty[q]
-        amount = acc[li] * scale
-        acc[li] = 0.0
-        if amount <= 0.0:
-            continue
-        i = lo0 + li // nn
-        j = lo1 + (li // n_vox) % n_vox
-        k = lo2 + li % n_vox
-        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
-        off = voxel_offset(i, j, k)
-        d = density[b, off] - amount
-        if d <= 0.0:
-            density[b, off] = 0.0
-            lab = label[b, off]
-            lost[lab] += 1
-            bod = body[b, off]
-            lab_body[lab] = bod
-            push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                        _EV_REMOVED, bod, lab, t, i, j, k, 0, 0.0, 0.0, 0.0)
-            n_rem += 1
-        else:
-            density[b, off] = np.float32(d)
-            if touched_flag[b, off] == 0:
-                touched_flag[b, off] = 1
-                h = tch_head[0] & tcap
-                tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
-                tch_head[0] += 1
-                n_tch += 1
+    n_rem, n_tch = remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty,
+                                 scale, lo0, lo1, lo2, n_vox, lbrick, t, lost, lab_body,
+                                 ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                 ev_head, tch_ijk, tch_head)
     out[O_N_REMOVED] = n_rem
     out[O_N_TOUCHED] = n_tch
     if not last:
