@@ -514,6 +514,12 @@ class Case:
             self._derive(vol)
         return vol
 
+    def hand_over(self, vol: CaseVolume) -> None:
+        """Give a case carried by a session file (format ``"session"``) the
+        volume its reader already read with the file open: the next
+        :meth:`load_volume` takes it instead of opening the file again."""
+        self._derived["session_volume"] = vol
+
     def neighbours(self, vol: CaseVolume) -> np.ndarray:
         """Which structures are neighbours for the display colours: within the
         anatomy table's ``neighbour_mm``, measured on ``vol``'s source labels

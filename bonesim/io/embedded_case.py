@@ -108,11 +108,13 @@ def materials_from_record(rec: dict) -> dict:
             for k, v in rec.items()}
 
 
-def embedded_case(path, record: dict):
+def embedded_case(path, record: dict, volume=None):
     """The :class:`~bonesim.io.case_records.Case` a session file carries: its
     ``manifest`` is the session file, its volume (format
     :data:`SESSION_FORMAT`) the file's ``/model`` arrays. Colours and camera
-    are the recorded ones (``color_source`` ``"manifest"``: never re-settled)."""
+    are the recorded ones (``color_source`` ``"manifest"``: never re-settled).
+    ``volume``: the file's tissue, already read (:func:`bonesim.io.embedded.read_volume`),
+    handed to the case so that it is not read again."""
     path = Path(path).resolve()
     try:
         voxel_mm = float(record["voxel_mm"])
@@ -129,7 +131,7 @@ def embedded_case(path, record: dict):
             None if t["box_min_mm"] is None else tuple(t["box_min_mm"]),
             None if t["box_max_mm"] is None else tuple(t["box_max_mm"]))
         grav = record["gravity"]
-        return Case(
+        case = Case(
             name=record["name"], description=record["description"], side=record["side"],
             manifest=path,
             volume=VolumeSpec(format=SESSION_FORMAT, path=path, voxel_mm=voxel_mm),
@@ -141,3 +143,6 @@ def embedded_case(path, record: dict):
     except (KeyError, TypeError, ValueError) as exc:
         raise BonesimError(f"{path}: the header's model record is incomplete "
                            f"({type(exc).__name__}: {exc})") from None
+    if volume is not None:
+        case.hand_over(volume)
+    return case

@@ -95,7 +95,7 @@ def against_current(session) -> dict:
             items.append(_item("materials", "differs" if diff else "same", "; ".join(diff)))
     if case is not None and None not in burrs:
         try:
-            m = load_model(case, burrs[0], device=session._device_caps(),
+            m = load_model(case, burrs[0], device=session.device_caps(),
                            oversample=int(h["oversample"]))
             got = [model_sha256(mm) for mm in [m] + [m.with_burr(b) for b in burrs[1:]]]
         except (BonesimError, ValueError) as exc:

@@ -198,7 +198,9 @@ class Session:
 
         return [load_burr(b["name"]) for b in self.header["burrs"]]
 
-    def _device_caps(self):
+    def device_caps(self):
+        """The recorded device limits (header ``device``) as
+        :class:`~bonesim.engine.device_caps.DeviceCaps` (JSON null: unlimited)."""
         from bonesim.engine.device_caps import DeviceCaps
 
         dev = self.header["device"]
@@ -217,16 +219,16 @@ class Session:
 
         h = self.header
         rec = h["model"]
-        case = embedded_case(self.path, rec["case"])
         f, _, _, view = open_session_file(self.path, require_h5py())
         try:
             with f:
-                case._derived["session_volume"] = read_volume(self.path, f)
+                vol = read_volume(self.path, f)
         finally:
             if view is not None:
                 view.close()
+        case = embedded_case(self.path, rec["case"], vol)
         burrs = self.recorded_burrs()
-        m = load_model(case, burrs[0], device=self._device_caps(),
+        m = load_model(case, burrs[0], device=self.device_caps(),
                        oversample=int(h["oversample"]),
                        materials=materials_from_record(rec["materials"]))
         m = replace(m, max_bodies=int(rec.get("max_bodies", m.max_bodies)))
@@ -253,7 +255,7 @@ class Session:
         src = case.get("path") or case["name"]
         if case.get("path") and not Path(case["path"]).exists():
             src = case["name"]
-        caps = self._device_caps()
+        caps = self.device_caps()
         burrs = []
         for b in h["burrs"]:
             p = b.get("path")
