@@ -113,7 +113,7 @@ def test_commands_are_applied_in_order_and_counted():
     seqs.append(sender.send(SetBurr, index=1))
     assert seqs == [0, 1, 2, 3] and sender.pending == 4
     assert queue.poll(ctx) == 4 and queue.poll(ctx) == 0
-    assert ctx.seen == [3.0, 1.0, 2.0] and ctx.burr == 1
+    assert ctx.seen == [3.0, 1.0, 2.0] and ctx.state.burr == 1
     assert ctx.status["commands_applied"] == 4 and sender.pending == 0
     for v in range(20):                        # wraps the ring of 8 several times
         sender.send(Record, value=float(v))
@@ -145,7 +145,7 @@ def test_unknown_kinds_and_failing_commands_are_rejected_with_a_message():
     sender.send(SetBurr, index=5)                  # only 2 models
     sender.send(Record, value=7.0)                 # the loop goes on after them
     assert queue.poll(ctx) == 4
-    assert ctx.seen == [7.0] and ctx.burr == 0
+    assert ctx.seen == [7.0] and ctx.state.burr == 0
     assert ctx.status["commands_rejected"] == 3 and ctx.status["commands_applied"] == 1
     assert ctx.status["command_error"].item() == b"#2: set_burr: burr index 5 out of range 0..1"
     ctx2 = _ctx()
