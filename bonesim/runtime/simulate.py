@@ -7,9 +7,10 @@ haptic loop feeds device samples: burr changes (the trajectory's ``burr``
 column) and any world commands given with their times
 (:mod:`bonesim.engine.world_commands`: splits, grabs, plates...) are applied
 before the step of their time, and fragments and plates in motion move
-(fall under gravity and rest, follow a grabbing tool) as in the loop. A :class:`~bonesim.engine.replica.TissueReplica` drains the
-tissue-event and touched rings at the frame rate and updates the hybrid
-surface incrementally, as the window does. The haptic step never waits for
+(fall under gravity and rest, follow a grabbing tool) as in the loop. A
+:class:`~bonesim.engine.replica.TissueReplica` drains the tissue-event and
+touched rings at the frame rate and updates the hybrid surface
+incrementally, as the window does. The haptic step never waits for
 it.
 """
 from __future__ import annotations
