@@ -159,3 +159,49 @@ def _solid(g, p) -> bool:
     ijk = np.rint((p - g.origin_mm) / g.spacing_mm).astype(int)
     b = g.brick_index(*ijk)
     return b >= 0 and g.density[b, voxel_offset(*ijk)] > 0
+
+
+def test_a_reset_and_a_burr_change_in_simulate_are_recorded_and_replayed(model, tmp_path):
+    """A reset given to simulate is a new epoch in the samples and a RESET
+    event; the burr column's change a BURR event; replay rebuilds both as
+    world commands (bonesim.session.replay.recorded_commands) and verifies."""
+    from bonesim.engine import events
+    from bonesim.engine.world_commands import Reset, SetBurr
+    from bonesim.io.burrs import load_burr
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import recorded_commands, verify
+
+    g = model.grid
+    cam = model.case.camera
+    eye = np.asarray(cam.eye_mm, float)
+    into = np.subtract(cam.focal_mm, eye)
+    into /= np.linalg.norm(into)
+    # the first bone on the camera's ray; the burr 1 mm off it, then 2.5 mm in
+    hit = next(eye + s * into for s in np.arange(0.0, 300.0, 0.1) if _solid(g, eye + s * into))
+    t = np.round(np.arange(0.0, 1.0 + 1e-9, 0.01), 6)
+    along = -model.burr.radius_mm - 1.0 + 3.5 * np.clip(t / 0.25, 0.0, 1.0)
+    traj = Trajectory(t_s=t, pos_mm=hit + along[:, None] * into,
+                      axis=np.tile(into, (len(t), 1)), drill=np.ones(len(t), np.uint8),
+                      speed_rpm=np.full(len(t), 60000.0), direction=np.ones(len(t), np.int8),
+                      burr=(t >= 0.15).astype(np.int32))
+    path = tmp_path / "reset.h5"
+    out = run_trajectory(model, traj, surface=False, record=path,
+                         burrs=[load_burr("diamond-3mm")], commands=[(0.5, Reset())])
+    assert out["record_ok"]
+    s = read_session(path)
+    ep = s.samples["epoch"]
+    q_reset = int(np.flatnonzero(ep == 1)[0])
+    assert s.samples["t_s"][q_reset] == pytest.approx(0.5) and (ep[q_reset:] == 1).all()
+    kinds = s.tissue["kind"]
+    assert (kinds == events.RESET).sum() == 1 and (kinds == events.BURR).sum() == 1
+    assert s.tissue["n"][kinds == events.RESET].tolist() == [1]
+    assert s.tissue["t_s"][kinds == events.RESET].tolist() == [s.samples["t_s"][q_reset]]
+    rem = events.removals(s.tissue)
+    assert (rem["t_s"] < 0.5).sum() > 0 and (rem["t_s"] >= 0.5).sum() > 0   # both epochs cut
+    cmds = recorded_commands(s)
+    q_burr = int(np.flatnonzero(s.samples["burr"] == 1)[0])
+    assert [type(c) for c in cmds[q_burr]] == [SetBurr] and cmds[q_burr][0].index == 1
+    assert [type(c) for c in cmds[q_reset]] == [Reset] and cmds[q_reset][0].epoch == 1
+    assert set(cmds) == {q_burr, q_reset}
+    report = verify(s)
+    assert report["ok"], report
