@@ -442,7 +442,7 @@ class SetBurr(Command):
 
 
 class SetTool(Command):
-    """Switch the tool (an index into :data:`TOOLS`, or its name)."""
+    """Switch the tool (an index into :data:`bonesim.engine.world_commands.TOOLS`, or its name)."""
 
     kind, name = 3, "set_tool"
 

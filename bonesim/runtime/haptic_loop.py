@@ -515,7 +515,7 @@ class HapticLoop(ChildProcess):
         self.send(SetBurr, index=index)
 
     def set_tool(self, tool) -> None:
-        """Switch the tool (:data:`bonesim.runtime.commands.TOOLS`: index or name)."""
+        """Switch the tool (:data:`bonesim.engine.world_commands.TOOLS`: index or name)."""
         self.send(SetTool, tool=tool)
 
     def reset(self) -> int:
