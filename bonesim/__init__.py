@@ -5,7 +5,8 @@ The core contract (see :mod:`bonesim.engine.model`; files: :mod:`bonesim.io.load
     import bonesim
     model = bonesim.load_model("phantom", "cutting-5mm")   # immutable
     state = bonesim.make_state(model)                      # mutable
-    force = bonesim.step(model, state, sample)             # one haptic step
+    force = bonesim.world_step(model, state, sample)       # one step of the world
+    force = bonesim.step(model, state, sample)             # the haptic step alone
     replica = bonesim.TissueReplica(model, state)          # a consumer's copy
 
 ``import bonesim`` is light: it imports no rendering, sound or device
@@ -28,6 +29,7 @@ _LAZY = {
     "make_model": "bonesim.engine.model",
     "make_state": "bonesim.engine.model",
     "step": "bonesim.engine.model",
+    "world_step": "bonesim.engine.world",
     "warmup": "bonesim.io.loading",
     "Grid": "bonesim.engine.grid",
     "BonesimError": "bonesim.errors",

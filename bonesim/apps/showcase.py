@@ -3,8 +3,8 @@
 ``bonesim run`` without a display (or ``--offscreen`` without a script)
 runs this: the demo plan (:func:`bonesim.io.toolpath.demo_trajectory`: layered
 raster passes along the surgeon's view, drill off between layers for
-irrigation and suction) is fed to :func:`bonesim.engine.model.step` at the haptic
-rate in this process, and frames are drawn at fixed points of *simulated*
+irrigation and suction) is fed to :func:`bonesim.engine.world.world_step` at
+the haptic rate in this process, and frames are drawn at fixed points of *simulated*
 time. Frames follow the simulation, not the other way round, so the result
 (what was drilled, the pictures) is the same on an idle machine and on a
 busy one; only the wall time differs.
@@ -115,7 +115,6 @@ class Showcase:
         self.scene.set_case_camera(eye, focal, cam.up)
         self.injuries: list[str] = []
         self.q = 0                                   # next sample to step
-        self.burr_index = int(self.samples.burr[0])  # the burr in use
         self.frame_hz = None                         # run_showcase: the video's rate
         self._force = np.zeros(len(self.samples.t_s))  # |force| per step [N]
         self.t_s = float(self.samples.t_s[0])
@@ -208,7 +207,9 @@ class Showcase:
         t_s : float
             Simulated time [s]; at most the trajectory's end.
         """
-        from bonesim.engine.model import Sample, step
+        from bonesim.engine.model import Sample
+        from bonesim.engine.world import world_step
+        from bonesim.engine.world_commands import SetBurr
         from bonesim.runtime.monitor import read_history
         from bonesim.physics.sightline import depth_below_surface_mm
 
@@ -216,14 +217,13 @@ class Showcase:
         t_s = min(float(t_s), self.end_s)
         hi = int(np.searchsorted(s.t_s, t_s, side="right"))
         lo = self.q
+        none = ()
         for q in range(lo, hi):
-            if s.burr[q] != self.burr_index:     # between steps, as the loop's SetBurr
-                self.burr_index = int(s.burr[q])
-                events.push_event(state.tissue, events.BURR, float(s.t_s[q]),
-                                  n=self.burr_index)
-            f = step(model, state, Sample(s.t_s[q], s.pos_mm[q], s.axis[q], bool(s.drill[q]),
-                                          float(s.speed_rpm[q]), int(s.direction[q]),
-                                          self.burr_index))
+            b = int(s.burr[q])                   # a change: the loop's SetBurr
+            f = world_step(model, state, Sample(s.t_s[q], s.pos_mm[q], s.axis[q],
+                                                bool(s.drill[q]), float(s.speed_rpm[q]),
+                                                int(s.direction[q]), b),
+                           none if b == state.burr else (SetBurr(b),))
             self._force[q] = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         self.q = max(hi, lo)
         self._clearance(lo, self.q)

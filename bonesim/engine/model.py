@@ -4,9 +4,13 @@
   and its material factors, the burr and its sampled stencil, the gains, the
   device's limits. It is loaded from files by :func:`bonesim.io.loading.load_model` (or built
   from arrays by :func:`make_model`).
-* :class:`State` is everything a run changes: the voxel grid, the tool pose,
-  time, the last force, the event rings and the kernel's scratch memory.
-* :func:`step` advances the state by one haptic sample.
+* :class:`State` is everything a run changes: the voxel grid and its bodies,
+  the rigid bodies in motion (:class:`~bonesim.engine.rigid_set.RigidSet`),
+  the epoch, the current burr and tool, the tool pose, time, the last force,
+  the event rings and the kernel's scratch memory.
+* :func:`step` advances the state by one haptic sample (the haptic step
+  alone); :func:`bonesim.engine.world.world_step` is the whole world step
+  (commands, rigid motion, haptic step) that every run calls.
 
 Feeding the same model the same samples gives a bit-identical grid and
 identical events: that is what recording and replay rely on.
@@ -29,6 +33,8 @@ from bonesim.engine.haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_
                                     P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                                     P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
+from bonesim.engine.rigid import gravity_direction
+from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
            "make_model", "State", "state_arrays_spec", "make_state", "reset_state",
@@ -317,6 +323,18 @@ class State:
         Running total of removed voxels per label.
     n_steps : int
         Steps taken.
+    epoch : int
+        Case resets so far (:class:`bonesim.engine.world_commands.Reset`).
+    burr : int
+        The current burr, an index into the model's burr table
+        (:class:`~bonesim.engine.world_commands.SetBurr`); the world step uses it.
+    tool : int
+        The current tool, an index into
+        :data:`bonesim.engine.world_commands.TOOLS`.
+    rigid : RigidSet or None
+        The fragments and plates in motion, stepped by
+        :func:`bonesim.engine.world.world_step`; None: this run has no rigid
+        motion of its own (a replay applies the recorded poses instead).
     """
 
     grid: Grid
@@ -335,6 +353,10 @@ class State:
     force_n: np.ndarray = field(default_factory=lambda: np.zeros(3))
     out: np.ndarray = field(default_factory=lambda: np.zeros(N_OUT))
     n_steps: int = 0
+    epoch: int = 0
+    burr: int = 0
+    tool: int = 0
+    rigid: RigidSet | None = None
     # kernel scratch
     _R: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     _n_vox: int = 0
@@ -397,8 +419,10 @@ def state_arrays_spec(model: Model, ring_capacity: int | None = None) -> list:
 
 
 def make_state(model: Model, arrays: dict | None = None,
-               ring_capacity: int | None = None) -> State:
-    """A fresh state: the model's initial grid as one body, no events, time unset.
+               ring_capacity: int | None = None, rate_hz: float | None = None,
+               rigid: bool = True) -> State:
+    """A fresh state: the model's initial grid as one body, no events, time
+    unset, epoch 0, burr 0, tool 0, no rigid in motion.
 
     Parameters
     ----------
@@ -409,6 +433,13 @@ def make_state(model: Model, arrays: dict | None = None,
         tissue and empty rings. Default: private arrays.
     ring_capacity : int, optional
         Capacity of private rings (default :data:`bonesim.engine.events.RINGS`'s).
+    rate_hz : float, optional
+        The rate the run is stepped at [Hz] (the rigid step's time step;
+        default the model's :attr:`Model.haptic_rate_hz`).
+    rigid : bool
+        Give the state a :class:`~bonesim.engine.rigid_set.RigidSet` of
+        :data:`~bonesim.engine.rigid_set.RIGID_SLOTS` slots (gravity from the
+        model's case). False: no rigid motion (``state.rigid`` None).
     """
     if arrays is None:
         arrays = {name: np.zeros(shape, dtype=dt)
@@ -432,12 +463,17 @@ def make_state(model: Model, arrays: dict | None = None,
     st._pass_body = np.zeros(model.max_bodies, dtype=np.int32)
     st._pass_ident = np.zeros(model.max_bodies, dtype=np.bool_)
     st.fit_scratch(model)
+    if rigid:
+        st.rigid = RigidSet(model.max_bodies, RIGID_SLOTS,
+                            model.haptic_rate_hz if rate_hz is None else rate_hz,
+                            gravity_direction(model))
     return st
 
 
 def reset_state(model: Model, state: State, rings: bool = True) -> None:
     """Put the model's initial tissue back, in place: one body at the
-    identity pose.
+    identity pose, no rigid in motion. The epoch, burr and tool are kept
+    (:class:`bonesim.engine.world_commands.Reset` counts the epoch).
 
     Parameters
     ----------
@@ -460,10 +496,14 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
     state.force_n[:] = 0.0
     if state._prev_contact is not None:
         state._prev_contact[:] = 0
+    if state.rigid is not None:
+        state.rigid.clear()
 
 
-def step(model: Model, state: State, sample: Sample) -> np.ndarray:
-    """Advance ``state`` by one haptic sample.
+def step(model: Model, state: State, sample: Sample, burr: int | None = None) -> np.ndarray:
+    """Advance ``state`` by one haptic sample (the haptic step alone: no
+    commands, no rigid motion; :func:`bonesim.engine.world.world_step` is
+    the whole world step).
 
     Computes the volume-sampled force and tangential drag, removes material
     while the drill runs, and appends removals and injuries to the state's
@@ -484,6 +524,9 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
         Modified in place.
     sample : Sample
         Time [s], position [mm], axis, drill, speed [rpm], direction, burr.
+    burr : int, optional
+        The burr to step with, overriding ``sample.burr`` (the world step
+        passes the state's current burr).
 
     Returns
     -------
@@ -498,7 +541,8 @@ def step(model: Model, state: State, sample: Sample) -> np.ndarray:
         if not dt >= 0.0:
             raise ValueError(f"sample time {t} s precedes the previous step ({state.t_s} s)")
         dt = min(dt, MAX_DT_S)
-    bi = int(getattr(sample, "burr", 0))      # a trajectory sample has no burr
+    bi = int(getattr(sample, "burr", 0)) if burr is None else burr   # a trajectory
+    # sample has no burr
     if not 0 <= bi < len(model.burrs):
         raise ValueError(f"sample at t={t} s: burr {bi} is not in the model's table of "
                          f"{len(model.burrs)}")

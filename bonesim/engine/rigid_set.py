@@ -23,8 +23,11 @@ from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_
                                   SUBSTEPS, MAX_CAND, compose_poses, pose_matrix_kernel, solid_at, tool_push_kernel,
                                   advance_kernel)
 
-__all__ = ["body_samples", "mesh_samples", "mass_properties", "RigidSet", "publish_plate",
-           "track_plates"]
+__all__ = ["RIGID_SLOTS", "body_samples", "mesh_samples", "mass_properties", "RigidSet",
+           "publish_plate", "track_plates"]
+
+#: Rigid slots of a run's state (fragments in motion and plates together).
+RIGID_SLOTS = 16
 
 # ------------------------------------------------------------------ samples
 @njit(cache=True, nogil=True)

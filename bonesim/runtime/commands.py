@@ -5,9 +5,13 @@ loop does between two steps by appending fixed-size records to the loop's
 ``commands`` ring (:data:`bonesim.engine.events.OTHER_RINGS`): ``kind`` (uint16),
 ``seq`` (the producer's running number) and ``args``
 (:data:`~bonesim.engine.events.COMMAND_ARGS` float64: room for a body id and a 4x4
-rigid pose). The loop takes every pending record before its next step, in
-order, and runs the command's :meth:`Command.apply` on its
-:class:`LoopContext`.
+rigid pose). Before each step the loop takes every pending record, in
+order, and decodes it (:meth:`Command.decode`) into a world command
+(:mod:`bonesim.engine.world_commands`); it hands them to
+:func:`bonesim.engine.world.world_step`, which applies them to the state as
+pure state transitions before the rigid and haptic steps. Process-side
+effects (the mouse coupling re-seeded at a reset; the ``status`` fields
+epoch and tool) stay here, on the :class:`LoopContext`.
 
 A command is one subclass of :class:`Command` with a unique ``kind`` and
 ``name``; defining the class registers it::
@@ -16,12 +20,16 @@ A command is one subclass of :class:`Command` with a unique ``kind`` and
         kind, name = 100, "nudge"
 
         @classmethod
-        def encode(cls, dz_mm: float = 0.0):
-            return cls.pack(dz_mm)
+        def encode(cls, body: int = 1, dz_mm: float = 0.0):
+            return cls.pack(body, dz_mm)
 
         @classmethod
-        def apply(cls, ctx, args):
-            ...
+        def decode(cls, ctx, args):
+            return world_commands.MoveBody(int(args[0]), ...)
+
+A command that acts on the loop's process rather than on the state may
+override :meth:`Command.apply` instead of :meth:`Command.decode`: it is
+carried out on the :class:`LoopContext` in its place among the others.
 
 The haptic loop takes every command registered in the parent when it starts
 (the classes travel to its process by reference). Continuous inputs (the
@@ -31,22 +39,27 @@ are a stream, the loop's shared ``control`` fields.
 Shipped: :class:`Reset` (the case back; the event counters keep running so
 that consumers in other processes miss nothing), :class:`SetBurr`,
 :class:`SetTool`, :class:`SplitBox` (the voxels of a body inside a box become
-a new body) and :class:`MoveBody` (place a body at a rigid pose). Commands
-that change the tissue publish it as tissue events (:mod:`bonesim.engine.events`)
-at the time of the step they precede, so recorders, replicas and replay
-see them. Quitting is the process protocol's (:mod:`bonesim.runtime.child`).
+a new body), :class:`MoveBody` (place a body at a rigid pose),
+:class:`SplitPart` / :class:`ShedPart` (the fragment finder's) and
+:class:`CutPlane`; the rigid commands are :mod:`bonesim.runtime.rigid_commands`'.
+Commands that change the tissue publish it as tissue events
+(:mod:`bonesim.engine.events`) at the time of the step they precede, so
+recorders, replicas and replay see them. Quitting is the process protocol's
+(:mod:`bonesim.runtime.child`).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from bonesim.engine import events
-from bonesim.engine.bodies import publish_pose, publish_split_box, validate_pose
-from bonesim.engine.cut_plane import publish_cut_record, quantize_size
+from bonesim.engine import world_commands as wc
+from bonesim.engine.bodies import validate_pose
+from bonesim.engine.cut_plane import quantize_size
+from bonesim.engine.world import apply_commands
+from bonesim.engine.world_commands import TOOLS
 from bonesim.errors import BonesimError
-from bonesim.engine.model import reset_state
 
-__all__ = ["N_ARGS", "MAX_KIND", "TOOLS", "ERROR_TEXT_BYTES", "UnknownCommand",
+__all__ = ["N_ARGS", "MAX_KIND", "ERROR_TEXT_BYTES", "UnknownCommand",
            "CommandOverflow", "Command", "command_class", "registered", "LoopContext",
            "CommandSender", "CommandQueue", "Reset", "SetBurr", "SetTool", "SplitBox",
            "MoveBody", "CutPlane"]
@@ -55,9 +68,6 @@ __all__ = ["N_ARGS", "MAX_KIND", "TOOLS", "ERROR_TEXT_BYTES", "UnknownCommand",
 N_ARGS = events.COMMAND_ARGS
 #: Largest command kind (the ring stores it as uint16); 0 is never a kind.
 MAX_KIND = (1 << 16) - 1
-#: Tools the loop knows (:class:`SetTool`): the drill, and the cut plane
-#: (:class:`CutPlane`; the tool's pose is the plane's, a key applies a stroke).
-TOOLS = ("drill", "cutplane")
 #: Size of the loop's ``command_error`` status field [bytes].
 ERROR_TEXT_BYTES = 160
 
@@ -134,11 +144,62 @@ class Command:
         return cls.pack()
 
     @classmethod
+    def decode(cls, ctx: "LoopContext", args: np.ndarray):
+        """The world command (:mod:`bonesim.engine.world_commands`) this
+        record stands for, which :func:`bonesim.engine.world.world_step`
+        applies before the next step. ``args`` is the record's own copy.
+        Process-side effects that must precede the step (the mouse coupling
+        re-seeded) happen here. Raise to reject the record (the loop counts
+        and reports the message in its place among the others).
+
+        Default, for a command that overrides :meth:`apply` instead: a world
+        command that runs that :meth:`apply` on the loop context.
+        """
+        if getattr(cls.apply, "__func__", None) is Command.apply.__func__:
+            raise NotImplementedError(f"command {cls.name!r} has neither decode() nor "
+                                      "apply()")
+        return _OnContext(cls, ctx, args)
+
+    @classmethod
     def apply(cls, ctx: "LoopContext", args: np.ndarray) -> None:
-        """Carry the command out in the loop, between two steps. ``args`` is
-        a view into the ring: copy what must outlive the call. Raise to
-        reject it (the loop counts and reports the message)."""
-        raise NotImplementedError(f"command {cls.name!r} has no apply()")
+        """Carry the command out at once, at ``ctx.t_s`` (outside a world
+        step: tools and tests). A subclass may override it to act on the
+        loop's process instead of defining :meth:`decode`."""
+        cmd = cls.decode(ctx, np.array(args, dtype=np.float64))
+        cmd.apply(ctx.model, ctx.state, ctx.t_s)
+        sync = getattr(ctx, "sync", None)
+        if sync is not None:
+            sync()
+
+
+class _OnContext(wc.WorldCommand):
+    """A command acting on the loop's context (its own :meth:`Command.apply`),
+    carried out in its place among the world commands."""
+
+    __slots__ = ("cls", "ctx", "args")
+
+    def __init__(self, cls, ctx, args):
+        self.cls, self.ctx, self.args = cls, ctx, args
+
+    def apply(self, model, state, t_s: float) -> None:
+        self.ctx.t_s = t_s
+        self.cls.apply(self.ctx, self.args)
+
+
+class _Refusal(Exception):
+    """A record refused before it could be applied (its message is complete)."""
+
+
+class _Refused(wc.WorldCommand):
+    """A record that is unknown or could not be decoded: refused in its place."""
+
+    __slots__ = ("message",)
+
+    def __init__(self, message: str):
+        self.message = message
+
+    def apply(self, model, state, t_s: float) -> None:
+        raise _Refusal(self.message)
 
 
 def command_class(which) -> type:
@@ -169,7 +230,11 @@ def registered() -> tuple:
 
 
 class LoopContext:
-    """What a command may read and change in the haptic loop.
+    """The loop's process side, as commands see it: the state and model
+    they decode for, and what is not state (device, coupling, status).
+
+    Everything a run changes (epoch, burr, tool, rigids) is the state's
+    (:class:`~bonesim.engine.model.State`).
 
     Attributes
     ----------
@@ -177,17 +242,12 @@ class LoopContext:
         The loop's model; its burr table (:attr:`Model.burrs`) holds the
         burrs the loop can switch to.
     state : State
-        The loop's tissue state (shared memory).
-    burr : int
-        Current burr index; the next step uses it.
-    epoch : int
-        Case resets so far.
-    tool : int
-        Current tool index into :data:`TOOLS`.
+        The loop's state (tissue in shared memory).
     device, coupling : object
         The haptic device and the mouse's virtual coupling (None without).
     t_s : float
-        Time of the step the commands precede [s] (their events' time).
+        Time of the step the commands precede [s] (for :meth:`Command.apply`
+        outside a world step).
     status : ndarray
         The loop's 0-d structured status record.
     """
@@ -199,9 +259,11 @@ class LoopContext:
         self.device = device
         self.coupling = coupling
         self.status = status
-        self.burr = 0
-        self.epoch = 0
-        self.tool = 0
+
+    def sync(self) -> None:
+        """Publish the state's epoch and tool in ``status`` (after commands)."""
+        self.status["epoch"] = self.state.epoch
+        self.status["tool"] = self.state.tool
 
     def applied(self, command: type, args: np.ndarray, seq: int) -> None:
         """Called after each applied command (the hook for publishing
@@ -209,9 +271,9 @@ class LoopContext:
         self.status["commands_applied"] += 1
 
     def rejected(self, kind: int, seq: int, message: str) -> None:
-        """Called for a command that is unknown or whose apply raised:
-        counts it in ``commands_rejected`` and keeps the message in
-        ``command_error``."""
+        """Called for a command that is unknown or whose decoding or
+        application raised: counts it in ``commands_rejected`` and keeps the
+        message in ``command_error``."""
         self.status["commands_rejected"] += 1
         self.status["command_error"] = f"#{seq}: {message}".encode()[:ERROR_TEXT_BYTES]
 
@@ -264,7 +326,7 @@ class CommandSender:
 
 
 class CommandQueue:
-    """The loop's side of the ring: takes and applies pending commands.
+    """The loop's side of the ring: takes pending records as world commands.
 
     Parameters
     ----------
@@ -272,7 +334,13 @@ class CommandQueue:
         The ``commands`` ring.
     known : iterable of Command subclasses
         The commands this loop carries out (others are rejected).
+
+    The loop calls :meth:`take` before each step, hands what it returns to
+    :func:`~bonesim.engine.world.world_step` with :meth:`failed` as its
+    ``on_error``, then calls :meth:`settle` when something was taken.
     """
+
+    _NONE = ()
 
     def __init__(self, ring: events.Ring, known):
         self.ring = ring
@@ -280,33 +348,67 @@ class CommandQueue:
         self.pos = 0
         self._head = ring.head
         self._mask = ring.capacity - 1
+        self._taken = []
+        self._failed = set()
+        self._ctx = None
 
-    def poll(self, ctx: LoopContext) -> int:
-        """Apply every pending command in order; returns how many were taken.
-        Without pending commands this is one integer comparison."""
+    def take(self, ctx: LoopContext) -> tuple:
+        """Every pending record, decoded in order (an unknown or undecodable
+        one becomes a command that is refused in its place). Without pending
+        records this is one integer comparison and returns the same empty
+        tuple."""
         head = int(self._head[0])
         if head == self.pos:
-            return 0
+            return self._NONE
         f = self.ring.fields
-        n = head - self.pos
+        cmds = []
+        self._ctx = ctx
         for q in range(self.pos, head):
             i = q & self._mask
             kind = int(f["kind"][i])
             seq = int(f["seq"][i])
             cls = self.known.get(kind)
+            args = np.array(f["args"][i], dtype=np.float64)
             if cls is None:
-                ctx.rejected(kind, seq, f"unknown command kind {kind}")
+                cmd = _Refused(f"unknown command kind {kind}")
             else:
-                args = f["args"][i]
                 try:
-                    cls.apply(ctx, args)
-                except Exception as exc:           # a bad command must not stop the loop
-                    ctx.rejected(kind, seq, f"{cls.name}: {exc}")
-                else:
-                    ctx.applied(cls, args, seq)
-            self.pos = q + 1
-            ctx.status["commands_read"] = self.pos
-        return n
+                    cmd = cls.decode(ctx, args)
+                except Exception as exc:           # refused in its place, in order
+                    cmd = _Refused(f"{cls.name}: {exc}")
+            self._taken.append((cls, kind, seq, args))
+            cmds.append(cmd)
+        self.pos = head
+        ctx.status["commands_read"] = self.pos
+        return tuple(cmds)
+
+    def failed(self, i: int, exc: Exception) -> None:
+        """``on_error`` for the world step: command ``i`` of the last
+        :meth:`take` raised ``exc``."""
+        cls, kind, seq, _ = self._taken[i]
+        self._failed.add(i)
+        msg = str(exc) if isinstance(exc, _Refusal) else f"{cls.name}: {exc}"
+        self._ctx.rejected(kind, seq, msg)
+
+    def settle(self, ctx: LoopContext) -> None:
+        """After the world step: count the commands applied and publish the
+        state's epoch and tool."""
+        for i, (cls, _, seq, args) in enumerate(self._taken):
+            if i not in self._failed:
+                ctx.applied(cls, args, seq)
+        self._taken.clear()
+        self._failed.clear()
+        ctx.sync()
+
+    def poll(self, ctx: LoopContext) -> int:
+        """Take and apply every pending command now, at ``ctx.t_s`` (outside
+        a world step); returns how many were taken."""
+        cmds = self.take(ctx)
+        if not cmds:
+            return 0
+        apply_commands(ctx.model, ctx.state, cmds, ctx.t_s, self.failed)
+        self.settle(ctx)
+        return len(cmds)
 
 
 # ------------------------------------------------------------ the commands
@@ -317,14 +419,10 @@ class Reset(Command):
     kind, name = 1, "reset"
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        reset_state(ctx.model, ctx.state, rings=False)
-        if ctx.coupling is not None:
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.Reset:
+        if ctx.coupling is not None:       # re-seeded where the hand is, this period
             ctx.coupling.pos = None
-        ctx.epoch += 1
-        events.push_event(ctx.state.tissue, events.RESET, ctx.t_s, n=ctx.epoch)
-        # announced before the first step of the new epoch
-        ctx.status["epoch"] = ctx.epoch
+        return wc.Reset()
 
 
 class SetBurr(Command):
@@ -339,18 +437,12 @@ class SetBurr(Command):
         return cls.pack(index)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        b = int(args[0])
-        n = len(ctx.model.burrs)
-        if not 0 <= b < n:
-            raise IndexError(f"burr index {b} out of range 0..{n - 1}")
-        if b != ctx.burr:
-            ctx.burr = b
-            events.push_event(ctx.state.tissue, events.BURR, ctx.t_s, n=b)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.SetBurr:
+        return wc.SetBurr(int(args[0]))
 
 
 class SetTool(Command):
-    """Switch the tool (an index into :data:`TOOLS`, or its name)."""
+    """Switch the tool (an index into :data:`bonesim.engine.world_commands.TOOLS`, or its name)."""
 
     kind, name = 3, "set_tool"
 
@@ -365,12 +457,8 @@ class SetTool(Command):
         return cls.pack(tool)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        t = int(args[0])
-        if not 0 <= t < len(TOOLS):
-            raise IndexError(f"tool index {t} out of range 0..{len(TOOLS) - 1}")
-        ctx.tool = t
-        ctx.status["tool"] = t
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.SetTool:
+        return wc.SetTool(int(args[0]))
 
 
 class SplitBox(Command):
@@ -392,9 +480,9 @@ class SplitBox(Command):
         return cls.pack(body, lo, hi)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        publish_split_box(ctx.state, int(args[0]), args[1:4].astype(np.int64),
-                          args[4:7].astype(np.int64), ctx.t_s)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.SplitBox:
+        return wc.SplitBox(int(args[0]), tuple(args[1:4].astype(np.int64).tolist()),
+                           tuple(args[4:7].astype(np.int64).tolist()))
 
 
 class MoveBody(Command):
@@ -410,11 +498,8 @@ class MoveBody(Command):
         return cls.pack(body, validate_pose(pose))
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        publish_pose(ctx.state, int(args[0]), args[1:8].copy(), ctx.t_s)
-        rigid = getattr(ctx, "rigid", None)        # placed by hand: it stays put
-        if rigid is not None:
-            rigid.hold(int(args[0]))
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.MoveBody:
+        return wc.MoveBody(int(args[0]), args[1:8].copy())   # placed by hand: it stays put
 
 
 class SplitPart(Command):
@@ -447,14 +532,10 @@ class SplitPart(Command):
         return cls.pack(body, seed, lo, hi, n, epoch)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        from bonesim.engine.fragments import publish_part
-
-        if int(args[11]) != ctx.epoch:
-            return                          # found before a reset: nothing of it is left
-        a = args[:11].astype(np.int64)
-        publish_part(ctx.state, int(a[0]), a[1:4], a[4:7], a[7:10], int(a[10]), ctx.t_s,
-                     shed=cls.shed)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.SplitPart:
+        a = args[:12].astype(np.int64).tolist()
+        return wc.SplitPart(a[0], tuple(a[1:4]), tuple(a[4:7]), tuple(a[7:10]), a[10], a[11],
+                            shed=cls.shed)
 
 
 class ShedPart(SplitPart):
@@ -484,6 +565,5 @@ class CutPlane(Command):
         return cls.pack(validate_pose(pose), um)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        publish_cut_record(ctx.state, ctx.model.injury, args[7:10].astype(np.int64),
-                           args[0:7].copy(), ctx.t_s)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.CutStroke:
+        return wc.CutStroke(args[0:7].copy(), args[7:10].astype(np.int64))

@@ -1,4 +1,4 @@
-"""The haptic loop: :func:`bonesim.engine.model.step` at >= 1 kHz in its own process.
+"""The haptic loop: :func:`bonesim.engine.world.world_step` at >= 1 kHz in its own process.
 
 Why a process: a Python thread beside the window shares one interpreter lock
 with VTK, whose rendering calls hold it for tens of milliseconds with software
@@ -16,8 +16,10 @@ errors and quit as for every child process). Three things connect the sides:
     named fields (:data:`CONTROL`): the mouse's target pose, drill on/off,
     speed and direction, read at every step.
 ``commands`` ring (window -> loop, discrete)
-    reset, burr change, tool change (:mod:`bonesim.runtime.commands`), applied in
-    order between two steps.
+    reset, burr change, tool change, bodies, plates (:mod:`bonesim.runtime.commands`,
+    :mod:`bonesim.runtime.rigid_commands`): taken before each step, decoded
+    into world commands and handed to the world step, which applies them in
+    order before the rigid and haptic steps (one call per period).
 ``status`` (loop -> window)
     named fields (:data:`STATUS`): tool pose, force, immersed volume, drill
     state, steps, epoch, burr, tool, commands applied;
@@ -53,7 +55,8 @@ from bonesim.devices.safety import UNPLUGGED
 from bonesim.devices.scripted import ScriptedDevice
 from bonesim.engine import events
 from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME
-from bonesim.engine.model import Model, Sample, make_state, state_arrays_spec, step
+from bonesim.engine.model import Model, Sample, make_state, state_arrays_spec
+from bonesim.engine.world import world_step
 from bonesim.runtime import commands
 from bonesim.runtime.child import ChildProcess
 from bonesim.runtime.commands import (
@@ -66,7 +69,7 @@ from bonesim.runtime.commands import (
 )
 from bonesim.runtime.handle_stream import HandleTap, handle_of
 from bonesim.runtime.shared import SharedArrays
-from bonesim.runtime.rigid_commands import attach_rigid, rigid_step, warmup_rigid
+from bonesim.runtime.rigid_commands import warmup_rigid
 
 __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_PRIORITY",
            "attach", "push_sample", "HapticLoop"]
@@ -84,7 +87,7 @@ STATUS = (
     ("speed_rpm", np.float64),
     ("direction", np.int8),
     ("burr", np.int32),                     # burr index
-    ("tool", np.int32),                     # tool index (bonesim.runtime.commands.TOOLS)
+    ("tool", np.int32),                     # tool index (bonesim.engine.world_commands.TOOLS)
     ("steps", np.int64),                    # steps since the last reset
     ("epoch", np.int64),                    # case resets so far
     ("overruns", np.int64),                 # periods that fell a whole period behind
@@ -160,7 +163,7 @@ def push_sample(ring: events.Ring, t: float, state, hand_mm, axis, drill: bool,
                 force_n, vib_n) -> None:
     """Append one step's record to the ``samples`` ring (a few microseconds).
 
-    ``axis`` is the axis exactly as handed to :func:`~bonesim.engine.model.step` (not
+    ``axis`` is the axis exactly as handed to :func:`~bonesim.engine.world.world_step` (not
     the normalized ``state.axis``), so that re-stepping the records
     reproduces the run bit for bit.
     """
@@ -229,7 +232,8 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     # one model holding the burr table: a sample names its burr
     m = model.with_burrs([b for b in burrs if b is not None])
     vibs = [Vibration(b, rate_hz) if vibration else None for b in m.burrs]
-    state = make_state(m, arr)             # scratch for the largest burr, once
+    # scratch for the largest burr, once; the rigids stepped at the loop's rate
+    state = make_state(m, arr, rate_hz=rate_hz)
     samples = child.rings["samples"]
     no_vib = np.zeros(3)
     device = _make_device(device_spec, control)
@@ -241,9 +245,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
     ctx = LoopContext(m, state, device, coupling, status)
     queue = CommandQueue(child.rings["commands"], known)
     warmup()
-    # fragments and plates in motion (bonesim.runtime.rigid_commands)
-    attach_rigid(ctx, m, rate_hz)
-    warmup_rigid()
+    warmup_rigid()                         # fragments and plates in motion
     if vibration:
         from bonesim.physics.vibration import warmup as vibration_warmup
 
@@ -289,6 +291,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
         gc.freeze()
         gc.disable()
         out_f = np.zeros(3)
+        failed = queue.failed              # bound once: the hot path allocates nothing
         period = 1.0 / rate_hz
         pmask = periods.shape[0] - 1
         clock = time.perf_counter
@@ -306,8 +309,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             if run_s is not None and t >= run_s:
                 break
             ctx.t_s = t
-            queue.poll(ctx)                    # reset, burr, tool, bodies: between steps
-            burr = ctx.burr
+            cmds = queue.take(ctx)             # reset, burr, tool, bodies: () when none
             r: DeviceReading = device.read(t)
             pos = r.pos_mm
             if safe is not None and not safe.coupled:
@@ -323,8 +325,12 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             if pedal is not None:
                 drill, speed = pedal.apply(t, drill, speed)
                 st_pedal[...] = 1 if pedal.connected else 2
-            rigid_step(ctx, t, pos, drill, burr)   # poses published before the step
-            f = step(m, state, Sample(t, pos, r.axis, drill, speed, direction, burr))
+            # commands, rigid motion and the haptic step: the world step
+            f = world_step(m, state, Sample(t, pos, r.axis, drill, speed, direction,
+                                            state.burr), cmds, failed)
+            if cmds:
+                queue.settle(ctx)              # counted; epoch and tool published
+            burr = state.burr
             fv = no_vib
             if vibs[burr] is not None:
                 # felt, not simulated: added to what the device renders only
@@ -348,7 +354,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                 if cam_rate is not None:
                     st_cam[...] = 0.0 if safe.state == UNPLUGGED else cam_rate
             push_sample(samples, t, state, r.pos_mm, r.axis, drill, speed, direction, burr,
-                        ctx.epoch, r.buttons, f, fv)
+                        state.epoch, r.buttons, f, fv)
             if tap is not None:
                 tap(t)
             st_t[...] = t
@@ -509,7 +515,7 @@ class HapticLoop(ChildProcess):
         self.send(SetBurr, index=index)
 
     def set_tool(self, tool) -> None:
-        """Switch the tool (:data:`bonesim.runtime.commands.TOOLS`: index or name)."""
+        """Switch the tool (:data:`bonesim.engine.world_commands.TOOLS`: index or name)."""
         self.send(SetTool, tool=tool)
 
     def reset(self) -> int:

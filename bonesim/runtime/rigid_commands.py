@@ -1,15 +1,18 @@
-"""Fragments and plates in the haptic loop: the rigid step and its commands.
+"""Fragments and plates in the haptic loop: the ring commands that drive them.
 
-The loop holds one :class:`~bonesim.engine.rigid_set.RigidSet` (made by
-:func:`attach_rigid`, kept as ``ctx.rigid``) and calls :func:`rigid_step`
-between the commands and the haptic step of each period: with the drill
+The rigid bodies' state is the run's (``state.rigid``, a
+:class:`~bonesim.engine.rigid_set.RigidSet` made by
+:func:`~bonesim.engine.model.make_state`), and the rigid step is part of
+the world step (:func:`bonesim.engine.world.world_step`): with the drill
 stopped the tool pushes the fragments it touches, grabbed rigids follow
 the tool, everything that moves falls along the case's gravity and rests on
 the bone (:mod:`bonesim.engine.rigid`). Every pose change is a tissue event
 (``POSE`` for a body, ``PLATE`` for a plate) at the time of the step that
 follows, so a recording replays bit for bit (:mod:`bonesim.session.replay`
 applies them as recorded, like commands) and playback and tutoring see
-them. Body 0 never moves by itself.
+them. Body 0 never moves by itself. The commands here decode into the world
+commands of :mod:`bonesim.engine.world_commands` (a plate of the
+catalogue, :mod:`bonesim.io.plates`, into its geometry).
 
 Commands (kinds 40-44):
 
@@ -34,45 +37,12 @@ import math
 
 import numpy as np
 
-from bonesim.engine.bodies import publish_pose
-from bonesim.engine.haptics import P_K_LOW, P_RADIUS
-from bonesim.engine.rigid import AFFIXED, KIND_PLATE, gravity_direction, tool_push
+from bonesim.engine import world_commands as wc
 from bonesim.engine.rigid_set import RigidSet, publish_plate
 from bonesim.runtime.commands import Command, LoopContext
 
-__all__ = ["RIGID_SLOTS", "GRAB_REACH_MM", "attach_rigid", "rigid_step", "warmup_rigid", "GrabBody",
-           "ReleaseBody", "PlacePlate", "AffixPlate", "Distract"]
-
-#: Rigid slots of a loop (fragments in motion and plates together).
-RIGID_SLOTS = 16
-#: How far beyond the burr's surface a grab reaches [mm].
-GRAB_REACH_MM = 1.0
-
-
-def attach_rigid(ctx: LoopContext, model, rate_hz: float) -> RigidSet:
-    """Make the loop's rigid set (gravity from the model's case) as ``ctx.rigid``."""
-    ctx.rigid = RigidSet(model.max_bodies, RIGID_SLOTS, rate_hz, gravity_direction(model))
-    ctx.rigid_epoch = ctx.epoch
-    return ctx.rigid
-
-
-def rigid_step(ctx: LoopContext, t_s: float, pos_mm, drill: bool, burr: int) -> int:
-    """One period of rigid motion, after the commands and before the haptic
-    step of time ``t_s`` (tool at ``pos_mm``, the burr ``burr`` of the
-    model's table). A reset forgets every rigid. Returns the poses published."""
-    rs = ctx.rigid
-    if ctx.rigid_epoch != ctx.epoch:
-        rs.clear()
-        ctx.rigid_epoch = ctx.epoch
-    p = ctx.model.burr_params[burr]
-    return rs.advance(ctx.state, t_s, pos_mm, drill, p[P_RADIUS], p[P_K_LOW])
-
-
-def _rigid(ctx) -> RigidSet:
-    rs = getattr(ctx, "rigid", None)
-    if rs is None:
-        raise RuntimeError("this loop has no rigid set (attach_rigid)")
-    return rs
+__all__ = ["warmup_rigid", "GrabBody", "ReleaseBody", "PlacePlate", "AffixPlate",
+           "Distract"]
 
 
 def _plates():
@@ -95,29 +65,8 @@ class GrabBody(Command):
         return cls.pack(body)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        rs, st = _rigid(ctx), ctx.state
-        tool = st.pos_mm
-        b = int(args[0])
-        if b < 0:
-            p = ctx.model.burr_params[ctx.burr]
-            push = tool_push(st, tool, p[P_RADIUS] + GRAB_REACH_MM, 1.0)
-            if push[:, 6].max() > 0.0:
-                b = int(np.argmax(push[:, 6]))
-        if b >= 1:
-            rs.grab(st, rs.wake_body(st, b), tool)
-            return
-        reach = ctx.model.burr_params[ctx.burr][P_RADIUS] + GRAB_REACH_MM
-        best, best_d = -1, math.inf
-        for s in np.flatnonzero((rs.kind == KIND_PLATE) & (rs.mode != 0)
-                                & (rs.mode != AFFIXED)):
-            pts, _ = rs.samples_case(st, int(s))
-            d = float(np.linalg.norm(pts - tool, axis=1).min())
-            if d < best_d:
-                best, best_d = int(s), d
-        if best < 0 or best_d > reach:
-            raise ValueError("grab: the tool touches no fragment and no free plate")
-        rs.grab(st, best, tool)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.Grab:
+        return wc.Grab(int(args[0]))
 
 
 class ReleaseBody(Command):
@@ -126,22 +75,8 @@ class ReleaseBody(Command):
     kind, name = 41, "release_body"
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        _rigid(ctx).release()
-
-
-def _down_pose(pos, gravity) -> np.ndarray:
-    """A pose at ``pos`` turning the mesh's -z onto ``gravity``."""
-    g = np.asarray(gravity, float)
-    z = np.array([0.0, 0.0, -1.0])
-    axis = np.cross(z, g)
-    s, c = float(np.linalg.norm(axis)), float(z @ g)
-    if s < 1e-12:
-        q = [1.0, 0.0, 0.0, 0.0] if c > 0 else [0.0, 1.0, 0.0, 0.0]
-    else:
-        half = math.atan2(s, c) / 2
-        q = [math.cos(half), *(math.sin(half) * axis / s)]
-    return np.r_[np.asarray(pos, float), q]
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.Release:
+        return wc.Release()
 
 
 class PlacePlate(Command):
@@ -170,16 +105,12 @@ class PlacePlate(Command):
         return cls.pack(plate, 1.0, p)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        rs = _rigid(ctx)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.PlacePlate:
         i = int(args[0])
-        spec = _plates()[i]
-        pose = args[2:9].copy() if args[1] else _down_pose(ctx.state.pos_mm, rs.gvec /
-                                                          np.linalg.norm(rs.gvec))
-        s = rs.add_plate(spec.pos, spec.nrm, spec.offset_mm, spec.mass_kg,
-                         spec.stiffness_n_mm, pose, catalog=i, axis=spec.axis,
-                         samples=spec.samples)
-        publish_plate(ctx.state, rs, s, ctx.t_s)
+        spec = _plates()[i]                # the catalogue's geometry into the command
+        return wc.PlacePlate(i, spec.pos, spec.nrm, spec.offset_mm, spec.mass_kg,
+                             spec.stiffness_n_mm, axis=spec.axis, samples=spec.samples,
+                             pose=args[2:9].copy() if args[1] else None)
 
 
 class AffixPlate(Command):
@@ -194,13 +125,8 @@ class AffixPlate(Command):
         return cls.pack(slot)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        rs = _rigid(ctx)
-        s = int(args[0]) if args[0] >= 0 else rs.last_plate
-        if s < 0:
-            raise ValueError("affix: no plate has been placed")
-        rs.affix(ctx.state, s)
-        publish_plate(ctx.state, rs, s, ctx.t_s)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.AffixPlate:
+        return wc.AffixPlate(int(args[0]) if args[0] >= 0 else -1)
 
 
 class Distract(Command):
@@ -216,11 +142,8 @@ class Distract(Command):
         return cls.pack(length_mm, slot)
 
     @classmethod
-    def apply(cls, ctx: LoopContext, args: np.ndarray) -> None:
-        rs = _rigid(ctx)
-        s = int(args[1]) if args[1] >= 0 else rs.last_plate
-        pose = rs.distract(ctx.state, s, float(args[0]))
-        publish_pose(ctx.state, int(rs.tag[s]), pose, ctx.t_s)
+    def decode(cls, ctx: LoopContext, args: np.ndarray) -> wc.Distract:
+        return wc.Distract(float(args[0]), int(args[1]) if args[1] >= 0 else -1)
 
 
 def warmup_rigid() -> None:

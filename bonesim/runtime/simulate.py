@@ -2,10 +2,15 @@
 
 :func:`run_trajectory` is what ``bonesim simulate`` does. The trajectory is
 resampled at the model's haptic rate (simulated time, not wall-clock) and fed
-sample by sample to :func:`bonesim.engine.model.step`, exactly as an interactive run
-feeds device samples. A :class:`~bonesim.engine.replica.TissueReplica` drains the
-tissue-event and touched rings at the frame rate and updates the hybrid
-surface incrementally, as the window does. The haptic step never waits for
+sample by sample to :func:`bonesim.engine.world.world_step`, exactly as the
+haptic loop feeds device samples: burr changes (the trajectory's ``burr``
+column) and any world commands given with their times
+(:mod:`bonesim.engine.world_commands`: splits, grabs, plates...) are applied
+before the step of their time, and fragments and plates in motion move
+(fall under gravity and rest, follow a grabbing tool) as in the loop. A
+:class:`~bonesim.engine.replica.TissueReplica` drains the tissue-event and
+touched rings at the frame rate and updates the hybrid surface
+incrementally, as the window does. The haptic step never waits for
 it.
 """
 from __future__ import annotations
@@ -20,6 +25,8 @@ from bonesim.engine import events
 from bonesim.engine.haptics import O_N_IMMERSED
 from bonesim.engine.model import Model, Sample, make_state, step
 from bonesim.engine.replica import TissueReplica
+from bonesim.engine.world import world_step
+from bonesim.engine.world_commands import SetBurr
 from bonesim.io.anatomy import clinical_name
 
 __all__ = ["FRAME_HZ", "CLEARANCE_EVERY", "warmup", "run_trajectory", "closest_approach",
@@ -55,7 +62,7 @@ def warmup() -> None:
 def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
                    mesh_format: str = "ply", surface: bool = True,
                    progress=None, record=None, header: dict | None = None,
-                   burrs=()) -> dict:
+                   burrs=(), commands=()) -> dict:
     """Drill ``traj`` into ``model`` and summarize the run.
 
     Parameters
@@ -86,6 +93,10 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
         Burrs 1, 2, ... the trajectory's ``burr`` column may switch to (0 is
         the model's); each switch is a burr change in the tissue events, as
         the haptic loop publishes one.
+    commands : sequence of (t_s, WorldCommand)
+        World commands (:mod:`bonesim.engine.world_commands`) applied before
+        the first step at or after ``t_s`` [s], in the order given (times
+        non-decreasing), after that step's burr change.
 
     Returns
     -------
@@ -95,6 +106,9 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     """
     wall0 = time.perf_counter()
     rate = model.haptic_rate_hz
+    commands = list(commands)
+    if any(b[0] < a[0] for a, b in zip(commands, commands[1:])):
+        raise ValueError("simulate: the commands' times must not decrease")
     samples = traj.resample(rate)
     burrs = list(burrs)
     if int(samples.burr.max()) > len(burrs):
@@ -122,16 +136,22 @@ def run_trajectory(model: Model, traj, *, check: bool = False, out_dir=None,
     pos, axis = samples.pos_mm, samples.axis
     rec = _Recording(model, state, record, header) if record is not None else None
     burr = samples.burr
-    cur = 0
+    t_col = samples.t_s
+    c = 0
+    none = ()
     try:
         for q in range(n):
-            if burr[q] != cur:             # between steps, as the loop's SetBurr
-                cur = int(burr[q])
-                events.push_event(state.tissue, events.BURR, float(samples.t_s[q]), n=cur)
-            smp = Sample(samples.t_s[q], pos[q], axis[q], bool(samples.drill[q]),
-                         float(samples.speed_rpm[q]), int(samples.direction[q]), cur)
+            cmds = none
+            if burr[q] != state.burr or (c < len(commands) and commands[c][0] <= t_col[q]):
+                cmds = [SetBurr(int(burr[q]))] if burr[q] != state.burr else []
+                while c < len(commands) and commands[c][0] <= t_col[q]:
+                    cmds.append(commands[c][1])
+                    c += 1
+            smp = Sample(t_col[q], pos[q], axis[q], bool(samples.drill[q]),
+                         float(samples.speed_rpm[q]), int(samples.direction[q]),
+                         int(burr[q]))
             t0 = perf()
-            f = step(model, state, smp)
+            f = world_step(model, state, smp, cmds)
             step_ns[q] = perf() - t0
             if rec is not None:
                 rec.push(smp, f)
@@ -236,7 +256,8 @@ class _Recording:
         if self.eye is not None:
             self._log_eye(float(smp.t_s))
         push_sample(self.ring, smp.t_s, self.state, smp.pos_mm, smp.axis, smp.drill,
-                    smp.speed_rpm, smp.direction, smp.burr, 0, 0, f, self.zero)
+                    smp.speed_rpm, smp.direction, self.state.burr, self.state.epoch, 0, f,
+                    self.zero)
         if self.tap is not None:
             self.tap(smp.t_s)
         if self.ring.count - self.drainer.cursors["samples"].pos >= self.ring.capacity // 2:

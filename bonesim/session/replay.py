@@ -2,13 +2,35 @@
 
 A session's samples, stepped again from the case's initial tissue with the
 recorded burrs, must give the recorded tissue events and forces exactly
-(``bonesim replay --verify``). The recorded body splits and poses, the
-specks shed as dust with a fragment (removals marked ``REMOVED_SHED``) and the
-plates' poses are inputs too (commands the haptic loop applied between two
-steps): the replay applies
-them again before the step of their time. A damaged file is replayed over its readable
-part (:func:`bonesim.session.reader.read_session` cuts every stream at the
-same moment).
+(``bonesim replay --verify``). Replay has no step of its own: it calls the
+same :func:`bonesim.engine.world.world_step` as the haptic loop and
+``simulate``, with the world commands (:mod:`bonesim.engine.world_commands`)
+rebuilt from the file (:func:`recorded_commands`), each handed to the step
+of its time:
+
+* a :class:`~bonesim.engine.world_commands.Reset` where the samples' epoch
+  changes and a :class:`~bonesim.engine.world_commands.SetBurr` where their
+  burr does;
+* the recorded body records, in their recorded order: splits
+  (:class:`~bonesim.engine.world_commands.SplitVoxels`), specks shed as dust
+  (removals marked ``REMOVED_SHED``, :class:`~bonesim.engine.world_commands.ShedVoxels`),
+  cut-plane strokes (``CUT``, :class:`~bonesim.engine.world_commands.CutStroke`),
+  body poses (``POSE``, :class:`~bonesim.engine.world_commands.MoveBody`)
+  and plate poses (``PLATE``, :class:`~bonesim.engine.world_commands.PlateRecord`).
+
+**Recorded poses and the rigid step.** A recording's ``POSE`` and
+``PLATE`` records are what the run's rigid step (and its grab, release,
+place, affix and distract commands) produced; the session file does not
+hold those user commands, only their outcome. Replay therefore applies the
+recorded poses as commands, before the step of their time, and runs with
+the rigid step off (its state has no rigid set, ``state.rigid`` None):
+the bodies stand exactly where they stood in the run, whatever the rigid
+physics of today's code would make of the same inputs, so every file,
+of every schema, replays bit for bit the same way.
+
+A damaged file is replayed over its readable part
+(:func:`bonesim.session.reader.read_session` cuts every stream at the same
+moment).
 """
 from __future__ import annotations
 
@@ -17,7 +39,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.session.reader import Session
 
-__all__ = ["replay", "verify", "coverage"]
+__all__ = ["replay", "recorded_commands", "verify", "coverage"]
 
 
 def replay(session: Session, models=None, progress=None) -> dict:
@@ -39,8 +61,9 @@ def replay(session: Session, models=None, progress=None) -> dict:
         splits and poses, then each step's removals, contacts and injuries),
         ``mag_n`` and ``tangential_n`` per sample, and the final ``state``.
     """
-    from bonesim.engine.model import Sample, make_state, reset_state, step
-
+    from bonesim.engine.haptics import O_MAG, O_TX, O_TZ
+    from bonesim.engine.model import Sample, make_state
+    from bonesim.engine.world import world_step
     from bonesim.errors import BonesimError
     from bonesim.session.reader import REPLAY_COLUMNS
 
@@ -53,34 +76,20 @@ def replay(session: Session, models=None, progress=None) -> dict:
     s = session.samples
     n = len(s["t_s"])
     model = models[0].with_burrs([m.burr for m in models[1:]])
-    state = make_state(model)
-    from bonesim.engine.haptics import O_MAG, O_TX, O_TZ
-
+    state = make_state(model, rigid=False)   # the recorded poses stand in for it
     mag = np.zeros(n)
     tang = np.zeros((n, 3))
     ring = state.tissue
     cur = events.Cursor(ring, 0)
     chunks = []
-    epoch, cur_burr = 0, 0
     t_col, pos, axis = s["t_s"], s["pos_mm"], s["axis"]
-    drill, speed, direc = s["drill"], s["speed_rpm"], s["direction"]
-    burr, ep = s["burr"], s["epoch"]
-    commands = _body_commands(session.tissue, model.injury)
-    c = 0
+    drill, speed, direc, burr = s["drill"], s["speed_rpm"], s["direction"], s["burr"]
+    per_step = recorded_commands(session)
     for q in range(n):
-        t = float(t_col[q])
-        if int(ep[q]) != epoch:
-            reset_state(model, state, rings=False)
-            epoch = int(ep[q])
-            events.push_event(ring, events.RESET, t, n=epoch)
-        if int(burr[q]) != cur_burr:
-            cur_burr = int(burr[q])
-            events.push_event(ring, events.BURR, t, n=cur_burr)
-        while c < len(commands) and commands[c][0] <= t:
-            commands[c][1](state)
-            c += 1
-        step(model, state, Sample(t, pos[q], axis[q], bool(drill[q]), float(speed[q]),
-                                  int(direc[q]), cur_burr))
+        step_cmds = per_step.get(q, ())
+        world_step(model, state, Sample(float(t_col[q]), pos[q], axis[q], bool(drill[q]),
+                                        float(speed[q]), int(direc[q]), int(burr[q])),
+                   step_cmds)
         mag[q] = state.out[O_MAG]
         tang[q] = state.out[O_TX:O_TZ + 1]
         if ring.count - cur.pos > ring.capacity // 2:
@@ -92,13 +101,51 @@ def replay(session: Session, models=None, progress=None) -> dict:
             "state": state}
 
 
-def _body_commands(tissue: dict, injury=None) -> list:
-    """The recorded splits, poses, shed specks and cut-plane strokes (``CUT``
-    records, :mod:`bonesim.engine.cut_plane`; ``injury`` the model's) as
-    ``(t_s, apply(state))``, in order."""
-    from bonesim.engine.bodies import publish_pose, publish_split
-    from bonesim.engine.cut_plane import publish_cut_record
-    from bonesim.engine.fragments import shed_voxels
+def recorded_commands(session: Session) -> dict:
+    """The world commands a recording stands for, per step.
+
+    Parameters
+    ----------
+    session : Session
+
+    Returns
+    -------
+    dict of int -> list of WorldCommand
+        Sample index -> the commands to hand to that sample's world step, in
+        order: a reset where the epoch changes, a burr change where the burr
+        does, then the body records of times up to the sample's (see the
+        module docstring). Steps without commands are absent.
+    """
+    from bonesim.engine.world_commands import Reset, SetBurr
+
+    s = session.samples
+    t_col, ep, burr = s["t_s"], s["epoch"], s["burr"]
+    n = len(t_col)
+    body = _body_commands(session.tissue)
+    out = {}
+    epoch, cur_burr, c = 0, 0, 0
+    for q in range(n):
+        cmds = []
+        if int(ep[q]) != epoch:
+            epoch = int(ep[q])
+            cmds.append(Reset(epoch))
+        if int(burr[q]) != cur_burr:
+            cur_burr = int(burr[q])
+            cmds.append(SetBurr(cur_burr))
+        t = float(t_col[q])
+        while c < len(body) and body[c][0] <= t:
+            cmds.append(body[c][1])
+            c += 1
+        if cmds:
+            out[q] = cmds
+    return out
+
+
+def _body_commands(tissue: dict) -> list:
+    """The recorded splits, poses, plates, shed specks and cut-plane strokes
+    as ``(t_s, WorldCommand)``, in recorded order."""
+    from bonesim.engine.world_commands import (CutStroke, MoveBody, PlateRecord, ShedVoxels,
+                                               SplitVoxels)
 
     kind = tissue["kind"]
     shed = (kind == events.REMOVED) & (tissue["n"] == events.REMOVED_SHED)
@@ -119,24 +166,21 @@ def _body_commands(tissue: dict, injury=None) -> list:
                     and int(tissue["body"][idx[e]]) == body and tissue["t_s"][idx[e]] == t \
                     and tuple(tissue["ijk"][idx[e]]) > tuple(tissue["ijk"][idx[e - 1]]):
                 e += 1
-            ijk = tissue["ijk"][idx[q:e]].copy()
-            out.append((t, lambda st, b=body, v=ijk, t=t: shed_voxels(st, b, v, t)))
+            out.append((t, ShedVoxels(body, tissue["ijk"][idx[q:e]].copy())))
             q = e
             continue
         if kind[i] == events.CUT:
-            out.append((t, lambda st, v=tissue["ijk"][i].copy(), p=tissue["value"][i].copy(),
-                        t=t: publish_cut_record(st, injury, v, p, t)))
+            out.append((t, CutStroke(tissue["value"][i].copy(), tissue["ijk"][i].copy())))
             q += 1
             continue
         if kind[i] == events.PLATE:
             # a plate's pose touches no tissue: the record again, as it was
-            rec = {f: tissue[f][i:i + 1].copy() for f in events.TISSUE_FIELDS}
-            out.append((t, lambda st, r=rec: st.tissue.append(**r)))
+            out.append((t, PlateRecord({f: tissue[f][i:i + 1].copy()
+                                        for f in events.TISSUE_FIELDS})))
             q += 1
             continue
         if kind[i] == events.POSE:
-            pose = tissue["value"][i].copy()
-            out.append((t, lambda st, b=body, p=pose, t=t: publish_pose(st, b, p, t)))
+            out.append((t, MoveBody(body, tissue["value"][i].copy())))
             q += 1
             continue
         # one split: consecutive records of one new body
@@ -144,9 +188,8 @@ def _body_commands(tissue: dict, injury=None) -> list:
         while e < len(idx) and idx[e] == i + (e - q) and kind[idx[e]] == events.SPLIT \
                 and int(tissue["body"][idx[e]]) == body:
             e += 1
-        ijk = tissue["ijk"][idx[q:e]].copy()
         src = int(tissue["value"][i, 0])
-        out.append((t, lambda st, s=src, v=ijk, b=body, t=t: publish_split(st, s, v, t, b)))
+        out.append((t, SplitVoxels(src, tissue["ijk"][idx[q:e]].copy(), body)))
         q = e
     return out
 

@@ -81,7 +81,7 @@ def affixed_plate(model, **scene_kw):
     from bonesim.engine.replica import TissueReplica
     from bonesim.io.plates import default_plates
     from bonesim.render.scene import Scene
-    from bonesim.runtime.rigid_commands import _down_pose
+    from bonesim.engine.world_commands import down_pose
 
     state = make_state(model)
     rep = TissueReplica(model, state, surface=True)
@@ -89,7 +89,7 @@ def affixed_plate(model, **scene_kw):
     hit, view = _camera_hit(model, cam.eye_mm, cam.focal_mm)
     rs = RigidSet(model.max_bodies, gravity_dir=gravity_direction(model))
     spec = default_plates()[0]
-    pose = _down_pose(hit - (DROP_MM + 1.0) * view, rs.gvec / np.linalg.norm(rs.gvec))
+    pose = down_pose(hit - (DROP_MM + 1.0) * view, rs.gvec / np.linalg.norm(rs.gvec))
     s = rs.add_plate(spec.pos, spec.nrm, spec.offset_mm, spec.mass_kg, spec.stiffness_n_mm,
                      pose, catalog=0, axis=spec.axis, samples=spec.samples)
     publish_plate(state, rs, s, 0.0)

@@ -113,12 +113,45 @@ def test_commands_are_applied_in_order_and_counted():
     seqs.append(sender.send(SetBurr, index=1))
     assert seqs == [0, 1, 2, 3] and sender.pending == 4
     assert queue.poll(ctx) == 4 and queue.poll(ctx) == 0
-    assert ctx.seen == [3.0, 1.0, 2.0] and ctx.burr == 1
+    assert ctx.seen == [3.0, 1.0, 2.0] and ctx.state.burr == 1
     assert ctx.status["commands_applied"] == 4 and sender.pending == 0
     for v in range(20):                        # wraps the ring of 8 several times
         sender.send(Record, value=float(v))
         queue.poll(ctx)
     assert ctx.seen[3:] == [float(v) for v in range(20)]
+
+
+def test_taking_decodes_into_world_commands_handed_to_the_world_step():
+    from bonesim.engine import world_commands as wc
+    from bonesim.engine.model import Sample
+    from bonesim.engine.world import world_step
+
+    ring, ctx = _ring(), _ctx()
+    sender = CommandSender(ring, ctx.status)
+    queue = CommandQueue(ring, [Record, SetBurr, SetTool, Reset])
+    empty = queue.take(ctx)
+    assert empty == () and queue.take(ctx) is empty         # nothing pending: no new tuple
+    sender.send(SetBurr, index=1)
+    sender.send(Record, value=5.0)
+    sender.send(SetTool, tool="cutplane")
+    sender.send(Reset)
+    sender.send(SetBurr, index=9)
+    cmds = queue.take(ctx)
+    assert [type(c) for c in cmds[:1] + cmds[2:]] == [wc.SetBurr, wc.SetTool, wc.Reset,
+                                                        wc.SetBurr]
+    assert ctx.status["commands_read"] == 5 and ctx.state.burr == 0   # not applied yet
+    world_step(ctx.model, ctx.state, Sample(0.25, np.array([0.0, 0.0, 60.0]),
+                                            np.array([0.0, 0.0, -1.0]), False, 1.0, 1),
+               cmds, queue.failed)
+    queue.settle(ctx)
+    st = ctx.state
+    assert (st.burr, st.tool, st.epoch) == (1, 1, 1) and ctx.seen == [5.0]
+    assert ctx.status["epoch"] == 1 and ctx.status["tool"] == 1
+    assert ctx.status["commands_applied"] == 4 and ctx.status["commands_rejected"] == 1
+    assert ctx.status["command_error"].item() == b"#4: set_burr: burr index 9 out of range 0..1"
+    ev = st.tissue.read(0)
+    assert ev["kind"].tolist() == [events.BURR, events.RESET]
+    assert (ev["t_s"] == 0.25).all() and st.n_steps == 1
 
 
 def test_a_full_ring_is_reported_and_nothing_is_overwritten():
@@ -145,7 +178,7 @@ def test_unknown_kinds_and_failing_commands_are_rejected_with_a_message():
     sender.send(SetBurr, index=5)                  # only 2 models
     sender.send(Record, value=7.0)                 # the loop goes on after them
     assert queue.poll(ctx) == 4
-    assert ctx.seen == [7.0] and ctx.burr == 0
+    assert ctx.seen == [7.0] and ctx.state.burr == 0
     assert ctx.status["commands_rejected"] == 3 and ctx.status["commands_applied"] == 1
     assert ctx.status["command_error"].item() == b"#2: set_burr: burr index 5 out of range 0..1"
     ctx2 = _ctx()

@@ -11,7 +11,8 @@ from bonesim.engine.cut_plane import plane_pose
 from bonesim.engine.replica import TissueReplica
 from bonesim.io.case import load_case
 from bonesim.io.loading import load_model
-from bonesim.runtime.commands import CutPlane, SetTool, TOOLS
+from bonesim.engine.world_commands import TOOLS
+from bonesim.runtime.commands import CutPlane, SetTool
 from bonesim.runtime.haptic_loop import HapticLoop
 from bonesim.runtime.record import Recorder
 from bonesim.session.header import make_header

@@ -59,7 +59,7 @@ def _slab(x):
 
 def _sender(state):
     """Commands applied at once, as the loop would between two steps."""
-    ctx = SimpleNamespace(state=state, epoch=0, t_s=0.0)
+    ctx = SimpleNamespace(model=None, state=state, t_s=0.0)
     sent = []
 
     def send(cls, **params):
@@ -125,13 +125,14 @@ def test_finder_thread_queues_and_pump_sends():
 def test_stale_commands_do_nothing():
     m = _bar_model()
     st = make_state(m)
-    ctx = SimpleNamespace(state=st, epoch=1, t_s=0.0)
+    ctx = SimpleNamespace(model=m, state=st, t_s=0.0)
+    st.epoch = 1                            # a reset came after the part was found
     _drill(st, _slab(6), 0.1)
     args = SplitPart.encode(body=0, seed=(7, 4, 4), lo=(7, 4, 4), hi=(19, 5, 5), n=52,
                             epoch=0)
     SplitPart.apply(ctx, args)
     assert st.n_bodies == 1
-    ctx.epoch = 0
+    st.epoch = 0
     SplitPart.apply(ctx, args)
     assert st.n_bodies == 2
     with pytest.raises(ValueError, match="seed"):

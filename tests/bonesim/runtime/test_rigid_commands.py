@@ -1,6 +1,6 @@
-"""Fragments and plates through the loop's commands and rigid step
-(bonesim.runtime.rigid_commands): the loop body run in-process on a bone
-block, and one recorded run of the real haptic loop replayed bit for bit."""
+"""Fragments and plates through the loop's commands (bonesim.runtime.rigid_commands)
+and the world step's rigid step: the loop body run in-process on a bone
+block."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,11 +8,12 @@ import pytest
 
 from bonesim.engine import events
 from bonesim.engine.bodies import pose_matrix, split_body
-from bonesim.engine.model import Sample, step
+from bonesim.engine.model import Sample
+from bonesim.engine.world import world_step
 from bonesim.engine.rigid import AFFIXED, ASLEEP, GRABBED
 from bonesim.runtime.commands import LoopContext, Reset
 from bonesim.runtime.rigid_commands import (AffixPlate, Distract, GrabBody, PlacePlate,
-                                            ReleaseBody, attach_rigid, rigid_step)
+                                            ReleaseBody)
 
 from tests.bonesim.fakes import FakeBurr, block_model
 
@@ -22,16 +23,17 @@ AXIS = np.array([0.0, 0.0, -1.0])
 
 
 class Loop:
-    """The haptic loop's body without its process: commands, the rigid step,
-    the haptic step, one period of 1 ms each."""
+    """The haptic loop's body without its process: commands decoded and
+    applied as the loop does, then one world step (rigid and haptic) per
+    period of 1 ms."""
 
     def __init__(self, model, state):
         self.model, self.state = model, state
         self.status = np.zeros((), dtype=[("commands_applied", np.int64),
                                           ("commands_rejected", np.int64),
-                                          ("command_error", "S160"), ("epoch", np.int64)])
+                                          ("command_error", "S160"), ("epoch", np.int64),
+                                          ("tool", np.int32)])
         self.ctx = LoopContext(model, state, None, None, self.status)
-        attach_rigid(self.ctx, model, 1000.0)
         self.t = 0.0
         self.pos = np.array([1e3, 1e3, 1e3])
 
@@ -45,9 +47,8 @@ class Loop:
             self.t += 1e-3
             if to is not None:
                 self.pos = start + (np.asarray(to) - start) * min(1.0, (q + 1) / (0.8 * n))
-            self.ctx.t_s = self.t
-            rigid_step(self.ctx, self.t, self.pos, drill, 0)
-            step(self.model, self.state, Sample(self.t, self.pos, AXIS, drill, 60000.0, 1))
+            world_step(self.model, self.state, Sample(self.t, self.pos, AXIS, drill, 60000.0,
+                                                      1))
 
 
 def _fragment_model(edge=8, lo=(12, 16, 20)):
@@ -74,7 +75,7 @@ def test_a_grabbed_fragment_moved_by_the_tool_is_drilled_where_it_stands():
     loop.pos = np.r_[centre, top + 1.2]            # the burr just in its top
     loop.run(50)
     loop.send(GrabBody)
-    assert loop.ctx.rigid.mode[loop.ctx.rigid.slot_of(1)] == GRABBED
+    assert s.rigid.mode[s.rigid.slot_of(1)] == GRABBED
     # lift it 4 mm, carry it 8 mm along +x, put it down and let go
     loop.run(400, to=loop.pos + [0.0, 0.0, 4.0])
     loop.run(600, to=loop.pos + [8.0, 0.0, 0.0])
@@ -82,8 +83,8 @@ def test_a_grabbed_fragment_moved_by_the_tool_is_drilled_where_it_stands():
     loop.send(ReleaseBody)
     loop.pos = loop.pos + [0.0, 0.0, 6.0]          # the tool away, above it
     loop.run(1500)
-    slot = loop.ctx.rigid.slot_of(1)
-    assert loop.ctx.rigid.mode[slot] == ASLEEP     # resting where it was put
+    slot = s.rigid.slot_of(1)
+    assert s.rigid.mode[slot] == ASLEEP     # resting where it was put
     moved = s.pose[1, :3].copy()
     assert moved[0] == pytest.approx(8.0, abs=0.3) and abs(moved[2]) < 0.3
     # drill straight down onto its new place
@@ -130,7 +131,7 @@ def test_a_plate_placed_rests_and_affixed_follows_its_fragment_and_a_reset_clear
     top = (20 + 16) * SP - SP / 2
     loop.pos = np.array([8.0, 8.0, top + 3.0])
     loop.send(PlacePlate, plate="straight-4", pose=[8.0, 8.0, top + 2.0, 1, 0, 0, 0])
-    rs = loop.ctx.rigid
+    rs = s.rigid
     slot = rs.last_plate
     loop.run(2500)
     assert rs.mode[slot] == ASLEEP
@@ -161,7 +162,7 @@ def test_a_distractor_sets_the_distance_of_two_bodies():
     loop.send(PlacePlate, plate="distractor", pose=[16.0, 8.0, top + 1.0, 1, 0, 0, 0])
     loop.run(2500)
     loop.send(AffixPlate)
-    rs = loop.ctx.rigid
+    rs = s.rigid
     assert (rs.host[rs.last_plate], rs.tag[rs.last_plate]) == (0, 1)
     x1 = s.pose[1, 0]
     loop.send(Distract, length_mm=2.5)

@@ -100,3 +100,108 @@ def test_simulate_summary_names_the_structure(model, capsys):
     assert ("closest approach of the drilling burr: -0.20 mm to the Chorda tympani at "
             "0.01 s") in out
     assert "chorda_tympani" not in out
+
+
+def test_a_fragment_split_lifted_and_dropped_in_simulate_replays_bit_for_bit(model, tmp_path):
+    """simulate runs the world step: a piece split off, grabbed by the burr
+    at its top and lifted 8 mm against gravity, let go (the tool leaving
+    upwards), falls and rests in its bed; the tool then drills into it where
+    it lies. The recording replays bit for bit, poses and all."""
+    from bonesim.bench.rigid import PIECE_HI, PIECE_LO
+    from bonesim.engine import events
+    from bonesim.engine.rigid import gravity_direction
+    from bonesim.engine.world_commands import Grab, Release, SplitBox
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import replay, verify
+
+    g = model.grid
+    down = gravity_direction(model)
+    centre = g.origin_mm + g.spacing_mm * (np.add(PIECE_LO, PIECE_HI) / 2.0)
+    # the piece's top: its last bone voxel on the line up from its centre
+    top = max(s for s in np.arange(0.0, 20.0, 0.05)
+              if _solid(g, centre - s * down))
+    base = centre - (top + g.spacing_mm / 2 + model.burr.radius_mm - 0.3) * down
+    lift_mm = 8.0
+    t = np.round(np.arange(0.0, 2.6 + 1e-9, 0.01), 6)
+    # up 8 mm (0.3 .. 1.3 s), 6 mm more at once after the release (1.4 s),
+    # then down 1 mm below where the top was (2.0 .. 2.2 s), drilling
+    up = np.clip((t - 0.3) / 1.0, 0.0, 1.0) * lift_mm + (t >= 1.41) * 6.0 \
+        - np.clip((t - 2.0) / 0.2, 0.0, 1.0) * (lift_mm + 7.0)
+    traj = Trajectory(t_s=t, pos_mm=base - up[:, None] * down,
+                      axis=np.tile(down, (len(t), 1)), drill=(t >= 2.0).astype(np.uint8),
+                      speed_rpm=np.full(len(t), 60000.0), direction=np.ones(len(t), np.int8))
+    path = tmp_path / "rigid.h5"
+    cmds = [(0.005, SplitBox(0, PIECE_LO, PIECE_HI)), (0.01, Grab(1)), (1.4, Release())]
+    out = run_trajectory(model, traj, surface=False, record=path, commands=cmds)
+    assert out["record_ok"]
+    s = read_session(path)
+    poses = events.select(s.tissue, events.POSE)
+    assert len(poses["t_s"]) > 1000 and (poses["body"] == 1).all()
+    rise = poses["value"][:, :3] @ -down          # the piece's rise against gravity [mm]
+    held = poses["t_s"] <= 1.4
+    assert rise[held].max() == pytest.approx(lift_mm, abs=0.1)   # carried by the tool
+    assert abs(rise[-1]) < 0.1                    # fell back into its bed when let go
+    assert poses["t_s"][-1] < 2.0                 # and came to rest before the drilling
+    assert np.abs(poses["value"][-1, :3]).max() > 0.0    # not exactly where it was
+    rem = events.removals(s.tissue)
+    assert len(rem["body"]) > 10 and (rem["body"] == 1).all()   # drilled where it lies
+    report = verify(s)
+    assert report["ok"] and report["identical"], report
+    rep = replay(s)
+    np.testing.assert_array_equal(rep["state"].pose[1], poses["value"][-1])
+    np.testing.assert_array_equal(events.select(rep["tissue"], events.POSE)["value"],
+                                  poses["value"])
+
+
+def _solid(g, p) -> bool:
+    from bonesim.engine.grid import voxel_offset
+
+    ijk = np.rint((p - g.origin_mm) / g.spacing_mm).astype(int)
+    b = g.brick_index(*ijk)
+    return b >= 0 and g.density[b, voxel_offset(*ijk)] > 0
+
+
+def test_a_reset_and_a_burr_change_in_simulate_are_recorded_and_replayed(model, tmp_path):
+    """A reset given to simulate is a new epoch in the samples and a RESET
+    event; the burr column's change a BURR event; replay rebuilds both as
+    world commands (bonesim.session.replay.recorded_commands) and verifies."""
+    from bonesim.engine import events
+    from bonesim.engine.world_commands import Reset, SetBurr
+    from bonesim.io.burrs import load_burr
+    from bonesim.session.reader import read_session
+    from bonesim.session.replay import recorded_commands, verify
+
+    g = model.grid
+    cam = model.case.camera
+    eye = np.asarray(cam.eye_mm, float)
+    into = np.subtract(cam.focal_mm, eye)
+    into /= np.linalg.norm(into)
+    # the first bone on the camera's ray; the burr 1 mm off it, then 2.5 mm in
+    hit = next(eye + s * into for s in np.arange(0.0, 300.0, 0.1) if _solid(g, eye + s * into))
+    t = np.round(np.arange(0.0, 1.0 + 1e-9, 0.01), 6)
+    along = -model.burr.radius_mm - 1.0 + 3.5 * np.clip(t / 0.25, 0.0, 1.0)
+    traj = Trajectory(t_s=t, pos_mm=hit + along[:, None] * into,
+                      axis=np.tile(into, (len(t), 1)), drill=np.ones(len(t), np.uint8),
+                      speed_rpm=np.full(len(t), 60000.0), direction=np.ones(len(t), np.int8),
+                      burr=(t >= 0.15).astype(np.int32))
+    path = tmp_path / "reset.h5"
+    out = run_trajectory(model, traj, surface=False, record=path,
+                         burrs=[load_burr("diamond-3mm")], commands=[(0.5, Reset())])
+    assert out["record_ok"]
+    s = read_session(path)
+    ep = s.samples["epoch"]
+    q_reset = int(np.flatnonzero(ep == 1)[0])
+    assert s.samples["t_s"][q_reset] == pytest.approx(0.5) and (ep[q_reset:] == 1).all()
+    kinds = s.tissue["kind"]
+    assert (kinds == events.RESET).sum() == 1 and (kinds == events.BURR).sum() == 1
+    assert s.tissue["n"][kinds == events.RESET].tolist() == [1]
+    assert s.tissue["t_s"][kinds == events.RESET].tolist() == [s.samples["t_s"][q_reset]]
+    rem = events.removals(s.tissue)
+    assert (rem["t_s"] < 0.5).sum() > 0 and (rem["t_s"] >= 0.5).sum() > 0   # both epochs cut
+    cmds = recorded_commands(s)
+    q_burr = int(np.flatnonzero(s.samples["burr"] == 1)[0])
+    assert [type(c) for c in cmds[q_burr]] == [SetBurr] and cmds[q_burr][0].index == 1
+    assert [type(c) for c in cmds[q_reset]] == [Reset] and cmds[q_reset][0].epoch == 1
+    assert set(cmds) == {q_burr, q_reset}
+    report = verify(s)
+    assert report["ok"], report

@@ -197,7 +197,7 @@ class Instructor:
 
     @property
     def epoch(self) -> int:
-        return self.ctx.epoch
+        return self.state.epoch
 
     def command(self, cls, t, **params):
         """Apply command ``cls`` before the step at ``t`` [s], as the loop does
