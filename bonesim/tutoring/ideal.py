@@ -408,7 +408,9 @@ def tracking_vs_ideal(session_err_mm, ideal_err_mm) -> dict:
 
 #: What :func:`compare` re-runs the ideal with, one at a time, and what each says.
 HANDICAPS = {
-    "link_delay": "the link's delay (each sample's, beyond the fastest one's)",
+    "link_delay": "the delay from the instructor's sample to the trainee's servo (the "
+                  "instructor's simulation step, the server, the network; beyond the fastest "
+                  "sample's)",
     "servo_ticks": "the trainee servo's own tick instants (late ticks hold the force longer)",
     "join_ramp": "the force fading in when the trainee joins",
     "hand": "the simulated hand's resistance (its damping and spring to its rest point)",

@@ -16,7 +16,6 @@ from bonesim.errors import BonesimError
 from bonesim.tutoring import tutor
 from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 from tests.bonesim.waiting import wait_until
-from bonesim.tutoring.ideal import tracking_vs_ideal
 
 KEY = bytes(range(32))
 STUB_OWN = (0.88, 160.0, 120.0, 70.0, 0.39)          # hd_stub.c's record
@@ -106,6 +105,54 @@ def test_touch_on_both_ends_over_loopback_records_both_devices(stub, tmp_path, m
     assert _caps(s.header["device_record"]) == pytest.approx(STUB_OWN)
 
 
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_demo_motion_on_the_touch_over_loopback_follows_no_better_than_the_ideal(
+        stub, tmp_path, monkeypatch):
+    """The built-in demo motion (the bench's set-up) to a trainee's Touch
+    stand-in over loopback: the ideal follower, scored at the same instants,
+    follows the law at least as well, and what limits the session is named."""
+    from bonesim.devices.config import CONFIG_ENV
+    from bonesim.io.loading import load_model
+    from bonesim.io.toolpath import demo_trajectory
+    from bonesim.runtime.haptic_loop import HapticLoop
+    from bonesim.tutoring.devices import trainee_device
+    from bonesim.tutoring.ideal import HANDICAPS
+
+    monkeypatch.setenv(CONFIG_ENV, str(tmp_path / "devices.toml"))
+    model = load_model("phantom", "cutting-5mm")
+    traj = demo_trajectory(model.case, "cutting-5mm")
+    start = int(np.flatnonzero(traj.drill)[0])
+    traj = traj.at_times(traj.t_s[start:])
+    loop = HapticLoop(model, device=("scripted", traj), vibration=False, run_s=60.0)
+    trainee = None
+    try:
+        loop.start()
+        server = tutor.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        try:
+            src = tutor.NetworkSource("127.0.0.1", server.port, KEY, model=model)
+            src.connect(30.0)
+            stub.stub_place(0.0, 0.0, 0.0)
+            dev, trec = trainee_device("touch", src.state.pos_mm.copy(), model.case)
+            trainee = tutor.Trainee(src, dev)
+            trainee.run(3.0)
+            stats = trainee.stats()
+        finally:
+            if trainee is not None:
+                trainee.close()
+                trainee.device.close()
+            server.close()
+    finally:
+        loop.close()
+    assert trec["backend"] == "touch"
+    v = stats["tracking_vs_ideal"]
+    lt = v["law_target"]
+    assert lt["session"]["n"] == lt["ideal"]["n"] > 500        # the same instants
+    assert v["span_s"][1] - v["span_s"][0] == pytest.approx(v["seconds"], abs=1e-3)
+    assert v["value"] >= 1.0, v
+    assert v["limited_by"] in HANDICAPS and v["handicaps"][v["limited_by"]] >= lt["ideal"]["mean"]
+
+
 def test_device_names_and_kinds_are_refused_in_one_line(tmp_path, monkeypatch, capsys):
     from bonesim.cli.main import main
     from bonesim.net import packets as net
@@ -176,16 +223,22 @@ def test_bench_entries_registered_and_main_job_runs_only_when_named(monkeypatch)
 
 
 def test_summaries_explain_the_words_they_show_once():
+    from bonesim.tutoring.ideal import tracking_vs_ideal
+
     from bonesim.cli.tutor import _glossary_lines, _trainee_lines
     from bonesim.net.tutor_protocol import GLOSSARY
 
     s = {"ticks": 10, "packets": {"accepted": 5, "stale": 3}, "link_lost_events": 1,
          "link_lost": True, "hud": "LINK LOST",
-         "tracking_vs_ideal": tracking_vs_ideal([2.0, 3.0], [1.0, 2.0])}
+         "tracking_vs_ideal": {"tool": tracking_vs_ideal([9.0, 12.0], [10.0, 13.0]),
+                               "law_target": tracking_vs_ideal([2.0, 3.0], [1.0, 2.0]),
+                               "value": 1.667, "seconds": 2.0, "limited_by": "hand",
+                               "handicaps": {"hand": 2.4, "link_delay": 1.6}}}
     lines = _trainee_lines(s)
     assert sum(GLOSSARY["stale"] in x for x in lines) == 1
     assert sum(GLOSSARY["link lost"] in x for x in lines) == 1
-    assert any("ideal follower" in x and "ratio 1.667" in x for x in lines)
+    assert any("ideal follower's 1.5 mm" in x and "ratio 1.667" in x for x in lines)
+    assert any("limits it most" in x and "resistance" in x for x in lines)
     assert _glossary_lines({"go_backs": 2, "received": {"stale": 0}}, None) == \
         ["  " + GLOSSARY["go-back"]]
     assert _glossary_lines({"go_backs": 0, "received": {}}, {"packets": {}}) == []
