@@ -45,7 +45,8 @@ from bonesim.net.tutor_protocol import KP_N_PER_MM, RECOVER_S, SERVO_HZ
 from bonesim.tutoring.law import tutor_force
 
 __all__ = ["InstructorLog", "TickLog", "IdealParams", "ideal_params", "ideal_follow",
-           "best_ideal", "law_target", "error_summary", "tracking_vs_ideal", "compare"]
+           "best_ideal", "law_target", "error_summary", "tracking_vs_ideal", "HANDICAPS",
+           "compare"]
 
 
 class InstructorLog:

@@ -225,9 +225,14 @@ class Trainee:
 
 
 def warmup() -> None:
-    """Compile the controller (cached on disk after the first run)."""
+    """Compile the controller and the ideal follower (cached on disk after
+    the first run)."""
+    from bonesim.tutoring.ideal import IdealParams, ideal_follow
+
     z = np.zeros(3)
     tutor_force(z, z, z, KP_N_PER_MM, 1.0, 1.0, np.zeros(3))
+    ideal_follow([0.0, 0.001], np.zeros((2, 3)), np.zeros((2, 3)),
+                 params=IdealParams(0.15, 0.004, 0.0005))
 
 
 # ----------------------------------------------------------------------- CLI
