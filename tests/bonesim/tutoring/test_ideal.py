@@ -233,3 +233,18 @@ def test_logs_keep_each_sample_once_in_time_order():
     tt, pos, sc = ticks.arrays()
     np.testing.assert_array_equal(tt, [2.0, 3.0, 4.0, 5.0])
     np.testing.assert_array_equal(sc, [True, False, True, False])
+
+
+def test_compare_puts_a_playback_at_another_speed_on_the_trainees_clock():
+    t, p, f = _contact_motion(3)
+    speed, clock = 2.0, 50.0                     # two recorded seconds per trainee second
+    local = t / speed + clock
+    seen = local + 0.001 * (np.arange(len(t)) % 2)   # held at the tick after, or at once
+    ticks = clock + np.arange(900) / 1000.0
+    scored = np.ones(len(ticks), bool)
+    prm = IdealParams(0.15, 0.004, 0.0005, (0.002, 0.004))
+    x, _ = best_ideal(local, p, f, ticks, 0.2, 3.3, prm)
+    r = compare(ticks, x, scored, t, p, f, seen, 0.2, 3.3, speed=speed, params=prm)
+    assert r["value"] == 1.0 and 0.0 <= r["delay_ms"]["p50"] <= 1.0
+    with pytest.raises(ValueError, match="speed"):
+        compare(ticks, x, scored, t, p, f, seen, speed=0.0)
