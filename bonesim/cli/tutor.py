@@ -209,13 +209,25 @@ def _glossary_lines(server: dict | None, trainee: dict | None) -> list:
 
 
 def _ideal_lines(s: dict) -> list:
+    """The tracking error beside the ideal follower's
+    (:func:`bonesim.tutoring.ideal.compare`), and what limits it."""
     v = s.get("tracking_vs_ideal")
-    if not v:
+    if not v or not v.get("value"):
         return []
-    a, b = v["session"], v["ideal"]
-    return [f"tracking error median {a['p50']} mm, p95 {a['p95']} mm; ideal follower "
-            f"(same law, gain and force cap; no link delay, no hand) median {b['p50']} mm, "
-            f"p95 {b['p95']} mm; ratio {v['ratio_p50']} (median), {v['ratio_p95']} (p95)"]
+    from bonesim.tutoring.ideal import HANDICAPS
+
+    a, i, lt = v["tool"]["session"], v["tool"]["ideal"], v["law_target"]
+    out = [f"tracking error (distance to the instructor's tool) median {a['p50']} mm, p95 "
+           f"{a['p95']} mm; the ideal follower's {i['p50']} mm, {i['p95']} mm (in bone "
+           "contact the law itself holds a passive follower |F_instructor| / K_p off the tool)",
+           f"following the law: mean distance to its target {lt['session']['mean']} mm, the "
+           f"ideal follower's {lt['ideal']['mean']} mm (same law, gain, force cap and "
+           f"{v['seconds']} s scored; no link delay, no join ramp, no hand): ratio {v['value']}"]
+    worst = v.get("limited_by")
+    if worst:
+        out.append(f"what limits it most: {HANDICAPS[worst]} (the ideal with that alone: "
+                   f"{v['handicaps'][worst]} mm)")
+    return out
 
 
 def _trainee_lines(s: dict) -> list:

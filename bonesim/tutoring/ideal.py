@@ -1,25 +1,37 @@
-"""The ideal follower: the best tracking the tutoring law allows.
+"""The ideal follower: the best following the tutoring law allows.
 
 The trainee's device is driven by the tutoring law (:mod:`bonesim.tutoring.law`)::
 
     F = K_p (P_instructor - P_trainee) + F_instructor,   |F| <= F_max
 
-Even a perfect device and link cannot follow the instructor exactly under
-it: the spring is weak by design (the trainee is guided gently), the
-instructor's own force ``F_instructor`` is added (the bone's contact force
-pushes the follower off the instructor's tool by about ``|F_i| / K_p``) and
-the force cap limits the acceleration. :func:`ideal_follow` runs that law,
-with the same gain and cap, on an *ideal follower*: a point mass with no
-link delay (it sees each instructor sample at the instructor's own sample
-time), no lost or stale packets, and no hand holding it (no spring to a
-rest point). The law has no damping term and an undamped mass swings about
-the instructor's tool, so the follower is the best of a few passive point
-masses that differ only in their damping (:func:`best_ideal`: the least
-median error on the same motion). Its tracking error is what the law alone accounts
-for; a real session's error beside it (:func:`tracking_vs_ideal`) shows
-what the link and the trainee's hand add.
+A passive follower under it settles on the law's *target*
+``P_instructor + F_instructor / K_p``, not on the instructor's tool: during
+bone contact the instructor's force pushes it about ``|F_i| / K_p`` off the
+tool (3.3 N / 0.2 N/mm = 16.5 mm), by the law's design. Its distance to the
+tool is therefore bimodal (about 0.4 mm in free motion, about 16 mm in
+contact) and its median jumps between the two with the share of contact in
+the span scored; and anything that weakens the law (the simulated hand's
+spring to its rest point, the join ramp's gain below 1) can bring a follower
+*closer* to the tool by resisting the law. How well a follower does what the
+law asks is its distance to the law's target, and the figures compared are
+means (stable where a bimodal median is not).
 
-The follower's moving mass and its integration step are data
+:func:`ideal_follow` runs the law, with the same gain and cap, on an *ideal
+follower*: a point mass whose servo ticks at exactly the nominal rate, with
+no link delay (it sees the instructor's motion at each tick's own instant),
+no lost or stale packets, the law's full gain from the first tick (no join
+ramp) and no hand holding it (no spring to a rest point). The law has no
+damping term and an undamped mass swings about its target, so the ideal is
+the best of the documented point masses that differ only in damping
+(``dampings_ns_per_mm`` of ``bonesim/data/tutoring.toml``; :func:`best_ideal`:
+the least mean distance to the law's target on the same motion and ticks).
+:func:`compare` scores it and the real follower at exactly the same instants
+(the real servo's scored ticks) against the same reference, and re-runs the
+ideal with each of the real session's handicaps alone (the link's delay, the
+servo's own tick instants, the join ramp, the hand's spring) to say what
+they add.
+
+The follower's moving mass, its dampings and integration step are data
 (``bonesim/data/tutoring.toml``, ``[ideal_follower]``).
 """
 from __future__ import annotations
@@ -27,19 +39,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
-from bonesim.net.tutor_protocol import KP_N_PER_MM, SERVO_HZ
+from bonesim.net.tutor_protocol import KP_N_PER_MM, RECOVER_S, SERVO_HZ
 from bonesim.tutoring.law import tutor_force
 
-__all__ = ["InstructorLog", "IdealParams", "ideal_params", "ideal_follow", "best_ideal",
-           "error_summary",
-           "tracking_vs_ideal"]
+__all__ = ["InstructorLog", "TickLog", "IdealParams", "ideal_params", "ideal_follow",
+           "best_ideal", "law_target", "error_summary", "tracking_vs_ideal", "HANDICAPS",
+           "compare"]
 
 
 class InstructorLog:
     """Preallocated ring of the instructor samples a trainee received (the
     last ``n``), each once: time on the instructor's clock [s], tool centre
-    [mm] and force [N], for :func:`ideal_follow`."""
+    [mm], force [N] and when the trainee first held it (its clock [s]), for
+    :func:`compare`."""
 
     def __init__(self, n: int = 1 << 16):
         if n & (n - 1):
@@ -47,23 +61,27 @@ class InstructorLog:
         self.t = np.zeros(n)
         self.pos = np.zeros((n, 3))
         self.force = np.zeros((n, 3))
+        self.seen = np.zeros(n)
         self.count = 0
         self.last_t = math.nan
 
-    def add(self, t_s: float, pos_mm, force_n) -> None:
-        """Log a sample unless it is the one logged last (same time)."""
+    def add(self, t_s: float, pos_mm, force_n, seen_s: float = math.nan) -> None:
+        """Log a sample unless it is the one logged last (same time);
+        ``seen_s``: the trainee's clock when it was first held [s]."""
         if t_s == self.last_t:
             return
         i = self.count & (len(self.t) - 1)
         self.t[i] = t_s
         self.pos[i] = pos_mm
         self.force[i] = force_n
+        self.seen[i] = seen_s
         self.count += 1
         self.last_t = t_s
 
-    def arrays(self) -> tuple:
-        """``(t_s, pos_mm, force_n)`` in the order received, sorted by time
-        (a reordered packet goes where it belongs)."""
+    def arrays(self, seen: bool = False) -> tuple:
+        """``(t_s, pos_mm, force_n)`` (and ``seen_s`` if ``seen``) in the
+        order received, sorted by time (a reordered packet goes where it
+        belongs)."""
         n = len(self.t)
         if self.count <= n:
             sl = np.arange(self.count)
@@ -71,7 +89,36 @@ class InstructorLog:
             sl = (self.count + np.arange(n)) & (n - 1)
         t = self.t[sl]
         o = np.argsort(t, kind="stable")
-        return t[o], self.pos[sl][o], self.force[sl][o]
+        out = (t[o], self.pos[sl][o], self.force[sl][o])
+        return out + (self.seen[sl][o],) if seen else out
+
+
+class TickLog:
+    """Preallocated ring of the trainee servo's ticks (the last ``n``): its
+    clock [s], the device's position [mm] and whether the tick was scored
+    (the link up and an instructor sample held), for :func:`compare`."""
+
+    def __init__(self, n: int = 1 << 16):
+        if n & (n - 1):
+            raise ValueError("TickLog: n must be a power of two")
+        self.t = np.zeros(n)
+        self.pos = np.zeros((n, 3))
+        self.scored = np.zeros(n, dtype=bool)
+        self.count = 0
+
+    def add(self, t_s: float, pos_mm, scored: bool) -> None:
+        i = self.count & (len(self.t) - 1)
+        self.t[i] = t_s
+        self.pos[i] = pos_mm
+        self.scored[i] = scored
+        self.count += 1
+
+    def arrays(self) -> tuple:
+        """``(t_s, pos_mm, scored)`` in tick order."""
+        n = len(self.t)
+        sl = (np.arange(self.count) if self.count <= n
+              else (self.count + np.arange(n)) & (n - 1))
+        return self.t[sl], self.pos[sl], self.scored[sl]
 
 
 class IdealParams:
@@ -127,24 +174,72 @@ def ideal_params(path=None) -> IdealParams:
                        get_number(d, "max_substep_s", path, w, minimum=1e-7), bs)
 
 
-def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
-                 max_force_n: float = 3.3, params: IdealParams | None = None,
-                 rate_hz: float = SERVO_HZ) -> np.ndarray:
-    """Tracking error of the ideal follower on an instructor's samples.
+def _motion(t, p, f):
+    """Sample times with repeats removed (the last of each kept), checked."""
+    t = np.asarray(t, dtype=float)
+    p = np.asarray(p, dtype=float)
+    f = np.asarray(f, dtype=float)
+    if t.ndim != 1 or p.shape != (len(t), 3) or f.shape != (len(t), 3):
+        raise ValueError("ideal_follow: t_s (n,), pos_mm and force_n (n, 3)")
+    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) >= 0)):
+        raise ValueError("ideal_follow: sample times must be finite and non-decreasing")
+    last = np.r_[t[1:] != t[:-1], True] if len(t) else np.zeros(0, bool)
+    return t[last], p[last], f[last]
 
-    The follower starts at rest on the instructor's first position (as the
-    trainee's hand picks up the stylus). Servo ticks come every
-    ``1 / rate_hz`` from the first sample time to the last; at each tick the
-    instructor's motion at that time (no delay; linear between samples, so
-    that samples the link lost leave no steps) gives ``P_instructor`` and
-    ``F_instructor``, the error ``|P_i - x|`` is taken,
-    the law's force (link gain 1) is computed with :func:`tutor_force` and
-    held while the point mass moves to the next tick (semi-implicit Euler).
+
+def _at(t, v, q):
+    """``v`` (n, 3) linear in ``t`` at the times ``q`` (held past the ends)."""
+    return np.stack([np.interp(q, t, v[:, a]) for a in range(3)], axis=1)
+
+
+def law_target(t_s, pos_mm, force_n, at_s, kp_n_per_mm: float = KP_N_PER_MM) -> np.ndarray:
+    """Where the law holds a still follower: ``P_i + F_i / K_p`` at ``at_s``.
 
     Parameters
     ----------
     t_s : (n,) float
         Instructor sample times, non-decreasing [s].
+    pos_mm, force_n : (n, 3) float
+        Instructor tool centre [mm] and force [N] (linear between samples).
+    at_s : (m,) float
+        Instants [s].
+    kp_n_per_mm : float
+        The law's gain [N/mm] (positive).
+
+    Returns
+    -------
+    (m, 3) float64
+        The law's target [mm].
+    """
+    if not kp_n_per_mm > 0:
+        raise ValueError("law_target: the gain must be positive")
+    t, p, f = _motion(t_s, pos_mm, force_n)
+    q = np.asarray(at_s, dtype=float)
+    return _at(t, p, q) + _at(t, f, q) / kp_n_per_mm
+
+
+def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
+                 max_force_n: float = 3.3, params: IdealParams | None = None,
+                 rate_hz: float = SERVO_HZ, at_s=None, delay_s: float = 0.0,
+                 ticks_s=None, ramp_s: float = 0.0,
+                 stiffness_n_per_mm: float = 0.0) -> np.ndarray:
+    """Positions of a follower of the law on an instructor's motion.
+
+    With the defaults this is the ideal follower: servo ticks every
+    ``1 / rate_hz`` from the first instant ``at_s[0]``; at each tick the
+    instructor's motion at that instant (linear between samples, so that
+    samples the link lost leave no steps; held past the last) gives
+    ``P_instructor`` and ``F_instructor``, the law's force
+    (:func:`tutor_force`, gain 1) is held until the next tick while the
+    point mass, starting at rest on ``P_instructor(at_s[0])`` (as a hand
+    picks up the stylus), moves (semi-implicit Euler in sub-steps of at most
+    ``params.max_substep_s``, as :class:`~bonesim.devices.simulated_hand.SimulatedHandDevice`).
+    The keyword handicaps give the followers it is compared with.
+
+    Parameters
+    ----------
+    t_s : (n,) float
+        Instructor sample times, non-decreasing [s] (the follower's clock).
     pos_mm : (n, 3) float
         Instructor tool centre, case frame [mm].
     force_n : (n, 3) float
@@ -152,96 +247,155 @@ def ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
     kp_n_per_mm, max_force_n : float
         The law's gain [N/mm] and force cap [N].
     params : IdealParams, optional
-        Default :func:`ideal_params`.
+        Mass, damping (``params.damping_ns_per_mm``) and sub-step; default
+        :func:`ideal_params`.
     rate_hz : float
-        Servo rate [Hz].
+        Servo rate [Hz] (when ``ticks_s`` is not given).
+    at_s : (m,) float, optional
+        Non-decreasing instants [s] to report the position at; default the
+        ticks from ``t_s[0]`` to ``t_s[-1]``.
+    delay_s : float
+        Input delay [s]: each tick sees the motion at ``tick - delay_s``.
+    ticks_s : (k,) float, optional
+        The servo's tick instants [s] instead of the nominal grid (the
+        first is the start).
+    ramp_s : float
+        The law's gain rises from 0 to 1 over this long [s] from the start.
+    stiffness_n_per_mm : float
+        A spring pulling the follower to its start point [N/mm] (a hand's).
 
     Returns
     -------
-    (m,) float64
-        Tracking error at each tick [mm].
+    (m, 3) float64
+        The follower's position at each of ``at_s`` [mm].
     """
-    t = np.asarray(t_s, dtype=float)
-    p = np.asarray(pos_mm, dtype=float)
-    f = np.asarray(force_n, dtype=float)
-    if t.ndim != 1 or p.shape != (len(t), 3) or f.shape != (len(t), 3):
-        raise ValueError("ideal_follow: t_s (n,), pos_mm and force_n (n, 3)")
-    if len(t) == 0:
-        return np.zeros(0)
-    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) >= 0)):
-        raise ValueError("ideal_follow: sample times must be finite and non-decreasing")
-    if not (rate_hz > 0 and kp_n_per_mm >= 0 and max_force_n >= 0):
-        raise ValueError("ideal_follow: rate and cap positive, gain non-negative")
+    t, p, f = _motion(t_s, pos_mm, force_n)
+    if not (rate_hz > 0 and kp_n_per_mm >= 0 and max_force_n >= 0 and delay_s >= 0
+            and ramp_s >= 0 and stiffness_n_per_mm >= 0):
+        raise ValueError("ideal_follow: rate positive; gain, cap, delay, ramp and "
+                         "stiffness non-negative")
     prm = ideal_params() if params is None else params
-    dt = 1.0 / rate_hz
-    ticks = t[0] + dt * np.arange(int(math.floor((t[-1] - t[0]) / dt)) + 1)
-    # the motion at each tick, linear between samples (repeated times: the last)
-    last = np.r_[t[1:] != t[:-1], True]
-    tu, pu, fu = t[last], p[last], f[last]
-    pt = np.stack([np.interp(ticks, tu, pu[:, a]) for a in range(3)], axis=1)
-    ft = np.stack([np.interp(ticks, tu, fu[:, a]) for a in range(3)], axis=1)
-    n_sub = max(1, int(math.ceil(dt / prm.max_substep_s)))
-    h = dt / n_sub
-    acc_per_n = 1000.0 / prm.mass_kg                    # [mm/s^2 per N]
-    b = prm.damping_ns_per_mm
-    x = p[0].copy()
+    if at_s is None:
+        if len(t) == 0:
+            return np.zeros((0, 3))
+        at = t[0] + np.arange(int(math.floor((t[-1] - t[0]) * rate_hz + 1e-9)) + 1) / rate_hz
+    else:
+        at = np.asarray(at_s, dtype=float)
+    if len(at) == 0:
+        return np.zeros((0, 3))
+    if len(t) == 0:
+        raise ValueError("ideal_follow: no instructor samples")
+    if not (np.all(np.isfinite(at)) and np.all(np.diff(at) >= 0)):
+        raise ValueError("ideal_follow: report instants must be finite and non-decreasing")
+    if ticks_s is None:
+        n_ticks = int(math.floor((at[-1] - at[0]) * rate_hz + 1e-9)) + 1
+        ticks = at[0] + np.arange(n_ticks) / rate_hz
+    else:
+        ticks = np.asarray(ticks_s, dtype=float)
+        if len(ticks) == 0 or np.any(np.diff(ticks) <= 0) or ticks[0] > at[0]:
+            raise ValueError("ideal_follow: ticks must increase and start by the first "
+                             "instant")
+    seen_p = _at(t, p, ticks - delay_s)
+    seen_f = _at(t, f, ticks - delay_s)
+    out = np.zeros((len(at), 3))
+    x0 = _at(t, p, ticks[:1] - delay_s)[0]
+    _follow(ticks, seen_p, seen_f, at, float(kp_n_per_mm), float(max_force_n), float(ramp_s),
+            1000.0 / prm.mass_kg, prm.damping_ns_per_mm, float(stiffness_n_per_mm),
+            prm.max_substep_s, x0, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _follow(ticks, seen_p, seen_f, at, kp, fmax, ramp_s, acc_per_n, b, k, hmax, x0, out):
+    """:func:`ideal_follow`'s loop: ticks (k,), seen motion (k, 3), report
+    instants (m,), x0 (3,) start [mm]; positions into ``out`` (m, 3)."""
+    x = x0.copy()
+    rest = x0.copy()
     v = np.zeros(3)
-    out = np.zeros(3)
-    err = np.empty(len(ticks))
-    for k in range(len(ticks)):
-        pi = pt[k]
-        d = pi - x
-        err[k] = math.sqrt(d @ d)
-        tutor_force(pi, x, ft[k], kp_n_per_mm, max_force_n, 1.0, out)
-        for _ in range(n_sub):
-            v += h * acc_per_n * (out - b * v)
-            x += h * v
-    return err
+    force = np.zeros(3)
+    now = ticks[0]
+    j = 0
+    m = at.shape[0]
+    nt = ticks.shape[0]
+    for i in range(nt):
+        gain = 1.0
+        if ramp_s > 0.0:
+            gain = min(1.0, (ticks[i] - ticks[0]) / ramp_s)
+        tutor_force(seen_p[i], x, seen_f[i], kp, fmax, gain, force)
+        end = ticks[i + 1] if i + 1 < nt else np.inf
+        while True:
+            stop = end
+            record = j < m and at[j] < end
+            if record:
+                stop = at[j]
+            dt = stop - now
+            if dt > 0.0 and dt < np.inf:
+                n = int(math.ceil(dt / hmax))
+                h = dt / n
+                for _ in range(n):
+                    for a in range(3):
+                        v[a] += h * acc_per_n * (force[a] - b * v[a] - k * (x[a] - rest[a]))
+                        x[a] += h * v[a]
+                now = stop
+            if not record:
+                break
+            for a in range(3):
+                out[j, a] = x[a]
+            j += 1
+        if j == m:
+            break
 
 
-def best_ideal(t_s, pos_mm, force_n, kp_n_per_mm: float = KP_N_PER_MM,
+def best_ideal(t_s, pos_mm, force_n, at_s, kp_n_per_mm: float = KP_N_PER_MM,
                max_force_n: float = 3.3, params: IdealParams | None = None,
                rate_hz: float = SERVO_HZ) -> tuple:
     """The best ideal follower on this motion: :func:`ideal_follow` with
-    each of ``params.dampings_ns_per_mm``, keeping the least median error.
+    each of ``params.dampings_ns_per_mm``, keeping the least mean distance
+    to the law's target (:func:`law_target`) at ``at_s``.
 
     Returns
     -------
-    err : (m,) float64
-        Its tracking error at each tick [mm].
+    pos : (m, 3) float64
+        Its position at each of ``at_s`` [mm].
     damping_ns_per_mm : float
-        Its damping [N s/mm] (NaN without samples).
+        Its damping [N s/mm] (NaN without instants).
     """
     prm = ideal_params() if params is None else params
-    best, best_b = np.zeros(0), math.nan
+    at = np.asarray(at_s, dtype=float)
+    if len(at) == 0:
+        return np.zeros((0, 3)), math.nan
+    target = law_target(t_s, pos_mm, force_n, at, kp_n_per_mm)
+    best, best_b, best_e = None, math.nan, math.inf
     for b in prm.dampings_ns_per_mm:
         one = IdealParams(prm.mass_kg, b, prm.max_substep_s)
-        e = ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm, max_force_n, one, rate_hz)
-        if len(e) and (best_b != best_b or np.median(e) < np.median(best)):
-            best, best_b = e, b
+        x = ideal_follow(t_s, pos_mm, force_n, kp_n_per_mm, max_force_n, one, rate_hz, at)
+        e = float(np.mean(np.linalg.norm(target - x, axis=1)))
+        if e < best_e:
+            best, best_b, best_e = x, b, e
     return best, best_b
 
 
 def error_summary(err_mm) -> dict:
-    """``{"p50": median, "p95": ..., "n": ...}`` of tracking errors [mm]
-    (``None`` figures when there are none)."""
+    """``{"mean", "p50", "p95", "n"}`` of distances [mm] (``None`` figures
+    when there are none)."""
     e = np.asarray(err_mm, dtype=float)
     e = e[np.isfinite(e)]
     if len(e) == 0:
-        return {"p50": None, "p95": None, "n": 0}
-    return {"p50": round(float(np.percentile(e, 50)), 3),
+        return {"mean": None, "p50": None, "p95": None, "n": 0}
+    return {"mean": round(float(e.mean()), 3),
+            "p50": round(float(np.percentile(e, 50)), 3),
             "p95": round(float(np.percentile(e, 95)), 3), "n": int(len(e))}
 
 
 def tracking_vs_ideal(session_err_mm, ideal_err_mm) -> dict:
-    """The session's tracking error beside the ideal follower's.
+    """Two followers' distances side by side, scored at the same instants.
 
     Returns
     -------
     dict
         ``session`` and ``ideal`` (:func:`error_summary` [mm]),
-        ``ratio_p50`` and ``ratio_p95`` (session / ideal; ``None`` if
-        either is missing or the ideal's is zero).
+        ``ratio_mean``, ``ratio_p50`` and ``ratio_p95`` (session / ideal;
+        ``None`` if either is missing or the ideal's is zero).
     """
     s, i = error_summary(session_err_mm), error_summary(ideal_err_mm)
 
@@ -249,4 +403,134 @@ def tracking_vs_ideal(session_err_mm, ideal_err_mm) -> dict:
         a, b = s[q], i[q]
         return None if a is None or not b else round(a / b, 3)
 
-    return {"session": s, "ideal": i, "ratio_p50": ratio("p50"), "ratio_p95": ratio("p95")}
+    return {"session": s, "ideal": i, "ratio_mean": ratio("mean"),
+            "ratio_p50": ratio("p50"), "ratio_p95": ratio("p95")}
+
+
+#: What :func:`compare` re-runs the ideal with, one at a time, and what each says.
+HANDICAPS = {
+    "link_delay": "the delay from the instructor's sample to the trainee's servo (the "
+                  "instructor's simulation step, the server, the network; beyond the fastest "
+                  "sample's)",
+    "servo_ticks": "the trainee servo's own tick instants (late ticks hold the force longer)",
+    "join_ramp": "the force fading in when the trainee joins",
+    "hand": "the simulated hand's resistance (its damping and spring to its rest point)",
+}
+
+
+def compare(tick_s, device_mm, scored, instr_t_s, instr_pos_mm, instr_force_n, seen_s,
+            kp_n_per_mm: float = KP_N_PER_MM, max_force_n: float = 3.3,
+            speed: float = 1.0, params: IdealParams | None = None,
+            rate_hz: float = SERVO_HZ, ramp_s: float = RECOVER_S, hand=None) -> dict:
+    """A session's following beside the ideal follower's, at the same instants.
+
+    The instructor's samples are put on the trainee's clock by the fastest
+    delivery (``t / speed + min(seen - t / speed)``: no link delay; exact for
+    a recording played back). The instants scored are the trainee servo's
+    scored ticks within the samples' span; at each, both followers'
+    distance to the instructor's tool and to the law's target
+    (:func:`law_target`) are taken. The ideal is :func:`best_ideal`; then it
+    is re-run, with its damping, under each handicap of :data:`HANDICAPS`
+    alone (the hand only when ``hand`` is given), each reported as its mean
+    distance to the law's target beside the ideal's.
+
+    Parameters
+    ----------
+    tick_s : (k,) float
+        The trainee servo's ticks, increasing (trainee clock [s]).
+    device_mm : (k, 3) float
+        The trainee device's position at each tick [mm].
+    scored : (k,) bool
+        Ticks with the link up and an instructor sample held.
+    instr_t_s : (n,) float
+        Instructor sample times, non-decreasing (instructor clock [s]).
+    instr_pos_mm, instr_force_n : (n, 3) float
+        Instructor tool centre [mm] and force [N].
+    seen_s : (n,) float
+        When the trainee first held each sample (trainee clock [s]).
+    kp_n_per_mm, max_force_n : float
+        The law's gain [N/mm] and force cap [N].
+    speed : float
+        Instructor seconds per trainee second (a playback's speed).
+    params : IdealParams, optional
+    rate_hz : float
+        The servo's nominal rate [Hz].
+    ramp_s : float
+        How long the force fades in when the trainee joins [s].
+    hand : tuple, optional
+        ``(mass_kg, damping_ns_per_mm, stiffness_n_per_mm)`` of a simulated
+        hand.
+
+    Returns
+    -------
+    dict
+        ``law_target`` and ``tool``: :func:`tracking_vs_ideal` of the
+        distances to the law's target and to the tool; ``value``: the
+        ratio of the mean distances to the law's target (session / ideal);
+        ``span_s`` (first and last instant scored, trainee clock [s]),
+        ``seconds``, ``damping_ns_per_mm`` (the ideal's), ``delay_ms``
+        (link delay beyond the fastest: median and p95), ``late_ticks``
+        (share of tick intervals over twice the nominal), ``handicaps``
+        (name -> mean distance to the law's target [mm] with that handicap
+        alone) and ``limited_by`` (the handicap adding most, or None).
+    """
+    prm = ideal_params() if params is None else params
+    tick = np.asarray(tick_s, dtype=float)
+    dev = np.asarray(device_mm, dtype=float)
+    sc = np.asarray(scored, dtype=bool)
+    t, p, f = (np.asarray(a, dtype=float) for a in (instr_t_s, instr_pos_mm, instr_force_n))
+    seen = np.asarray(seen_s, dtype=float)
+    if not speed > 0:
+        raise ValueError("compare: speed must be positive")
+    empty = {"law_target": tracking_vs_ideal([], []), "tool": tracking_vs_ideal([], []),
+             "value": None, "span_s": None, "seconds": 0.0, "damping_ns_per_mm": None,
+             "delay_ms": None, "late_ticks": None, "handicaps": {}, "limited_by": None}
+    ok = np.isfinite(seen)
+    if not ok.any() or not sc.any():
+        return empty
+    t, p, f, seen = t[ok], p[ok], f[ok], seen[ok]
+    scaled = t / speed
+    local = scaled + float(np.min(seen - scaled))       # the fastest delivery: no delay
+    delay = seen - local
+    at_mask = sc & (tick >= local[0])
+    if not at_mask.any():
+        return empty
+    at = tick[at_mask]
+    real = dev[at_mask]
+    target = law_target(local, p, f, at, kp_n_per_mm)
+    tool = _at(local, p, at)
+    ideal, b = best_ideal(local, p, f, at, kp_n_per_mm, max_force_n, prm, rate_hz)
+
+    def dist(a, x):
+        return np.linalg.norm(a - x, axis=1)
+
+    by_target = tracking_vs_ideal(dist(target, real), dist(target, ideal))
+    out = {"law_target": by_target, "tool": tracking_vs_ideal(dist(tool, real), dist(tool, ideal)),
+           "value": by_target["ratio_mean"],
+           "span_s": [round(float(at[0]), 4), round(float(at[-1]), 4)],
+           "seconds": round(float(at[-1] - at[0]), 3), "damping_ns_per_mm": b,
+           "delay_ms": {"p50": round(float(np.median(delay)) * 1e3, 3),
+                        "p95": round(float(np.percentile(delay, 95)) * 1e3, 3)}}
+    run = tick[(tick >= at[0]) & (tick <= at[-1])]
+    gaps = np.diff(run)
+    out["late_ticks"] = round(float(np.mean(gaps > 2.0 / rate_hz)), 4) if len(gaps) else 0.0
+    one = IdealParams(prm.mass_kg, b, prm.max_substep_s)
+    runs = {"link_delay": dict(delay_s=float(np.median(delay))),
+            "servo_ticks": dict(ticks_s=run),
+            "join_ramp": dict(ramp_s=ramp_s)}
+    if hand is not None:
+        m, hb, hk = hand
+        runs["hand"] = dict(stiffness_n_per_mm=hk,
+                            params=IdealParams(m, hb, prm.max_substep_s))
+    ideal_mean = by_target["ideal"]["mean"]
+    hc = {}
+    for name, kw in runs.items():
+        kw = dict(kw)
+        x = ideal_follow(local, p, f, kp_n_per_mm, max_force_n, kw.pop("params", one), rate_hz,
+                         at, **kw)
+        hc[name] = round(float(np.mean(dist(target, x))), 3)
+    out["handicaps"] = hc
+    worst = max(hc, key=hc.get) if hc else None
+    out["limited_by"] = worst if worst is not None and ideal_mean is not None \
+        and hc[worst] > ideal_mean else None
+    return out

@@ -9,9 +9,9 @@ import time
 import numpy as np
 
 from bonesim.errors import BonesimError
-from bonesim.tutoring.ideal import InstructorLog, best_ideal, tracking_vs_ideal
+from bonesim.tutoring.ideal import InstructorLog, TickLog, compare
 from bonesim.tutoring.law import link_gain, tutor_force
-from bonesim.net.tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, SERVO_HZ
+from bonesim.net.tutor_protocol import KP_N_PER_MM, LOSS_S, RAMP_S, RECOVER_S, SERVO_HZ
 from bonesim.tutoring.sources import Source, LatencyLog
 
 __all__ = ["Trainee", "warmup"]
@@ -69,6 +69,7 @@ class Trainee:
         self.err = LatencyLog()                      # tracking error [mm]
         self.fmag = LatencyLog()
         self.instr = InstructorLog()                  # for the ideal follower
+        self.ticklog = TickLog()
         self.device_pos = np.zeros(3)
 
     @property
@@ -118,10 +119,13 @@ class Trainee:
                         self.gain if st.valid else 0.0, self.force_n)
         self.device.write_force(self.force_n)
         self.device_pos[:] = r.pos_mm
-        if not lost and st.valid:
+        scored = not lost and st.valid
+        if scored:
             d = st.pos_mm - r.pos_mm
             self.err.add(math.sqrt(d @ d))
-            self.instr.add(st.t_s, st.pos_mm, st.force_n)
+            self.instr.add(st.t_s, st.pos_mm, st.force_n, now_s)
+        if self.placed:
+            self.ticklog.add(now_s, r.pos_mm, scored)
         self.fmag.add(m)
         self._last = now_s
         self.ticks += 1
@@ -173,16 +177,23 @@ class Trainee:
         return out
 
     def vs_ideal(self) -> dict:
-        """The tracking error beside the ideal follower's on the instructor
-        samples received (:func:`bonesim.tutoring.ideal.tracking_vs_ideal`,
-        :func:`~bonesim.tutoring.ideal.best_ideal`): the same law, gain and
-        force cap on a point mass with no link delay, no lost or stale
-        packets and no hand holding it."""
-        t, p, f = self.instr.arrays()
-        ideal, b = best_ideal(t, p, f, self.kp, self.max_force_n)
-        out = tracking_vs_ideal(self.err.values(), ideal)
-        out["ideal"]["damping_ns_per_mm"] = None if b != b else b
-        return out
+        """This session's following beside the ideal follower's
+        (:func:`bonesim.tutoring.ideal.compare`): the same law, gain and
+        force cap on a point mass ticking at the nominal rate with no link
+        delay, no join ramp and no hand, scored at this servo's scored ticks
+        (the last 65 s at most) against the same reference."""
+        t, p, f, seen = self.instr.arrays(seen=True)
+        tick, pos, scored = self.ticklog.arrays()
+        dev = self.device
+        hand = ((dev.mass_kg, dev.b, dev.k) if all(hasattr(dev, a) for a in ("mass_kg", "b", "k"))
+                else None)
+        ramp = RECOVER_S
+        limits = getattr(dev, "limits", None)                 # behind the safety layer
+        if limits is not None:
+            ramp = max(ramp, float(limits.ramp_s))
+        return compare(tick, pos, scored, t, p, f, seen, self.kp, self.max_force_n,
+                       speed=float(getattr(self.source, "speed", 1.0)), ramp_s=ramp,
+                       hand=hand)
 
     def follow(self, duration_s: float = math.inf, stop=None, on_tick=None) -> dict:
         """Run until the source ends, ``duration_s`` [s] passes or ``stop()``
@@ -214,9 +225,14 @@ class Trainee:
 
 
 def warmup() -> None:
-    """Compile the controller (cached on disk after the first run)."""
+    """Compile the controller and the ideal follower (cached on disk after
+    the first run)."""
+    from bonesim.tutoring.ideal import IdealParams, ideal_follow
+
     z = np.zeros(3)
     tutor_force(z, z, z, KP_N_PER_MM, 1.0, 1.0, np.zeros(3))
+    ideal_follow([0.0, 0.001], np.zeros((2, 3)), np.zeros((2, 3)),
+                 params=IdealParams(0.15, 0.004, 0.0005))
 
 
 # ----------------------------------------------------------------------- CLI
