@@ -1,4 +1,4 @@
-"""Benchmark of the tutoring link over loopback (:mod:`bonesim.tutoring.tutor`).
+"""Benchmark of the tutoring link over loopback (:mod:`bonesim.tutoring`).
 
 ``tutor_loopback_latency_p99_ms``: a sender process sends STATE-sized
 tutoring packets (authenticated, :mod:`bonesim.net.packets`) at the haptic rate,

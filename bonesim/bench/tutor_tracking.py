@@ -33,8 +33,10 @@ def bench_tutor_tracking(quick: bool = False) -> dict:
     from bonesim.io.loading import load_model, warmup
     from bonesim.io.toolpath import demo_trajectory
     from bonesim.runtime.haptic_loop import HapticLoop
-    from bonesim.tutoring.tutor import NetworkSource, Trainee, TutorServer
-    from bonesim.tutoring.tutor import warmup as tutor_warmup
+    from bonesim.tutoring.server import TutorServer
+    from bonesim.tutoring.servo import Trainee
+    from bonesim.tutoring.sources import NetworkSource
+    from bonesim.tutoring.servo import warmup as tutor_warmup
 
     seconds = 5.0 if quick else 20.0
     warmup()

@@ -16,13 +16,9 @@ from bonesim.cli.output import print_json
 from bonesim.errors import BonesimError
 from bonesim.net import packets as net
 from bonesim.net.tutor_protocol import GLOSSARY
-from bonesim.tutoring.tutor import (
-    NetworkSource,
-    RecordingSource,
-    Trainee,
-    TutorServer,
-    warmup,
-)
+from bonesim.tutoring.server import TutorServer
+from bonesim.tutoring.servo import Trainee, warmup
+from bonesim.tutoring.sources import NetworkSource, RecordingSource
 
 __all__ = ["GLOSSARY", "cmd_keygen", "cmd_serve", "cmd_join", "cmd_playback",
            "trainee_device_for"]

@@ -79,7 +79,7 @@ def _parts():
     from bonesim.sound import drill as sound
     from bonesim.engine import surface
     from bonesim.engine import thickness
-    from bonesim.tutoring import tutor
+    from bonesim.tutoring import servo as tutor_servo
     from bonesim.physics import vibration
     from bonesim.render import meshbuf
 
@@ -89,7 +89,7 @@ def _parts():
             ("vibration", vibration.warmup), ("sound", sound.warmup),
             ("thickness", thickness.warmup), ("clicks", clicks.warmup),
             ("nerve monitor", _monitor), ("recording", _visibility),
-            ("tutoring", tutor.warmup), ("label stacks", label_slices.warmup),
+            ("tutoring", tutor_servo.warmup), ("label stacks", label_slices.warmup),
             ("colour neighbours", neighbours.warmup),
             ("haptic loop", _loop)]
 

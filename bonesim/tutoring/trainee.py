@@ -1,7 +1,7 @@
 """The trainee's servo in a process of its own, for the trainee's window.
 
 ``bonesim tutor join`` and ``bonesim tutor playback`` drive the trainee's
-device at 1 kHz (:class:`bonesim.tutoring.tutor.Trainee`). With a window, the servo
+device at 1 kHz (:class:`bonesim.tutoring.servo.Trainee`). With a window, the servo
 must never wait for the renderer, so :class:`TraineeProcess` runs it in a
 child process and publishes, through shared memory:
 
@@ -15,7 +15,7 @@ child process and publishes, through shared memory:
     a ring of tissue-event records (:data:`bonesim.engine.events.TISSUE_FIELDS`,
     the ring spec ``changes`` of :data:`bonesim.engine.events.OTHER_RINGS`): every
     event the source applied to its replica, in order (see
-    :attr:`bonesim.tutoring.tutor.Source.changes`), beginning with a ``RESET``.
+    :attr:`bonesim.tutoring.sources.Source.changes`), beginning with a ``RESET``.
 
 The window (:mod:`bonesim.render.trainee`) applies the ``changes`` ring to
 its own :class:`~bonesim.engine.replica.TissueReplica` (with a surface), as the
@@ -86,24 +86,24 @@ def _burr_radii(names, default_mm: float) -> list:
 
 
 def _make_source(spec):
-    from bonesim.tutoring import tutor
+    from bonesim.tutoring.sources import NetworkSource, RecordingSource
 
     kind = spec[0]
     if kind == "network":
         _, host, port, key, case, timeout_s = spec
-        src = tutor.NetworkSource(host, port, key, case=case)
+        src = NetworkSource(host, port, key, case=case)
         return src, timeout_s
     if kind == "recording":
         from bonesim.session.reader import read_session
 
         _, path, speed, start_s = spec
         session = read_session(path)
-        return tutor.RecordingSource(session, speed=speed, start_s=start_s), None
+        return RecordingSource(session, speed=speed, start_s=start_s), None
     raise ValueError(f"unknown trainee source {kind!r} (network or recording)")
 
 
 def _publisher(status: np.ndarray):
-    """``on_tick`` callback writing a :class:`~bonesim.tutoring.tutor.Trainee`'s
+    """``on_tick`` callback writing a :class:`~bonesim.tutoring.servo.Trainee`'s
     state into the status record."""
     t0 = time.monotonic()
 
@@ -137,7 +137,7 @@ def _publisher(status: np.ndarray):
 
 def _run_trainee(child, spec, duration_s: float, device: str | None = None) -> None:
     """Body of the trainee's process (:meth:`TraineeProcess.run`)."""
-    from bonesim.tutoring.tutor import Trainee, warmup
+    from bonesim.tutoring.servo import Trainee, warmup
 
     src = trainee = None
     try:

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from bonesim.errors import BonesimError
-from bonesim.tutoring import tutor
+from bonesim.tutoring import server as tutor_server
+from bonesim.tutoring import servo as tutor_servo
+from bonesim.tutoring import sources as tutor_sources
 from tests.bonesim.session.test_playback import demo_file  # noqa: F401 (fixture)
 from tests.bonesim.waiting import wait_until
 
@@ -61,14 +63,14 @@ def test_touch_on_both_ends_over_loopback_records_both_devices(stub, tmp_path, m
     try:
         rec.start()
         loop.start()
-        server = tutor.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        server = tutor_server.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
         try:
-            src = tutor.NetworkSource("127.0.0.1", server.port, KEY, model=model)
+            src = tutor_sources.NetworkSource("127.0.0.1", server.port, KEY, model=model)
             src.connect(30.0)
             # the trainee's stylus rests 1 mm off the instructor's tool (device x)
             stub.stub_place(1.0, 0.0, 0.0)
             dev, trec = trainee_device("touch", src.state.pos_mm.copy(), case)
-            trainee = tutor.Trainee(src, dev)
+            trainee = tutor_servo.Trainee(src, dev)
             assert wait_until(lambda: dev.device.ticks > 20)     # the arm's servo runs
             start_err = float(np.linalg.norm(dev.read(0.0).pos_mm - src.state.pos_mm))
             trainee.run(3.0)
@@ -128,13 +130,13 @@ def test_demo_motion_on_the_touch_over_loopback_follows_no_better_than_the_ideal
     trainee = None
     try:
         loop.start()
-        server = tutor.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        server = tutor_server.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
         try:
-            src = tutor.NetworkSource("127.0.0.1", server.port, KEY, model=model)
+            src = tutor_sources.NetworkSource("127.0.0.1", server.port, KEY, model=model)
             src.connect(30.0)
             stub.stub_place(0.0, 0.0, 0.0)
             dev, trec = trainee_device("touch", src.state.pos_mm.copy(), model.case)
-            trainee = tutor.Trainee(src, dev)
+            trainee = tutor_servo.Trainee(src, dev)
             trainee.run(3.0)
             stats = trainee.stats()
         finally:

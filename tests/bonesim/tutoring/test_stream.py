@@ -16,7 +16,10 @@ from bonesim.engine.replica import TissueReplica
 from bonesim.errors import BonesimError
 from bonesim.net import packets as net
 from bonesim.runtime.commands import MoveBody, Reset
-from bonesim.tutoring import tutor
+from bonesim.net import tutor_protocol
+from bonesim.tutoring import server as tutor_server
+from bonesim.tutoring import servo as tutor_servo
+from bonesim.tutoring import sources as tutor_sources
 from tests.bonesim.fakes import block_model
 from tests.bonesim.tutoring.test_tutor import (
     DT,
@@ -39,7 +42,7 @@ from tests.bonesim.tutoring.test_tutor import (
 def _records(k, seed=0):
     """``k`` tissue-event records of every kind with arbitrary fields."""
     rng = np.random.default_rng(seed)
-    rec = np.zeros(k, tutor.RECORD)
+    rec = np.zeros(k, tutor_protocol.RECORD)
     rec["kind"] = np.arange(k) % len(events.KIND_NAMES)
     rec["body"] = rng.integers(0, 64, k)
     rec["label"] = rng.integers(0, 9, k)
@@ -51,16 +54,16 @@ def _records(k, seed=0):
 
 
 def test_state_payload_round_trip_and_length_checks():
-    assert tutor.RECORD.itemsize == 83 and list(tutor.RECORD.names) == list(
+    assert tutor_protocol.RECORD.itemsize == 83 and list(tutor_protocol.RECORD.names) == list(
         events.TISSUE_FIELDS)
-    assert tutor.MAX_EVENTS == (net.MAX_PAYLOAD - tutor.STATE.size) // 83 >= 14
+    assert tutor_protocol.MAX_EVENTS == (net.MAX_PAYLOAD - tutor_protocol.STATE.size) // 83 >= 14
     buf = bytearray(net.MAX_PAYLOAD)
-    rec = _records(tutor.MAX_EVENTS)
-    n = tutor.pack_state(buf, 1.5, [1, 2, 3], [0, 0, -1], [0.1, 0.2, 0.3], 60000.0, 1.25,
+    rec = _records(tutor_protocol.MAX_EVENTS)
+    n = tutor_protocol.pack_state(buf, 1.5, [1, 2, 3], [0, 0, -1], [0.1, 0.2, 0.3], 60000.0, 1.25,
                          7.5, 3, 5, 1, -1, 2, 1000, 900, rec)
     assert n <= net.MAX_PAYLOAD
-    st = tutor.InstructorState()
-    log_len, first, got = tutor.unpack_state(bytes(buf[:n]), st)
+    st = tutor_protocol.InstructorState()
+    log_len, first, got = tutor_protocol.unpack_state(bytes(buf[:n]), st)
     assert (log_len, first) == (1000, 900)
     for f in events.TISSUE_FIELDS:                  # every column, bit for bit
         np.testing.assert_array_equal(got[f], rec[f])
@@ -69,36 +72,36 @@ def test_state_payload_round_trip_and_length_checks():
     assert st.speed_rpm == 60000.0 and st.mag_n == 1.25 and st.volume_mm3 == 7.5
     for bad in (bytes(buf[:n - 1]), bytes(buf[:10])):
         with pytest.raises(net.PacketError) as ei:
-            tutor.unpack_state(bad, tutor.InstructorState())
+            tutor_protocol.unpack_state(bad, tutor_protocol.InstructorState())
         assert ei.value.reason == "length"
     nan = bytearray(buf[:n])
-    tutor.STATE.pack_into(nan, 0, math.nan, *([0.0] * 12), 0, 0, 0, 0, 0,
+    tutor_protocol.STATE.pack_into(nan, 0, math.nan, *([0.0] * 12), 0, 0, 0, 0, 0,
                           events.TISSUE_EVENT_VERSION, 0, 0, 0)
     with pytest.raises(net.PacketError, match="non-finite"):
-        tutor.unpack_state(bytes(nan[:tutor.STATE.size]), tutor.InstructorState())
+        tutor_protocol.unpack_state(bytes(nan[:tutor_protocol.STATE.size]), tutor_protocol.InstructorState())
 
 
 def _state_of_version(version, t=0.0):
     """A STATE payload without events whose records claim ``version``."""
-    buf = bytearray(tutor.STATE.size)
-    tutor.STATE.pack_into(buf, 0, t, *([0.0] * 12), 0, 0, 0, 1, 0, version, 1, 0, 0)
+    buf = bytearray(tutor_protocol.STATE.size)
+    tutor_protocol.STATE.pack_into(buf, 0, t, *([0.0] * 12), 0, 0, 0, 1, 0, version, 1, 0, 0)
     return bytes(buf)
 
 
 def test_a_state_of_an_unknown_record_version_is_refused_naming_the_packet():
     for v in (0, events.TISSUE_EVENT_VERSION + 1, 255):
         with pytest.raises(net.PacketError) as ei:
-            tutor.unpack_state(_state_of_version(v), tutor.InstructorState())
+            tutor_protocol.unpack_state(_state_of_version(v), tutor_protocol.InstructorState())
         assert ei.value.reason == "version"
         msg = str(ei.value)
         assert "STATE packet" in msg and f"version {v}" in msg
         assert f"reads version {events.TISSUE_EVENT_VERSION}" in msg
-    st = tutor.InstructorState()
-    tutor.unpack_state(_state_of_version(events.TISSUE_EVENT_VERSION), st)
+    st = tutor_protocol.InstructorState()
+    tutor_protocol.unpack_state(_state_of_version(events.TISSUE_EVENT_VERSION), st)
     assert st.valid
     with pytest.raises(net.PacketError, match="WELCOME packet carries tissue-event "
                                               "records of no version"):
-        tutor.check_tissue_version(None, "WELCOME")
+        tutor_protocol.check_tissue_version(None, "WELCOME")
 
 
 # ------------------------------------------------ the stream, live
@@ -176,11 +179,11 @@ def test_server_started_mid_session_sends_what_was_already_drilled():
         inst.step(q * DT)
     assert state.n_removed > 50
     netw = MemoryNet()
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
-                         tutor.session_info(model), snapshot=lambda: _snapshot(model, state))
-    src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
+    srv = tutor_server.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
+                         tutor_protocol.session_info(model), snapshot=lambda: _snapshot(model, state))
+    src = tutor_sources.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                               sock=netw.endpoint(TRAINEE))
-    trainee = tutor.Trainee(src, SimulatedHandDevice())
+    trainee = tutor_servo.Trainee(src, SimulatedHandDevice())
     _run(model, inst, srv, trainee, 2.2, 2.6)
     assert src.have == srv.log.n > 1000                       # caught up in bursts
     _same_tissue(src.replica.state, state)
@@ -212,7 +215,7 @@ def test_a_trainee_refuses_an_unknown_record_version_naming_the_packet():
     model, inst, netw, srv, src, trainee = _session()
     _run(model, inst, srv, trainee, 0.0, 0.1)
     assert src.state.valid
-    forged = net.Codec(KEY).encode(tutor.KIND_STATE,
+    forged = net.Codec(KEY).encode(tutor_protocol.KIND_STATE,
                                    _state_of_version(events.TISSUE_EVENT_VERSION + 1, 0.1),
                                    src.nonce, t_s=0.1)
     netw.queues[TRAINEE].append((forged, SERVER))
@@ -223,9 +226,9 @@ def test_a_trainee_refuses_an_unknown_record_version_naming_the_packet():
     model, state = block_model()
     inst = Instructor(model, state)
     netw = MemoryNet()
-    info = dict(tutor.session_info(model), tissue_version=99)
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue, info)
-    src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
+    info = dict(tutor_protocol.session_info(model), tissue_version=99)
+    srv = tutor_server.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue, info)
+    src = tutor_sources.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                               sock=netw.endpoint(TRAINEE))
     src.poll(0.0)                                              # JOIN
     inst.step(0.0)
@@ -251,7 +254,7 @@ def _fake_session():
 def test_recording_source_publishes_its_changes(tmp_path):
     session = _fake_session()
     model = session.load_model()
-    src = tutor.RecordingSource(session, model=model)
+    src = tutor_sources.RecordingSource(session, model=model)
     src.changes = events.tissue_ring(1 << 14)
     for q in range(0, 1900, 7):
         src.poll(q * DT)
@@ -270,7 +273,7 @@ def test_recording_source_publishes_its_changes(tmp_path):
 def test_recording_source_started_late_skips_what_a_reset_undid():
     session = _fake_session()
     model = session.load_model()
-    src = tutor.RecordingSource(session, model=model, start_s=1.5)
+    src = tutor_sources.RecordingSource(session, model=model, start_s=1.5)
     src.changes = events.tissue_ring(1 << 14)
     src.poll(10.0)
     got = src.changes.read(0)
@@ -284,7 +287,7 @@ def test_recording_source_started_late_skips_what_a_reset_undid():
 def test_recording_source_ends_on_the_recordings_last_state():
     session = _fake_session()
     model = session.load_model()
-    src = tutor.RecordingSource(session, model=model)
+    src = tutor_sources.RecordingSource(session, model=model)
     for t in (0.0, 0.5, 1.0, 1.5):               # coarse polls: the end falls between
         src.poll(t)
         assert not src.done

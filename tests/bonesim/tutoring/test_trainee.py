@@ -97,7 +97,7 @@ def test_a_child_that_dies_silently_is_reported_with_its_exit_code():
 def test_live_instructor_over_loopback_window_replica_matches():
     from bonesim.runtime.haptic_loop import HapticLoop
     from bonesim.io.loading import load_model
-    from bonesim.tutoring.tutor import TutorServer
+    from bonesim.tutoring.server import TutorServer
 
     model = load_model("phantom", "cutting-5mm")
     traj = drilling_window("cutting-5mm", 3000)

@@ -28,7 +28,11 @@ from bonesim.engine.model import Sample, step
 from bonesim.net import packets as net
 from bonesim.runtime.commands import LoopContext, MoveBody, Reset, SplitBox
 from bonesim.runtime.haptic_loop import push_sample
-from bonesim.tutoring import tutor
+from bonesim.net import tutor_protocol
+from bonesim.tutoring import law as tutor_law
+from bonesim.tutoring import server as tutor_server
+from bonesim.tutoring import servo as tutor_servo
+from bonesim.tutoring import sources as tutor_sources
 from tests.bonesim.plans import drilling_window
 from tests.bonesim.fakes import block_model
 
@@ -55,18 +59,18 @@ def test_controller_matches_numpy_reference_and_clamps():
         p_i, p_t = rng.normal(0, 10, 3), rng.normal(0, 10, 3)
         f_i = rng.normal(0, 2, 3)
         gain = float(rng.uniform(0, 1))
-        m = tutor.tutor_force(p_i, p_t, f_i, tutor.KP_N_PER_MM, 3.3, gain, out)
-        ref = _reference_force(p_i, p_t, f_i, tutor.KP_N_PER_MM, 3.3, gain)
+        m = tutor_law.tutor_force(p_i, p_t, f_i, tutor_protocol.KP_N_PER_MM, 3.3, gain, out)
+        ref = _reference_force(p_i, p_t, f_i, tutor_protocol.KP_N_PER_MM, 3.3, gain)
         np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
         assert m == pytest.approx(np.linalg.norm(ref)) and m <= 3.3 + 1e-12
         clamped += np.linalg.norm(ref) >= 3.3 - 1e-9
     assert 100 < clamped < 1900                # both branches were exercised
     # the spring alone: K_p per mm of separation
-    tutor.tutor_force(np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), 0.2, 3.3, 1.0, out)
+    tutor_law.tutor_force(np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), 0.2, 3.3, 1.0, out)
     np.testing.assert_allclose(out, [0.2, 0, 0])
     # non-finite input renders nothing
     for bad in (np.array([np.nan, 0, 0]), np.array([np.inf, 0, 0])):
-        assert tutor.tutor_force(bad, np.zeros(3), np.zeros(3), 0.2, 3.3, 1.0, out) == 0.0
+        assert tutor_law.tutor_force(bad, np.zeros(3), np.zeros(3), 0.2, 3.3, 1.0, out) == 0.0
         assert not out.any()
 
 
@@ -75,23 +79,23 @@ def test_link_gain_ramps_to_zero_within_50_ms_and_recovers_slowly():
     ages = np.arange(0, 0.08, DT)
     gains = []
     for a in ages:
-        g = tutor.link_gain(a, g, DT)
+        g = tutor_law.link_gain(a, g, DT)
         gains.append(g)
     gains = np.array(gains)
-    assert (gains[ages <= tutor.LOSS_S] == 1.0).all()
-    assert (gains[ages >= tutor.LOSS_S + tutor.RAMP_S - 1e-12] == 0.0).all()
-    assert tutor.LOSS_S + tutor.RAMP_S <= 0.050
+    assert (gains[ages <= tutor_protocol.LOSS_S] == 1.0).all()
+    assert (gains[ages >= tutor_protocol.LOSS_S + tutor_protocol.RAMP_S - 1e-12] == 0.0).all()
+    assert tutor_protocol.LOSS_S + tutor_protocol.RAMP_S <= 0.050
     assert (np.diff(gains) <= 0).all()
     # linear in between
-    mid = (ages > tutor.LOSS_S) & (ages < tutor.LOSS_S + tutor.RAMP_S)
-    np.testing.assert_allclose(gains[mid], 1 - (ages[mid] - tutor.LOSS_S) / tutor.RAMP_S)
+    mid = (ages > tutor_protocol.LOSS_S) & (ages < tutor_protocol.LOSS_S + tutor_protocol.RAMP_S)
+    np.testing.assert_allclose(gains[mid], 1 - (ages[mid] - tutor_protocol.LOSS_S) / tutor_protocol.RAMP_S)
     # fresh data again: back to 1 over RECOVER_S, not at once
     g, n = 0.0, 0
     while g < 1.0:
-        g = tutor.link_gain(0.0, g, DT)
+        g = tutor_law.link_gain(0.0, g, DT)
         n += 1
-    assert n == pytest.approx(tutor.RECOVER_S / DT, abs=1)
-    assert tutor.link_gain(math.inf, 1.0, DT) == 0.0
+    assert n == pytest.approx(tutor_protocol.RECOVER_S / DT, abs=1)
+    assert tutor_law.link_gain(math.inf, 1.0, DT) == 0.0
 
 
 # ---------------------------------------------------------- simulated hand
@@ -230,19 +234,19 @@ def _session(drop=0.0, seed=0, snapshot=False):
     model, state = block_model()
     inst = Instructor(model, state)
     netw = MemoryNet(drop=drop, seed=seed)
-    srv = tutor.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
-                         tutor.session_info(model),
+    srv = tutor_server.Streamer(netw.endpoint(SERVER), KEY, inst.samples, state.tissue,
+                         tutor_protocol.session_info(model),
                          snapshot=(lambda: _snapshot(model, state)) if snapshot else None)
-    src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
+    src = tutor_sources.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                               sock=netw.endpoint(TRAINEE))
     hand = SimulatedHandDevice()
-    trainee = tutor.Trainee(src, hand)
+    trainee = tutor_servo.Trainee(src, hand)
     return model, inst, netw, srv, src, trainee
 
 
 def _snapshot(model, state, epoch=0, t_s=0.0):
     g = model.grid
-    return tutor.tissue_snapshot(g.density, g.label, g.bricks, state.grid.density,
+    return tutor_protocol.tissue_snapshot(g.density, g.label, g.bricks, state.grid.density,
                                  state.body, state.pose, state.alive, epoch, t_s)
 
 
@@ -275,7 +279,7 @@ def test_trainee_follows_the_instructor_and_feels_its_force():
     gain = np.array([r[5] for r in log])
     # every tick: exactly the controller on what the trainee knew
     for q in range(0, len(t), 7):
-        ref = _reference_force(p_i[q], x[q], f_i[q], tutor.KP_N_PER_MM, 3.3, gain[q])
+        ref = _reference_force(p_i[q], x[q], f_i[q], tutor_protocol.KP_N_PER_MM, 3.3, gain[q])
         np.testing.assert_allclose(F[q], ref, atol=1e-12)
     assert src.welcomed and trainee.stats()["packets"]["accepted"] > 2000
     # free-hand phase (after the 0.2 s fade-in and settling): quasi-static bound
@@ -285,7 +289,7 @@ def test_trainee_follows_the_instructor_and_feels_its_force():
     v, a = w * r, w * w * r                          # [mm/s], [mm/s^2]
     span = 2 * r                                     # farthest from the start (rest)
     bound = (hand.k * span + hand.b * v + hand.mass_kg * 1e-3 * a) / (
-        tutor.KP_N_PER_MM + hand.k) + v * DT
+        tutor_protocol.KP_N_PER_MM + hand.k) + v * DT
     free = (t > 0.5) & (t < 1.0)
     err = np.linalg.norm(p_i - x, axis=1)
     assert err[free].max() < bound + 0.3, (err[free].max(), bound)
@@ -347,12 +351,12 @@ def test_forged_replayed_and_malformed_packets_change_nothing():
             captured.extend(mine[-50:])                  # record traffic
         if q % 5 == 0 and q > 0:
             victim = TRAINEE
-            payload = bytearray(tutor.STATE.size)
-            tutor.STATE.pack_into(payload, 0, t, 99.0, 99.0, 99.0, 0, 0, -1, 3.0, 3.0, 3.0,
+            payload = bytearray(tutor_protocol.STATE.size)
+            tutor_protocol.STATE.pack_into(payload, 0, t, 99.0, 99.0, 99.0, 0, 0, -1, 3.0, 3.0, 3.0,
                                   0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0)
             # forged: right nonce, wrong key
             netw.queues[victim].append(
-                (forger.encode(tutor.KIND_STATE, payload, src.nonce, t_s=t), SERVER))
+                (forger.encode(tutor_protocol.KIND_STATE, payload, src.nonce, t_s=t), SERVER))
             # replayed: genuine packets captured earlier
             if captured:
                 netw.queues[victim].append((captured[q % len(captured)], SERVER))
@@ -386,9 +390,9 @@ def test_packets_of_an_earlier_session_are_rejected():
     old = [d for s, dd, d in netw.taps if s == SERVER and dd == TRAINEE]
     trainee.close()
     # a new trainee session (new nonce) at the same address
-    src2 = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
+    src2 = tutor_sources.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                                sock=netw.endpoint(TRAINEE))
-    clean_src = tutor.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
+    clean_src = tutor_sources.NetworkSource(SERVER[0], SERVER[1], KEY, model=model,
                                     sock=MemoryNet().endpoint(TRAINEE))
     for d in old:
         netw.queues[TRAINEE].append((d, SERVER))
@@ -413,11 +417,11 @@ def test_link_loss_ramps_force_to_zero_within_50_ms_and_recovers():
     f = np.array([np.linalg.norm(r[1]) for r in lost])
     assert trainee.link_lost and trainee.hud_text == "LINK LOST"
     assert (f[t >= last_valid + 0.050] == 0.0).all()
-    assert (f[t - last_valid <= tutor.LOSS_S] > 0).all()     # no early drop
+    assert (f[t - last_valid <= tutor_protocol.LOSS_S] > 0).all()     # no early drop
     zero_at = t[np.flatnonzero(f == 0.0)[0]] - last_valid
-    assert zero_at <= tutor.LOSS_S + tutor.RAMP_S + DT <= 0.050   # within one tick
+    assert zero_at <= tutor_protocol.LOSS_S + tutor_protocol.RAMP_S + DT <= 0.050   # within one tick
     # monotone ramp while the instructor's last state is held
-    ramp = (t - last_valid > tutor.LOSS_S)
+    ramp = (t - last_valid > tutor_protocol.LOSS_S)
     gains = np.array([r[5] for r in lost])[ramp]
     assert (np.diff(gains) <= 0).all()
     # packets return: the link recovers, force fades back in
@@ -439,7 +443,7 @@ def test_release_ramps_the_force_out_while_data_still_comes():
     gain = np.array([r[5] for r in log])
     f = np.array([np.linalg.norm(r[1]) for r in log])
     assert np.all(np.diff(gain) <= 0) and gain[0] > 0.9      # a ramp, not a step
-    assert (f[t >= 1.5 + tutor.RAMP_S + DT] == 0.0).all()
+    assert (f[t >= 1.5 + tutor_protocol.RAMP_S + DT] == 0.0).all()
     assert not trainee.link_lost and trainee.hud_text == "RELEASED"
     assert src.counters["states"] > 1500                     # the data kept coming
 
@@ -522,7 +526,7 @@ def test_server_ignores_unauthenticated_joins_and_acks():
     srv.tick(0.001)
     c = srv.clients[("10.6.6.6", 666)]
     assert not c.streaming and srv.counters["welcomes"] == 1
-    evil.sendto(good.encode(net.KIND_ACK, tutor.ACK.pack(0, 0), 12345), SERVER)
+    evil.sendto(good.encode(net.KIND_ACK, tutor_protocol.ACK.pack(0, 0), 12345), SERVER)
     inst.step(0.002)
     srv.tick(0.002)
     assert not c.streaming and srv.counters["sent"] == 0 and srv.rx["nonce"] == 1
@@ -550,9 +554,9 @@ def test_playback_follows_a_recording_and_ramps_out_at_its_end(tmp_path):
         drainer.drain()
     session = read_session(path)
     assert {events.SPLIT, events.POSE} <= set(session.tissue["kind"].tolist())
-    src = tutor.RecordingSource(session, model=model)
+    src = tutor_sources.RecordingSource(session, model=model)
     hand = SimulatedHandDevice()
-    trainee = tutor.Trainee(src, hand)
+    trainee = tutor_servo.Trainee(src, hand)
     log = []
     for q in range(2300):
         t = 100.0 + q * DT                           # any trainee clock
@@ -601,11 +605,11 @@ def test_real_processes_over_loopback(phantom):
     from bonesim.runtime.haptic_loop import HapticLoop
 
     with HapticLoop(phantom, device=("scripted", _demo_path())) as loop:
-        server = tutor.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        server = tutor_server.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
         try:
-            src = tutor.NetworkSource("127.0.0.1", server.port, KEY, model=phantom)
+            src = tutor_sources.NetworkSource("127.0.0.1", server.port, KEY, model=phantom)
             src.connect(20.0)
-            trainee = tutor.Trainee(src, SimulatedHandDevice())
+            trainee = tutor_servo.Trainee(src, SimulatedHandDevice())
             trainee.run(2.5)
             loop.stop()                                  # instructor's loop ends
             t_stop = time.monotonic()
@@ -638,11 +642,11 @@ def test_killed_server_ramps_the_trainee_out_within_50_ms(phantom):
     from bonesim.runtime.haptic_loop import HapticLoop
 
     with HapticLoop(phantom, device=("scripted", _demo_path())) as loop:
-        server = tutor.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
-        src = tutor.NetworkSource("127.0.0.1", server.port, KEY, model=phantom)
+        server = tutor_server.TutorServer(loop, KEY, host="127.0.0.1", port=0).start()
+        src = tutor_sources.NetworkSource("127.0.0.1", server.port, KEY, model=phantom)
         try:
             src.connect(20.0)
-            trainee = tutor.Trainee(src, SimulatedHandDevice())
+            trainee = tutor_servo.Trainee(src, SimulatedHandDevice())
             trainee.run(1.0)
             assert not trainee.link_lost
             server._proc.kill()                          # no BYE: silence
@@ -665,17 +669,17 @@ def test_killed_server_ramps_the_trainee_out_within_50_ms(phantom):
 
 
 def test_bad_key_is_reported_clearly():
-    srv_sock = tutor.udp_socket("127.0.0.1", 0)
+    srv_sock = net.udp_socket("127.0.0.1", 0)
     try:
         port = srv_sock.getsockname()[1]
-        src = tutor.NetworkSource("127.0.0.1", port, KEY)
+        src = tutor_sources.NetworkSource("127.0.0.1", port, KEY)
         with pytest.raises(Exception, match="no answer from the instructor"):
             src.connect(0.3)
         src.close()
     finally:
         srv_sock.close()
     with pytest.raises(Exception, match="cannot resolve"):
-        tutor.NetworkSource("no.such.host.invalid", 1, KEY)
+        tutor_sources.NetworkSource("no.such.host.invalid", 1, KEY)
 
 
 def test_udp_socket_reports_a_taken_port():
@@ -683,7 +687,7 @@ def test_udp_socket_reports_a_taken_port():
     s.bind(("127.0.0.1", 0))
     try:
         with pytest.raises(Exception, match="cannot bind UDP"):
-            tutor.udp_socket("127.0.0.1", s.getsockname()[1])
+            net.udp_socket("127.0.0.1", s.getsockname()[1])
     finally:
         s.close()
 
@@ -714,7 +718,7 @@ def test_cli_keygen_and_key_errors(tmp_path, capsys, monkeypatch):
 
 def test_cli_join_reports_a_silent_instructor(tmp_path, capsys):
     key = net.write_key(tmp_path / "k")
-    quiet = tutor.udp_socket("127.0.0.1", 0)                # bound, never answers
+    quiet = net.udp_socket("127.0.0.1", 0)                # bound, never answers
     try:
         rc, _, err = _cli(["tutor", "join", "127.0.0.1", "--port",
                            str(quiet.getsockname()[1]), "--key-file", str(key),
@@ -790,8 +794,10 @@ def test_cli_serve_and_join_headless(tmp_path, capsys):
     port = probe.getsockname()[1]
     probe.close()
     env = dict(os.environ)
+    import bonesim
+
     env["PYTHONPATH"] = os.pathsep.join([str(__import__("pathlib").Path(
-        tutor.__file__).parents[2])] + [env.get("PYTHONPATH", "")])
+        bonesim.__file__).parents[1])] + [env.get("PYTHONPATH", "")])
     serve = subprocess.Popen(
         [sys.executable, "-m", "bonesim.cli", "tutor", "serve", "--headless", "--duration",
          "5", "--host", "127.0.0.1", "--port", str(port), "--key-file", str(key), "--json"],
@@ -885,6 +891,6 @@ def test_a_flood_of_forged_joins_gets_no_reply():
 def test_the_session_description_names_no_local_path():
     from bonesim.io.loading import load_model
 
-    info = tutor.session_info(load_model("phantom", "cutting-5mm"))
+    info = tutor_protocol.session_info(load_model("phantom", "cutting-5mm"))
     assert info["case"] == "phantom" and "case_path" not in info
     assert not any(isinstance(v, str) and ("/" in v or "\\" in v) for v in info.values())
