@@ -56,17 +56,19 @@ trajectories can rely on :data:`LANDMARKS_MM`.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from bonesim.io import phantom_v1 as _v1
+# the painting canvas and the parts record are the first generation's, shared
+# by every generation (the frozen module's hash test guards them)
+from bonesim.io.phantom_v1 import Canvas, PhantomParts
 from bonesim.io.volumes import CaseVolume
 
 __all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
            "GENERATIONS", "LATEST_GENERATION",
-           "PhantomParts", "build_phantom", "phantom_volume", "lateral_surface_x_mm"]
+           "build_phantom", "phantom_volume", "lateral_surface_x_mm"]
 
 PARTS = ("bone", "sigmoid_sinus", "posterior_fossa_dura", "middle_fossa_dura",
          "facial_nerve", "chorda_tympani", "labyrinth", "ossicles")
@@ -442,7 +444,7 @@ def _roughness(x, y, z):
     return (ROUGH_MM * np.sqrt(2.0 / ROUGH_WAVES)) * w * s      # unit-variance sum
 
 
-def _cortex_field(cv: "_Canvas", inner_mm=SQUAMA_MM, relief: bool = True,
+def _cortex_field(cv: "Canvas", inner_mm=SQUAMA_MM, relief: bool = True,
                   generation=LATEST_GENERATION) -> np.ndarray:
     """Signed distance [mm] to the outer shape on the grid (float32), the
     squama ``inner_mm`` thick, with the mastoid's relief or without.
@@ -516,113 +518,7 @@ LANDMARKS_MM = {
 """Named points for trajectory generators (case frame, mm)."""
 
 
-@dataclass
-class PhantomParts:
-    """Boolean masks of the phantom's parts on its grid (axes x, y, z).
-
-    Attributes
-    ----------
-    masks : dict of str -> (nx, ny, nz) bool
-        One mask per name in :data:`PARTS`, as painted (later parts win, so
-        masks do not overlap).
-    envelope : (nx, ny, nz) bool
-        Outer bone shape before any air space was carved (fossae excluded).
-    air_cells : (nx, ny, nz) bool
-        Random mastoid air cells (antrum and ear spaces excluded).
-    hu : (nx, ny, nz) float32
-        Intensities [HU].
-    origin_mm : (3,) float64
-        Centre of voxel (0, 0, 0) [mm].
-    spacing_mm : float
-        Voxel edge [mm].
-    """
-
-    masks: dict
-    envelope: np.ndarray
-    air_cells: np.ndarray
-    hu: np.ndarray
-    origin_mm: np.ndarray
-    spacing_mm: float
-
-
-class _Canvas:
-    """Voxel-centre coordinates of the grid and painting into sub-boxes."""
-
-    def __init__(self, shape, spacing_mm: float):
-        self.shape = tuple(int(n) for n in shape)
-        self.h = float(spacing_mm)
-        self.origin = -(np.asarray(self.shape, float) - 1) * self.h / 2
-        self.axes = [(self.origin[a] + self.h * np.arange(n)).astype(np.float32)
-                     for a, n in enumerate(self.shape)]
-
-    def empty(self) -> np.ndarray:
-        return np.zeros(self.shape, dtype=bool)
-
-    def box(self, lo, hi):
-        """Slices and broadcast coordinates of voxel centres inside [lo, hi]."""
-        sl = []
-        for a in range(3):
-            i0 = int(np.ceil((lo[a] - self.origin[a]) / self.h))
-            i1 = int(np.floor((hi[a] - self.origin[a]) / self.h)) + 1
-            sl.append(slice(max(i0, 0), min(i1, self.shape[a])))
-        if any(s.stop <= s.start for s in sl):
-            return None
-        x = self.axes[0][sl[0]][:, None, None]
-        y = self.axes[1][sl[1]][None, :, None]
-        z = self.axes[2][sl[2]][None, None, :]
-        return tuple(sl), x, y, z
-
-    def full(self):
-        return self.box(self.origin, self.origin + self.h * (np.asarray(self.shape) - 1))
-
-    def ellipsoid(self, mask, c, semi):
-        c, semi = np.asarray(c, float), np.asarray(semi, float)
-        b = self.box(c - semi, c + semi)
-        if b is None:
-            return
-        sl, x, y, z = b
-        mask[sl] |= (((x - c[0]) / semi[0]) ** 2 + ((y - c[1]) / semi[1]) ** 2
-                     + ((z - c[2]) / semi[2]) ** 2) <= 1.0
-
-    def sphere(self, mask, c, r):
-        self.ellipsoid(mask, c, (r, r, r))
-
-    def capsule(self, mask, a, b, r0, r1=None):
-        """Tube from ``a`` to ``b`` with round ends; radius ``r0`` -> ``r1``."""
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        r1 = r0 if r1 is None else r1
-        rmax = max(r0, r1)
-        bx = self.box(np.minimum(a, b) - rmax, np.maximum(a, b) + rmax)
-        if bx is None:
-            return
-        sl, x, y, z = bx
-        d = b - a
-        L2 = float(d @ d)
-        px, py, pz = x - a[0], y - a[1], z - a[2]
-        t = np.clip((px * d[0] + py * d[1] + pz * d[2]) / L2, 0.0, 1.0)
-        dist2 = (px - t * d[0]) ** 2 + (py - t * d[1]) ** 2 + (pz - t * d[2]) ** 2
-        r = r0 + (r1 - r0) * t
-        mask[sl] |= dist2 <= r * r
-
-    def polyline(self, mask, pts, r):
-        for a, b in zip(pts[:-1], pts[1:]):
-            self.capsule(mask, a, b, r)
-
-    def torus(self, mask, c, normal, R, r):
-        c = np.asarray(c, float)
-        n = np.asarray(normal, float)
-        n = n / np.linalg.norm(n)
-        b = self.box(c - (R + r), c + (R + r))
-        if b is None:
-            return
-        sl, x, y, z = b
-        px, py, pz = x - c[0], y - c[1], z - c[2]
-        h = px * n[0] + py * n[1] + pz * n[2]
-        rho = np.sqrt(np.maximum(px * px + py * py + pz * pz - h * h, 0.0))
-        mask[sl] |= (rho - R) ** 2 + h * h <= r * r
-
-
-def _envelope(cv: _Canvas, generation=LATEST_GENERATION):
+def _envelope(cv: Canvas, generation=LATEST_GENERATION):
     """Bone shape, middle-fossa and posterior-fossa masks and dura layers."""
     # the squama counts DURA_MM thicker so that its inner face carries dura
     field = _cortex_field(cv, SQUAMA_MM + DURA_MM, generation=generation)
@@ -652,7 +548,7 @@ def _envelope(cv: _Canvas, generation=LATEST_GENERATION):
     return envelope, mid_dura, post_dura
 
 
-def _ear_canal(cv: _Canvas, mask):
+def _ear_canal(cv: Canvas, mask):
     """The external auditory canal: round medially, widening to the oval
     bony meatus laterally (semi-axes ``EAC_OPENING_SEMI_MM`` from the rim)."""
     (x0, y0, z0), (x1, _, _) = EAC_AXIS_MM
@@ -669,7 +565,7 @@ def _ear_canal(cv: _Canvas, mask):
     mask[sl] |= ((y - y0) / ry) ** 2 + ((z - z0) / rz) ** 2 <= 1.0
 
 
-def _air_cells(cv: _Canvas, rng, envelope, protected):
+def _air_cells(cv: Canvas, rng, envelope, protected):
     """Random spheres in the mastoid that keep their distance to the outside."""
     c = np.asarray(AIR_REGION_CENTER_MM, float)
     semi = np.asarray(AIR_REGION_SEMI_MM, float)
@@ -733,7 +629,7 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     if generation == _v1.GENERATION:
         return _v1.build_phantom(seed, voxel_mm, size_mm)
     shape = np.maximum(1, np.round(np.asarray(size_mm, float) / voxel_mm)).astype(int)
-    cv = _Canvas(shape, voxel_mm)
+    cv = Canvas(shape, voxel_mm)
     rng = np.random.default_rng(seed)
 
     envelope, mid_dura, post_dura = _envelope(cv, generation)

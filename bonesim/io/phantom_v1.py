@@ -66,7 +66,7 @@ from scipy import ndimage
 from bonesim.io.volumes import CaseVolume
 
 __all__ = ["GENERATION", "PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM",
-           "DEFAULT_SIZE_MM", "PhantomParts", "build_phantom", "phantom_volume",
+           "DEFAULT_SIZE_MM", "PhantomParts", "Canvas", "build_phantom", "phantom_volume",
            "lateral_surface_x_mm"]
 
 #: The phantom generation this module builds (see :data:`bonesim.io.phantom.GENERATIONS`).
@@ -218,7 +218,7 @@ class PhantomParts:
     spacing_mm: float
 
 
-class _Canvas:
+class Canvas:
     """Voxel-centre coordinates of the grid and painting into sub-boxes."""
 
     def __init__(self, shape, spacing_mm: float):
@@ -295,7 +295,7 @@ class _Canvas:
         mask[sl] |= (rho - R) ** 2 + h * h <= r * r
 
 
-def _envelope(cv: _Canvas):
+def _envelope(cv: Canvas):
     """Bone shape, middle-fossa and posterior-fossa masks and dura layers."""
     sl, x, y, z = cv.full()
     c, s, p = np.asarray(BLOCK_CENTER_MM), np.asarray(BLOCK_SEMI_MM), BLOCK_EXPONENT
@@ -321,7 +321,7 @@ def _envelope(cv: _Canvas):
     return envelope, mid_dura, post_dura
 
 
-def _air_cells(cv: _Canvas, rng, envelope, protected):
+def _air_cells(cv: Canvas, rng, envelope, protected):
     """Random spheres in the mastoid that keep their distance to the outside."""
     c = np.asarray(AIR_REGION_CENTER_MM, float)
     semi = np.asarray(AIR_REGION_SEMI_MM, float)
@@ -375,7 +375,7 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
     shape = np.maximum(1, np.round(np.asarray(size_mm, float) / voxel_mm)).astype(int)
-    cv = _Canvas(shape, voxel_mm)
+    cv = Canvas(shape, voxel_mm)
     rng = np.random.default_rng(seed)
 
     envelope, mid_dura, post_dura = _envelope(cv)

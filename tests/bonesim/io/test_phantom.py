@@ -422,7 +422,7 @@ def test_bounding_boxes_leave_the_shape_as_the_full_field():
     """The grid field evaluates each part in its box only; its zero level is
     the full smooth union's at every voxel centre. (Values away from the
     surface may differ: the ellipsoid distance is an approximation.)"""
-    cv = P._Canvas(np.full(3, 64), 0.8)
+    cv = P.Canvas(np.full(3, 64), 0.8)
     grid = P._cortex_field(cv, relief=False)
     x, y, z = (a.astype(float) for a in cv.full()[1:])
     full = P._eval_points(P._base_parts() + P._feature_parts(), x, y, z)
