@@ -149,7 +149,14 @@ def _contact_motion(seed):
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), delay_ms=st.sampled_from([2.0, 10.0, 30.0]),
        offset=st.floats(0.0, 0.001))
-def test_no_follower_of_the_law_with_a_delay_or_a_ramp_beats_the_ideal(seed, delay_ms, offset):
+def test_no_follower_of_the_law_with_a_delay_beats_the_ideal_and_a_ramp_barely(
+        seed, delay_ms, offset):
+    """A link delay never beats the ideal. The join ramp can, a little: it
+    lowers the force while the follower starts, which on some motions
+    overshoots less. Over 400 of these motions (seeds 0, 25, ..., 9975) and
+    every damping, the ramp was at most 1.4 % better (seed 1450, 0.0028 N s/mm)
+    and a 2 ms delay at least 5 % worse: the ideal is the best the law
+    allows to within that, not a strict bound."""
     t, p, f = _contact_motion(seed)
     at = t[5:-5] + offset
     prm = ideal_params()
@@ -158,9 +165,25 @@ def test_no_follower_of_the_law_with_a_delay_or_a_ramp_beats_the_ideal(seed, del
     ideal = np.linalg.norm(target - x, axis=1).mean()
     for d in prm.dampings_ns_per_mm:                        # any damping the ideal may take
         one = IdealParams(prm.mass_kg, d, prm.max_substep_s)
-        for kw in ({"delay_s": delay_ms / 1e3}, {"ramp_s": 0.2}):
-            y = ideal_follow(t, p, f, 0.2, 3.3, one, at_s=at, **kw)
-            assert np.linalg.norm(target - y, axis=1).mean() >= ideal, (d, kw)
+        y = ideal_follow(t, p, f, 0.2, 3.3, one, at_s=at, delay_s=delay_ms / 1e3)
+        assert np.linalg.norm(target - y, axis=1).mean() >= ideal, (d, delay_ms)
+        y = ideal_follow(t, p, f, 0.2, 3.3, one, at_s=at, ramp_s=0.2)
+        assert np.linalg.norm(target - y, axis=1).mean() >= 0.97 * ideal, (d, "ramp")
+
+
+def test_the_ramp_can_beat_the_ideal_a_little():
+    """The counterexample the property search found, kept: the ideal is not
+    a strict lower bound (the README and the bench say so)."""
+    t, p, f = _contact_motion(1450)
+    at = t[5:-5]
+    prm = ideal_params()
+    x, _ = best_ideal(t, p, f, at, 0.2, 3.3, prm)
+    target = law_target(t, p, f, at, 0.2)
+    ideal = np.linalg.norm(target - x, axis=1).mean()
+    y = ideal_follow(t, p, f, 0.2, 3.3, IdealParams(prm.mass_kg, 0.0028, prm.max_substep_s),
+                     at_s=at, ramp_s=0.2)
+    r = np.linalg.norm(target - y, axis=1).mean() / ideal
+    assert 0.97 <= r < 1.0
 
 
 def test_compare_scores_both_followers_at_the_same_instants():
