@@ -16,19 +16,15 @@ from bonesim.errors import BonesimError
 __all__ = ["against_current"]
 
 
-def _today_case(h: dict):
-    """Today's case for a recorded header (its recorded path if it still
-    exists, else the bundled name), or the reason there is none."""
-    from pathlib import Path
-
+def _today_case(session):
+    """Today's case for a recording (:meth:`Session.case_source
+    <bonesim.session.reader.Session.case_source>`), or the reason there is
+    none."""
     from bonesim.io.case import load_case
 
-    rec = h["case"]
-    src = rec.get("path")
-    if not src or not Path(src).exists():
-        src = rec["name"]
+    h = session.header
     try:
-        case = load_case(src)
+        case = load_case(session.case_source())
     except BonesimError as exc:
         return None, str(exc)
     if h.get("voxel_mm") is not None:
@@ -62,7 +58,7 @@ def against_current(session) -> dict:
 
     h = session.header
     items = []
-    case, why = _today_case(h)
+    case, why = _today_case(session)
     if case is None:
         items.append(_item(f"case {h['case']['name']}", "missing", why))
     else:

@@ -198,6 +198,13 @@ class Session:
 
         return [load_burr(b["name"]) for b in self.header["burrs"]]
 
+    def case_source(self) -> str:
+        """Where today's files for the recorded case are: the recorded manifest
+        path while it exists, else the bundled case's name."""
+        case = self.header["case"]
+        path = case.get("path")
+        return path if path and Path(path).exists() else case["name"]
+
     def device_caps(self):
         """The recorded device limits (header ``device``) as
         :class:`~bonesim.engine.device_caps.DeviceCaps` (JSON null: unlimited)."""
@@ -252,9 +259,7 @@ class Session:
 
         h = self.header
         case = h["case"]
-        src = case.get("path") or case["name"]
-        if case.get("path") and not Path(case["path"]).exists():
-            src = case["name"]
+        src = self.case_source()
         caps = self.device_caps()
         burrs = []
         for b in h["burrs"]:
