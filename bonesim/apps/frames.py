@@ -1,0 +1,95 @@
+"""Draw a frame on a thread of its own while the next one is simulated.
+
+The headless main job (:mod:`bonesim.apps.showcase`) spends its time on two
+kinds of work that need not wait for each other: the simulation of a frame's
+interval (haptic steps, dust, nerve monitor: numba kernels that release the
+GIL) and drawing the frame before it (software OpenGL, which VTK also runs
+without the GIL) with its readback and video encoding. :class:`FrameWorker`
+runs the drawing on one worker thread, so the two overlap on two cores.
+
+The protocol keeps the pictures exactly those of drawing in line:
+
+1. the caller brings the scene to frame ``i`` (no drawing in progress);
+2. :meth:`FrameWorker.submit` hands frame ``i`` to the worker, which renders,
+   reads it back and passes the image to the sink (e.g. the video writer);
+3. the caller simulates frame ``i + 1``, touching nothing the scene reads;
+4. :meth:`FrameWorker.wait` returns once frame ``i`` is drawn and written
+   (re-raising what failed there), and the caller goes on with step 1.
+
+An OpenGL context is current in one thread at a time: the worker makes the
+window's context current for each frame (VTK does on ``Render``) and releases
+it after, and :meth:`FrameWorker.submit` releases the caller's, so the caller
+may draw again (a final screenshot) after :meth:`FrameWorker.wait`.
+"""
+from __future__ import annotations
+
+import threading
+
+__all__ = ["FrameWorker"]
+
+
+class FrameWorker:
+    """One worker thread that draws submitted frames of a scene in order.
+
+    Parameters
+    ----------
+    scene : bonesim.render.scene.Scene
+        The scene; its ``image()`` renders and reads the frame back.
+    sink : callable
+        Called on the worker as ``sink(image)`` with each frame,
+        (height, width, 3) uint8 (e.g. a video writer's ``write``).
+    """
+
+    def __init__(self, scene, sink):
+        self._scene = scene
+        self._sink = sink
+        self._go = threading.Event()
+        self._done = threading.Event()
+        self._done.set()
+        self._error: BaseException | None = None
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="bonesim-frames", daemon=True)
+        self._thread.start()
+
+    def _release(self) -> None:
+        rw = self._scene.render_window
+        if rw is not None:
+            rw.ReleaseCurrent()
+
+    def _run(self) -> None:
+        while True:
+            self._go.wait()
+            self._go.clear()
+            if self._stop:
+                return
+            try:
+                self._sink(self._scene.image())
+            except BaseException as exc:          # handed to the caller by wait()
+                self._error = exc
+            finally:
+                self._release()
+                self._done.set()
+
+    def submit(self) -> None:
+        """Draw the scene as it is now; returns at once. The caller must not
+        change the scene until :meth:`wait` returns."""
+        self.wait()
+        self._release()                          # the worker's thread draws it
+        self._done.clear()
+        self._go.set()
+
+    def wait(self) -> None:
+        """Block until the last submitted frame is drawn and passed to the
+        sink; re-raise the error it failed with, if any."""
+        self._done.wait()
+        err, self._error = self._error, None
+        if err is not None:
+            raise err
+
+    def close(self) -> None:
+        """Finish the frame in progress (its error is not raised) and stop
+        the thread."""
+        self._done.wait()
+        self._stop = True
+        self._go.set()
+        self._thread.join()
