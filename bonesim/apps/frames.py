@@ -25,11 +25,73 @@ from __future__ import annotations
 
 import threading
 
-__all__ = ["FrameWorker"]
+__all__ = ["Worker", "FrameWorker"]
 
 
-class FrameWorker:
-    """One worker thread that draws submitted frames of a scene in order.
+class Worker:
+    """One thread that runs submitted jobs one at a time, in order.
+
+    Parameters
+    ----------
+    name : str
+        The thread's name.
+    """
+
+    def __init__(self, name: str = "bonesim-worker"):
+        self._job = None
+        self._go = threading.Event()
+        self._done = threading.Event()
+        self._done.set()
+        self._error: BaseException | None = None
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _after(self) -> None:
+        """Run on the thread after each job (nothing here)."""
+
+    def _run(self) -> None:
+        while True:
+            self._go.wait()
+            self._go.clear()
+            if self._stop:
+                return
+            try:
+                self._job()
+            except BaseException as exc:          # handed to the caller by wait()
+                self._error = exc
+            finally:
+                self._job = None
+                self._after()
+                self._done.set()
+
+    def submit(self, job) -> None:
+        """Run ``job()`` on the thread after the job before it; returns at once
+        (raises that job's error, if it failed)."""
+        self.wait()
+        self._job = job
+        self._done.clear()
+        self._go.set()
+
+    def wait(self) -> None:
+        """Block until the last submitted job has run; re-raise the error it
+        failed with, if any."""
+        self._done.wait()
+        err, self._error = self._error, None
+        if err is not None:
+            raise err
+
+    def close(self) -> None:
+        """Let the job in progress finish (its error is not raised) and stop
+        the thread. Closing twice is harmless."""
+        self._done.wait()
+        self._stop = True
+        self._go.set()
+        self._thread.join()
+
+
+class FrameWorker(Worker):
+    """A :class:`Worker` that draws submitted frames of a scene in order.
 
     Parameters
     ----------
@@ -43,53 +105,19 @@ class FrameWorker:
     def __init__(self, scene, sink):
         self._scene = scene
         self._sink = sink
-        self._go = threading.Event()
-        self._done = threading.Event()
-        self._done.set()
-        self._error: BaseException | None = None
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, name="bonesim-frames", daemon=True)
-        self._thread.start()
+        super().__init__("bonesim-frames")
 
-    def _release(self) -> None:
+    def _after(self) -> None:
         rw = self._scene.render_window
         if rw is not None:
             rw.ReleaseCurrent()
 
-    def _run(self) -> None:
-        while True:
-            self._go.wait()
-            self._go.clear()
-            if self._stop:
-                return
-            try:
-                self._sink(self._scene.image())
-            except BaseException as exc:          # handed to the caller by wait()
-                self._error = exc
-            finally:
-                self._release()
-                self._done.set()
+    def _draw(self) -> None:
+        self._sink(self._scene.image())
 
     def submit(self) -> None:
         """Draw the scene as it is now; returns at once. The caller must not
         change the scene until :meth:`wait` returns."""
         self.wait()
-        self._release()                          # the worker's thread draws it
-        self._done.clear()
-        self._go.set()
-
-    def wait(self) -> None:
-        """Block until the last submitted frame is drawn and passed to the
-        sink; re-raise the error it failed with, if any."""
-        self._done.wait()
-        err, self._error = self._error, None
-        if err is not None:
-            raise err
-
-    def close(self) -> None:
-        """Finish the frame in progress (its error is not raised) and stop
-        the thread."""
-        self._done.wait()
-        self._stop = True
-        self._go.set()
-        self._thread.join()
+        self._after()                            # the worker's thread draws it
+        super().submit(self._draw)

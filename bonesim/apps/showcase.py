@@ -14,22 +14,28 @@ moves the dust (gravity, the burr's push, irrigation, suction), updates the
 nerve monitor's trace from the steps since the previous frame, and renders
 the scene offscreen. The frames become a short time-lapse video (H.264,
 :class:`bonesim.session.video.VideoWriter`) and the last one the final picture.
-:func:`run_showcase` draws and encodes each frame on a worker thread while the
-next frame's interval is simulated (:class:`bonesim.apps.frames.FrameWorker`):
-the same frames as drawing them in line, in less wall time on two cores.
+:func:`run_showcase` runs these stages of consecutive frames side by side
+(:func:`advance_through`): while the engine steps frame ``i + 1``, a worker
+thread moves the dust of frame ``i`` on a copy of the bone taken when its
+steps ended, and another draws and encodes frame ``i - 1``
+(:mod:`bonesim.apps.frames`; numba's kernels and VTK's software OpenGL run
+without the GIL). Each stage reads only what was captured for its frame, in
+the order :meth:`Showcase.advance` runs them, so the frames are the same as
+drawing them in line, in less wall time on two cores.
 """
 from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 
 from bonesim.engine import events
 from bonesim.runtime.simulate import CLEARANCE_EVERY, closest_approach
 
-__all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "Showcase",
-           "run_showcase"]
+__all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "Frame", "Showcase",
+           "advance_through", "run_showcase"]
 
 #: Length of the time-lapse video [s] (the plan's minutes are sped up to fit).
 VIDEO_S = 16.0
@@ -60,6 +66,38 @@ ASSIST_LAG_S = 0.5
 #: comes in from the other hand) [tan of the angle].
 SUCTION_DRAWN_RADIUS_MM = 1.1
 SUCTION_TILT = 0.3
+
+
+class Frame(NamedTuple):
+    """What :meth:`Showcase.capture` took of the engine for one frame.
+
+    Attributes
+    ----------
+    events : dict of str -> ndarray
+        Tissue events since the previous frame (:data:`bonesim.engine.events.TISSUE_FIELDS`).
+    touched : (m, 3) int32
+        Voxels whose density the engine lowered since the previous frame.
+    bone : bonesim.engine.grid.Grid
+        The engine's grid with a copy of its densities at the frame's moment
+        (the dust's walls, the touched voxels' densities).
+    q : int
+        The last sample stepped.
+    t0_s, t_s : float
+        The frame's interval of simulated time [s] (the dust's).
+    force_n : float
+        The HUD's force: the largest over the last ``MONITOR_DT_S`` [N].
+    history : tuple or None
+        The nerve monitor's history for its trace (None: unchanged).
+    """
+
+    events: dict
+    touched: np.ndarray
+    bone: object
+    q: int
+    t0_s: float
+    t_s: float
+    force_n: float
+    history: object
 
 
 class Showcase:
@@ -111,7 +149,6 @@ class Showcase:
         side = np.cross(self.view, np.asarray(cam.up, float))   # the view's right
         self._side = side / np.linalg.norm(side)
         self.dust = DustGrid.for_grid(self.consumer.grid, gravity=self.view)
-        self._dust_cursor = events.Cursor(self.state.tissue)    # the dust's removals
         self.scene = Scene.from_model(model, self.consumer.surface, offscreen=True,
                                       size=tuple(size))
         focal = np.asarray(cam.focal_mm, float)
@@ -122,6 +159,7 @@ class Showcase:
         self.frame_hz = None                         # run_showcase: the video's rate
         self._force = np.zeros(len(self.samples.t_s))  # |force| per step [N]
         self.t_s = float(self.samples.t_s[0])
+        self._dust_t_s = self.t_s                    # where the dust's last interval ended
         self.force_n = 0.0
         self.monitor = self.trace = None
         self._trace_due = False                      # monitor fed since the last show
@@ -207,24 +245,23 @@ class Showcase:
         """Step the engine through every sample up to ``t_s`` and bring the
         surface, dust, monitor and scene to that moment.
 
+        The same as :meth:`simulate`, :meth:`capture`, :meth:`step_dust` and
+        :meth:`show` in turn; :func:`run_showcase` runs those stages of
+        consecutive frames side by side (module docstring).
+
         Parameters
         ----------
         t_s : float
             Simulated time [s]; at most the trajectory's end.
         """
         self.simulate(t_s)
-        self.show()
+        frame = self.capture()
+        self.step_dust(frame)
+        self.show(frame)
 
     def simulate(self, t_s: float) -> None:
-        """The half of :meth:`advance` that touches no scene: step the
-        engine through every sample up to ``t_s``, then the dust and the
-        nerve monitor to that moment.
-
-        The dust's walls are the engine's own grid (the bone left at ``t_s``,
-        exactly what the replica holds once :meth:`show` drains it) and its
-        sources the engine's removal events, so the frame drawn before can
-        still be on its way (:class:`bonesim.apps.frames.FrameWorker`) while
-        this runs.
+        """Step the engine through every sample up to ``t_s``; follow the
+        burr's clearance and feed the nerve monitor to that moment.
 
         Parameters
         ----------
@@ -249,16 +286,56 @@ class Showcase:
             self._force[q] = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         self.q = max(hi, lo)
         self._clearance(lo, self.q)
-        t0 = self.t_s
-        dt = max(t_s - t0, 0.0)
-        self.t_s = t_s
-        cur = max(self.q - 1, 0)
-        rem = events.removals(self._dust_cursor.drain())["ijk"]
+        self.t_s = max(t_s, self.t_s)
+        lo_f = max(lo - int(model.haptic_rate_hz * MONITOR_DT_S), 0)
+        self.force_n = float(self._force[lo_f:self.q].max()) if self.q > lo_f else 0.0
+        if self.monitor is not None and self.q > lo:
+            self._feed_monitor(lo, self.q)
+            self._trace_due = True
+
+    def capture(self) -> "Frame":
+        """What the dust and the picture need of the engine at the moment
+        :meth:`simulate` reached, taken while the engine waits: the tissue
+        events since the last capture, the touched voxels (their flags
+        cleared, as a replica's drain does, so they are published again),
+        a copy of the bone's densities, the HUD's figures and the monitor's
+        history. Later stages read only the :class:`Frame`, so the engine
+        may step on meanwhile."""
+        from bonesim.engine.grid import Grid
+        from bonesim.engine.model import clear_touched
+        from bonesim.runtime.monitor import read_history
+
+        st, c = self.state, self.consumer
+        ev = c.cursor.drain()
+        tch = c.touched.drain()["ijk"]
+        if len(tch):
+            clear_touched(st, tch)
+        g = st.grid
+        bone = Grid(g.spacing_mm, g.origin_mm, g.shape, g.keys, g.vals, g.bricks,
+                    g.density.copy(), g.label)
+        history = None
+        if self._trace_due:
+            self._trace_due = False
+            history = read_history(self._hist, self._spikes, self.monitor.t_s,
+                                   self.monitor.n, self.trace.window_s)
+        frame = Frame(ev, tch, bone, max(self.q - 1, 0), self._dust_t_s, self.t_s,
+                      self.force_n, history)
+        self._dust_t_s = self.t_s
+        return frame
+
+    def step_dust(self, frame: "Frame") -> None:
+        """Turn the frame's removals into dust and move the dust through the
+        frame's interval in steps of at most :data:`DUST_DT_S`, each with
+        the tool, suction and irrigation of its own moment; the walls are
+        the bone the frame captured. Touches only the dust (it may run on
+        another thread while the engine steps on)."""
+        s = self.samples
+        rem = events.removals(frame.events)["ijk"]
         if len(rem):
             self.dust.add_removed(rem)
-        burr = model.burrs[int(s.burr[cur])]
-        # the dust moves in steps of at most DUST_DT_S, each with the tool,
-        # suction and irrigation of its own moment
+        burr = self.model.burrs[int(s.burr[frame.q])]
+        t0 = frame.t0_s
+        dt = max(frame.t_s - t0, 0.0)
         n_sub = int(math.ceil(dt / DUST_DT_S)) if dt > 0 else 0
         for k in range(n_sub):
             qk = min(int(np.searchsorted(s.t_s, t0 + (k + 1) * dt / n_sub, side="right")) - 1,
@@ -266,35 +343,29 @@ class Showcase:
             qk = max(qk, 0)
             pk = s.pos_mm[qk]
             suck_at, wet_at = self._assist(qk)
-            self.dust.step(state.grid, dt / n_sub, tool_pos_mm=pk,
+            self.dust.step(frame.bone, dt / n_sub, tool_pos_mm=pk,
                            tool_radius_mm=burr.radius_mm,
                            suction_pos_mm=suck_at,
                            suction_radius_mm=TIP_RADIUS_MM if suck_at is not None else 0.0,
                            irrigation_pos_mm=wet_at,
                            irrigation_radius_mm=WATER_RADIUS_MM if wet_at is not None else 0.0)
-        lo_f = max(lo - int(model.haptic_rate_hz * MONITOR_DT_S), 0)
-        self.force_n = float(self._force[lo_f:self.q].max()) if self.q > lo_f else 0.0
-        if self.monitor is not None and self.q > lo:
-            self._feed_monitor(lo, self.q)
-            self._trace_due = True
 
-    def show(self) -> None:
-        """The half of :meth:`advance` that brings the scene to the moment
-        :meth:`simulate` reached: drain the tissue events into the replica's
-        surface, then the dust's sprites, the tools, the HUD and the
-        monitor's trace. Call it only while no frame is being drawn."""
-        from bonesim.runtime.monitor import read_history
+    def show(self, frame: "Frame", sprites=None) -> None:
+        """Bring the scene to the frame: its events into the replica's
+        surface, then the dust's sprites (default: gathered now, after
+        :meth:`step_dust` of this frame and before that of the next), the
+        tools, the HUD and the monitor's trace. Call it only while no frame
+        is being drawn."""
         from bonesim.physics.sightline import depth_below_surface_mm
 
         s, model = self.samples, self.model
-        t_s = self.t_s
-        cur = max(self.q - 1, 0)
-        ch = self.consumer.drain()
+        cur = frame.q
+        ch = self.consumer.apply(frame.events, frame.touched, live=frame.bone)
         self.scene.update_bodies(self.consumer, ch.changed, ch.touched)   # bodies at their poses
         burr = model.burrs[int(s.burr[cur])]
         pos, axis = s.pos_mm[cur], s.axis[cur]
         suction, irrigation = self._tip(cur)
-        self.scene.set_dust(*self.dust.sprites())
+        self.scene.set_dust(*(self.dust.sprites() if sprites is None else sprites))
         tool = "suction" if suction else "irrigation" if irrigation else "burr"
         drill = bool(s.drill[cur])
         depth = None
@@ -317,15 +388,13 @@ class Showcase:
             "case": model.name, "burr": burr.name, "burr_kind": burr.kind,
             "burr_diameter_mm": burr.diameter_mm, "tool": tool, "drill": drill,
             "direction": int(s.direction[cur]), "speed_rpm": float(s.speed_rpm[cur]),
-            "force_n": self.force_n, "haptic_hz": model.haptic_rate_hz,
+            "force_n": frame.force_n, "haptic_hz": model.haptic_rate_hz,
             "frame_hz": self.frame_hz,
-            "elapsed_s": t_s - self.start_s, "injuries": list(self.injuries),
+            "elapsed_s": frame.t_s - self.start_s, "injuries": list(self.injuries),
             **({} if depth is None else {"depth_mm": depth}),
             "message": "simulated time"})
-        if self._trace_due:
-            self._trace_due = False
-            self.trace.update(read_history(self._hist, self._spikes, self.monitor.t_s,
-                                           self.monitor.n, self.trace.window_s))
+        if frame.history is not None:
+            self.trace.update(frame.history)
 
     def _clearance(self, lo: int, hi: int) -> None:
         """Track the running burr's closest approach to a structure that is not
@@ -416,7 +485,6 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
         :meth:`Showcase.summary` plus ``frames``, ``speedup``, ``wall_s``,
         the files written and (with ``assess``) ``assessment``.
     """
-    from bonesim.apps.frames import FrameWorker
     from bonesim.session.video import VideoWriter
 
     wall0 = time.perf_counter()
@@ -428,30 +496,15 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
         end = show.end_s if seconds is None else min(show.end_s, show.start_s + seconds)
         times = np.linspace(show.start_s, end, n)
         writer = VideoWriter(video, size, fps) if video is not None else None
-        # frame i is drawn and encoded on a worker thread while frame i + 1
-        # is simulated (bonesim.apps.frames): the same frames, on two cores
-        worker = FrameWorker(show.scene, writer.write) if writer is not None else None
         try:
-            for i, t in enumerate(times):
-                show.simulate(t)
-                if worker is not None:
-                    worker.wait()
-                show.show()
-                if worker is not None:
-                    worker.submit()
-                if progress is not None:
-                    progress(i + 1, n, "drilling the plan")
-            if worker is not None:
-                worker.wait()
+            advance_through(show, times, writer.write if writer is not None else None,
+                            progress)
+            if writer is not None:
                 writer.close()
         except BaseException:
             if writer is not None:
-                worker.close()
                 writer.abort()
             raise
-        finally:
-            if worker is not None:
-                worker.close()
         out = show.summary()
         if assess is not None:
             out["assessment"] = assess(show.model, show.state.grid)
@@ -463,3 +516,48 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
             out["video"] = str(video)
     out["wall_s"] = round(time.perf_counter() - wall0, 2)
     return out
+
+
+def advance_through(show: Showcase, times, sink=None, progress=None) -> None:
+    """Advance ``show`` to each of ``times`` [s of simulated time], drawing
+    each frame into ``sink(image)`` (None: draw nothing; the scene still
+    follows), with the stages of three consecutive
+    frames side by side: the engine steps frame ``i + 1`` on this thread
+    while a worker moves the dust of frame ``i`` and another draws frame
+    ``i - 1`` (:mod:`bonesim.apps.frames`). Each stage reads what the stage
+    before captured for its frame, in the order :meth:`Showcase.advance`
+    runs them, so the frames are the same as advancing in line."""
+    from bonesim.apps.frames import FrameWorker, Worker
+
+    dust = Worker("bonesim-dust")
+    draw = FrameWorker(show.scene, sink) if sink is not None else None
+    n = len(times)
+    try:
+        pending = None                      # the frame whose dust is moving
+        for i, t in enumerate(times):
+            show.simulate(t)
+            frame = show.capture()
+            dust.wait()
+            sprites = show.dust.sprites() if pending is not None else None
+            dust.submit(lambda f=frame: show.step_dust(f))
+            if pending is not None:
+                _draw(show, pending, sprites, draw, progress, i, n)
+            pending = frame
+        dust.wait()
+        _draw(show, pending, show.dust.sprites(), draw, progress, n, n)
+        if draw is not None:
+            draw.wait()
+    finally:
+        dust.close()
+        if draw is not None:
+            draw.close()
+
+
+def _draw(show, frame, sprites, draw, progress, done, n) -> None:
+    if draw is not None:
+        draw.wait()
+    show.show(frame, sprites)
+    if draw is not None:
+        draw.submit()
+    if progress is not None:
+        progress(done, n, "drilling the plan")

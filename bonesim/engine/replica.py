@@ -265,7 +265,7 @@ class TissueReplica:
             self._rebuild_surface()
 
     # ------------------------------------------------------------------ apply
-    def apply(self, ev: dict, touched=None, surface: bool = True) -> Changes:
+    def apply(self, ev: dict, touched=None, surface: bool = True, live=None) -> Changes:
         """Apply tissue events in order.
 
         Parameters
@@ -276,6 +276,10 @@ class TissueReplica:
             Shading hints to sync from the followed live state.
         surface : bool
             Update the surface (False: leave it to :meth:`rebuild_surface`).
+        live : bonesim.engine.grid.Grid, optional
+            Where the touched voxels' densities are read (default: the
+            followed state's grid), e.g. a copy taken when the events were
+            drained while the state stepped on.
 
         Returns
         -------
@@ -330,8 +334,10 @@ class TissueReplica:
         rem = np.concatenate(removed) if removed else _NO_IJK
         tch = _NO_IJK if touched is None else \
             np.ascontiguousarray(touched, dtype=np.int32).reshape(-1, 3)
-        if len(tch) and self.source is not None:
-            sync_replica(g, self.source.grid, _NO_IJK, tch, check=False)
+        if live is None and self.source is not None:
+            live = self.source.grid
+        if len(tch) and live is not None:
+            sync_replica(g, live, _NO_IJK, tch, check=False)
         spl = np.concatenate(split_ijk) if split_ijk else _NO_IJK
         if self.surface is not None and surface:
             if did_reset:

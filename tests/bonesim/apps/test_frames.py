@@ -1,12 +1,14 @@
-"""Frames drawn on a worker thread (bonesim.apps.frames) while the next
-interval is simulated are the frames drawn in line, pixel for pixel."""
+"""The main job's stages side by side (bonesim.apps.frames,
+showcase.advance_through: the engine steps a frame while a worker moves the
+dust of the one before and another draws the one before that) give the
+frames and the outcome of advancing in line, pixel for pixel."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bonesim.apps.frames import FrameWorker
-from bonesim.apps.showcase import Showcase
+from bonesim.apps.frames import FrameWorker, Worker
+from bonesim.apps.showcase import Showcase, advance_through
 from bonesim.io.loading import load_model
 from bonesim.io.toolpath import demo_trajectory
 
@@ -32,16 +34,7 @@ def _frames(traj, threaded: bool) -> tuple[list, dict]:
                 sh.advance(t)
                 out.append(sh.image())
             return out, sh.summary()
-        worker = FrameWorker(sh.scene, out.append)
-        try:
-            for t in times:
-                sh.simulate(t)
-                worker.wait()
-                sh.show()
-                worker.submit()
-            worker.wait()
-        finally:
-            worker.close()
+        advance_through(sh, times, out.append)
         last = sh.image()                  # the caller may draw again after wait()
         np.testing.assert_array_equal(last, out[-1])
         return out, sh.summary()
@@ -76,6 +69,7 @@ class _Scene:
 def test_an_error_on_the_worker_reaches_the_caller_at_the_next_wait():
     got = []
     w = FrameWorker(_Scene(fail_at=2), got.append)
+    assert isinstance(w, Worker)
     try:
         w.submit()
         w.wait()
