@@ -321,8 +321,12 @@ class RigidSet:
         """Let fragment ``b`` move (gravity, contact, the tool); returns its slot.
 
         Its samples and mass are computed now (from its current voxels) the
-        first time; a sleeping fragment only wakes.
+        first time; a sleeping fragment only wakes. A body a split job is
+        still filling raises ``ValueError`` (it stays put until whole).
         """
+        if any(j.dst == b for j in getattr(state, "split_jobs", ())):
+            raise ValueError(f"body {b} is still being split off "
+                             "(bonesim.engine.split_jobs): it cannot move yet")
         s = self.slot_of(b)
         if s >= 0:
             if self.mode[s] == ASLEEP:

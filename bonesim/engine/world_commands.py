@@ -55,6 +55,7 @@ from bonesim.engine.haptics import P_RADIUS
 from bonesim.engine.model import reset_state
 from bonesim.engine.rigid import AFFIXED, KIND_PLATE, tool_push
 from bonesim.engine.rigid_set import publish_plate
+from bonesim.engine.split_jobs import queue_split, voxels_per_step
 
 __all__ = ["TOOLS", "GRAB_REACH_MM", "WorldCommand", "Reset", "SetBurr", "SetTool",
            "SplitBox", "SplitPart", "SplitVoxels", "ShedVoxels", "MoveBody", "CutStroke",
@@ -161,7 +162,10 @@ class SplitPart(WorldCommand):
     the 26-connected part of body ``body`` holding voxel ``seed``, inside
     ``lo .. hi``, at most ``n`` voxels, becomes a new body, or with ``shed``
     is removed as dust. A command of another epoch than the state's (found
-    before a reset) does nothing."""
+    before a reset) does nothing. A part of more voxels than a world step's
+    split budget, and any part while split jobs are queued, is queued as a
+    split job and done in slices by the next world steps
+    (:mod:`bonesim.engine.split_jobs`)."""
 
     body: int
     seed: tuple
@@ -174,6 +178,11 @@ class SplitPart(WorldCommand):
     def apply(self, model, state, t_s: float) -> None:
         if int(self.epoch) != state.epoch:
             return                          # found before a reset: nothing of it is left
+        if state.split_jobs or (not self.shed and int(self.n) > voxels_per_step()):
+            # a large part (or any behind one): in slices, one per world step
+            queue_split(state, int(self.body), self.seed, self.lo, self.hi, int(self.n),
+                        shed=bool(self.shed))
+            return
         publish_part(state, int(self.body), np.asarray(self.seed, np.int64),
                      np.asarray(self.lo, np.int64), np.asarray(self.hi, np.int64),
                      int(self.n), t_s, shed=bool(self.shed))
@@ -182,14 +191,18 @@ class SplitPart(WorldCommand):
 @dataclass(frozen=True, eq=False)
 class SplitVoxels(WorldCommand):
     """Voxels ``ijk`` (n, 3) of body ``src`` become body ``body``
-    (:func:`~bonesim.engine.bodies.publish_split`; a recorded split)."""
+    (:func:`~bonesim.engine.bodies.publish_split`; a recorded split). With
+    ``ordered`` the records keep the order of ``ijk`` (replay: a sliced
+    split's block as recorded); a ``body`` that exists already grows (the
+    later blocks of a sliced split, :mod:`bonesim.engine.split_jobs`)."""
 
     src: int
     ijk: np.ndarray
     body: int | None = None
+    ordered: bool = False
 
     def apply(self, model, state, t_s: float) -> None:
-        publish_split(state, int(self.src), self.ijk, t_s, self.body)
+        publish_split(state, int(self.src), self.ijk, t_s, self.body, ordered=self.ordered)
 
 
 @dataclass(frozen=True, eq=False)

@@ -100,6 +100,9 @@ def warmup(burr=None) -> None:
 
     publish_part(s, 0, (3, 3, 0), (3, 3, 0), (3, 3, 0), 1, 0.0)
     publish_part(s, 0, (4, 4, 0), (4, 4, 0), (4, 4, 0), 1, 0.0, shed=True)
+    from bonesim.engine.split_jobs import run_split            # a large split's slices
+
+    run_split(s, 0, (6, 6, 0), (6, 6, 0), (7, 7, 1), 8, 0.0, budget=2)
     set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
     step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))
