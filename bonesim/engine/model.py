@@ -339,6 +339,9 @@ class State:
         Large splits under way, first in first out, advanced by one bounded
         slice per world step (:mod:`bonesim.engine.split_jobs`); a reset
         drops them.
+    cut_jobs : list of CutJob
+        Cut-plane strokes under way, likewise
+        (:func:`bonesim.engine.cut_plane.advance_cuts`).
     """
 
     grid: Grid
@@ -362,6 +365,7 @@ class State:
     tool: int = 0
     rigid: RigidSet | None = None
     split_jobs: list = field(default_factory=list)
+    cut_jobs: list = field(default_factory=list)
     # kernel scratch
     _R: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     _n_vox: int = 0
@@ -493,6 +497,7 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
                 model.grid.shape)
     state._one_body = True
     state.split_jobs.clear()
+    state.cut_jobs.clear()
     state.removed_by_label[:] = 0
     if rings:
         for ring in (state.tissue, state.touched):

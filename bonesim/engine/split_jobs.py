@@ -65,20 +65,22 @@ __all__ = ["SLICING_FILE", "voxels_per_step", "SplitJob", "queue_split", "advanc
 SLICING_FILE = "slicing.toml"
 
 
-@lru_cache(maxsize=1)
-def voxels_per_step() -> int:
-    """The split budget of one world step [voxels] (``[split] voxels_per_step``
-    of :data:`SLICING_FILE`; a bad file is one :class:`~bonesim.errors.BonesimError`
-    line naming the file and field)."""
+@lru_cache(maxsize=None)
+def voxels_per_step(table: str = "split") -> int:
+    """The budget of one world step [voxels]: ``voxels_per_step`` of table
+    ``table`` (``split``: voxels a split moves; ``cut_plane``: voxels a
+    stroke's rays walk) of :data:`SLICING_FILE`. A bad file is one
+    :class:`~bonesim.errors.BonesimError` line naming the file and field."""
     from bonesim.resources import data_path
     from bonesim.tomlfile import check_keys, get_number, read_toml
 
     path = data_path(SLICING_FILE)
     doc = read_toml(path)
-    check_keys(doc, ("split",), path, "top level", required=("split",))
-    tab = doc["split"]
-    check_keys(tab, ("voxels_per_step",), path, "split", required=("voxels_per_step",))
-    return int(get_number(tab, "voxels_per_step", path, "split", minimum=1,
+    check_keys(doc, ("split", "cut_plane"), path, "top level",
+               required=("split", "cut_plane"))
+    tab = doc[table]
+    check_keys(tab, ("voxels_per_step",), path, table, required=("voxels_per_step",))
+    return int(get_number(tab, "voxels_per_step", path, table, minimum=1,
                           maximum=1 << 24, integer=True))
 
 

@@ -7,7 +7,8 @@ haptic loop (:mod:`bonesim.runtime.haptic_loop`), headless runs
 
 1. applies the commands given for this step (:mod:`bonesim.engine.world_commands`),
    in order, as state transitions at the sample's time, then one bounded
-   slice of the queued large splits (:mod:`bonesim.engine.split_jobs`);
+   slice of the queued large splits (:mod:`bonesim.engine.split_jobs`) and
+   one of the queued large cut-plane strokes (:mod:`bonesim.engine.cut_plane`);
 2. steps the rigid bodies (:meth:`bonesim.engine.rigid_set.RigidSet.advance`:
    the stopped tool pushes fragments, grabbed rigids follow it, everything
    in motion falls and rests; every pose change a ``POSE`` or ``PLATE``
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 from bonesim.engine.haptics import P_K_LOW, P_RADIUS
 from bonesim.engine.model import Model, Sample, State, step
+from bonesim.engine.cut_plane import advance_cuts
 from bonesim.engine.split_jobs import advance_splits
 
 __all__ = ["world_step", "apply_commands"]
@@ -108,6 +110,8 @@ def world_step(model: Model, state: State, sample: Sample, commands=(),
         apply_commands(model, state, commands, t, on_error)
     if state.split_jobs:                   # a large split: one bounded slice per step
         advance_splits(state, t)
+    if state.cut_jobs:                     # a large cut-plane stroke: likewise
+        advance_cuts(state, t)
     rs = state.rigid
     if rs is not None:                     # poses published before the step
         p = model.burr_params[state.burr]

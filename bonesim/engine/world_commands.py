@@ -49,7 +49,8 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.bodies import publish_pose, publish_split, publish_split_box
-from bonesim.engine.cut_plane import publish_cut_record
+from bonesim.engine.cut_plane import (SIZE_QUANTUM_MM, publish_cut_record, queue_cut,
+                                       rays_per_step, stroke_rays)
 from bonesim.engine.fragments import publish_part, shed_voxels
 from bonesim.engine.haptics import P_RADIUS
 from bonesim.engine.model import reset_state
@@ -236,14 +237,26 @@ class MoveBody(WorldCommand):
 class CutStroke(WorldCommand):
     """One stroke of the cut plane (:mod:`bonesim.engine.cut_plane`): the
     rectangle at ``pose`` (case frame), ``size_um`` = (width, height, depth)
-    [um], removing every voxel its rays pass (removals and a ``CUT`` record)."""
+    [um], removing every voxel its rays pass (removals and a ``CUT`` record).
+    ``rays_per_step``: None (live) walks a stroke larger than a step's budget,
+    or any stroke while one is under way, in slices over the next world steps
+    (:func:`~bonesim.engine.cut_plane.queue_cut`); 0 at once; ``k`` > 0 in
+    slices of ``k`` rays (replay, from the ``CUT`` record's ``n = -k``)."""
 
     pose: np.ndarray
     size_um: np.ndarray
+    rays_per_step: int | None = None
 
     def apply(self, model, state, t_s: float) -> None:
-        publish_cut_record(state, model.injury, np.asarray(self.size_um, np.int64),
-                           np.asarray(self.pose, np.float64), t_s)
+        um = np.asarray(self.size_um, np.int64)
+        rays = self.rays_per_step
+        if rays is None:                   # live: in slices if large, or behind one
+            per = rays_per_step(float(um[2]) * SIZE_QUANTUM_MM, model.spacing_mm)
+            rays = per if state.cut_jobs or stroke_rays(um, model.spacing_mm) > per else 0
+        if rays:
+            queue_cut(state, model.injury, um, np.asarray(self.pose, np.float64), t_s, rays)
+        else:
+            publish_cut_record(state, model.injury, um, np.asarray(self.pose, np.float64), t_s)
 
 
 @dataclass(frozen=True, eq=False)

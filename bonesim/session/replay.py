@@ -170,7 +170,10 @@ def _body_commands(tissue: dict) -> list:
             q = e
             continue
         if kind[i] == events.CUT:
-            out.append((t, CutStroke(tissue["value"][i].copy(), tissue["ijk"][i].copy())))
+            # n >= 0: done at once; n = -k: in slices of k rays per step
+            k = int(tissue["n"][i])
+            out.append((t, CutStroke(tissue["value"][i].copy(), tissue["ijk"][i].copy(),
+                                     rays_per_step=-k if k < 0 else 0)))
             q += 1
             continue
         if kind[i] == events.PLATE:

@@ -65,3 +65,46 @@ def test_a_run_with_a_sliced_split_while_drilling_the_part_replays_bit_for_bit(t
     # no voxel lost: the cube is in body 1 or removed
     assert counts[1] + int((rem["body"] == 1).sum()) == split.sum()
     assert counts[1] > 0.9 * EDGE ** 3
+
+
+def test_a_run_with_sliced_strokes_and_a_split_under_way_together_replays_bit_for_bit(
+        tmp_path, monkeypatch):
+    """Two large cut-plane strokes (the second waits behind the first) and a
+    large split, all under way while the burr drills: the CUT records carry
+    the rays per step, replay repeats the slicing step for step."""
+    from bonesim.engine.cut_plane import plane_pose, quantize_size
+    from bonesim.engine.world_commands import CutStroke
+
+    model = _case()
+    top = (CORNER[2] + EDGE) * 0.5 - 0.25
+    centre = (np.asarray(CORNER[:2]) + EDGE / 2) * 0.5
+    t = np.round(np.arange(0.0, 0.35, 0.001), 6)
+    z = top + 3.5 - np.clip(t / 0.3, 0.0, 1.0) * 5.0
+    pos = np.column_stack([np.full(len(t), centre[0]), np.full(len(t), centre[1]), z])
+    traj = Trajectory(t, pos, np.tile([0.0, 0.0, -1.0], (len(t), 1)), np.ones(len(t), bool),
+                      np.full(len(t), 60000.0))
+    lo, hi = np.asarray(CORNER) - 1, np.asarray(CORNER) + EDGE
+    side = plane_pose((CORNER[0] * 0.5 - 0.25, centre[1], CORNER[2] * 0.5 + EDGE * 0.25),
+                      (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    um = quantize_size(12.0, 12.0, 3.0)
+    cmds = [(0.25, SplitPart(0, CORNER, tuple(lo), tuple(hi), EDGE ** 3, 0)),
+            (0.251, CutStroke(side, um)), (0.251, CutStroke(side + (0, 0, 1, 0, 0, 0, 0), um))]
+    path = tmp_path / "strokes.h5"
+    out = run_trajectory(model, traj, surface=False, record=path, commands=cmds)
+    assert out["record_ok"]
+    s = read_session(path)
+    ev = s.tissue
+    cut = np.flatnonzero(ev["kind"] == events.CUT)
+    assert len(cut) == 2 and (ev["n"][cut] < 0).all()
+    rem = events.removals(ev)
+    # the strokes' removals span several steps after their records
+    after = rem["t_s"][(rem["t_s"] > ev["t_s"][cut[0]])]
+    assert len(np.unique(after)) > 4
+    report = verify(s, models=[model])
+    assert report["ok"] and report["identical"], report
+    # the slicing comes from the records, not from today's data file
+    import bonesim.engine.split_jobs as sj
+
+    monkeypatch.setattr(sj, "voxels_per_step", lambda table="split": 7)
+    report = verify(s, models=[model])
+    assert report["ok"] and report["identical"], report
