@@ -17,6 +17,10 @@ drills a line through the slab, the bench sends, one after the other:
 ``haptic_loop_period_burr_change_p99_ms``
     :class:`~bonesim.runtime.commands.SetBurr` to the 7 mm cutting burr (the
     loop was started with it in its table), drilling on with it.
+``haptic_loop_period_grab_512k_p99_ms``
+    :class:`~bonesim.runtime.rigid_commands.GrabBody` of the split-off cube:
+    its first move measures its contact samples and mass
+    (``done``: it moved, a ``POSE`` event, within the window).
 ``haptic_loop_period_quiet_p99_ms``
     The same loop before any command: the same-run reference.
 
@@ -113,7 +117,9 @@ def bench_stalls(quick=False) -> dict:
     from bonesim.engine.cut_plane import plane_pose
     from bonesim.engine.replica import TissueReplica
     from bonesim.io.burrs import DEFAULT_BURR, load_burr
+    from bonesim.engine import events
     from bonesim.runtime.commands import CutPlane, SetBurr, SplitPart
+    from bonesim.runtime.rigid_commands import GrabBody
     from bonesim.runtime.haptic_loop import HapticLoop
 
     model = stall_case(load_burr(DEFAULT_BURR))
@@ -178,6 +184,13 @@ def bench_stalls(quick=False) -> dict:
         cmds = int(loop.status["commands_applied"])
         loop.send(SetBurr, index=1)
         burr, burr_ok = window(lambda: int(loop.status["commands_applied"]) > cmds, 5.0)
+        ev0 = loop.state.tissue.count
+        loop.send(GrabBody, body=1)
+
+        def posed():
+            ev = loop.state.tissue.read(max(ev0, loop.state.tissue.count - 1000))
+            return bool((ev["kind"] == events.POSE).any())
+        grab, grab_ok = window(posed, 5.0)
         realtime = bool(loop.status["realtime"])
         rejected = int(loop.status["commands_rejected"])
         error = bytes(loop.status["command_error"]).rstrip(b"\0").decode(errors="replace")
@@ -201,7 +214,9 @@ def bench_stalls(quick=False) -> dict:
             ("cut_stroke", cut, cut_ok, "a 20 x 20 mm stroke 5 mm deep into the cube",
              {"voxels_removed": cut_removed}),
             ("burr_change", burr, burr_ok, "SetBurr to the 7 mm cutting burr, drilling on",
-             {})):
+             {}),
+            ("grab_512k", grab, grab_ok, "GrabBody of the split-off 512,000-voxel cube (its "
+             "contact samples and mass measured first)", {})):
         f = _figure(p, f"{base}; {what}", done=bool(ok),
                     p99_vs_quiet=round(time_weighted_percentile(p, 99) / q99, 3), **extra,
                     **machine)

@@ -569,7 +569,7 @@ BENCHMARKS = {
     # the loop's period while a 512k-voxel part splits off, a stroke cuts, a burr changes
     **_by_name(tuple(f"haptic_loop_period_{w}" for w in (
         "split_512k_p99_ms", "split_512k_max_ms", "cut_stroke_p99_ms", "burr_change_p99_ms",
-        "quiet_p99_ms")), "bonesim.bench.stalls:bench_stalls"),
+        "grab_512k_p99_ms", "quiet_p99_ms")), "bonesim.bench.stalls:bench_stalls"),
     **_by_name("tutor_tracking_vs_ideal", "bonesim.bench.tutor_tracking:bench_tutor_tracking"),
     **_by_name("main_job_s", "bonesim.bench.tutor_tracking:bench_main_job"),
 }

@@ -69,15 +69,16 @@ SLICING_FILE = "slicing.toml"
 def voxels_per_step(table: str = "split") -> int:
     """The budget of one world step [voxels]: ``voxels_per_step`` of table
     ``table`` (``split``: voxels a split moves; ``cut_plane``: voxels a
-    stroke's rays walk) of :data:`SLICING_FILE`. A bad file is one
+    stroke's rays walk; ``rigid``: voxels of a fragment measured,
+    :mod:`bonesim.engine.rigid_measure`) of :data:`SLICING_FILE`. A bad file is one
     :class:`~bonesim.errors.BonesimError` line naming the file and field."""
     from bonesim.resources import data_path
     from bonesim.tomlfile import check_keys, get_number, read_toml
 
     path = data_path(SLICING_FILE)
     doc = read_toml(path)
-    check_keys(doc, ("split", "cut_plane"), path, "top level",
-               required=("split", "cut_plane"))
+    check_keys(doc, ("split", "cut_plane", "rigid"), path, "top level",
+               required=("split", "cut_plane", "rigid"))
     tab = doc[table]
     check_keys(tab, ("voxels_per_step",), path, table, required=("voxels_per_step",))
     return int(get_number(tab, "voxels_per_step", path, table, minimum=1,

@@ -275,7 +275,9 @@ class PlateRecord(WorldCommand):
 class Grab(WorldCommand):
     """Fragment ``body`` follows the tool; ``body=-1``: the fragment the tool
     (at its last stepped position) touches, else the nearest free plate
-    within :data:`GRAB_REACH_MM` of the burr's surface."""
+    within :data:`GRAB_REACH_MM` of the burr's surface. A large fragment not
+    yet measured follows from the step its measurement completes
+    (:mod:`bonesim.engine.rigid_measure`)."""
 
     body: int = -1
 
@@ -289,7 +291,7 @@ class Grab(WorldCommand):
             if push[:, 6].max() > 0.0:
                 b = int(np.argmax(push[:, 6]))
         if b >= 1:
-            rs.grab(state, rs.wake_body(state, b), tool)
+            rs.grab_body(state, b, tool)        # a large fragment: once measured
             return
         best, best_d = -1, math.inf
         for s in np.flatnonzero((rs.kind == KIND_PLATE) & (rs.mode != 0)
