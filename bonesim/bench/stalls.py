@@ -31,7 +31,11 @@ a stall counts for the periods the device missed, as the loop's clock sees
 it), ``p99_per_period_ms`` the plain p99 of the measured periods, ``max_ms``
 the longest period [ms]; how
 busy the machine was (the 1-minute load average before and after) and the
-consumer's longest drain [s] are in the detail. Figures are reported, never asserted.
+consumer's longest drain [s] are in the detail, and so is ``work_per_step``:
+the work each command adds to a world step, timed in the bench's own process
+(:func:`work_per_step`: p50, p99, max of its slices, and the same work done
+at once), which other programs' real-time threads on a shared machine do not
+disturb as they do the loop's periods. Figures are reported, never asserted.
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-__all__ = ["time_weighted_percentile", "CUBE_EDGE", "SHAPE", "SLAB_TOP", "CUBE_LO", "WINDOW_S", "TRAJECTORY_S",
+__all__ = ["time_weighted_percentile", "work_per_step", "CUBE_EDGE", "SHAPE", "SLAB_TOP", "CUBE_LO", "WINDOW_S", "TRAJECTORY_S",
            "stall_case", "bench_stalls"]
 
 #: Grid of the synthetic case [voxels] (0.5 mm voxels).
@@ -111,6 +115,76 @@ def _figure(p_ms, setup: str, **extra) -> dict:
             "over_2ms": int((p_ms > 2.0).sum()), "target_ms": 1.1, "setup": setup, **extra}
 
 
+def _ms(values) -> dict:
+    v = np.asarray(values, np.float64) * 1e3
+    return {"p50_ms": round(float(np.median(v)), 3),
+            "p90_ms": round(float(np.percentile(v, 90)), 3),
+            "p99_ms": round(float(np.percentile(v, 99)), 3),
+            "max_ms": round(float(v.max()), 3), "steps": int(len(v))}
+
+
+def work_per_step(model) -> dict:
+    """The work each of the three commands adds to a world step, timed here in
+    this process (no loop, no real-time priority): per slice of the split
+    job, of the stroke, and of the fragment's measurement, and the same work
+    done at once. Returns ``{name: {"sliced": {...}, "at_once_ms": ...}}``."""
+    from bonesim.engine.cut_plane import advance_cuts, plane_pose, publish_cut, queue_cut
+    from bonesim.engine.cut_plane import quantize_size, rays_per_step
+    from bonesim.engine.fragments import publish_part
+    from bonesim.engine.model import make_state
+    from bonesim.engine.rigid_measure import MeasureJob, measure_budget
+    from bonesim.engine.rigid_set import body_samples
+    from bonesim.engine.split_jobs import advance_splits, queue_split
+
+    from bonesim.io.loading import warmup
+    from bonesim.runtime.rigid_commands import warmup_rigid
+
+    warmup()                                  # every kernel loaded, as the loop does
+    warmup_rigid()
+    clock = time.perf_counter
+    lo = np.asarray(CUBE_LO)
+    args = (CUBE_LO, lo - 1, lo + CUBE_EDGE, CUBE_EDGE ** 3)
+    st = make_state(model)
+    t0 = clock()
+    publish_part(st, 0, *args, 0.0)
+    split_once = clock() - t0
+    st = make_state(model)
+    queue_split(st, 0, *args)
+    split = []
+    while st.split_jobs:
+        t0 = clock()
+        advance_splits(st, 0.0)
+        split.append(clock() - t0)
+    t0 = clock()
+    body_samples(st, 1)
+    measure_once = clock() - t0
+    job, measure = MeasureJob(st, 1), []
+    while True:
+        t0 = clock()
+        done = job.advance(st, measure_budget(), 1024)
+        measure.append(clock() - t0)
+        if done:
+            break
+    face = lo[0] * SPACING_MM - 0.25
+    pose = plane_pose((face, (lo[1] + CUBE_EDGE / 2) * SPACING_MM,
+                       (lo[2] + CUBE_EDGE / 2) * SPACING_MM), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    st = make_state(model)
+    t0 = clock()
+    publish_cut(st, model.injury, pose, 20.0, 20.0, 5.0, 0.0)
+    cut_once = clock() - t0
+    st = make_state(model)
+    queue_cut(st, model.injury, quantize_size(20.0, 20.0, 5.0), pose, 0.0,
+              rays_per_step(5.0, SPACING_MM))
+    cut = []
+    while st.cut_jobs:
+        t0 = clock()
+        advance_cuts(st, 0.0)
+        cut.append(clock() - t0)
+    return {"split": {"sliced": _ms(split), "at_once_ms": round(split_once * 1e3, 3)},
+            "cut": {"sliced": _ms(cut), "at_once_ms": round(cut_once * 1e3, 3)},
+            "measure": {"sliced": _ms(measure), "at_once_ms": round(measure_once * 1e3, 3)}}
+
+
 def bench_stalls(quick=False) -> dict:
     """All the figures of the module docstring, from one loop run."""
     from bonesim.engine.bodies import body_voxel_counts
@@ -123,6 +197,7 @@ def bench_stalls(quick=False) -> dict:
     from bonesim.runtime.haptic_loop import HapticLoop
 
     model = stall_case(load_burr(DEFAULT_BURR))
+    work = work_per_step(model)
     # the loop runs until closed; the path ends (and holds) after TRAJECTORY_S
     loop = HapticLoop(model, burrs=(load_burr("cutting-7mm"),),
                       device=("scripted", _trajectory(TRAJECTORY_S)))
@@ -210,13 +285,15 @@ def bench_stalls(quick=False) -> dict:
     for name, p, ok, what, extra in (
             ("split_512k", split, split_ok, "SplitPart of the 512,000-voxel cube",
              {"voxels_moved": moved, "events": split_events,
-              "window": "the 1,000 periods from the command"}),
+              "window": "the 1,000 periods from the command",
+              "work_per_step": work["split"]}),
             ("cut_stroke", cut, cut_ok, "a 20 x 20 mm stroke 5 mm deep into the cube",
-             {"voxels_removed": cut_removed}),
+             {"voxels_removed": cut_removed, "work_per_step": work["cut"]}),
             ("burr_change", burr, burr_ok, "SetBurr to the 7 mm cutting burr, drilling on",
              {}),
             ("grab_512k", grab, grab_ok, "GrabBody of the split-off 512,000-voxel cube (its "
-             "contact samples and mass measured first)", {})):
+             "contact samples and mass measured first)",
+             {"work_per_step": work["measure"]})):
         f = _figure(p, f"{base}; {what}", done=bool(ok),
                     p99_vs_quiet=round(time_weighted_percentile(p, 99) / q99, 3), **extra,
                     **machine)
