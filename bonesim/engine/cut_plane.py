@@ -425,7 +425,7 @@ def rays_per_step(depth_mm: float, spacing_mm: float) -> int:
     """Whole rays of ``depth_mm`` [mm] a world step may walk: the
     ``[cut_plane] voxels_per_step`` budget of ``bonesim/data/slicing.toml``
     over the voxels one ray can cross (``sqrt(3) depth / h + 2``), at least 1."""
-    from bonesim.engine.split_jobs import voxels_per_step
+    from bonesim.engine.slicing import voxels_per_step
 
     cells = int(math.ceil(math.sqrt(3.0) * float(depth_mm) / float(spacing_mm))) + 2
     return max(1, voxels_per_step("cut_plane") // cells)

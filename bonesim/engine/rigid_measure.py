@@ -49,7 +49,7 @@ def stride(n: int, keep: int) -> np.ndarray:
 
 def measure_budget() -> int:
     """Solid voxels a world step may measure (``[rigid] voxels_per_step``)."""
-    from bonesim.engine.split_jobs import voxels_per_step
+    from bonesim.engine.slicing import voxels_per_step
 
     return voxels_per_step("rigid")
 

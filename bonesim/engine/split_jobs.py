@@ -4,8 +4,8 @@ The fragment finder's split (:class:`~bonesim.engine.world_commands.SplitPart`)
 flood-fills one part of a body and moves it into a new body. Done at once, a
 512,000-voxel part costs tens of milliseconds: dozens of haptic periods lost
 in one. A part larger than the budget (``[split] voxels_per_step`` of
-``bonesim/data/slicing.toml``, :func:`voxels_per_step`) therefore becomes a
-**split job** queued in the :class:`~bonesim.engine.model.State`
+``bonesim/data/slicing.toml``, :func:`bonesim.engine.slicing.voxels_per_step`)
+therefore becomes a **split job** queued in the :class:`~bonesim.engine.model.State`
 (``state.split_jobs``), and every :func:`~bonesim.engine.world.world_step`
 advances the queue by one **slice** (:func:`advance_splits`), after the
 step's commands and before the rigid and haptic steps.
@@ -49,41 +49,16 @@ woken as a rigid (:func:`filling`): its mass would be the part's so far.
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from numba import njit
 
 from bonesim.engine.events import SPLIT
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.haptics import push_event_kernel
+from bonesim.engine.slicing import voxels_per_step
 
-__all__ = ["SLICING_FILE", "voxels_per_step", "SplitJob", "queue_split", "advance_splits",
+__all__ = ["SplitJob", "queue_split", "advance_splits",
            "filling", "run_split"]
-
-#: The data file of the slice sizes (``bonesim/data``).
-SLICING_FILE = "slicing.toml"
-
-
-@lru_cache(maxsize=None)
-def voxels_per_step(table: str = "split") -> int:
-    """The budget of one world step [voxels]: ``voxels_per_step`` of table
-    ``table`` (``split``: voxels a split moves; ``cut_plane``: voxels a
-    stroke's rays walk; ``rigid``: voxels of a fragment measured,
-    :mod:`bonesim.engine.rigid_measure`) of :data:`SLICING_FILE`. A bad file is one
-    :class:`~bonesim.errors.BonesimError` line naming the file and field."""
-    from bonesim.resources import data_path
-    from bonesim.tomlfile import check_keys, get_number, read_toml
-
-    path = data_path(SLICING_FILE)
-    doc = read_toml(path)
-    check_keys(doc, ("split", "cut_plane", "rigid"), path, "top level",
-               required=("split", "cut_plane", "rigid"))
-    tab = doc[table]
-    check_keys(tab, ("voxels_per_step",), path, table, required=("voxels_per_step",))
-    return int(get_number(tab, "voxels_per_step", path, table, minimum=1,
-                          maximum=1 << 24, integer=True))
-
 
 class SplitJob:
     """One queued split (module docstring).
@@ -256,7 +231,8 @@ def advance_splits(state, t_s: float, budget: int | None = None) -> int:
     t_s : float
         The step's time [s] (the ``SPLIT`` records' time).
     budget : int, optional
-        Voxels expanded (and moved) this step; default :func:`voxels_per_step`.
+        Voxels expanded (and moved) this step; default
+        :func:`~bonesim.engine.slicing.voxels_per_step`.
 
     Returns
     -------

@@ -56,7 +56,8 @@ from bonesim.engine.haptics import P_RADIUS
 from bonesim.engine.model import reset_state
 from bonesim.engine.rigid import AFFIXED, KIND_PLATE, tool_push
 from bonesim.engine.rigid_set import publish_plate
-from bonesim.engine.split_jobs import queue_split, voxels_per_step
+from bonesim.engine.slicing import voxels_per_step
+from bonesim.engine.split_jobs import queue_split
 
 __all__ = ["TOOLS", "GRAB_REACH_MM", "WorldCommand", "Reset", "SetBurr", "SetTool",
            "SplitBox", "SplitPart", "SplitVoxels", "ShedVoxels", "MoveBody", "CutStroke",

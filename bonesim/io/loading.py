@@ -100,9 +100,10 @@ def warmup(burr=None) -> None:
 
     publish_part(s, 0, (3, 3, 0), (3, 3, 0), (3, 3, 0), 1, 0.0)
     publish_part(s, 0, (4, 4, 0), (4, 4, 0), (4, 4, 0), 1, 0.0, shed=True)
-    from bonesim.engine.split_jobs import run_split, voxels_per_step   # large splits' slices
+    from bonesim.engine.slicing import TABLES, voxels_per_step
+    from bonesim.engine.split_jobs import run_split            # a large split's slices
 
-    for table in ("split", "cut_plane", "rigid"):      # the slice sizes read once, now
+    for table in TABLES:                               # the slice sizes read once, now
         voxels_per_step(table)
     run_split(s, 0, (6, 6, 0), (6, 6, 0), (7, 7, 1), 8, 0.0, budget=2)
     from bonesim.engine.cut_plane import advance_cuts, plane_pose, publish_cut, queue_cut

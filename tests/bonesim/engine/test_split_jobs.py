@@ -16,8 +16,8 @@ from bonesim.engine.bodies import body_voxel_counts
 from bonesim.engine.fragments import publish_part, shed_voxels
 from bonesim.engine.model import Sample, make_model, make_state
 from bonesim.engine.replica import TissueReplica
-from bonesim.engine.split_jobs import (advance_splits, filling, queue_split, run_split,
-                                       voxels_per_step)
+from bonesim.engine.slicing import voxels_per_step
+from bonesim.engine.split_jobs import advance_splits, filling, queue_split, run_split
 from bonesim.engine.world import world_step
 from bonesim.engine.world_commands import Reset, SplitPart
 from bonesim.io.burrs import load_burr

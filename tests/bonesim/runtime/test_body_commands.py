@@ -242,7 +242,7 @@ def test_a_large_split_through_the_ring_is_sliced_recorded_and_replays_bit_for_b
     and ``bonesim replay --verify`` replays it bit for bit."""
     from bonesim.cli.main import main
     from bonesim.engine.bodies import body_voxel_counts
-    from bonesim.engine.split_jobs import voxels_per_step
+    from bonesim.engine.slicing import voxels_per_step
     from bonesim.runtime.commands import SplitPart
 
     path = tmp_path / "large_split.h5"

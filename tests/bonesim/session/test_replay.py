@@ -10,7 +10,7 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.engine.bodies import body_voxel_counts
 from bonesim.engine.model import make_model
-from bonesim.engine.split_jobs import voxels_per_step
+from bonesim.engine.slicing import voxels_per_step
 from bonesim.engine.world_commands import SplitPart
 from bonesim.io.burrs import load_burr
 from bonesim.io.trajectory import Trajectory
@@ -103,7 +103,7 @@ def test_a_run_with_sliced_strokes_and_a_split_under_way_together_replays_bit_fo
     report = verify(s, models=[model])
     assert report["ok"] and report["identical"], report
     # the slicing comes from the records, not from today's data file
-    import bonesim.engine.split_jobs as sj
+    import bonesim.engine.slicing as sj
 
     monkeypatch.setattr(sj, "voxels_per_step", lambda table="split": 7)
     report = verify(s, models=[model])
