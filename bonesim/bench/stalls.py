@@ -45,8 +45,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-__all__ = ["time_weighted_percentile", "work_per_step", "CUBE_EDGE", "SHAPE", "SLAB_TOP", "CUBE_LO", "WINDOW_S", "TRAJECTORY_S",
-           "stall_case", "bench_stalls"]
+__all__ = ["time_weighted_percentile", "work_per_step", "CUBE_EDGE", "SHAPE", "SLAB_TOP",
+           "CUBE_LO", "WINDOW_S", "TRAJECTORY_S", "stall_case", "bench_stalls"]
 
 #: Grid of the synthetic case [voxels] (0.5 mm voxels).
 SHAPE = (96, 96, 120)

@@ -274,7 +274,8 @@ def test_a_stroke_in_slices_removes_what_the_stroke_at_once_removes(model, off, 
         k += 1
         n_sliced += advance_cuts(sliced, 1.0 + k)
     assert n_sliced == n_once
-    n_rays = len(sample_offsets(8.0, model.spacing_mm)) * len(sample_offsets(6.0, model.spacing_mm))
+    h = model.spacing_mm
+    n_rays = len(sample_offsets(8.0, h)) * len(sample_offsets(6.0, h))
     assert k >= -(-n_rays // rays)
     a, b = once.tissue.read(h0), sliced.tissue.read(h0)
     assert b["kind"][0] == events.CUT and b["n"][0] == -rays and a["kind"][-1] == events.CUT
