@@ -106,7 +106,9 @@ def queue_split(state, src: int, seed, lo, hi, n_max: int, shed: bool = False) -
     Raises
     ------
     ValueError
-        ``n_max`` is not positive, or ``seed`` is not three voxel indices.
+        ``n_max`` is not positive, ``seed`` is not three voxel indices, or
+        no body id is free now (one taken before the job starts leaves the
+        part where it is, as a split at once would refuse it).
     """
     n_max = int(n_max)
     if n_max < 1:
@@ -114,6 +116,8 @@ def queue_split(state, src: int, seed, lo, hi, n_max: int, shed: bool = False) -
     seed = np.asarray(seed, np.int64)
     if seed.shape != (3,):
         raise ValueError(f"part: seed must be three voxel indices, got {seed.tolist()}")
+    if not shed and not (state.alive == 0).any():
+        raise ValueError(f"split: all {len(state.alive)} bodies are in use (max_bodies)")
     top = np.asarray(state.grid.shape, np.int64) - 1
     job = SplitJob(src, seed, np.clip(np.asarray(lo, np.int64), 0, top),
                    np.clip(np.asarray(hi, np.int64), 0, top), n_max, shed)
@@ -249,10 +253,13 @@ def advance_splits(state, t_s: float, budget: int | None = None) -> int:
     while jobs and budget > 0:
         job = jobs[0]
         if job.shed:                        # a speck: at once (fewer than the speck size)
-            done += publish_part(state, job.src, job.seed, job.lo, job.hi, job.n_max, t_s,
-                                 shed=True)[1]
-            budget -= job.n_max
             jobs.pop(0)
+            budget -= job.n_max
+            try:
+                done += publish_part(state, job.src, job.seed, job.lo, job.hi, job.n_max,
+                                     t_s, shed=True)[1]
+            except ValueError:              # larger than found: left as it is, as the
+                pass                        # command at once refuses it
             continue
         if job.dst < 0 and not _start(state, job):
             jobs.pop(0)

@@ -224,3 +224,21 @@ def test_removal_across_a_part_while_it_splits_loses_no_voxel():
     ev = st_.tissue.read(0)
     assert (ev["kind"] == events.SPLIT).sum() == len(half)
     assert len(events.removals(ev)["ijk"]) == st_.n_removed
+
+
+def test_queued_specks_are_shed_in_turn_and_one_larger_than_found_is_left():
+    m, corner, edge = _cube_case(edge=8)
+    st_ = make_state(m)
+    lo, hi = np.asarray(corner) - 1, np.asarray(corner) + edge
+    queue_split(st_, 0, corner, lo, hi, edge ** 3)            # the cube, in slices
+    queue_split(st_, 0, (0, 0, 0), (0, 0, 0), (1, 1, 1), 8, shed=True)      # 8 voxels
+    queue_split(st_, 0, (2, 2, 0), (2, 2, 0), (3, 3, 1), 3, shed=True)      # 8 > 3
+    n0 = body_voxel_counts(st_).sum()
+    q = 0
+    while st_.split_jobs:
+        advance_splits(st_, q * 1e-3, budget=64)
+        q += 1
+    assert st_.n_removed == 8 and body_voxel_counts(st_).sum() == n0 - 8
+    assert body_voxel_counts(st_)[1] == edge ** 3
+    rem = events.removals(st_.tissue.read(0))
+    assert rem["shed"].all() and len(rem["ijk"]) == 8
