@@ -19,7 +19,10 @@
     What the haptic loop spends, between two steps, on one
     :class:`~bonesim.runtime.commands.SplitPart` of a 20^3 (8000-voxel)
     fragment: the flood fill and the ``SPLIT`` records
-    (:func:`~bonesim.engine.fragments.publish_part`).
+    (:func:`~bonesim.engine.fragments.publish_part`), done at once. (The
+    loop now moves a part of more than ``[split] voxels_per_step`` voxels,
+    as this one, in slices over several steps: :mod:`bonesim.engine.split_jobs`,
+    and ``haptic_loop_period_split_512k_p99_ms`` in :mod:`bonesim.bench.stalls`.)
 
 Figures are wall-clock on whatever machine runs them; inputs are seeded.
 """

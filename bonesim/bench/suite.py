@@ -566,6 +566,10 @@ BENCHMARKS = {
     # the loop's period while a fragment moves, and still, in one run
     **_by_name(("haptic_loop_period_fragment_p99_ms", "haptic_loop_period_still_p99_ms"),
                "bonesim.bench.rigid:bench_rigid_loop"),
+    # the loop's period while a 512k-voxel part splits off, a stroke cuts, a burr changes
+    **_by_name(tuple(f"haptic_loop_period_{w}" for w in (
+        "split_512k_p99_ms", "split_512k_max_ms", "cut_stroke_p99_ms", "burr_change_p99_ms",
+        "grab_512k_p99_ms", "quiet_p99_ms")), "bonesim.bench.stalls:bench_stalls"),
     **_by_name("tutor_tracking_vs_ideal", "bonesim.bench.tutor_tracking:bench_tutor_tracking"),
     **_by_name("main_job_s", "bonesim.bench.tutor_tracking:bench_main_job"),
 }

@@ -291,20 +291,34 @@ def _members(keys, vals, body, density, ijk, src, keep):
     return n
 
 
-def publish_split(state, src: int, ijk, t_s: float, dst: int | None = None) -> tuple[int, int]:
+def publish_split(state, src: int, ijk, t_s: float, dst: int | None = None,
+                  ordered: bool = False) -> tuple[int, int]:
     """:func:`split_body` on a live state, published as ``SPLIT`` tissue events.
 
     One record per voxel that moved (``body`` the new body, ``ijk`` the
     voxel, ``n`` the voxels moved in all, ``value[0]`` the body split), in
     one block, so that every replica moves exactly the same voxels. Voxels
-    listed twice move (and are published) once.
+    listed twice move (and are published) once. A ``dst`` that exists
+    already takes the voxels (grows: a later block of a sliced split,
+    :mod:`bonesim.engine.split_jobs`).
+
+    Parameters
+    ----------
+    ordered : bool
+        Publish in the order of ``ijk`` (first listing of each voxel);
+        default: sorted in ``(i, j, k)`` order.
 
     Returns
     -------
     dst, n : int
         The new body (-1 when no voxel could move: nothing is published).
     """
-    ijk = np.unique(np.asarray(ijk, dtype=np.int32).reshape(-1, 3), axis=0)
+    ijk = np.asarray(ijk, dtype=np.int32).reshape(-1, 3)
+    if ordered:
+        _, first = np.unique(ijk, axis=0, return_index=True)
+        ijk = np.ascontiguousarray(ijk[np.sort(first)])
+    else:
+        ijk = np.unique(ijk, axis=0)
     g = state.grid
     keep = np.zeros(len(ijk), np.bool_)
     if not 0 <= src < len(state.alive) or not state.alive[src]:
@@ -313,7 +327,8 @@ def publish_split(state, src: int, ijk, t_s: float, dst: int | None = None) -> t
     if n == 0:
         return -1, 0
     moved = ijk[keep]
-    dst, n = split_body(state, src, moved, dst)
+    grow = dst is not None and 0 <= dst < len(state.alive) and bool(state.alive[dst])
+    dst, n = split_body(state, src, moved, dst, grow=grow)
     state.tissue.append(kind=np.full(n, SPLIT, np.uint8), body=np.full(n, dst, np.uint8),
                         label=np.zeros(n, np.uint8), t_s=np.full(n, float(t_s)),
                         ijk=moved, n=np.full(n, n, np.int32),

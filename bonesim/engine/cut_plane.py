@@ -50,6 +50,19 @@ centre), then one ``CUT`` record that describes the stroke: ``ijk`` the
 width, height and depth in micrometres, ``n`` the voxels removed, ``value``
 the pose. Replay re-applies a stroke from its ``CUT`` record
 (:func:`publish_cut_record`).
+
+Strokes in slices
+-----------------
+A stroke whose rays would walk more voxels than a world step may (the
+``[cut_plane] voxels_per_step`` of ``bonesim/data/slicing.toml``:
+:func:`rays_per_step` whole rays a step), or any stroke while one is under way,
+is done in slices (:func:`queue_cut`, :func:`advance_cuts`): its ``CUT``
+record comes first, at the command's step, with ``n`` = minus the rays per
+step (a stroke done at once has ``n`` >= 0, its voxels removed), and every
+following world step walks that many more rays, in the same order as at
+once (bodies by id, samples row by row), publishing that step's removals at
+its time; a body's ``INJURY`` records follow its last ray. The slicing is a
+fixed number of rays, so replay, reading ``n``, repeats it step for step.
 """
 from __future__ import annotations
 
@@ -67,7 +80,8 @@ from bonesim.engine.haptics import push_event_kernel
 
 __all__ = ["SAMPLES_PER_VOXEL", "SIZE_QUANTUM_MM", "MAX_SIZE_MM", "plane_pose",
            "plane_axes", "quantize_size", "sample_offsets", "cut_plane", "publish_cut",
-           "publish_cut_record"]
+           "publish_cut_record", "rays_per_step", "stroke_rays", "CutJob", "queue_cut",
+           "advance_cuts"]
 
 #: Ray samples per voxel edge along each in-plane axis (see the module docstring).
 SAMPLES_PER_VOXEL = 2
@@ -255,9 +269,12 @@ def _walk(keys, vals, density, label, body, b, y0, dy, length, lo, hi, t, remove
 
 
 @njit(cache=True, nogil=True)
-def _cut_kernel(keys, vals, density, label, body, alive, pose_m, bounds, shape, origin,
-                spacing, centre, axes, su, sv, depth, t, injury, removed_by_label, lost,
-                ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head):
+def _cut_slice(keys, vals, density, label, body, alive, pose_m, bounds, shape, origin,
+               spacing, centre, axes, su, sv, depth, t, injury, removed_by_label, lost,
+               cursor, budget, ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+               ev_head):
+    # rays from cursor (body, ray = p * len(sv) + q) on, at most ``budget`` of
+    # them; a body's INJURY records follow its last ray
     y0 = np.empty(3)
     dy = np.empty(3)
     cb = np.empty(3)
@@ -266,25 +283,33 @@ def _cut_kernel(keys, vals, density, label, body, alive, pose_m, bounds, shape, 
     nb = np.empty(3)
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
+    nv = sv.shape[0]
+    n_rays = su.shape[0] * nv
     total = 0
-    for b in range(alive.shape[0]):
+    done = 0
+    b = cursor[0]
+    r = cursor[1]
+    while b < alive.shape[0] and done < budget:
         if alive[b] == 0:
+            b += 1
+            r = 0
             continue
-        for lab in range(lost.shape[1]):
-            lost[b, lab] = 0
+        if r == 0:
+            for lab in range(lost.shape[1]):
+                lost[b, lab] = 0
         # the rectangle in the body's frame: R^T (p - t), axes R^T a
         for a in range(3):
             s = 0.0
-            for r in range(3):
-                s += pose_m[b, r, a] * (centre[r] - pose_m[b, r, 3])
+            for k in range(3):
+                s += pose_m[b, k, a] * (centre[k] - pose_m[b, k, 3])
             cb[a] = s
             su_ = 0.0
             sv_ = 0.0
             sn_ = 0.0
-            for r in range(3):
-                su_ += pose_m[b, r, a] * axes[0, r]
-                sv_ += pose_m[b, r, a] * axes[1, r]
-                sn_ += pose_m[b, r, a] * axes[2, r]
+            for k in range(3):
+                su_ += pose_m[b, k, a] * axes[0, k]
+                sv_ += pose_m[b, k, a] * axes[1, k]
+                sn_ += pose_m[b, k, a] * axes[2, k]
             ub[a] = su_
             vb[a] = sv_
             nb[a] = sn_
@@ -292,22 +317,29 @@ def _cut_kernel(keys, vals, density, label, body, alive, pose_m, bounds, shape, 
             hi[a] = min(bounds[b, 3 + a], shape[a] - 1)
             dy[a] = nb[a] / spacing
         if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
+            b += 1
+            r = 0
             continue
-        n_b = 0
-        for p in range(su.shape[0]):
-            for q in range(sv.shape[0]):
-                for a in range(3):
-                    y0[a] = (cb[a] + su[p] * ub[a] + sv[q] * vb[a] - origin[a]) / spacing + 0.5
-                n_b += _walk(keys, vals, density, label, body, b, y0, dy, depth, lo, hi, t,
-                             removed_by_label, lost, ev_kind, ev_body, ev_label, ev_t,
-                             ev_ijk, ev_n, ev_value, ev_head)
-        if n_b > 0:
+        while r < n_rays and done < budget:
+            p = r // nv
+            q = r - p * nv
+            for a in range(3):
+                y0[a] = (cb[a] + su[p] * ub[a] + sv[q] * vb[a] - origin[a]) / spacing + 0.5
+            total += _walk(keys, vals, density, label, body, b, y0, dy, depth, lo, hi, t,
+                           removed_by_label, lost, ev_kind, ev_body, ev_label, ev_t,
+                           ev_ijk, ev_n, ev_value, ev_head)
+            r += 1
+            done += 1
+        if r == n_rays:
             for lab in range(lost.shape[1]):
                 if lost[b, lab] > 0 and injury[lab] != 0:
                     push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
-                                ev_head, _EV_INJURY, b, lab, t, 0, 0, 0, lost[b, lab],
-                                centre[0], centre[1], centre[2])
-        total += n_b
+                                      ev_head, _EV_INJURY, b, lab, t, 0, 0, 0, lost[b, lab],
+                                      centre[0], centre[1], centre[2])
+            b += 1
+            r = 0
+    cursor[0] = b
+    cursor[1] = r
     return total
 
 
@@ -347,14 +379,19 @@ def cut_plane(state, injury, pose, width_mm: float, height_mm: float, depth_mm: 
     sv = sample_offsets(float(height_mm), g.spacing_mm)
     inj = np.ascontiguousarray(injury, dtype=np.uint8)
     lost = np.zeros((len(state.alive), len(inj)), np.int64)
+    return _run_slice(state, inj, p, axes, su, sv, float(depth_mm), float(t_s), lost,
+                      np.zeros(2, np.int64), 1 << 62)
+
+
+def _run_slice(state, inj, p, axes, su, sv, depth, t_s, lost, cursor, budget) -> int:
+    g = state.grid
     ev = state.tissue.fields
-    n = _cut_kernel(g.keys, g.vals, g.density, g.label, state.body, state.alive,
-                    state.pose_m, state.bounds, np.asarray(g.shape, np.int64), g.origin_mm,
-                    float(g.spacing_mm), np.ascontiguousarray(p[:3]), axes, su, sv,
-                    float(depth_mm), float(t_s), inj, state.removed_by_label, lost,
-                    ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
-                    ev["value"], state.tissue.head)
-    return int(n)
+    return int(_cut_slice(g.keys, g.vals, g.density, g.label, state.body, state.alive,
+                          state.pose_m, state.bounds, np.asarray(g.shape, np.int64),
+                          g.origin_mm, float(g.spacing_mm), np.ascontiguousarray(p[:3]), axes,
+                          su, sv, depth, t_s, inj, state.removed_by_label, lost, cursor,
+                          int(budget), ev["kind"], ev["body"], ev["label"], ev["t_s"],
+                          ev["ijk"], ev["n"], ev["value"], state.tissue.head))
 
 
 def publish_cut(state, injury, pose, width_mm: float, height_mm: float, depth_mm: float,
@@ -382,3 +419,73 @@ def publish_cut_record(state, injury, record_ijk, record_value, t_s: float) -> i
     um = np.asarray(record_ijk, np.int64)
     return publish_cut(state, injury, np.asarray(record_value, np.float64),
                        *(float(x) * SIZE_QUANTUM_MM for x in um), t_s)
+
+
+def rays_per_step(depth_mm: float, spacing_mm: float) -> int:
+    """Whole rays of ``depth_mm`` [mm] a world step may walk: the
+    ``[cut_plane] voxels_per_step`` budget of ``bonesim/data/slicing.toml``
+    over the voxels one ray can cross (``sqrt(3) depth / h + 2``), at least 1."""
+    from bonesim.engine.slicing import voxels_per_step
+
+    cells = int(math.ceil(math.sqrt(3.0) * float(depth_mm) / float(spacing_mm))) + 2
+    return max(1, voxels_per_step("cut_plane") // cells)
+
+
+def stroke_rays(size_um, spacing_mm: float) -> int:
+    """Rays of a stroke of sizes ``size_um`` (width, height, depth [um])."""
+    w, h = (float(x) * SIZE_QUANTUM_MM for x in np.asarray(size_um)[:2])
+    return len(sample_offsets(w, spacing_mm)) * len(sample_offsets(h, spacing_mm))
+
+
+class CutJob:
+    """A stroke done in slices (:func:`queue_cut`): its rectangle, rays per
+    step, per-body losses and its cursor (next body, next ray)."""
+
+    __slots__ = ("pose", "axes", "su", "sv", "depth", "injury", "rays", "lost", "cursor")
+
+    def __init__(self, state, injury, size_um, pose, rays: int):
+        g = state.grid
+        self.pose = validate_pose(pose)
+        self.axes = plane_axes(self.pose)
+        w, h, d = (float(x) * SIZE_QUANTUM_MM for x in np.asarray(size_um, np.int64))
+        self.su = sample_offsets(w, g.spacing_mm)
+        self.sv = sample_offsets(h, g.spacing_mm)
+        self.depth = d
+        self.injury = np.ascontiguousarray(injury, dtype=np.uint8)
+        self.rays = int(rays)
+        self.lost = np.zeros((len(state.alive), len(self.injury)), np.int64)
+        self.cursor = np.zeros(2, np.int64)
+
+
+def queue_cut(state, injury, size_um, pose, t_s: float, rays: int) -> CutJob:
+    """Publish a stroke's ``CUT`` record now, with ``n = -rays`` (a stroke in
+    slices of ``rays`` rays per world step; replay repeats the slicing from
+    it), and queue the stroke on ``state.cut_jobs``; the world steps walk it
+    (:func:`advance_cuts`), each slice's removals and a body's ``INJURY``
+    records (after its last ray) at that step's time.
+
+    Raises
+    ------
+    ValueError
+        A bad pose or size, or ``rays`` < 1.
+    """
+    if int(rays) < 1:
+        raise ValueError(f"cut plane: rays per step must be positive, got {rays}")
+    um = np.asarray(size_um, np.int64)
+    quantize_size(*(float(x) * SIZE_QUANTUM_MM for x in um))        # checks the sizes
+    job = CutJob(state, injury, um, pose, rays)
+    state.tissue.append(kind=[_EV_CUT], body=[0], label=[0], t_s=[float(t_s)],
+                        ijk=[um.astype(np.int32)], n=[-job.rays], value=[job.pose])
+    state.cut_jobs.append(job)
+    return job
+
+
+def advance_cuts(state, t_s: float) -> int:
+    """One slice of the first queued stroke (its ``rays`` rays), at ``t_s`` [s];
+    a stroke whose every body is walked leaves the queue. Returns voxels removed."""
+    job = state.cut_jobs[0]
+    n = _run_slice(state, job.injury, job.pose, job.axes, job.su, job.sv, job.depth,
+                   float(t_s), job.lost, job.cursor, job.rays)
+    if job.cursor[0] >= len(state.alive):
+        state.cut_jobs.pop(0)
+    return n

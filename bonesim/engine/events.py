@@ -63,7 +63,8 @@ TISSUE_EVENT_VERSION = 2
 REMOVED, CONTACT, INJURY, RESET, BURR, SPLIT, POSE = range(7)
 KIND_NAMES = ("removed", "contact", "injury", "reset", "burr", "split", "pose")
 # a cut-plane stroke (bonesim.engine.cut_plane): ``ijk`` its width, height and
-# depth [um], ``n`` the voxels it removed, ``value`` its pose; after its removals
+# depth [um], ``n`` the voxels it removed, ``value`` its pose; after its removals.
+# A stroke done in slices (large): before its removals, ``n`` = -(rays per step)
 CUT = 7
 KIND_NAMES = KIND_NAMES + ("cut",)
 #: A plate's or distractor's pose (:mod:`bonesim.engine.rigid`): ``body`` the

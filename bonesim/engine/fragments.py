@@ -39,6 +39,9 @@ its margin and labels again, until it decides or its box is the body's box
 
 Labelling is connected-components-3d (``cc3d``), checked in the tests
 against :func:`scipy.ndimage.label`.
+
+:func:`publish_part` carries a part out at once; a large part is carried out
+in slices, one per world step, by :mod:`bonesim.engine.split_jobs`.
 """
 from __future__ import annotations
 

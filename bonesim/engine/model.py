@@ -335,6 +335,13 @@ class State:
         The fragments and plates in motion, stepped by
         :func:`bonesim.engine.world.world_step`; None: this run has no rigid
         motion of its own (a replay applies the recorded poses instead).
+    split_jobs : list of SplitJob
+        Large splits under way, first in first out, advanced by one bounded
+        slice per world step (:mod:`bonesim.engine.split_jobs`); a reset
+        drops them.
+    cut_jobs : list of CutJob
+        Cut-plane strokes under way, likewise
+        (:func:`bonesim.engine.cut_plane.advance_cuts`).
     """
 
     grid: Grid
@@ -357,6 +364,8 @@ class State:
     burr: int = 0
     tool: int = 0
     rigid: RigidSet | None = None
+    split_jobs: list = field(default_factory=list)
+    cut_jobs: list = field(default_factory=list)
     # kernel scratch
     _R: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     _n_vox: int = 0
@@ -487,6 +496,8 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
     init_bodies(state.body, state.pose, state.pose_m, state.alive, state.bounds,
                 model.grid.shape)
     state._one_body = True
+    state.split_jobs.clear()
+    state.cut_jobs.clear()
     state.removed_by_label[:] = 0
     if rings:
         for ring in (state.tissue, state.touched):

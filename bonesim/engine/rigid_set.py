@@ -13,6 +13,8 @@ import math
 import numpy as np
 from numba import njit
 
+from bonesim.engine.rigid_measure import MeasureJob, measure_budget, needs_slices
+from bonesim.engine.rigid_measure import stride as _stride
 from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_SHARE,
                                   DAMPING_RATIO,
                                   DEFAULT_GRAVITY_DIR, DRAG_TIME_S, DYNAMIC,
@@ -59,13 +61,6 @@ def _body_voxels(keys, vals, body, density, bid, lo, hi, ijk, surf, nrm):
                     nrm[n, 0], nrm[n, 1], nrm[n, 2] = gx / gn, gy / gn, gz / gn
                 n += 1
     return n
-
-
-def _stride(n: int, keep: int) -> np.ndarray:
-    """``keep`` of ``n`` indices, evenly spread (all when ``n <= keep``)."""
-    if n <= keep:
-        return np.arange(n)
-    return (np.arange(keep) * n) // keep
 
 
 def body_samples(state, b: int, max_samples: int = MAX_SAMPLES) -> dict:
@@ -254,6 +249,8 @@ class RigidSet:
         self.body_slot = np.full(int(max_bodies), -1, np.int32)
         self._pushed = False
         self._any = False                        # some slot holds a rigid
+        self._measuring = {}                     # body -> MeasureJob (large fragments)
+        self._grab_after = set()                 # grabbed while being measured
         self.last_plate = -1                     # the plate placed last
         self.tool = np.zeros(3)
         self._cand = np.zeros(MAX_CAND, np.int32)
@@ -274,6 +271,8 @@ class RigidSet:
         self._pushed = False
         self._any = False
         self.last_plate = -1
+        self._measuring.clear()
+        self._grab_after.clear()
 
     @property
     def active(self) -> bool:
@@ -321,15 +320,32 @@ class RigidSet:
         """Let fragment ``b`` move (gravity, contact, the tool); returns its slot.
 
         Its samples and mass are computed now (from its current voxels) the
-        first time; a sleeping fragment only wakes.
+        first time; a sleeping fragment only wakes. A body a split job is
+        still filling raises ``ValueError`` (it stays put until whole), and
+        so does a large body the first time (:mod:`bonesim.engine.rigid_measure`:
+        it is measured in slices by the next steps, and wakes when asked
+        again after that).
         """
+        if any(j.dst == b for j in getattr(state, "split_jobs", ())):
+            raise ValueError(f"body {b} is still being split off "
+                             "(bonesim.engine.split_jobs): it cannot move yet")
         s = self.slot_of(b)
         if s >= 0:
             if self.mode[s] == ASLEEP:
                 self.mode[s] = DYNAMIC
                 self.calm[s] = 0
             return s
-        d = body_samples(state, b, self.max_samples)
+        job = self._measuring.get(b)
+        if job is None and needs_slices(state, b):
+            job = self._measuring[b] = MeasureJob(state, b)
+        if job is not None:
+            if not job.done:
+                raise ValueError(f"body {b} is being measured ({job.progress:.0%} of its "
+                                 "box, bonesim.engine.rigid_measure): it moves once done")
+            del self._measuring[b]
+            d = job.result
+        else:
+            d = body_samples(state, b, self.max_samples)
         s = self._free_slot()
         self._fill(s, d["smp"], d["nrm"], d["mass_kg"], d["com_mm"], d["inertia"],
                    FRAGMENT_STIFFNESS_N_MM_PER_KG * d["mass_kg"])
@@ -380,6 +396,19 @@ class RigidSet:
         self.mode[s] = DYNAMIC
         self.last_plate = s
         return s
+
+    def grab_body(self, state, b: int, tool_mm) -> None:
+        """Fragment ``b`` follows the tool: now, or, while it is being
+        measured (:mod:`bonesim.engine.rigid_measure`), at the step its
+        measurement completes (where the tool is then)."""
+        try:
+            s = self.wake_body(state, b)
+        except ValueError:
+            if b not in self._measuring:
+                raise
+            self._grab_after.add(b)
+            return
+        self.grab(state, s, tool_mm)
 
     def grab(self, state, s: int, tool_mm) -> None:
         """Slot ``s`` follows the tool (kept at its present offset from it)."""
@@ -507,6 +536,23 @@ class RigidSet:
         out[:3] += float(length_mm) * (m[:, :3] @ self.axis[s])
         return out
 
+    def _measure_slice(self, state, tool_mm) -> None:
+        """One slice of the first measurement under way; a grab that waited
+        for it is carried out when it completes."""
+        for b, job in self._measuring.items():
+            if job.done:
+                continue
+            try:
+                done = job.advance(state, measure_budget(), self.max_samples)
+            except ValueError:                  # no bone left: nothing to move
+                del self._measuring[b]
+                self._grab_after.discard(b)
+                return
+            if done and b in self._grab_after:
+                self._grab_after.discard(b)
+                self.grab(state, self.wake_body(state, b), tool_mm)
+            return
+
     # --------------------------------------------------------------- step
     def advance(self, state, t_s: float, tool_mm, drill: bool, tool_radius_mm: float,
                 tool_gain_n_mm3: float) -> int:
@@ -523,6 +569,8 @@ class RigidSet:
         int
             Poses published.
         """
+        if self._measuring:                     # a large fragment: one slice per step
+            self._measure_slice(state, tool_mm)
         many = not state._one_body
         if not many and not self._any:
             return 0

@@ -6,7 +6,9 @@ haptic loop (:mod:`bonesim.runtime.haptic_loop`), headless runs
 (:mod:`bonesim.session.replay`). It
 
 1. applies the commands given for this step (:mod:`bonesim.engine.world_commands`),
-   in order, as state transitions at the sample's time;
+   in order, as state transitions at the sample's time, then one bounded
+   slice of the queued large splits (:mod:`bonesim.engine.split_jobs`) and
+   one of the queued large cut-plane strokes (:mod:`bonesim.engine.cut_plane`);
 2. steps the rigid bodies (:meth:`bonesim.engine.rigid_set.RigidSet.advance`:
    the stopped tool pushes fragments, grabbed rigids follow it, everything
    in motion falls and rests; every pose change a ``POSE`` or ``PLATE``
@@ -19,12 +21,16 @@ Everything it changes is in the :class:`~bonesim.engine.model.State`, so
 the same model, the same samples and the same commands give the same
 tissue events and forces, bit for bit, in any of those runs. Without
 commands and without rigids in motion it is the haptic step plus a few
-comparisons, and allocates nothing.
+comparisons, and allocates nothing. The slices of a large split are a fixed
+number of voxels per step, so they too are a function of the model, the
+samples and the commands only.
 """
 from __future__ import annotations
 
 from bonesim.engine.haptics import P_K_LOW, P_RADIUS
 from bonesim.engine.model import Model, Sample, State, step
+from bonesim.engine.cut_plane import advance_cuts
+from bonesim.engine.split_jobs import advance_splits
 
 __all__ = ["world_step", "apply_commands"]
 
@@ -102,6 +108,10 @@ def world_step(model: Model, state: State, sample: Sample, commands=(),
     t = float(sample.t_s)
     if commands:
         apply_commands(model, state, commands, t, on_error)
+    if state.split_jobs:                   # a large split: one bounded slice per step
+        advance_splits(state, t)
+    if state.cut_jobs:                     # a large cut-plane stroke: likewise
+        advance_cuts(state, t)
     rs = state.rigid
     if rs is not None:                     # poses published before the step
         p = model.burr_params[state.burr]

@@ -49,12 +49,15 @@ import numpy as np
 
 from bonesim.engine import events
 from bonesim.engine.bodies import publish_pose, publish_split, publish_split_box
-from bonesim.engine.cut_plane import publish_cut_record
+from bonesim.engine.cut_plane import (SIZE_QUANTUM_MM, publish_cut_record, queue_cut,
+                                       rays_per_step, stroke_rays)
 from bonesim.engine.fragments import publish_part, shed_voxels
 from bonesim.engine.haptics import P_RADIUS
 from bonesim.engine.model import reset_state
 from bonesim.engine.rigid import AFFIXED, KIND_PLATE, tool_push
 from bonesim.engine.rigid_set import publish_plate
+from bonesim.engine.slicing import voxels_per_step
+from bonesim.engine.split_jobs import queue_split
 
 __all__ = ["TOOLS", "GRAB_REACH_MM", "WorldCommand", "Reset", "SetBurr", "SetTool",
            "SplitBox", "SplitPart", "SplitVoxels", "ShedVoxels", "MoveBody", "CutStroke",
@@ -161,7 +164,10 @@ class SplitPart(WorldCommand):
     the 26-connected part of body ``body`` holding voxel ``seed``, inside
     ``lo .. hi``, at most ``n`` voxels, becomes a new body, or with ``shed``
     is removed as dust. A command of another epoch than the state's (found
-    before a reset) does nothing."""
+    before a reset) does nothing. A part of more voxels than a world step's
+    split budget, and any part while split jobs are queued, is queued as a
+    split job and done in slices by the next world steps
+    (:mod:`bonesim.engine.split_jobs`)."""
 
     body: int
     seed: tuple
@@ -174,6 +180,11 @@ class SplitPart(WorldCommand):
     def apply(self, model, state, t_s: float) -> None:
         if int(self.epoch) != state.epoch:
             return                          # found before a reset: nothing of it is left
+        if state.split_jobs or (not self.shed and int(self.n) > voxels_per_step()):
+            # a large part (or any behind one): in slices, one per world step
+            queue_split(state, int(self.body), self.seed, self.lo, self.hi, int(self.n),
+                        shed=bool(self.shed))
+            return
         publish_part(state, int(self.body), np.asarray(self.seed, np.int64),
                      np.asarray(self.lo, np.int64), np.asarray(self.hi, np.int64),
                      int(self.n), t_s, shed=bool(self.shed))
@@ -182,14 +193,18 @@ class SplitPart(WorldCommand):
 @dataclass(frozen=True, eq=False)
 class SplitVoxels(WorldCommand):
     """Voxels ``ijk`` (n, 3) of body ``src`` become body ``body``
-    (:func:`~bonesim.engine.bodies.publish_split`; a recorded split)."""
+    (:func:`~bonesim.engine.bodies.publish_split`; a recorded split). With
+    ``ordered`` the records keep the order of ``ijk`` (replay: a sliced
+    split's block as recorded); a ``body`` that exists already grows (the
+    later blocks of a sliced split, :mod:`bonesim.engine.split_jobs`)."""
 
     src: int
     ijk: np.ndarray
     body: int | None = None
+    ordered: bool = False
 
     def apply(self, model, state, t_s: float) -> None:
-        publish_split(state, int(self.src), self.ijk, t_s, self.body)
+        publish_split(state, int(self.src), self.ijk, t_s, self.body, ordered=self.ordered)
 
 
 @dataclass(frozen=True, eq=False)
@@ -223,14 +238,26 @@ class MoveBody(WorldCommand):
 class CutStroke(WorldCommand):
     """One stroke of the cut plane (:mod:`bonesim.engine.cut_plane`): the
     rectangle at ``pose`` (case frame), ``size_um`` = (width, height, depth)
-    [um], removing every voxel its rays pass (removals and a ``CUT`` record)."""
+    [um], removing every voxel its rays pass (removals and a ``CUT`` record).
+    ``rays_per_step``: None (live) walks a stroke larger than a step's budget,
+    or any stroke while one is under way, in slices over the next world steps
+    (:func:`~bonesim.engine.cut_plane.queue_cut`); 0 at once; ``k`` > 0 in
+    slices of ``k`` rays (replay, from the ``CUT`` record's ``n = -k``)."""
 
     pose: np.ndarray
     size_um: np.ndarray
+    rays_per_step: int | None = None
 
     def apply(self, model, state, t_s: float) -> None:
-        publish_cut_record(state, model.injury, np.asarray(self.size_um, np.int64),
-                           np.asarray(self.pose, np.float64), t_s)
+        um = np.asarray(self.size_um, np.int64)
+        rays = self.rays_per_step
+        if rays is None:                   # live: in slices if large, or behind one
+            per = rays_per_step(float(um[2]) * SIZE_QUANTUM_MM, model.spacing_mm)
+            rays = per if state.cut_jobs or stroke_rays(um, model.spacing_mm) > per else 0
+        if rays:
+            queue_cut(state, model.injury, um, np.asarray(self.pose, np.float64), t_s, rays)
+        else:
+            publish_cut_record(state, model.injury, um, np.asarray(self.pose, np.float64), t_s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,7 +276,9 @@ class PlateRecord(WorldCommand):
 class Grab(WorldCommand):
     """Fragment ``body`` follows the tool; ``body=-1``: the fragment the tool
     (at its last stepped position) touches, else the nearest free plate
-    within :data:`GRAB_REACH_MM` of the burr's surface."""
+    within :data:`GRAB_REACH_MM` of the burr's surface. A large fragment not
+    yet measured follows from the step its measurement completes
+    (:mod:`bonesim.engine.rigid_measure`)."""
 
     body: int = -1
 
@@ -263,7 +292,7 @@ class Grab(WorldCommand):
             if push[:, 6].max() > 0.0:
                 b = int(np.argmax(push[:, 6]))
         if b >= 1:
-            rs.grab(state, rs.wake_body(state, b), tool)
+            rs.grab_body(state, b, tool)        # a large fragment: once measured
             return
         best, best_d = -1, math.inf
         for s in np.flatnonzero((rs.kind == KIND_PLATE) & (rs.mode != 0)

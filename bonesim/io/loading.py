@@ -100,6 +100,19 @@ def warmup(burr=None) -> None:
 
     publish_part(s, 0, (3, 3, 0), (3, 3, 0), (3, 3, 0), 1, 0.0)
     publish_part(s, 0, (4, 4, 0), (4, 4, 0), (4, 4, 0), 1, 0.0, shed=True)
+    from bonesim.engine.slicing import TABLES, voxels_per_step
+    from bonesim.engine.split_jobs import run_split            # a large split's slices
+
+    for table in TABLES:                               # the slice sizes read once, now
+        voxels_per_step(table)
+    run_split(s, 0, (6, 6, 0), (6, 6, 0), (7, 7, 1), 8, 0.0, budget=2)
+    from bonesim.engine.cut_plane import advance_cuts, plane_pose, publish_cut, queue_cut
+
+    pose = plane_pose((3.0, 3.0, 4.0), (0.0, 0.0, -1.0))      # a stroke, at once and sliced
+    publish_cut(s, m.injury, pose, 1.0, 1.0, 1.0, 0.0)
+    queue_cut(s, m.injury, np.array([1000, 1000, 1000]), pose, 0.0, 2)
+    while s.cut_jobs:
+        advance_cuts(s, 0.0)
     set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
     step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))

@@ -511,8 +511,13 @@ class SplitPart(Command):
     part is that part or a piece of it. The loop publishes the voxels it
     moved as ``SPLIT`` events (in ``(i, j, k)`` order, as
     :func:`~bonesim.engine.bodies.publish_split` does): replicas and replay
-    move exactly those. A command of an earlier epoch (a reset came between)
-    does nothing; a part larger than ``n`` voxels is refused."""
+    move exactly those. A part of more than a step's split budget (``n``
+    above ``[split] voxels_per_step`` of ``bonesim/data/slicing.toml``), or
+    any part while such a split is under way, is moved in slices by the
+    next steps, one block of ``SPLIT`` events (in fill order) per step
+    (:mod:`bonesim.engine.split_jobs`). A command of an earlier epoch (a
+    reset came between) does nothing; a part larger than ``n`` voxels is
+    refused (in slices: the fill stops at ``n``)."""
 
     kind, name = 30, "split_part"
     shed = False
@@ -555,7 +560,9 @@ class CutPlane(Command):
     :func:`~bonesim.engine.cut_plane.plane_pose` builds one from a centre and a
     normal), ``width_mm`` x ``height_mm``, whose rays go ``depth_mm`` along
     its normal and remove every voxel they pass, in every body. Published as
-    removals and a ``CUT`` record, so replay repeats it."""
+    removals and a ``CUT`` record, so replay repeats it. A stroke larger than
+    a step's budget is walked in slices by the next steps (its ``CUT`` record
+    first: :mod:`bonesim.engine.cut_plane`)."""
 
     kind, name = 21, "cut_plane"
 

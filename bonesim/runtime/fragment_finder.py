@@ -19,7 +19,10 @@ While commands it asked for are on their way (queued, or sent and not yet
 taken by the loop), the finder keeps reading removals but does not look for
 parts: its replica must show the loop's splits first, or it would find the
 same part twice (harmless: a part already gone moves nothing) or choose a
-keeper among parts that already left.
+keeper among parts that already left. A large part is moved by the loop in
+slices over several steps (:mod:`bonesim.engine.split_jobs`); a part the
+finder finds meanwhile in what is left of it is queued behind the split and
+moves nothing (its voxels have gone to the new body by then).
 """
 from __future__ import annotations
 

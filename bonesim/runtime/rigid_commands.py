@@ -174,3 +174,6 @@ def warmup_rigid() -> None:
         pass
     rs.advance(st, 0.003, tool, True, 2.0, 1.0)
     publish_plate(st, rs, p, 0.003)
+    from bonesim.engine.rigid_measure import MeasureJob      # a large fragment's slices
+
+    MeasureJob(st, 1).advance(st, 4, 8)

@@ -170,7 +170,10 @@ def _body_commands(tissue: dict) -> list:
             q = e
             continue
         if kind[i] == events.CUT:
-            out.append((t, CutStroke(tissue["value"][i].copy(), tissue["ijk"][i].copy())))
+            # n >= 0: done at once; n = -k: in slices of k rays per step
+            k = int(tissue["n"][i])
+            out.append((t, CutStroke(tissue["value"][i].copy(), tissue["ijk"][i].copy(),
+                                     rays_per_step=-k if k < 0 else 0)))
             q += 1
             continue
         if kind[i] == events.PLATE:
@@ -183,13 +186,14 @@ def _body_commands(tissue: dict) -> list:
             out.append((t, MoveBody(body, tissue["value"][i].copy())))
             q += 1
             continue
-        # one split: consecutive records of one new body
+        # one split (or one slice of a large one, bonesim.engine.split_jobs):
+        # consecutive records of one new body and one time, in recorded order
         e = q
         while e < len(idx) and idx[e] == i + (e - q) and kind[idx[e]] == events.SPLIT \
-                and int(tissue["body"][idx[e]]) == body:
+                and int(tissue["body"][idx[e]]) == body and tissue["t_s"][idx[e]] == t:
             e += 1
         src = int(tissue["value"][i, 0])
-        out.append((t, SplitVoxels(src, tissue["ijk"][idx[q:e]].copy(), body)))
+        out.append((t, SplitVoxels(src, tissue["ijk"][idx[q:e]].copy(), body, ordered=True)))
         q = e
     return out
 
@@ -232,8 +236,14 @@ def coverage(session: Session) -> dict:
             "short": "; ".join(why) or None}
 
 
-def verify(session: Session, progress=None) -> dict:
+def verify(session: Session, progress=None, models=None) -> dict:
     """Replay ``session`` and compare with the recording bit for bit.
+
+    Parameters
+    ----------
+    models : list of Model, optional
+        As :func:`replay`'s (a run on a model built in memory, whose case no
+        file names); default the session's own.
 
     Returns
     -------
@@ -249,7 +259,7 @@ def verify(session: Session, progress=None) -> dict:
                 "tissue_match": False, "forces_match": False, "first_mismatch": None,
                 "removals_recorded": 0, "removals_replayed": 0, "events_recorded": 0,
                 "events_replayed": 0, "ok": False}
-    out = replay(session, progress=progress)
+    out = replay(session, models=models, progress=progress)
     rec = {k: a for k, a in session.tissue.items() if k != "visible"}
     s = session.samples
     if not session.complete and len(s["t_s"]):

@@ -246,3 +246,86 @@ def test_plane_pose_axes():
     np.testing.assert_allclose(ax[0], (1, 0, 0), atol=1e-12)
     np.testing.assert_allclose(ax[2], (0, 0, -1), atol=1e-12)
     np.testing.assert_allclose(ax @ ax.T, np.eye(3), atol=1e-12)
+
+
+@settings(max_examples=15, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(off=offset, q=quat, rays=hs.sampled_from([1, 3, 17, 400]), moved=hs.booleans())
+def test_a_stroke_in_slices_removes_what_the_stroke_at_once_removes(model, off, q, rays,
+                                                                    moved):
+    """queue_cut + one advance_cuts per step: the same removals in the same
+    order, the same injuries (each after its body's last ray), the same
+    tissue; the CUT record first, with n = -(rays per step)."""
+    from bonesim.engine.cut_plane import advance_cuts, queue_cut
+
+    once, sliced = make_state(model), make_state(model)
+    c = _centre(model)
+    for st in (once, sliced):
+        if moved:                    # a second body, moved: both are cut in their frames
+            publish_split_box(st, 0, (0, 0, 0), (60, 104, 104), 0.0)
+            publish_pose(st, 1, (0.5, -0.3, 0.2, *pose_matrix_q(0.2)), 0.0)
+    pose = _random_pose(c, [*off, *q])
+    um = quantize_size(8.0, 6.0, 5.0)
+    h0 = once.tissue.count
+    n_once = publish_cut(once, model.injury, pose, 8.0, 6.0, 5.0, 1.0)
+    queue_cut(sliced, model.injury, um, pose, 1.0, rays)
+    n_sliced, k = 0, 0
+    while sliced.cut_jobs:
+        k += 1
+        n_sliced += advance_cuts(sliced, 1.0 + k)
+    assert n_sliced == n_once
+    h = model.spacing_mm
+    n_rays = len(sample_offsets(8.0, h)) * len(sample_offsets(6.0, h))
+    assert k >= -(-n_rays // rays)
+    a, b = once.tissue.read(h0), sliced.tissue.read(h0)
+    assert b["kind"][0] == events.CUT and b["n"][0] == -rays and a["kind"][-1] == events.CUT
+    assert a["n"][-1] == n_once
+    np.testing.assert_array_equal(a["ijk"][-1], b["ijk"][0])
+    np.testing.assert_array_equal(a["value"][-1], b["value"][0])
+    for f in ("kind", "body", "label", "ijk", "n", "value"):
+        np.testing.assert_array_equal(a[f][:-1], b[f][1:], err_msg=f)
+    np.testing.assert_array_equal(once.grid.density, sliced.grid.density)
+    np.testing.assert_array_equal(once.removed_by_label, sliced.removed_by_label)
+    # each step's removals come from at most `rays` rays: no more than rays x the longest ray
+    rem = b["kind"] == events.REMOVED
+    if rem.any():
+        _, per_step = np.unique(b["t_s"][rem], return_counts=True)
+        assert per_step.max() <= rays * (int(np.ceil(np.sqrt(3) * 5.0 / model.spacing_mm)) + 2)
+
+
+def pose_matrix_q(angle):
+    """A unit quaternion (w, x, y, z) of ``angle`` [rad] about z."""
+    return (float(np.cos(angle / 2)), 0.0, 0.0, float(np.sin(angle / 2)))
+
+
+def test_a_large_stroke_through_the_world_step_is_sliced_and_one_behind_it_waits(model):
+    from bonesim.engine.cut_plane import rays_per_step, stroke_rays
+    from bonesim.engine.model import Sample
+    from bonesim.engine.world import world_step
+    from bonesim.engine.world_commands import CutStroke, Reset
+
+    st = make_state(model)
+    c = _centre(model)
+    um = quantize_size(20.0, 20.0, 5.0)
+    per = rays_per_step(5.0, model.spacing_mm)
+    assert stroke_rays(um, model.spacing_mm) > per
+    small = quantize_size(1.0, 1.0, 1.0)
+    assert stroke_rays(small, model.spacing_mm) <= per
+    away = Sample(0.0, c + 200.0, np.array([0.0, 0.0, -1.0]), False, 0.0, 1)
+    pose = plane_pose(c + (0, 0, 3), (0, 0, -1))
+    world_step(model, st, away, (CutStroke(pose, um), CutStroke(pose, small)))
+    assert len(st.cut_jobs) == 2          # the small one waits behind the large one
+    ev = st.tissue.read(0)
+    assert (ev["kind"][:2] == events.CUT).all()
+    assert ev["n"].tolist()[:2] == [-per, -rays_per_step(1.0, model.spacing_mm)]
+    q = 1
+    while st.cut_jobs:
+        world_step(model, st, away._replace(t_s=q * 1e-3))
+        q += 1
+    assert q > 2
+    # at once when nothing is under way; a reset drops a stroke under way
+    h = st.tissue.count
+    world_step(model, st, away._replace(t_s=1.0), (CutStroke(pose, small),))
+    assert not st.cut_jobs and st.tissue.read(h)["kind"][-1] == events.CUT
+    world_step(model, st, away._replace(t_s=1.1), (CutStroke(pose, um), Reset()))
+    assert not st.cut_jobs

@@ -231,3 +231,66 @@ def test_playback_shows_each_body_where_it_stands(split_run, model):
     assert (d > 0).all()
     centres = g1.origin_mm + g1.spacing_mm * ijk
     assert np.abs(s1.pos[s1.vertex_slots] - centres).max() < g1.spacing_mm
+
+
+def test_a_large_split_through_the_ring_is_sliced_recorded_and_replays_bit_for_bit(
+        model, tmp_path):
+    """The half of the phantom beyond a plane through the drilled spot becomes
+    body 1 (a box split); then the fragment finder's command moves all of
+    body 1 into body 2 (a part far larger than a step's budget: in slices,
+    one block of SPLIT events per step) while the burr drills on; recorded,
+    and ``bonesim replay --verify`` replays it bit for bit."""
+    from bonesim.cli.main import main
+    from bonesim.engine.bodies import body_voxel_counts
+    from bonesim.engine.slicing import voxels_per_step
+    from bonesim.runtime.commands import SplitPart
+
+    path = tmp_path / "large_split.h5"
+    target, view = _target()
+    hi = np.array(model.grid.shape) - 1
+    loop = HapticLoop(model)
+    rec = Recorder(loop, path, make_header(model, input_device="mouse"))
+    try:
+        rec.start()
+        loop.start()
+        loop.set_target(target, view)
+        loop.set_drill(True, speed_rpm=60000.0)
+        assert wait_until(lambda: loop.state.n_removed > 20)
+        at = np.asarray(loop.status["pos_mm"], float)
+        lo = np.rint((at - model.grid.origin_mm) / model.spacing_mm).astype(int)
+        lo[AXIS_CUT - 1] = lo[AXIS_CUT - 2] = 0
+        loop.send(SplitBox, lo=lo, hi=hi, body=0)
+        assert wait_until(lambda: loop.state.n_bodies == 2)
+        n1 = int(body_voxel_counts(loop.state)[1])
+        assert n1 > 10 * voxels_per_step()
+        b1 = loop.state.bounds[1]
+        # a voxel of body 1 with bone: the first of its box in (i, j, k) order
+        from bonesim.engine.fragments import body_mask
+
+        seed = np.argwhere(body_mask(loop.state, 1, b1[:3], b1[3:]))[0] + b1[:3]
+        h0 = loop.state.tissue.count
+        loop.send(SplitPart, body=1, seed=seed, lo=b1[:3], hi=b1[3:], n=n1, epoch=0)
+        loop.set_target(target + 4.0 * view, view)        # on into the bone meanwhile
+        assert wait_until(lambda: loop.state.n_bodies == 3)
+        seen = [-1]
+
+        def settled():                    # no SPLIT record for 0.1 s: the split is done
+            import time
+            time.sleep(0.1)
+            ev = loop.state.tissue.read(h0)
+            n2 = int(((ev["kind"] == events.SPLIT) & (ev["body"] == 2)).sum())
+            done, seen[0] = n2 == seen[0], n2
+            return done
+        assert wait_until(settled, 60.0)
+        loop.set_drill(False)
+        assert wait_drill_off(loop)
+        rec.close()
+    finally:
+        loop.close()
+    s = read_session(path)
+    ev = s.tissue
+    split2 = (ev["kind"] == events.SPLIT) & (ev["body"] == 2)
+    assert split2.sum() == seen[0] > 10 * voxels_per_step()
+    steps = np.unique(ev["t_s"][split2])
+    assert len(steps) >= split2.sum() // (voxels_per_step() + 26)   # one block per step
+    assert main(["replay", str(path), "--verify"]) == 0
