@@ -76,6 +76,11 @@ __all__ = ["STATUS", "CONTROL", "PERIOD_RING", "SPIN_S", "START_TIMEOUT_S", "RT_
 
 #: The loop's status fields (loop -> window), after the process base's.
 STATUS = (
+    # odd while the per-step fields below (t_s .. steps, hand_force_n) are
+    # being written, even once they are one step's: a reader that sees the
+    # same even value before and after its copy has one step's snapshot
+    # (bonesim.runtime.shared.read_seqlocked)
+    ("seq", np.int64),
     ("t_s", np.float64),                    # loop time of the last step [s]
     ("pos_mm", np.float64, (3,)),           # tool centre [mm]
     ("axis", np.float64, (3,)),             # unit drill axis
@@ -284,7 +289,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                                 "steps", "overruns", "hand_force_n"))
         st_dev, st_rej, st_unplugs, st_cam = (status[k] for k in (
             "device_state", "device_rejected", "device_unplugs", "camera_rate"))
-        st_pedal = status["pedal"]
+        st_pedal, st_seq = status["pedal"], status["seq"]
         cam_rate = getattr(safe.device, "camera_rate", None) if safe is not None else None
         # everything the loop needs exists now; no collector pauses from here on
         gc.collect()
@@ -357,6 +362,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
                         state.epoch, r.buttons, f, fv)
             if tap is not None:
                 tap(t)
+            st_seq[...] += 1                    # odd: a step's snapshot is being written
             st_t[...] = t
             st_pos[...] = state.pos_mm
             st_axis[...] = state.axis
@@ -371,6 +377,7 @@ def _run_loop(child, model: Model, burrs, device_spec, rate_hz: float,
             st_steps[...] = state.n_steps
             if coupling is not None and coupling.pos is not None:
                 st_hand[...] = coupling.hand_force_n(r.pos_mm)
+            st_seq[...] += 1                    # even: one step's snapshot
             deadline += period
             rest = deadline - clock()
             if rest > SPIN_S:

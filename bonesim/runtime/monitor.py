@@ -58,7 +58,7 @@ from bonesim.io.anatomy import clinical_name
 from bonesim.physics.monitor_rings import (HISTORY_CAP, HISTORY_S, SPIKE_CAP, read_history,
                                            shared_rings)
 from bonesim.runtime.child import ChildProcess
-from bonesim.runtime.shared import SharedArrays
+from bonesim.runtime.shared import SharedArrays, read_seqlocked
 from bonesim.physics.nerve_activity import (ActivityParams, activity, default_activity_params,
                                             default_params_path, load_activity_params,
                                             poisson_spikes)
@@ -500,14 +500,16 @@ def _run_monitor(child, loop_handle, model, radii, params, seed, update_hz,
                 cursor = head
             else:
                 rec = None
-                tl = float(status["t_s"])
-                if tl != t_last and status["steps"] > 0:
+                snap = read_seqlocked(status, ("t_s", "pos_mm", "mag_n", "drill", "burr",
+                                                 "steps"))
+                tl = float(snap["t_s"]) if snap is not None else t_last
+                if tl != t_last and snap["steps"] > 0:
                     rec = True
                     t = np.array([tl])
-                    pos = status["pos_mm"].reshape(1, 3).copy()
-                    force = np.array([float(status["mag_n"])])
-                    drill = np.array([status["drill"] != 0])
-                    b = int(status["burr"])
+                    pos = snap["pos_mm"].reshape(1, 3)
+                    force = np.array([float(snap["mag_n"])])
+                    drill = np.array([snap["drill"] != 0])
+                    b = int(snap["burr"])
                     r = radii[min(max(b, 0), len(radii) - 1)]
             if rec is not None and len(t):
                 if t[-1] < t_last:                          # a new loop clock

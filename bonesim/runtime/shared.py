@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PREFIX", "SHM_DIR", "SharedArrays", "block_name", "owner_pid", "pid_alive",
+__all__ = ["read_seqlocked", "PREFIX", "SHM_DIR", "SharedArrays", "block_name", "owner_pid", "pid_alive",
            "reclaim_leftovers", "end_process", "die_with_parent"]
 
 _ALIGN = 64
@@ -241,3 +241,38 @@ def die_with_parent(on_term=None) -> None:
         return
     if os.getppid() == 1:                      # the parent died before prctl
         raise SystemExit(0)
+
+
+def read_seqlocked(status, fields, tries: int = 1000):
+    """Copy ``fields`` of shared status arrays as written in one go.
+
+    A writer that updates several fields between two increments of the
+    ``seq`` field (a sequence lock: odd while writing; the haptic loop's
+    per-step status, :data:`bonesim.runtime.haptic_loop.STATUS`) is read
+    consistently: the copy is kept when ``seq`` was even and unchanged
+    across it, else taken again.
+
+    Parameters
+    ----------
+    status : mapping of str -> ndarray
+        Shared arrays holding ``seq`` (int64) and ``fields``.
+    fields : sequence of str
+        Names of fields the writer updates under the lock.
+    tries : int
+        Copies attempted before giving up.
+
+    Returns
+    -------
+    dict of str -> ndarray or None
+        Copies of the fields, or None when no consistent copy was had (the
+        caller skips this reading).
+    """
+    seq = status["seq"]
+    for _ in range(tries):
+        s0 = int(seq)
+        if s0 & 1:
+            continue
+        out = {k: np.array(status[k], copy=True) for k in fields}
+        if int(seq) == s0:
+            return out
+    return None

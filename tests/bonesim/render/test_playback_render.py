@@ -250,7 +250,8 @@ def test_playback_window_under_xvfb(xdisplay, demo_file, tmp_path):
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)
-    assert out["frames"] == 30 and 2.0 < out["t_s"] < 6.0 and out["playing"]
+    # it played on from the start (how far in 30 frames is a speed: the machine's)
+    assert out["frames"] == 30 and 2.0 < out["t_s"] <= out["duration_s"] and out["playing"]
     assert "playback: 2x  playing" in out["hud"]
     from bonesim.render.imagecmp import read_png
 

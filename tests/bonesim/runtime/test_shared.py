@@ -196,3 +196,41 @@ def test_kill_9_of_the_process_group_leaves_a_block_the_next_start_reclaims():
         assert "reclaimed" in nxt.stderr and "left by dead run(s)" in nxt.stderr
     finally:
         (SHM_DIR / name).unlink(missing_ok=True)
+
+
+def test_a_seqlocked_read_is_one_writes_snapshot_or_none():
+    """The haptic loop's per-step status is read whole (read_seqlocked): a
+    copy never mixes two steps; while the writer is mid-step (odd seq) no
+    copy is returned."""
+    import threading
+
+    import numpy as np
+
+    from bonesim.runtime.shared import read_seqlocked
+
+    st = {"seq": np.zeros((), np.int64), "t_s": np.zeros((), np.float64),
+          "pos_mm": np.zeros(3)}
+    stop = threading.Event()
+
+    def writer():
+        n = 0
+        while not stop.is_set():
+            n += 1
+            st["seq"][...] += 1
+            st["t_s"][...] = n
+            for k in range(3):                  # field by field, as the loop does
+                st["pos_mm"][k] = n
+            st["seq"][...] += 1
+
+    th = threading.Thread(target=writer)
+    th.start()
+    try:
+        got = [read_seqlocked(st, ("t_s", "pos_mm")) for _ in range(20000)]
+    finally:
+        stop.set()
+        th.join()
+    whole = [g for g in got if g is not None]
+    assert len(whole) > 1000
+    assert all((g["pos_mm"] == g["t_s"]).all() for g in whole)
+    st["seq"][...] = 7                          # a writer that stopped mid-step
+    assert read_seqlocked(st, ("t_s",), tries=10) is None
