@@ -66,8 +66,15 @@ def _rays(cam, pix):
     return d / np.linalg.norm(d, axis=1)[:, None], uv1
 
 
-def _ray_triangles(o, d, pos, tri):
-    """Nearest hit distance of the ray ``o + t d`` with the triangles (inf: none)."""
+def _ray_triangles(o, d, pos, tri, balls=None):
+    """Nearest hit distance of the ray ``o + t d`` with the triangles (inf: none).
+
+    ``balls`` (:func:`_bounding_balls`) leaves out first the triangles whose
+    bounding ball the ray's line misses (they cannot be hit)."""
+    if balls is not None:
+        cen, rad2 = balls
+        w = np.cross(cen - o, d)
+        tri = tri[np.einsum("ij,ij->i", w, w) <= rad2]
     a, b, c = pos[tri[:, 0]], pos[tri[:, 1]], pos[tri[:, 2]]
     e1, e2 = b - a, c - a
     p = np.cross(d, e2)
@@ -81,6 +88,15 @@ def _ray_triangles(o, d, pos, tri):
     t = np.einsum("ij,ij->i", e2, q) * inv
     hit = ok & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > 0)
     return float(t[hit].min()) if hit.any() else math.inf
+
+
+def _bounding_balls(pos, tri):
+    """Per triangle, its centroid and the squared radius of a ball about it
+    holding its corners (slightly enlarged against rounding)."""
+    cen = pos[tri].mean(axis=1)
+    rad2 = (np.linalg.norm(pos[tri] - cen[:, None, :], axis=2).max(axis=1) * 1.001
+            + 1e-9) ** 2
+    return cen, rad2
 
 
 def _ray_sphere(o, d, c, r):
@@ -224,12 +240,13 @@ def test_depth_equals_a_ray_cast_to_the_drawn_surface_and_the_tools(scene):
     eye = cam["cam_to_case"][:3, 3]
     tools = dict(_tools(fs))
     errs, tool_errs = [], []
+    balls = _bounding_balls(pos, tri)
     for (v, u), d, r1 in zip(pix, dirs, uv1):
         c = int(res["class"][v, u])
         z = float(res["depth"][v, u])
         norm = float(np.linalg.norm(r1))
         if 1 <= c <= spec.MAX_STRUCTURE_ID:
-            errs.append(abs(_ray_triangles(eye, d, pos, tri) / norm - z))
+            errs.append(abs(_ray_triangles(eye, d, pos, tri, balls) / norm - z))
         elif c in tools:
             tool_errs.append(abs(tools[c](eye, d) / norm - z))
     errs, tool_errs = np.array(errs), np.array(tool_errs)
