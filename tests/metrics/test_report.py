@@ -18,6 +18,10 @@ ODD_ID = "<E&1>"
 ODD_ERROR = "run /data/X9.h5: <script>alert(1)</script> & unreadable"
 
 
+# one worker builds the module's fixtures once (pytest -n 2 --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("report")
+
+
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
     """3 + 3 synthetic runs of 8 s, scored once, with an odd participant id and an

@@ -36,6 +36,10 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
+# one worker builds the module's fixtures once (pytest -n 2 --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("dataset_cli")
+
+
 @pytest.fixture(scope="module")
 def made(demo_run, tmp_path_factory):
     """The command run twice in fresh processes, as HDF5 and as a folder."""
