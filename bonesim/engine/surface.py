@@ -75,8 +75,11 @@ face triples adds one test per axis: a triple in ``C``'s minimum face along
 empty (then it qualifies in, and belongs to, the lower cell). So the
 triangles a cell owns depend only on its own code and on those 3 x 4 voxels.
 
-Full tessellation (:meth:`Surface.build`) works per brick, in parallel: each
-brick and its one-voxel halo are gathered into a 10x10x10 array; bricks whose
+Full tessellation (:meth:`Surface.build`) works per brick, in parallel: the
+occupancy of every brick is packed into bits once, then each brick and its
+one-voxel halo are gathered into 10x10 rows of 10 bits (surface voxels, cell
+codes and the ownership tests are shifts and ANDs of rows,
+:mod:`bonesim.engine.surface_build`); bricks whose
 box is all bone or whose brick-plus-upper-halo is all empty are skipped. A
 first pass counts vertices and owned triangles per brick, prefix sums give
 every brick its output ranges, a second pass writes vertices (and the
@@ -135,10 +138,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonesim.engine.grid import (BRICK_SHIFT, BRICK_VOXELS, Grid,
+from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (CHUNK, build_count, build_triangles, build_vertices)
+from bonesim.engine.surface_build import (CHUNK, build_count, build_triangles, build_vertices,
+                                          occupancy_bits)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
@@ -394,7 +398,9 @@ class Surface:
         shader = Shader(grid, nbr, colors, bone, shading)
         nv = np.zeros(n_b, dtype=np.int64)
         nt = np.zeros(n_b, dtype=np.int64)
-        build_count(grid.density, nbr, nv, nt)
+        om = np.empty((n_b, BRICK), dtype=np.int64)
+        occupancy_bits(grid.density, om)
+        build_count(om, nbr, nv, nt)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -408,12 +414,12 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        build_vertices(grid.density, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
-                        vmap, pos, ijk)
+        build_vertices(om, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
+                       vmap, pos, ijk)
         trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[:] = TR_FILL
+        trec[n_t:] = TR_FILL                     # rows below n_t: written whole
         err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(grid.density, nbr, toff, vmap, trec, err)
+        build_triangles(om, nbr, toff, vmap, trec, err)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         alive = np.zeros(vcap, dtype=np.uint8)
