@@ -130,7 +130,9 @@ def _blend(r0, g0, b0, w, ar, ag, ab):
 @njit(cache=True, nogil=True)
 def _gather_halo(density, nbr, b, box):
     """Densities of brick ``b`` and a ``_HALO``-voxel halo into the flat box
-    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``)."""
+    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``).
+    Each row along z is three contiguous copies: the last ``H`` voxels of the
+    brick below, the brick's 8, the first ``H`` of the brick above."""
     s = 0
     for lx in range(_LB):
         x = lx - _HALO
@@ -140,14 +142,30 @@ def _gather_halo(density, nbr, b, box):
             y = ly - _HALO
             sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
             oy = ox | ((y & BRICK_MASK) << 3)
-            for lz in range(_LB):
-                z = lz - _HALO
-                nb = nbr[b, sy + (z >> BRICK_SHIFT) + 1]
-                if nb >= 0:
-                    box[s] = density[nb, oy | (z & BRICK_MASK)]
-                else:
-                    box[s] = np.float32(0.0)
-                s += 1
+            nb = nbr[b, sy]
+            if nb >= 0:
+                for q in range(_HALO):
+                    box[s + q] = density[nb, oy + BRICK - _HALO + q]
+            else:
+                for q in range(_HALO):
+                    box[s + q] = np.float32(0.0)
+            s += _HALO
+            nb = nbr[b, sy + 1]
+            if nb >= 0:
+                for q in range(BRICK):
+                    box[s + q] = density[nb, oy + q]
+            else:
+                for q in range(BRICK):
+                    box[s + q] = np.float32(0.0)
+            s += BRICK
+            nb = nbr[b, sy + 2]
+            if nb >= 0:
+                for q in range(_HALO):
+                    box[s + q] = density[nb, oy + q]
+            else:
+                for q in range(_HALO):
+                    box[s + q] = np.float32(0.0)
+            s += _HALO
 
 
 @njit(cache=True, nogil=True, parallel=True)
