@@ -527,7 +527,7 @@ BENCHMARKS = {
     "tessellate_ct512_s": bench_ct512,
     "marching_cubes_ct512_s": bench_ct512,
     **_by_name(("tessellate_ct512_vs_flying_edges", "flying_edges_ct512_s"),
-               "bonesim.render.bench_surface:bench_flying_edges"),
+               "bonesim.bench.native_surface:bench_flying_edges"),
     **_by_name(("render_update_native_019_ms", "render_fps_native_019"),
                "bonesim.render.bench_surface:bench_native"),
     "simulate_warm_s": bench_simulate,
