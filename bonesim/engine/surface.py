@@ -136,13 +136,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (CHUNK, build_count, build_triangles, build_vertices,
-                                          occupancy_bits)
+from bonesim.engine.surface_build import (CHUNK, PARALLEL_CHUNKSIZE, build_count,
+                                          build_triangles, build_vertices, occupancy_bits)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
@@ -393,6 +394,15 @@ class Surface:
         if grid.label.size and int(grid.label.max()) >= colors.shape[0]:
             raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
                              f"label {int(grid.label.max())}")
+        # work items handed out a few at a time, not split in equal halves
+        # up front: a thread that the OS (a loaded machine) holds back does
+        # not hold the build back; each item writes its own outputs, so the
+        # result does not depend on who ran what
+        with numba.parallel_chunksize(PARALLEL_CHUNKSIZE):
+            return cls._build(grid, colors, bone, shading)
+
+    @classmethod
+    def _build(cls, grid, colors, bone, shading) -> "Surface":
         n_b = grid.n_bricks
         nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
         shader = Shader(grid, nbr, colors, bone, shading)

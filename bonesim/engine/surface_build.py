@@ -28,6 +28,9 @@ __all__ = []
 # triangles come out in the order of the definition's loops, brick by brick
 # and (x, y, z) within a brick, whatever the number of threads.
 CHUNK = 32            # bricks per parallel work item
+#: Work items a thread takes at a time in the build's parallel loops
+#: (``numba.parallel_chunksize``; dynamic scheduling).
+PARALLEL_CHUNKSIZE = 4
 _L = BRICK + 2         # local box: brick plus a one-voxel halo on each side
 _FULL_ROW = (1 << _L) - 1
 _INNER = ((1 << BRICK) - 1) << 1   # local bits 1..8: the brick's own voxels

@@ -119,17 +119,24 @@ def _raw(surf):
             "trec": surf._trec, "vrec": surf._vrec}
 
 
-def test_build_is_bit_identical_in_any_thread_count():
+def test_build_is_bit_identical_in_any_thread_count_and_schedule(monkeypatch):
+    import bonesim.engine.surface as surface_mod
+
     dens, lab = _volume(11, shape=(70, 45, 60), p_occ=0.5)
     grid = Grid.from_dense(lab, dens, spacing_mm=0.3)
     n0 = numba.get_num_threads()
+    builds = []
     try:
-        numba.set_num_threads(1)
-        one = _raw(Surface.build(grid, COLORS, bone=[0, 1, 0, 0]))
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = _raw(Surface.build(grid, COLORS, bone=[0, 1, 0, 0]))
+        for threads, chunksize in ((1, 0), (numba.config.NUMBA_NUM_THREADS, 0),
+                                   (numba.config.NUMBA_NUM_THREADS, 1),
+                                   (numba.config.NUMBA_NUM_THREADS, 4)):
+            numba.set_num_threads(threads)
+            monkeypatch.setattr(surface_mod, "PARALLEL_CHUNKSIZE", chunksize)
+            builds.append(_raw(Surface.build(grid, COLORS, bone=[0, 1, 0, 0])))
     finally:
         numba.set_num_threads(n0)
-    for name in one:
-        assert one[name].shape == many[name].shape, name
-        assert np.array_equal(one[name].view(np.uint8), many[name].view(np.uint8)), name
+    one = builds[0]
+    for other in builds[1:]:
+        for name in one:
+            assert one[name].shape == other[name].shape, name
+            assert np.array_equal(one[name].view(np.uint8), other[name].view(np.uint8)), name
