@@ -542,12 +542,21 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
             self._push_sealed(name)
         self._seal_sig = sig
 
+    def _unseal_structures(self):
+        """Draw every structure triangle again (but those turned away): the
+        bone no longer encloses them (body 0 moved off its initial pose)."""
+        for name, (sub, *_rest) in list(self._sealed.items()):
+            sub.unseal_all()
+            self._push_sealed(name)
+
     def _update_sealed(self, surface, removed, new_surface):
         """Follow the bone surface's changes in the structures' drawn subsets:
         unseal near the removed voxels, or recompute against a new surface
         or unknown changes."""
         for name, (sub, *_rest) in self._sealed.items():
-            if new_surface or removed is None:
+            if getattr(self, "_main_pose", None) is not None:
+                changed = False                # unsealed while body 0 is moved
+            elif new_surface or removed is None:
                 sub.reseal(surface)
                 changed = True
             else:

@@ -240,6 +240,11 @@ class SealedTriangles:
         self.n_drawn = _compact(self.tris, self.sealed, self.facing, self.drawn)
         return self.n_drawn
 
+    def unseal_all(self) -> None:
+        """Seal nothing (the tissue no longer encloses the mesh)."""
+        self.sealed[:] = 0
+        self.n_drawn = _compact(self.tris, self.sealed, self.facing, self.drawn)
+
     def unseal_near(self, removed) -> bool:
         """Unseal the triangles near ``removed`` voxels ((k, 3) int); returns
         whether the drawn buffer changed."""

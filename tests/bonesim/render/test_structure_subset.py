@@ -117,3 +117,15 @@ def test_picture_is_the_same_with_and_without_the_subset(nerve_scene):
     shown = without[..., 0].astype(int) - without[..., 2] > 80    # yellow nerve
     assert shown.sum() > 20                                     # the nerve is in view
     assert np.array_equal(with_subset, without)
+
+
+def test_moving_the_bone_unseals_every_structure_triangle(nerve_scene):
+    model, state, surf, sc = nerve_scene
+    _, sub = _mesh(sc, "nerve")
+    assert sub.sealed.any()
+    m = np.eye(4)
+    m[0, 3] = 2.0                                   # body 0 moved 2 mm along x
+    sc._set_main_pose(m)
+    assert not sub.sealed.any()
+    sc.render()
+    assert sub.n_drawn == int(sub.facing.sum())
