@@ -65,7 +65,7 @@ from bonesim.render.gl import make_render_window
 from bonesim.render.layout import LayoutMixin
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
-from bonesim.render.structure_subset import SealedTriangles
+from bonesim.render.structure_subset import SealedTriangles, removed_boxes
 from bonesim.render.style import default_style
 from bonesim.render.tool import ToolMixin
 
@@ -553,6 +553,9 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         """Follow the bone surface's changes in the structures' drawn subsets:
         unseal near the removed voxels, or recompute against a new surface
         or unknown changes."""
+        boxes = None
+        if removed is not None and not new_surface:
+            boxes = removed_boxes(removed)            # once for every structure
         for name, (sub, *_rest) in self._sealed.items():
             if getattr(self, "_main_pose", None) is not None:
                 changed = False                # unsealed while body 0 is moved
@@ -560,7 +563,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
                 sub.reseal(surface)
                 changed = True
             else:
-                changed = sub.unseal_near(removed)
+                changed = sub.unseal_near(boxes)
             if changed:
                 self._push_sealed(name)
 

@@ -49,7 +49,8 @@ from numba import njit, prange
 
 from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, find_brick
 
-__all__ = ["SEAL_RADIUS", "UNSEAL_RADIUS", "FACING_MARGIN", "SealedTriangles"]
+__all__ = ["SEAL_RADIUS", "UNSEAL_RADIUS", "FACING_MARGIN", "SealedTriangles",
+           "removed_boxes"]
 
 #: Chebyshev radius [voxels] of the block of the initial tissue that must be
 #: all occupied around a sealed triangle's voxel.
@@ -107,11 +108,12 @@ def _seal(keys, vals, density, vkeys, vvals, vmap, cv, r, sealed):
 
 
 @njit(cache=True, nogil=True)
-def _unseal(keys, vals, cv, order, offs, lo, hi, r, sealed):
+def _unseal(keys, vals, cv, order, offs, lo, hi, r, sealed, tris, facing, drawn, n_drawn):
     """Clear ``sealed`` of the triangles within ``r`` (Chebyshev) of a box
     ``lo[g]..hi[g]`` (each box within one brick; triangles bucketed by
-    brick: ``order[offs[b]:offs[b + 1]]``); returns how many were cleared."""
-    n = 0
+    brick: ``order[offs[b]:offs[b + 1]]``), appending those facing the
+    camera to the ``n_drawn`` triangles of ``drawn``; returns the new
+    number drawn."""
     for g in range(lo.shape[0]):
         bi = lo[g, 0] >> BRICK_SHIFT
         bj = lo[g, 1] >> BRICK_SHIFT
@@ -128,8 +130,37 @@ def _unseal(keys, vals, cv, order, offs, lo, hi, r, sealed):
                                 and lo[g, 1] - r <= cv[t, 1] <= hi[g, 1] + r
                                 and lo[g, 2] - r <= cv[t, 2] <= hi[g, 2] + r):
                             sealed[t] = 0
-                            n += 1
-    return n
+                            if facing[t]:
+                                drawn[3 * n_drawn] = tris[t, 0]
+                                drawn[3 * n_drawn + 1] = tris[t, 1]
+                                drawn[3 * n_drawn + 2] = tris[t, 2]
+                                n_drawn += 1
+    return n_drawn
+
+
+@njit(cache=True, nogil=True)
+def _boxes(rem, inv, lo, hi):
+    for q in range(rem.shape[0]):
+        g = inv[q]
+        for a in range(3):
+            lo[g, a] = min(lo[g, a], rem[q, a])
+            hi[g, a] = max(hi[g, a], rem[q, a])
+
+
+def removed_boxes(removed):
+    """The bounding box of the ``removed`` voxels ((k, 3) int) in each brick
+    they fall in: ``(lo, hi)``, (g, 3) int32 each."""
+    rem = np.ascontiguousarray(removed, dtype=np.int32).reshape(-1, 3)
+    if not len(rem):
+        return np.zeros((0, 3), np.int32), np.zeros((0, 3), np.int32)
+    key = ((rem[:, 0].astype(np.int64) >> BRICK_SHIFT) * 1_000_003
+           + (rem[:, 1] >> BRICK_SHIFT)) * 1_000_003 + (rem[:, 2] >> BRICK_SHIFT)
+    _, inv = np.unique(key, return_inverse=True)
+    n_g = int(inv.max()) + 1
+    lo = np.full((n_g, 3), np.iinfo(np.int32).max, dtype=np.int32)
+    hi = np.full((n_g, 3), np.iinfo(np.int32).min, dtype=np.int32)
+    _boxes(rem, inv.reshape(-1).astype(np.int64), lo, hi)
+    return lo, hi
 
 
 @njit(cache=True, nogil=True)
@@ -205,7 +236,8 @@ class SealedTriangles:
         :meth:`face` (all 1 before).
     drawn : (3 m,) int32
         Flat index buffer: the first :attr:`n_drawn` triangles are the
-        ones neither sealed nor turned away, in mesh order (VTK reads it in place).
+        ones neither sealed nor turned away, in mesh order, then those
+        unsealed since in the order they were (VTK reads it in place).
     n_drawn : int
     """
 
@@ -246,24 +278,18 @@ class SealedTriangles:
         self.n_drawn = _compact(self.tris, self.sealed, self.facing, self.drawn)
 
     def unseal_near(self, removed) -> bool:
-        """Unseal the triangles near ``removed`` voxels ((k, 3) int); returns
-        whether the drawn buffer changed."""
-        rem = np.ascontiguousarray(removed, dtype=np.int32).reshape(-1, 3)
-        if not len(rem) or not self.sealed.any():
+        """Unseal the triangles near ``removed`` voxels ((k, 3) int, or the
+        boxes of :func:`removed_boxes`); returns whether the drawn buffer
+        changed (newly unsealed triangles facing the camera are appended)."""
+        lo, hi = removed if isinstance(removed, tuple) else removed_boxes(removed)
+        if not len(lo) or not self.sealed.any():
             return False
-        # the removed voxels' bounding box in each brick they fall in
-        key = ((rem[:, 0].astype(np.int64) >> BRICK_SHIFT) * 1_000_003
-               + (rem[:, 1] >> BRICK_SHIFT)) * 1_000_003 + (rem[:, 2] >> BRICK_SHIFT)
-        _, inv = np.unique(key, return_inverse=True)
-        n_g = int(inv.max()) + 1
-        lo = np.full((n_g, 3), np.iinfo(np.int32).max, dtype=np.int32)
-        hi = np.full((n_g, 3), np.iinfo(np.int32).min, dtype=np.int32)
-        np.minimum.at(lo, inv, rem)
-        np.maximum.at(hi, inv, rem)
-        if _unseal(self._keys, self._vals, self._cv, self._order, self._offs, lo, hi,
-                   UNSEAL_RADIUS, self.sealed) == 0:
+        n = _unseal(self._keys, self._vals, self._cv, self._order, self._offs, lo, hi,
+                    UNSEAL_RADIUS, self.sealed, self.tris, self.facing, self.drawn,
+                    self.n_drawn)
+        if n == self.n_drawn:
             return False
-        self.n_drawn = _compact(self.tris, self.sealed, self.facing, self.drawn)
+        self.n_drawn = n
         return True
 
     def face(self, eye, direction, parallel: bool = False) -> int:
