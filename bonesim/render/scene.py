@@ -13,6 +13,18 @@ elsewhere is the visible-subset computation of
 
 Units: positions in the case frame [mm], as everywhere in bonesim.
 
+Structures
+----------
+:meth:`Scene.add_structures` meshes the non-bone structures once from the
+initial tissue. With a bone surface in the scene, each structure is drawn
+by its subset (:mod:`bonesim.render.structure_subset`): triangles sealed
+inside tissue are left out until the drill opens the tissue near them
+(:meth:`update_surface` passes the removed voxels on), and triangles clearly
+turned away from the camera are left out whenever it moves; the meshes are
+closed and opaque, drawn with back-face culling. The picture is the same,
+pixel for pixel; at the native 0.19 mm voxel the phantom's structures go
+from some 620,000 triangles to about 110,000 in the case camera's view.
+
 Bodies: :meth:`Scene.update_bodies` (:mod:`bonesim.render.bodyview`) draws
 every body of a :class:`~bonesim.engine.replica.TissueReplica` at its pose:
 body 0 is the bone surface below, moved by its pose; fragments get actors
