@@ -150,7 +150,7 @@ from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE
                                            S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_FILL, TR_KEY,
                                            TR_NEXT, TR_ONEXT, TR_WIDTH, T_ALIVE, T_HW, VR_HEAD,
                                            VR_OHEAD, V_ALIVE, V_HW, brick_neighbours, link_all,
-                                           orient_all, orient_of, triangles_of_vertex)
+                                           orient_of, triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, update_tiles
 from bonesim.engine.surface_window import N_ROWSETS
 
@@ -321,7 +321,7 @@ class Surface:
         corners' normals (where the surface folds within a voxel or two).
         Drawn so, OpenGL's front face always agrees with the normals
         (:mod:`bonesim.render.meshbuf`). Kept for every live triangle: set
-        at :meth:`build`, and by :meth:`update` for every triangle of a
+        at :meth:`build` (as each triangle is made), and by :meth:`update` for every triangle of a
         vertex it moved or turned.
     vhead : (vcap,) int32, tnext : (tcap, 3) int32
         Vertex -> triangle lists (see module docstring); use
@@ -426,21 +426,22 @@ class Surface:
         ijk = np.zeros((vcap, 3), dtype=np.int32)
         build_vertices(om, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
                        vmap, pos, ijk)
-        trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[n_t:] = TR_FILL                     # rows below n_t: written whole
-        err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(om, nbr, toff, vmap, trec, err)
-        if err.sum():
-            raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         alive = np.zeros(vcap, dtype=np.uint8)
         alive[:n_v] = 1
+        shift = np.zeros(vcap, dtype=np.float32)
+        # shaded before the triangles are made, so that each triangle's drawn
+        # winding is found as it is written (its corners' data in cache)
+        shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
+        trec[n_t:] = TR_FILL                     # rows below n_t: written whole
+        tflip = np.zeros(tcap, dtype=np.uint8)
+        err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
+        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err)
+        if err.sum():
+            raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         vrec = np.full((vcap, 2), -1, dtype=np.int32)
         link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
-        shift = np.zeros(vcap, dtype=np.float32)
-        shader.shade_all(grid, vmap, pos, nrm, shift, col)
-        tflip = np.zeros(tcap, dtype=np.uint8)
-        orient_all(trec, n_t, pos, nrm, tflip)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
                    np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), tflip,
                    cnt, grid.origin_mm, grid.spacing_mm, shader)

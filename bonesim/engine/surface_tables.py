@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from bonesim.engine.grid import find_brick
 from bonesim.engine.shading import (NORMAL_RADIUS)
@@ -238,17 +238,6 @@ def _flip_of(trec, t, pos, nrm):
     return _flip(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
                  pos[c, 0], pos[c, 1], pos[c, 2], nrm[a, 0] + nrm[b, 0] + nrm[c, 0],
                  nrm[a, 1] + nrm[b, 1] + nrm[c, 1], nrm[a, 2] + nrm[b, 2] + nrm[c, 2])
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def orient_all(trec, n_t, pos, nrm, tflip):
-    """``tflip[t]`` for every live triangle slot below ``n_t`` (in parallel
-    over blocks of slots; each slot's value depends on its own triangle only)."""
-    n_blocks = (n_t + 4095) // 4096
-    for blk in prange(n_blocks):
-        for t in range(blk * 4096, min(n_t, (blk + 1) * 4096)):
-            if trec[t, TR_KEY] >= 0:
-                tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
 
 
 @njit(cache=True, nogil=True)
