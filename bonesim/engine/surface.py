@@ -433,7 +433,7 @@ class Surface:
         # winding is found as it is written (its corners' data in cache)
         shader.shade_all(grid, vmap, pos, nrm, shift, col)
         trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[n_t:] = TR_FILL                     # rows below n_t: written whole
+        trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
         tflip = np.zeros(tcap, dtype=np.uint8)
         err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
         build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from bonesim.engine.grid import find_brick
 from bonesim.engine.shading import (NORMAL_RADIUS)
@@ -163,13 +163,13 @@ N_STATS = 11
 # ----------------------------------------------------------------------------
 # Small kernels of the surface's lists
 # ----------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def brick_neighbours(keys, vals, bricks):
     """(n_bricks, 27) int32: index of each brick's 26 neighbours and itself
     (slot ``9 * (di + 1) + 3 * (dj + 1) + (dk + 1)``), -1 when absent."""
     n = bricks.shape[0]
     out = np.empty((n, 27), dtype=np.int32)
-    for b in range(n):
+    for b in prange(n):
         s = 0
         for di in range(-1, 2):
             for dj in range(-1, 2):
