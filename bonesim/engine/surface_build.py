@@ -218,7 +218,8 @@ def build_vertices(om, nbr, bricks, origin, spacing, voff, vmap, pos, vijk):
 def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
     """Triangle records ``toff[b]...`` of the triangles brick ``b``'s cells
     own, in (x, y, z, qualifying-triple) order (corners and key; the list
-    links are :func:`bonesim.engine.surface_tables.link_all`'s), and their drawn winding ``tflip`` from the shaded ``pos``
+    links are :func:`bonesim.engine.surface_tables.link_all`'s), and their
+    drawn winding ``tflip`` from the shaded ``pos``
     and ``nrm`` (:func:`bonesim.engine.surface_tables._flip_of`);
     ``err[chunk]`` counts corners without a vertex."""
     nb_tot = nbr.shape[0]

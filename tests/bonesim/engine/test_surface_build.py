@@ -24,7 +24,8 @@ COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dt
 
 def _volume(seed, shape=(21, 19, 26), p_occ=0.6):
     rng = np.random.default_rng(seed)
-    lab = (rng.random(shape) < p_occ).astype(np.uint8) * rng.integers(1, 4, size=shape).astype(np.uint8)
+    lab = (rng.random(shape) < p_occ).astype(np.uint8) \
+        * rng.integers(1, 4, size=shape).astype(np.uint8)
     # a solid block too, so that some bricks are all bone
     lab[2:19, 2:17, 3:22] = 1
     lab[6:10, 6:10, 6:10] = 0
