@@ -9,7 +9,7 @@ from numba import njit, prange
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
 from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
-                                           TR_KEY, _flip_of)
+                                           TR_KEY, flip_of)
 
 __all__ = []
 
@@ -220,7 +220,7 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
     own, in (x, y, z, qualifying-triple) order (corners and key; the list
     links are :func:`bonesim.engine.surface_tables.link_all`'s), and their
     drawn winding ``tflip`` from the shaded ``pos``
-    and ``nrm`` (:func:`bonesim.engine.surface_tables._flip_of`);
+    and ``nrm`` (:func:`bonesim.engine.surface_tables.flip_of`);
     ``err[chunk]`` counts corners without a vertex."""
     nb_tot = nbr.shape[0]
     n_chunks = (nb_tot + CHUNK - 1) // CHUNK
@@ -280,5 +280,5 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
                                 trec[t, s] = v
                             trec[t, TR_KEY] = key      # the list links: link_all
                             if trec[t, 0] >= 0 and trec[t, 1] >= 0 and trec[t, 2] >= 0:
-                                tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
+                                tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
                             t += 1

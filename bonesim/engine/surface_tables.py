@@ -231,7 +231,9 @@ def _flip(ax, ay, az, bx, by, bz, cx, cy, cz, nx, ny, nz):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _flip_of(trec, t, pos, nrm):
+def flip_of(trec, t, pos, nrm):
+    """:func:`_flip` of triangle record ``t`` (corners ``trec[t, 0:3]``) with
+    the vertex positions ``pos`` and normals ``nrm``."""
     a = trec[t, 0]
     b = trec[t, 1]
     c = trec[t, 2]
@@ -248,6 +250,6 @@ def orient_of(vrec, trec, vlist, pos, nrm, tflip):
         v = vlist[q]
         t = vrec[v, VR_HEAD]
         while t >= 0:
-            tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
+            tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
             s = 0 if trec[t, 0] == v else (1 if trec[t, 1] == v else 2)
             t = trec[t, TR_NEXT + s]
