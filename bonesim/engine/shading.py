@@ -77,6 +77,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from bonesim.errors import BonesimError
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, fallback_normal, i_plane,
+                                    i_point,
                                     kj_plane, unit_normal, vertex_shift, normal_weights,
                                     stencil_weights)
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
@@ -130,7 +131,9 @@ def _blend(r0, g0, b0, w, ar, ag, ab):
 @njit(cache=True, nogil=True)
 def _gather_halo(density, nbr, b, box):
     """Densities of brick ``b`` and a ``_HALO``-voxel halo into the flat box
-    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``)."""
+    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``).
+    Each row along z is three contiguous copies: the last ``H`` voxels of the
+    brick below, the brick's 8, the first ``H`` of the brick above."""
     s = 0
     for lx in range(_LB):
         x = lx - _HALO
@@ -140,14 +143,30 @@ def _gather_halo(density, nbr, b, box):
             y = ly - _HALO
             sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
             oy = ox | ((y & BRICK_MASK) << 3)
-            for lz in range(_LB):
-                z = lz - _HALO
-                nb = nbr[b, sy + (z >> BRICK_SHIFT) + 1]
-                if nb >= 0:
-                    box[s] = density[nb, oy | (z & BRICK_MASK)]
-                else:
-                    box[s] = np.float32(0.0)
-                s += 1
+            nb = nbr[b, sy]
+            if nb >= 0:
+                for q in range(_HALO):
+                    box[s + q] = density[nb, oy + BRICK - _HALO + q]
+            else:
+                for q in range(_HALO):
+                    box[s + q] = np.float32(0.0)
+            s += _HALO
+            nb = nbr[b, sy + 1]
+            if nb >= 0:
+                for q in range(BRICK):
+                    box[s + q] = density[nb, oy + q]
+            else:
+                for q in range(BRICK):
+                    box[s + q] = np.float32(0.0)
+            s += BRICK
+            nb = nbr[b, sy + 2]
+            if nb >= 0:
+                for q in range(_HALO):
+                    box[s + q] = density[nb, oy + q]
+            else:
+                for q in range(_HALO):
+                    box[s + q] = np.float32(0.0)
+            s += _HALO
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -166,12 +185,12 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
     iso = fp[_F_ISO]
     s_out = fp[_F_OUT]
     s_in = fp[_F_IN]
+    w0, w1, w2, w3, w4, w5, w6 = W[0], W[1], W[2], W[3], W[4], W[5], W[6]
     for ch in prange(n_chunks):
         box = np.empty(_LB * _LB * _LB, dtype=np.float32)
         rs = np.empty(_LB * BRICK, dtype=np.float32)
         rd = np.empty(_LB * BRICK, dtype=np.float32)
         ring = np.empty(21 * n_pl, dtype=np.float32)
-        g = np.empty(N_FIELD * n_pl, dtype=np.float32)
         n = 0
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
             gathered = False
@@ -193,7 +212,6 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                 for pl in range(max(have, x), x + 7):
                     kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
                 have = x + 7
-                i_plane(ring, x, n_pl, W, g)
                 for q in range(n_pl):
                     o = x * n_pl + q
                     v = vmap[b, o]
@@ -204,14 +222,13 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
                     i = bi + x
                     j = bj + y
                     k = bk + z
-                    gx = g[q]
-                    gy = g[n_pl + q]
-                    gz = g[2 * n_pl + q]
+                    # the i-pass at this vertex only (same bits as i_plane)
+                    gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
                     nx, ny, nz, ok = unit_normal(gx, gy, gz)
                     if not ok:
                         nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
                                                       + z + _HALO, _LB, _LB)
-                    sh = vertex_shift(g[3 * n_pl + q], gx, gy, gz, iso, s_out, s_in)
+                    sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
                     nrm[v, 0] = nx
                     nrm[v, 1] = ny
                     nrm[v, 2] = nz

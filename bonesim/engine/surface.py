@@ -75,8 +75,11 @@ face triples adds one test per axis: a triple in ``C``'s minimum face along
 empty (then it qualifies in, and belongs to, the lower cell). So the
 triangles a cell owns depend only on its own code and on those 3 x 4 voxels.
 
-Full tessellation (:meth:`Surface.build`) works per brick, in parallel: each
-brick and its one-voxel halo are gathered into a 10x10x10 array; bricks whose
+Full tessellation (:meth:`Surface.build`) works per brick, in parallel: the
+occupancy of every brick is packed into bits once, then each brick and its
+one-voxel halo are gathered into 10x10 rows of 10 bits (surface voxels, cell
+codes and the ownership tests are shifts and ANDs of rows,
+:mod:`bonesim.engine.surface_build`); bricks whose
 box is all bone or whose brick-plus-upper-halo is all empty are skipped. A
 first pass counts vertices and owned triangles per brick, prefix sums give
 every brick its output ranges, a second pass writes vertices (and the
@@ -133,19 +136,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
-from bonesim.engine.grid import (BRICK_SHIFT, BRICK_VOXELS, Grid,
+from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (CHUNK, build_count, build_triangles, build_vertices)
+from bonesim.engine.surface_build import (CHUNK, PARALLEL_CHUNKSIZE, build_count,
+                                          build_triangles, build_vertices, occupancy_bits)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
                                            S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_FILL, TR_KEY,
                                            TR_NEXT, TR_ONEXT, TR_WIDTH, T_ALIVE, T_HW, VR_HEAD,
                                            VR_OHEAD, V_ALIVE, V_HW, brick_neighbours, link_all,
-                                           orient_all, orient_of, triangles_of_vertex)
+                                           orient_of, triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, update_tiles
 from bonesim.engine.surface_window import N_ROWSETS
 
@@ -316,7 +321,7 @@ class Surface:
         corners' normals (where the surface folds within a voxel or two).
         Drawn so, OpenGL's front face always agrees with the normals
         (:mod:`bonesim.render.meshbuf`). Kept for every live triangle: set
-        at :meth:`build`, and by :meth:`update` for every triangle of a
+        at :meth:`build` (as each triangle is made), and by :meth:`update` for every triangle of a
         vertex it moved or turned.
     vhead : (vcap,) int32, tnext : (tcap, 3) int32
         Vertex -> triangle lists (see module docstring); use
@@ -389,12 +394,23 @@ class Surface:
         if grid.label.size and int(grid.label.max()) >= colors.shape[0]:
             raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
                              f"label {int(grid.label.max())}")
+        # work items handed out a few at a time, not split in equal halves
+        # up front: a thread that the OS (a loaded machine) holds back does
+        # not hold the build back; each item writes its own outputs, so the
+        # result does not depend on who ran what
+        with numba.parallel_chunksize(PARALLEL_CHUNKSIZE):
+            return cls._build(grid, colors, bone, shading)
+
+    @classmethod
+    def _build(cls, grid, colors, bone, shading) -> "Surface":
         n_b = grid.n_bricks
         nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
         shader = Shader(grid, nbr, colors, bone, shading)
         nv = np.zeros(n_b, dtype=np.int64)
         nt = np.zeros(n_b, dtype=np.int64)
-        build_count(grid.density, nbr, nv, nt)
+        om = np.empty((n_b, BRICK), dtype=np.int64)
+        occupancy_bits(grid.density, om)
+        build_count(om, nbr, nv, nt)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -408,23 +424,24 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        build_vertices(grid.density, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
-                        vmap, pos, ijk)
-        trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[:] = TR_FILL
-        err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(grid.density, nbr, toff, vmap, trec, err)
-        if err.sum():
-            raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
+        build_vertices(om, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
+                       vmap, pos, ijk)
         alive = np.zeros(vcap, dtype=np.uint8)
         alive[:n_v] = 1
+        shift = np.zeros(vcap, dtype=np.float32)
+        # shaded before the triangles are made, so that each triangle's drawn
+        # winding is found as it is written (its corners' data in cache)
+        shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
+        trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
+        tflip = np.zeros(tcap, dtype=np.uint8)
+        err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
+        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err)
+        if err.sum():
+            raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         vrec = np.full((vcap, 2), -1, dtype=np.int32)
         link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
-        shift = np.zeros(vcap, dtype=np.float32)
-        shader.shade_all(grid, vmap, pos, nrm, shift, col)
-        tflip = np.zeros(tcap, dtype=np.uint8)
-        orient_all(trec, n_t, pos, nrm, tflip)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,
                    np.zeros(vcap, dtype=np.int32), trec, np.zeros(tcap, dtype=np.int32), tflip,
                    cnt, grid.origin_mm, grid.spacing_mm, shader)

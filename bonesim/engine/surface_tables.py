@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from bonesim.engine.grid import find_brick
 from bonesim.engine.shading import (NORMAL_RADIUS)
@@ -163,13 +163,13 @@ N_STATS = 11
 # ----------------------------------------------------------------------------
 # Small kernels of the surface's lists
 # ----------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def brick_neighbours(keys, vals, bricks):
     """(n_bricks, 27) int32: index of each brick's 26 neighbours and itself
     (slot ``9 * (di + 1) + 3 * (dj + 1) + (dk + 1)``), -1 when absent."""
     n = bricks.shape[0]
     out = np.empty((n, 27), dtype=np.int32)
-    for b in range(n):
+    for b in prange(n):
         s = 0
         for di in range(-1, 2):
             for dj in range(-1, 2):
@@ -231,21 +231,15 @@ def _flip(ax, ay, az, bx, by, bz, cx, cy, cz, nx, ny, nz):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _flip_of(trec, t, pos, nrm):
+def flip_of(trec, t, pos, nrm):
+    """:func:`_flip` of triangle record ``t`` (corners ``trec[t, 0:3]``) with
+    the vertex positions ``pos`` and normals ``nrm``."""
     a = trec[t, 0]
     b = trec[t, 1]
     c = trec[t, 2]
     return _flip(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
                  pos[c, 0], pos[c, 1], pos[c, 2], nrm[a, 0] + nrm[b, 0] + nrm[c, 0],
                  nrm[a, 1] + nrm[b, 1] + nrm[c, 1], nrm[a, 2] + nrm[b, 2] + nrm[c, 2])
-
-
-@njit(cache=True, nogil=True)
-def orient_all(trec, n_t, pos, nrm, tflip):
-    """``tflip[t]`` for every live triangle slot below ``n_t``."""
-    for t in range(n_t):
-        if trec[t, TR_KEY] >= 0:
-            tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
 
 
 @njit(cache=True, nogil=True)
@@ -256,6 +250,6 @@ def orient_of(vrec, trec, vlist, pos, nrm, tflip):
         v = vlist[q]
         t = vrec[v, VR_HEAD]
         while t >= 0:
-            tflip[t] = 1 if _flip_of(trec, t, pos, nrm) else 0
+            tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
             s = 0 if trec[t, 0] == v else (1 if trec[t, 1] == v else 2)
             t = trec[t, TR_NEXT + s]

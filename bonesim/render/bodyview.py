@@ -218,6 +218,9 @@ class BodiesMixin:
             return
         self._main_pose = pose
         self.surface_actor.SetUserMatrix(None if pose is None else vtk_matrix(pose))
+        if pose is not None:
+            # the structures stay where they are: no longer inside the bone
+            self._unseal_structures()
         self._cam_sig = None              # the view of body 0 changed: like a camera move
 
     def _to_main_frame(self, eye, direction):

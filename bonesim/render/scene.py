@@ -13,6 +13,18 @@ elsewhere is the visible-subset computation of
 
 Units: positions in the case frame [mm], as everywhere in bonesim.
 
+Structures
+----------
+:meth:`Scene.add_structures` meshes the non-bone structures once from the
+initial tissue. With a bone surface in the scene, each structure is drawn
+by its subset (:mod:`bonesim.render.structure_subset`): triangles sealed
+inside tissue are left out until the drill opens the tissue near them
+(:meth:`update_surface` passes the removed voxels on), and triangles clearly
+turned away from the camera are left out whenever it moves; the meshes are
+closed and opaque, drawn with back-face culling. The picture is the same,
+pixel for pixel; at the native 0.19 mm voxel the phantom's structures go
+from some 620,000 triangles to about 110,000 in the case camera's view.
+
 Bodies: :meth:`Scene.update_bodies` (:mod:`bonesim.render.bodyview`) draws
 every body of a :class:`~bonesim.engine.replica.TissueReplica` at its pose:
 body 0 is the bone surface below, moved by its pose; fragments get actors
@@ -65,6 +77,7 @@ from bonesim.render.gl import make_render_window
 from bonesim.render.layout import LayoutMixin
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
+from bonesim.render.structure_subset import SealedTriangles, removed_boxes
 from bonesim.render.style import default_style
 from bonesim.render.tool import ToolMixin
 
@@ -185,6 +198,8 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         self._build_surface_actor()
         self._build_bodies()
         self._structures: dict = {}
+        self._sealed: dict = {}        # structure name -> its drawn subset (see add_structures)
+        self._seal_sig = None          # camera the subsets' facing flags are for
         self._build_tool()
         self._build_dust()
         self._build_text()
@@ -310,10 +325,13 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
             ``triangles`` (live), ``drawn`` (triangles in the list drawn),
             ``mode`` (``"full"`` or ``"visible"``).
         """
-        if surface is not self.surface:
+        new_surface = surface is not self.surface
+        if new_surface:
             self.surface = surface
             self._buffers.invalidate()
             self._cancel_job()
+        if self._sealed and (new_surface or removed is not None or touched is None):
+            self._update_sealed(surface, removed, new_surface)
         self._bind_vertices(surface)
         self._buffers.sync(surface, removed, touched)
         self._push_cells()
@@ -392,6 +410,8 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
               and not self._buffers.vis_valid
               and now - self._cam_still_since >= self.rest_s):
             self._start_job()
+        if self._sealed and sig != self._seal_sig:
+            self._face_structures(sig)
         job = self._job
         if job is not None and job.done.is_set():
             self._job = None
@@ -493,9 +513,71 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
             mask = lab == s
             origin = grid.origin_mm + grid.spacing_mm * lo
             pd = structure_polydata(mask, origin, grid.spacing_mm, smooth_iterations)
-            self.add_mesh(st.name, pd, st.display_color)
             out[st.name] = int(pd.GetNumberOfPolys())
+            a = self.add_mesh(st.name, pd, st.display_color)
+            # closed meshes, opaque: their back faces never show
+            a.GetProperty().BackfaceCullingOn()
+            if self.surface is not None:
+                self._seal_structure(st.name, grid, pd)
         return out
+
+    def _seal_structure(self, name, grid, pd):
+        """Draw only the triangles of structure ``name`` not sealed inside
+        tissue (:mod:`bonesim.render.structure_subset`), through an index
+        buffer VTK reads in place."""
+        tris = numpy_support.vtk_to_numpy(pd.GetPolys().GetConnectivityArray())
+        pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
+        sub = SealedTriangles(grid, pts, tris.reshape(-1, 3), self.surface)
+        conn, offs = vtkTypeInt32Array(), vtkTypeInt32Array()
+        offsets = np.arange(0, 3 * len(sub.tris) + 1, 3, dtype=np.int32)
+        cells = vtkCellArray()
+        pd.SetPolys(cells)
+        self._sealed[name] = (sub, cells, conn, offs, offsets, pd)
+        self._seal_sig = None           # turned-away triangles: at the next render
+        self._push_sealed(name)
+
+    def _push_sealed(self, name):
+        sub, cells, conn, offs, offsets, pd = self._sealed[name]
+        _point_to(conn, sub.drawn, 3 * sub.n_drawn)
+        _point_to(offs, offsets, sub.n_drawn + 1)
+        cells.SetData(offs, conn)
+        cells.Modified()
+        pd.Modified()
+
+    def _face_structures(self, sig):
+        """The structures' subsets for the camera now (turned-away triangles
+        left out; :meth:`SealedTriangles.face`)."""
+        c = self.renderer.GetActiveCamera()
+        for name, (sub, *_rest) in self._sealed.items():
+            sub.face(c.GetPosition(), c.GetDirectionOfProjection(),
+                     bool(c.GetParallelProjection()))
+            self._push_sealed(name)
+        self._seal_sig = sig
+
+    def _unseal_structures(self):
+        """Draw every structure triangle again (but those turned away): the
+        bone no longer encloses them (body 0 moved off its initial pose)."""
+        for name, (sub, *_rest) in list(self._sealed.items()):
+            sub.unseal_all()
+            self._push_sealed(name)
+
+    def _update_sealed(self, surface, removed, new_surface):
+        """Follow the bone surface's changes in the structures' drawn subsets:
+        unseal near the removed voxels, or recompute against a new surface
+        or unknown changes."""
+        boxes = None
+        if removed is not None and not new_surface:
+            boxes = removed_boxes(removed)            # once for every structure
+        for name, (sub, *_rest) in self._sealed.items():
+            if getattr(self, "_main_pose", None) is not None:
+                changed = False                # unsealed while body 0 is moved
+            elif new_surface or removed is None:
+                sub.reseal(surface)
+                changed = True
+            else:
+                changed = sub.unseal_near(boxes)
+            if changed:
+                self._push_sealed(name)
 
     def add_mesh(self, name: str, polydata, color, opacity: float = 1.0):
         """Draw a static mesh (a structure) under ``name``.
@@ -525,6 +607,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         p.SetSpecularPower(st.specular_power)
         if name in self._structures:
             self.renderer.RemoveActor(self._structures[name])
+        self._sealed.pop(name, None)
         self._structures[name] = a
         self.renderer.AddActor(a)
         return a

@@ -26,3 +26,18 @@ def test_bench_fps_quick(gl_info):
     assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["frames"] >= 1
     assert fps["size"] == [1024, 768] and fps["drawn"] == "visible"
     assert fps["dust_sprites"] > 100 and fps["removed_voxels"] > 1000
+
+
+@pytest.mark.slow
+def test_bench_native_quick(gl_info, tmp_path):
+    from bonesim.bench.suite import BENCHMARKS
+
+    out = BENCHMARKS["render_fps_native_019"].resolve()(quick=True,
+                                                       screenshot=tmp_path / "native.png")
+    assert set(out) == {"render_update_native_019_ms", "render_fps_native_019"}
+    upd, fps = out["render_update_native_019_ms"], out["render_fps_native_019"]
+    assert upd["voxel_mm"] == fps["voxel_mm"] == 0.19
+    assert upd["unit"] == "ms" and upd["value"] >= upd["p50_ms"] > 0
+    assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["drilling"] is True
+    assert fps["cut_voxels_per_frame"] > 0 and fps["size"] == [1024, 768]
+    assert (tmp_path / "native.png").stat().st_size > 10_000

@@ -1,0 +1,143 @@
+"""Tests of the full-tessellation kernels on occupancy bit rows
+(bonesim.engine.surface_build) and the full shading's box gather.
+
+The whole build is checked against the slow numpy reference of the
+definition in test_surface.py; here: the bit rows against plain dense
+arrays (occupancy words, surface voxels, per-brick counts), the row-copy
+gather of the shading against a voxel-by-voxel one, and that a build gives
+the same arrays, bit for bit, whatever the number of threads.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+
+from bonesim.engine.grid import BRICK, Grid
+from bonesim.engine.shading import _HALO, _LB, _gather_halo
+from bonesim.engine.surface import Surface
+from bonesim.engine.surface_build import build_count, occupancy_bits
+from bonesim.engine.surface_tables import TRIPLE_FACE, brick_neighbours, qualifying_triples
+
+COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dtype=np.uint8)
+
+
+def _volume(seed, shape=(21, 19, 26), p_occ=0.6):
+    rng = np.random.default_rng(seed)
+    lab = (rng.random(shape) < p_occ).astype(np.uint8) \
+        * rng.integers(1, 4, size=shape).astype(np.uint8)
+    # a solid block too, so that some bricks are all bone
+    lab[2:19, 2:17, 3:22] = 1
+    lab[6:10, 6:10, 6:10] = 0
+    dens = rng.uniform(0.05, 1.0, size=shape).astype(np.float32)
+    return dens, lab
+
+
+def _dense_occ(grid):
+    lo = grid.bricks.min(axis=0) * BRICK - BRICK
+    hi = (grid.bricks.max(axis=0) + 2) * BRICK
+    dens, _ = grid.to_dense(lo=lo, shape=hi - lo)
+    return dens > 0, lo
+
+
+def _ref_counts(grid):
+    """Per brick: surface voxels (occupied, an empty 26-neighbour) and owned
+    triangles, from dense arrays, cell by cell (plain loops)."""
+    occ, lo = _dense_occ(grid)
+    nv = np.zeros(grid.n_bricks, np.int64)
+    nt = np.zeros(grid.n_bricks, np.int64)
+    for b, (bi, bj, bk) in enumerate(grid.bricks):
+        o = np.array([bi, bj, bk]) * BRICK - lo
+        for x in range(BRICK):
+            for y in range(BRICK):
+                for z in range(BRICK):
+                    p = o + (x, y, z)
+                    if occ[tuple(p)] and not occ[p[0] - 1:p[0] + 2, p[1] - 1:p[1] + 2,
+                                                 p[2] - 1:p[2] + 2].all():
+                        nv[b] += 1
+                    cell = occ[p[0]:p[0] + 2, p[1]:p[1] + 2, p[2]:p[2] + 2]
+                    code = sum(int(cell[c >> 2, (c >> 1) & 1, c & 1]) << c for c in range(8))
+                    for tid, _ in qualifying_triples(code):
+                        f = int(TRIPLE_FACE[tid])
+                        if 0 <= f < 3:
+                            below = p.copy()
+                            below[f] -= 1
+                            sl = [slice(below[a], below[a] + 2) for a in range(3)]
+                            sl[f] = slice(below[f], below[f] + 1)
+                            if not occ[tuple(sl)].any():
+                                continue           # owned by the cell below
+                        nt[b] += 1
+    return nv, nt
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_occupancy_bits_are_the_occupied_voxels(seed):
+    dens, lab = _volume(seed)
+    grid = Grid.from_dense(lab, dens)
+    om = np.empty((grid.n_bricks, BRICK), np.int64)
+    occupancy_bits(grid.density, om)
+    want = (grid.density > 0).reshape(grid.n_bricks, BRICK, 64)
+    got = (om.view(np.uint64)[:, :, None] >> np.arange(64, dtype=np.uint64)) & np.uint64(1)
+    assert np.array_equal(got.astype(bool), want)
+
+
+@pytest.mark.parametrize("seed,p_occ", [(0, 0.6), (3, 0.3), (4, 0.9)])
+def test_counts_match_dense_reference(seed, p_occ):
+    dens, lab = _volume(seed, p_occ=p_occ)
+    grid = Grid.from_dense(lab, dens)
+    nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
+    om = np.empty((grid.n_bricks, BRICK), np.int64)
+    occupancy_bits(grid.density, om)
+    nv = np.full(grid.n_bricks, -1, np.int64)
+    nt = np.full(grid.n_bricks, -1, np.int64)
+    build_count(om, nbr, nv, nt)
+    want_v, want_t = _ref_counts(grid)
+    assert np.array_equal(nv, want_v)
+    assert np.array_equal(nt, want_t)
+    assert nv.sum() > 0 and nt.sum() > 0
+
+
+def test_shading_gather_equals_voxel_by_voxel():
+    dens, lab = _volume(7)
+    grid = Grid.from_dense(lab, dens)
+    nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
+    box = np.empty(_LB ** 3, np.float32)
+    for b, (bi, bj, bk) in enumerate(grid.bricks):
+        _gather_halo(grid.density, nbr, b, box)
+        want = np.zeros((_LB, _LB, _LB), np.float32)
+        for lx in range(_LB):
+            for ly in range(_LB):
+                for lz in range(_LB):
+                    i, j, k = (bi * BRICK + lx - _HALO, bj * BRICK + ly - _HALO,
+                               bk * BRICK + lz - _HALO)
+                    want[lx, ly, lz] = grid.density_at(i, j, k)
+        assert np.array_equal(box.reshape(_LB, _LB, _LB), want), b
+
+
+def _raw(surf):
+    return {"pos": surf.pos, "nrm": surf.nrm, "shift": surf.shift, "col": surf.col,
+            "ijk": surf.ijk, "alive": surf.alive, "vmap": surf.vmap, "tflip": surf.tflip,
+            "trec": surf._trec, "vrec": surf._vrec}
+
+
+def test_build_is_bit_identical_in_any_thread_count_and_schedule(monkeypatch):
+    import bonesim.engine.surface as surface_mod
+
+    dens, lab = _volume(11, shape=(70, 45, 60), p_occ=0.5)
+    grid = Grid.from_dense(lab, dens, spacing_mm=0.3)
+    n0 = numba.get_num_threads()
+    builds = []
+    try:
+        for threads, chunksize in ((1, 0), (numba.config.NUMBA_NUM_THREADS, 0),
+                                   (numba.config.NUMBA_NUM_THREADS, 1),
+                                   (numba.config.NUMBA_NUM_THREADS, 4)):
+            numba.set_num_threads(threads)
+            monkeypatch.setattr(surface_mod, "PARALLEL_CHUNKSIZE", chunksize)
+            builds.append(_raw(Surface.build(grid, COLORS, bone=[0, 1, 0, 0])))
+    finally:
+        numba.set_num_threads(n0)
+    one = builds[0]
+    for other in builds[1:]:
+        for name in one:
+            assert one[name].shape == other[name].shape, name
+            assert np.array_equal(one[name].view(np.uint8), other[name].view(np.uint8)), name
