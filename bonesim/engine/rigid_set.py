@@ -316,7 +316,7 @@ class RigidSet:
         self.tag[s] = -1
         self._any = True
 
-    def wake_body(self, state, b: int) -> int:
+    def wake_body(self, state, b: int, at_once: bool = False) -> int:
         """Let fragment ``b`` move (gravity, contact, the tool); returns its slot.
 
         Its samples and mass are computed now (from its current voxels) the
@@ -324,7 +324,8 @@ class RigidSet:
         still filling raises ``ValueError`` (it stays put until whole), and
         so does a large body the first time (:mod:`bonesim.engine.rigid_measure`:
         it is measured in slices by the next steps, and wakes when asked
-        again after that).
+        again after that), unless ``at_once``: then it is measured now, in
+        one go (for callers outside the haptic loop: scripts, tests, tools).
         """
         if any(j.dst == b for j in getattr(state, "split_jobs", ())):
             raise ValueError(f"body {b} is still being split off "
@@ -335,16 +336,16 @@ class RigidSet:
                 self.mode[s] = DYNAMIC
                 self.calm[s] = 0
             return s
-        job = self._measuring.get(b)
-        if job is None and needs_slices(state, b):
+        job = self._measuring.pop(b, None) if at_once else self._measuring.get(b)
+        if job is None and not at_once and needs_slices(state, b):
             job = self._measuring[b] = MeasureJob(state, b)
-        if job is not None:
+        if job is not None and not at_once:
             if not job.done:
                 raise ValueError(f"body {b} is being measured ({job.progress:.0%} of its "
                                  "box, bonesim.engine.rigid_measure): it moves once done")
             del self._measuring[b]
             d = job.result
-        else:
+        else:                                   # at once: the one-shot measurement
             d = body_samples(state, b, self.max_samples)
         s = self._free_slot()
         self._fill(s, d["smp"], d["nrm"], d["mass_kg"], d["com_mm"], d["inertia"],

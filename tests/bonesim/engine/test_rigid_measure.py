@@ -70,6 +70,18 @@ def test_a_large_fragment_stays_put_until_measured_then_wakes():
     assert measure_budget() >= 1
 
 
+def test_at_once_measures_a_large_fragment_now_as_body_samples_does():
+    m, st = _fragment(0)
+    rs = st.rigid
+    with pytest.raises(ValueError, match="being measured"):
+        rs.wake_body(st, 1)                            # a slice job starts ...
+    s = rs.wake_body(st, 1, at_once=True)              # ... and is dropped for the one-shot
+    ref = body_samples(st, 1)
+    assert s >= 0 and rs.owner[s] == 1 and not rs._measuring
+    assert rs.mass[s] == ref["mass_kg"] and rs.n_smp[s] == len(ref["smp"])
+    np.testing.assert_array_equal(rs.smp[s, :rs.n_smp[s]], ref["smp"])
+
+
 def test_a_reset_forgets_a_measurement_under_way():
     m, st = _fragment(1)
     with pytest.raises(ValueError):
