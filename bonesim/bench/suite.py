@@ -517,6 +517,9 @@ BENCHMARKS = {
     "haptic_step_4x_vs_2x_p50": bench_haptic_step,
     "haptic_step_7mm_8bodies_p99_us": bench_haptic_step,
     "haptic_step_8bodies_vs_1body_p99": bench_haptic_step,
+    **_by_name(tuple(f"haptic_step_native_{v}_{f}" for v in ("019", "010")
+                     for f in ("p99_us", "vs_05", "vs_floor")),
+               "bonesim.bench.native:bench_native_step"),
     **_by_name(("world_step_vs_step_p50", "world_step_7mm_p99_us"),
                "bonesim.bench.world:bench_world_step"),
     "retessellate_1000_p99_ms": bench_surface,
