@@ -85,10 +85,10 @@ from numba import njit
 from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
-from bonesim.engine.grid import BRICK, BRICK_SHIFT, BRICK_VOXELS, voxel_offset
+from bonesim.engine.grid import BRICK, BRICK_SHIFT, voxel_offset
 from bonesim.engine.haptics import (P_H3, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                                     P_V_T, O_FX, O_FY, O_FZ, O_MAG, O_N_IMMERSED, O_N_REMOVED,
-                                    O_N_TOUCHED, O_TX, O_TY, O_TZ, O_VOLUME, _MIN_DIRECTION,
+                                    O_N_TOUCHED, O_TX, O_TY, O_TZ, O_VOLUME, MIN_DIRECTION,
                                     block_bricks, multi_gain, push_event_kernel, tool_frame)
 
 __all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "make_budget",
@@ -306,6 +306,7 @@ def reset_budget_state(budget: Budget, st: BudgetState) -> None:
     st.occ[:] = budget.occ0
     st.queued[:] = 0
     st.rep[:] = 0
+    st.queue[:] = 0                  # touched now, not on the first steps
     st.qhead[:] = 0
 
 
@@ -540,6 +541,7 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     nbk = lbrick.shape[0]
+    ncell = BRICK >> cs
     sux = suy = suz = 0.0
     stx = sty = 0.0
     wsum = 0.0
@@ -566,6 +568,11 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
                 continue
             b = lbrick[bx, by, bz]
             if b < 0:
+                continue
+            # a cell known empty (the counts are exact or stale upward) needs
+            # no density read: the drilled cavity costs one small read
+            if occ[b, ((((i & 7) >> cs) * ncell) + ((j & 7) >> cs)) * ncell
+                   + ((k & 7) >> cs)] <= 0:
                 continue
             off = voxel_offset(i, j, k)
             if density[b, off] <= 0.0:
@@ -596,7 +603,7 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
     fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
     fn = np.sqrt(fx * fx + fy * fy + fz * fz)
-    if fn > _MIN_DIRECTION * (n_imm + 1):
+    if fn > MIN_DIRECTION * (n_imm + 1):
         fx *= mag / fn
         fy *= mag / fn
         fz *= mag / fn

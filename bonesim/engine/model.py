@@ -416,10 +416,13 @@ class State:
             if n_vox > self._n_vox:
                 self._n_vox = n_vox
                 self._lbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
-                self._ldens = np.zeros(n_vox ** 3, dtype=np.float32)
-                self._llab = np.zeros(n_vox ** 3, dtype=np.uint8)
-                self._acc = np.zeros(n_vox ** 3)
-                self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
+                # the fixed-budget step reads the grid through the brick
+                # table alone: no voxel block
+                n3 = 1 if model.budget.binding else n_vox ** 3
+                self._ldens = np.zeros(n3, dtype=np.float32)
+                self._llab = np.zeros(n3, dtype=np.uint8)
+                self._acc = np.zeros(n3)
+                self._dirty = np.zeros(n3, dtype=np.int32)
 
     @property
     def n_removed(self) -> int:
@@ -543,6 +546,12 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
     while the drill runs, and appends removals and injuries to the state's
     tissue ring and touched voxels to its touched ring. See
     :mod:`bonesim.engine.haptics` for the model.
+
+    Where the bone is finer than the budget's finest sample lattice
+    (:mod:`bonesim.engine.haptics_budget`), the step is the fixed-budget
+    step: a fixed number of samples per burr, removal doses per cell
+    carried in the state and flushed within a per-step budget (also on
+    steps away from the bone).
 
     Bodies: the tool is transformed into the frame of every body within its
     reach, one kernel pass per group of bodies that share a pose
