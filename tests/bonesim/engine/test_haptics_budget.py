@@ -267,3 +267,42 @@ def test_a_native_resolution_run_replays_bit_for_bit(tmp_path):
     assert report["ok"] and report["identical"], report
     assert report["removals_recorded"] == report["removals_replayed"] \
         == summary["voxels_removed"]
+
+
+def test_doses_stay_with_the_body_whose_pass_gave_them():
+    """A block split at a face through removal cells, the new body moved
+    10 mm along x: drilling either removes only that body's voxels (the
+    cells on the split face hold both), and steps out of every body's reach
+    still flush what is carried."""
+    from bonesim.engine.bodies import set_pose, split_body
+
+    v = 0.1
+    labels = np.zeros((40, 40, 40), np.uint8)
+    labels[:, :, :25] = 1
+    burr = FakeBurr(radius_mm=0.8, k_low=2.0, k_high=8.0, max_force_n=4.0, r_max=40.0)
+    m, s = _model(labels, v, burr)
+    g = np.stack(np.mgrid[0:40, 0:40, 0:25], -1).reshape(-1, 3)
+    split_body(s, 0, g[g[:, 0] >= 18].astype(np.int32), 1)     # cells 16..19 hold both
+    set_pose(s, 1, (10.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0))
+    for q in range(150):                                      # body 0, up to its face
+        _run(m, s, (1.5, 2.0, 2.45), (0.0, 0.0, -1.0), True, t=q * 1e-3)
+    for q in range(150):                                      # body 1, in the case frame
+        _run(m, s, (13.0, 2.0, 2.45), (0.0, 0.0, -1.0), True, t=0.2 + q * 1e-3)
+    q = 0
+    while s._budget.pending:                                  # nothing within reach
+        _run(m, s, (-20.0, -20.0, 20.0), (0.0, 0.0, -1.0), False, t=1.0 + q * 1e-3)
+        q += 1
+    dens, _ = s.grid.to_dense()
+    gone = np.argwhere((labels > 0) & (dens == 0))
+    assert len(gone) > 0
+    d0 = np.linalg.norm(gone * v - (1.5, 2.0, 2.45), axis=1)
+    d1 = np.linalg.norm(gone * v - (3.0, 2.0, 2.45), axis=1)
+    tol = m.budget.cell * v * math.sqrt(3)
+    of_1 = gone[:, 0] >= 18                                   # the split's body 1
+    assert (d0[~of_1] <= 0.8 + tol).all() and (~of_1).sum() > 0   # each body's voxels
+    assert (d1[of_1] <= 0.8 + tol).all() and of_1.sum() > 0       # went by its own pass
+    assert s.n_removed == len(gone)
+    # the voxels of body 1 on the face next to the first hole are still there
+    face = np.argwhere((labels > 0) & (np.arange(40)[:, None, None] == 18))
+    near = face[np.linalg.norm(face * v - (1.5, 2.0, 2.45), axis=1) < 0.75]
+    assert len(near) and (dens[tuple(near.T)] > 0).all()
