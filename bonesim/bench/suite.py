@@ -164,8 +164,10 @@ def bench_haptic_step(quick=False) -> dict:
                                       "p50_us": round(_pct(us4, 50), 2)},
         "haptic_step_4x_vs_2x_p50": {
             "value": round(_pct(us4, 50) / _pct(us, 50), 2), "unit": "x",
-            "what": "p50 of the 7 mm step at 4x oversampling (one lookup per voxel a "
-                    "row of samples crosses) / at 2x (one per sample), same run"},
+            "what": "p50 of the 7 mm step at 4x oversampling / at 2x (one lookup per "
+                    "sample), same run; at 4x on 0.5 mm voxels (0.125 mm) the fixed "
+                    "budget binds: the fixed-budget step (bonesim.engine.haptics_budget, "
+                    "the 2x sample count)"},
         "haptic_step_7mm_8bodies_p99_us": {
             "value": round(many_p99, 2), "unit": "us", "steps": len(many_ns),
             "what": f"the 7 mm step with the block split into {BENCH_BODIES} interleaved "
