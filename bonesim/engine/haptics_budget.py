@@ -12,12 +12,14 @@ Force: a fixed sample budget
     min_spacing_mm)``; while ``voxel / oversample >= min_spacing_mm`` the
     budget is not binding and the step is exactly the per-voxel kernel (bit
     for bit: the phantom at 0.5 mm, default oversampling). Where it binds,
-    each of the burr's ``4/3 pi (r / h)^3`` samples (11,494 for the 7 mm
-    burr) reads the *fine* voxel it lies in through the brick table: one
+    each of the burr's lattice points inside it (about ``4/3 pi (r / h)^3``:
+    11,536 for the 7 mm burr, 4,224 for the 5 mm) reads the *fine* voxel it
+    lies in through the brick table: one
     read of the block's brick index (``lbrick``, filled once per step by
     :func:`bonesim.engine.haptics.block_bricks`: ``(2 r / (8 voxel) + 3)^3``
-    hash probes, 1/512 of a voxel block) and one density read. Nothing is
-    gathered. The force law is the per-voxel kernel's, with ``h^3`` per
+    hash probes, 1/512 of a voxel block), one read of the sample's removal
+    cell's occupancy (an empty cell ends the sample: the drilled cavity) and
+    one density read. Nothing is gathered. The force law is the per-voxel kernel's, with ``h^3`` per
     sample.
 
     Point samples of the fine voxels were chosen over a summarising density
