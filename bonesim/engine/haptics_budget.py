@@ -492,7 +492,8 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
 
 @njit(cache=True, nogil=True)
 def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin, spacing,
-                  stiff, removal, injury, samples, params, lat, budget_vox, cell, cs,
+                  stiff, removal, injury, samples, row_head, row_off, h, params, lat,
+                  budget_vox, cell, cs,
                   pos, axis, drill, direction, speed_factor, dt, t,
                   group, gsel, owner, first, last, case_pos, pose_m,
                   R, lbrick, contact, prev_contact, lost, lab_body, onset_body,
@@ -507,6 +508,14 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
         Brick coordinates (:attr:`bonesim.engine.grid.Grid.bricks`).
     samples : (n, 5) float32
         The budget stencil's packed rows (spacing ``h``; ``params[P_H3]`` is ``h^3``).
+    row_head, row_off : arrays
+        The stencil's lattice rows along the tool axis
+        (:attr:`bonesim.engine.haptics.Stencil.row_head`, ``row_off``): the
+        samples are visited row by row, each voxel coordinate stepping by
+        ``h`` along the axis (a sample within float rounding of a voxel face
+        may land on its other side than a per-sample sum would put it).
+    h : float
+        The lattice spacing [mm].
     lat : (LAT_TABLE,) float64
         The burr's latitude table (:func:`lat_table`).
     budget_vox : int
@@ -542,7 +551,6 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     radius = params[P_RADIUS]
     lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
-    nbk = lbrick.shape[0]
     ncell = BRICK >> cs
     sux = suy = suz = 0.0
     stx = sty = 0.0
@@ -556,44 +564,50 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
         r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
         r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
         r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
-        for s in range(samples.shape[0]):
-            ox = np.float64(samples[s, 0])
-            oy = np.float64(samples[s, 1])
-            oz = np.float64(samples[s, 2])
-            i = lo0 + int(c0 + r00 * ox + r01 * oy + r02 * oz)
-            j = lo1 + int(c1 + r10 * ox + r11 * oy + r12 * oz)
-            k = lo2 + int(c2 + r20 * ox + r21 * oy + r22 * oz)
-            bx = (i >> BRICK_SHIFT) - b0
-            by = (j >> BRICK_SHIFT) - b1
-            bz = (k >> BRICK_SHIFT) - b2
-            if bx >= nbk or by >= nbk or bz >= nbk:
-                continue
-            b = lbrick[bx, by, bz]
-            if b < 0:
-                continue
-            # a cell known empty (the counts are exact or stale upward) needs
-            # no density read: the drilled cavity costs one small read
-            if occ[b, ((((i & 7) >> cs) * ncell) + ((j & 7) >> cs)) * ncell
-                   + ((k & 7) >> cs)] <= 0:
-                continue
-            off = voxel_offset(i, j, k)
-            if density[b, off] <= 0.0:
-                continue
-            if gsel >= 0 and group[body[b, off]] != gsel:
-                continue
-            lab = label[b, off]
-            w = stiff[lab]
-            n_imm += 1
-            wsum += w
-            if contact[lab] == 0:
-                onset_body[lab] = body[b, off]
-            contact[lab] += 1
-            wr = w * np.float64(samples[s, 3])
-            sux += wr * ox
-            suy += wr * oy
-            suz += wr * oz
-            stx += w * oy
-            sty -= w * ox
+        # the lattice's rows along the tool axis: a row's samples sit
+        # h apart, so each voxel coordinate is the row's first plus k steps
+        d0, d1, d2 = r02 * h, r12 * h, r22 * h
+        s = 0
+        for r in range(row_head.shape[0]):
+            ox = row_head[r, 0]
+            oy = row_head[r, 1]
+            oz = row_head[r, 2]
+            a0 = c0 + r00 * ox + r01 * oy + r02 * oz
+            a1 = c1 + r10 * ox + r11 * oy + r12 * oz
+            a2 = c2 + r20 * ox + r21 * oy + r22 * oz
+            n = row_off[r, 1]
+            for q in range(n):
+                i = lo0 + int(a0 + d0 * q)
+                j = lo1 + int(a1 + d1 * q)
+                k = lo2 + int(a2 + d2 * q)
+                b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
+                           (k >> BRICK_SHIFT) - b2]
+                if b < 0:
+                    continue
+                # a cell known empty (the counts are exact or stale upward)
+                # needs no density read: the drilled cavity costs one small read
+                if occ[b, ((((i & 7) >> cs) * ncell) + ((j & 7) >> cs)) * ncell
+                       + ((k & 7) >> cs)] <= 0:
+                    continue
+                off = voxel_offset(i, j, k)
+                if density[b, off] <= 0.0:
+                    continue
+                if gsel >= 0 and group[body[b, off]] != gsel:
+                    continue
+                lab = label[b, off]
+                w = stiff[lab]
+                n_imm += 1
+                wsum += w
+                if contact[lab] == 0:
+                    onset_body[lab] = body[b, off]
+                contact[lab] += 1
+                wr = w * np.float64(samples[s + q, 3])
+                sux += wr * ox
+                suy += wr * oy
+                suz += wr * np.float64(samples[s + q, 2])
+                stx += w * oy
+                sty -= w * ox
+            s += n
     # force: as the per-voxel kernel
     h3 = params[P_H3]
     volume = wsum * h3

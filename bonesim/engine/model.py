@@ -650,7 +650,8 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
         budget_kernel(
             g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
             g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-            st.packed, model.burr_params[bi], bud.lat[bi], bud.removal_voxels[bi],
+            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
+            bud.lat[bi], bud.removal_voxels[bi],
             bud.cell, bud.cell.bit_length() - 1,
             pos, ax, drill, direction, speed_factor, dt, t,
             state._group, gsel, owner, first, last, state._pos, state.pose_m,
