@@ -41,6 +41,12 @@ One haptic step with the tool centre ``t_c`` and unit axis ``d``
 
 All state the kernel touches is passed as plain arrays; the kernel allocates
 nothing and is deterministic (same inputs, bit-identical grid).
+
+This kernel (and the row kernel of :mod:`bonesim.engine.haptics_rows`) runs
+where ``voxel / oversample`` is at least the budget's finest lattice spacing
+(``bonesim/data/haptics.toml``); on finer bone the fixed-budget step of
+:mod:`bonesim.engine.haptics_budget` takes over, whose cost does not grow
+with ``(r / voxel)^3``.
 """
 from __future__ import annotations
 
@@ -57,7 +63,7 @@ from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 __all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
            "P_INV_VOXEL_VOL", "P_RADIUS", "N_PARAMS", "O_FX", "O_FY", "O_FZ", "O_TX",
            "O_TY", "O_TZ", "O_MAG", "O_VOLUME", "O_N_IMMERSED", "O_N_REMOVED",
-           "O_N_TOUCHED", "N_OUT", "Stencil", "make_stencil", "block_size",
+           "O_N_TOUCHED", "N_OUT", "MIN_DIRECTION", "Stencil", "make_stencil", "block_size",
            "block_bricks", "tool_frame", "multi_gain", "haptic_kernel"]
 
 # Layout of the float64 ``params`` vector handed to the kernel.
@@ -71,7 +77,7 @@ N_OUT = 11
 # Directions whose summed unit contributions are shorter than this (relative
 # to the number of immersed samples) are treated as having no direction: the
 # burr is enclosed symmetrically and pushes nowhere in particular.
-_MIN_DIRECTION = 1e-9
+MIN_DIRECTION = 1e-9
 
 
 @dataclass(frozen=True)
@@ -495,7 +501,7 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
     fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
     fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
     fn = np.sqrt(fx * fx + fy * fy + fz * fz)
-    if fn > _MIN_DIRECTION * (n_imm + 1):
+    if fn > MIN_DIRECTION * (n_imm + 1):
         fx *= mag / fn
         fy *= mag / fn
         fz *= mag / fn

@@ -46,7 +46,10 @@ from bonesim.engine.haptics import begin_pass, finish_pass
 
 __all__ = ["ROWS_MIN_OVERSAMPLE", "haptic_rows_kernel"]
 
-#: Oversampling from which :func:`bonesim.engine.model.step` takes the row pass.
+#: Oversampling from which :func:`bonesim.engine.model.step` takes the row pass
+#: (where the fixed budget does not bind, :mod:`bonesim.engine.haptics_budget`:
+#: ``voxel / oversample`` at least its finest spacing, so 0.75 mm voxels and
+#: coarser at 3x; below, the fixed-budget step runs).
 #: Below it the per-sample kernel runs: every recorded session (the default
 #: 2x) replays with it bit for bit, and with ~8 samples per voxel the rows
 #: gain little there (7 mm burr, half immersed, drill off: 66 against 75 us).

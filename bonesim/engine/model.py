@@ -32,6 +32,8 @@ from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, vox
 from bonesim.engine.haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
                                     P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                                     P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
+from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_kernel, lattice_spacing,
+                                           make_budget, make_budget_state, reset_budget_state)
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 from bonesim.engine.rigid import gravity_direction
 from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
@@ -137,6 +139,7 @@ class Model:
     haptic_rate_hz: float = HAPTIC_RATE_HZ
     case: object = None
     clearance: object = None
+    budget: Budget = None
 
     @property
     def spacing_mm(self) -> float:
@@ -173,7 +176,8 @@ class Model:
         # first step (1.8 s with a cold cache).
         self.__dict__.update(state)
         for a in (self.grid.density, self.grid.label, self.stiff, self.removal,
-                  self.injury, self.colors, *self.burr_params):
+                  self.injury, self.colors, *self.burr_params, self.budget.occ0,
+                  self.budget.thr0, *self.budget.lat):
             a.flags.writeable = False
         for st in self.stencils:
             for a in (st.offsets, st.inv_r, st.lat, st.packed, st.row_head, st.row_off,
@@ -183,24 +187,38 @@ class Model:
     def with_burrs(self, burrs) -> "Model":
         """The same model with ``burrs`` added to its burr table (indices
         ``len(self.burrs)`` on)."""
-        extra = [_burr_arrays(b, self.grid.spacing_mm, self.oversample, self.device)
-                 for b in burrs]
+        extra = [_burr_arrays(b, self.grid.spacing_mm, self.oversample, self.device,
+                              self.budget.settings) for b in burrs]
         return replace(self, burrs=self.burrs + tuple(burrs),
                        stencils=self.stencils + tuple(e[0] for e in extra),
-                       burr_params=self.burr_params + tuple(e[1] for e in extra))
+                       burr_params=self.burr_params + tuple(e[1] for e in extra),
+                       budget=_with_burrs(self.budget, burrs, self))
 
     def with_burr(self, burr) -> "Model":
         """The same model whose default burr (burr 0) is ``burr``; the rest of
         the table is dropped."""
         stencil, params = _burr_arrays(burr, self.grid.spacing_mm, self.oversample,
-                                       self.device)
-        return replace(self, burrs=(burr,), stencils=(stencil,), burr_params=(params,))
+                                       self.device, self.budget.settings)
+        bud = replace(self.budget, lat=(), removal_voxels=())
+        return replace(self, burrs=(burr,), stencils=(stencil,), burr_params=(params,),
+                       budget=_with_burrs(bud, (burr,), self))
 
 
-def _burr_arrays(burr, spacing_mm: float, oversample: int, device: DeviceCaps):
+def _with_burrs(budget: Budget, burrs, model) -> Budget:
+    return budget.with_burrs(burrs, model.grid.spacing_mm,
+                             [model.device.max_force_n] * len(burrs),
+                             float(np.max(model.removal)))
+
+
+def _burr_arrays(burr, spacing_mm: float, oversample: int, device: DeviceCaps,
+                 settings=None):
     if oversample < 1:
         raise ValueError(f"oversample must be >= 1, got {oversample}")
-    h = spacing_mm / oversample
+    if settings is None:
+        from bonesim.engine.haptics_budget import load_budget_settings
+        settings = load_budget_settings()
+    # voxel / oversample, or the budget's finest spacing where that is finer
+    h = lattice_spacing(spacing_mm, oversample, settings)
     stencil = make_stencil(burr.radius_mm, h, burr.r_max, burr.falloff)
     p = np.zeros(N_PARAMS)
     p[P_K_LOW] = burr.k_low
@@ -225,7 +243,8 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
                *, origin_mm=(0.0, 0.0, 0.0), density: np.ndarray | None = None,
                materials: dict | None = None, device: DeviceCaps = SCRIPTED,
                oversample: int = DEFAULT_OVERSAMPLE, name: str = "arrays",
-               case=None, max_bodies: int = DEFAULT_MAX_BODIES) -> Model:
+               case=None, max_bodies: int = DEFAULT_MAX_BODIES,
+               budget_settings=None) -> Model:
     """Build a :class:`Model` from a label volume.
 
     Parameters
@@ -253,6 +272,9 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
         Burr lattice refinement (samples per voxel edge).
     max_bodies : int
         Most bone bodies a run may hold (1 .. 255).
+    budget_settings : BudgetSettings, optional
+        The fixed budget's limits (default: ``bonesim/data/haptics.toml``,
+        :func:`bonesim.engine.haptics_budget.load_budget_settings`).
     """
     labels = np.asarray(labels)
     if not 1 <= int(max_bodies) <= BODY_LIMIT:
@@ -281,12 +303,14 @@ def make_model(labels: np.ndarray, spacing_mm: float, structures: Sequence, burr
     grid = Grid.from_dense(labels, density, spacing_mm, origin_mm)
     for a in (grid.density, grid.label):
         a.flags.writeable = False
-    stencil, params = _burr_arrays(burr, grid.spacing_mm, oversample, device)
-    return Model(name=name, structures=tuple(structures), grid=grid, burrs=(burr,),
-                 stencils=(stencil,), device=device, oversample=int(oversample),
-                 stiff=_readonly(stiff), removal=_readonly(removal),
-                 injury=_readonly(injury), colors=_readonly(colors),
-                 burr_params=(params,), max_bodies=int(max_bodies), case=case)
+    budget = make_budget(grid, oversample, removal, budget_settings)
+    stencil, params = _burr_arrays(burr, grid.spacing_mm, oversample, device, budget.settings)
+    model = Model(name=name, structures=tuple(structures), grid=grid, burrs=(burr,),
+                  stencils=(stencil,), device=device, oversample=int(oversample),
+                  stiff=_readonly(stiff), removal=_readonly(removal),
+                  injury=_readonly(injury), colors=_readonly(colors),
+                  burr_params=(params,), max_bodies=int(max_bodies), case=case)
+    return replace(model, budget=_with_burrs(budget, (burr,), model))
 
 
 @dataclass
@@ -388,6 +412,11 @@ class State:
     _acc_out: np.ndarray = field(default_factory=lambda: np.zeros(N_OUT))
     _bpos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _baxis: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: the removal the fixed-budget step carries from step to step (None
+    #: where the budget does not bind)
+    _budget: BudgetState | None = None
+    _onset_body: np.ndarray = None
+    _counts: np.ndarray = field(default_factory=lambda: np.zeros(2, np.int64))
 
     def fit_scratch(self, model: Model) -> None:
         """Size the kernel's scratch for the largest burr of the model's table."""
@@ -396,10 +425,13 @@ class State:
             if n_vox > self._n_vox:
                 self._n_vox = n_vox
                 self._lbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
-                self._ldens = np.zeros(n_vox ** 3, dtype=np.float32)
-                self._llab = np.zeros(n_vox ** 3, dtype=np.uint8)
-                self._acc = np.zeros(n_vox ** 3)
-                self._dirty = np.zeros(n_vox ** 3, dtype=np.int32)
+                # the fixed-budget step reads the grid through the brick
+                # table alone: no voxel block
+                n3 = 1 if model.budget.binding else n_vox ** 3
+                self._ldens = np.zeros(n3, dtype=np.float32)
+                self._llab = np.zeros(n3, dtype=np.uint8)
+                self._acc = np.zeros(n3)
+                self._dirty = np.zeros(n3, dtype=np.int32)
 
     @property
     def n_removed(self) -> int:
@@ -471,6 +503,9 @@ def make_state(model: Model, arrays: dict | None = None,
     st._group = np.zeros(model.max_bodies, dtype=np.int32)
     st._pass_body = np.zeros(model.max_bodies, dtype=np.int32)
     st._pass_ident = np.zeros(model.max_bodies, dtype=np.bool_)
+    st._onset_body = np.zeros(n, dtype=np.int32)
+    if model.budget.binding:
+        st._budget = make_budget_state(model.budget)
     st.fit_scratch(model)
     if rigid:
         st.rigid = RigidSet(model.max_bodies, RIGID_SLOTS,
@@ -507,6 +542,8 @@ def reset_state(model: Model, state: State, rings: bool = True) -> None:
     state.force_n[:] = 0.0
     if state._prev_contact is not None:
         state._prev_contact[:] = 0
+    if state._budget is not None:
+        reset_budget_state(model.budget, state._budget)
     if state.rigid is not None:
         state.rigid.clear()
 
@@ -520,6 +557,12 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
     while the drill runs, and appends removals and injuries to the state's
     tissue ring and touched voxels to its touched ring. See
     :mod:`bonesim.engine.haptics` for the model.
+
+    Where the bone is finer than the budget's finest sample lattice
+    (:mod:`bonesim.engine.haptics_budget`), the step is the fixed-budget
+    step: a fixed number of samples per burr, removal doses per cell
+    carried in the state and flushed within a per-step budget (also on
+    steps away from the bone).
 
     Bodies: the tool is transformed into the frame of every body within its
     reach, one kernel pass per group of bodies that share a pose
@@ -592,6 +635,11 @@ def _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, 
     if n_pass == 1 and state._pass_ident[0]:
         _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, 0,
                 True, True)
+    elif n_pass == 0 and model.budget.binding:
+        # no body within reach: a pass that samples nothing flushes the
+        # carried removal
+        _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, -2,
+                True, True)
     elif n_pass == 0:
         state.out[:] = 0.0
         state._lost[:] = 0
@@ -606,6 +654,25 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
     g = state.grid
     ev, tch = state.tissue.fields, state.touched.fields
     st = model.stencils[bi]
+    if model.budget.binding:
+        # the fixed-budget step (bone finer than the finest sample lattice)
+        bud, bs = model.budget, state._budget
+        owner = 0 if gsel < 0 else int(state._pass_body[gsel])
+        budget_kernel(
+            g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
+            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
+            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
+            bud.lat[bi], bud.removal_voxels[bi],
+            bud.cell, bud.cell.bit_length() - 1,
+            pos, ax, drill, direction, speed_factor, dt, t,
+            state._group, gsel, owner, first, last, state._pos, state.pose_m,
+            state._R, state._lbrick, state._contact, state._prev_contact, state._lost,
+            state._lab_body, state._onset_body,
+            bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
+            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
+            ev["value"], state.tissue.head,
+            tch["ijk"], state.touched.head, state.out)
+        return
     if model.oversample >= ROWS_MIN_OVERSAMPLE:
         # fine sampling: one lookup per voxel a row of samples crosses
         haptic_rows_kernel(

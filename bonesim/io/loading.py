@@ -67,17 +67,18 @@ def load_model(case="phantom", burr: str = "cutting-5mm", *,
     return replace(model, clearance=Clearance.from_native(vol.native_labels, danger))
 
 
-def warmup_model(oversample: int = DEFAULT_OVERSAMPLE, burr=None) -> Model:
-    """A 12³ slab of bone (0.5 mm voxels, ``burr`` or else the shipped 1 mm
-    cutting burr) on which the warm-ups compile kernels for a real model's
-    array types."""
+def warmup_model(oversample: int = DEFAULT_OVERSAMPLE, burr=None,
+                 voxel_mm: float = 0.5) -> Model:
+    """A 12³ slab of bone (0.5 mm voxels unless ``voxel_mm`` says, ``burr``
+    or else the shipped 1 mm cutting burr) on which the warm-ups compile
+    kernels for a real model's array types."""
     from types import SimpleNamespace
 
     labels = np.zeros((12, 12, 12), dtype=np.uint8)
     labels[:, :, :6] = 1
     bone = SimpleNamespace(name="bone", kind="bone", display_color=(255, 255, 255))
     burr = load_burr("cutting-1mm") if burr is None else burr
-    return make_model(labels, 0.5, [bone], burr, oversample=oversample)
+    return make_model(labels, voxel_mm, [bone], burr, oversample=oversample)
 
 
 def warmup_sample(model: Model) -> Sample:
@@ -116,5 +117,14 @@ def warmup(burr=None) -> None:
     set_pose(s, 1, (0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0))  # bodies apart: several passes
     step(m, s, warmup_sample(m)._replace(t_s=0.001))
     step(m, s, warmup_sample(m)._replace(t_s=0.002, pos_mm=np.array([0.2, 0.2, 1.0])))
-    m4 = warmup_model(ROWS_MIN_OVERSAMPLE, burr)       # the row kernel of fine stencils
+    # the row kernel of fine stencils (the budget binds below voxel / oversample
+    # = 0.25 mm, so a slab of 1 mm voxels)
+    m4 = warmup_model(ROWS_MIN_OVERSAMPLE + 1, burr, voxel_mm=1.0)
     step(m4, make_state(m4), warmup_sample(m4))
+    # the fixed-budget step of bone finer than its lattice (native resolution),
+    # with its carried removal flushed on a later step
+    mb = warmup_model(burr=burr, voxel_mm=0.5 / 8)
+    sb = make_state(mb)
+    smp = warmup_sample(mb)._replace(pos_mm=np.array([0.375, 0.375, 0.36]))
+    step(mb, sb, smp)
+    step(mb, sb, smp._replace(t_s=0.001, drill=False))

@@ -75,6 +75,12 @@ def model_sha256(model) -> str:
         a = np.ascontiguousarray(a)
         h.update(str(a.dtype).encode() + str(a.shape).encode())
         h.update(a.tobytes())
+    bud = model.budget
+    if bud is not None and bud.binding:
+        # the fixed-budget step's removal cells and budget (the models where it
+        # does not bind hash as they always did)
+        h.update(np.array([bud.cell, bud.removal_voxels[0]], np.int64).tobytes())
+        h.update(np.ascontiguousarray(bud.lat[0]).tobytes())
     return h.hexdigest()
 
 

@@ -30,7 +30,7 @@ from bonesim.engine.haptics import O_MAG, O_N_IMMERSED, O_TX, O_TZ, O_VOLUME, ma
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE
 from bonesim.engine.model import make_model, make_state
 
-from tests.bonesim.fakes import BONE, MATERIALS, NERVE, FakeBurr, block_model
+from tests.bonesim.fakes import BONE, MATERIALS, NERVE, NO_BUDGET, FakeBurr, block_model
 from tests.bonesim.engine.test_haptics import ref_frame, ref_step, run
 
 #: Distance to a voxel boundary [voxels] within which a sample may be
@@ -51,7 +51,8 @@ def random_model(seed, oversample, radius=1.5):
     labels[rng.random(labels.shape) < 0.1] = 2
     burr = FakeBurr(radius_mm=radius, k_low=0.5, k_high=2.0, max_force_n=50.0)
     m = make_model(labels, 0.5, [BONE, NERVE], burr, materials=MATERIALS,
-                   oversample=oversample)
+                   oversample=oversample,
+                       budget_settings=NO_BUDGET)
     return m, labels
 
 
@@ -142,7 +143,8 @@ def test_no_sample_sits_on_a_boundary_so_the_row_pass_is_the_reference(oversampl
        oversample=hs.sampled_from([3, 4, 6]))
 def test_burr_inside_bone_immerses_its_whole_stencil(pos, axis, oversample):
     labels = np.ones((40, 40, 40), np.uint8)
-    m, s = block_model(labels=labels, burr=FakeBurr(radius_mm=2.0), oversample=oversample)
+    m, s = block_model(labels=labels, burr=FakeBurr(radius_mm=2.0), oversample=oversample,
+                       budget_settings=NO_BUDGET)
     f = run(m, s, pos, axis, drill=False)
     assert s.out[O_N_IMMERSED] == m.stencil.n
     assert s.out[O_VOLUME] == pytest.approx(m.stencil.volume_mm3, rel=1e-13)
@@ -152,7 +154,8 @@ def test_burr_inside_bone_immerses_its_whole_stencil(pos, axis, oversample):
 
 @pytest.mark.parametrize("oversample", [3, 4])
 def test_burr_outside_bone_feels_nothing(oversample):
-    m, s = block_model(burr=FakeBurr(radius_mm=2.0), oversample=oversample)
+    m, s = block_model(burr=FakeBurr(radius_mm=2.0), oversample=oversample,
+                       budget_settings=NO_BUDGET)
     top = 20 * 0.5 - 0.25
     f = run(m, s, (10.0, 10.0, top + 2.0 + 1e-3), (0.3, -0.2, -1.0))
     assert s.out[O_N_IMMERSED] == 0 and s.out[O_VOLUME] == 0.0
@@ -175,7 +178,8 @@ def test_the_row_pass_runs_from_rows_min_oversample_on(oversample, monkeypatch):
     monkeypatch.setattr(model_mod, "haptic_rows_kernel",
                         count("rows", model_mod.haptic_rows_kernel))
     monkeypatch.setattr(model_mod, "haptic_kernel", count("samples", model_mod.haptic_kernel))
-    m, s = block_model(burr=FakeBurr(radius_mm=2.0), oversample=oversample)
+    m, s = block_model(burr=FakeBurr(radius_mm=2.0), oversample=oversample,
+                       budget_settings=NO_BUDGET)
     run(m, s, (10.03, 9.97, 9.9), (0.3, -0.2, -1.0))
     assert s.out[O_N_IMMERSED] > 0
     rows = oversample >= ROWS_MIN_OVERSAMPLE
@@ -184,7 +188,8 @@ def test_the_row_pass_runs_from_rows_min_oversample_on(oversample, monkeypatch):
 
 def test_row_pass_deterministic_bit_identical():
     def go():
-        m, s = block_model(burr=FakeBurr(k_low=50, k_high=50), oversample=4)
+        m, s = block_model(burr=FakeBurr(k_low=50, k_high=50), oversample=4,
+                       budget_settings=NO_BUDGET)
         rng = np.random.default_rng(7)
         forces = []
         for n in range(150):
@@ -204,7 +209,8 @@ def test_row_pass_injuries_on_contact_and_removal():
     labels[:, :, :20] = 1
     labels[:, :, 17:20] = 2                              # nerve sheet at the top
     burr = FakeBurr(k_low=1e3, k_high=1e3)
-    m, s = block_model(labels=labels, structures=[BONE, NERVE], burr=burr, oversample=4)
+    m, s = block_model(labels=labels, structures=[BONE, NERVE], burr=burr, oversample=4,
+                       budget_settings=NO_BUDGET)
     for n in range(0, 300):
         run(m, s, (10.0, 10.0, 10.4), (0, 0, -1.0), t=n * 1e-3)
     inj = events.injuries(s.tissue.read(0))

@@ -1,0 +1,673 @@
+"""The fixed-budget haptic step: force and removal whose cost does not grow
+with (burr radius / voxel size)^3.
+
+:func:`bonesim.engine.haptics.haptic_kernel` samples the burr at ``h = voxel /
+oversample`` and gathers the burr's whole voxel block before sampling, so
+its cost grows with ``(r / voxel)^3`` (0.19 mm bone: 8x the 0.5 mm samples
+and a 40^3 block for the 7 mm burr). Where the bone is finer than the
+budget, this step takes over (:class:`Budget`, ``bonesim/data/haptics.toml``):
+
+Force: a fixed sample budget
+    The burr's lattice spacing is ``h = max(voxel / oversample,
+    min_spacing_mm)``; while ``voxel / oversample >= min_spacing_mm`` the
+    budget is not binding and the step is exactly the per-voxel kernel (bit
+    for bit: the phantom at 0.5 mm, default oversampling). Where it binds,
+    each of the burr's lattice points inside it (about ``4/3 pi (r / h)^3``:
+    11,536 for the 7 mm burr, 4,224 for the 5 mm) reads the *fine* voxel it
+    lies in through the brick table: one
+    read of the block's brick index (``lbrick``, filled once per step by
+    :func:`bonesim.engine.haptics.block_bricks`: ``(2 r / (8 voxel) + 3)^3``
+    hash probes, 1/512 of a voxel block), one read of the sample's removal
+    cell's occupancy (an empty cell ends the sample: the drilled cavity) and
+    one density read. Nothing is gathered. The force law is the per-voxel
+    kernel's, with ``h^3`` per sample.
+
+    Point samples of the fine voxels were chosen over a summarising density
+    (counts per brick or per cell): a sample that reads a cell's occupied
+    fraction spreads the bone surface over the cell (a 0.4 mm blur at 0.1 mm
+    voxels) while a point sample is exact away from the surface and off by
+    at most its own cell ``h^3`` at it; both cost one read. The error
+    against the exact voxel sum (the bone volume the fine voxels put inside
+    the burr): with ``N_h`` the lattice cells (edge ``h``, centred on the
+    samples) that the burr's sphere or a bone voxel face cuts, and ``N_v``
+    the voxels the sphere cuts,
+    ``|V_samples - V_voxels| <= h^3 N_h + voxel^3 N_v`` [mm^3], about
+    ``sqrt(3) (h + voxel) (4 pi r^2 + A)`` with ``A`` the bone surface
+    inside the burr; the force magnitude is off by at most ``k_high`` times
+    that. ``tests/bonesim/engine/test_haptics_budget.py`` checks the bound
+    over random poses and resolutions.
+
+Removal: doses per cell, flushed within a budget
+    Removal cells are blocks of ``c^3`` fine voxels (``c`` the smallest
+    power of two with ``c voxel >= min_spacing_mm``; a brick holds
+    ``(8 / c)^3``). While the drill runs, every cell whose centre lies in
+    the burr and that holds bone gets the removal law's dose
+    ``f lat phi dt`` (``f`` the step's normal force [N], ``lat`` the
+    latitude weight at the cell centre, from a table of
+    :data:`LAT_TABLE` entries over ``|cos theta|``, ``phi`` the relative
+    speed): the cells are a lattice of the grid's, so every fine voxel the
+    burr covers gets its dose, however coarse the samples (no uncut
+    islands). A cell's dose accumulates in the state (:class:`BudgetState`)
+    until it can remove its weakest voxel (``dose >= min density /
+    removal factor`` over its voxels, kept per cell); then the cell is
+    queued. Every step *flushes* queued cells in order: each of the cell's
+    voxels loses ``dose x`` its material's removal factor; a voxel reaching
+    0 is removed (``REMOVED`` event, per-label loss for injuries), one that
+    keeps density is published to the touched ring. A step flushes at most
+    its removal budget of voxels (rounded up to whole cells; the cell in
+    hand is finished): what the burr can cut in ``budget_s`` (1 ms) by the
+    removal law at the force limit, the highest removal factor, the burr's
+    maximum speed and the whole burr immersed, in voxels (the 7 mm burr:
+    3.2 mm^3, 461 voxels at 0.19 mm). What exceeds the budget stays queued
+    for the next steps, with or without contact, drill on or off; nothing
+    is dropped, and the queue is state like the density, so a run replays
+    bit for bit. The dose a cell gets is the per-voxel kernel's removal for
+    a voxel the burr fully covers (``lat m f phi dt``); removal is resolved
+    to the cell (``c voxel``, 0.38 mm at 0.19 mm voxels, 0.4 mm at 0.1 mm)
+    rather than the voxel.
+
+    Bodies: a dose belongs to the body of the pass that gave it (the body
+    whose frame the pass runs in); a flush removes only voxels of bodies at
+    that body's pose. A cell dosed by another pose while it holds a dose is
+    flushed at once (a cell on a split face; rare), so no dose is lost.
+    The cell's occupancy count and threshold are exact after every flush;
+    removal by other means (a cut plane, a shed fragment) only makes them
+    stale upward, which costs a flush that finds less, never a missed dose.
+
+All kernels allocate nothing and are deterministic.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from bonesim.engine.events import CONTACT as _EV_CONTACT
+from bonesim.engine.events import INJURY as _EV_INJURY
+from bonesim.engine.events import REMOVED as _EV_REMOVED
+from bonesim.engine.grid import BRICK, BRICK_SHIFT, voxel_offset
+from bonesim.engine.haptics import (P_H3, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
+                                    P_V_T, O_FX, O_FY, O_FZ, O_MAG, O_N_IMMERSED, O_N_REMOVED,
+                                    O_N_TOUCHED, O_TX, O_TY, O_TZ, O_VOLUME, MIN_DIRECTION,
+                                    block_bricks, multi_gain, push_event_kernel, tool_frame)
+
+__all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "make_budget",
+           "lattice_spacing", "removal_budget", "lat_table", "BudgetState",
+           "make_budget_state", "reset_budget_state", "budget_kernel", "flush_kernel",
+           "cell_counts"]
+
+#: Entries of the latitude table over ``|cos theta|`` in [0, 1] (linear
+#: interpolation; off by < 2e-3 of ``falloff`` from the exact weight, the
+#: worst next to the poles where ``asin`` is steep).
+LAT_TABLE = 4097
+
+
+@dataclass(frozen=True)
+class BudgetSettings:
+    """``bonesim/data/haptics.toml``: ``min_spacing_mm`` [mm] (the finest
+    sample lattice) and ``budget_s`` [s] (the time whose worst-case removal
+    one step may apply)."""
+
+    min_spacing_mm: float
+    budget_s: float
+
+
+def load_budget_settings(path=None) -> BudgetSettings:
+    """Read the budget settings (default: the shipped ``haptics.toml``)."""
+    from bonesim.resources import data_path
+    from bonesim.tomlfile import get_number, read_toml
+
+    path = data_path("haptics.toml") if path is None else path
+    doc = read_toml(path)
+    smp = doc.get("sampling", {})
+    rem = doc.get("removal", {})
+    return BudgetSettings(
+        min_spacing_mm=float(get_number(smp, "min_spacing_mm", path, "[sampling]",
+                                        minimum=1e-3)),
+        budget_s=float(get_number(rem, "budget_s", path, "[removal]", minimum=1e-6)))
+
+
+def lattice_spacing(voxel_mm: float, oversample: int, settings: BudgetSettings) -> float:
+    """The burr's sample spacing [mm]: ``voxel / oversample`` (the very
+    float) unless that is finer than ``min_spacing_mm``."""
+    h = voxel_mm / oversample
+    return h if h >= settings.min_spacing_mm else float(settings.min_spacing_mm)
+
+
+def removal_budget(burr, voxel_mm: float, cell: int, max_force_n: float,
+                   max_removal: float, settings: BudgetSettings) -> int:
+    """Voxels one step may flush: the removal law's worst case over
+    ``budget_s`` (force at ``max_force_n`` [N], ``r_max``, the highest
+    removal factor, maximum over default speed, the whole burr immersed),
+    in voxels of ``voxel_mm``; at least one cell of ``cell^3``."""
+    # a burr record without a maximum speed (arrays-built models) runs at its default
+    phi = getattr(burr, "max_speed_rpm", burr.default_speed_rpm) / burr.default_speed_rpm
+    force = max_force_n if math.isfinite(max_force_n) else burr.max_force_n
+    volume = 4.0 / 3.0 * math.pi * burr.radius_mm ** 3
+    vol = force * burr.r_max * max_removal * phi * volume * settings.budget_s
+    return int(max(math.ceil(vol / voxel_mm ** 3), cell ** 3))
+
+
+def lat_table(r_max: float, falloff: float) -> np.ndarray:
+    """(LAT_TABLE,) float64: the latitude weight ``max(0, r_max - falloff
+    asin|cos theta|)`` [1/(N s)] at ``|cos theta| = q / (LAT_TABLE - 1)``."""
+    x = np.linspace(0.0, 1.0, LAT_TABLE)
+    t = np.maximum(0.0, r_max - falloff * np.arcsin(x))
+    t.flags.writeable = False
+    return t
+
+
+def cell_counts(density: np.ndarray, label: np.ndarray, removal: np.ndarray,
+                cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per removal cell of every brick: occupied voxels and the dose that
+    removes the weakest (``min density / removal factor`` over its occupied
+    voxels whose factor is > 0; ``inf`` if none).
+
+    Parameters
+    ----------
+    density : (n_bricks, 512) float32
+    label : (n_bricks, 512) uint8
+    removal : (n_labels + 1,) float64
+    cell : int
+        Cell edge [voxels], a power of two <= 8.
+
+    Returns
+    -------
+    occ : (n_bricks, (8 / cell)^3) int32
+    thr : (n_bricks, (8 / cell)^3) float64
+    """
+    nb = density.shape[0]
+    n = BRICK // cell
+    d = density.reshape(nb, n, cell, n, cell, n, cell).transpose(0, 1, 3, 5, 2, 4, 6)
+    d = d.reshape(nb, n ** 3, cell ** 3)
+    m = np.asarray(removal)[label].reshape(nb, n, cell, n, cell, n, cell)
+    m = m.transpose(0, 1, 3, 5, 2, 4, 6).reshape(nb, n ** 3, cell ** 3)
+    occ = (d > 0).sum(axis=2).astype(np.int32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where((d > 0) & (m > 0), d.astype(np.float64) / np.where(m > 0, m, 1.0),
+                     np.inf)
+    return occ, r.min(axis=2) if r.size else np.zeros((nb, n ** 3))
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A model's budget (:attr:`bonesim.engine.model.Model.budget`).
+
+    Attributes
+    ----------
+    settings : BudgetSettings
+    binding : bool
+        ``voxel / oversample < min_spacing_mm``: the step is the budget step.
+    cell : int
+        Removal cell edge [voxels] (power of two, <= 8).
+    occ0, thr0 : (n_bricks, (8 / cell)^3) int32, float64
+        The initial tissue's :func:`cell_counts` (empty when not binding).
+    lat : tuple of (LAT_TABLE,) float64
+        Each burr's latitude table (:func:`lat_table`).
+    removal_voxels : tuple of int
+        Each burr's removal budget per step [voxels] (:func:`removal_budget`).
+    """
+
+    settings: BudgetSettings
+    binding: bool
+    cell: int
+    occ0: np.ndarray
+    thr0: np.ndarray
+    lat: tuple = ()
+    removal_voxels: tuple = ()
+
+    @property
+    def cells_per_brick(self) -> int:
+        return (BRICK // self.cell) ** 3
+
+    def with_burrs(self, burrs, voxel_mm, max_force_n, max_removal) -> "Budget":
+        """The same budget with ``burrs`` appended to the burr tables."""
+        from dataclasses import replace
+
+        lat = tuple(lat_table(b.r_max, b.falloff) for b in burrs)
+        rv = tuple(removal_budget(b, voxel_mm, self.cell, min(f, b.max_force_n),
+                                  max_removal, self.settings)
+                   for b, f in zip(burrs, max_force_n))
+        return replace(self, lat=self.lat + lat, removal_voxels=self.removal_voxels + rv)
+
+
+def make_budget(grid, oversample: int, removal: np.ndarray,
+                settings: BudgetSettings | None = None) -> Budget:
+    """The budget of a model of ``grid`` (no burrs yet: :meth:`Budget.with_burrs`)."""
+    settings = load_budget_settings() if settings is None else settings
+    v = float(grid.spacing_mm)
+    binding = v / oversample < settings.min_spacing_mm
+    cell = 1
+    while cell < BRICK and cell * v < settings.min_spacing_mm:
+        cell *= 2
+    if binding:
+        occ0, thr0 = cell_counts(np.asarray(grid.density), np.asarray(grid.label), removal,
+                                 cell)
+    else:
+        occ0, thr0 = np.zeros((0, 1), np.int32), np.zeros((0, 1))
+    for a in (occ0, thr0):
+        a.flags.writeable = False
+    return Budget(settings, bool(binding), int(cell), occ0, thr0)
+
+
+@dataclass
+class BudgetState:
+    """The removal carried from step to step (part of the
+    :class:`~bonesim.engine.model.State`).
+
+    Attributes
+    ----------
+    dose : (n_bricks, cpb) float64
+        Accumulated removal dose per cell [density per unit removal factor].
+    thr : (n_bricks, cpb) float64
+        Dose that removes the cell's weakest voxel.
+    occ : (n_bricks, cpb) int32
+        Occupied voxels per cell (exact after a flush; may be stale upward).
+    queued : (n_bricks, cpb) uint8
+        1 while the cell waits in the queue.
+    rep : (n_bricks, cpb) uint8
+        The body whose pass gave the cell its dose.
+    queue : (n_bricks * cpb,) int64
+        FIFO ring of queued cells (``brick * cpb + cell``).
+    qhead : (2,) int64
+        Read and write counters of the ring.
+    """
+
+    dose: np.ndarray
+    thr: np.ndarray
+    occ: np.ndarray
+    queued: np.ndarray
+    rep: np.ndarray
+    queue: np.ndarray
+    qhead: np.ndarray
+
+    @property
+    def pending(self) -> int:
+        """Cells waiting in the queue."""
+        return int(self.qhead[1] - self.qhead[0])
+
+
+def make_budget_state(budget: Budget) -> BudgetState:
+    """Fresh carried removal for ``budget``'s initial tissue."""
+    shape = budget.occ0.shape
+    st = BudgetState(dose=np.zeros(shape), thr=np.zeros(shape),
+                     occ=np.zeros(shape, np.int32), queued=np.zeros(shape, np.uint8),
+                     rep=np.zeros(shape, np.uint8),
+                     queue=np.zeros(max(1, shape[0] * shape[1]), np.int64),
+                     qhead=np.zeros(2, np.int64))
+    reset_budget_state(budget, st)
+    return st
+
+
+def reset_budget_state(budget: Budget, st: BudgetState) -> None:
+    """Back to the initial tissue: no dose, nothing queued."""
+    st.dose[:] = 0.0
+    st.thr[:] = budget.thr0
+    st.occ[:] = budget.occ0
+    st.queued[:] = 0
+    st.rep[:] = 0
+    st.queue[:] = 0                  # touched now, not on the first steps
+    st.qhead[:] = 0
+
+
+# ------------------------------------------------------------------ kernels
+@njit(cache=True, nogil=True, inline="always")
+def _same_pose(pose_m, a, b):
+    if a == b:
+        return True
+    for r in range(3):
+        for c in range(4):
+            if pose_m[a, r, c] != pose_m[b, r, c]:
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, removal, pose_m,
+                dose, thr, occ, rep, t, lost, lab_body, ev_kind, ev_body, ev_label, ev_t,
+                ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head, counts):
+    """Apply cell ``cq`` of brick ``b``'s dose to its voxels (see the module
+    notes); recount its occupancy and threshold. ``counts[0:2]`` += removed,
+    newly touched."""
+    amount = dose[b, cq]
+    dose[b, cq] = 0.0
+    owner = rep[b, cq]
+    n = BRICK >> cs
+    ci = cq // (n * n)
+    cj = (cq // n) % n
+    ck = cq % n
+    i0 = bricks[b, 0] * BRICK + (ci << cs)
+    j0 = bricks[b, 1] * BRICK + (cj << cs)
+    k0 = bricks[b, 2] * BRICK + (ck << cs)
+    tcap = tch_ijk.shape[0] - 1
+    n_occ = 0
+    t_min = np.inf
+    for x in range(cell):
+        i = i0 + x
+        for y in range(cell):
+            j = j0 + y
+            for z in range(cell):
+                k = k0 + z
+                off = voxel_offset(i, j, k)
+                d = density[b, off]
+                if d <= 0.0:
+                    continue
+                lab = label[b, off]
+                m = removal[lab]
+                bod = body[b, off]
+                if m <= 0.0 or amount <= 0.0 or not _same_pose(pose_m, bod, owner):
+                    n_occ += 1
+                    if m > 0.0 and np.float64(d) / m < t_min:
+                        t_min = np.float64(d) / m
+                    continue
+                nd = d - amount * m
+                if nd <= 0.0:
+                    density[b, off] = 0.0
+                    lost[lab] += 1
+                    lab_body[lab] = bod
+                    push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                      ev_head, _EV_REMOVED, bod, lab, t, i, j, k, 0,
+                                      0.0, 0.0, 0.0)
+                    counts[0] += 1
+                else:
+                    df = np.float32(nd)
+                    density[b, off] = df
+                    n_occ += 1
+                    if np.float64(df) / m < t_min:
+                        t_min = np.float64(df) / m
+                    if touched_flag[b, off] == 0:
+                        touched_flag[b, off] = 1
+                        h = tch_head[0] & tcap
+                        tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
+                        tch_head[0] += 1
+                        counts[1] += 1
+    occ[b, cq] = n_occ
+    thr[b, cq] = t_min
+
+
+@njit(cache=True, nogil=True)
+def flush_kernel(budget_vox, cell, cs, bricks, density, label, body, touched_flag, removal,
+                 pose_m, dose, thr, occ, queued, rep, queue, qhead, t, lost, lab_body,
+                 ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                 tch_ijk, tch_head, counts):
+    """Flush queued cells in order until ``budget_vox`` voxels were visited
+    (the cell in hand is finished); ``counts[0:2]`` += removed, touched."""
+    cpb = dose.shape[1]
+    cap = queue.shape[0]
+    c3 = cell * cell * cell
+    visited = 0
+    while qhead[0] < qhead[1] and visited < budget_vox:
+        q = queue[qhead[0] % cap]
+        qhead[0] += 1
+        b = q // cpb
+        cq = q % cpb
+        queued[b, cq] = 0
+        visited += c3
+        _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, removal,
+                    pose_m, dose, thr, occ, rep, t, lost, lab_body, ev_kind, ev_body,
+                    ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head,
+                    counts)
+
+
+@njit(cache=True, nogil=True)
+def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, lbrick, cell,
+                cs, owner, bricks, density, label, body, touched_flag, removal, pose_m, dose,
+                thr, occ, queued, rep, queue, qhead, t, lost, lab_body, ev_kind, ev_body,
+                ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head, counts):
+    """Add ``scale x lat`` to every bone-holding cell whose centre lies in
+    the burr; queue the cells whose dose reaches their threshold."""
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    nbk = lbrick.shape[0]
+    n = BRICK >> cs
+    cpb = dose.shape[1]
+    cap = queue.shape[0]
+    cw = cell * spacing                       # cell edge [mm]
+    half = 0.5 * (cell - 1) * spacing         # cell centre past its first voxel [mm]
+    r2 = radius * radius
+    nl = lat.shape[0] - 1
+    # cell C's centre: origin + cw C + half
+    ci_lo = int(np.ceil((pos[0] - radius - origin[0] - half) / cw))
+    ci_hi = int(np.floor((pos[0] + radius - origin[0] - half) / cw))
+    cj_lo = int(np.ceil((pos[1] - radius - origin[1] - half) / cw))
+    cj_hi = int(np.floor((pos[1] + radius - origin[1] - half) / cw))
+    for ci in range(ci_lo, ci_hi + 1):
+        ox = origin[0] + cw * ci + half - pos[0]
+        i0 = ci << cs
+        bx = (i0 >> BRICK_SHIFT) - b0
+        if bx < 0 or bx >= nbk:
+            continue
+        for cj in range(cj_lo, cj_hi + 1):
+            oy = origin[1] + cw * cj + half - pos[1]
+            rz2 = r2 - ox * ox - oy * oy
+            if rz2 < 0.0:
+                continue
+            j0 = cj << cs
+            by = (j0 >> BRICK_SHIFT) - b1
+            if by < 0 or by >= nbk:
+                continue
+            rz = np.sqrt(rz2)
+            ck_lo = int(np.ceil((pos[2] - rz - origin[2] - half) / cw))
+            ck_hi = int(np.floor((pos[2] + rz - origin[2] - half) / cw))
+            for ck in range(ck_lo, ck_hi + 1):
+                k0 = ck << cs
+                bz = (k0 >> BRICK_SHIFT) - b2
+                if bz < 0 or bz >= nbk:
+                    continue
+                b = lbrick[bx, by, bz]
+                if b < 0:
+                    continue
+                cq = ((((i0 & 7) >> cs) * n) + ((j0 & 7) >> cs)) * n + ((k0 & 7) >> cs)
+                if occ[b, cq] <= 0:
+                    continue
+                oz = origin[2] + cw * ck + half - pos[2]
+                rr = np.sqrt(ox * ox + oy * oy + oz * oz)
+                u = 0.0
+                if rr > 0.0:
+                    u = abs(ox * axis[0] + oy * axis[1] + oz * axis[2]) / rr
+                    if u > 1.0:
+                        u = 1.0
+                x = u * nl
+                q = int(x)
+                if q >= nl:
+                    w = lat[nl]
+                else:
+                    w = lat[q] + (x - q) * (lat[q + 1] - lat[q])
+                a = w * scale
+                if a <= 0.0:
+                    continue
+                if dose[b, cq] > 0.0 and rep[b, cq] != owner:
+                    _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag,
+                                removal, pose_m, dose, thr, occ, rep, t, lost, lab_body,
+                                ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                ev_head, tch_ijk, tch_head, counts)
+                rep[b, cq] = owner
+                dose[b, cq] += a
+                if queued[b, cq] == 0 and dose[b, cq] >= thr[b, cq]:
+                    queued[b, cq] = 1
+                    queue[qhead[1] % cap] = b * cpb + cq
+                    qhead[1] += 1
+
+
+@njit(cache=True, nogil=True)
+def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin, spacing,
+                  stiff, removal, injury, samples, row_head, row_off, h, params, lat,
+                  budget_vox, cell, cs,
+                  pos, axis, drill, direction, speed_factor, dt, t,
+                  group, gsel, owner, first, last, case_pos, pose_m,
+                  R, lbrick, contact, prev_contact, lost, lab_body, onset_body,
+                  dose, thr, occ, queued, rep, queue, qhead, counts,
+                  ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                  tch_ijk, tch_head, out):
+    """One haptic pass of the fixed-budget step (see the module notes).
+
+    Parameters as :func:`bonesim.engine.haptics.haptic_kernel`, except:
+
+    bricks : (n_bricks, 3) int32
+        Brick coordinates (:attr:`bonesim.engine.grid.Grid.bricks`).
+    samples : (n, 5) float32
+        The budget stencil's packed rows (spacing ``h``; ``params[P_H3]`` is ``h^3``).
+    row_head, row_off : arrays
+        The stencil's lattice rows along the tool axis
+        (:attr:`bonesim.engine.haptics.Stencil.row_head`, ``row_off``): the
+        samples are visited row by row, each voxel coordinate stepping by
+        ``h`` along the axis (a sample within float rounding of a voxel face
+        may land on its other side than a per-sample sum would put it).
+    h : float
+        The lattice spacing [mm].
+    lat : (LAT_TABLE,) float64
+        The burr's latitude table (:func:`lat_table`).
+    budget_vox : int
+        The step's removal budget [voxels] (:func:`removal_budget`).
+    cell, cs : int
+        Removal cell edge [voxels] and its log2.
+    gsel : int
+        As the per-voxel kernel's; -2: sample nothing (the step of a burr
+        out of every body's reach only flushes).
+    owner : int
+        The body whose frame this pass runs in (its doses are flushed onto
+        the voxels of bodies at its pose).
+    pose_m : (max_bodies, 3, 4) float64
+        Body poses (equal poses share doses).
+    onset_body : (n_labels + 1,) int32
+        Scratch: the body of the first immersed sample per label.
+    dose, thr, occ, queued, rep, queue, qhead :
+        The :class:`BudgetState` arrays (modified).
+    counts : (2,) int64
+        Scratch.
+
+    The pass also flushes the queue when ``last`` (once per step).
+    """
+    for q in range(out.shape[0]):
+        out[q] = 0.0
+    if first:
+        for q in range(contact.shape[0]):
+            contact[q] = 0
+            lost[q] = 0
+    counts[0] = 0
+    counts[1] = 0
+    tool_frame(axis, R)
+    radius = params[P_RADIUS]
+    lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    ncell = BRICK >> cs
+    sux = suy = suz = 0.0
+    stx = sty = 0.0
+    wsum = 0.0
+    n_imm = 0
+    if any_brick and gsel != -2:              # -2: a pass that only flushes
+        inv = 1.0 / spacing
+        c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
+        c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
+        c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
+        r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
+        r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
+        r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
+        # the lattice's rows along the tool axis: a row's samples sit
+        # h apart, so each voxel coordinate is the row's first plus k steps
+        d0, d1, d2 = r02 * h, r12 * h, r22 * h
+        s = 0
+        for r in range(row_head.shape[0]):
+            ox = row_head[r, 0]
+            oy = row_head[r, 1]
+            oz = row_head[r, 2]
+            a0 = c0 + r00 * ox + r01 * oy + r02 * oz
+            a1 = c1 + r10 * ox + r11 * oy + r12 * oz
+            a2 = c2 + r20 * ox + r21 * oy + r22 * oz
+            n = row_off[r, 1]
+            for q in range(n):
+                i = lo0 + int(a0 + d0 * q)
+                j = lo1 + int(a1 + d1 * q)
+                k = lo2 + int(a2 + d2 * q)
+                b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
+                           (k >> BRICK_SHIFT) - b2]
+                if b < 0:
+                    continue
+                # a cell known empty (the counts are exact or stale upward)
+                # needs no density read: the drilled cavity costs one small read
+                if occ[b, ((((i & 7) >> cs) * ncell) + ((j & 7) >> cs)) * ncell
+                       + ((k & 7) >> cs)] <= 0:
+                    continue
+                off = voxel_offset(i, j, k)
+                if density[b, off] <= 0.0:
+                    continue
+                if gsel >= 0 and group[body[b, off]] != gsel:
+                    continue
+                lab = label[b, off]
+                w = stiff[lab]
+                n_imm += 1
+                wsum += w
+                if contact[lab] == 0:
+                    onset_body[lab] = body[b, off]
+                contact[lab] += 1
+                wr = w * np.float64(samples[s + q, 3])
+                sux += wr * ox
+                suy += wr * oy
+                suz += wr * np.float64(samples[s + q, 2])
+                stx += w * oy
+                sty -= w * ox
+            s += n
+    # force: as the per-voxel kernel
+    h3 = params[P_H3]
+    volume = wsum * h3
+    max_force = params[P_MAX_FORCE]
+    mag = multi_gain(volume, params[P_K_LOW], params[P_K_HIGH], params[P_V_T])
+    if mag > max_force:
+        mag = max_force
+    fx = -(R[0, 0] * sux + R[0, 1] * suy + R[0, 2] * suz)
+    fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
+    fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
+    fn = np.sqrt(fx * fx + fy * fy + fz * fz)
+    if fn > MIN_DIRECTION * (n_imm + 1):
+        fx *= mag / fn
+        fy *= mag / fn
+        fz *= mag / fn
+    else:
+        fx = fy = fz = 0.0
+    tx = ty = tz = 0.0
+    if drill:
+        g = params[P_K_TAN] * h3 * direction * speed_factor
+        tx = g * (R[0, 0] * stx + R[0, 1] * sty)
+        ty = g * (R[1, 0] * stx + R[1, 1] * sty)
+        tz = g * (R[2, 0] * stx + R[2, 1] * sty)
+    Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
+    Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
+    if Fm > max_force:
+        Fx *= max_force / Fm
+        Fy *= max_force / Fm
+        Fz *= max_force / Fm
+    out[O_FX], out[O_FY], out[O_FZ] = Fx, Fy, Fz
+    out[O_TX], out[O_TY], out[O_TZ] = tx, ty, tz
+    out[O_MAG] = mag
+    out[O_VOLUME] = volume
+    out[O_N_IMMERSED] = n_imm
+    # removal: dose the burr's cells, then flush within the budget
+    scale = mag * speed_factor * dt
+    if drill and any_brick and n_imm > 0 and scale > 0.0:
+        _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, lbrick,
+                    cell, cs, owner, bricks, density, label, body, touched_flag, removal,
+                    pose_m, dose, thr, occ, queued, rep, queue, qhead, t, lost, lab_body,
+                    ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+                    tch_ijk, tch_head, counts)
+    if last:
+        flush_kernel(budget_vox, cell, cs, bricks, density, label, body, touched_flag,
+                     removal, pose_m, dose, thr, occ, queued, rep, queue, qhead, t, lost,
+                     lab_body, ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                     ev_head, tch_ijk, tch_head, counts)
+    out[O_N_REMOVED] = counts[0]
+    out[O_N_TOUCHED] = counts[1]
+    if not last:
+        return
+    for lab in range(contact.shape[0]):
+        touching = drill and contact[lab] > 0
+        if injury[lab]:
+            if touching and prev_contact[lab] == 0:
+                push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                  ev_head, _EV_CONTACT, onset_body[lab], lab, t, 0, 0, 0, 0,
+                                  case_pos[0], case_pos[1], case_pos[2])
+            if lost[lab] > 0:
+                push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
+                                  ev_head, _EV_INJURY, lab_body[lab], lab, t, 0, 0, 0,
+                                  lost[lab], case_pos[0], case_pos[1], case_pos[2])
+        prev_contact[lab] = 1 if touching else 0
