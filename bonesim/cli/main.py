@@ -103,6 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("warmup", help="compile the numba kernels now (setup does it), so "
                                       "that the first run starts at once")
     s.add_argument("--json", action="store_true", help="print seconds per part as JSON")
+    s.add_argument("--jobs", type=int, default=None,
+                   help="compiling processes (default 2, or 1 on a one-core machine)")
     s.set_defaults(func=cmd_warmup)
 
     s = sub.add_parser("bench", help="run the performance benchmarks")

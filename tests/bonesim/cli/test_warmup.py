@@ -103,3 +103,37 @@ def test_warmup_says_what_it_does(monkeypatch, capsys):
     assert lines[2].split()[:2] == ["[", "2/2]"] and lines[-1].startswith("compiled")
     assert main(["warmup", "--json"]) == 0
     assert set(json.loads(capsys.readouterr().out)["seconds"]) == {"first", "second"}
+
+
+def test_two_processes_compile_every_part_once(tmp_path):
+    """With two processes the child compiles the parts of SECOND and the
+    parent the rest: every part is reported once, and a child that fails is
+    one line, not a silent gap."""
+    import os
+
+    from bonesim.cli.warmup import SECOND, _parts
+
+    root = str(__import__("pathlib").Path(__file__).resolve().parents[3])
+    env = dict(os.environ, PYTHONPATH=root)
+    res = subprocess.run([sys.executable, "-m", "bonesim", "warmup", "--jobs", "2"],
+                         capture_output=True, text=True, timeout=900, env=env, cwd=root)
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = res.stdout.splitlines()
+    assert "2 processes side by side" in lines[0] and lines[-1].startswith("compiled")
+    names = [n for n, _ in _parts()]
+    shown = [ln.split("]", 1)[1].rsplit(None, 2)[0].strip() for ln in lines[1:-1]]
+    assert sorted(shown) == sorted(names) and set(SECOND) <= set(names)
+    assert [ln.split("]")[0].split("[")[1].strip() for ln in lines[1:-1]] == [
+        f"{k}/{len(names)}" for k in range(1, len(names) + 1)]
+
+
+def test_a_failed_second_process_is_one_line(monkeypatch, capsys):
+    from bonesim.cli.main import main
+
+    W = importlib.import_module("bonesim.cli.warmup")
+    monkeypatch.setattr(W, "_parts", lambda: [("first", lambda: None),
+                                               ("surface", lambda: None)])
+    monkeypatch.setattr(W.sys, "executable", "/bin/false")
+    assert main(["warmup", "--jobs", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "the warm-up's second process failed (exit 1)" in err and "Traceback" not in err

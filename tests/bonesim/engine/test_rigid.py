@@ -98,6 +98,7 @@ def _ref_contact(state, dens, bod, smp, nrm, com, k, exclude):
 
     f, tq, n_c = np.zeros(3), np.zeros(3), 0
     step = g.spacing_mm / 4000
+    n_steps = int(math.ceil(4 * g.spacing_mm / step - 1e-9))
     for p, n in zip(smp, nrm):
         for b in np.flatnonzero(state.alive):
             if b == exclude:
@@ -107,10 +108,16 @@ def _ref_contact(state, dens, bod, smp, nrm, com, k, exclude):
             nb = n @ m[:, :3]
             if not solid(b, pb):
                 continue
-            d = 0.0
-            while d < 4 * g.spacing_mm and solid(b, pb - (d + step) * nb):
-                d += step
-            d = min(d + step / 2, 4 * g.spacing_mm)
+            # the march: every point back along -n, one step apart, up to 4
+            # voxels; the depth is the run of solid points from the start
+            pts = pb - (np.arange(1, n_steps + 1) * step)[:, None] * nb
+            ijk = np.floor((pts - g.origin_mm) / g.spacing_mm + 0.5).astype(int)
+            inside = ((ijk >= 0) & (ijk < np.asarray(g.shape))).all(axis=1)
+            c = np.clip(ijk, 0, np.asarray(g.shape) - 1)
+            ok = inside & (dens[c[:, 0], c[:, 1], c[:, 2]] > 0) & \
+                (bod[c[:, 0], c[:, 1], c[:, 2]] == b)
+            run = n_steps if ok.all() else int(np.argmin(ok))
+            d = min(run * step + step / 2, 4 * g.spacing_mm)
             v = voxel(pb)
             grad = sum((o - 1 for o in offsets if not solid_ijk(b, v + o - 1)), np.zeros(3))
             normal = m[:, :3] @ grad / np.linalg.norm(grad) if grad.any() else -n
