@@ -55,13 +55,3 @@ def xdisplay():
         proc.wait()
     pytest.fail("could not start Xvfb on any of 8 random display numbers")
 
-
-def pytest_collection_modifyitems(config, items):
-    """Slow tests run real-time haptic loops, writers, servers and windows in
-    processes of their own; with ``pytest -n 2 --dist loadgroup`` they share one
-    worker and run one at a time, so two real-time loops never take both cores
-    (their timing figures, e.g. the recording lost at a SIGKILL, would measure
-    the other test's load)."""
-    for item in items:
-        if item.get_closest_marker("slow") is not None:
-            item.add_marker(pytest.mark.xdist_group("processes"))

@@ -258,7 +258,9 @@ def _child(names) -> None:
         if name in want:
             t0 = time.perf_counter()
             fn()
-            print(json.dumps([name, round(time.perf_counter() - t0, 3)]), flush=True)
+            # the pipe to the parent (not an output for users: bonesim.cli.output)
+            sys.stdout.write(json.dumps([name, round(time.perf_counter() - t0, 3)]) + "\n")
+            sys.stdout.flush()
 
 
 if __name__ == "__main__":

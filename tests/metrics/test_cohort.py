@@ -17,9 +17,6 @@ from metrics.cohort import metric_columns
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
 
 
-# one worker builds the module's fixtures once (pytest -n 2 --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("cohort")
-
 
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory):

@@ -18,13 +18,8 @@ ODD_ID = "<E&1>"
 ODD_ERROR = "run /data/X9.h5: <script>alert(1)</script> & unreadable"
 
 
-# one worker builds the module's fixtures once (pytest -n 2 --dist loadgroup; the
-# fixtures are session-wide because a worker may run other modules' tests
-# between this module's, which would tear a module fixture down and build it again)
-pytestmark = pytest.mark.xdist_group("report")
 
-
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def scored(tmp_path_factory):
     """3 + 3 synthetic runs of 8 s, scored once, with an odd participant id and an
     injected error line."""
@@ -38,7 +33,7 @@ def scored(tmp_path_factory):
     return result
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def report(scored, tmp_path_factory):
     """The report and the PNG copies of its images."""
     from metrics.report import write_report

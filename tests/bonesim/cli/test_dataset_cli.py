@@ -36,13 +36,8 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
-# one worker builds the module's fixtures once (pytest -n 2 --dist loadgroup; the
-# fixtures are session-wide because a worker may run other modules' tests
-# between this module's, which would tear a module fixture down and build it again)
-pytestmark = pytest.mark.xdist_group("dataset_cli")
 
-
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def made(demo_run, tmp_path_factory):
     """The command run twice in fresh processes, as HDF5 and as a folder."""
     d = tmp_path_factory.mktemp("cli")
