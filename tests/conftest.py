@@ -54,4 +54,3 @@ def xdisplay():
         proc.kill()
         proc.wait()
     pytest.fail("could not start Xvfb on any of 8 random display numbers")
-

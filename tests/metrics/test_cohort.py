@@ -17,7 +17,6 @@ from metrics.cohort import metric_columns
 from metrics.cohort_result import METRIC_COLUMNS, RUN_COLUMNS
 
 
-
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory):
     from metrics.synth import PARTICIPANTS_CSV, synth_cohort

@@ -18,7 +18,6 @@ ODD_ID = "<E&1>"
 ODD_ERROR = "run /data/X9.h5: <script>alert(1)</script> & unreadable"
 
 
-
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
     """3 + 3 synthetic runs of 8 s, scored once, with an odd participant id and an

@@ -36,7 +36,6 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
-
 @pytest.fixture(scope="module")
 def made(demo_run, tmp_path_factory):
     """The command run twice in fresh processes, as HDF5 and as a folder."""
