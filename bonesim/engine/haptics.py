@@ -475,21 +475,20 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
     return n_rem, n_tch
 
 
-@njit(cache=True, nogil=True)
-def finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
-            speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
-            llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
-            ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-            tch_ijk, tch_head, out, sux, suy, suz, stx, sty, wsum, n_imm):
-    """End of a pass (as in :func:`haptic_kernel`): force from the summed
-    samples, removal of the accumulated amounts and the pass's events.
+@njit(cache=True, nogil=True, inline="always")
+def force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
+              speed_factor, out):
+    """The force of a pass from its summed samples (steps 2 and 3 of the
+    module docstring), written to ``out``; returns the normal magnitude
+    ``|F|`` [N]. One law for every step that samples the burr (this module,
+    :mod:`bonesim.engine.haptics_rows`, :mod:`bonesim.engine.haptics_budget`).
 
     ``sux, suy, suz`` are the stiffness-weighted unit vectors summed in the
     tool frame, ``stx, sty`` the weighted lever ``(o_y, -o_x)`` [mm], ``wsum``
-    the weighted count and ``n_imm`` the immersed samples; ``acc[dirty[:n_dirty]]``
-    the removal weights per local voxel (see :func:`haptic_kernel`).
+    the weighted count, ``n_imm`` the immersed samples; ``R`` the
+    tool-to-case rotation; ``out`` gets force, tangential part, magnitude,
+    immersed volume ``wsum h^3`` [mm^3] and ``n_imm``.
     """
-    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     h3 = params[P_H3]
     volume = wsum * h3
     max_force = params[P_MAX_FORCE]
@@ -524,6 +523,27 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
     out[O_MAG] = mag
     out[O_VOLUME] = volume
     out[O_N_IMMERSED] = n_imm
+    return mag
+
+
+@njit(cache=True, nogil=True)
+def finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
+            speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
+            llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
+            ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
+            tch_ijk, tch_head, out, sux, suy, suz, stx, sty, wsum, n_imm):
+    """End of a pass (as in :func:`haptic_kernel`): force from the summed
+    samples, removal of the accumulated amounts and the pass's events.
+
+    ``sux, suy, suz`` are the stiffness-weighted unit vectors summed in the
+    tool frame, ``stx, sty`` the weighted lever ``(o_y, -o_x)`` [mm], ``wsum``
+    the weighted count and ``n_imm`` the immersed samples; ``acc[dirty[:n_dirty]]``
+    the removal weights per local voxel (see :func:`haptic_kernel`).
+    """
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    h3 = params[P_H3]
+    mag = force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
+                    speed_factor, out)
     # removal: each immersed sample took lat*m*f*phi*dt of its voxel's share
     scale = mag * speed_factor * dt * h3 * params[P_INV_VOXEL_VOL]
     n_rem, n_tch = remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty,

@@ -88,10 +88,8 @@ from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, voxel_offset
-from bonesim.engine.haptics import (P_H3, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
-                                    P_V_T, O_FX, O_FY, O_FZ, O_MAG, O_N_IMMERSED, O_N_REMOVED,
-                                    O_N_TOUCHED, O_TX, O_TY, O_TZ, O_VOLUME, MIN_DIRECTION,
-                                    block_bricks, multi_gain, push_event_kernel, tool_frame)
+from bonesim.engine.haptics import (P_RADIUS, O_N_REMOVED, O_N_TOUCHED, block_bricks,
+                                    force_law, push_event_kernel, tool_frame)
 
 __all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "make_budget",
            "lattice_spacing", "removal_budget", "lat_table", "BudgetState",
@@ -608,40 +606,9 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
                 stx += w * oy
                 sty -= w * ox
             s += n
-    # force: as the per-voxel kernel
-    h3 = params[P_H3]
-    volume = wsum * h3
-    max_force = params[P_MAX_FORCE]
-    mag = multi_gain(volume, params[P_K_LOW], params[P_K_HIGH], params[P_V_T])
-    if mag > max_force:
-        mag = max_force
-    fx = -(R[0, 0] * sux + R[0, 1] * suy + R[0, 2] * suz)
-    fy = -(R[1, 0] * sux + R[1, 1] * suy + R[1, 2] * suz)
-    fz = -(R[2, 0] * sux + R[2, 1] * suy + R[2, 2] * suz)
-    fn = np.sqrt(fx * fx + fy * fy + fz * fz)
-    if fn > MIN_DIRECTION * (n_imm + 1):
-        fx *= mag / fn
-        fy *= mag / fn
-        fz *= mag / fn
-    else:
-        fx = fy = fz = 0.0
-    tx = ty = tz = 0.0
-    if drill:
-        g = params[P_K_TAN] * h3 * direction * speed_factor
-        tx = g * (R[0, 0] * stx + R[0, 1] * sty)
-        ty = g * (R[1, 0] * stx + R[1, 1] * sty)
-        tz = g * (R[2, 0] * stx + R[2, 1] * sty)
-    Fx, Fy, Fz = fx + tx, fy + ty, fz + tz
-    Fm = np.sqrt(Fx * Fx + Fy * Fy + Fz * Fz)
-    if Fm > max_force:
-        Fx *= max_force / Fm
-        Fy *= max_force / Fm
-        Fz *= max_force / Fm
-    out[O_FX], out[O_FY], out[O_FZ] = Fx, Fy, Fz
-    out[O_TX], out[O_TY], out[O_TZ] = tx, ty, tz
-    out[O_MAG] = mag
-    out[O_VOLUME] = volume
-    out[O_N_IMMERSED] = n_imm
+    # force: the per-voxel kernel's law
+    mag = force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
+                    speed_factor, out)
     # removal: dose the burr's cells, then flush within the budget
     scale = mag * speed_factor * dt
     if drill and any_brick and n_imm > 0 and scale > 0.0:

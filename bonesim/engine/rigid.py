@@ -80,7 +80,8 @@ __all__ = ["GRAVITY_MM_S2", "DEFAULT_GRAVITY_DIR", "BONE_DENSITY_KG_MM3", "N_TO_
            "SLEEP_MM", "SLEEP_STEPS", "MAX_SPEED_MM_S", "FRAGMENT_STIFFNESS_N_MM_PER_KG",
            "DAMPING_RATIO", "CONTACT_SHARE", "FRICTION_COEFF",
            "FREE", "ASLEEP", "DYNAMIC", "GRABBED", "AFFIXED", "KIND_FRAGMENT", "KIND_PLATE",
-           "gravity_direction", "pose_matrix_into", "contact", "tool_push", "advance_kernel"]
+           "gravity_direction", "pose_matrix_into", "contact", "tool_push", "advance_kernel",
+           "solid_at", "empty_side"]
 
 #: Standard gravity [mm/s^2].
 GRAVITY_MM_S2 = 9810.0
@@ -187,6 +188,29 @@ def solid_at(keys, vals, body, density, bid, i, j, k):
         return False
     off = voxel_offset(i, j, k)
     return body[b, off] == bid and density[b, off] > 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def empty_side(keys, vals, body, density, bid, i, j, k):
+    """Where solid voxel ``(i, j, k)`` of body ``bid`` borders no bone of its
+    body: ``(gx, gy, gz, face)``, the sum of the offsets [voxels] to those of
+    its 26 neighbours that are not solid voxels of the body (a surface
+    voxel's outward normal, unnormalised) and whether a face neighbour is
+    among them (the voxel is on the body's surface)."""
+    gx = gy = gz = 0.0
+    face = False
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            for c in range(-1, 2):
+                if a == 0 and b == 0 and c == 0:
+                    continue
+                if not solid_at(keys, vals, body, density, bid, i + a, j + b, k + c):
+                    gx += a
+                    gy += b
+                    gz += c
+                    if abs(a) + abs(b) + abs(c) == 1:
+                        face = True
+    return gx, gy, gz, face
 
 
 @njit(cache=True, nogil=True)

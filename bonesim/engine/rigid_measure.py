@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-from bonesim.engine.rigid import BONE_DENSITY_KG_MM3, solid_at
+from bonesim.engine.rigid import BONE_DENSITY_KG_MM3, empty_side, solid_at
 
 __all__ = ["MeasureJob", "needs_slices", "measure_budget", "stride"]
 
@@ -94,19 +94,7 @@ def _measure_slice(keys, vals, body, density, bid, lo, hi, cursor, budget, origi
         mom[7] += y * y
         mom[8] += y * z
         mom[9] += z * z
-        gx = gy = gz = 0.0
-        face = False
-        for a in range(-1, 2):
-            for b in range(-1, 2):
-                for d in range(-1, 2):
-                    if a == 0 and b == 0 and d == 0:
-                        continue
-                    if not solid_at(keys, vals, body, density, bid, i + a, j + b, k + d):
-                        gx += a
-                        gy += b
-                        gz += d
-                        if abs(a) + abs(b) + abs(d) == 1:
-                            face = True
+        gx, gy, gz, face = empty_side(keys, vals, body, density, bid, i, j, k)
         gn = math.sqrt(gx * gx + gy * gy + gz * gz)
         if face and gn > 0.0:
             surf_ijk[ns, 0], surf_ijk[ns, 1], surf_ijk[ns, 2] = i, j, k

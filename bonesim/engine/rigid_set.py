@@ -22,7 +22,8 @@ from bonesim.engine.rigid import (AFFIXED, ASLEEP, BONE_DENSITY_KG_MM3, CONTACT_
                                   GRABBED,
                                   GRAVITY_MM_S2, KIND_FRAGMENT, KIND_PLATE, MAX_SAMPLES,
                                   MAX_SPEED_MM_S, N_TO_INTERNAL, SLEEP_MM, SLEEP_STEPS,
-                                  SUBSTEPS, MAX_CAND, compose_poses, pose_matrix_kernel, solid_at, tool_push_kernel,
+                                  SUBSTEPS, MAX_CAND, compose_poses, empty_side, pose_matrix_kernel,
+                                  solid_at, tool_push_kernel,
                                   advance_kernel)
 
 __all__ = ["RIGID_SLOTS", "body_samples", "mesh_samples", "mass_properties", "RigidSet",
@@ -41,20 +42,7 @@ def _body_voxels(keys, vals, body, density, bid, lo, hi, ijk, surf, nrm):
                 if not solid_at(keys, vals, body, density, bid, i, j, k):
                     continue
                 ijk[n, 0], ijk[n, 1], ijk[n, 2] = i, j, k
-                gx = gy = gz = 0.0
-                face = False
-                for a in range(-1, 2):
-                    for b in range(-1, 2):
-                        for c in range(-1, 2):
-                            if a == 0 and b == 0 and c == 0:
-                                continue
-                            if not solid_at(keys, vals, body, density, bid, i + a, j + b,
-                                          k + c):
-                                gx += a
-                                gy += b
-                                gz += c
-                                if abs(a) + abs(b) + abs(c) == 1:
-                                    face = True
+                gx, gy, gz, face = empty_side(keys, vals, body, density, bid, i, j, k)
                 gn = math.sqrt(gx * gx + gy * gy + gz * gz)
                 surf[n] = face and gn > 0.0
                 if surf[n]:
