@@ -1,13 +1,17 @@
-"""Draw a frame on a thread of its own while the next one is simulated.
+"""Worker threads for the headless main job: the dust of one frame and the
+drawing of another while the engine steps the next.
 
-The headless main job (:mod:`bonesim.apps.showcase`) spends its time on two
-kinds of work that need not wait for each other: the simulation of a frame's
-interval (haptic steps, dust, nerve monitor: numba kernels that release the
-GIL) and drawing the frame before it (software OpenGL, which VTK also runs
-without the GIL) with its readback and video encoding. :class:`FrameWorker`
-runs the drawing on one worker thread, so the two overlap on two cores.
+The headless main job (:mod:`bonesim.apps.showcase`) spends its time on
+kinds of work that need not wait for each other: the engine's steps of a
+frame's interval, the dust of the frame before (numba kernels that release
+the GIL), and drawing the frame before that (software OpenGL, which VTK also
+runs without the GIL) with its readback and video encoding.
+:class:`Worker` runs one job at a time on a thread of its own (the dust:
+:func:`bonesim.apps.showcase.advance_through`); :class:`FrameWorker` is the
+one that draws, so the stages overlap on two cores.
 
-The protocol keeps the pictures exactly those of drawing in line:
+For the drawing, the protocol keeps the pictures exactly those of drawing in
+line:
 
 1. the caller brings the scene to frame ``i`` (no drawing in progress);
 2. :meth:`FrameWorker.submit` hands frame ``i`` to the worker, which renders,
