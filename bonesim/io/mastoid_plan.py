@@ -135,7 +135,35 @@ def plan_case(case, plan, two_burrs: bool = True):
     ------
     BonesimError
         Naming the case and the landmark the plan needs but could not find.
+
+    Notes
+    -----
+    The plan is a function of the case and the plan's values alone. For a
+    phantom case (its volume generated from the manifest's values, no file
+    that could change) the process keeps the last :data:`CACHED_PLANS` plans
+    and returns a copy: a cohort of synthetic runs plans the same case once.
     """
+    import copy
+
+    key = (case, plan, bool(two_burrs)) if case.volume.format == "phantom" else None
+    done = _plans.pop(key, None) if key is not None else None
+    if done is None:
+        done = _plan_case(case, plan, two_burrs)
+        if key is None:
+            return done
+    _plans[key] = done                         # the most recently used last
+    while len(_plans) > CACHED_PLANS:
+        del _plans[next(iter(_plans))]
+    return copy.deepcopy(done)
+
+
+#: Plans of phantom cases :func:`plan_case` keeps for the process's later calls.
+CACHED_PLANS = 4
+_plans: dict = {}
+
+
+def _plan_case(case, plan, two_burrs):
+    """:func:`plan_case`, planned."""
     from bonesim.physics.clearance import Clearance
 
     vol = case.load_volume()
