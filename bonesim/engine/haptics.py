@@ -574,7 +574,7 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
 @njit(cache=True, nogil=True)
 def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacing,
                   stiff, removal, injury,
-                  samples, params,
+                  samples, row_off, params,
                   pos, axis, drill, direction, speed_factor, dt, t,
                   group, gsel, first, last, case_pos,
                   R, n_vox, lbrick, ldens, llab, acc, dirty, contact, prev_contact, lost,
@@ -608,6 +608,9 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     samples : (n, 5) float32
         The stencil's packed rows ``(o_x, o_y, o_z, 1/|o|, lat)`` (see
         :class:`Stencil`).
+    row_off : (n_rows, 2) int64
+        The stencil's rows (:attr:`Stencil.row_off`): column 1 is the number
+        of consecutive samples of each row (equal ``o_x, o_y``).
     params : (N_PARAMS,) float64
         ``k_low [N/mm^3], k_high [N/mm^3], V_t [mm^3], k_tan [N/mm^4],
         max_force [N], h^3 [mm^3], 1/voxel^3 [1/mm^3], burr radius [mm]``.
@@ -646,8 +649,9 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         Scratch: labels of the burr's neighbourhood.
     acc : (n_vox**3,) float64
         Scratch accumulator; must be all zero on entry (left zero on exit).
-    dirty : (n_vox**3,) int32
-        Scratch list of local voxels with removal.
+    dirty : (n_vox**3 + 1,) int32
+        Scratch list of local voxels with removal (one spare entry: the
+        kernel writes the next entry before it knows whether it is kept).
     contact : (n_labels + 1,) int64
         Out: immersed samples per label.
     prev_contact : (n_labels + 1,) uint8
@@ -683,33 +687,55 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
     r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
     r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
-    for s in range(samples.shape[0]):
+    # the samples row by row (consecutive samples with one (o_x, o_y), see
+    # Stencil): the part of a sample's voxel coordinate that is the same along
+    # its row, ``(c + r o_x) + r o_y``, is computed once per row (the same
+    # operations in the same order as per sample, so the same voxel)
+    s = 0
+    clab = -1                       # label of the current run of immersed samples
+    ccnt = 0                        # its length (flushed into ``contact``)
+    for r in range(row_off.shape[0]):
         ox = np.float64(samples[s, 0])
         oy = np.float64(samples[s, 1])
-        oz = np.float64(samples[s, 2])
-        li = (int(c0 + r00 * ox + r01 * oy + r02 * oz) * n_vox
-              + int(c1 + r10 * ox + r11 * oy + r12 * oz)) * n_vox \
-            + int(c2 + r20 * ox + r21 * oy + r22 * oz)
-        if ldens[li] <= 0.0:
-            continue
-        lab = llab[li]
-        w = stiff[lab]
-        n_imm += 1
-        wsum += w
-        contact[lab] += 1
-        wr = w * np.float64(samples[s, 3])
-        sux += wr * ox
-        suy += wr * oy
-        suz += wr * oz
-        stx += w * oy
-        sty -= w * ox
-        if drill:
-            a = np.float64(samples[s, 4]) * removal[lab]
-            if a > 0.0:
-                if acc[li] == 0.0:
+        a0 = c0 + r00 * ox + r01 * oy
+        a1 = c1 + r10 * ox + r11 * oy
+        a2 = c2 + r20 * ox + r21 * oy
+        end = s + row_off[r, 1]
+        while s < end:
+            oz = np.float64(samples[s, 2])
+            li = (int(a0 + r02 * oz) * n_vox + int(a1 + r12 * oz)) * n_vox \
+                + int(a2 + r22 * oz)
+            if ldens[li] > 0.0:
+                lab = llab[li]
+                w = stiff[lab]
+                n_imm += 1
+                wsum += w
+                if lab != clab:
+                    if clab >= 0:
+                        contact[clab] += ccnt
+                    clab = lab
+                    ccnt = 0
+                ccnt += 1
+                wr = w * np.float64(samples[s, 3])
+                sux += wr * ox
+                suy += wr * oy
+                suz += wr * oz
+                stx += w * oy
+                sty -= w * ox
+                if drill:
+                    # the voxel's removal weight; a voxel joins ``dirty`` on
+                    # its first positive weight (written unconditionally, kept
+                    # by counting it: no data-dependent branch)
+                    a = np.float64(samples[s, 4]) * removal[lab]
+                    pos_a = a > 0.0
+                    v = acc[li]
                     dirty[n_dirty] = li
-                    n_dirty += 1
-                acc[li] += a
+                    n_dirty += (v == 0.0) & pos_a
+                    # adding +0.0 leaves the (never -0.0) sum as it is
+                    acc[li] = v + (a if pos_a else 0.0)
+            s += 1
+    if clab >= 0:
+        contact[clab] += ccnt
     finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,

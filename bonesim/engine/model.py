@@ -431,7 +431,7 @@ class State:
                 self._ldens = np.zeros(n3, dtype=np.float32)
                 self._llab = np.zeros(n3, dtype=np.uint8)
                 self._acc = np.zeros(n3)
-                self._dirty = np.zeros(n3, dtype=np.int32)
+                self._dirty = np.zeros(n3 + 1, dtype=np.int32)
 
     @property
     def n_removed(self) -> int:
@@ -690,7 +690,7 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
         return
     haptic_kernel(g.keys, g.vals, g.density, g.label, state.body, state.touched_flag,
                   g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-                  st.packed, model.burr_params[bi],
+                  st.packed, st.row_off, model.burr_params[bi],
                   pos, ax, drill, direction, speed_factor, dt, t,
                   state._group, gsel, first, last, state._pos,
                   state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
