@@ -58,7 +58,7 @@ from numba import njit
 from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
-from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
            "P_INV_VOXEL_VOL", "P_RADIUS", "N_PARAMS", "O_FX", "O_FY", "O_FZ", "O_TX",
@@ -326,16 +326,26 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
             j = lo1 + y
             by = (j >> BRICK_SHIFT) - b1
             base = x * nn + y * n_vox
-            for z in range(n_vox):
+            # a column of the block crosses a few bricks; inside one its
+            # voxels are consecutive (k is the fastest offset): copy by runs
+            jo = voxel_offset(i, j, 0)
+            z = 0
+            while z < n_vox:
                 k = lo2 + z
+                kk = k & BRICK_MASK
+                run = min(BRICK - kk, n_vox - z)
                 b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
+                at = base + z
                 if b >= 0:
-                    off = voxel_offset(i, j, k)
-                    ldens[base + z] = density[b, off]
-                    llab[base + z] = label[b, off]
+                    off = jo | kk
+                    for q in range(run):
+                        ldens[at + q] = density[b, off + q]
+                        llab[at + q] = label[b, off + q]
                 else:
-                    ldens[base + z] = 0.0
-                    llab[base + z] = 0
+                    for q in range(run):
+                        ldens[at + q] = 0.0
+                        llab[at + q] = 0
+                z += run
     if gsel < 0:
         return
     # bodies of other groups are not there for this pass
@@ -439,6 +449,10 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
         Voxels removed and newly touched.
     """
     nn = n_vox * n_vox
+    # the local voxel's coordinates without integer division: (li + 1/2) / nn
+    # is at least 1/(2 nn) from an integer, far more than the float error
+    inv_nn = 1.0 / nn
+    inv_n = 1.0 / n_vox
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     n_rem = 0
     n_tch = 0
@@ -449,9 +463,12 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
         acc[li] = 0.0
         if amount <= 0.0:
             continue
-        i = lo0 + li // nn
-        j = lo1 + (li // n_vox) % n_vox
-        k = lo2 + li % n_vox
+        x = int((li + 0.5) * inv_nn)
+        yz = li - x * nn
+        y = int((yz + 0.5) * inv_n)
+        i = lo0 + x
+        j = lo1 + y
+        k = lo2 + (yz - y * n_vox)
         b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
         off = voxel_offset(i, j, k)
         d = density[b, off] - amount
@@ -677,7 +694,6 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
-    n_dirty = 0
     inv = 1.0 / spacing
     # tool centre in local block coordinates, shifted by +1/2 so that
     # truncation toward zero rounds to the nearest voxel (all values > 0)
@@ -691,7 +707,9 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     # Stencil): the part of a sample's voxel coordinate that is the same along
     # its row, ``(c + r o_x) + r o_y``, is computed once per row (the same
     # operations in the same order as per sample, so the same voxel)
-    s = 0
+    # (indices are unsigned, all being >= 0: no negative-index wrapping)
+    s = np.uint64(0)
+    n_dirty = np.uint64(0)
     clab = -1                       # label of the current run of immersed samples
     ccnt = 0                        # its length (flushed into ``contact``)
     for r in range(row_off.shape[0]):
@@ -700,11 +718,11 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         a0 = c0 + r00 * ox + r01 * oy
         a1 = c1 + r10 * ox + r11 * oy
         a2 = c2 + r20 * ox + r21 * oy
-        end = s + row_off[r, 1]
+        end = s + np.uint64(row_off[r, 1])
         while s < end:
             oz = np.float64(samples[s, 2])
-            li = (int(a0 + r02 * oz) * n_vox + int(a1 + r12 * oz)) * n_vox \
-                + int(a2 + r22 * oz)
+            li = np.uint64((int(a0 + r02 * oz) * n_vox + int(a1 + r12 * oz)) * n_vox
+                           + int(a2 + r22 * oz))
             if ldens[li] > 0.0:
                 lab = llab[li]
                 w = stiff[lab]
@@ -730,10 +748,10 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
                     pos_a = a > 0.0
                     v = acc[li]
                     dirty[n_dirty] = li
-                    n_dirty += (v == 0.0) & pos_a
+                    n_dirty += np.uint64((v == 0.0) & pos_a)
                     # adding +0.0 leaves the (never -0.0) sum as it is
                     acc[li] = v + (a if pos_a else 0.0)
-            s += 1
+            s += np.uint64(1)
     if clab >= 0:
         contact[clab] += ccnt
     finish_pass(density, label, body, touched_flag, injury, params, drill, direction,

@@ -24,6 +24,8 @@ from tests.bonesim.fakes import BONE, MATERIALS, NERVE, FakeBurr
 #: Position of ``row_off`` among :func:`bonesim.engine.haptics.haptic_kernel`'s
 #: arguments (the frozen kernel has none).
 _ROW_OFF_ARG = 12
+#: The random blocks' bone fills the voxel layers ``k < _TOP``.
+_TOP = 16
 
 
 def _previous(*args):
@@ -52,7 +54,7 @@ def _assert_same(a: dict, b: dict) -> None:
 def _random_model(seed, radius, oversample, spacing=0.5, shape=(28, 28, 28)):
     rng = np.random.default_rng(seed)
     labels = np.zeros(shape, np.uint8)
-    labels[:, :, : shape[2] // 2 + 2] = 1
+    labels[:, :, :_TOP] = 1
     labels[rng.random(shape) < 0.25] = 0                  # pores
     labels[(rng.random(shape) < 0.08) & (labels > 0)] = 2    # a nerve's voxels
     burr = FakeBurr(radius_mm=radius, k_low=0.5, k_high=2.0, max_force_n=50.0,
@@ -79,8 +81,10 @@ def _run_both(m, prepare, samples, monkeypatch):
 
 
 def _poses(rng, m, n, drill, direction):
-    centre = m.grid.origin_mm + m.spacing_mm * (np.array(m.grid.shape) / 2.0 - 0.5)
-    pos = centre + rng.normal(0, 1.5, 3)
+    # near the block's top face (bone below voxel layer ``_TOP``), x and y central
+    sh = np.array(m.grid.shape)
+    pos = m.grid.origin_mm + m.spacing_mm * np.array([sh[0] / 2, sh[1] / 2, _TOP - 0.5])
+    pos = pos + np.array([rng.normal(0, 1.5), rng.normal(0, 1.5), rng.uniform(-1.0, 0.5)])
     out = []
     for q in range(n):
         pos = pos + rng.normal(0, 0.2, 3)
