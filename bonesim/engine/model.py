@@ -37,6 +37,7 @@ from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_kernel, l
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 from bonesim.engine.rigid import gravity_direction
 from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
+from bonesim.engine.step_io import store_step, unit_pose
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
            "make_model", "State", "state_arrays_spec", "make_state", "reset_state",
@@ -601,14 +602,11 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
         raise ValueError(f"sample at t={t} s: burr {bi} is not in the model's table of "
                          f"{len(model.burrs)}")
     burr = model.burrs[bi]
-    pos = state._pos
+    pos, ax = state._pos, state._axis
     pos[:] = sample.pos_mm
-    ax = state._axis
     ax[:] = sample.axis
-    norm = math.sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2])
-    if not norm > 0.0 or not math.isfinite(norm) or not np.isfinite(pos).all():
+    if not unit_pose(pos, ax):
         raise ValueError(f"sample at t={t} s: position must be finite and axis non-zero")
-    ax /= norm
     drill = bool(sample.drill)
     speed_factor = max(0.0, float(sample.speed_rpm)) / burr.default_speed_rpm
     direction = -1.0 if sample.direction < 0 else 1.0
@@ -617,11 +615,9 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
                 True, True)
     else:
         _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t)
-    state.removed_by_label += state._lost
+    store_step(state.removed_by_label, state._lost, state.pos_mm, pos, state.axis, ax,
+               state.force_n, state.out)
     state.t_s = t
-    state.pos_mm[:] = pos
-    state.axis[:] = ax
-    state.force_n[:] = state.out[:3]
     state.n_steps += 1
     return state.force_n
 
