@@ -335,14 +335,16 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
                 kk = k & BRICK_MASK
                 run = min(BRICK - kk, n_vox - z)
                 b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                at = base + z
+                # (unsigned indices: no negative-index wrapping in the copy)
+                at = np.uint64(base + z)
                 if b >= 0:
-                    off = jo | kk
-                    for q in range(run):
-                        ldens[at + q] = density[b, off + q]
-                        llab[at + q] = label[b, off + q]
+                    off = np.uint64(jo | kk)
+                    ub = np.uint64(b)
+                    for q in range(np.uint64(run)):
+                        ldens[at + q] = density[ub, off + q]
+                        llab[at + q] = label[ub, off + q]
                 else:
-                    for q in range(run):
+                    for q in range(np.uint64(run)):
                         ldens[at + q] = 0.0
                         llab[at + q] = 0
                 z += run
@@ -458,9 +460,10 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
     n_tch = 0
     tcap = tch_ijk.shape[0] - 1
     for q in range(n_dirty):
-        li = dirty[q]
-        amount = acc[li] * scale
-        acc[li] = 0.0
+        li = np.int64(dirty[q])
+        uli = np.uint64(li)                 # (unsigned: no negative-index wrapping)
+        amount = acc[uli] * scale
+        acc[uli] = 0.0
         if amount <= 0.0:
             continue
         x = int((li + 0.5) * inv_nn)
@@ -469,8 +472,9 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
         i = lo0 + x
         j = lo1 + y
         k = lo2 + (yz - y * n_vox)
-        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
-        off = voxel_offset(i, j, k)
+        b = np.uint64(lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
+                             (k >> BRICK_SHIFT) - b2])
+        off = np.uint64(voxel_offset(i, j, k))
         d = density[b, off] - amount
         if d <= 0.0:
             density[b, off] = 0.0
