@@ -42,6 +42,18 @@ One haptic step with the tool centre ``t_c`` and unit axis ``d``
 All state the kernel touches is passed as plain arrays; the kernel allocates
 nothing and is deterministic (same inputs, bit-identical grid).
 
+Recorded sessions replay bit for bit, so the kernel's speed comes only from
+work that changes no float result (tested against a frozen copy of the
+per-sample kernel, ``tests/bonesim/engine/haptics_previous.py``): the part of
+a sample's voxel coordinate shared by its lattice row, ``(c + r o_x) + r
+o_y``, is computed once per row (the same operations in the same order);
+the dirty-voxel list is written without a data-dependent branch (the entry is
+written, and kept by counting it); contact counts are summed per run of one
+label; the block is gathered by runs of voxels within a brick; indices are
+unsigned (no negative-index wrapping) and the removal finds a voxel's
+coordinates without integer division. Every sum still adds its nonzero terms
+in sample order.
+
 This kernel (and the row kernel of :mod:`bonesim.engine.haptics_rows`) runs
 where ``voxel / oversample`` is at least the budget's finest lattice spacing
 (``bonesim/data/haptics.toml``); on finer bone the fixed-budget step of
