@@ -329,7 +329,7 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
             ldens, llab):
     """Copy the burr's block of voxels into dense local scratch: density (0
     where the voxel's body is not in group ``gsel``; ``gsel < 0``: every
-    body) and label. The one-body step takes the first loop only."""
+    body) and label."""
     nn = n_vox * n_vox
     for x in range(n_vox):
         i = lo0 + x
@@ -349,33 +349,27 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
                 b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
                 # (unsigned indices: no negative-index wrapping in the copy)
                 at = np.uint64(base + z)
-                if b >= 0:
+                if b < 0:
+                    for q in range(np.uint64(run)):
+                        ldens[at + q] = 0.0
+                        llab[at + q] = 0
+                elif gsel < 0:
                     off = np.uint64(jo | kk)
                     ub = np.uint64(b)
                     for q in range(np.uint64(run)):
                         ldens[at + q] = density[ub, off + q]
                         llab[at + q] = label[ub, off + q]
                 else:
+                    # bodies of other groups are not there for this pass
+                    off = np.uint64(jo | kk)
+                    ub = np.uint64(b)
                     for q in range(np.uint64(run)):
-                        ldens[at + q] = 0.0
-                        llab[at + q] = 0
+                        d = density[ub, off + q]
+                        if d > 0.0 and group[body[ub, off + q]] != gsel:
+                            d = np.float32(0.0)
+                        ldens[at + q] = d
+                        llab[at + q] = label[ub, off + q]
                 z += run
-    if gsel < 0:
-        return
-    # bodies of other groups are not there for this pass
-    for x in range(n_vox):
-        i = lo0 + x
-        bx = (i >> BRICK_SHIFT) - b0
-        for y in range(n_vox):
-            j = lo1 + y
-            by = (j >> BRICK_SHIFT) - b1
-            base = x * nn + y * n_vox
-            for z in range(n_vox):
-                if ldens[base + z] > 0.0:
-                    k = lo2 + z
-                    b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                    if group[body[b, voxel_offset(i, j, k)]] != gsel:
-                        ldens[base + z] = 0.0
 
 
 @njit(cache=True, nogil=True, inline="always")
