@@ -722,9 +722,17 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     n_dirty = np.uint64(0)
     clab = -1                       # label of the current run of immersed samples
     ccnt = 0                        # its length (flushed into ``contact``)
+    # that label's stiffness and removal factors, and the lever terms
+    # ``w o_y``, ``w o_x`` of the row (the same products as per sample)
+    w = 0.0
+    rm = 0.0
+    woy = 0.0
+    wox = 0.0
     for r in range(row_off.shape[0]):
         ox = np.float64(samples[s, 0])
         oy = np.float64(samples[s, 1])
+        woy = w * oy
+        wox = w * ox
         a0 = c0 + r00 * ox + r01 * oy
         a1 = c1 + r10 * ox + r11 * oy
         a2 = c2 + r20 * ox + r21 * oy
@@ -735,26 +743,29 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
                            + int(a2 + r22 * oz))
             if ldens[li] > 0.0:
                 lab = llab[li]
-                w = stiff[lab]
-                n_imm += 1
-                wsum += w
                 if lab != clab:
                     if clab >= 0:
                         contact[clab] += ccnt
                     clab = lab
                     ccnt = 0
+                    w = stiff[lab]
+                    rm = removal[lab]
+                    woy = w * oy
+                    wox = w * ox
                 ccnt += 1
+                n_imm += 1
+                wsum += w
                 wr = w * np.float64(samples[s, 3])
                 sux += wr * ox
                 suy += wr * oy
                 suz += wr * oz
-                stx += w * oy
-                sty -= w * ox
+                stx += woy
+                sty -= wox
                 if drill:
                     # the voxel's removal weight; a voxel joins ``dirty`` on
                     # its first positive weight (written unconditionally, kept
                     # by counting it: no data-dependent branch)
-                    a = np.float64(samples[s, 4]) * removal[lab]
+                    a = np.float64(samples[s, 4]) * rm
                     pos_a = a > 0.0
                     v = acc[li]
                     dirty[n_dirty] = li
