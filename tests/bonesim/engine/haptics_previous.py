@@ -10,6 +10,8 @@ its name and ``cache=False``.
 """
 from __future__ import annotations
 
+import types
+
 import numpy as np
 from numba import njit
 
@@ -20,8 +22,9 @@ from bonesim.engine.grid import BRICK_SHIFT, voxel_offset
 from bonesim.engine.haptics import (O_N_REMOVED, O_N_TOUCHED, P_H3, P_INV_VOXEL_VOL,
                                     P_RADIUS, _label_body, block_bricks, force_law,
                                     push_event_kernel, tool_frame)
+from bonesim.engine.haptics_rows import haptic_rows_kernel
 
-__all__ = ["previous_haptic_kernel"]
+__all__ = ["previous_haptic_kernel", "previous_rows_kernel"]
 
 
 @njit(cache=False, nogil=True, inline="always")
@@ -262,3 +265,17 @@ def previous_haptic_kernel(keys, vals, density, label, body, touched_flag, origi
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,
             ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
             tch_ijk, tch_head, out, sux, suy, suz, stx, sty, wsum, n_imm)
+
+
+def _with_previous_pass(kernel):
+    """``kernel`` (a numba function calling ``begin_pass``/``finish_pass``)
+    compiled again with this module's frozen ``begin_pass``/``finish_pass``."""
+    py = kernel.py_func
+    glb = dict(py.__globals__)
+    glb.update(begin_pass=begin_pass, finish_pass=finish_pass)
+    return njit(cache=False, nogil=True)(types.FunctionType(py.__code__, glb, py.__name__))
+
+
+#: The row kernel (:mod:`bonesim.engine.haptics_rows`, unchanged) on the frozen
+#: start and end of a pass: what it computed before them.
+previous_rows_kernel = _with_previous_pass(haptic_rows_kernel)

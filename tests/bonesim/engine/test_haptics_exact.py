@@ -18,8 +18,8 @@ from bonesim.engine import model as model_mod
 from bonesim.engine.bodies import publish_pose, publish_split
 from bonesim.engine.model import Sample, make_model, make_state, step
 
-from tests.bonesim.engine.haptics_previous import previous_haptic_kernel
-from tests.bonesim.fakes import BONE, MATERIALS, NERVE, FakeBurr
+from tests.bonesim.engine.haptics_previous import previous_haptic_kernel, previous_rows_kernel
+from tests.bonesim.fakes import BONE, MATERIALS, NERVE, NO_BUDGET, FakeBurr
 
 #: Position of ``row_off`` among :func:`bonesim.engine.haptics.haptic_kernel`'s
 #: arguments (the frozen kernel has none).
@@ -51,7 +51,7 @@ def _assert_same(a: dict, b: dict) -> None:
         assert a[k].tobytes() == b[k].tobytes(), f"{k} differs"
 
 
-def _random_model(seed, radius, oversample, spacing=0.5, shape=(28, 28, 28)):
+def _random_model(seed, radius, oversample, spacing=0.5, shape=(28, 28, 28), **kw):
     rng = np.random.default_rng(seed)
     labels = np.zeros(shape, np.uint8)
     labels[:, :, :_TOP] = 1
@@ -60,12 +60,13 @@ def _random_model(seed, radius, oversample, spacing=0.5, shape=(28, 28, 28)):
     burr = FakeBurr(radius_mm=radius, k_low=0.5, k_high=2.0, max_force_n=50.0,
                     r_max=4.0 + rng.random(), falloff=2.0 + rng.random())
     return make_model(labels, spacing, [BONE, NERVE], burr, materials=MATERIALS,
-                      oversample=oversample)
+                      oversample=oversample, **kw)
 
 
-def _run_both(m, prepare, samples, monkeypatch):
+def _run_both(m, prepare, samples, monkeypatch, name="haptic_kernel", previous=_previous):
     """Step two fresh states (``prepare`` applied to each) through ``samples``,
-    one with each kernel; assert they agree after every step."""
+    one with the kernel ``name`` of :mod:`bonesim.engine.model` and one with
+    ``previous`` in its place; assert they agree after every step."""
     new, old = make_state(m), make_state(m)
     prepare(new)
     prepare(old)
@@ -73,7 +74,7 @@ def _run_both(m, prepare, samples, monkeypatch):
     for smp in samples:
         step(m, new, smp)
         with monkeypatch.context() as mp:
-            mp.setattr(model_mod, "haptic_kernel", _previous)
+            mp.setattr(model_mod, name, previous)
             step(m, old, smp)
         _assert_same(_snapshot(new), _snapshot(old))
         immersed += new.out[8]
@@ -137,3 +138,19 @@ def test_seven_mm_sweep_is_the_previous_kernel_bit_for_bit(monkeypatch):
     smp = [Sample(q * 1e-3, np.array([5.0 + 0.08 * q, 10.0, top]), axis, True, 60000.0, 1)
            for q in range(200)]
     assert _run_both(m, lambda s: None, smp, monkeypatch) > 0
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=hs.integers(0, 2**31 - 1), oversample=hs.sampled_from([3, 4]),
+       drill=hs.booleans())
+def test_row_kernel_on_the_new_pass_ends_is_bit_for_bit_what_it_was(seed, oversample,
+                                                                    drill):
+    """The row kernel (3x and more) shares the start and end of a pass
+    (gather, removal), which changed: it too must give the same bits."""
+    m = _random_model(seed, 1.5, oversample, budget_settings=NO_BUDGET)
+    assert m.oversample >= 3 and not m.budget.binding
+    rng = np.random.default_rng(seed + 2)
+    with pytest.MonkeyPatch.context() as mp:
+        immersed = _run_both(m, lambda s: None, _poses(rng, m, 8, drill, 1), mp,
+                             "haptic_rows_kernel", previous_rows_kernel)
+    assert immersed > 0
