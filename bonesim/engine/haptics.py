@@ -42,6 +42,18 @@ One haptic step with the tool centre ``t_c`` and unit axis ``d``
 All state the kernel touches is passed as plain arrays; the kernel allocates
 nothing and is deterministic (same inputs, bit-identical grid).
 
+Recorded sessions replay bit for bit, so the kernel's speed comes only from
+work that changes no float result (tested against a frozen copy of the
+per-sample kernel, ``tests/bonesim/engine/haptics_previous.py``): the part of
+a sample's voxel coordinate shared by its lattice row, ``(c + r o_x) + r
+o_y``, is computed once per row (the same operations in the same order);
+the dirty-voxel list is written without a data-dependent branch (the entry is
+written, and kept by counting it); contact counts are summed per run of one
+label; the block is gathered by runs of voxels within a brick; indices are
+unsigned (no negative-index wrapping) and the removal finds a voxel's
+coordinates without integer division. Every sum still adds its nonzero terms
+in sample order.
+
 This kernel (and the row kernel of :mod:`bonesim.engine.haptics_rows`) runs
 where ``voxel / oversample`` is at least the budget's finest lattice spacing
 (``bonesim/data/haptics.toml``); on finer bone the fixed-budget step of
@@ -58,7 +70,7 @@ from numba import njit
 from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
-from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
 
 __all__ = ["P_K_LOW", "P_K_HIGH", "P_V_T", "P_K_TAN", "P_MAX_FORCE", "P_H3",
            "P_INV_VOXEL_VOL", "P_RADIUS", "N_PARAMS", "O_FX", "O_FY", "O_FZ", "O_TX",
@@ -317,7 +329,7 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
             ldens, llab):
     """Copy the burr's block of voxels into dense local scratch: density (0
     where the voxel's body is not in group ``gsel``; ``gsel < 0``: every
-    body) and label. The one-body step takes the first loop only."""
+    body) and label."""
     nn = n_vox * n_vox
     for x in range(n_vox):
         i = lo0 + x
@@ -326,32 +338,38 @@ def _gather(density, label, body, group, gsel, lo0, lo1, lo2, b0, b1, b2, n_vox,
             j = lo1 + y
             by = (j >> BRICK_SHIFT) - b1
             base = x * nn + y * n_vox
-            for z in range(n_vox):
+            # a column of the block crosses a few bricks; inside one its
+            # voxels are consecutive (k is the fastest offset): copy by runs
+            jo = voxel_offset(i, j, 0)
+            z = 0
+            while z < n_vox:
                 k = lo2 + z
+                kk = k & BRICK_MASK
+                run = min(BRICK - kk, n_vox - z)
                 b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                if b >= 0:
-                    off = voxel_offset(i, j, k)
-                    ldens[base + z] = density[b, off]
-                    llab[base + z] = label[b, off]
+                # (unsigned indices: no negative-index wrapping in the copy)
+                at = np.uint64(base + z)
+                if b < 0:
+                    for q in range(np.uint64(run)):
+                        ldens[at + q] = 0.0
+                        llab[at + q] = 0
+                elif gsel < 0:
+                    off = np.uint64(jo | kk)
+                    ub = np.uint64(b)
+                    for q in range(np.uint64(run)):
+                        ldens[at + q] = density[ub, off + q]
+                        llab[at + q] = label[ub, off + q]
                 else:
-                    ldens[base + z] = 0.0
-                    llab[base + z] = 0
-    if gsel < 0:
-        return
-    # bodies of other groups are not there for this pass
-    for x in range(n_vox):
-        i = lo0 + x
-        bx = (i >> BRICK_SHIFT) - b0
-        for y in range(n_vox):
-            j = lo1 + y
-            by = (j >> BRICK_SHIFT) - b1
-            base = x * nn + y * n_vox
-            for z in range(n_vox):
-                if ldens[base + z] > 0.0:
-                    k = lo2 + z
-                    b = lbrick[bx, by, (k >> BRICK_SHIFT) - b2]
-                    if group[body[b, voxel_offset(i, j, k)]] != gsel:
-                        ldens[base + z] = 0.0
+                    # bodies of other groups are not there for this pass
+                    off = np.uint64(jo | kk)
+                    ub = np.uint64(b)
+                    for q in range(np.uint64(run)):
+                        d = density[ub, off + q]
+                        if d > 0.0 and group[body[ub, off + q]] != gsel:
+                            d = np.float32(0.0)
+                        ldens[at + q] = d
+                        llab[at + q] = label[ub, off + q]
+                z += run
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -439,21 +457,30 @@ def remove_voxels(density, label, body, touched_flag, acc, dirty, n_dirty, scale
         Voxels removed and newly touched.
     """
     nn = n_vox * n_vox
+    # the local voxel's coordinates without integer division: (li + 1/2) / nn
+    # is at least 1/(2 nn) from an integer, far more than the float error
+    inv_nn = 1.0 / nn
+    inv_n = 1.0 / n_vox
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
     n_rem = 0
     n_tch = 0
     tcap = tch_ijk.shape[0] - 1
     for q in range(n_dirty):
-        li = dirty[q]
-        amount = acc[li] * scale
-        acc[li] = 0.0
+        li = np.int64(dirty[q])
+        uli = np.uint64(li)                 # (unsigned: no negative-index wrapping)
+        amount = acc[uli] * scale
+        acc[uli] = 0.0
         if amount <= 0.0:
             continue
-        i = lo0 + li // nn
-        j = lo1 + (li // n_vox) % n_vox
-        k = lo2 + li % n_vox
-        b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1, (k >> BRICK_SHIFT) - b2]
-        off = voxel_offset(i, j, k)
+        x = int((li + 0.5) * inv_nn)
+        yz = li - x * nn
+        y = int((yz + 0.5) * inv_n)
+        i = lo0 + x
+        j = lo1 + y
+        k = lo2 + (yz - y * n_vox)
+        b = np.uint64(lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
+                             (k >> BRICK_SHIFT) - b2])
+        off = np.uint64(voxel_offset(i, j, k))
         d = density[b, off] - amount
         if d <= 0.0:
             density[b, off] = 0.0
@@ -574,7 +601,7 @@ def finish_pass(density, label, body, touched_flag, injury, params, drill, direc
 @njit(cache=True, nogil=True)
 def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacing,
                   stiff, removal, injury,
-                  samples, params,
+                  samples, row_off, params,
                   pos, axis, drill, direction, speed_factor, dt, t,
                   group, gsel, first, last, case_pos,
                   R, n_vox, lbrick, ldens, llab, acc, dirty, contact, prev_contact, lost,
@@ -608,6 +635,9 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     samples : (n, 5) float32
         The stencil's packed rows ``(o_x, o_y, o_z, 1/|o|, lat)`` (see
         :class:`Stencil`).
+    row_off : (n_rows, 2) int64
+        The stencil's rows (:attr:`Stencil.row_off`): column 1 is the number
+        of consecutive samples of each row (equal ``o_x, o_y``).
     params : (N_PARAMS,) float64
         ``k_low [N/mm^3], k_high [N/mm^3], V_t [mm^3], k_tan [N/mm^4],
         max_force [N], h^3 [mm^3], 1/voxel^3 [1/mm^3], burr radius [mm]``.
@@ -646,8 +676,9 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
         Scratch: labels of the burr's neighbourhood.
     acc : (n_vox**3,) float64
         Scratch accumulator; must be all zero on entry (left zero on exit).
-    dirty : (n_vox**3,) int32
-        Scratch list of local voxels with removal.
+    dirty : (n_vox**3 + 1,) int32
+        Scratch list of local voxels with removal (one spare entry: the
+        kernel writes the next entry before it knows whether it is kept).
     contact : (n_labels + 1,) int64
         Out: immersed samples per label.
     prev_contact : (n_labels + 1,) uint8
@@ -673,7 +704,6 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
-    n_dirty = 0
     inv = 1.0 / spacing
     # tool centre in local block coordinates, shifted by +1/2 so that
     # truncation toward zero rounds to the nearest voxel (all values > 0)
@@ -683,33 +713,68 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
     r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
     r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
-    for s in range(samples.shape[0]):
+    # the samples row by row (consecutive samples with one (o_x, o_y), see
+    # Stencil): the part of a sample's voxel coordinate that is the same along
+    # its row, ``(c + r o_x) + r o_y``, is computed once per row (the same
+    # operations in the same order as per sample, so the same voxel)
+    # (indices are unsigned, all being >= 0: no negative-index wrapping)
+    s = np.uint64(0)
+    n_dirty = np.uint64(0)
+    clab = -1                       # label of the current run of immersed samples
+    ccnt = 0                        # its length (flushed into ``contact``)
+    # that label's stiffness and removal factors, and the lever terms
+    # ``w o_y``, ``w o_x`` of the row (the same products as per sample)
+    w = 0.0
+    rm = 0.0
+    woy = 0.0
+    wox = 0.0
+    for r in range(row_off.shape[0]):
         ox = np.float64(samples[s, 0])
         oy = np.float64(samples[s, 1])
-        oz = np.float64(samples[s, 2])
-        li = (int(c0 + r00 * ox + r01 * oy + r02 * oz) * n_vox
-              + int(c1 + r10 * ox + r11 * oy + r12 * oz)) * n_vox \
-            + int(c2 + r20 * ox + r21 * oy + r22 * oz)
-        if ldens[li] <= 0.0:
-            continue
-        lab = llab[li]
-        w = stiff[lab]
-        n_imm += 1
-        wsum += w
-        contact[lab] += 1
-        wr = w * np.float64(samples[s, 3])
-        sux += wr * ox
-        suy += wr * oy
-        suz += wr * oz
-        stx += w * oy
-        sty -= w * ox
-        if drill:
-            a = np.float64(samples[s, 4]) * removal[lab]
-            if a > 0.0:
-                if acc[li] == 0.0:
+        woy = w * oy
+        wox = w * ox
+        a0 = c0 + r00 * ox + r01 * oy
+        a1 = c1 + r10 * ox + r11 * oy
+        a2 = c2 + r20 * ox + r21 * oy
+        end = s + np.uint64(row_off[r, 1])
+        while s < end:
+            oz = np.float64(samples[s, 2])
+            li = np.uint64((int(a0 + r02 * oz) * n_vox + int(a1 + r12 * oz)) * n_vox
+                           + int(a2 + r22 * oz))
+            if ldens[li] > 0.0:
+                lab = llab[li]
+                if lab != clab:
+                    if clab >= 0:
+                        contact[clab] += ccnt
+                    clab = lab
+                    ccnt = 0
+                    w = stiff[lab]
+                    rm = removal[lab]
+                    woy = w * oy
+                    wox = w * ox
+                ccnt += 1
+                n_imm += 1
+                wsum += w
+                wr = w * np.float64(samples[s, 3])
+                sux += wr * ox
+                suy += wr * oy
+                suz += wr * oz
+                stx += woy
+                sty -= wox
+                if drill:
+                    # the voxel's removal weight; a voxel joins ``dirty`` on
+                    # its first positive weight (written unconditionally, kept
+                    # by counting it: no data-dependent branch)
+                    a = np.float64(samples[s, 4]) * rm
+                    pos_a = a > 0.0
+                    v = acc[li]
                     dirty[n_dirty] = li
-                    n_dirty += 1
-                acc[li] += a
+                    n_dirty += np.uint64((v == 0.0) & pos_a)
+                    # adding +0.0 leaves the (never -0.0) sum as it is
+                    acc[li] = v + (a if pos_a else 0.0)
+            s += np.uint64(1)
+    if clab >= 0:
+        contact[clab] += ccnt
     finish_pass(density, label, body, touched_flag, injury, params, drill, direction,
             speed_factor, dt, t, last, case_pos, R, n_vox, lo0, lo1, lo2, lbrick, ldens,
             llab, acc, dirty, n_dirty, contact, prev_contact, lost, lab_body,

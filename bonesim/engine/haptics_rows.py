@@ -31,7 +31,10 @@ float32: below 1e-6 voxel).
 
 The pass's start (block gather) and end (force, removal, events) are the
 same as in :func:`bonesim.engine.haptics.haptic_kernel` (both call
-``haptics._begin`` and ``haptics._finish``); only the sum over samples differs,
+:func:`~bonesim.engine.haptics.begin_pass` and
+:func:`~bonesim.engine.haptics.finish_pass`; numba's cache does not see a
+change there, so a change of those two must come with a change of this
+file, which recompiles this kernel); only the sum over samples differs,
 so summation order (and so the last bits) differs from the per-sample kernel:
 the oversampling that recorded sessions use keeps the per-sample kernel (see
 :data:`ROWS_MIN_OVERSAMPLE`). The kernel allocates nothing and is

@@ -37,6 +37,7 @@ from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_kernel, l
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 from bonesim.engine.rigid import gravity_direction
 from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
+from bonesim.engine.step_io import store_step, unit_pose
 
 __all__ = ["HAPTIC_RATE_HZ", "MAX_DT_S", "DEFAULT_OVERSAMPLE", "Sample", "Model",
            "make_model", "State", "state_arrays_spec", "make_state", "reset_state",
@@ -431,7 +432,7 @@ class State:
                 self._ldens = np.zeros(n3, dtype=np.float32)
                 self._llab = np.zeros(n3, dtype=np.uint8)
                 self._acc = np.zeros(n3)
-                self._dirty = np.zeros(n3, dtype=np.int32)
+                self._dirty = np.zeros(n3 + 1, dtype=np.int32)
 
     @property
     def n_removed(self) -> int:
@@ -601,14 +602,11 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
         raise ValueError(f"sample at t={t} s: burr {bi} is not in the model's table of "
                          f"{len(model.burrs)}")
     burr = model.burrs[bi]
-    pos = state._pos
+    pos, ax = state._pos, state._axis
     pos[:] = sample.pos_mm
-    ax = state._axis
     ax[:] = sample.axis
-    norm = math.sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2])
-    if not norm > 0.0 or not math.isfinite(norm) or not np.isfinite(pos).all():
+    if not unit_pose(pos, ax):
         raise ValueError(f"sample at t={t} s: position must be finite and axis non-zero")
-    ax /= norm
     drill = bool(sample.drill)
     speed_factor = max(0.0, float(sample.speed_rpm)) / burr.default_speed_rpm
     direction = -1.0 if sample.direction < 0 else 1.0
@@ -617,11 +615,9 @@ def step(model: Model, state: State, sample: Sample, burr: int | None = None) ->
                 True, True)
     else:
         _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t)
-    state.removed_by_label += state._lost
+    store_step(state.removed_by_label, state._lost, state.pos_mm, pos, state.axis, ax,
+               state.force_n, state.out)
     state.t_s = t
-    state.pos_mm[:] = pos
-    state.axis[:] = ax
-    state.force_n[:] = state.out[:3]
     state.n_steps += 1
     return state.force_n
 
@@ -690,7 +686,7 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
         return
     haptic_kernel(g.keys, g.vals, g.density, g.label, state.body, state.touched_flag,
                   g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-                  st.packed, model.burr_params[bi],
+                  st.packed, st.row_off, model.burr_params[bi],
                   pos, ax, drill, direction, speed_factor, dt, t,
                   state._group, gsel, first, last, state._pos,
                   state._R, state._n_vox, state._lbrick, state._ldens, state._llab,
