@@ -266,6 +266,13 @@ class Fragments:
     speck_voxels: int = 8
 
 
+#: Phantom cases whose derived landmarks, frame check and view the process
+#: keeps (:meth:`Case._derive`).
+CACHED_DERIVED = 8
+_DERIVED_KEYS = ("landmarks", "frame", "view")
+_derived_cache: dict = {}
+
+
 @dataclass(frozen=True)
 class Case:
     """A parsed case manifest.
@@ -429,6 +436,27 @@ class Case:
         return problem
 
     def _derive(self, vol: CaseVolume) -> None:
+        """Landmarks, frame check and (without ``[camera]``) the view of
+        ``vol``; a phantom case's (its volume a function of the manifest)
+        are found once per process (:data:`CACHED_DERIVED`), each case
+        getting its own copy."""
+        if self.volume.format != "phantom":
+            self._derive_from(vol)
+            return
+        import copy
+
+        done = _derived_cache.pop(self, None)
+        if done is None:
+            self._derive_from(vol)
+            done = copy.deepcopy({k: self._derived[k] for k in _DERIVED_KEYS
+                                  if k in self._derived})
+        else:
+            self._derived.update(copy.deepcopy(done))
+        _derived_cache[self] = done                       # the most recently used last
+        while len(_derived_cache) > CACHED_DERIVED:
+            del _derived_cache[next(iter(_derived_cache))]
+
+    def _derive_from(self, vol: CaseVolume) -> None:
         from bonesim.io.anatomy_frame import check_frame
         from bonesim.io.landmarks import find_landmarks
         from bonesim.io.surgical_view import view_from_landmarks
