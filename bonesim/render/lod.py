@@ -14,42 +14,54 @@ drawn with one vertex per 2x2x2 block of voxels instead.
 
 Definitions
 -----------
-*Cluster* of voxel ``(i, j, k)``: the block ``(i >> 1, j >> 1, k >> 1)``
-(:data:`CLUSTER_SHIFT`). *Block*: ``(i, j, k) >> BLOCK_SHIFT`` (8 voxels a
-side, a whole number of clusters). A vertex (surface voxel, see
-:mod:`bonesim.engine.surface`) is *far* when its block does not meet the
-*near box*, the voxels within ``near_mm`` (Chebyshev, per axis) of the
-burr's centre; every vertex is far when there is no burr. The
-*representative* ``rep[v]`` of a far vertex is the vertex of its cluster at
-the smallest voxel in ``(i, j, k)`` order; a near vertex is its own.
+*Cluster* of voxel ``(i, j, k)``: the block ``(i, j, k) >> CLUSTER_SHIFT``
+(2x2x2 voxels; a cluster never straddles a brick). *Block*: ``(i, j, k) >>
+BLOCK_SHIFT`` (8 voxels a side). A vertex (a surface voxel, see
+:mod:`bonesim.engine.surface`) is *far* when its block lies outside the
+*near box*, a range of blocks around the burr (:class:`SurfaceLOD` keeps
+it; :mod:`bonesim.render.scene` makes it cover every voxel within
+``near_mm`` of the burr's centre along each axis, plus a block of slack
+each way, and moves it only when the burr leaves it); every vertex is far
+when there is no burr. The *representative* ``rep[v]`` of a vertex is the
+vertex of its cluster at the smallest voxel in ``(i, j, k)`` order.
 
-Each live triangle ``(a, b, c)`` with a far corner is drawn as ``(rep[a],
-rep[b], rep[c])`` -- dropped when two coincide (it collapsed to an edge or
-a point) -- and wound, like every drawn triangle, so that its face normal
-agrees with the sum of its corners' normals
-(:mod:`bonesim.render.meshbuf`). Triangles with only near corners are drawn
-as they are. The representatives are real surface vertices, with their
-own positions on the smoothed level set, normals and colours: the coarse
-surface passes through points of the fine one.
+Each live triangle with a far corner is drawn with every far corner ``v``
+replaced by ``rep[v]`` (near corners stay) -- dropped when two corners
+coincide (it collapsed to an edge or a point) -- and wound, like every
+drawn triangle, so that its face normal agrees with the sum of its
+corners' normals (:mod:`bonesim.render.meshbuf`). Triangles with only near
+corners are drawn as they are. Representatives are real surface vertices,
+with their own positions on the smoothed level set, normals and colours:
+the coarse surface passes through points of the fine one, about a quarter
+as many triangles.
 
 No cracks: the map acts on vertices, so two triangles that shared an edge
 share its image. A closed mesh stays closed: every edge of the surface is
 used by an even number of triangles, a collapsed triangle uses its
-remaining edge twice, so dropping it keeps every edge's count even
-(a test checks it on drilled volumes). The seam between near and far needs
-nothing special.
+remaining edge twice, so dropping it keeps every edge's count even (a test
+checks it on drilled volumes, across the seam between near and far).
 
 While drilling: the near box follows the burr, so what the burr opens is
 drawn at full detail in the same update. A removal changes which voxels
 have vertices only within one voxel of the removed voxel, so
 :meth:`SurfaceLOD.sync` recomputes the representatives of every cluster
-that meets the 3x3x3 block around each removed or touched voxel; the near
-box moving recomputes every vertex (a few ms, when the burr crosses into
-another block).
+that meets the 3x3x3 block around each removed or touched voxel (and the
+far flags of the vertices there). The far triangles' drawn lists are kept
+(:meth:`SurfaceLOD.far_lists`) until something can change them: a removed
+or touched voxel within ``NORMAL_RADIUS + 1`` voxels of a far block (a
+vertex's position and normal read the densities within ``NORMAL_RADIUS``
+of it; a triangle spans one voxel), the near box moving, another camera for
+the visible subset, or changes not given. Then one pass over the triangle
+slots lists them again (~10 ms for the phantom at 0.19 mm).
 
-Visible subset: a clustered triangle is not a triangle the visible subset
-judged, so it is tested itself when drawn (a corner's normal or its face
-toward the eye, the rule of :mod:`bonesim.render.meshbuf`).
+Visible subset: a far triangle as drawn is not a triangle the visible
+subset judged, so it is tested itself (a corner's normal or its face toward
+the eye, the rule of :mod:`bonesim.render.meshbuf`) against the camera of
+the installed subset.
+
+Structures and dust are not touched here: :meth:`bonesim.render.scene.Scene.add_structures`
+meshes the structures of a scene with the level of detail on a grid twice
+as coarse.
 """
 from __future__ import annotations
 

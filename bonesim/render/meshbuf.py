@@ -547,7 +547,8 @@ def _surface_table(surface):
 
 def warmup() -> None:
     """Compile (or load from the cache) this module's kernels: both
-    compactions, the change marks and the visible flags, on a tiny surface."""
+    compactions, the change marks and the visible flags, and those of the
+    level of detail (:mod:`bonesim.render.lod`), on a tiny surface."""
     from bonesim.engine.grid import Grid
     from bonesim.engine.surface import Surface
 
@@ -565,3 +566,15 @@ def warmup() -> None:
     none = np.zeros((0, 3), dtype=np.int32)
     buf.sync(surface, np.array([[2, 2, 4]], dtype=np.int32), none)   # by change marks
     buf.sync(surface)                                   # by comparison
+    # the level of detail (bonesim.render.lod): representatives, far flags,
+    # far lists with and without a subset, near compaction, change follow-up
+    box = (np.zeros(3, np.int64), np.zeros(3, np.int64))
+    buf.set_lod(surface, True, box)
+    job = buf.start_visible(surface, eye, np.array([0.0, 0.0, -1.0]))
+    job.wait()
+    buf.adopt(job, surface)
+    grid.density[grid.brick_index(2, 2, 3), voxel_offset(2, 2, 3)] = 0.0
+    surface.update(grid, np.array([[2, 2, 3]], dtype=np.int32))
+    buf.sync(surface, np.array([[2, 2, 3]], dtype=np.int32), none)
+    buf.set_lod(surface, True, None)
+    buf.set_lod(surface, False)

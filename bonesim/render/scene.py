@@ -45,6 +45,15 @@ drawn winding follows them too, :mod:`bonesim.render.meshbuf`), so a
 triangle seen edge-on at a rim is never a dark speck. The material (``[bone]``) has a soft, wide
 specular highlight under the microscope's headlight and fill light.
 
+Level of detail
+---------------
+At native resolution (render.toml ``[lod]``: a voxel under
+``max_voxel_px`` pixels, a surface of ``min_triangles`` or more) the bone
+surface away from the burr is drawn with one vertex per 2x2x2 voxels
+(:mod:`bonesim.render.lod`, no cracks, full detail around the burr), and
+the structures are meshed on a grid twice as coarse. Checked before every
+render (:meth:`_update_lod`).
+
 Visible subset
 --------------
 While the camera moves the full triangle list is drawn. Once it has been
