@@ -71,7 +71,7 @@ from numba import njit
 from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, find_brick
 from bonesim.engine.normals import NORMAL_RADIUS
 
-__all__ = ["CLUSTER_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px", "faces_eye"]
+__all__ = ["CLUSTER_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px"]
 
 #: A cluster is ``2 ** CLUSTER_SHIFT`` voxels a side.
 CLUSTER_SHIFT = 1
@@ -180,7 +180,7 @@ def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, far):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def faces_eye(pos, nrm, a, b, c, eye, dirn, parallel):
+def _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel):
     """Triangle ``(a, b, c)`` (surface winding) is visible in the sense of
     :mod:`bonesim.render.meshbuf`: a corner's normal or its face toward the
     eye (perspective from ``eye``, or parallel along ``dirn``)."""
@@ -225,7 +225,7 @@ def _far_pass(tri, key, pos, nrm, rep, far, with_vis, eye, dirn, parallel, full,
             c = rep[c]
         if a == b or b == c or a == c:
             continue
-        keep = with_vis and faces_eye(pos, nrm, a, b, c, eye, dirn, parallel)
+        keep = with_vis and _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel)
         ux, uy, uz = pos[b, 0] - pos[a, 0], pos[b, 1] - pos[a, 1], pos[b, 2] - pos[a, 2]
         wx, wy, wz = pos[c, 0] - pos[a, 0], pos[c, 1] - pos[a, 1], pos[c, 2] - pos[a, 2]
         fx, fy, fz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
