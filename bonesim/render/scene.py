@@ -182,8 +182,10 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         # Translucent props (dust sprites, water) are blended in draw order.
         # VTK's default order-independent blending renders them into extra
         # float buffers and composites those over the whole view: some 20 ms
-        # a frame in software OpenGL at 1024 x 768, for a picture that differs
-        # by at most 3/255 on a few dust pixels (the sprites are faint).
+        # a frame in software OpenGL at 1024 x 768. The picture differs by at
+        # most 3/255 on the drilled phantom's settled dust (faint sprites), by
+        # about 3/255 on average and up to some 30/255 in thick heaps of
+        # mixed wet and dry sprites (tests/bonesim/render/test_scene.py).
         ren.SetUseOIT(False)
         self.renderer = ren
         rw.AddRenderer(ren)
