@@ -14,7 +14,9 @@
     rendered again unchanged (``render_unchanged_ms``). Measured with the
     visible subset installed (the heavier path: each update also maintains
     the subset), the removed voxels passed to :meth:`Scene.update_surface`
-    as the app does.
+    as the app does, and the burr placed at the blob (as in the app, where
+    the burr is where voxels go; it matters for a native-resolution
+    surface, drawn at full detail only near the burr, :mod:`bonesim.render.lod`).
 ``render_fps_1024x768``
     Frames per second of the window at 1024 x 768 on the drilled phantom
     with dust, on whatever OpenGL the machine offers offscreen (software GL
@@ -100,6 +102,9 @@ def bench_update(quick: bool = False, voxel_mm=None, name: str = "render_update_
             continue
         surf = Surface.build(model.grid, model.colors)
         scene.update_surface(surf)
+        # the burr is where it cuts, as in the app (the level of detail of a
+        # native-resolution surface keeps full detail around it)
+        scene.set_tool(grid.origin_mm + grid.spacing_mm * c, (0.0, 0.0, -1.0), 1.0)
         if not scene.refresh_visible():
             raise RuntimeError("visible subset was not installed")
         scene.render()
@@ -359,6 +364,10 @@ def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x7
         "drilling": bool(drilling),
         "cut_voxels_per_frame": round(float(np.mean(cut[2:])), 1) if cut[2:] else 0.0,
         "triangles": int(surf.n_triangles), "drawn": scene.drawing,
+        "drawn_triangles": int(scene._buffers.n_vis if scene.drawing == "visible"
+                               else scene._buffers.n_full),
+        "lod": scene._buffers.lod is not None,
+        "structure_triangles_drawn": int(sum(v[0].n_drawn for v in scene._sealed.values())),
         "size": list(FPS_SIZE), "voxel_mm": float(state.grid.spacing_mm),
         "grid_shape": list(state.grid.shape), "gl": scene.gl.describe()}}
     scene.close()

@@ -14,7 +14,8 @@ the real temporal-bone stacks, about 274^3 voxels):
     As ``render_fps_1024x768`` (:func:`bonesim.render.bench.bench_fps`) while
     drilling: each frame the burr cuts the cavity's floor, the surface and
     scene are updated with the removed voxels, then dust, tool, HUD and
-    render. Target >= 20.
+    render. Target >= 20. The surface is drawn with its level of detail
+    (:mod:`bonesim.render.lod`: full detail around the burr).
 """
 from __future__ import annotations
 

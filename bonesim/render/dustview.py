@@ -16,7 +16,9 @@ jittered inside its cell) becomes one round sprite facing the camera:
 * **wet paste** darker and more translucent (``wet_rgb``, ``wet_opacity``);
 * **depth-tested** against the bone: drawn in VTK's translucent pass after
   the opaque surface, with the depth test on and depth writes off, so dust
-  behind a wall is hidden and dust never hides dust behind it entirely.
+  behind a wall is hidden and dust never hides dust behind it entirely
+  (blended in draw order: the scene turns VTK's order-independent blending
+  off, :class:`bonesim.render.scene.Scene`).
 
 :func:`sprite_look` computes radii and colours (numpy only, testable);
 :class:`DustLayer` owns the VTK actor.
@@ -29,7 +31,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPointGaussianMapper
 
-__all__ = ["sprite_look", "DustLayer", "SPLAT_SHADER"]
+__all__ = ["sprite_look", "DustLayer", "SPLAT_SHADER", "BOUND_SCALE"]
 
 #: Fragment code of a sprite: flat colour, opacity ``(1 - r^2)^2`` to the edge.
 SPLAT_SHADER = (
@@ -40,6 +42,11 @@ SPLAT_SHADER = (
     "opacity *= fall * fall;\n"
     "diffuseColor = vec3(0.0);\n"
     "ambientColor = vertexColorVSOutput.rgb;\n")
+
+
+#: Half-width of a sprite's square in sprite radii: just around the disk the
+#: shader keeps (offset radius 1).
+BOUND_SCALE = 1.0
 
 
 def sprite_look(density, age_s, wet, cell_mm: float, style):
@@ -118,6 +125,13 @@ class DustLayer:
         m.SetColorModeToDirectScalars()
         m.SetScalarModeToUsePointData()
         m.SetSplatShaderCode(SPLAT_SHADER)
+        # Each sprite is drawn as a square around the disk its shader keeps
+        # (offset radius 1, SPLAT_SHADER); VTK's default square reaches three
+        # radii (for its Gaussian splats): nine times the area, every
+        # fragment of it shaded and then discarded. A square just around the
+        # disk draws the same pixels (at most 1/255 apart on a few, from
+        # interpolation rounding) with a ninth of the fragments.
+        m.SetBoundScale(BOUND_SCALE)
         a = vtkActor()
         a.SetMapper(m)
         p = a.GetProperty()

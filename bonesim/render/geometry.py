@@ -54,8 +54,9 @@ def structure_polydata(mask: np.ndarray, origin_mm, spacing_mm: float,
 
     Parameters
     ----------
-    mask : (nx, ny, nz) bool
-        Voxels of the structure, axes (x, y, z).
+    mask : (nx, ny, nz) bool or float
+        Voxels of the structure, axes (x, y, z); or the fraction of each
+        voxel it fills (0..1, contoured at 0.5).
     origin_mm : (3,) float
         Case-frame centre of ``mask[0, 0, 0]`` [mm].
     spacing_mm : float
@@ -63,7 +64,8 @@ def structure_polydata(mask: np.ndarray, origin_mm, spacing_mm: float,
     smooth_iterations : int
         Smoothing passes (0: none).
     """
-    pad = np.zeros(tuple(s + 2 for s in mask.shape), dtype=np.uint8)
+    kind = np.float32 if np.asarray(mask).dtype.kind == "f" else np.uint8
+    pad = np.zeros(tuple(s + 2 for s in mask.shape), dtype=kind)
     pad[1:-1, 1:-1, 1:-1] = mask
     img = vtkImageData()
     img.SetDimensions(*pad.shape)

@@ -160,6 +160,38 @@ def _compact_marked(tri, key, tflip, s_tvis, marked, full, vis):
 
 
 @njit(cache=True, nogil=True)
+def _compact_near(tri, key, tflip, far, with_vis, keep_near, s_tvis, marked, full, vis):
+    """Like :func:`_compact_marked` for the triangles without a far corner
+    (:mod:`bonesim.render.lod`); ``keep_near``: keep every one in ``vis``
+    (changes not marked). Returns the counts written."""
+    nts = s_tvis.shape[0]
+    nf = 0
+    nv = 0
+    for t in range(key.shape[0]):
+        if key[t] < 0:
+            continue
+        a = tri[t, 0]
+        b = tri[t, 1]
+        c = tri[t, 2]
+        if far[a] != 0 or far[b] != 0 or far[c] != 0:
+            continue
+        keep = with_vis and (keep_near or (t < nts and s_tvis[t] != 0) or marked[a] != 0
+                             or marked[b] != 0 or marked[c] != 0)
+        if tflip[t]:
+            b, c = c, b
+        full[3 * nf] = a
+        full[3 * nf + 1] = b
+        full[3 * nf + 2] = c
+        nf += 1
+        if keep:
+            vis[3 * nv] = a
+            vis[3 * nv + 1] = b
+            vis[3 * nv + 2] = c
+            nv += 1
+    return nf, nv
+
+
+@njit(cache=True, nogil=True)
 def _mark_near(keys, vals, vmap, ijk, marked):
     """Mark the vertex slots of every voxel in the 3x3x3 block around each
     voxel of ``ijk``."""
@@ -324,6 +356,7 @@ class SurfaceBuffers:
         self.n_vis = 0
         self._vdirty = np.zeros(0, dtype=np.uint8)
         self._marked = np.zeros(0, dtype=np.uint8)
+        self.lod = None              # SurfaceLOD when the level of detail is on
         self._marks_ok = False       # every change since the last snapshot is marked
         self._marks_job = None       # the snapshot the marks refer to
         self._job: VisibleJob | None = None      # the adopted snapshot
@@ -371,6 +404,13 @@ class SurfaceBuffers:
         (n_full, n_vis) : triangle counts (``n_vis`` is 0 without a subset).
         """
         self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
+        if self.lod is not None:
+            if removed is None and touched is None:
+                self.lod.sync(surface, None)
+            else:
+                self.lod.sync(surface, np.concatenate(
+                    [np.asarray(x, dtype=np.int32).reshape(-1, 3)
+                     for x in (removed, touched) if x is not None]))
         if removed is None and touched is None:
             self._marks_ok = False
         elif self._marks_ok:
@@ -386,7 +426,23 @@ class SurfaceBuffers:
         job = self._job
         if job is not None and job.surface_ref() is not surface:
             self._job = job = None
-        if job is None:
+        lod = self.lod
+        if lod is not None:
+            marks = job is not None and self._marks_ok and self._marks_job is job
+            nf, nv = _compact_near(surface.tri, surface.tri_key, surface.tflip, lod.far,
+                                   job is not None, not marks,
+                                   job.tvis if job is not None else self._empty_u,
+                                   self._marked, self.full, self.vis)
+            ff, nff, fv, nfv = lod.far_lists(
+                surface, job, job.eye if job is not None else np.zeros(3),
+                job.dirn if job is not None else np.zeros(3),
+                bool(job.parallel) if job is not None else False)
+            self.full[3 * nf:3 * (nf + nff)] = ff[:3 * nff]
+            nf += nff
+            if job is not None:
+                self.vis[3 * nv:3 * (nv + nfv)] = fv[:3 * nfv]
+                nv += nfv
+        elif job is None:
             nf, nv = _compact(surface.tri, surface.tri_key, surface.tflip, surface.pos,
                               surface.nrm, self._empty_i, self._empty_k, self._empty_f,
                               self._empty_f,
@@ -400,6 +456,41 @@ class SurfaceBuffers:
                               self._vdirty, True, self.full, self.vis)
         self.n_full, self.n_vis = int(nf), int(nv)
         return self.n_full, self.n_vis
+
+    def set_lod(self, surface, on: bool, near_box=None) -> bool:
+        """Draw ``surface`` with the level of detail of :mod:`bonesim.render.lod`
+        (``on``), the near box ``near_box`` (block range, see
+        :meth:`~bonesim.render.lod.SurfaceLOD.near_blocks`; None: everything
+        far) at full detail; recomputes the lists when anything changed.
+
+        Returns
+        -------
+        bool
+            Whether the lists changed (push them again).
+        """
+        from bonesim.render.lod import SurfaceLOD
+
+        if not on:
+            if self.lod is None:
+                return False
+            self.lod = None
+        else:
+            box = None if near_box is None else (np.asarray(near_box[0], dtype=np.int64),
+                                                np.asarray(near_box[1], dtype=np.int64))
+            if self.lod is None or self.lod._surface is not surface:
+                if self.lod is None:
+                    self.lod = SurfaceLOD()
+                self.lod.rebuild(surface, box)
+            else:
+                old = self.lod.near_box
+                if ((old is None) == (box is None)
+                        and (box is None or (np.array_equal(old[0], box[0])
+                                             and np.array_equal(old[1], box[1])))):
+                    return False
+                self.lod.set_box(box)
+        self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
+        self._compact(surface)
+        return True
 
     @property
     def marks_in_use(self) -> bool:
@@ -456,7 +547,8 @@ def _surface_table(surface):
 
 def warmup() -> None:
     """Compile (or load from the cache) this module's kernels: both
-    compactions, the change marks and the visible flags, on a tiny surface."""
+    compactions, the change marks and the visible flags, and those of the
+    level of detail (:mod:`bonesim.render.lod`), on a tiny surface."""
     from bonesim.engine.grid import Grid
     from bonesim.engine.surface import Surface
 
@@ -474,3 +566,15 @@ def warmup() -> None:
     none = np.zeros((0, 3), dtype=np.int32)
     buf.sync(surface, np.array([[2, 2, 4]], dtype=np.int32), none)   # by change marks
     buf.sync(surface)                                   # by comparison
+    # the level of detail (bonesim.render.lod): representatives, far flags,
+    # far lists with and without a subset, near compaction, change follow-up
+    box = (np.zeros(3, np.int64), np.zeros(3, np.int64))
+    buf.set_lod(surface, True, box)
+    job = buf.start_visible(surface, eye, np.array([0.0, 0.0, -1.0]))
+    job.wait()
+    buf.adopt(job, surface)
+    grid.density[grid.brick_index(2, 2, 3), voxel_offset(2, 2, 3)] = 0.0
+    surface.update(grid, np.array([[2, 2, 3]], dtype=np.int32))
+    buf.sync(surface, np.array([[2, 2, 3]], dtype=np.int32), none)
+    buf.set_lod(surface, True, None)
+    buf.set_lod(surface, False)

@@ -45,6 +45,15 @@ drawn winding follows them too, :mod:`bonesim.render.meshbuf`), so a
 triangle seen edge-on at a rim is never a dark speck. The material (``[bone]``) has a soft, wide
 specular highlight under the microscope's headlight and fill light.
 
+Level of detail
+---------------
+At native resolution (render.toml ``[lod]``: a voxel under
+``max_voxel_px`` pixels, a surface of ``min_triangles`` or more) the bone
+surface away from the burr is drawn with one vertex per 2x2x2 voxels
+(:mod:`bonesim.render.lod`, no cracks, full detail around the burr), and
+the structures are meshed on a grid twice as coarse. Checked before every
+render (:meth:`_update_lod`).
+
 Visible subset
 --------------
 While the camera moves the full triangle list is drawn. Once it has been
@@ -75,9 +84,10 @@ from bonesim.render.dustview import DustLayer
 from bonesim.render.geometry import polydata_from_arrays, structure_polydata, tool_matrix
 from bonesim.render.gl import make_render_window
 from bonesim.render.layout import LayoutMixin
+from bonesim.render.lod import SurfaceLOD, voxel_px
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
-from bonesim.render.structure_subset import SealedTriangles, removed_boxes
+from bonesim.render.structure_subset import SEAL_RADIUS, SealedTriangles, removed_boxes
 from bonesim.render.style import default_style
 from bonesim.render.tool import ToolMixin
 
@@ -169,6 +179,14 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         ren.SetBackground(*background)
         ren.TwoSidedLightingOn()
         ren.SetUseDepthPeeling(0)
+        # Translucent props (dust sprites, water) are blended in draw order.
+        # VTK's default order-independent blending renders them into extra
+        # float buffers and composites those over the whole view: some 20 ms
+        # a frame in software OpenGL at 1024 x 768. The picture differs by at
+        # most 3/255 on the drilled phantom's settled dust (faint sprites), by
+        # about 3/255 on average and up to some 30/255 in thick heaps of
+        # mixed wet and dry sprites (tests/bonesim/render/test_scene.py).
+        ren.SetUseOIT(False)
         self.renderer = ren
         rw.AddRenderer(ren)
         ov = vtkRenderer()
@@ -199,6 +217,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         self._build_bodies()
         self._structures: dict = {}
         self._sealed: dict = {}        # structure name -> its drawn subset (see add_structures)
+        self._coarse_structures = False
         self._seal_sig = None          # camera the subsets' facing flags are for
         self._build_tool()
         self._build_dust()
@@ -410,6 +429,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
               and not self._buffers.vis_valid
               and now - self._cam_still_since >= self.rest_s):
             self._start_job()
+        self._update_lod()
         if self._sealed and sig != self._seal_sig:
             self._face_structures(sig)
         job = self._job
@@ -425,6 +445,37 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
             self._draw_hud(now)
         self._reset_clipping_range()
         self._update_stereo()
+
+    def _update_lod(self):
+        """Level of detail of the bone surface (:mod:`bonesim.render.lod`,
+        ``render.toml`` ``[lod]``): on when a voxel at the focal distance
+        covers fewer than ``max_voxel_px`` pixels of a surface of at least
+        ``min_triangles`` triangles, full detail within ``near_mm`` of the
+        burr. Pushes the lists again when that changed."""
+        surf = self.surface
+        if surf is None:
+            return
+        lod = self.style.lod
+        cam = self.renderer.GetActiveCamera()
+        par = bool(cam.GetParallelProjection())
+        px = voxel_px(surf._spacing, cam.GetDistance(), cam.GetViewAngle(),
+                      int(self.renderer.GetSize()[1]),
+                      cam.GetParallelScale() if par else None)
+        on = px < lod.max_voxel_px and surf.n_triangles >= lod.min_triangles
+        box = None
+        if on and self.tool_pos_mm is not None:
+            pos = self.tool_pos_mm
+            if getattr(self, "_main_pose", None) is not None:
+                r, t = self._main_pose[:3, :3], self._main_pose[:3, 3]
+                pos = (np.asarray(pos) - t) @ r
+            box = SurfaceLOD.near_blocks(pos, lod.near_mm, surf._origin, surf._spacing)
+            cur = None if self._buffers.lod is None else self._buffers.lod.near_box
+            if cur is not None and np.all(cur[0] <= box[0]) and np.all(cur[1] >= box[1]):
+                box = cur               # still inside: keep it (no re-listing)
+            else:                       # a block of slack each way
+                box = (box[0] - 1, box[1] + 1)
+        if self._buffers.set_lod(surf, on, box):
+            self._push_cells()
 
     def _reset_clipping_range(self):
         """Near and far planes from the bounds of everything drawn, taking
@@ -500,6 +551,12 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
 
         out = {}
         occupied = grid.density > 0
+        lod = self.style.lod
+        # level of detail: a native-resolution bone surface gets structures
+        # meshed on a grid twice as coarse (render.toml [lod])
+        coarse = (lod.max_voxel_px > 0 and self.surface is not None
+                  and self.surface.n_triangles >= lod.min_triangles)
+        self._coarse_structures = coarse
         for s, st in enumerate(structures, start=1):
             if st.kind in skip_kinds:
                 continue
@@ -512,7 +569,14 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
             _, lab = grid.to_dense(lo=lo, shape=hi - lo)
             mask = lab == s
             origin = grid.origin_mm + grid.spacing_mm * lo
-            pd = structure_polydata(mask, origin, grid.spacing_mm, smooth_iterations)
+            if coarse:
+                # the fraction of each 2x2x2 block inside (bricks are even-sized)
+                n = np.array(mask.shape) // 2
+                frac = mask.reshape(n[0], 2, n[1], 2, n[2], 2).mean(axis=(1, 3, 5))
+                pd = structure_polydata(frac.astype(np.float32), origin + 0.5 * grid.spacing_mm,
+                                        2.0 * grid.spacing_mm, smooth_iterations)
+            else:
+                pd = structure_polydata(mask, origin, grid.spacing_mm, smooth_iterations)
             out[st.name] = int(pd.GetNumberOfPolys())
             a = self.add_mesh(st.name, pd, st.display_color)
             # closed meshes, opaque: their back faces never show
@@ -527,7 +591,8 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         buffer VTK reads in place."""
         tris = numpy_support.vtk_to_numpy(pd.GetPolys().GetConnectivityArray())
         pts = numpy_support.vtk_to_numpy(pd.GetPoints().GetData())
-        sub = SealedTriangles(grid, pts, tris.reshape(-1, 3), self.surface)
+        sub = SealedTriangles(grid, pts, tris.reshape(-1, 3), self.surface,
+                              SEAL_RADIUS + (1 if self._coarse_structures else 0))
         conn, offs = vtkTypeInt32Array(), vtkTypeInt32Array()
         offsets = np.arange(0, 3 * len(sub.tris) + 1, 3, dtype=np.int32)
         cells = vtkCellArray()

@@ -224,6 +224,11 @@ class SealedTriangles:
         Vertex indices of the triangles.
     surface : bonesim.engine.surface.Surface
         The bone surface as it is now (its vertices are the surface voxels).
+    seal_radius : int
+        :data:`SEAL_RADIUS` for meshes of voxel-sized triangles; one more
+        per voxel a triangle's corners may lie farther from its centroid
+        (a mesh made on a grid twice as coarse: ``SEAL_RADIUS + 1``). The
+        unseal radius grows with it.
 
     Attributes
     ----------
@@ -241,7 +246,8 @@ class SealedTriangles:
     n_drawn : int
     """
 
-    def __init__(self, grid, points, tris, surface):
+    def __init__(self, grid, points, tris, surface, seal_radius: int = SEAL_RADIUS):
+        self._r = int(seal_radius)
         self.tris = np.ascontiguousarray(tris, dtype=np.int32).reshape(-1, 3)
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         c = pts[self.tris].mean(axis=1) if len(self.tris) else np.zeros((0, 3))
@@ -268,7 +274,7 @@ class SealedTriangles:
         """Recompute every triangle's flag against ``surface`` (a new or
         unknown state of the tissue); returns the number drawn."""
         _seal(self._keys, self._vals, self._density, surface._keys, surface._vals,
-              surface.vmap, self._cv, SEAL_RADIUS, self.sealed)
+              surface.vmap, self._cv, self._r, self.sealed)
         self.n_drawn = _compact(self.tris, self.sealed, self.facing, self.drawn)
         return self.n_drawn
 
@@ -285,7 +291,8 @@ class SealedTriangles:
         if not len(lo) or not self.sealed.any():
             return False
         n = _unseal(self._keys, self._vals, self._cv, self._order, self._offs, lo, hi,
-                    UNSEAL_RADIUS, self.sealed, self.tris, self.facing, self.drawn,
+                    self._r + (UNSEAL_RADIUS - SEAL_RADIUS), self.sealed, self.tris,
+                    self.facing, self.drawn,
                     self.n_drawn)
         if n == self.n_drawn:
             return False

@@ -1,8 +1,8 @@
 """The look of the 3D window, read from ``bonesim/data/render.toml``.
 
 Material of the bone and of the structures, the microscope's lights, the
-dust sprites, the hidden burr's silhouette, the side panel and the stereo
-default: every tunable of the picture lives in that file, documented there
+dust sprites, the hidden burr's silhouette, the side panel, the stereo
+default and the bone surface's level of detail: every tunable of the picture lives in that file, documented there
 (units in the key names, colours RGB 0-1). :func:`load_style` checks every
 value and raises :class:`bonesim.errors.BonesimError` naming the file, the
 table and the key; :func:`default_style` is the shipped file, read once.
@@ -37,12 +37,14 @@ _SCHEMA = {
     "panel": {"width_fraction": (_N, 0.1, 0.5), "min_width_px": (_N, 60, 2000),
               "max_width_px": (_N, 60, 4000), "rgb": (_RGB,), "hint": (_S,)},
     "stereo": {"eye_separation_mm": (_N, 0, 200)},
+    "lod": {"max_voxel_px": (_N, 0, 100), "min_triangles": (_N, 0, 1e9),
+            "near_mm": (_N, 0, 1000)},
 }
 
 
 class RenderStyle(SimpleNamespace):
     """The parsed file: one attribute per table (``bone``, ``structures``,
-    ``lights``, ``dust``, ``hidden_burr``, ``panel``, ``stereo``), each a
+    ``lights``, ``dust``, ``hidden_burr``, ``panel``, ``stereo``, ``lod``), each a
     namespace of its keys (numbers as float, colours as 3-tuples); ``path``
     is the file read."""
 

@@ -25,6 +25,7 @@ def test_bench_fps_quick(gl_info):
     fps = out["render_fps_1024x768"]
     assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["frames"] >= 1
     assert fps["size"] == [1024, 768] and fps["drawn"] == "visible"
+    assert fps["lod"] is False                     # 0.5 mm: full detail
     assert fps["dust_sprites"] > 100 and fps["removed_voxels"] > 1000
 
 
@@ -40,4 +41,5 @@ def test_bench_native_quick(gl_info, tmp_path):
     assert upd["unit"] == "ms" and upd["value"] >= upd["p50_ms"] > 0
     assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["drilling"] is True
     assert fps["cut_voxels_per_frame"] > 0 and fps["size"] == [1024, 768]
+    assert fps["lod"] is True and fps["drawn_triangles"] < 0.3 * fps["triangles"]
     assert (tmp_path / "native.png").stat().st_size > 10_000

@@ -21,11 +21,10 @@ def _mesh(scene, name):
     return pts, sub
 
 
-def _ref_sealed(grid0, grid, surf, pts, tris):
-    """Plain loops: the block of radius SEAL_RADIUS around each triangle's
-    voxel occupied in ``grid0`` and in ``grid``, and no vertex of ``surf``
-    within SEAL_RADIUS + 1."""
-    r = SEAL_RADIUS
+def _ref_sealed(grid0, grid, surf, pts, tris, r=SEAL_RADIUS):
+    """Plain loops: the block of radius ``r`` (SEAL_RADIUS) around each
+    triangle's voxel occupied in ``grid0`` and in ``grid``, and no vertex of
+    ``surf`` within ``r + 1``."""
     out = np.zeros(len(tris), np.uint8)
     for t, tri in enumerate(tris):
         c = np.floor((pts[tri].astype(np.float64).mean(0) - grid.origin_mm)
@@ -129,3 +128,41 @@ def test_moving_the_bone_unseals_every_structure_triangle(nerve_scene):
     assert not sub.sealed.any()
     sc.render()
     assert sub.n_drawn == int(sub.facing.sum())
+
+
+@pytest.fixture
+def coarse_nerve_scene(gl_info):
+    """The nerve block with the level of detail forced on (render.toml
+    ``[lod]`` for any surface): the nerve meshed on a grid twice as coarse."""
+    from types import SimpleNamespace
+
+    from bonesim.render.style import RenderStyle, default_style
+
+    style = RenderStyle(**{**vars(default_style()), "lod": SimpleNamespace(
+        max_voxel_px=1000.0, min_triangles=0.0, near_mm=1.0)})
+    model, state = nerve_block()
+    surf = Surface.build(state.grid, model.colors)
+    sc = Scene(size=(240, 180), panel=False, visible_subset=False, style=style)
+    sc.update_surface(surf)
+    sc.add_structures(model.grid, model.structures)
+    yield model, state, surf, sc
+    sc.close()
+
+
+def test_coarse_structure_sealing_matches_the_definition(coarse_nerve_scene, nerve_scene):
+    """A mesh made on the coarser grid is sealed with SEAL_RADIUS + 1, and
+    unsealed conservatively as the drill opens it."""
+    model, state, surf, sc = coarse_nerve_scene
+    pts, sub = _mesh(sc, "nerve")
+    _, fine = _mesh(nerve_scene[3], "nerve")
+    assert sc._coarse_structures and len(sub.tris) < 0.5 * len(fine.tris)
+    want = _ref_sealed(model.grid, state.grid, surf, pts, sub.tris, SEAL_RADIUS + 1)
+    assert np.array_equal(sub.sealed, want)
+    assert 0 < want.sum() < len(want)
+    before = sub.sealed.copy()
+    removed = _drill(state.grid, (12, 20), (12, 20), 10)
+    surf.update(state.grid, removed)
+    sc.update_surface(surf, removed)
+    fresh = _ref_sealed(model.grid, state.grid, surf, pts, sub.tris, SEAL_RADIUS + 1)
+    assert not np.any(sub.sealed.astype(bool) & ~fresh.astype(bool))
+    assert np.any(before.astype(bool) & ~sub.sealed.astype(bool))

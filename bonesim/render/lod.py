@@ -1,0 +1,390 @@
+"""Level of detail of the bone surface away from the burr: vertex clustering
+(no VTK here; :mod:`bonesim.render.meshbuf` draws with it,
+:mod:`bonesim.render.scene` decides when).
+
+Why
+---
+At the native 0.19 mm voxel a voxel covers about two pixels of the 1024 x
+768 window: the phantom's bone surface has some 580,000 triangles, 250,000
+facing the camera, most of them about a pixel in size. Software OpenGL
+(llvmpipe) pays per triangle (set-up, and a 4x4-pixel block of fragment
+shading for each one however small), so most of the frame goes into
+detail finer than the screen shows. Away from the burr the surface is
+drawn with one vertex per 2x2x2 block of voxels instead.
+
+Definitions
+-----------
+*Cluster* of voxel ``(i, j, k)``: the block ``(i, j, k) >> CLUSTER_SHIFT``
+(2x2x2 voxels; a cluster never straddles a brick). *Block*: ``(i, j, k) >>
+BLOCK_SHIFT`` (8 voxels a side). A vertex (a surface voxel, see
+:mod:`bonesim.engine.surface`) is *far* when its block lies outside the
+*near box*, a range of blocks around the burr (:class:`SurfaceLOD` keeps
+it; :mod:`bonesim.render.scene` makes it cover every voxel within
+``near_mm`` of the burr's centre along each axis, plus a block of slack
+each way, and moves it only when the burr leaves it); every vertex is far
+when there is no burr. The *representative* ``rep[v]`` of a vertex is the
+vertex of its cluster at the smallest voxel in ``(i, j, k)`` order.
+
+Each live triangle with a far corner is drawn with every far corner ``v``
+replaced by ``rep[v]`` (near corners stay) -- dropped when two corners
+coincide (it collapsed to an edge or a point) -- and wound, like every
+drawn triangle, so that its face normal agrees with the sum of its
+corners' normals (:mod:`bonesim.render.meshbuf`). Triangles with only near
+corners are drawn as they are. Representatives are real surface vertices,
+with their own positions on the smoothed level set, normals and colours:
+the coarse surface passes through points of the fine one, about a quarter
+as many triangles.
+
+No cracks: the map acts on vertices, so two triangles that shared an edge
+share its image. A closed mesh stays closed: every edge of the surface is
+used by an even number of triangles, a collapsed triangle uses its
+remaining edge twice, so dropping it keeps every edge's count even (a test
+checks it on drilled volumes, across the seam between near and far).
+
+While drilling: the near box follows the burr, so what the burr opens is
+drawn at full detail in the same update. A removal changes which voxels
+have vertices only within one voxel of the removed voxel, so
+:meth:`SurfaceLOD.sync` recomputes the representatives of every cluster
+that meets the 3x3x3 block around each removed or touched voxel (and the
+far flags of the vertices there). The far triangles' drawn lists are kept
+(:meth:`SurfaceLOD.far_lists`) until something can change them: a removed
+or touched voxel within ``NORMAL_RADIUS + 1`` voxels of a far block (a
+vertex's position and normal read the densities within ``NORMAL_RADIUS``
+of it; a triangle spans one voxel), the near box moving, another camera for
+the visible subset, or changes not given. Then one pass over the triangle
+slots lists them again (~10 ms for the phantom at 0.19 mm).
+
+Visible subset: a far triangle as drawn is not a triangle the visible
+subset judged, so it is tested itself (a corner's normal or its face toward
+the eye, the rule of :mod:`bonesim.render.meshbuf`) against the camera of
+the installed subset.
+
+Structures and dust are not touched here: :meth:`bonesim.render.scene.Scene.add_structures`
+meshes the structures of a scene with the level of detail on a grid twice
+as coarse.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, find_brick
+from bonesim.engine.normals import NORMAL_RADIUS
+
+__all__ = ["CLUSTER_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px"]
+
+#: A cluster is ``2 ** CLUSTER_SHIFT`` voxels a side.
+CLUSTER_SHIFT = 1
+#: Near or far is decided per block of ``2 ** BLOCK_SHIFT`` voxels a side.
+BLOCK_SHIFT = 3
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cluster_rep(vmap, b, i, j, k):
+    """Vertex of the cluster of voxel ``(i, j, k)`` (in brick ``b``: a
+    cluster never straddles bricks) at its smallest voxel, -1 if none."""
+    ci = (i >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+    cj = (j >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+    ck = (k >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+    n = 1 << CLUSTER_SHIFT
+    for a in range(n):
+        for e in range(n):
+            for c in range(n):
+                u = vmap[b, (((ci + a) & BRICK_MASK) << 6) | (((cj + e) & BRICK_MASK) << 3)
+                         | ((ck + c) & BRICK_MASK)]
+                if u >= 0:
+                    return u
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def _reps_all(keys, vals, vmap, ijk, alive, rep):
+    """Representative of every live vertex slot (dead ones: themselves)."""
+    for v in range(alive.shape[0]):
+        rep[v] = v
+        if alive[v]:
+            i, j, k = ijk[v, 0], ijk[v, 1], ijk[v, 2]
+            b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+            if b >= 0:
+                u = _cluster_rep(vmap, b, i, j, k)
+                if u >= 0:
+                    rep[v] = u
+
+
+@njit(cache=True, nogil=True)
+def _reps_near(keys, vals, vmap, changed, rep):
+    """Recompute the representatives of every cluster meeting the 3x3x3
+    block around each voxel of ``changed``."""
+    n = 1 << CLUSTER_SHIFT
+    for q in range(changed.shape[0]):
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    i = changed[q, 0] + di
+                    j = changed[q, 1] + dj
+                    k = changed[q, 2] + dk
+                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                                   k >> BRICK_SHIFT)
+                    if b < 0:
+                        continue
+                    u0 = _cluster_rep(vmap, b, i, j, k)
+                    ci = (i >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+                    cj = (j >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+                    ck = (k >> CLUSTER_SHIFT) << CLUSTER_SHIFT
+                    for a in range(n):
+                        for e in range(n):
+                            for c in range(n):
+                                u = vmap[b, (((ci + a) & BRICK_MASK) << 6)
+                                         | (((cj + e) & BRICK_MASK) << 3)
+                                         | ((ck + c) & BRICK_MASK)]
+                                if 0 <= u < rep.shape[0]:
+                                    rep[u] = u0
+
+
+@njit(cache=True, nogil=True)
+def _far_flags(ijk, alive, lo, hi, far):
+    """``far[v]``: live vertex ``v``'s block is outside the box ``lo..hi``."""
+    for v in range(alive.shape[0]):
+        if not alive[v]:
+            far[v] = 0
+            continue
+        bi = ijk[v, 0] >> BLOCK_SHIFT
+        bj = ijk[v, 1] >> BLOCK_SHIFT
+        bk = ijk[v, 2] >> BLOCK_SHIFT
+        inside = (lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1] and lo[2] <= bk <= hi[2])
+        far[v] = 0 if inside else 1
+
+
+@njit(cache=True, nogil=True)
+def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, far):
+    """Far flags of the vertices in the 3x3x3 block around each voxel of
+    ``changed`` (the only place a removal creates vertices)."""
+    for q in range(changed.shape[0]):
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    i = changed[q, 0] + di
+                    j = changed[q, 1] + dj
+                    k = changed[q, 2] + dk
+                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                                   k >> BRICK_SHIFT)
+                    if b < 0:
+                        continue
+                    u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
+                             | (k & BRICK_MASK)]
+                    if 0 <= u < far.shape[0]:
+                        bi, bj, bk = i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT
+                        inside = (lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1]
+                                  and lo[2] <= bk <= hi[2])
+                        far[u] = 0 if inside or not alive[u] else 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel):
+    """Triangle ``(a, b, c)`` (surface winding) is visible in the sense of
+    :mod:`bonesim.render.meshbuf`: a corner's normal or its face toward the
+    eye (perspective from ``eye``, or parallel along ``dirn``)."""
+    for v in (a, b, c):
+        if parallel:
+            d = -(nrm[v, 0] * dirn[0] + nrm[v, 1] * dirn[1] + nrm[v, 2] * dirn[2])
+        else:
+            d = (nrm[v, 0] * (eye[0] - pos[v, 0]) + nrm[v, 1] * (eye[1] - pos[v, 1])
+                 + nrm[v, 2] * (eye[2] - pos[v, 2]))
+        if d > 0.0:
+            return True
+    ux, uy, uz = pos[b, 0] - pos[a, 0], pos[b, 1] - pos[a, 1], pos[b, 2] - pos[a, 2]
+    wx, wy, wz = pos[c, 0] - pos[a, 0], pos[c, 1] - pos[a, 1], pos[c, 2] - pos[a, 2]
+    fx, fy, fz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+    if parallel:
+        d = -(fx * dirn[0] + fy * dirn[1] + fz * dirn[2])
+    else:
+        d = fx * (eye[0] - pos[a, 0]) + fy * (eye[1] - pos[a, 1]) + fz * (eye[2] - pos[a, 2])
+    return d > 0.0
+
+
+@njit(cache=True, nogil=True)
+def _far_pass(tri, key, pos, nrm, rep, far, with_vis, eye, dirn, parallel, full, vis):
+    """The live triangles with a far corner, as their representatives'
+    (dropped when two coincide), wound by their normals, into ``full``
+    (flat), and those facing the eye into ``vis``; returns both counts."""
+    nf = 0
+    nv = 0
+    for t in range(key.shape[0]):
+        if key[t] < 0:
+            continue
+        a = tri[t, 0]
+        b = tri[t, 1]
+        c = tri[t, 2]
+        if far[a] == 0 and far[b] == 0 and far[c] == 0:
+            continue
+        if far[a] != 0:
+            a = rep[a]
+        if far[b] != 0:
+            b = rep[b]
+        if far[c] != 0:
+            c = rep[c]
+        if a == b or b == c or a == c:
+            continue
+        keep = with_vis and _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel)
+        ux, uy, uz = pos[b, 0] - pos[a, 0], pos[b, 1] - pos[a, 1], pos[b, 2] - pos[a, 2]
+        wx, wy, wz = pos[c, 0] - pos[a, 0], pos[c, 1] - pos[a, 1], pos[c, 2] - pos[a, 2]
+        fx, fy, fz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        sx = nrm[a, 0] + nrm[b, 0] + nrm[c, 0]
+        sy = nrm[a, 1] + nrm[b, 1] + nrm[c, 1]
+        sz = nrm[a, 2] + nrm[b, 2] + nrm[c, 2]
+        if fx * sx + fy * sy + fz * sz < 0.0:
+            b, c = c, b
+        full[3 * nf] = a
+        full[3 * nf + 1] = b
+        full[3 * nf + 2] = c
+        nf += 1
+        if keep:
+            vis[3 * nv] = a
+            vis[3 * nv + 1] = b
+            vis[3 * nv + 2] = c
+            nv += 1
+    return nf, nv
+
+
+def voxel_px(spacing_mm: float, distance_mm: float, view_angle_deg: float, height_px: int,
+             parallel_scale_mm: float | None = None) -> float:
+    """How many pixels a voxel edge covers at ``distance_mm`` from the eye.
+
+    Parameters
+    ----------
+    spacing_mm : float
+        Voxel edge [mm].
+    distance_mm : float
+        Distance along the view direction [mm] (perspective).
+    view_angle_deg : float
+        Vertical view angle [deg] (perspective).
+    height_px : int
+        Height of the 3D view [px].
+    parallel_scale_mm : float, optional
+        Half the view's height [mm] for a parallel projection (then the
+        distance and angle are not used).
+    """
+    if parallel_scale_mm is not None:
+        half = float(parallel_scale_mm)
+    else:
+        half = float(distance_mm) * np.tan(np.radians(float(view_angle_deg)) / 2.0)
+    if not half > 0.0:
+        return float("inf")
+    return float(spacing_mm) * float(height_px) / (2.0 * half)
+
+
+class SurfaceLOD:
+    """Representatives and far flags of the vertices of one surface, and the
+    drawn lists of its far triangles (module docstring).
+
+    Attributes
+    ----------
+    rep : (nv,) int32
+        Representative of each vertex slot's cluster (itself for dead
+        ones), near or far; a triangle maps only its far corners.
+    far : (nv,) uint8
+        1 for far live vertices.
+    near_box : ((3,) int64, (3,) int64) or None
+        Inclusive block range of the near box, None when every vertex is far.
+    far_full, far_vis : (3 m,) int32
+        The far triangles as drawn (flat), all of them and those facing
+        the eye of the last :meth:`far_lists` call with one; valid while
+        :attr:`far_valid`.
+    """
+
+    def __init__(self):
+        self.rep = np.zeros(0, dtype=np.int32)
+        self.far = np.zeros(0, dtype=np.uint8)
+        self.near_box = None
+        self._surface = None
+        self.far_full = np.zeros(0, dtype=np.int32)
+        self.far_vis = np.zeros(0, dtype=np.int32)
+        self.n_far_full = 0
+        self.n_far_vis = 0
+        self.far_valid = False
+        self._far_tag = None
+        self.stats = {"far_passes": 0}
+
+    @staticmethod
+    def near_blocks(centre_mm, near_mm, origin_mm, spacing_mm):
+        """Block range ``(lo, hi)`` (inclusive, (3,) int64 each) of the near
+        box around ``centre_mm`` [mm], or None for no centre."""
+        if centre_mm is None:
+            return None
+        c = (np.asarray(centre_mm, dtype=np.float64) - np.asarray(origin_mm, dtype=np.float64)
+             ) / float(spacing_mm)
+        r = float(near_mm) / float(spacing_mm)
+        lo = np.floor(c - r).astype(np.int64) >> BLOCK_SHIFT
+        hi = np.floor(c + r).astype(np.int64) >> BLOCK_SHIFT
+        return lo, hi
+
+    def _box(self):
+        if self.near_box is None:       # an empty box: every vertex is far
+            return np.ones(3, np.int64), np.zeros(3, np.int64)
+        return self.near_box
+
+    def rebuild(self, surface, near_box) -> None:
+        """Recompute everything for ``surface`` and ``near_box`` (see
+        :meth:`near_blocks`)."""
+        self._surface = surface
+        nv = surface.pos.shape[0]
+        if self.rep.shape[0] != nv:
+            self.rep = np.zeros(nv, dtype=np.int32)
+            self.far = np.zeros(nv, dtype=np.uint8)
+        _reps_all(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
+                  self.rep)
+        self.set_box(near_box)
+
+    def set_box(self, near_box) -> None:
+        """Move the near box (block range, or None)."""
+        self.near_box = None if near_box is None else (
+            np.asarray(near_box[0], dtype=np.int64), np.asarray(near_box[1], dtype=np.int64))
+        lo, hi = self._box()
+        _far_flags(self._surface.ijk, self._surface.alive, lo, hi, self.far)
+        self.far_valid = False
+
+    def sync(self, surface, changed) -> None:
+        """Follow ``Surface.update``: ``changed`` (n, 3) int are the removed
+        and touched voxels given to it since the last call; None when
+        unknown (everything is recomputed)."""
+        nv = surface.pos.shape[0]
+        if surface is not self._surface or changed is None or self.rep.shape[0] != nv:
+            self.rebuild(surface, self.near_box)
+            return
+        ch = np.ascontiguousarray(changed, dtype=np.int32).reshape(-1, 3)
+        if not len(ch):
+            return
+        _reps_near(surface._keys, surface._vals, surface.vmap, ch, self.rep)
+        lo, hi = self._box()
+        self._flag_near(surface, ch, lo, hi)
+        # a far triangle changes only if a changed voxel lies within
+        # NORMAL_RADIUS + 1 voxels of one of its corners
+        reach = NORMAL_RADIUS + 1
+        blo = (ch.astype(np.int64) - reach) >> BLOCK_SHIFT
+        bhi = (ch.astype(np.int64) + reach) >> BLOCK_SHIFT
+        if not (np.all(blo >= lo) and np.all(bhi <= hi)):
+            self.far_valid = False
+
+    def _flag_near(self, surface, ch, lo, hi):
+        """Far flags of the vertices around ``ch`` (new ones among them)."""
+        _flags_near(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
+                    ch, lo, hi, self.far)
+
+    def far_lists(self, surface, job_tag, eye, dirn, parallel):
+        """The far triangles as drawn, all and (with ``job_tag`` not None)
+        those facing a camera at ``eye`` looking along ``dirn``; recomputed
+        only when something changed. Returns ``(far_full, n, far_vis, m)``."""
+        if not self.far_valid or job_tag is not self._far_tag:
+            nt = surface.tri_key.shape[0]
+            if self.far_full.shape[0] < 3 * nt:
+                self.far_full = np.zeros(3 * nt, dtype=np.int32)
+                self.far_vis = np.zeros(3 * nt, dtype=np.int32)
+            nf, nv = _far_pass(surface.tri, surface.tri_key, surface.pos, surface.nrm, self.rep,
+                               self.far, job_tag is not None, np.asarray(eye, np.float64),
+                               np.asarray(dirn, np.float64), bool(parallel), self.far_full,
+                               self.far_vis)
+            self.n_far_full, self.n_far_vis = int(nf), int(nv)
+            self.far_valid = True
+            self._far_tag = job_tag
+            self.stats["far_passes"] += 1
+        return self.far_full, self.n_far_full, self.far_vis, self.n_far_vis
