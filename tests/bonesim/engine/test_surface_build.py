@@ -9,6 +9,8 @@ the same arrays, bit for bit, whatever the number of threads.
 """
 from __future__ import annotations
 
+import functools
+
 import numba
 import numpy as np
 import pytest
@@ -31,6 +33,12 @@ def _volume(seed, shape=(21, 19, 26), p_occ=0.6):
     lab[6:10, 6:10, 6:10] = 0
     dens = rng.uniform(0.05, 1.0, size=shape).astype(np.float32)
     return dens, lab
+
+
+@functools.lru_cache(maxsize=256)
+def _triples(code):
+    """:func:`qualifying_triples` of a cell code, once per code (256)."""
+    return tuple(qualifying_triples(code))
 
 
 def _dense_occ(grid):
@@ -57,7 +65,7 @@ def _ref_counts(grid):
                         nv[b] += 1
                     cell = occ[p[0]:p[0] + 2, p[1]:p[1] + 2, p[2]:p[2] + 2]
                     code = sum(int(cell[c >> 2, (c >> 1) & 1, c & 1]) << c for c in range(8))
-                    for tid, _ in qualifying_triples(code):
+                    for tid, _ in _triples(code):
                         f = int(TRIPLE_FACE[tid])
                         if 0 <= f < 3:
                             below = p.copy()
