@@ -293,6 +293,7 @@ def test_sigkill_leaves_a_readable_file_complete_to_the_last_flush(tmp_path):
     t = s.samples["t_s"]
     # what is in the file is exactly what the loop produced, without holes
     assert np.all(np.diff(t) > 0) and len(t) <= n_loop
+    assert len(t) >= n2, (len(t), n2, s.damage, s.readable)
     lost_s = t_last - t[-1]
     print(f"SIGKILL: {len(t)} samples in the file, {lost_s * 1e3:.1f} ms lost")
     assert lost_s <= 0.15, f"lost {lost_s * 1e3:.0f} ms of samples"
