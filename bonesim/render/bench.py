@@ -60,8 +60,8 @@ def _pct(values, q) -> float:
     return float(np.percentile(np.asarray(values, float), q))
 
 
-def bench_update(quick: bool = False, voxel_mm=None, name: str = "render_update_1000_ms"
-                 ) -> dict:
+def bench_update(quick: bool = False, voxel_mm=None, name: str = "render_update_1000_ms",
+                 model=None) -> dict:
     """``render_update_1000_ms`` (see the module docstring).
 
     Parameters
@@ -72,6 +72,8 @@ def bench_update(quick: bool = False, voxel_mm=None, name: str = "render_update_
         Engine voxel edge of the phantom [mm] (default: the case's own).
     name : str
         Name of the figure returned.
+    model : Model, optional
+        The phantom's model at ``voxel_mm``, already loaded (else loaded here).
     """
     from bonesim.io.loading import load_model
     from bonesim.engine.model import make_state
@@ -80,7 +82,8 @@ def bench_update(quick: bool = False, voxel_mm=None, name: str = "render_update_
     from bonesim.render.scene import Scene
 
     surface_warmup()
-    model = load_model("phantom", "cutting-5mm", voxel_mm=voxel_mm)
+    if model is None:
+        model = load_model("phantom", "cutting-5mm", voxel_mm=voxel_mm)
     state = make_state(model)
     grid = state.grid
     surf = Surface.build(grid, model.colors)
@@ -260,7 +263,7 @@ def _drill_from_camera(model, state) -> np.ndarray:
 
 
 def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x768",
-              screenshot=None, drilling: bool = False) -> dict:
+              screenshot=None, drilling: bool = False, model=None) -> dict:
     """``render_fps_1024x768`` (see the module docstring).
 
     Parameters
@@ -280,6 +283,8 @@ def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x7
         process), then updates the surface and the scene with the removed
         voxels (timed, as the app's frame does). ``value`` is then frames
         over the summed frame times.
+    model : Model, optional
+        The phantom's model at ``voxel_mm``, already loaded (else loaded here).
     """
     from bonesim.physics.dust.grid import DustGrid
     from bonesim.io.loading import load_model
@@ -290,7 +295,8 @@ def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x7
     from bonesim.render.scene import Scene
 
     surface_warmup()
-    model = load_model("phantom", "cutting-5mm", voxel_mm=voxel_mm)
+    if model is None:
+        model = load_model("phantom", "cutting-5mm", voxel_mm=voxel_mm)
     state = make_state(model)
     surf = Surface.build(model.grid, model.colors)
     removed, centre, u = _drill_from_camera(model, state)
