@@ -373,6 +373,7 @@ def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x7
         "drawn_triangles": int(scene._buffers.n_vis if scene.drawing == "visible"
                                else scene._buffers.n_full),
         "lod": scene._buffers.lod is not None,
+        "order_independent_blending": bool(scene.renderer.GetUseOIT()),
         "structure_triangles_drawn": int(sum(v[0].n_drawn for v in scene._sealed.values())),
         "size": list(FPS_SIZE), "voxel_mm": float(state.grid.spacing_mm),
         "grid_shape": list(state.grid.shape), "gl": scene.gl.describe()}}

@@ -179,14 +179,17 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
         ren.SetBackground(*background)
         ren.TwoSidedLightingOn()
         ren.SetUseDepthPeeling(0)
-        # Translucent props (dust sprites, water) are blended in draw order.
-        # VTK's default order-independent blending renders them into extra
-        # float buffers and composites those over the whole view: some 20 ms
-        # a frame in software OpenGL at 1024 x 768. The picture differs by at
-        # most 3/255 on the drilled phantom's settled dust (faint sprites), by
-        # about 3/255 on average and up to some 30/255 in thick heaps of
-        # mixed wet and dry sprites (tests/bonesim/render/test_scene.py).
-        ren.SetUseOIT(False)
+        # Translucent props (dust sprites, water, the landmarks picture's
+        # translucent bone) are blended order-independently (VTK's default)
+        # except where the level of detail is on (:meth:`_update_lod`): there
+        # the frame budget is tight, and order-independent blending renders
+        # into extra float buffers and composites those over the whole view,
+        # some 20 ms a frame in software OpenGL at 1024 x 768. Blended in draw
+        # order instead, the picture differs by at most 3/255 on the drilled
+        # phantom's settled dust (faint sprites), by about 3/255 on average
+        # and up to some 30/255 in thick heaps of mixed wet and dry sprites
+        # (tests/bonesim/render/test_scene.py).
+        ren.SetUseOIT(True)
         self.renderer = ren
         rw.AddRenderer(ren)
         ov = vtkRenderer()
@@ -474,6 +477,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin):
                 box = cur               # still inside: keep it (no re-listing)
             else:                       # a block of slack each way
                 box = (box[0] - 1, box[1] + 1)
+        self.renderer.SetUseOIT(not on)
         if self._buffers.set_lod(surf, on, box):
             self._push_cells()
 

@@ -26,6 +26,7 @@ def test_bench_fps_quick(gl_info):
     assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["frames"] >= 1
     assert fps["size"] == [1024, 768] and fps["drawn"] == "visible"
     assert fps["lod"] is False                     # 0.5 mm: full detail
+    assert fps["order_independent_blending"] is True
     assert fps["dust_sprites"] > 100 and fps["removed_voxels"] > 1000
 
 
@@ -42,4 +43,5 @@ def test_bench_native_quick(gl_info, tmp_path):
     assert fps["unit"] == "Hz" and fps["value"] > 0 and fps["drilling"] is True
     assert fps["cut_voxels_per_frame"] > 0 and fps["size"] == [1024, 768]
     assert fps["lod"] is True and fps["drawn_triangles"] < 0.3 * fps["triangles"]
+    assert fps["order_independent_blending"] is False    # in draw order: the frame budget
     assert (tmp_path / "native.png").stat().st_size > 10_000

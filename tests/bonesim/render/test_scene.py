@@ -166,8 +166,9 @@ def test_dust_sprites(scene):
 
 
 def test_dust_looks_as_with_vtk_defaults(gl_info, block):
-    """Draw-order blending and sprite squares just around their disks give
-    about the picture VTK's defaults give (order-independent blending,
+    """Draw-order blending (the scene's with the level of detail on) and
+    sprite squares just around their disks give about the picture VTK's
+    defaults give (order-independent blending,
     squares of three radii): a heap of overlapping wet and dry sprites on a
     block."""
     model, state = block
@@ -180,7 +181,9 @@ def test_dust_looks_as_with_vtk_defaults(gl_info, block):
         p = (np.array([8.0, 8.0, 8.2]) + rng.normal(0.0, 1.5, (3000, 3))).astype(np.float32)
         sc.set_dust(p, rng.uniform(0.2, 1.0, 3000).astype(np.float32), cell_mm=0.5,
                     wet=rng.random(3000) < 0.3)
-        assert not sc.renderer.GetUseOIT() and sc.dust.mapper.GetBoundScale() == 1.0
+        # full detail here, so order-independent blending (VTK's default)
+        assert sc.renderer.GetUseOIT() and sc.dust.mapper.GetBoundScale() == 1.0
+        sc.renderer.SetUseOIT(False)             # as with the level of detail on
         ours = sc.image().astype(int)
         sc.renderer.SetUseOIT(True)
         sc.dust.mapper.SetBoundScale(3.0)
