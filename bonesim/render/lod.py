@@ -1,6 +1,6 @@
-"""Level of detail of the bone surface away from the burr: vertex clustering
-(no VTK here; :mod:`bonesim.render.meshbuf` draws with it,
-:mod:`bonesim.render.scene` decides when).
+"""Level of detail of the bone surface away from the burr and from drilled
+bone: vertex clustering (no VTK here; :mod:`bonesim.render.meshbuf` draws
+with it, :mod:`bonesim.render.scene` decides when).
 
 Why
 ---
@@ -9,21 +9,37 @@ At the native 0.19 mm voxel a voxel covers about two pixels of the 1024 x
 facing the camera, most of them about a pixel in size. Software OpenGL
 (llvmpipe) pays per triangle (set-up, and a 4x4-pixel block of fragment
 shading for each one however small), so most of the frame goes into
-detail finer than the screen shows. Away from the burr the surface is
-drawn with one vertex per 2x2x2 block of voxels instead.
+detail finer than the screen shows. Away from the burr, where the bone
+is as it was, the surface is drawn with one vertex per 2x2x2 block of
+voxels instead; drilled surfaces keep their full detail.
 
 Definitions
 -----------
 *Cluster* of voxel ``(i, j, k)``: the block ``(i, j, k) >> CLUSTER_SHIFT``
 (2x2x2 voxels; a cluster never straddles a brick). *Block*: ``(i, j, k) >>
-BLOCK_SHIFT`` (8 voxels a side). A vertex (a surface voxel, see
-:mod:`bonesim.engine.surface`) is *far* when its block lies outside the
-*near box*, a range of blocks around the burr (:class:`SurfaceLOD` keeps
-it; :mod:`bonesim.render.scene` makes it cover every voxel within
-``near_mm`` of the burr's centre along each axis, plus a block of slack
-each way, and moves it only when the burr leaves it); every vertex is far
-when there is no burr. The *representative* ``rep[v]`` of a vertex is the
-vertex of its cluster at the smallest voxel in ``(i, j, k)`` order.
+BLOCK_SHIFT`` (8 voxels a side). A block is *drilled* when a voxel removed
+or touched since the surface was built (as far as :class:`SurfaceLOD` was
+told: :meth:`SurfaceLOD.sync`, :meth:`SurfaceLOD.mark_drilled`) lies within
+``NORMAL_RADIUS + 1`` voxels of it along each axis, i.e. the block meets
+the box ``c - NORMAL_RADIUS - 1 .. c + NORMAL_RADIUS + 1`` of such a voxel
+``c``: every vertex whose position or normal a removal changed (they read
+the densities within ``NORMAL_RADIUS``), and every triangle that has one
+as a corner (a triangle spans one voxel), lies in drilled blocks. A block
+stays drilled for the rest of the run: until another surface is given
+(a rebuilt surface, a case reset). A vertex (a surface voxel, see
+:mod:`bonesim.engine.surface`) is *far* when its block is not drilled and
+lies outside the *near box*, a range of blocks around the burr
+(:class:`SurfaceLOD` keeps it; :mod:`bonesim.render.scene` makes it cover
+every voxel within ``near_mm`` of the burr's centre along each axis, plus a
+block of slack each way, and moves it only when the burr leaves it); every
+vertex of an undrilled block is far when there is no burr. The
+*representative* ``rep[v]`` of a vertex is the vertex of its cluster at the
+smallest voxel in ``(i, j, k)`` order.
+
+Why drilled blocks: a surgeon looks at the cavity's rims. Clustering a
+thin drilled rim (where the cavity meets a tube or a plate of bone) after
+the burr moved on drew it notched and jagged; only the untouched original
+surface away from the burr, smooth on the scale of a cluster, is reduced.
 
 Each live triangle with a far corner is drawn with every far corner ``v``
 replaced by ``rep[v]`` (near corners stay) -- dropped when two corners
@@ -39,20 +55,35 @@ No cracks: the map acts on vertices, so two triangles that shared an edge
 share its image. A closed mesh stays closed: every edge of the surface is
 used by an even number of triangles, a collapsed triangle uses its
 remaining edge twice, so dropping it keeps every edge's count even (a test
-checks it on drilled volumes, across the seam between near and far).
+checks it on drilled volumes, across the seam between near and far, and
+around blocks drilled far from the burr). Both hold whatever set of
+vertices is far, so the drilled blocks keep them.
 
-While drilling: the near box follows the burr, so what the burr opens is
-drawn at full detail in the same update. A removal changes which voxels
-have vertices only within one voxel of the removed voxel, so
+While drilling: the near box follows the burr, and every block a removal
+reaches turns drilled in the same :meth:`SurfaceLOD.sync`, so what the burr
+opens is drawn at full detail in the same update, and stays so after the
+burr moved on. The drilled flags are a dense uint8 array over the blocks
+of the grid's bricks (:attr:`SurfaceLOD.drilled`, some 40^3 bytes for the
+phantom at 0.19 mm), marked from the removed and touched voxels (work in
+the voxels given); the far flags of the vertices of the blocks that turned
+drilled outside the near box are cleared in the same call. The level of
+detail being off (the camera zoomed out) does not lose them:
+:class:`bonesim.render.meshbuf.SurfaceBuffers` keeps marking them. Changes
+not given (None) mark nothing. A removal changes which voxels have
+vertices only within one voxel of the removed voxel, so
 :meth:`SurfaceLOD.sync` recomputes the representatives of every cluster
 that meets the 3x3x3 block around each removed or touched voxel (and the
 far flags of the vertices there). The far triangles' drawn lists are kept
-(:meth:`SurfaceLOD.far_lists`) until something can change them: a removed
-or touched voxel within ``NORMAL_RADIUS + 1`` voxels of a far block (a
-vertex's position and normal read the densities within ``NORMAL_RADIUS``
-of it; a triangle spans one voxel), the near box moving, another camera for
-the visible subset, or changes not given. Then one pass over the triangle
-slots lists them again (~10 ms for the phantom at 0.19 mm).
+(:meth:`SurfaceLOD.far_lists`) until something can change them. A far
+triangle changes only if a changed voxel lies within ``NORMAL_RADIUS`` of
+one of its corners or their representatives (a vertex's position and
+normal read the densities within ``NORMAL_RADIUS`` of it), so within
+``NORMAL_RADIUS + 1`` voxels of a far corner (a triangle, and a cluster,
+span one voxel); the blocks within that reach of a changed voxel are near or drilled after the
+call, so the lists are made again only when a block turned drilled outside
+the near box, when the near box moves, for another camera for the visible
+subset, or for changes not given. Then one pass over the triangle slots
+lists them again (~10 ms for the phantom at 0.19 mm).
 
 Visible subset: a far triangle as drawn is not a triangle the visible
 subset judged, so it is tested itself (a corner's normal or its face toward
@@ -440,6 +471,19 @@ class SurfaceLOD:
                           self._new_blocks)
         self.stats["drilled_blocks"] += int(n)
         return self._new_blocks[:n]
+
+    def release(self) -> None:
+        """Drop everything but the drilled blocks (the level of detail is
+        off; :meth:`rebuild` makes the rest again): no reference to the
+        surface is kept."""
+        self.rep = np.zeros(0, dtype=np.int32)
+        self.far = np.zeros(0, dtype=np.uint8)
+        self._surface = None
+        self.far_full = np.zeros(0, dtype=np.int32)
+        self.far_vis = np.zeros(0, dtype=np.int32)
+        self.n_far_full = self.n_far_vis = 0
+        self.far_valid = False
+        self._far_tag = None
 
     def drilled_blocks(self) -> np.ndarray:
         """Block coordinates (m, 3) int64 of the drilled blocks."""

@@ -463,7 +463,10 @@ class SurfaceBuffers:
         """Draw ``surface`` with the level of detail of :mod:`bonesim.render.lod`
         (``on``), the near box ``near_box`` (block range, see
         :meth:`~bonesim.render.lod.SurfaceLOD.near_blocks`; None: everything
-        far) at full detail; recomputes the lists when anything changed.
+        far but the drilled blocks) at full detail; recomputes the lists
+        when anything changed. The drilled blocks are followed by
+        :meth:`sync` (from the removed and touched voxels) whether the
+        level of detail is on or off, until another surface is given.
 
         Returns
         -------
@@ -473,6 +476,7 @@ class SurfaceBuffers:
         if not on:
             if self.lod is None:
                 return False
+            self.lod.release()           # kept for its drilled blocks only
             self.lod = None
         else:
             box = None if near_box is None else (np.asarray(near_box[0], dtype=np.int64),
