@@ -63,7 +63,7 @@ While drilling: the near box follows the burr, and every block a removal
 reaches turns drilled in the same :meth:`SurfaceLOD.sync`, so what the burr
 opens is drawn at full detail in the same update, and stays so after the
 burr moved on. The drilled flags are a dense uint8 array over the blocks
-of the grid's bricks (:attr:`SurfaceLOD.drilled`, some 40^3 bytes for the
+of the grid's bricks (:attr:`SurfaceLOD.drilled`, some 35^3 bytes for the
 phantom at 0.19 mm), marked from the removed and touched voxels (work in
 the voxels given); the far flags of the vertices of the blocks that turned
 drilled outside the near box are cleared in the same call. The level of
