@@ -152,7 +152,9 @@ def test_representatives_follow_removals(drilled):
     _check_against_ref(lod, surf, box)
     assert len(lod.drilled_blocks()) == 0
     changed = []
-    for c, r in (((16, 16, 12), 3), ((4, 26, 15), 3), ((17, 15, 9), 2), ((27, 5, 15), 2)):
+    # the last: one voxel whose NORMAL_RADIUS + 1 box reaches blocks its
+    # NORMAL_RADIUS box does not (i - 4 = 23, block 2; j - 4 < 0)
+    for c, r in (((16, 16, 12), 3), ((4, 26, 15), 3), ((17, 15, 9), 2), ((27, 3, 15), 0)):
         rem = _remove(grid, _ball(c, r))
         assert len(rem)
         changed.append(rem)
