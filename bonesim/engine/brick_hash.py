@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["BRICK", "BRICK_SHIFT", "BRICK_MASK", "BRICK_VOXELS", "EMPTY_KEY",
-           "pack_brick_key", "find_brick", "table_insert", "table_remove",
+           "pack_brick_key", "unpack_brick_keys", "find_brick", "table_insert", "table_remove",
            "sphere_voxel_range", "brick_voxel_span", "sphere_cells", "sphere_cells_bound",
            "SC_BRICK", "SC_OFF", "SC_I", "SC_J", "SC_K", "SC_WIDTH"]
 
@@ -59,6 +59,16 @@ def pack_brick_key(bi, bj, bk):
     """Pack a brick coordinate into one non-negative int64."""
     return ((np.int64(bi) + _KEY_OFFSET) << (2 * _KEY_BITS)) | \
            ((np.int64(bj) + _KEY_OFFSET) << _KEY_BITS) | (np.int64(bk) + _KEY_OFFSET)
+
+
+def unpack_brick_keys(keys) -> np.ndarray:
+    """Brick coordinates (n, 3) int64 of the packed keys ``keys`` (n,)
+    (:func:`pack_brick_key`'s inverse; give only occupied slots)."""
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+    low = (1 << _KEY_BITS) - 1
+    return np.stack([(keys >> (2 * _KEY_BITS)) - _KEY_OFFSET,
+                     ((keys >> _KEY_BITS) & low) - _KEY_OFFSET,
+                     (keys & low) - _KEY_OFFSET], axis=1)
 
 
 @njit(cache=True, nogil=True, inline="always")

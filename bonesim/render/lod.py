@@ -1,6 +1,6 @@
-"""Level of detail of the bone surface away from the burr: vertex clustering
-(no VTK here; :mod:`bonesim.render.meshbuf` draws with it,
-:mod:`bonesim.render.scene` decides when).
+"""Level of detail of the bone surface away from the burr and from drilled
+bone: vertex clustering (no VTK here; :mod:`bonesim.render.meshbuf` draws
+with it, :mod:`bonesim.render.scene` decides when).
 
 Why
 ---
@@ -9,21 +9,37 @@ At the native 0.19 mm voxel a voxel covers about two pixels of the 1024 x
 facing the camera, most of them about a pixel in size. Software OpenGL
 (llvmpipe) pays per triangle (set-up, and a 4x4-pixel block of fragment
 shading for each one however small), so most of the frame goes into
-detail finer than the screen shows. Away from the burr the surface is
-drawn with one vertex per 2x2x2 block of voxels instead.
+detail finer than the screen shows. Away from the burr, where the bone
+is as it was, the surface is drawn with one vertex per 2x2x2 block of
+voxels instead; drilled surfaces keep their full detail.
 
 Definitions
 -----------
 *Cluster* of voxel ``(i, j, k)``: the block ``(i, j, k) >> CLUSTER_SHIFT``
 (2x2x2 voxels; a cluster never straddles a brick). *Block*: ``(i, j, k) >>
-BLOCK_SHIFT`` (8 voxels a side). A vertex (a surface voxel, see
-:mod:`bonesim.engine.surface`) is *far* when its block lies outside the
-*near box*, a range of blocks around the burr (:class:`SurfaceLOD` keeps
-it; :mod:`bonesim.render.scene` makes it cover every voxel within
-``near_mm`` of the burr's centre along each axis, plus a block of slack
-each way, and moves it only when the burr leaves it); every vertex is far
-when there is no burr. The *representative* ``rep[v]`` of a vertex is the
-vertex of its cluster at the smallest voxel in ``(i, j, k)`` order.
+BLOCK_SHIFT`` (8 voxels a side). A block is *drilled* when a voxel removed
+or touched since the surface was built (as far as :class:`SurfaceLOD` was
+told: :meth:`SurfaceLOD.sync`, :meth:`SurfaceLOD.mark_drilled`) lies within
+``NORMAL_RADIUS + 1`` voxels of it along each axis, i.e. the block meets
+the box ``c - NORMAL_RADIUS - 1 .. c + NORMAL_RADIUS + 1`` of such a voxel
+``c``: every vertex whose position or normal a removal changed (they read
+the densities within ``NORMAL_RADIUS``), and every triangle that has one
+as a corner (a triangle spans one voxel), lies in drilled blocks. A block
+stays drilled for the rest of the run: until another surface is given
+(a rebuilt surface, a case reset). A vertex (a surface voxel, see
+:mod:`bonesim.engine.surface`) is *far* when its block is not drilled and
+lies outside the *near box*, a range of blocks around the burr
+(:class:`SurfaceLOD` keeps it; :mod:`bonesim.render.scene` makes it cover
+every voxel within ``near_mm`` of the burr's centre along each axis, plus a
+block of slack each way, and moves it only when the burr leaves it); every
+vertex of an undrilled block is far when there is no burr. The
+*representative* ``rep[v]`` of a vertex is the vertex of its cluster at the
+smallest voxel in ``(i, j, k)`` order.
+
+Why drilled blocks: a surgeon looks at the cavity's rims. Clustering a
+thin drilled rim (where the cavity meets a tube or a plate of bone) after
+the burr moved on drew it notched and jagged; only the untouched original
+surface away from the burr, smooth on the scale of a cluster, is reduced.
 
 Each live triangle with a far corner is drawn with every far corner ``v``
 replaced by ``rep[v]`` (near corners stay) -- dropped when two corners
@@ -39,20 +55,35 @@ No cracks: the map acts on vertices, so two triangles that shared an edge
 share its image. A closed mesh stays closed: every edge of the surface is
 used by an even number of triangles, a collapsed triangle uses its
 remaining edge twice, so dropping it keeps every edge's count even (a test
-checks it on drilled volumes, across the seam between near and far).
+checks it on drilled volumes, across the seam between near and far, and
+around blocks drilled far from the burr). Both hold whatever set of
+vertices is far, so the drilled blocks keep them.
 
-While drilling: the near box follows the burr, so what the burr opens is
-drawn at full detail in the same update. A removal changes which voxels
-have vertices only within one voxel of the removed voxel, so
+While drilling: the near box follows the burr, and every block a removal
+reaches turns drilled in the same :meth:`SurfaceLOD.sync`, so what the burr
+opens is drawn at full detail in the same update, and stays so after the
+burr moved on. The drilled flags are a dense uint8 array over the blocks
+of the grid's bricks (:attr:`SurfaceLOD.drilled`, some 35^3 bytes for the
+phantom at 0.19 mm), marked from the removed and touched voxels (work in
+the voxels given); the far flags of the vertices of the blocks that turned
+drilled outside the near box are cleared in the same call. The level of
+detail being off (the camera zoomed out) does not lose them:
+:class:`bonesim.render.meshbuf.SurfaceBuffers` keeps marking them. Changes
+not given (None) mark nothing. A removal changes which voxels have
+vertices only within one voxel of the removed voxel, so
 :meth:`SurfaceLOD.sync` recomputes the representatives of every cluster
 that meets the 3x3x3 block around each removed or touched voxel (and the
 far flags of the vertices there). The far triangles' drawn lists are kept
-(:meth:`SurfaceLOD.far_lists`) until something can change them: a removed
-or touched voxel within ``NORMAL_RADIUS + 1`` voxels of a far block (a
-vertex's position and normal read the densities within ``NORMAL_RADIUS``
-of it; a triangle spans one voxel), the near box moving, another camera for
-the visible subset, or changes not given. Then one pass over the triangle
-slots lists them again (~10 ms for the phantom at 0.19 mm).
+(:meth:`SurfaceLOD.far_lists`) until something can change them. A far
+triangle changes only if a changed voxel lies within ``NORMAL_RADIUS`` of
+one of its corners or their representatives (a vertex's position and
+normal read the densities within ``NORMAL_RADIUS`` of it), so within
+``NORMAL_RADIUS + 1`` voxels of a far corner (a triangle, and a cluster,
+span one voxel); the blocks within that reach of a changed voxel are near or drilled after the
+call, so the lists are made again only when a block turned drilled outside
+the near box, when the near box moves, for another camera for the visible
+subset, or for changes not given. Then one pass over the triangle slots
+lists them again (~10 ms for the phantom at 0.19 mm).
 
 Visible subset: a far triangle as drawn is not a triangle the visible
 subset judged, so it is tested itself (a corner's normal or its face toward
@@ -65,10 +96,13 @@ as coarse.
 """
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from numba import njit
 
-from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, find_brick
+from bonesim.engine.brick_hash import unpack_brick_keys
+from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, EMPTY_KEY, find_brick
 from bonesim.engine.normals import NORMAL_RADIUS
 
 __all__ = ["CLUSTER_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px"]
@@ -141,22 +175,34 @@ def _reps_near(keys, vals, vmap, changed, rep):
                                     rep[u] = u0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _is_fine(bi, bj, bk, lo, hi, drilled, dlo):
+    """Block ``(bi, bj, bk)`` is drawn at full detail: inside the near box
+    ``lo..hi`` or drilled (``drilled`` covers the blocks from ``dlo``)."""
+    if lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1] and lo[2] <= bk <= hi[2]:
+        return True
+    x, y, z = bi - dlo[0], bj - dlo[1], bk - dlo[2]
+    if (0 <= x < drilled.shape[0] and 0 <= y < drilled.shape[1]
+            and 0 <= z < drilled.shape[2]):
+        return drilled[x, y, z] != 0
+    return False
+
+
 @njit(cache=True, nogil=True)
-def _far_flags(ijk, alive, lo, hi, far):
-    """``far[v]``: live vertex ``v``'s block is outside the box ``lo..hi``."""
+def _far_flags(ijk, alive, lo, hi, drilled, dlo, far):
+    """``far[v]``: live vertex ``v``'s block is neither inside the box
+    ``lo..hi`` nor drilled."""
     for v in range(alive.shape[0]):
         if not alive[v]:
             far[v] = 0
             continue
-        bi = ijk[v, 0] >> BLOCK_SHIFT
-        bj = ijk[v, 1] >> BLOCK_SHIFT
-        bk = ijk[v, 2] >> BLOCK_SHIFT
-        inside = (lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1] and lo[2] <= bk <= hi[2])
-        far[v] = 0 if inside else 1
+        fine = _is_fine(ijk[v, 0] >> BLOCK_SHIFT, ijk[v, 1] >> BLOCK_SHIFT,
+                        ijk[v, 2] >> BLOCK_SHIFT, lo, hi, drilled, dlo)
+        far[v] = 0 if fine else 1
 
 
 @njit(cache=True, nogil=True)
-def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, far):
+def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, drilled, dlo, far):
     """Far flags of the vertices in the 3x3x3 block around each voxel of
     ``changed`` (the only place a removal creates vertices)."""
     for q in range(changed.shape[0]):
@@ -173,10 +219,57 @@ def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, far):
                     u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
                              | (k & BRICK_MASK)]
                     if 0 <= u < far.shape[0]:
-                        bi, bj, bk = i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT
-                        inside = (lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1]
-                                  and lo[2] <= bk <= hi[2])
-                        far[u] = 0 if inside or not alive[u] else 1
+                        fine = _is_fine(i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT,
+                                        lo, hi, drilled, dlo)
+                        far[u] = 0 if fine or not alive[u] else 1
+
+
+@njit(cache=True, nogil=True)
+def _mark_drilled(changed, reach, drilled, dlo, new):
+    """Mark drilled every block (of those ``drilled`` covers, from ``dlo``)
+    that meets the box of ``reach`` voxels around a voxel of ``changed``;
+    the blocks marked now (not before) go to ``new`` (block coordinates);
+    returns how many."""
+    n = 0
+    for q in range(changed.shape[0]):
+        lo0 = ((changed[q, 0] - reach) >> BLOCK_SHIFT) - dlo[0]
+        lo1 = ((changed[q, 1] - reach) >> BLOCK_SHIFT) - dlo[1]
+        lo2 = ((changed[q, 2] - reach) >> BLOCK_SHIFT) - dlo[2]
+        hi0 = ((changed[q, 0] + reach) >> BLOCK_SHIFT) - dlo[0]
+        hi1 = ((changed[q, 1] + reach) >> BLOCK_SHIFT) - dlo[1]
+        hi2 = ((changed[q, 2] + reach) >> BLOCK_SHIFT) - dlo[2]
+        for x in range(max(lo0, 0), min(hi0, drilled.shape[0] - 1) + 1):
+            for y in range(max(lo1, 0), min(hi1, drilled.shape[1] - 1) + 1):
+                for z in range(max(lo2, 0), min(hi2, drilled.shape[2] - 1) + 1):
+                    if drilled[x, y, z] == 0:
+                        drilled[x, y, z] = 1
+                        new[n, 0] = x + dlo[0]
+                        new[n, 1] = y + dlo[1]
+                        new[n, 2] = z + dlo[2]
+                        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _fine_blocks(keys, vals, vmap, blocks, n, far):
+    """Clear the far flags of the vertices in the first ``n`` ``blocks``
+    (block coordinates)."""
+    m = 1 << BLOCK_SHIFT
+    for q in range(n):
+        i0 = blocks[q, 0] << BLOCK_SHIFT
+        j0 = blocks[q, 1] << BLOCK_SHIFT
+        k0 = blocks[q, 2] << BLOCK_SHIFT
+        for i in range(i0, i0 + m):
+            for j in range(j0, j0 + m):
+                for k in range(k0, k0 + m):
+                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
+                                   k >> BRICK_SHIFT)
+                    if b < 0:
+                        continue
+                    u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
+                             | (k & BRICK_MASK)]
+                    if 0 <= u < far.shape[0]:
+                        far[u] = 0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -274,8 +367,9 @@ def voxel_px(spacing_mm: float, distance_mm: float, view_angle_deg: float, heigh
 
 
 class SurfaceLOD:
-    """Representatives and far flags of the vertices of one surface, and the
-    drawn lists of its far triangles (module docstring).
+    """Representatives and far flags of the vertices of one surface, the
+    drilled blocks, and the drawn lists of its far triangles (module
+    docstring).
 
     Attributes
     ----------
@@ -286,6 +380,12 @@ class SurfaceLOD:
         1 for far live vertices.
     near_box : ((3,) int64, (3,) int64) or None
         Inclusive block range of the near box, None when every vertex is far.
+    drilled : (nbi, nbj, nbk) uint8
+        1 for the drilled blocks (module docstring) of the surface's grid,
+        block ``(bi, bj, bk)`` at ``[bi, bj, bk] - drilled_lo``; they cover
+        every block that holds a brick of the grid.
+    drilled_lo : (3,) int64
+        Block coordinates of ``drilled[0, 0, 0]``.
     far_full, far_vis : (3 m,) int32
         The far triangles as drawn (flat), all of them and those facing
         the eye of the last :meth:`far_lists` call with one; valid while
@@ -297,13 +397,17 @@ class SurfaceLOD:
         self.far = np.zeros(0, dtype=np.uint8)
         self.near_box = None
         self._surface = None
+        self.drilled = np.zeros((0, 0, 0), dtype=np.uint8)
+        self.drilled_lo = np.zeros(3, dtype=np.int64)
+        self._drilled_of = lambda: None  # weakref to the surface the drilled blocks refer to
+        self._new_blocks = np.zeros((0, 3), dtype=np.int64)
         self.far_full = np.zeros(0, dtype=np.int32)
         self.far_vis = np.zeros(0, dtype=np.int32)
         self.n_far_full = 0
         self.n_far_vis = 0
         self.far_valid = False
         self._far_tag = None
-        self.stats = {"far_passes": 0}
+        self.stats = {"far_passes": 0, "drilled_blocks": 0}
 
     @staticmethod
     def near_blocks(centre_mm, near_mm, origin_mm, spacing_mm):
@@ -323,9 +427,74 @@ class SurfaceLOD:
             return np.ones(3, np.int64), np.zeros(3, np.int64)
         return self.near_box
 
+    def _reset_drilled(self, surface) -> None:
+        """No block drilled yet; the flag array spans the blocks of every
+        brick of ``surface``'s grid (from its brick hash table)."""
+        bijk = unpack_brick_keys(surface._keys[surface._keys != EMPTY_KEY])
+        if len(bijk):
+            lo = (bijk.min(axis=0) << BRICK_SHIFT) >> BLOCK_SHIFT
+            hi = (((bijk.max(axis=0) + 1) << BRICK_SHIFT) - 1) >> BLOCK_SHIFT
+        else:
+            lo, hi = np.zeros(3, np.int64), np.full(3, -1, np.int64)
+        self.drilled_lo = lo.astype(np.int64)
+        self.drilled = np.zeros(tuple(int(x) for x in hi - lo + 1), dtype=np.uint8)
+        self._new_blocks = np.zeros((self.drilled.size, 3), dtype=np.int64)
+        self._drilled_of = weakref.ref(surface)
+        self.stats["drilled_blocks"] = 0
+
+    def mark_drilled(self, surface, changed) -> np.ndarray:
+        """Note removed or touched voxels of ``surface``: every block within
+        ``NORMAL_RADIUS + 1`` voxels of one (along each axis) is drilled
+        from now on, until another surface is given. Cheap (work in the
+        voxels given); call it for every change, with the level of detail
+        on or off. Far flags are not touched here (:meth:`sync` does).
+
+        Parameters
+        ----------
+        surface : Surface
+            The surface the voxels were removed from (another one than
+            the last: the drilled blocks start again from none).
+        changed : (n, 3) int array_like
+            Voxels ``(i, j, k)``.
+
+        Returns
+        -------
+        (m, 3) int64
+            The blocks drilled by this call that were not before.
+        """
+        if surface is not self._drilled_of():
+            self._reset_drilled(surface)
+        ch = np.ascontiguousarray(changed, dtype=np.int64).reshape(-1, 3)
+        if not len(ch) or not self.drilled.size:
+            return self._new_blocks[:0]
+        n = _mark_drilled(ch, np.int64(NORMAL_RADIUS + 1), self.drilled, self.drilled_lo,
+                          self._new_blocks)
+        self.stats["drilled_blocks"] += int(n)
+        return self._new_blocks[:n]
+
+    def release(self) -> None:
+        """Drop everything but the drilled blocks (the level of detail is
+        off; :meth:`rebuild` makes the rest again): no reference to the
+        surface is kept."""
+        self.rep = np.zeros(0, dtype=np.int32)
+        self.far = np.zeros(0, dtype=np.uint8)
+        self._surface = None
+        self.far_full = np.zeros(0, dtype=np.int32)
+        self.far_vis = np.zeros(0, dtype=np.int32)
+        self.n_far_full = self.n_far_vis = 0
+        self.far_valid = False
+        self._far_tag = None
+
+    def drilled_blocks(self) -> np.ndarray:
+        """Block coordinates (m, 3) int64 of the drilled blocks."""
+        return np.argwhere(self.drilled) + self.drilled_lo
+
     def rebuild(self, surface, near_box) -> None:
         """Recompute everything for ``surface`` and ``near_box`` (see
-        :meth:`near_blocks`)."""
+        :meth:`near_blocks`); the drilled blocks are kept for the same
+        surface and start again from none for another one."""
+        if surface is not self._drilled_of():
+            self._reset_drilled(surface)
         self._surface = surface
         nv = surface.pos.shape[0]
         if self.rep.shape[0] != nv:
@@ -340,35 +509,41 @@ class SurfaceLOD:
         self.near_box = None if near_box is None else (
             np.asarray(near_box[0], dtype=np.int64), np.asarray(near_box[1], dtype=np.int64))
         lo, hi = self._box()
-        _far_flags(self._surface.ijk, self._surface.alive, lo, hi, self.far)
+        _far_flags(self._surface.ijk, self._surface.alive, lo, hi, self.drilled,
+                   self.drilled_lo, self.far)
         self.far_valid = False
 
     def sync(self, surface, changed) -> None:
         """Follow ``Surface.update``: ``changed`` (n, 3) int are the removed
-        and touched voxels given to it since the last call; None when
-        unknown (everything is recomputed)."""
+        and touched voxels given to it since the last call (they are also
+        marked drilled, :meth:`mark_drilled`); None when unknown
+        (everything is recomputed, and no block is marked drilled)."""
         nv = surface.pos.shape[0]
+        if changed is not None:
+            ch = np.ascontiguousarray(changed, dtype=np.int32).reshape(-1, 3)
+            new = self.mark_drilled(surface, ch)
         if surface is not self._surface or changed is None or self.rep.shape[0] != nv:
             self.rebuild(surface, self.near_box)
             return
-        ch = np.ascontiguousarray(changed, dtype=np.int32).reshape(-1, 3)
         if not len(ch):
             return
         _reps_near(surface._keys, surface._vals, surface.vmap, ch, self.rep)
         lo, hi = self._box()
         self._flag_near(surface, ch, lo, hi)
-        # a far triangle changes only if a changed voxel lies within
-        # NORMAL_RADIUS + 1 voxels of one of its corners
-        reach = NORMAL_RADIUS + 1
-        blo = (ch.astype(np.int64) - reach) >> BLOCK_SHIFT
-        bhi = (ch.astype(np.int64) + reach) >> BLOCK_SHIFT
-        if not (np.all(blo >= lo) and np.all(bhi <= hi)):
+        # every block within NORMAL_RADIUS + 1 voxels of a changed voxel is
+        # now drilled or near, so no far vertex is within reach of the
+        # changes: the far triangles change only where blocks turned fine
+        # (outside the near box)
+        out = np.any((new < lo) | (new > hi), axis=1)
+        if np.any(out):
+            _fine_blocks(surface._keys, surface._vals, surface.vmap, new[out], int(out.sum()),
+                         self.far)
             self.far_valid = False
 
     def _flag_near(self, surface, ch, lo, hi):
         """Far flags of the vertices around ``ch`` (new ones among them)."""
         _flags_near(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
-                    ch, lo, hi, self.far)
+                    ch, lo, hi, self.drilled, self.drilled_lo, self.far)
 
     def far_lists(self, surface, job_tag, eye, dirn, parallel):
         """The far triangles as drawn, all and (with ``job_tag`` not None)

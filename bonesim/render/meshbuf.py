@@ -357,6 +357,7 @@ class SurfaceBuffers:
         self._vdirty = np.zeros(0, dtype=np.uint8)
         self._marked = np.zeros(0, dtype=np.uint8)
         self.lod = None              # SurfaceLOD when the level of detail is on
+        self._lod_kept = None        # the same, kept while off (its drilled blocks)
         self._marks_ok = False       # every change since the last snapshot is marked
         self._marks_job = None       # the snapshot the marks refer to
         self._job: VisibleJob | None = None      # the adopted snapshot
@@ -404,13 +405,14 @@ class SurfaceBuffers:
         (n_full, n_vis) : triangle counts (``n_vis`` is 0 without a subset).
         """
         self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
+        changed = None if removed is None and touched is None else np.concatenate(
+            [np.asarray(x, dtype=np.int32).reshape(-1, 3) for x in (removed, touched)
+             if x is not None])
         if self.lod is not None:
-            if removed is None and touched is None:
-                self.lod.sync(surface, None)
-            else:
-                self.lod.sync(surface, np.concatenate(
-                    [np.asarray(x, dtype=np.int32).reshape(-1, 3)
-                     for x in (removed, touched) if x is not None]))
+            self.lod.sync(surface, changed)
+        elif changed is not None and len(changed):
+            # off: the drilled blocks are still followed, for when it is on again
+            self._lod_obj().mark_drilled(surface, changed)
         if removed is None and touched is None:
             self._marks_ok = False
         elif self._marks_ok:
@@ -461,25 +463,27 @@ class SurfaceBuffers:
         """Draw ``surface`` with the level of detail of :mod:`bonesim.render.lod`
         (``on``), the near box ``near_box`` (block range, see
         :meth:`~bonesim.render.lod.SurfaceLOD.near_blocks`; None: everything
-        far) at full detail; recomputes the lists when anything changed.
+        far but the drilled blocks) at full detail; recomputes the lists
+        when anything changed. The drilled blocks are followed by
+        :meth:`sync` (from the removed and touched voxels) whether the
+        level of detail is on or off, until another surface is given.
 
         Returns
         -------
         bool
             Whether the lists changed (push them again).
         """
-        from bonesim.render.lod import SurfaceLOD
-
         if not on:
             if self.lod is None:
                 return False
+            self.lod.release()           # kept for its drilled blocks only
             self.lod = None
         else:
             box = None if near_box is None else (np.asarray(near_box[0], dtype=np.int64),
                                                 np.asarray(near_box[1], dtype=np.int64))
             if self.lod is None or self.lod._surface is not surface:
                 if self.lod is None:
-                    self.lod = SurfaceLOD()
+                    self.lod = self._lod_obj()
                 self.lod.rebuild(surface, box)
             else:
                 old = self.lod.near_box
@@ -491,6 +495,15 @@ class SurfaceBuffers:
         self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
         self._compact(surface)
         return True
+
+    def _lod_obj(self):
+        """The :class:`~bonesim.render.lod.SurfaceLOD`, kept while the level
+        of detail is off so that the blocks drilled meanwhile stay known."""
+        if self._lod_kept is None:
+            from bonesim.render.lod import SurfaceLOD
+
+            self._lod_kept = SurfaceLOD()
+        return self._lod_kept
 
     @property
     def marks_in_use(self) -> bool:
@@ -578,3 +591,13 @@ def warmup() -> None:
     buf.sync(surface, np.array([[2, 2, 3]], dtype=np.int32), none)
     buf.set_lod(surface, True, None)
     buf.set_lod(surface, False)
+    # the drilled blocks: followed while off, then a block turned fine
+    # outside the near box (another surface: none drilled yet)
+    surface = Surface.build(grid, np.array([[0, 0, 0], [200, 200, 180]], dtype=np.uint8))
+    buf.set_lod(surface, True, None)
+    for off, ijk in ((False, (3, 3, 4)), (True, (3, 2, 4))):
+        if off:
+            buf.set_lod(surface, False)
+        grid.density[grid.brick_index(*ijk), voxel_offset(*ijk)] = 0.0
+        surface.update(grid, np.array([ijk], dtype=np.int32))
+        buf.sync(surface, np.array([ijk], dtype=np.int32), none)

@@ -50,7 +50,9 @@ Level of detail
 At native resolution (render.toml ``[lod]``: a voxel under
 ``max_voxel_px`` pixels, a surface of ``min_triangles`` or more) the bone
 surface away from the burr is drawn with one vertex per 2x2x2 voxels
-(:mod:`bonesim.render.lod`, no cracks, full detail around the burr), and
+(:mod:`bonesim.render.lod`, no cracks, full detail around the burr and
+wherever bone was removed: give :meth:`update_surface` the removed
+voxels), and
 the structures are meshed on a grid twice as coarse. Checked before every
 render (:meth:`_update_lod`).
 

@@ -1,8 +1,10 @@
 """Level of detail of the bone surface (bonesim.render.lod): representatives
-and far flags against plain loops over the definition, kept through
-removals; drawn lists against a plain evaluation; the coarse mesh stays
-closed (no cracks); what the burr opens is drawn at full detail; and the
-picture with it stays close to the picture without."""
+and far flags against plain loops over the definition (near box and drilled
+blocks), kept through removals near and far from the burr; drawn lists
+against a plain evaluation; the coarse mesh stays closed (no cracks), also
+after drilling far from the burr; what the burr opens is drawn at full
+detail, and stays so after the burr moves away; and the picture with it
+stays close to the picture without."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -12,6 +14,7 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from bonesim.engine.grid import voxel_offset
+from bonesim.engine.normals import NORMAL_RADIUS
 from bonesim.engine.surface import Surface
 from bonesim.render.lod import BLOCK_SHIFT, CLUSTER_SHIFT, SurfaceLOD, voxel_px
 from bonesim.render.meshbuf import SurfaceBuffers
@@ -53,25 +56,43 @@ def _box(lo, hi):
     return np.array(lo, np.int64), np.array(hi, np.int64)
 
 
-def _ref_lod(surf, box):
-    """Plain loops over the definition: (rep, far) of every live vertex."""
+def _ref_drilled(block, changed):
+    """Plain rule: ``block`` meets the box of NORMAL_RADIUS + 1 voxels
+    around one of the ``changed`` voxels (along every axis)."""
+    reach = NORMAL_RADIUS + 1
+    size = 1 << BLOCK_SHIFT
+    for c in changed:
+        if all(block[a] * size <= c[a] + reach and block[a] * size + size - 1 >= c[a] - reach
+               for a in range(3)):
+            return True
+    return False
+
+
+def _ref_lod(surf, box, changed=()):
+    """Plain loops over the definition: (rep, far) of every live vertex;
+    ``changed``: every voxel removed since the level of detail was built."""
     live = surf.vertex_slots
     at = {tuple(int(x) for x in surf.ijk[v]): int(v) for v in live}
+    changed = [tuple(int(x) for x in c) for c in np.asarray(changed).reshape(-1, 3)]
+    drilled = {}
     rep, far = {}, {}
     n = 1 << CLUSTER_SHIFT
     for v in live:
         ijk = surf.ijk[v].astype(int)
-        blk = ijk >> BLOCK_SHIFT
-        inside = box is not None and bool(np.all(blk >= box[0]) and np.all(blk <= box[1]))
-        far[int(v)] = not inside
+        blk = tuple(int(x) for x in ijk >> BLOCK_SHIFT)
+        inside = box is not None and bool(np.all(np.array(blk) >= box[0])
+                                          and np.all(np.array(blk) <= box[1]))
+        if blk not in drilled:
+            drilled[blk] = _ref_drilled(blk, changed)
+        far[int(v)] = not (inside or drilled[blk])
         base = (ijk >> CLUSTER_SHIFT) << CLUSTER_SHIFT
         cand = [at[tuple(base + d)] for d in np.ndindex(n, n, n) if tuple(base + d) in at]
         rep[int(v)] = cand[0]              # ndindex is (i, j, k) order
     return rep, far
 
 
-def _check_against_ref(lod, surf, box):
-    rep, far = _ref_lod(surf, box)
+def _check_against_ref(lod, surf, box, changed=()):
+    rep, far = _ref_lod(surf, box, changed)
     for v in surf.vertex_slots:
         assert lod.rep[v] == rep[int(v)], v
         assert bool(lod.far[v]) == far[int(v)], v
@@ -119,16 +140,67 @@ def test_representatives_match_the_definition(drilled):
 
 
 def test_representatives_follow_removals(drilled):
+    """Removals inside the near box and far from it (the blocks they reach
+    turn drilled: full detail from then on), and the near box moving away
+    and back; the drilled blocks stay through a rebuild of the same
+    surface."""
     model, state, surf = drilled
     grid = state.grid
     box = _box((1, 1, 1), (2, 2, 2))
     lod = SurfaceLOD()
     lod.rebuild(surf, box)
-    for c, r in (((16, 16, 12), 3), ((4, 26, 15), 3), ((17, 15, 9), 2)):
+    _check_against_ref(lod, surf, box)
+    assert len(lod.drilled_blocks()) == 0
+    changed = []
+    # the last: one voxel whose NORMAL_RADIUS + 1 box reaches blocks its
+    # NORMAL_RADIUS box does not (i - 4 = 23, block 2; j - 4 < 0)
+    for c, r in (((16, 16, 12), 3), ((4, 26, 15), 3), ((17, 15, 9), 2), ((27, 3, 15), 0)):
         rem = _remove(grid, _ball(c, r))
+        assert len(rem)
+        changed.append(rem)
         surf.update(grid, rem)
         lod.sync(surf, rem)
-        _check_against_ref(lod, surf, box)
+        _check_against_ref(lod, surf, box, np.concatenate(changed))
+    assert len(lod.drilled_blocks()) > 0
+    # the near box elsewhere, then none: the drilled blocks stay fine
+    for b in (_box((0, 0, 0), (0, 0, 0)), None):
+        lod.set_box(b)
+        _check_against_ref(lod, surf, b, np.concatenate(changed))
+    rem = _remove(grid, _ball((8, 8, 15), 2))                 # drilled with no near box
+    changed.append(rem)
+    surf.update(grid, rem)
+    lod.sync(surf, rem)
+    _check_against_ref(lod, surf, None, np.concatenate(changed))
+    lod.rebuild(surf, box)
+    _check_against_ref(lod, surf, box, np.concatenate(changed))
+    lod.sync(surf, None)                                       # changes not given
+    _check_against_ref(lod, surf, box, np.concatenate(changed))
+    # another surface: nothing drilled on it yet
+    other = Surface.build(grid, model.colors)
+    lod.rebuild(other, box)
+    assert len(lod.drilled_blocks()) == 0
+    _check_against_ref(lod, other, box)
+
+
+def test_drilled_blocks_kept_while_off(drilled):
+    """Removals while the level of detail is off are still followed: when
+    it is on again, their blocks are drawn at full detail."""
+    model, state, surf = drilled
+    grid = state.grid
+    buf = SurfaceBuffers()
+    buf.sync(surf)
+    box = _box((0, 0, 0), (0, 0, 0))
+    buf.set_lod(surf, True, box)
+    first = _remove(grid, _ball((24, 8, 15), 2))
+    surf.update(grid, first)
+    buf.sync(surf, first)
+    assert buf.set_lod(surf, False)
+    rem = _remove(grid, _ball((24, 24, 15), 3))
+    surf.update(grid, rem)
+    buf.sync(surf, rem)
+    assert buf.set_lod(surf, True, box)
+    _check_against_ref(buf.lod, surf, box, np.concatenate([first, rem]))
+    assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
 
 
 def test_drawn_lists_are_near_triangles_and_far_representatives(drilled):
@@ -174,11 +246,16 @@ def test_coarse_mesh_stays_closed(drilled, box):
     buf.set_lod(surf, True, None if box is None else _box(*box))
     counts = _edge_counts(buf.full[:3 * buf.n_full])
     assert len(counts) and np.all(counts % 2 == 0)
-    # and after drilling across the seam between near and far
-    rem = _remove(state.grid, _ball((16, 17, 12), 4))
-    surf.update(state.grid, rem)
-    buf.sync(surf, rem)
-    assert np.all(_edge_counts(buf.full[:3 * buf.n_full]) % 2 == 0)
+    # and after drilling across the seam between near and far, and far
+    # from the burr (drilled blocks next to far ones)
+    for c, r in (((16, 17, 12), 4), ((26, 25, 15), 3), ((4, 14, 15), 2)):
+        rem = _remove(state.grid, _ball(c, r))
+        assert len(rem)
+        surf.update(state.grid, rem)
+        buf.sync(surf, rem)
+        counts = _edge_counts(buf.full[:3 * buf.n_full])
+        assert np.all(counts % 2 == 0)
+    assert buf.lod.far[surf.vertex_slots].any()               # still some far
 
 
 def test_what_the_burr_opens_is_drawn_at_full_detail(drilled):
@@ -200,6 +277,48 @@ def test_what_the_burr_opens_is_drawn_at_full_detail(drilled):
     new = {tuple(sorted(int(x) for x in surf.tri[t])) for t in surf.triangle_slots} - before
     assert new
     assert new <= set(_drawn(buf.vis[:3 * buf.n_vis]))         # every one, as it is
+    assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
+
+
+def test_drilled_rim_stays_at_full_detail_after_the_burr_moves_away(drilled):
+    """The burr cuts a pit, then moves far away: every triangle with a
+    corner within the blocks the cut reached is drawn as it is (none is
+    mapped to a representative), as the surgeon sees the cavity's rim."""
+    model, state, surf = drilled
+    grid = state.grid
+    buf = SurfaceBuffers()
+    buf.sync(surf)
+    job = buf.start_visible(surf, EYE, DOWN, False, tag="cam")
+    assert job.wait(30) and buf.adopt(job, surf)
+    centre = np.array([24, 24, 14])
+    buf.set_lod(surf, True, ((centre - 6) >> BLOCK_SHIFT, (centre + 6) >> BLOCK_SHIFT))
+    rem = _remove(grid, _ball(centre, 3))
+    assert len(rem)
+    surf.update(grid, rem)
+    buf.sync(surf, rem)
+    assert buf.set_lod(surf, True, _box((0, 0, 0), (0, 0, 0)))   # the burr moved on
+    # the vertices within NORMAL_RADIUS + 1 voxels of the cut (whose
+    # positions and normals it changed) lie in drilled blocks
+    reach = NORMAL_RADIUS + 1
+    live = surf.alive != 0
+    d = np.abs(surf.ijk[:, None, :].astype(int) - rem[None, :, :].astype(int)).max(axis=2)
+    touched = live & (d.min(axis=1) <= reach)
+    assert touched.sum() > 50
+    assert not buf.lod.far[touched].any()
+    blk = [tuple(int(x) for x in b) for b in surf.ijk >> BLOCK_SHIFT]
+    inside = np.array([bool(live[v]) and _ref_drilled(blk[v], rem) for v in range(len(blk))])
+    assert not buf.lod.far[inside].any()
+    assert buf.lod.far[surf.vertex_slots].any()               # the rest is reduced
+    rim = {tuple(sorted(int(x) for x in surf.tri[t])) for t in surf.triangle_slots
+           if inside[surf.tri[t]].all()}
+    assert any(touched[list(t)].all() for t in rim)
+    drawn = set(_drawn(buf.full[:3 * buf.n_full]))
+    assert rim <= drawn                                        # every one, as it is
+    job = buf.start_visible(surf, EYE, DOWN, False, tag="cam2")     # a snapshot as of now
+    assert job.wait(30) and buf.adopt(job, surf)
+    vis = set(_drawn(buf.vis[:3 * buf.n_vis]))
+    facing = {tuple(sorted(int(x) for x in surf.tri[t])) for t in np.flatnonzero(job.tvis)}
+    assert rim & facing and (rim & facing) <= vis
     assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
 
 
