@@ -17,8 +17,9 @@ jittered inside its cell) becomes one round sprite facing the camera:
 * **depth-tested** against the bone: drawn in VTK's translucent pass after
   the opaque surface, with the depth test on and depth writes off, so dust
   behind a wall is hidden and dust never hides dust behind it entirely
-  (blended in draw order: the scene turns VTK's order-independent blending
-  off, :class:`bonesim.render.scene.Scene`).
+  (blended order-independently, VTK's default, except in a scene drawn
+  with the level of detail, which blends in draw order:
+  :class:`bonesim.render.scene.Scene`).
 
 :func:`sprite_look` computes radii and colours (numpy only, testable);
 :class:`DustLayer` owns the VTK actor.

@@ -2,8 +2,9 @@
 
 Material of the bone and of the structures, the microscope's lights, the
 dust sprites, the hidden burr's silhouette, the side panel, the stereo
-default and the bone surface's level of detail: every tunable of the picture lives in that file, documented there
-(units in the key names, colours RGB 0-1). :func:`load_style` checks every
+default and the bone surface's level of detail: every tunable of the picture
+lives in that file, documented there (units in the key names, colours RGB
+0-1). :func:`load_style` checks every
 value and raises :class:`bonesim.errors.BonesimError` naming the file, the
 table and the key; :func:`default_style` is the shipped file, read once.
 
