@@ -9,7 +9,7 @@ from vtkmodules.vtkCommonMath import vtkMatrix4x4
 from vtkmodules.vtkFiltersCore import (vtkFlyingEdges3D, vtkPolyDataNormals,
                                        vtkWindowedSincPolyDataFilter)
 
-__all__ = ["tool_matrix", "vtk_matrix", "structure_polydata", "polydata_from_arrays"]
+__all__ = ["tool_matrix", "vtk_matrix", "structure_polydata", "polydata_from_arrays", "point_to"]
 
 
 def tool_matrix(pos_mm, axis, scale=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -122,3 +122,10 @@ def polydata_from_arrays(verts, faces) -> vtkPolyData:
     out = vtkPolyData()
     out.DeepCopy(nm.GetOutput())
     return out
+
+
+def point_to(arr, buf: np.ndarray, n_values: int) -> None:
+    """Let VTK array ``arr`` use ``buf``'s memory (its first ``n_values``
+    values) in place: ``buf`` must outlive the array's use."""
+    arr.SetVoidArray(buf, int(n_values), 1)   # 1: VTK must not free it
+    arr.Modified()
