@@ -95,17 +95,6 @@ def test_visible_subset_is_built_by_itself_when_the_camera_rests(gl_info, block)
         sc.close()
 
 
-def test_structures_are_meshed_from_labels(scene, block):
-    model, state = block
-    counts = scene.add_structures(model.grid, model.structures)
-    assert list(counts) == ["nerve"] and counts["nerve"] > 50
-    actor = scene._structures["nerve"]
-    b = actor.GetMapper().GetInput().GetBounds()
-    # rod: x all along, y 14..17, z 8..9 voxels of 0.5 mm
-    assert b[2] > 6.5 and b[3] < 9.0 and b[4] > 3.5 and b[5] < 5.0
-    assert actor.GetProperty().GetColor() == pytest.approx((240 / 255, 220 / 255, 40 / 255))
-
-
 def test_tool_pose(scene):
     scene.set_tool((1.0, 2.0, 3.0), (0.0, 0.0, -2.0), 1.5, drill_on=True)
     burr = scene._burr
