@@ -23,6 +23,7 @@ from bonesim.io import anatomy as _anatomy
 from bonesim.io import phantom as _phantom
 from bonesim.io.limits import bound, check_grid
 from bonesim.io.orientation import PATIENT_FRAME
+from bonesim.io.recent import Recent
 from bonesim.io.segmentation import SEG_SUFFIX
 from bonesim.io.volumes import FORMATS, NATIVE, CaseVolume, load_volume
 
@@ -270,7 +271,7 @@ class Fragments:
 #: keeps (:meth:`Case._derive`).
 CACHED_DERIVED = 8
 _DERIVED_KEYS = ("landmarks", "frame", "view")
-_derived_cache: dict = {}
+_derived_cache = Recent(CACHED_DERIVED)
 
 
 @dataclass(frozen=True)
@@ -445,16 +446,13 @@ class Case:
             return
         import copy
 
-        done = _derived_cache.pop(self, None)
+        done = _derived_cache.get(self)
         if done is None:
             self._derive_from(vol)
-            done = copy.deepcopy({k: self._derived[k] for k in _DERIVED_KEYS
-                                  if k in self._derived})
+            _derived_cache.put(self, copy.deepcopy({k: self._derived[k] for k in _DERIVED_KEYS
+                                                    if k in self._derived}))
         else:
             self._derived.update(copy.deepcopy(done))
-        _derived_cache[self] = done                       # the most recently used last
-        while len(_derived_cache) > CACHED_DERIVED:
-            del _derived_cache[next(iter(_derived_cache))]
 
     def _derive_from(self, vol: CaseVolume) -> None:
         from bonesim.io.anatomy_frame import check_frame

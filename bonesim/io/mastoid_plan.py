@@ -77,6 +77,7 @@ from bonesim.io.landmarks import analysis_grid, structure_groups
 from bonesim.io.path_moves import (TRAVEL_ABOVE_MM, STAIR_RAISE_MM, CutSurface,
                                    PathBuilder, first_bone, rinse, segment_clear, stair,
                                    stairs_along, trace_floors, travel_height, view_frame)
+from bonesim.io.recent import Recent
 from bonesim.io.trajectory import Trajectory
 
 __all__ = ["THIN_GROUPS", "CANAL_GROUPS", "NEEDED", "plan_case", "mastoidectomy_path",
@@ -145,21 +146,19 @@ def plan_case(case, plan, two_burrs: bool = True):
     """
     import copy
 
-    key = (case, plan, bool(two_burrs)) if case.volume.format == "phantom" else None
-    done = _plans.pop(key, None) if key is not None else None
+    if case.volume.format != "phantom":
+        return _plan_case(case, plan, two_burrs)
+    key = (case, plan, bool(two_burrs))
+    done = _plans.get(key)
     if done is None:
         done = _plan_case(case, plan, two_burrs)
-        if key is None:
-            return done
-    _plans[key] = done                         # the most recently used last
-    while len(_plans) > CACHED_PLANS:
-        del _plans[next(iter(_plans))]
+        _plans.put(key, done)
     return copy.deepcopy(done)
 
 
 #: Plans of phantom cases :func:`plan_case` keeps for the process's later calls.
 CACHED_PLANS = 4
-_plans: dict = {}
+_plans = Recent(CACHED_PLANS)
 
 
 def _plan_case(case, plan, two_burrs):

@@ -64,6 +64,7 @@ from bonesim.io import phantom_v1 as _v1
 # the painting canvas and the parts record are the first generation's, shared
 # by every generation (the frozen module's hash test guards them)
 from bonesim.io.phantom_v1 import Canvas, PhantomParts
+from bonesim.io.recent import Recent
 from bonesim.io.volumes import CaseVolume
 
 __all__ = ["PARTS", "LANDMARKS_MM", "DEFAULT_SEED", "DEFAULT_VOXEL_MM", "DEFAULT_SIZE_MM",
@@ -696,7 +697,7 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
 CACHED_VOXELS_MAX = 4_000_000
 #: How many such volumes it keeps (the least recently used goes first).
 CACHED_VOLUMES = 4
-_volumes: dict = {}
+_volumes = Recent(CACHED_VOLUMES)
 
 
 def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
@@ -727,14 +728,12 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
         raise ValueError(f"unknown phantom part(s) {unknown}; known: {list(PARTS)}")
     key = (int(seed), float(voxel_mm), tuple(float(v) for v in np.broadcast_to(
         np.asarray(size_mm, float), 3)), tuple(structures), int(generation))
-    vol = _volumes.pop(key, None)
+    vol = _volumes.get(key)
     if vol is None:
         vol = _phantom_volume(seed, voxel_mm, size_mm, structures, generation)
         if vol.labels.size > CACHED_VOXELS_MAX:
             return vol
-    _volumes[key] = vol                          # the most recently used last
-    while len(_volumes) > CACHED_VOLUMES:
-        del _volumes[next(iter(_volumes))]
+        _volumes.put(key, vol)
     return CaseVolume(vol.labels.copy(), vol.spacing_mm, vol.origin_mm.copy(), vol.source,
                       None if vol.hu is None else vol.hu.copy())
 
