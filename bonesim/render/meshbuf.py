@@ -82,6 +82,16 @@ from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 __all__ = ["VisibleJob", "SurfaceBuffers", "oriented_triangles", "warmup"]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _append(dst, n, a, b, c):
+    """Write triangle ``(a, b, c)`` as the ``n``-th of the index list ``dst``;
+    returns ``n + 1``."""
+    dst[3 * n] = a
+    dst[3 * n + 1] = b
+    dst[3 * n + 2] = c
+    return n + 1
+
+
 @njit(cache=True, nogil=True)
 def _compact(tri, key, tflip, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdirty, with_vis,
              full, vis):
@@ -111,10 +121,7 @@ def _compact(tri, key, tflip, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdir
         c = tri[t, 2]
         if tflip[t]:
             b, c = c, b
-        full[3 * nf] = a
-        full[3 * nf + 1] = b
-        full[3 * nf + 2] = c
-        nf += 1
+        nf = _append(full, nf, a, b, c)
         if with_vis:
             keep = False
             if t >= nts:
@@ -125,10 +132,7 @@ def _compact(tri, key, tflip, pos, nrm, s_tri, s_key, s_pos, s_nrm, s_tvis, vdir
             elif s_tvis[t] != 0 or vdirty[a] != 0 or vdirty[b] != 0 or vdirty[c] != 0:
                 keep = True
             if keep:
-                vis[3 * nv] = a
-                vis[3 * nv + 1] = b
-                vis[3 * nv + 2] = c
-                nv += 1
+                nv = _append(vis, nv, a, b, c)
     return nf, nv
 
 
@@ -147,15 +151,9 @@ def _compact_marked(tri, key, tflip, s_tvis, marked, full, vis):
         c = tri[t, 2]
         if tflip[t]:
             b, c = c, b
-        full[3 * nf] = a
-        full[3 * nf + 1] = b
-        full[3 * nf + 2] = c
-        nf += 1
+        nf = _append(full, nf, a, b, c)
         if (t < nts and s_tvis[t] != 0) or marked[a] != 0 or marked[b] != 0 or marked[c] != 0:
-            vis[3 * nv] = a
-            vis[3 * nv + 1] = b
-            vis[3 * nv + 2] = c
-            nv += 1
+            nv = _append(vis, nv, a, b, c)
     return nf, nv
 
 
@@ -179,15 +177,9 @@ def _compact_near(tri, key, tflip, far, with_vis, keep_near, s_tvis, marked, ful
                              or marked[b] != 0 or marked[c] != 0)
         if tflip[t]:
             b, c = c, b
-        full[3 * nf] = a
-        full[3 * nf + 1] = b
-        full[3 * nf + 2] = c
-        nf += 1
+        nf = _append(full, nf, a, b, c)
         if keep:
-            vis[3 * nv] = a
-            vis[3 * nv + 1] = b
-            vis[3 * nv + 2] = c
-            nv += 1
+            nv = _append(vis, nv, a, b, c)
     return nf, nv
 
 
