@@ -52,24 +52,29 @@ def box_clearance(points, labels, spacing, origin, group, reach):
 
 def swept(shape, spacing, origin, traj, radii):
     """Voxels whose centre lies in the sphere of a drilling burr at some
-    sample of ``traj`` (radius ``radii[burr]``) [bool, the grid's shape]."""
+    sample of ``traj`` (radius ``radii[burr]``) [bool, the grid's shape]:
+    a centre is cut when the nearest drilling sample of that burr lies within
+    the radius (a k-d tree of the samples, queried at every centre of the box
+    the spheres span)."""
     cut = np.zeros(shape, bool)
     on = np.flatnonzero(traj.drill)
+    origin = np.asarray(origin, float)
     for b, r in enumerate(radii):
         pts = traj.pos_mm[on[traj.burr[on] == b]]
         if not len(pts):
             continue
-        k = int(np.ceil(r / spacing)) + 1
-        off = np.stack(np.meshgrid(*[np.arange(-k, k + 1)] * 3, indexing="ij"), -1
-                       ).reshape(-1, 3)
-        for a in range(0, len(pts), 1500):
-            p = pts[a:a + 1500]
-            c = np.rint((p - origin) / spacing).astype(int)
-            ijk = c[:, None, :] + off[None]
-            d = np.linalg.norm(origin + spacing * ijk - p[:, None, :], axis=-1)
-            ok = (d <= r) & np.all((ijk >= 0) & (ijk < shape), axis=-1)
-            sel = ijk[ok]
-            cut[sel[:, 0], sel[:, 1], sel[:, 2]] = True
+        lo = np.maximum(np.floor((pts.min(0) - r - origin) / spacing).astype(int), 0)
+        hi = np.minimum(np.ceil((pts.max(0) + r - origin) / spacing).astype(int) + 1,
+                        shape)
+        if np.any(hi <= lo):
+            continue
+        ijk = np.stack(np.meshgrid(*[np.arange(a, z) for a, z in zip(lo, hi)],
+                                   indexing="ij"), -1).reshape(-1, 3)
+        # the nearest sample, when it lies within r (the bound is exclusive)
+        d, _ = cKDTree(pts).query(origin + spacing * ijk,
+                                  distance_upper_bound=np.nextafter(r, np.inf))
+        sel = ijk[np.isfinite(d)]
+        cut[sel[:, 0], sel[:, 1], sel[:, 2]] = True
     return cut
 
 
@@ -240,14 +245,21 @@ def test_peer_export_plans_are_mastoidectomies(tmp_path, kw):
     assert_a_mastoidectomy(case, pr, radii)
 
 
+@pytest.fixture(scope="module")
+def lps_plan(tmp_path_factory):
+    """The plan of the export stored and declared in LPS (the flips' reference)."""
+    ref = load_case(write_real_like(tmp_path_factory.mktemp("lps"), stored="LPS",
+                                    declared="LPS"))
+    return plan_mastoidectomy(ref, "cutting-5mm").trajectory
+
+
 @pytest.mark.parametrize("code", ["RPS", "LAS", "LPI", "ILA"])
-def test_each_declared_flip_plans_the_same_cavity(tmp_path, code):
+def test_each_declared_flip_plans_the_same_cavity(tmp_path, lps_plan, code):
     """A stack stored flipped (or permuted) and declared so loads
     voxel-identical in LPS, so its plan is the same path to the bit."""
-    ref = load_case(write_real_like(tmp_path / "lps", stored="LPS", declared="LPS"))
     flipped = load_case(write_real_like(tmp_path / code, stored=code, declared=code))
     assert flipped.require_orientation() == ""
-    a = plan_mastoidectomy(ref, "cutting-5mm").trajectory
+    a = lps_plan
     b = plan_mastoidectomy(flipped, "cutting-5mm").trajectory
     np.testing.assert_array_equal(a.pos_mm, b.pos_mm)
     np.testing.assert_array_equal(a.burr, b.burr)
