@@ -443,7 +443,10 @@ def expert_trajectory(case, clearance, participant: Participant,
         cam, eye_mm=tuple(np.add(cam.eye_mm, off)), focal_mm=tuple(np.add(cam.focal_mm, off))))
     # the planned mastoidectomy as a surgeon drills it: the cutting burr for
     # the bulk, the diamond burr for the finishing strokes near the structures
-    planned = plan_mastoidectomy(moved, model.burr, model.fine_burr, plan).trajectory
+    # (only the part a run of duration_s reaches: retimed below, the run is
+    # never faster than the plan, so the plan's first duration_s suffice)
+    planned = plan_mastoidectomy(moved, model.burr, model.fine_burr, plan,
+                                 until_s=duration_s).trajectory
     traj = _slow_near_structures(planned, case, clearance, plan.margin_mm, model,
                                  stages=planned.burr)
     if model.near_share > 0 and duration_s is not None and grid is not None:

@@ -75,7 +75,7 @@ import numpy as np
 from bonesim.errors import BonesimError
 from bonesim.io.landmarks import analysis_grid, structure_groups
 from bonesim.io.path_moves import (TRAVEL_ABOVE_MM, STAIR_RAISE_MM, CutSurface,
-                                   PathBuilder, first_bone, rinse, segment_clear, stair,
+                                   PathBuilder, PathLongEnough, first_bone, rinse, segment_clear, stair,
                                    stairs_along, trace_floors, travel_height, view_frame)
 from bonesim.io.recent import Recent
 from bonesim.io.trajectory import Trajectory
@@ -116,7 +116,7 @@ def danger_groups(structures) -> tuple[list, list, list]:
     return crit, thin, canal
 
 
-def plan_case(case, plan, two_burrs: bool = True):
+def plan_case(case, plan, two_burrs: bool = True, until_s: float | None = None):
     """The mastoidectomy of a loaded case (see the module docstring).
 
     Parameters
@@ -126,6 +126,10 @@ def plan_case(case, plan, two_burrs: bool = True):
         With the burrs' radii and speeds filled in.
     two_burrs : bool
         Finish with burr 1 (else with burr 0).
+    until_s : float, optional
+        Plan only the first ``until_s`` [s] of the run: the samples at times up
+        to ``until_s`` are exactly those of the whole plan (see
+        :func:`mastoidectomy_path`).
 
     Returns
     -------
@@ -141,17 +145,18 @@ def plan_case(case, plan, two_burrs: bool = True):
     -----
     The plan is a function of the case and the plan's values alone. For a
     phantom case (its volume generated from the manifest's values, no file
-    that could change) the process keeps the last :data:`CACHED_PLANS` plans
-    and returns a copy: a cohort of synthetic runs plans the same case once.
+    that could change) the process keeps the last :data:`CACHED_PLANS` whole
+    plans (not those cut at ``until_s``) and returns a copy: the tools that
+    drill the demo plan again and again plan it once.
     """
     import copy
 
-    if case.volume.format != "phantom":
-        return _plan_case(case, plan, two_burrs)
+    if case.volume.format != "phantom" or until_s is not None:
+        return _plan_case(case, plan, two_burrs, until_s)
     key = (case, plan, bool(two_burrs))
     done = _plans.get(key)
     if done is None:
-        done = _plan_case(case, plan, two_burrs)
+        done = _plan_case(case, plan, two_burrs, until_s)
         _plans.put(key, done)
     return copy.deepcopy(done)
 
@@ -161,7 +166,7 @@ CACHED_PLANS = 4
 _plans = Recent(CACHED_PLANS)
 
 
-def _plan_case(case, plan, two_burrs):
+def _plan_case(case, plan, two_burrs, until_s):
     """:func:`plan_case`, planned."""
     from bonesim.physics.clearance import Clearance
 
@@ -179,7 +184,7 @@ def _plan_case(case, plan, two_burrs):
     try:
         return mastoidectomy_path(vol.labels, vol.spacing_mm, vol.origin_mm,
                                   case.structures, lm, cam.eye_mm, cam.focal_mm, plan,
-                                  clearance, two_burrs)
+                                  clearance, two_burrs, until_s)
     except BonesimError as exc:
         if exc.path is None:
             raise BonesimError(exc.message, case.manifest) from None
@@ -378,7 +383,8 @@ def _rotate_to(stroke: np.ndarray, start: int) -> np.ndarray:
 
 # ------------------------------------------------------------------- planning
 def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, focal_mm,
-                       plan, clearance, two_burrs: bool = True):
+                       plan, clearance, two_burrs: bool = True,
+                       until_s: float | None = None):
     """Plan the mastoidectomy (see the module docstring).
 
     Parameters
@@ -402,6 +408,14 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
         Distances to every structure that is not bone, at source resolution.
     two_burrs : bool
         The finishing stage uses burr 1 (else burr 0).
+    until_s : float, optional
+        Stop planning once the path lasts longer than this [s] and return the
+        samples at times up to it: the same samples, to the bit, as the whole
+        plan's up to that time (waypoints are added in time order and every
+        decision about one uses only what came before it; the samples are
+        linear between waypoints). The summary then describes the part
+        planned and says ``"until_s"``. For runs that use only a plan's
+        start (synthetic cohorts of runs of a few seconds).
 
     Returns
     -------
@@ -577,7 +591,8 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
                        0.0)
     surface = CutSurface(is_bone, origin, spacing, eye, u, v, view, depth, ca, cb, r1,
                          plan.uncut_mm, plan.rinse_gap_mm)
-    path = PathBuilder(at(float(ca.mean()), float(cb.mean()), lift))
+    path = PathBuilder(at(float(ca.mean()), float(cb.mean()), lift), until_s,
+                       2.0 / plan.sample_hz)
     index = -np.ones((na, nb), int)
     index[cols[:, 0], cols[:, 1]] = np.arange(len(cols))
     reached = np.full(len(cols), -np.inf)
@@ -653,41 +668,47 @@ def mastoidectomy_path(labels, spacing_mm, origin_mm, structures, lm, eye_mm, fo
                 first = True
         return prev, n_strokes
 
-    # -- stage 1: the bulk with the cutting burr
-    t_before = path.drill_s
-    done1, n1 = run_stage(t1, floor1, r1, np.full(len(cols), -np.inf), plan.layer_mm,
-                          plan.speed_mm_s, gap1, 0, False)
-    cut1 = swept.carved.copy()               # the cut surface the cutting burr left
-    summary["stages"].append({"burr": 0, "strokes": n1, "drilling_s": round(
-        path.drill_s - t_before, 1)})
-    # -- stage 2: thin near the structures, finish the cavity: the columns
-    # where the structures, not the saucer's wall or the antrum's depth, set
-    # how deep the cutting burr went, and the finishing burr goes deeper
-    near = floor1 <= np.minimum(wall_bound(r1), t_ant) + 1e-6
-    _debug.update(base=base, entry=entry, floor1=floor1, floor2=floor2, t1=t1, t2=t2,
-                  wall2=wall_bound(r2), wall1=wall_bound(r1), t_ant=t_ant, cut1=cut1,
-                  near=near)
-    # per column: how much deeper the finishing burr's bottom goes than the
-    # cutting burr's did there (where the cutting burr's centre never went,
-    # than the cortex): along the walls this is what it thins sideways
-    bottom1 = np.where(np.isfinite(t1), t1 + r1, entry)
-    gain = np.where(np.isfinite(t2), t2 + r2 - bottom1, -np.inf)
-    t2f = np.where(near & (gain >= plan.finish_gain_mm), t2, -np.inf)
-    if np.isfinite(t2f).any():
-        path.go(path.last - (float((path.last - eye) @ view) - lift) * view,
-                plan.travel_mm_s)
-        start2 = bottom1 - r2
+    try:
+        # -- stage 1: the bulk with the cutting burr
         t_before = path.drill_s
-        done2, n2 = run_stage(t2f, floor2, r2, start2, plan.finish_layer_mm,
-                              plan.finish_speed_mm_s, gap2, 1 if two_burrs else 0, True)
-        summary["stages"].append({"burr": 1 if two_burrs else 0, "strokes": n2,
-                                  "drilling_s": round(path.drill_s - t_before, 1),
-                                  "columns": int(np.isfinite(t2f).sum())})
-    path.go(path.last - (float((path.last - eye) @ view) - lift) * view, plan.travel_mm_s)
-    if path.drill_s > drilled_at_rinse[0]:
-        do_rinse()
+        done1, n1 = run_stage(t1, floor1, r1, np.full(len(cols), -np.inf), plan.layer_mm,
+                              plan.speed_mm_s, gap1, 0, False)
+        cut1 = swept.carved.copy()           # the cut surface the cutting burr left
+        summary["stages"].append({"burr": 0, "strokes": n1, "drilling_s": round(
+            path.drill_s - t_before, 1)})
+        # -- stage 2: thin near the structures, finish the cavity: the columns
+        # where the structures, not the saucer's wall or the antrum's depth, set
+        # how deep the cutting burr went, and the finishing burr goes deeper
+        near = floor1 <= np.minimum(wall_bound(r1), t_ant) + 1e-6
+        _debug.update(base=base, entry=entry, floor1=floor1, floor2=floor2, t1=t1, t2=t2,
+                      wall2=wall_bound(r2), wall1=wall_bound(r1), t_ant=t_ant, cut1=cut1,
+                      near=near)
+        # per column: how much deeper the finishing burr's bottom goes than the
+        # cutting burr's did there (where the cutting burr's centre never went,
+        # than the cortex): along the walls this is what it thins sideways
+        bottom1 = np.where(np.isfinite(t1), t1 + r1, entry)
+        gain = np.where(np.isfinite(t2), t2 + r2 - bottom1, -np.inf)
+        t2f = np.where(near & (gain >= plan.finish_gain_mm), t2, -np.inf)
+        if np.isfinite(t2f).any():
+            path.go(path.last - (float((path.last - eye) @ view) - lift) * view,
+                    plan.travel_mm_s)
+            start2 = bottom1 - r2
+            t_before = path.drill_s
+            done2, n2 = run_stage(t2f, floor2, r2, start2, plan.finish_layer_mm,
+                                  plan.finish_speed_mm_s, gap2, 1 if two_burrs else 0, True)
+            summary["stages"].append({"burr": 1 if two_burrs else 0, "strokes": n2,
+                                      "drilling_s": round(path.drill_s - t_before, 1),
+                                      "columns": int(np.isfinite(t2f).sum())})
+        path.go(path.last - (float((path.last - eye) @ view) - lift) * view, plan.travel_mm_s)
+        if path.drill_s > drilled_at_rinse[0]:
+            do_rinse()
+    except PathLongEnough:                  # planned past until_s: enough
+        summary["until_s"] = float(until_s)
 
     t, pos, state, burr = path.sampled(plan.sample_hz)
+    if until_s is not None:                 # the samples up to until_s
+        k = int(np.searchsorted(t, until_s, side="right"))
+        t, pos, state, burr = t[:k], pos[:k], state[:k], burr[:k]
     n = len(t)
     rpm = np.where(burr == 1, plan.finish_rpm, plan.speed_rpm)
     summary.update({"duration_s": round(float(t[-1]), 1),

@@ -39,7 +39,7 @@ from bonesim.errors import BonesimError
 
 __all__ = ["TRACE_TOL_MM", "TRACE_STEPS", "TRAVEL_RAISE_MM", "TRAVEL_ABOVE_MM",
            "BISECT_MM", "HOP_STEP_MM", "STAIR_RAISE_MM", "view_frame", "first_bone",
-           "trace_floors", "segment_clear", "segments_clear", "PathBuilder", "stair",
+           "trace_floors", "segment_clear", "segments_clear", "PathBuilder", "PathLongEnough", "stair",
            "stairs_along", "travel_height",
            "CutSurface", "rinse", "hop"]
 
@@ -158,18 +158,32 @@ def segments_clear(dist, p, q, clear) -> np.ndarray:
     return ok
 
 
+class PathLongEnough(Exception):
+    """Raised by :meth:`PathBuilder.go` once the path lasts past the
+    builder's ``until_s``: the planner stops there."""
+
+
 class PathBuilder:
     """Waypoints, the speed [mm/s] used to reach each one and the tool's state
     on the way there (drill, suction, irrigation; the burr index ``burr``
-    held when the waypoint was added)."""
+    held when the waypoint was added).
 
-    def __init__(self, start):
+    ``until_s`` [s]: :meth:`go` raises :class:`PathLongEnough` once the path
+    lasts longer than that by more than ``margin_s`` (a sample interval or
+    two). Every waypoint before then is as without the limit, so the samples
+    up to ``until_s`` (:meth:`sampled`, linear between waypoints) are those
+    of the whole path.
+    """
+
+    def __init__(self, start, until_s: float | None = None, margin_s: float = 0.0):
         self.pts = [np.asarray(start, float)]
         self.speed = [1.0]
         self.state = [(False, False, False)]
         self.burrs = [0]
         self.burr = 0                       # burr index of the moves to come
         self.drill_s = 0.0
+        self.t_s = 0.0                      # the path's duration so far [s]
+        self.stop_s = math.inf if until_s is None else float(until_s) + float(margin_s)
 
     @property
     def last(self):
@@ -186,6 +200,9 @@ class PathBuilder:
         self.burrs.append(self.burr)
         if drill:
             self.drill_s += length / speed
+        self.t_s += length / float(speed)
+        if self.t_s > self.stop_s:
+            raise PathLongEnough
 
     def sampled(self, rate_hz):
         """Samples at ``rate_hz`` (linear in time): t, pos, the state (drill,

@@ -197,7 +197,8 @@ def _burr(b):
 
 
 def plan_mastoidectomy(case, burr="cutting-5mm", finish_burr: str | None = "plan",
-                       plan: DemoPlan | None = None) -> PlannedRun:
+                       plan: DemoPlan | None = None, *,
+                       until_s: float | None = None) -> PlannedRun:
     """The demo mastoidectomy of a loaded case.
 
     Parameters
@@ -214,6 +215,10 @@ def plan_mastoidectomy(case, burr="cutting-5mm", finish_burr: str | None = "plan
         ``finish_burr``; None to finish with the cutting burr too (one burr).
     plan : DemoPlan, optional
         Default: :func:`load_demo_plan` of the shipped file.
+    until_s : float, optional
+        Plan only the run's first ``until_s`` [s]: its samples are those of
+        the whole plan up to that time, to the bit, and it is planned in a
+        fraction of the time when that is short.
 
     Returns
     -------
@@ -235,7 +240,9 @@ def plan_mastoidectomy(case, burr="cutting-5mm", finish_burr: str | None = "plan
                    speed_rpm=float(b.default_speed_rpm),
                    finish_radius_mm=float((fb or b).radius_mm),
                    finish_rpm=float((fb or b).default_speed_rpm))
-    traj, summary = plan_case(case, plan, two_burrs=fb is not None)
+    if until_s is not None and not until_s >= 0.0:
+        raise ValueError(f"until_s must be a time >= 0 [s], got {until_s}")
+    traj, summary = plan_case(case, plan, two_burrs=fb is not None, until_s=until_s)
     names = (b.name,) if fb is None else (b.name, fb.name)
     return PlannedRun(traj, names, summary)
 

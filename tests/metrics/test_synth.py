@@ -67,6 +67,22 @@ def test_trajectories_are_reproducible_and_keep_their_margins(models):
     assert gap_e.min() > 0.25 and gap_n.min() < gap_e.min()
 
 
+def test_an_experts_run_plans_only_what_it_drills(models, monkeypatch):
+    """The expert's plan is made only as far as the run reaches
+    (``until_s``): the trajectory is the one cut from the whole plan."""
+    import bonesim.io.toolpath as toolpath
+
+    (e,) = draw_participants(1, 0, seed=4)
+    me = models["expert"]
+    short = expert_trajectory(me.case, me.clearance, e, duration_s=6.0, grid=me.grid)
+    whole_plan = toolpath.plan_mastoidectomy
+    monkeypatch.setattr(toolpath, "plan_mastoidectomy",
+                        lambda *a, until_s=None, **k: whole_plan(*a, **k))
+    whole = expert_trajectory(me.case, me.clearance, e, duration_s=6.0, grid=me.grid)
+    for f in ("t_s", "pos_mm", "axis", "drill", "speed_rpm", "burr", "suction"):
+        np.testing.assert_array_equal(getattr(short, f), getattr(whole, f), err_msg=f)
+
+
 def test_the_expert_slows_down_near_structures(models):
     """The feed of a drilling step falls with the gap to the structures."""
     e = draw_participants(1, 0, seed=3)[0]

@@ -200,6 +200,27 @@ def test_saucerized_not_undercut(phantom):
     assert over.sum() < 0.02 * cut.sum(), over.sum()
 
 
+def test_a_plan_made_until_a_time_is_the_whole_plans_start(phantom):
+    """``until_s``: the samples up to that time, to the bit, whether the
+    planner stops in the cutting burr's passes, at a rinse or in the
+    finishing burr's."""
+    case, pr, _ = phantom
+    tr = pr.trajectory
+    change = float(tr.t_s[np.flatnonzero(tr.burr == 1)[0]])
+    rinse = float(tr.t_s[np.flatnonzero(tr.irrigation)[0]])
+    for until in (0.0, 3.0, rinse + 0.5, change + 2.0):
+        part = plan_mastoidectomy(case, "cutting-5mm", until_s=until)
+        k = int(np.searchsorted(tr.t_s, until, side="right"))
+        assert len(part.trajectory.t_s) == k
+        for f in ("t_s", "pos_mm", "axis", "drill", "speed_rpm", "suction", "irrigation",
+                  "burr"):
+            np.testing.assert_array_equal(getattr(part.trajectory, f), getattr(tr, f)[:k],
+                                          err_msg=f"{f} until {until}")
+        assert part.summary["until_s"] == until
+    with pytest.raises(ValueError, match="until_s"):
+        plan_mastoidectomy(case, "cutting-5mm", until_s=-1.0)
+
+
 def test_demo_trajectory_is_deterministic_and_one_burr(phantom):
     case, pr, _ = phantom
     again = plan_mastoidectomy(case, "cutting-5mm")
