@@ -75,8 +75,9 @@ import numpy as np
 from bonesim.errors import BonesimError
 from bonesim.io.landmarks import analysis_grid, structure_groups
 from bonesim.io.path_moves import (TRAVEL_ABOVE_MM, STAIR_RAISE_MM, CutSurface,
-                                   PathBuilder, PathLongEnough, first_bone, rinse, segment_clear, stair,
-                                   stairs_along, trace_floors, travel_height, view_frame)
+                                   PathBuilder, PathLongEnough, first_bone, rinse,
+                                   segment_clear, stair, stairs_along, trace_floors,
+                                   travel_height, view_frame)
 from bonesim.io.recent import Recent
 from bonesim.io.trajectory import Trajectory
 

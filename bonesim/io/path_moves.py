@@ -39,8 +39,8 @@ from bonesim.errors import BonesimError
 
 __all__ = ["TRACE_TOL_MM", "TRACE_STEPS", "TRAVEL_RAISE_MM", "TRAVEL_ABOVE_MM",
            "BISECT_MM", "HOP_STEP_MM", "STAIR_RAISE_MM", "view_frame", "first_bone",
-           "trace_floors", "segment_clear", "segments_clear", "PathBuilder", "PathLongEnough", "stair",
-           "stairs_along", "travel_height",
+           "trace_floors", "segment_clear", "segments_clear", "PathBuilder", "PathLongEnough",
+           "stair", "stairs_along", "travel_height",
            "CutSurface", "rinse", "hop"]
 
 #: Sphere tracing stops when a step would be shorter than this [mm].

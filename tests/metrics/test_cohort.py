@@ -27,6 +27,16 @@ def cohort(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def cluster():
+    """A running one-worker cluster that tests pass by address (a user's
+    existing cluster: each start of one costs a worker's imports and models)."""
+    from metrics.cohort import local_cluster
+
+    with local_cluster(1) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
 def clean(cohort):
     from metrics.cohort import score_cohort
 
@@ -89,14 +99,15 @@ def test_table_has_a_row_per_file_and_matches_the_direct_functions(cohort, clean
     assert res.meta["scheduler"] == "LocalCluster" and res.meta["workers"] == 2
 
 
-def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_path):
+def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, cluster,
+                                                                tmp_path):
     """Random bytes, a copy cut at half its size (a copy of a run: counted
     once, issue 24), a file of another case, a run whose participant is not
     in the table and a participant with no run: one line each, the rest scored. The cluster passed by address stays up."""
     import pandas as pd
     from distributed import Client
 
-    from metrics.cohort import local_cluster, score_cohort
+    from metrics.cohort import score_cohort
 
     _, paths, csv_path = cohort
     for p in paths:
@@ -112,10 +123,9 @@ def test_broken_inputs_give_one_line_each_on_an_existing_cluster(cohort, tmp_pat
     table = tmp_path / "people.csv"
     table.write_text(csv_path.read_text() + "E99,expert,4.0\n")
 
-    with local_cluster(1) as cluster:
-        res = score_cohort(str(tmp_path / "*.h5"), table, scheduler=cluster.scheduler_address)
-        with Client(cluster.scheduler_address) as c:        # still running
-            assert c.submit(lambda: 41 + 1).result() == 42
+    res = score_cohort(str(tmp_path / "*.h5"), table, scheduler=cluster.scheduler_address)
+    with Client(cluster.scheduler_address) as c:            # still running
+        assert c.submit(lambda: 41 + 1).result() == 42
     tb = res.table.set_index(res.table["file"].map(lambda f: os.path.basename(f)))
     assert len(tb) == len(paths) + 3                        # the cut copy left out
     assert res.meta["scheduler"] == cluster.scheduler_address
@@ -166,7 +176,7 @@ def test_bad_participants_table_names_file_line_and_column(tmp_path):
     assert out["B"]["instructor_score"] == 2.5
 
 
-def test_cli_writes_parquet_and_prints_json(cohort, tmp_path, capsys):
+def test_cli_writes_parquet_and_prints_json(cohort, cluster, tmp_path, capsys):
     import pandas as pd
 
     from bonesim.cli.main import main
@@ -174,7 +184,7 @@ def test_cli_writes_parquet_and_prints_json(cohort, tmp_path, capsys):
     d, _, csv_path = cohort
     out = tmp_path / "x.parquet"
     rc = main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--out",
-               str(out), "--workers", "1", "--json"])
+               str(out), "--scheduler", cluster.scheduler_address, "--json"])
     assert rc == 0
     cap = capsys.readouterr()
     summary = json.loads(cap.out)
@@ -236,16 +246,16 @@ def test_a_file_cut_short_is_scored_on_its_readable_part(tmp_path):
     assert np.isfinite(part["metrics"]["visible_fraction"])
 
 
-def test_cli_exports_with_provenance_and_draws_progress(cohort, tmp_path, capsys):
+def test_cli_exports_with_provenance_and_draws_progress(cohort, cluster, tmp_path, capsys):
     import pandas as pd
 
     from bonesim.cli.main import main
 
     d, paths, csv_path = cohort
     ex = tmp_path / "ex"
-    assert main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--workers",
-                 "1", "--exports", str(ex), "--report", str(tmp_path / "r.html"),
-                 "--json"]) == 0
+    assert main(["metrics", "cohort", str(d), "--participants", str(csv_path), "--scheduler",
+                 cluster.scheduler_address, "--exports", str(ex), "--report",
+                 str(tmp_path / "r.html"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["unit"] == "participant" and summary["stats_s"] >= 0
     assert {"duration_s", "drilled_mm3"} <= set(summary["excluded"])
