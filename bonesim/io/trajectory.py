@@ -305,11 +305,30 @@ class Trajectory:
             sample at or before ``t_s``. The returned ``t_s`` is the clamped
             time.
         """
-        tq, pos, axis, drill, speed, direction, suction, irrigation, burr = \
-            self._interpolate(np.array([t_s], dtype=np.float64))
-        return TrajectorySample(float(tq[0]), pos[0], axis[0], bool(drill[0]),
-                                float(speed[0]), int(direction[0]), bool(suction[0]),
-                                bool(irrigation[0]), int(burr[0]))
+        t = self.t_s
+        tq = float(t_s)
+        if not math.isfinite(tq):              # as the arrays' path does it
+            tq, pos, axis, drill, speed, direction, suction, irrigation, burr = \
+                self._interpolate(np.array([t_s], dtype=np.float64))
+            return TrajectorySample(float(tq[0]), pos[0], axis[0], bool(drill[0]),
+                                    float(speed[0]), int(direction[0]), bool(suction[0]),
+                                    bool(irrigation[0]), int(burr[0]))
+        # one time: the arithmetic of _interpolate on scalars and rows, a
+        # few microseconds instead of tens (a scripted device reads one a step)
+        last = t.shape[0] - 1
+        tq = min(max(tq, float(t[0])), float(t[last]))
+        i = min(max(int(np.searchsorted(t, tq, side="right")) - 1, 0), last)
+        j = min(i + 1, last)
+        span = t[j] - t[i]
+        w = (tq - t[i]) / span if span > 0 else np.float64(0.0)
+        p0, a0 = self.pos_mm[i], self.axis[i]
+        pos = p0 + w * (self.pos_mm[j] - p0)
+        blend = (1.0 - w) * a0 + w * self.axis[j]
+        norm = np.sqrt(np.add.reduce(blend * blend))
+        axis = a0.copy() if norm == 0 else blend / norm
+        return TrajectorySample(tq, pos, axis, bool(self.drill[i]), float(self.speed_rpm[i]),
+                                int(self.direction[i]), bool(self.suction[i]),
+                                bool(self.irrigation[i]), int(self.burr[i]))
 
     def at_times(self, times_s) -> "Trajectory":
         """The trajectory sampled at given times.

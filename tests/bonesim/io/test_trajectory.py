@@ -166,6 +166,37 @@ def test_sample_at_exact_times_and_clamping(tmp_path):
     np.testing.assert_array_equal(after.pos_mm, traj.pos_mm[-1])
 
 
+@settings(max_examples=150, deadline=None)
+@given(n=st.integers(1, 6), seed=st.integers(0, 2**32 - 1),
+       times=st.lists(st.floats(-2.0, 12.0), min_size=1, max_size=8),
+       at_samples=st.booleans())
+def test_sample_at_is_the_arrays_interpolation_to_the_bit(n, seed, times, at_samples):
+    """One time (the scripted device's path) gives exactly what the arrays'
+    interpolation (of :meth:`Trajectory.at_times`, before the constructor
+    normalizes the axes once more) gives at that time."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.01, 3.0, n)) - rng.uniform(0, 1)
+    axis = rng.normal(size=(n, 3))
+    if n > 1 and rng.random() < 0.3:
+        axis[1] = -axis[0]                          # opposite axes cancel half-way
+    traj = Trajectory(t, rng.normal(size=(n, 3)) * 30, axis, rng.random(n) < 0.5,
+                      rng.uniform(0, 9e4, n), np.where(rng.random(n) < 0.5, 1, -1),
+                      burr=rng.integers(0, 3, n))
+    if at_samples:
+        times = list(t) + [float(t[0] + (t[-1] - t[0]) / 2) if n > 1 else float(t[0])]
+    if n > 1 and rng.random() < 0.3:
+        times.append(float((t[0] + t[1]) / 2))      # where opposite axes cancel
+    for tq in times:
+        s = traj.sample_at(tq)
+        r_t, r_pos, r_axis, r_drill, r_speed, r_dir, _, _, r_burr = traj._interpolate(
+            np.array([tq]))
+        assert s.t_s == r_t[0]
+        np.testing.assert_array_equal(s.pos_mm, r_pos[0])
+        np.testing.assert_array_equal(s.axis, r_axis[0])
+        assert (s.drill, s.speed_rpm, s.direction, s.burr) == (
+            r_drill[0], r_speed[0], r_dir[0], r_burr[0])
+
+
 def test_opposite_axes_hold_the_earlier_axis():
     traj = Trajectory([0.0, 1.0], np.zeros((2, 3)), [[0, 0, 1], [0, 0, -1]],
                       [True, True], [1.0, 1.0])
