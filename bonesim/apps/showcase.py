@@ -34,8 +34,8 @@ import numpy as np
 from bonesim.engine import events
 from bonesim.runtime.simulate import CLEARANCE_EVERY, closest_approach
 
-__all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "Frame", "Showcase",
-           "advance_through", "run_showcase"]
+__all__ = ["VIDEO_S", "VIDEO_FPS", "SIZE", "DUST_DT_S", "MONITOR_DT_S", "PLAN_AHEAD_S",
+           "Frame", "Showcase", "advance_through", "run_showcase"]
 
 #: Length of the time-lapse video [s] (the plan's minutes are sped up to fit).
 VIDEO_S = 16.0
@@ -100,6 +100,11 @@ class Frame(NamedTuple):
     history: object
 
 
+#: A run of ``seconds`` plans this much further [s]: the haptic-rate samples
+#: up to ``seconds`` interpolate the plan's samples on both sides of them.
+PLAN_AHEAD_S = 1.0
+
+
 class Showcase:
     """A scripted run drawn frame by frame in simulated time.
 
@@ -115,10 +120,15 @@ class Showcase:
         Frame size [px].
     monitor : bool
         Show the nerve monitor's trace when the case monitors a nerve.
+    seconds : float, optional
+        With the demo plan: plan only its first ``seconds`` [s of simulated
+        time] and :data:`PLAN_AHEAD_S` more (the same samples as the whole
+        plan's, planned in a fraction of the time when short;
+        :func:`bonesim.io.toolpath.plan_mastoidectomy`).
     """
 
     def __init__(self, case="phantom", burr="cutting-5mm", *, trajectory=None,
-                 size=SIZE, monitor: bool = True):
+                 size=SIZE, monitor: bool = True, seconds: float | None = None):
         from bonesim.physics.dust.grid import DustGrid
         from bonesim.io.burrs import load_burr
         from bonesim.io.loading import load_model
@@ -129,7 +139,9 @@ class Showcase:
 
         model = load_model(case, burr)
         if trajectory is None:                  # the plan: cutting, then diamond burr
-            planned = plan_mastoidectomy(model.case, model.burr)
+            planned = plan_mastoidectomy(
+                model.case, model.burr,
+                until_s=None if seconds is None else float(seconds) + PLAN_AHEAD_S)
             traj = planned.trajectory
             model = model.with_burrs([load_burr(b) for b in planned.burrs[1:]])
         else:
@@ -422,6 +434,7 @@ class Showcase:
             "case": self.model.name, "burr": self.model.burr.name,
             "burrs": [b.name for b in self.model.burrs],
             "simulated_s": round(self.t_s - self.start_s, 3),
+            # the tool path's length (with ``seconds``, of the part planned)
             "plan_s": round(self.end_s - self.start_s, 3),
             "steps": int(self.q),
             "voxels_removed": int(counts.sum()),
@@ -490,7 +503,8 @@ def run_showcase(case="phantom", burr="cutting-5mm", *, video="bonesim-run.mp4",
     wall0 = time.perf_counter()
     if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds must be positive, got {seconds!r}")
-    with Showcase(case, burr, size=size, monitor=monitor, trajectory=trajectory) as show:
+    with Showcase(case, burr, size=size, monitor=monitor, trajectory=trajectory,
+                  seconds=seconds) as show:
         n = max(2, int(round(video_s * fps)))
         show.frame_hz = fps
         end = show.end_s if seconds is None else min(show.end_s, show.start_s + seconds)

@@ -23,6 +23,8 @@ from tests.bonesim.io.test_case import THEIR_COLORS, their_manifest
 
 SIZE = (480, 300)
 DRILL_S = 60.0
+#: The plan's start that the runs drill (the burr reaches the bone in seconds).
+PLANNED_S = 90.0
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +41,9 @@ def label_stack_case(tmp_path_factory):
 
 
 def before_after(case) -> tuple[np.ndarray, dict]:
-    with Showcase(case, "cutting-5mm", size=SIZE) as sh:
+    with Showcase(case, "cutting-5mm", size=SIZE, seconds=PLANNED_S) as sh:
         t_on = float(sh.samples.t_s[np.flatnonzero(sh.samples.drill)[0]])
+        assert t_on + DRILL_S < sh.end_s
         sh.advance(sh.start_s)
         before = sh.image()
         sh.advance(t_on + DRILL_S)
