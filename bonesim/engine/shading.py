@@ -56,7 +56,8 @@ The field (gradient and smoothed density) is computed on dense boxes of
 densities, separably and plane by plane along i (a ring of seven planes of
 the k and j passes), so the working set stays small: per brick (the brick
 and a 3-voxel halo, 14^3 voxels) for the full shading, in parallel over
-bricks; on the inputs' bounding box plus ``2 NORMAL_RADIUS`` for the
+bricks, which also gives each vertex its slot (the surface's build hands it
+the surface voxels as bits); on the inputs' bounding box plus ``2 NORMAL_RADIUS`` for the
 refresh. The refresh's sets of voxels (inputs, the vertices to refresh, the
 removed voxels dilated by one) are bit rows over a window around the inputs
 (their bounding box plus ``max(tint_reach, 2 NORMAL_RADIUS)``, at most 64
@@ -170,11 +171,13 @@ def _gather_halo(density, nbr, b, box):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, near,
-                      colors, W, fp, tp, cone, pos, nrm, shf, col, counts):
-    """Position, normal and colour of every vertex, brick by brick (the
-    brick plus a 3-voxel halo is the box of the field's passes, plane by
-    plane)."""
+def _shade_all_kernel(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
+                      colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts):
+    """Vertex slots, voxels, positions, normals and colours of every vertex,
+    brick by brick: brick ``b``'s surface voxels (the bits ``srf[b, 8 x +
+    y]``, bit z) get the slots ``voff[b]...`` in (x, y, z) order, the other
+    voxels of ``vmap[b]`` -1. The brick plus a 3-voxel halo is the box of
+    the field's passes, plane by plane."""
     nb_tot = bricks.shape[0]
     n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     ncol = colors.shape[0]
@@ -193,69 +196,78 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_
         ring = np.empty(21 * n_pl, dtype=np.float32)
         n = 0
         for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
-            gathered = False
+            v = voff[b]
+            if voff[b + 1] == v:
+                for o in range(BRICK * n_pl):
+                    vmap[b, o] = -1
+                continue
+            _gather_halo(density, nbr, b, box)
             have = 0
             bi = bricks[b, 0] << BRICK_SHIFT
             bj = bricks[b, 1] << BRICK_SHIFT
             bk = bricks[b, 2] << BRICK_SHIFT
             for x in range(BRICK):
-                any_v = False
-                for o in range(x * n_pl, (x + 1) * n_pl):
-                    if vmap[b, o] >= 0:
-                        any_v = True
-                        break
-                if not any_v:
+                any_v = 0
+                for y in range(BRICK):
+                    any_v |= srf[b, x * BRICK + y]
+                if any_v == 0:
+                    for o in range(x * n_pl, (x + 1) * n_pl):
+                        vmap[b, o] = -1
                     continue
-                if not gathered:
-                    _gather_halo(density, nbr, b, box)
-                    gathered = True
                 for pl in range(max(have, x), x + 7):
                     kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
                 have = x + 7
-                for q in range(n_pl):
-                    o = x * n_pl + q
-                    v = vmap[b, o]
-                    if v < 0:
-                        continue
-                    y = q >> 3
-                    z = q & BRICK_MASK
-                    i = bi + x
+                i = bi + x
+                for y in range(BRICK):
+                    bits = srf[b, x * BRICK + y]
                     j = bj + y
-                    k = bk + z
-                    # the i-pass at this vertex only (same bits as i_plane)
-                    gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
-                    nx, ny, nz, ok = unit_normal(gx, gy, gz)
-                    if not ok:
-                        nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
-                                                      + z + _HALO, _LB, _LB)
-                    sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
-                    nrm[v, 0] = nx
-                    nrm[v, 1] = ny
-                    nrm[v, 2] = nz
-                    pos[v, 0] = origin[0] + spacing * (i + sh * nx)
-                    pos[v, 1] = origin[1] + spacing * (j + sh * ny)
-                    pos[v, 2] = origin[2] + spacing * (k + sh * nz)
-                    shf[v] = sh
-                    lab = np.int64(label[b, o])
-                    if lab >= ncol:
-                        lab = 0
-                    w = 0.0
-                    ar = 0.0
-                    ag = 0.0
-                    ab = 0.0
-                    if tint_on:
-                        if bone[lab] != 0:
-                            if (near[b, x] >> np.uint64(q)) & one:
-                                w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone, colors,
-                                                      origin, spacing, tp, cone, i, j, k,
-                                                      nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
-                    cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
-                                        ag, ab)
-                    col[v, 0] = cr
-                    col[v, 1] = cg
-                    col[v, 2] = cb
-                    col[v, 3] = ALPHA
-                    n += 1
+                    for z in range(BRICK):
+                        o = (x << 6) | (y << 3) | z
+                        if not (bits >> z) & 1:
+                            vmap[b, o] = -1
+                            continue
+                        vmap[b, o] = v
+                        k = bk + z
+                        ijk[v, 0] = i
+                        ijk[v, 1] = j
+                        ijk[v, 2] = k
+                        q = (y << 3) | z
+                        # the i-pass at this vertex only (same bits as i_plane)
+                        gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
+                        nx, ny, nz, ok = unit_normal(gx, gy, gz)
+                        if not ok:
+                            nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
+                                                          + z + _HALO, _LB, _LB)
+                        sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
+                        nrm[v, 0] = nx
+                        nrm[v, 1] = ny
+                        nrm[v, 2] = nz
+                        pos[v, 0] = origin[0] + spacing * (i + sh * nx)
+                        pos[v, 1] = origin[1] + spacing * (j + sh * ny)
+                        pos[v, 2] = origin[2] + spacing * (k + sh * nz)
+                        shf[v] = sh
+                        lab = np.int64(label[b, o])
+                        if lab >= ncol:
+                            lab = 0
+                        w = 0.0
+                        ar = 0.0
+                        ag = 0.0
+                        ab = 0.0
+                        if tint_on:
+                            if bone[lab] != 0:
+                                if (near[b, x] >> np.uint64(q)) & one:
+                                    w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone,
+                                                                colors, origin, spacing, tp, cone,
+                                                                i, j, k, nrm[v, 0], nrm[v, 1],
+                                                                nrm[v, 2], shf[v])
+                        cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
+                                            ag, ab)
+                        col[v, 0] = cr
+                        col[v, 1] = cg
+                        col[v, 2] = cb
+                        col[v, 3] = ALPHA
+                        v += 1
+                        n += 1
         counts[ch] = n
 
 
@@ -656,15 +668,24 @@ class Shader:
         positions may change."""
         return NORMAL_RADIUS
 
-    def shade_all(self, grid, vmap, pos, nrm, shift, col) -> int:
-        """Position, normal, shift and colour of every vertex of ``vmap``;
-        returns their number.
+    def shade_all(self, grid, srf, voff, vmap, ijk, pos, nrm, shift, col) -> int:
+        """Give every surface voxel its vertex slot and the vertex its voxel,
+        position, normal, shift and colour; returns the number of vertices.
 
         Parameters
         ----------
         grid : Grid
+        srf : (n_bricks, 64) uint8
+            Surface voxels: bit ``z`` of ``srf[b, 8 x + y]`` set where voxel
+            ``(x, y, z)`` of brick ``b`` (brick-relative) is one.
+        voff : (n_bricks + 1,) int64
+            Slot of brick ``b``'s first vertex; its vertices take the slots
+            ``voff[b] .. voff[b + 1] - 1`` in ``(x, y, z)`` order (so
+            ``voff[b + 1] - voff[b]`` is its number of surface voxels).
         vmap : (n_bricks, 512) int32
-            Vertex slot per voxel, -1 for none.
+            Written: vertex slot per voxel, -1 for none.
+        ijk : (vcap, 3) int32
+            Written: each vertex's voxel ``(i, j, k)``.
         pos, nrm : (vcap, 3) float32
             Written: positions [mm] and unit normals.
         shift : (vcap,) float32
@@ -673,12 +694,16 @@ class Shader:
         col : (vcap, 4) uint8
             Written: RGBA.
         """
+        if srf.shape != (grid.n_bricks, BRICK * BRICK) or srf.dtype != np.uint8:
+            raise ValueError(f"srf must be a ({grid.n_bricks}, 64) uint8 array")
+        if voff.shape != (grid.n_bricks + 1,) or voff[-1] > pos.shape[0]:
+            raise ValueError("voff must hold n_bricks + 1 slots within the vertex arrays")
         n_chunks = max(1, (grid.n_bricks + _CHUNK - 1) // _CHUNK)
         counts = np.zeros(n_chunks, dtype=np.int64)
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
-                          grid.bricks, vmap, self.bone, self.tint_on, self._near,
-                          self.colors, self._W, self._fp, self._tp, self._cone, pos, nrm, shift,
-                          col, counts)
+                          grid.bricks, srf, voff, self.bone, self.tint_on, self._near,
+                          self.colors, self._W, self._fp, self._tp, self._cone, vmap, ijk, pos,
+                          nrm, shift, col, counts)
         return int(counts.sum())
 
     def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:

@@ -81,9 +81,13 @@ one-voxel halo are gathered into 10x10 rows of 10 bits (surface voxels, cell
 codes and the ownership tests are shifts and ANDs of rows,
 :mod:`bonesim.engine.surface_build`); bricks whose
 box is all bone or whose brick-plus-upper-halo is all empty are skipped. A
-first pass counts vertices and owned triangles per brick, prefix sums give
-every brick its output ranges, a second pass writes vertices (and the
-voxel -> vertex map), a third writes triangles.
+first pass counts vertices and owned triangles per brick (keeping each
+brick's surface voxels as 64 bytes of bits), prefix sums give every brick
+its output ranges, a second pass gives the vertices their slots, voxels,
+positions, normals and colours and writes the voxel -> vertex map
+(:meth:`bonesim.engine.shading.Shader.shade_all`, one pass over the
+bricks), a third writes triangles (their corners' slots read from a
+per-brick copy of the map).
 
 Incremental update (:meth:`Surface.update`): a removed voxel that is empty
 now is a *source*. Only cells containing a source change code, and besides
@@ -143,7 +147,7 @@ from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
 from bonesim.engine.surface_build import (CHUNK, PARALLEL_CHUNKSIZE, build_count,
-                                          build_triangles, build_vertices, occupancy_bits)
+                                          build_triangles, occupancy_bits)
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
@@ -409,8 +413,9 @@ class Surface:
         nv = np.zeros(n_b, dtype=np.int64)
         nt = np.zeros(n_b, dtype=np.int64)
         om = np.empty((n_b, BRICK), dtype=np.int64)
+        srf = np.empty((n_b, BRICK * BRICK), dtype=np.uint8)
         occupancy_bits(grid.density, om)
-        build_count(om, nbr, nv, nt)
+        build_count(om, nbr, nv, nt, srf)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -424,14 +429,13 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        build_vertices(om, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
-                       vmap, pos, ijk)
         alive = np.zeros(vcap, dtype=np.uint8)
         alive[:n_v] = 1
         shift = np.zeros(vcap, dtype=np.float32)
-        # shaded before the triangles are made, so that each triangle's drawn
-        # winding is found as it is written (its corners' data in cache)
-        shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        # slots, voxels and shading of the vertices in one pass, before the
+        # triangles are made, so that each triangle's drawn winding is found
+        # as it is written (its corners' data in cache)
+        shader.shade_all(grid, srf, voff, vmap, ijk, pos, nrm, shift, col)
         trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
         trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
         tflip = np.zeros(tcap, dtype=np.uint8)

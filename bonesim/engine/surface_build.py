@@ -154,8 +154,11 @@ def _owned_total(rows):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def build_count(om, nbr, nv, nt):
-    """Vertices ``nv[b]`` and owned triangles ``nt[b]`` of every brick."""
+def build_count(om, nbr, nv, nt, srf_all):
+    """Vertices ``nv[b]`` and owned triangles ``nt[b]`` of every brick, and
+    its surface voxels as bits: ``srf_all[b, 8 x + y]`` bit ``z`` set where
+    brick voxel ``(x, y, z)`` is a surface voxel (``srf_all``: (n_bricks,
+    64) uint8)."""
     nb_tot = nbr.shape[0]
     n_chunks = (nb_tot + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
@@ -167,51 +170,56 @@ def build_count(om, nbr, nv, nt):
             if not up or full:
                 nv[b] = 0
                 nt[b] = 0
+                for q in range(BRICK * BRICK):
+                    srf_all[b, q] = 0
                 continue
             nv[b] = _surface_rows(rows, ez, srf)
+            for x in range(BRICK):
+                for y in range(BRICK):
+                    srf_all[b, x * BRICK + y] = srf[x, y]
             nt[b] = _owned_total(rows)
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def build_vertices(om, nbr, bricks, origin, spacing, voff, vmap, pos, vijk):
-    """Vertex slots ``voff[b]...`` of brick ``b``'s surface voxels in
-    (x, y, z) order: ``vmap``, voxel and voxel-centre position."""
-    nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
-    for ch in prange(n_chunks):
-        rows = np.empty((_L, _L), dtype=np.int64)
-        ez = np.empty((_L, _L), dtype=np.int64)
-        srf = np.empty((BRICK, BRICK), dtype=np.int64)
-        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
-            for o in range(BRICK_VOXELS):
-                vmap[b, o] = -1
-            if voff[b + 1] == voff[b]:
-                continue
-            _gather_rows(om, nbr, b, rows)
-            _surface_rows(rows, ez, srf)
-            v = voff[b]
-            bi = bricks[b, 0] << BRICK_SHIFT
-            bj = bricks[b, 1] << BRICK_SHIFT
-            bk = bricks[b, 2] << BRICK_SHIFT
-            for x in range(BRICK):
-                for y in range(BRICK):
-                    s = srf[x, y]
-                    if s == 0:
-                        continue
-                    for z in range(BRICK):
-                        if not (s >> z) & 1:
-                            continue
-                        i = bi + x
-                        j = bj + y
-                        k = bk + z
-                        vmap[b, (x << 6) | (y << 3) | z] = v
-                        vijk[v, 0] = i
-                        vijk[v, 1] = j
-                        vijk[v, 2] = k
-                        pos[v, 0] = origin[0] + spacing * i
-                        pos[v, 1] = origin[1] + spacing * j
-                        pos[v, 2] = origin[2] + spacing * k
-                        v += 1
+@njit(cache=True, nogil=True)
+def _gather_slots(vmap, nbr, b, loc):
+    """Vertex slots of brick ``b``'s voxels and of the one-voxel layer above
+    it along each axis into ``loc`` (flat ``(9, 9, 9)`` int32, brick-relative
+    ``(x, y, z)`` at ``(9 x + y) 9 + z``; -1 where no vertex or brick): the
+    corners of the brick's cells."""
+    s = 0
+    for rx in range(BRICK + 1):
+        sx = ((rx >> BRICK_SHIFT) + 1) * 9
+        ox = (rx & BRICK_MASK) << 6
+        for ry in range(BRICK + 1):
+            sy = sx + ((ry >> BRICK_SHIFT) + 1) * 3
+            oy = ox | ((ry & BRICK_MASK) << 3)
+            nb = nbr[b, sy + 1]
+            if nb >= 0:
+                for q in range(BRICK):
+                    loc[s + q] = vmap[nb, oy + q]
+            else:
+                for q in range(BRICK):
+                    loc[s + q] = -1
+            nb = nbr[b, sy + 2]
+            loc[s + BRICK] = vmap[nb, oy] if nb >= 0 else -1
+            s += BRICK + 1
+
+
+def _key_corner_offsets():
+    """(2 N_TRIPLES, 3) int64: for key ``2 tid + flip``, the offsets in the
+    :func:`_gather_slots` layout of its corners in winding order from the
+    cell's minimum corner (``(c0, c1, c2)``, or ``(c0, c2, c1)`` if
+    flipped)."""
+    out = np.zeros((2 * TRIPLE_CORNERS.shape[0], 3), dtype=np.int64)
+    for key in range(out.shape[0]):
+        for s in range(3):
+            cs = 3 - s if key & 1 and s > 0 else s
+            cn = int(TRIPLE_CORNERS[key >> 1, cs])
+            out[key, s] = ((cn >> 2) * (BRICK + 1) + ((cn >> 1) & 1)) * (BRICK + 1) + (cn & 1)
+    return out
+
+
+_KEY_CORNERS = _key_corner_offsets()
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -221,15 +229,19 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
     links are :func:`bonesim.engine.surface_tables.link_all`'s), and their
     drawn winding ``tflip`` from the shaded ``pos``
     and ``nrm`` (:func:`bonesim.engine.surface_tables.flip_of`);
-    ``err[chunk]`` counts corners without a vertex."""
+    ``err[chunk]`` counts triangles with a corner without a vertex. The corners' vertex
+    slots are read from a per-brick copy of ``vmap`` (:func:`_gather_slots`)."""
     nb_tot = nbr.shape[0]
     n_chunks = (nb_tot + CHUNK - 1) // CHUNK
+    kc = _KEY_CORNERS
     for ch in prange(n_chunks):
         rows = np.empty((_L, _L), dtype=np.int64)
+        loc = np.empty((BRICK + 1) ** 3, dtype=np.int32)
         for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
             if toff[b + 1] == toff[b]:
                 continue
             _gather_rows(om, nbr, b, rows)
+            _gather_slots(vmap, nbr, b, loc)
             t = toff[b]
             for x in range(1, _L - 1):
                 for y in range(1, _L - 1):
@@ -243,6 +255,7 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
                     bx = rows[x - 1, y] | rows[x - 1, y + 1]
                     by = rows[x, y - 1] | rows[x + 1, y - 1]
                     bz = r00 | r01 | r10 | r11
+                    cbase = ((x - 1) * (BRICK + 1) + y - 1) * (BRICK + 1) - 1
                     for z in range(1, _L - 1):
                         if not (m >> z) & 1:
                             continue
@@ -255,30 +268,19 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
                         low2 = (bz >> (z - 1)) & 1 == 0
                         for q in range(n):
                             key = QUAL_KEY[code, q]
-                            tid = key >> 1
-                            f = TRIPLE_FACE[tid]
+                            f = TRIPLE_FACE[key >> 1]
                             if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
                                 continue
-                            for s in range(3):
-                                cs = s
-                                if key & 1 and s > 0:
-                                    cs = 3 - s
-                                cn = TRIPLE_CORNERS[tid, cs]
-                                # brick-relative coordinates of the corner (0..8)
-                                rx = x - 1 + (cn >> 2)
-                                ry = y - 1 + ((cn >> 1) & 1)
-                                rz = z - 1 + (cn & 1)
-                                nb = nbr[b, ((rx >> BRICK_SHIFT) + 1) * 9
-                                         + ((ry >> BRICK_SHIFT) + 1) * 3
-                                         + (rz >> BRICK_SHIFT) + 1]
-                                v = -1
-                                if nb >= 0:
-                                    v = vmap[nb, ((rx & BRICK_MASK) << 6)
-                                             | ((ry & BRICK_MASK) << 3) | (rz & BRICK_MASK)]
-                                if v < 0:
-                                    err[ch] += 1
-                                trec[t, s] = v
+                            c = cbase + z
+                            v0 = loc[c + kc[key, 0]]
+                            v1 = loc[c + kc[key, 1]]
+                            v2 = loc[c + kc[key, 2]]
+                            trec[t, 0] = v0
+                            trec[t, 1] = v1
+                            trec[t, 2] = v2
                             trec[t, TR_KEY] = key      # the list links: link_all
-                            if trec[t, 0] >= 0 and trec[t, 1] >= 0 and trec[t, 2] >= 0:
+                            if v0 >= 0 and v1 >= 0 and v2 >= 0:
                                 tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
+                            else:
+                                err[ch] += 1
                             t += 1

@@ -18,8 +18,9 @@ import pytest
 from bonesim.engine.grid import BRICK, Grid
 from bonesim.engine.shading import _HALO, _LB, _gather_halo
 from bonesim.engine.surface import Surface
-from bonesim.engine.surface_build import build_count, occupancy_bits
-from bonesim.engine.surface_tables import TRIPLE_FACE, brick_neighbours, qualifying_triples
+from bonesim.engine.surface_build import _KEY_CORNERS, _gather_slots, build_count, occupancy_bits
+from bonesim.engine.surface_tables import (CORNER_OFFSETS, TRIPLE_CORNERS, TRIPLE_FACE,
+                                           brick_neighbours, qualifying_triples)
 
 COLORS = np.array([[0, 0, 0], [230, 220, 190], [200, 60, 50], [40, 90, 210]], dtype=np.uint8)
 
@@ -49,11 +50,13 @@ def _dense_occ(grid):
 
 
 def _ref_counts(grid):
-    """Per brick: surface voxels (occupied, an empty 26-neighbour) and owned
-    triangles, from dense arrays, cell by cell (plain loops)."""
+    """Per brick: surface voxels (occupied, an empty 26-neighbour), their
+    bits (bit z of ``[b, 8 x + y]``) and owned triangles, from dense arrays,
+    cell by cell (plain loops)."""
     occ, lo = _dense_occ(grid)
     nv = np.zeros(grid.n_bricks, np.int64)
     nt = np.zeros(grid.n_bricks, np.int64)
+    bits = np.zeros((grid.n_bricks, BRICK * BRICK), np.uint8)
     for b, (bi, bj, bk) in enumerate(grid.bricks):
         o = np.array([bi, bj, bk]) * BRICK - lo
         for x in range(BRICK):
@@ -63,6 +66,7 @@ def _ref_counts(grid):
                     if occ[tuple(p)] and not occ[p[0] - 1:p[0] + 2, p[1] - 1:p[1] + 2,
                                                  p[2] - 1:p[2] + 2].all():
                         nv[b] += 1
+                        bits[b, x * BRICK + y] |= 1 << z
                     cell = occ[p[0]:p[0] + 2, p[1]:p[1] + 2, p[2]:p[2] + 2]
                     code = sum(int(cell[c >> 2, (c >> 1) & 1, c & 1]) << c for c in range(8))
                     for tid, _ in _triples(code):
@@ -75,7 +79,7 @@ def _ref_counts(grid):
                             if not occ[tuple(sl)].any():
                                 continue           # owned by the cell below
                         nt[b] += 1
-    return nv, nt
+    return nv, nt, bits
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -98,11 +102,36 @@ def test_counts_match_dense_reference(seed, p_occ):
     occupancy_bits(grid.density, om)
     nv = np.full(grid.n_bricks, -1, np.int64)
     nt = np.full(grid.n_bricks, -1, np.int64)
-    build_count(om, nbr, nv, nt)
-    want_v, want_t = _ref_counts(grid)
+    srf = np.full((grid.n_bricks, BRICK * BRICK), 0xAA, np.uint8)
+    build_count(om, nbr, nv, nt, srf)
+    want_v, want_t, want_bits = _ref_counts(grid)
     assert np.array_equal(nv, want_v)
     assert np.array_equal(nt, want_t)
+    assert np.array_equal(srf, want_bits)
     assert nv.sum() > 0 and nt.sum() > 0
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_slot_gather_equals_voxel_by_voxel(seed):
+    dens, lab = _volume(seed, p_occ=0.4)
+    grid = Grid.from_dense(lab, dens)
+    surf = Surface.build(grid, COLORS)
+    loc = np.empty((BRICK + 1) ** 3, np.int32)
+    for b, (bi, bj, bk) in enumerate(grid.bricks):
+        _gather_slots(surf.vmap, surf._nbr, b, loc)
+        want = np.array([[[surf.vertex_at(bi * BRICK + x, bj * BRICK + y, bk * BRICK + z)
+                           for z in range(BRICK + 1)] for y in range(BRICK + 1)]
+                         for x in range(BRICK + 1)], np.int32)
+        assert np.array_equal(loc.reshape(want.shape), want), b
+
+
+def test_key_corner_offsets_follow_the_winding():
+    for key in range(2 * TRIPLE_CORNERS.shape[0]):
+        cs = TRIPLE_CORNERS[key >> 1]
+        order = (cs[0], cs[2], cs[1]) if key & 1 else tuple(cs)
+        for s, cn in enumerate(order):
+            dx, dy, dz = CORNER_OFFSETS[cn]
+            assert _KEY_CORNERS[key, s] == (dx * (BRICK + 1) + dy) * (BRICK + 1) + dz
 
 
 def test_shading_gather_equals_voxel_by_voxel():
