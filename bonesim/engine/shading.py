@@ -76,6 +76,7 @@ from numba import njit, prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from bonesim.errors import BonesimError
+from bonesim.engine.work_items import new_counter, take_item, workers
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, fallback_normal, i_plane,
                                     i_point,
@@ -170,16 +171,13 @@ def _gather_halo(density, nbr, b, box):
             s += _HALO
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _shade_all_kernel(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
-                      colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts):
-    """Vertex slots, voxels, positions, normals and colours of every vertex,
-    brick by brick: brick ``b``'s surface voxels (the bits ``srf[b, 8 x +
-    y]``, bit z) get the slots ``voff[b]...`` in (x, y, z) order, the other
-    voxels of ``vmap[b]`` -1. The brick plus a 3-voxel halo is the box of
-    the field's passes, plane by plane."""
+@njit(cache=True, nogil=True)
+def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
+                 colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, ch, box, rs, rd,
+                 ring):
+    """:func:`_shade_all_kernel` of work item ``ch`` (scratch ``box``, ``rs``,
+    ``rd``, ``ring``)."""
     nb_tot = bricks.shape[0]
-    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
     ncol = colors.shape[0]
     one = np.uint64(1)
     n_pl = BRICK * BRICK
@@ -189,86 +187,107 @@ def _shade_all_kernel(keys, vals, density, label, nbr, bricks, srf, voff, bone, 
     s_out = fp[_F_OUT]
     s_in = fp[_F_IN]
     w0, w1, w2, w3, w4, w5, w6 = W[0], W[1], W[2], W[3], W[4], W[5], W[6]
-    for ch in prange(n_chunks):
+    n = 0
+    for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+        v = voff[b]
+        if voff[b + 1] == v:
+            for o in range(BRICK * n_pl):
+                vmap[b, o] = -1
+            continue
+        _gather_halo(density, nbr, b, box)
+        have = 0
+        bi = bricks[b, 0] << BRICK_SHIFT
+        bj = bricks[b, 1] << BRICK_SHIFT
+        bk = bricks[b, 2] << BRICK_SHIFT
+        for x in range(BRICK):
+            any_v = 0
+            for y in range(BRICK):
+                any_v |= srf[b, x * BRICK + y]
+            if any_v == 0:
+                for o in range(x * n_pl, (x + 1) * n_pl):
+                    vmap[b, o] = -1
+                continue
+            for pl in range(max(have, x), x + 7):
+                kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
+            have = x + 7
+            i = bi + x
+            for y in range(BRICK):
+                bits = srf[b, x * BRICK + y]
+                j = bj + y
+                for z in range(BRICK):
+                    o = (x << 6) | (y << 3) | z
+                    if not (bits >> z) & 1:
+                        vmap[b, o] = -1
+                        continue
+                    vmap[b, o] = v
+                    k = bk + z
+                    ijk[v, 0] = i
+                    ijk[v, 1] = j
+                    ijk[v, 2] = k
+                    q = (y << 3) | z
+                    # the i-pass at this vertex only (same bits as i_plane)
+                    gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
+                    nx, ny, nz, ok = unit_normal(gx, gy, gz)
+                    if not ok:
+                        nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
+                                                      + z + _HALO, _LB, _LB)
+                    sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
+                    nrm[v, 0] = nx
+                    nrm[v, 1] = ny
+                    nrm[v, 2] = nz
+                    pos[v, 0] = origin[0] + spacing * (i + sh * nx)
+                    pos[v, 1] = origin[1] + spacing * (j + sh * ny)
+                    pos[v, 2] = origin[2] + spacing * (k + sh * nz)
+                    shf[v] = sh
+                    lab = np.int64(label[b, o])
+                    if lab >= ncol:
+                        lab = 0
+                    w = 0.0
+                    ar = 0.0
+                    ag = 0.0
+                    ab = 0.0
+                    if tint_on:
+                        if bone[lab] != 0:
+                            if (near[b, x] >> np.uint64(q)) & one:
+                                w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone,
+                                                            colors, origin, spacing, tp, cone,
+                                                            i, j, k, nrm[v, 0], nrm[v, 1],
+                                                            nrm[v, 2], shf[v])
+                    cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
+                                        ag, ab)
+                    col[v, 0] = cr
+                    col[v, 1] = cg
+                    col[v, 2] = cb
+                    col[v, 3] = ALPHA
+                    v += 1
+                    n += 1
+    counts[ch] = n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _shade_all_kernel(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
+                      colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, counter,
+                      n_workers):
+    """Vertex slots, voxels, positions, normals and colours of every vertex,
+    brick by brick: brick ``b``'s surface voxels (the bits ``srf[b, 8 x +
+    y]``, bit z) get the slots ``voff[b]...`` in (x, y, z) order, the other
+    voxels of ``vmap[b]`` -1. The brick plus a 3-voxel halo is the box of
+    the field's passes, plane by plane. Work items of ``_CHUNK`` bricks are
+    taken from ``counter`` by ``n_workers`` workers
+    (:mod:`bonesim.engine.work_items`); ``counts[item]``: its vertices."""
+    n_chunks = (bricks.shape[0] + _CHUNK - 1) // _CHUNK
+    for _ in prange(n_workers):
         box = np.empty(_LB * _LB * _LB, dtype=np.float32)
         rs = np.empty(_LB * BRICK, dtype=np.float32)
         rd = np.empty(_LB * BRICK, dtype=np.float32)
-        ring = np.empty(21 * n_pl, dtype=np.float32)
-        n = 0
-        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
-            v = voff[b]
-            if voff[b + 1] == v:
-                for o in range(BRICK * n_pl):
-                    vmap[b, o] = -1
-                continue
-            _gather_halo(density, nbr, b, box)
-            have = 0
-            bi = bricks[b, 0] << BRICK_SHIFT
-            bj = bricks[b, 1] << BRICK_SHIFT
-            bk = bricks[b, 2] << BRICK_SHIFT
-            for x in range(BRICK):
-                any_v = 0
-                for y in range(BRICK):
-                    any_v |= srf[b, x * BRICK + y]
-                if any_v == 0:
-                    for o in range(x * n_pl, (x + 1) * n_pl):
-                        vmap[b, o] = -1
-                    continue
-                for pl in range(max(have, x), x + 7):
-                    kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
-                have = x + 7
-                i = bi + x
-                for y in range(BRICK):
-                    bits = srf[b, x * BRICK + y]
-                    j = bj + y
-                    for z in range(BRICK):
-                        o = (x << 6) | (y << 3) | z
-                        if not (bits >> z) & 1:
-                            vmap[b, o] = -1
-                            continue
-                        vmap[b, o] = v
-                        k = bk + z
-                        ijk[v, 0] = i
-                        ijk[v, 1] = j
-                        ijk[v, 2] = k
-                        q = (y << 3) | z
-                        # the i-pass at this vertex only (same bits as i_plane)
-                        gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
-                        nx, ny, nz, ok = unit_normal(gx, gy, gz)
-                        if not ok:
-                            nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
-                                                          + z + _HALO, _LB, _LB)
-                        sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
-                        nrm[v, 0] = nx
-                        nrm[v, 1] = ny
-                        nrm[v, 2] = nz
-                        pos[v, 0] = origin[0] + spacing * (i + sh * nx)
-                        pos[v, 1] = origin[1] + spacing * (j + sh * ny)
-                        pos[v, 2] = origin[2] + spacing * (k + sh * nz)
-                        shf[v] = sh
-                        lab = np.int64(label[b, o])
-                        if lab >= ncol:
-                            lab = 0
-                        w = 0.0
-                        ar = 0.0
-                        ag = 0.0
-                        ab = 0.0
-                        if tint_on:
-                            if bone[lab] != 0:
-                                if (near[b, x] >> np.uint64(q)) & one:
-                                    w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone,
-                                                                colors, origin, spacing, tp, cone,
-                                                                i, j, k, nrm[v, 0], nrm[v, 1],
-                                                                nrm[v, 2], shf[v])
-                        cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
-                                            ag, ab)
-                        col[v, 0] = cr
-                        col[v, 1] = cg
-                        col[v, 2] = cb
-                        col[v, 3] = ALPHA
-                        v += 1
-                        n += 1
-        counts[ch] = n
+        ring = np.empty(21 * BRICK * BRICK, dtype=np.float32)
+        while True:
+            ch = take_item(counter)
+            if ch >= n_chunks:
+                break
+            _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
+                         colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, ch, box,
+                         rs, rd, ring)
 
 
 @njit(cache=True, nogil=True)
@@ -703,7 +722,7 @@ class Shader:
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
                           grid.bricks, srf, voff, self.bone, self.tint_on, self._near,
                           self.colors, self._W, self._fp, self._tp, self._cone, vmap, ijk, pos,
-                          nrm, shift, col, counts)
+                          nrm, shift, col, counts, new_counter(), workers())
         return int(counts.sum())
 
     def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:

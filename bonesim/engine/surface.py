@@ -140,23 +140,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (CHUNK, PARALLEL_CHUNKSIZE, build_count,
-                                          build_triangles, occupancy_bits)
+from bonesim.engine.surface_build import CHUNK, build_count, build_prepare, build_triangles
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
                                            S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_FILL, TR_KEY,
                                            TR_NEXT, TR_ONEXT, TR_WIDTH, T_ALIVE, T_HW, VR_HEAD,
-                                           VR_OHEAD, V_ALIVE, V_HW, brick_neighbours, link_all,
+                                           VR_OHEAD, V_ALIVE, V_HW, link_all,
                                            orient_of, triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, update_tiles
 from bonesim.engine.surface_window import N_ROWSETS
+from bonesim.engine.work_items import new_counter, workers
 
 __all__ = ["Surface", "CanonicalSurface", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
@@ -398,24 +397,24 @@ class Surface:
         if grid.label.size and int(grid.label.max()) >= colors.shape[0]:
             raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
                              f"label {int(grid.label.max())}")
-        # work items handed out a few at a time, not split in equal halves
-        # up front: a thread that the OS (a loaded machine) holds back does
-        # not hold the build back; each item writes its own outputs, so the
-        # result does not depend on who ran what
-        with numba.parallel_chunksize(PARALLEL_CHUNKSIZE):
-            return cls._build(grid, colors, bone, shading)
+        return cls._build(grid, colors, bone, shading)
 
     @classmethod
     def _build(cls, grid, colors, bone, shading) -> "Surface":
+        # the parallel kernels' work items are handed out one at a time, not
+        # split in equal parts up front: a thread that the OS (a loaded
+        # machine) holds back does not hold the build back; each item writes
+        # its own outputs, so the result does not depend on who ran what
         n_b = grid.n_bricks
-        nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
-        shader = Shader(grid, nbr, colors, bone, shading)
-        nv = np.zeros(n_b, dtype=np.int64)
-        nt = np.zeros(n_b, dtype=np.int64)
+        nw = workers()
+        nbr = np.empty((n_b, 27), dtype=np.int32)
         om = np.empty((n_b, BRICK), dtype=np.int64)
+        build_prepare(grid.keys, grid.vals, grid.bricks, grid.density, nbr, om, new_counter(), nw)
+        shader = Shader(grid, nbr, colors, bone, shading)
+        nv = np.empty(n_b, dtype=np.int64)
+        nt = np.empty(n_b, dtype=np.int64)
         srf = np.empty((n_b, BRICK * BRICK), dtype=np.uint8)
-        occupancy_bits(grid.density, om)
-        build_count(om, nbr, nv, nt, srf)
+        build_count(om, nbr, nv, nt, srf, new_counter(), nw)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -440,7 +439,7 @@ class Surface:
         trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
         tflip = np.zeros(tcap, dtype=np.uint8)
         err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err)
+        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, new_counter(), nw)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
         vrec = np.full((vcap, 2), -1, dtype=np.int32)

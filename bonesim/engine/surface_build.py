@@ -9,7 +9,8 @@ from numba import njit, prange
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
 from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
-                                           TR_KEY, flip_of)
+                                           TR_KEY, flip_of, neighbours_of)
+from bonesim.engine.work_items import take_item
 
 __all__ = []
 
@@ -27,10 +28,9 @@ __all__ = []
 # own a triangle (neither all empty nor all occupied). Vertices and
 # triangles come out in the order of the definition's loops, brick by brick
 # and (x, y, z) within a brick, whatever the number of threads.
-CHUNK = 32            # bricks per parallel work item
-#: Work items a thread takes at a time in the build's parallel loops
-#: (``numba.parallel_chunksize``; dynamic scheduling).
-PARALLEL_CHUNKSIZE = 4
+#: Bricks per work item of the build's parallel kernels (handed out one at
+#: a time to the workers, :mod:`bonesim.engine.work_items`).
+CHUNK = 32
 _L = BRICK + 2         # local box: brick plus a one-voxel halo on each side
 _FULL_ROW = (1 << _L) - 1
 _INNER = ((1 << BRICK) - 1) << 1   # local bits 1..8: the brick's own voxels
@@ -38,17 +38,40 @@ _INNER = ((1 << BRICK) - 1) << 1   # local bits 1..8: the brick's own voxels
 _POP8 = np.array([bin(v).count("1") for v in range(256)], dtype=np.int64)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _occupancy_of(density, b, om):
+    """``om[b, :]``: brick ``b``'s row of :func:`occupancy_bits`."""
+    for w in range(BRICK):
+        acc = 0
+        for u in range(64):
+            if density[b, w * 64 + u] > 0:
+                acc |= 1 << u
+        om[b, w] = acc
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def occupancy_bits(density, om):
     """``om[b, x]``: bit ``8 y + z`` set where voxel ``(x, y, z)`` of brick
     ``b`` has density > 0 (``om``: (n_bricks, 8) int64)."""
     for b in prange(density.shape[0]):
-        for w in range(BRICK):
-            acc = 0
-            for u in range(64):
-                if density[b, w * 64 + u] > 0:
-                    acc |= 1 << u
-            om[b, w] = acc
+        _occupancy_of(density, b, om)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def build_prepare(keys, vals, bricks, density, nbr, om, counter, n_workers):
+    """:func:`bonesim.engine.surface_tables.brick_neighbours` into ``nbr``
+    and :func:`occupancy_bits` into ``om``, in one parallel pass (work items
+    of ``CHUNK`` bricks taken from ``counter``)."""
+    nb_tot = bricks.shape[0]
+    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
+    for _ in prange(n_workers):
+        while True:
+            ch = take_item(counter)
+            if ch >= n_chunks:
+                break
+            for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
+                neighbours_of(keys, vals, bricks, b, nbr)
+                _occupancy_of(density, b, om)
 
 
 @njit(cache=True, nogil=True)
@@ -153,31 +176,43 @@ def _owned_total(rows):
     return ct
 
 
+@njit(cache=True, nogil=True)
+def _count_chunk(om, nbr, nv, nt, srf_all, ch, rows, ez, srf):
+    """:func:`build_count` of work item ``ch`` (scratch ``rows``, ``ez``,
+    ``srf``)."""
+    nb_tot = nbr.shape[0]
+    for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
+        up, full = _gather_rows(om, nbr, b, rows)
+        if not up or full:
+            nv[b] = 0
+            nt[b] = 0
+            for q in range(BRICK * BRICK):
+                srf_all[b, q] = 0
+            continue
+        nv[b] = _surface_rows(rows, ez, srf)
+        for x in range(BRICK):
+            for y in range(BRICK):
+                srf_all[b, x * BRICK + y] = srf[x, y]
+        nt[b] = _owned_total(rows)
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def build_count(om, nbr, nv, nt, srf_all):
+def build_count(om, nbr, nv, nt, srf_all, counter, n_workers):
     """Vertices ``nv[b]`` and owned triangles ``nt[b]`` of every brick, and
     its surface voxels as bits: ``srf_all[b, 8 x + y]`` bit ``z`` set where
     brick voxel ``(x, y, z)`` is a surface voxel (``srf_all``: (n_bricks,
-    64) uint8)."""
-    nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
-    for ch in prange(n_chunks):
+    64) uint8). Work items of ``CHUNK`` bricks are taken from ``counter``
+    by ``n_workers`` workers."""
+    n_chunks = (nbr.shape[0] + CHUNK - 1) // CHUNK
+    for _ in prange(n_workers):
         rows = np.empty((_L, _L), dtype=np.int64)
         ez = np.empty((_L, _L), dtype=np.int64)
         srf = np.empty((BRICK, BRICK), dtype=np.int64)
-        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
-            up, full = _gather_rows(om, nbr, b, rows)
-            if not up or full:
-                nv[b] = 0
-                nt[b] = 0
-                for q in range(BRICK * BRICK):
-                    srf_all[b, q] = 0
-                continue
-            nv[b] = _surface_rows(rows, ez, srf)
-            for x in range(BRICK):
-                for y in range(BRICK):
-                    srf_all[b, x * BRICK + y] = srf[x, y]
-            nt[b] = _owned_total(rows)
+        while True:
+            ch = take_item(counter)
+            if ch >= n_chunks:
+                break
+            _count_chunk(om, nbr, nv, nt, srf_all, ch, rows, ez, srf)
 
 
 @njit(cache=True, nogil=True)
@@ -222,65 +257,79 @@ def _key_corner_offsets():
 _KEY_CORNERS = _key_corner_offsets()
 
 
+@njit(cache=True, nogil=True)
+def _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, loc):
+    """:func:`build_triangles` of work item ``ch`` (scratch ``rows``,
+    ``loc``)."""
+    nb_tot = nbr.shape[0]
+    kc = _KEY_CORNERS
+    for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
+        if toff[b + 1] == toff[b]:
+            continue
+        _gather_rows(om, nbr, b, rows)
+        _gather_slots(vmap, nbr, b, loc)
+        t = toff[b]
+        for x in range(1, _L - 1):
+            for y in range(1, _L - 1):
+                r00 = rows[x, y]
+                r01 = rows[x, y + 1]
+                r10 = rows[x + 1, y]
+                r11 = rows[x + 1, y + 1]
+                m = _mixed(r00, r01, r10, r11)
+                if m == 0:
+                    continue
+                bx = rows[x - 1, y] | rows[x - 1, y + 1]
+                by = rows[x, y - 1] | rows[x + 1, y - 1]
+                bz = r00 | r01 | r10 | r11
+                cbase = ((x - 1) * (BRICK + 1) + y - 1) * (BRICK + 1) - 1
+                for z in range(1, _L - 1):
+                    if not (m >> z) & 1:
+                        continue
+                    code = _cell_code(r00, r01, r10, r11, z)
+                    n = QUAL_N[code]
+                    if n == 0:
+                        continue
+                    low0 = (bx >> z) & 3 == 0
+                    low1 = (by >> z) & 3 == 0
+                    low2 = (bz >> (z - 1)) & 1 == 0
+                    for q in range(n):
+                        key = QUAL_KEY[code, q]
+                        f = TRIPLE_FACE[key >> 1]
+                        if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
+                            continue
+                        c = cbase + z
+                        v0 = loc[c + kc[key, 0]]
+                        v1 = loc[c + kc[key, 1]]
+                        v2 = loc[c + kc[key, 2]]
+                        trec[t, 0] = v0
+                        trec[t, 1] = v1
+                        trec[t, 2] = v2
+                        trec[t, TR_KEY] = key      # the list links: link_all
+                        if v0 >= 0 and v1 >= 0 and v2 >= 0:
+                            tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
+                        else:
+                            err[ch] += 1
+                        t += 1
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err):
+def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, counter, n_workers):
     """Triangle records ``toff[b]...`` of the triangles brick ``b``'s cells
     own, in (x, y, z, qualifying-triple) order (corners and key; the list
     links are :func:`bonesim.engine.surface_tables.link_all`'s), and their
     drawn winding ``tflip`` from the shaded ``pos``
     and ``nrm`` (:func:`bonesim.engine.surface_tables.flip_of`);
-    ``err[chunk]`` counts triangles with a corner without a vertex. The corners' vertex
-    slots are read from a per-brick copy of ``vmap`` (:func:`_gather_slots`)."""
-    nb_tot = nbr.shape[0]
-    n_chunks = (nb_tot + CHUNK - 1) // CHUNK
-    kc = _KEY_CORNERS
-    for ch in prange(n_chunks):
+    ``err[chunk]`` counts triangles with a corner without a vertex. The
+    corners' vertex slots are read from a per-brick copy of ``vmap``
+    (:func:`_gather_slots`).
+    Work items of ``CHUNK`` bricks are taken from ``counter`` by
+    ``n_workers`` workers."""
+    n_chunks = (nbr.shape[0] + CHUNK - 1) // CHUNK
+    for _ in prange(n_workers):
         rows = np.empty((_L, _L), dtype=np.int64)
         loc = np.empty((BRICK + 1) ** 3, dtype=np.int32)
-        for b in range(ch * CHUNK, min(nb_tot, (ch + 1) * CHUNK)):
-            if toff[b + 1] == toff[b]:
-                continue
-            _gather_rows(om, nbr, b, rows)
-            _gather_slots(vmap, nbr, b, loc)
-            t = toff[b]
-            for x in range(1, _L - 1):
-                for y in range(1, _L - 1):
-                    r00 = rows[x, y]
-                    r01 = rows[x, y + 1]
-                    r10 = rows[x + 1, y]
-                    r11 = rows[x + 1, y + 1]
-                    m = _mixed(r00, r01, r10, r11)
-                    if m == 0:
-                        continue
-                    bx = rows[x - 1, y] | rows[x - 1, y + 1]
-                    by = rows[x, y - 1] | rows[x + 1, y - 1]
-                    bz = r00 | r01 | r10 | r11
-                    cbase = ((x - 1) * (BRICK + 1) + y - 1) * (BRICK + 1) - 1
-                    for z in range(1, _L - 1):
-                        if not (m >> z) & 1:
-                            continue
-                        code = _cell_code(r00, r01, r10, r11, z)
-                        n = QUAL_N[code]
-                        if n == 0:
-                            continue
-                        low0 = (bx >> z) & 3 == 0
-                        low1 = (by >> z) & 3 == 0
-                        low2 = (bz >> (z - 1)) & 1 == 0
-                        for q in range(n):
-                            key = QUAL_KEY[code, q]
-                            f = TRIPLE_FACE[key >> 1]
-                            if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
-                                continue
-                            c = cbase + z
-                            v0 = loc[c + kc[key, 0]]
-                            v1 = loc[c + kc[key, 1]]
-                            v2 = loc[c + kc[key, 2]]
-                            trec[t, 0] = v0
-                            trec[t, 1] = v1
-                            trec[t, 2] = v2
-                            trec[t, TR_KEY] = key      # the list links: link_all
-                            if v0 >= 0 and v1 >= 0 and v2 >= 0:
-                                tflip[t] = 1 if flip_of(trec, t, pos, nrm) else 0
-                            else:
-                                err[ch] += 1
-                            t += 1
+        while True:
+            ch = take_item(counter)
+            if ch >= n_chunks:
+                break
+            _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, loc)

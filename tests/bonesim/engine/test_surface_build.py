@@ -18,7 +18,9 @@ import pytest
 from bonesim.engine.grid import BRICK, Grid
 from bonesim.engine.shading import _HALO, _LB, _gather_halo
 from bonesim.engine.surface import Surface
-from bonesim.engine.surface_build import _KEY_CORNERS, _gather_slots, build_count, occupancy_bits
+from bonesim.engine.surface_build import (_KEY_CORNERS, _gather_slots, build_count, build_prepare,
+                                          occupancy_bits)
+from bonesim.engine.work_items import new_counter
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, TRIPLE_CORNERS, TRIPLE_FACE,
                                            brick_neighbours, qualifying_triples)
 
@@ -93,6 +95,25 @@ def test_occupancy_bits_are_the_occupied_voxels(seed):
     assert np.array_equal(got.astype(bool), want)
 
 
+@pytest.mark.parametrize("seed,n_workers", [(0, 1), (1, 3)])
+def test_prepare_gives_neighbours_and_occupancy(seed, n_workers):
+    dens, lab = _volume(seed, shape=(40, 30, 50))
+    grid = Grid.from_dense(lab, dens)
+    index = {tuple(int(c) for c in b): n for n, b in enumerate(grid.bricks)}
+    want_nbr = np.array([[index.get((bi + di, bj + dj, bk + dk), -1)
+                          for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1)]
+                         for bi, bj, bk in grid.bricks.tolist()], np.int32)
+    want_om = np.empty((grid.n_bricks, BRICK), np.int64)
+    occupancy_bits(grid.density, want_om)
+    nbr = np.full((grid.n_bricks, 27), -7, np.int32)
+    om = np.full((grid.n_bricks, BRICK), -7, np.int64)
+    build_prepare(grid.keys, grid.vals, grid.bricks, grid.density, nbr, om, new_counter(),
+                  n_workers)
+    assert np.array_equal(nbr, want_nbr)
+    assert np.array_equal(nbr, brick_neighbours(grid.keys, grid.vals, grid.bricks))
+    assert np.array_equal(om, want_om)
+
+
 @pytest.mark.parametrize("seed,p_occ", [(0, 0.6), (3, 0.3), (4, 0.9)])
 def test_counts_match_dense_reference(seed, p_occ):
     dens, lab = _volume(seed, p_occ=p_occ)
@@ -103,7 +124,7 @@ def test_counts_match_dense_reference(seed, p_occ):
     nv = np.full(grid.n_bricks, -1, np.int64)
     nt = np.full(grid.n_bricks, -1, np.int64)
     srf = np.full((grid.n_bricks, BRICK * BRICK), 0xAA, np.uint8)
-    build_count(om, nbr, nv, nt, srf)
+    build_count(om, nbr, nv, nt, srf, new_counter(), 2)
     want_v, want_t, want_bits = _ref_counts(grid)
     assert np.array_equal(nv, want_v)
     assert np.array_equal(nt, want_t)
@@ -158,18 +179,20 @@ def _raw(surf):
 
 
 def test_build_is_bit_identical_in_any_thread_count_and_schedule(monkeypatch):
+    import bonesim.engine.shading as shading_mod
     import bonesim.engine.surface as surface_mod
 
     dens, lab = _volume(11, shape=(70, 45, 60), p_occ=0.5)
     grid = Grid.from_dense(lab, dens, spacing_mm=0.3)
     n0 = numba.get_num_threads()
+    n_max = numba.config.NUMBA_NUM_THREADS
     builds = []
     try:
-        for threads, chunksize in ((1, 0), (numba.config.NUMBA_NUM_THREADS, 0),
-                                   (numba.config.NUMBA_NUM_THREADS, 1),
-                                   (numba.config.NUMBA_NUM_THREADS, 4)):
+        # workers: one per thread, or more (a thread then runs several in turn)
+        for threads, n_workers in ((1, 1), (n_max, n_max), (n_max, 3), (1, 5)):
             numba.set_num_threads(threads)
-            monkeypatch.setattr(surface_mod, "PARALLEL_CHUNKSIZE", chunksize)
+            for mod in (surface_mod, shading_mod):
+                monkeypatch.setattr(mod, "workers", lambda n=n_workers: n)
             builds.append(_raw(Surface.build(grid, COLORS, bone=[0, 1, 0, 0])))
     finally:
         numba.set_num_threads(n0)
@@ -178,3 +201,25 @@ def test_build_is_bit_identical_in_any_thread_count_and_schedule(monkeypatch):
         for name in one:
             assert one[name].shape == other[name].shape, name
             assert np.array_equal(one[name].view(np.uint8), other[name].view(np.uint8)), name
+
+
+def test_take_item_hands_out_every_item_once():
+    from numba import njit, prange
+
+    from bonesim.engine.work_items import new_counter, take_item
+
+    @njit(parallel=True)
+    def run(n_items, owner, counter, n_workers):
+        for w in prange(n_workers):
+            while True:
+                it = take_item(counter)
+                if it >= n_items:
+                    break
+                owner[it] += w + 1
+
+    for n_workers in (1, 2, 7):
+        owner = np.zeros(10_000, np.int64)
+        counter = new_counter()
+        run(owner.size, owner, counter, n_workers)
+        assert ((owner >= 1) & (owner <= n_workers)).all()
+        assert counter[0] == owner.size + n_workers      # each worker's last take overshoots once
