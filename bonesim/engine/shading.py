@@ -78,8 +78,8 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from bonesim.errors import BonesimError
 from bonesim.engine.work_items import new_counter, take_item, workers
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
-from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, fallback_normal, i_plane,
-                                    i_point,
+from bonesim.engine.normals import (FLAT_EDGE, FLAT_PLANE, GRAD_EPS, N_FIELD, NORMAL_RADIUS,
+                                    fallback_normal, i_plane, i_point, kj_flat,
                                     kj_plane, unit_normal, vertex_shift, normal_weights,
                                     stencil_weights)
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
@@ -100,7 +100,6 @@ MAX_REACH_VOXELS = 28
 
 _HALO = NORMAL_RADIUS
 _LB = BRICK + 2 * _HALO          # edge of the per-brick box of the full shading
-_CHUNK = 16                      # bricks per parallel work item
 # bit-row sets of the refresh window
 _R_ALL, _R_REM, _R_NRM, _R_TINT, _R_REM1, _R_T0 = range(6)
 _N_ROWSETS = 6
@@ -131,56 +130,66 @@ def _blend(r0, g0, b0, w, ar, ag, ab):
 
 
 @njit(cache=True, nogil=True)
-def _gather_halo(density, nbr, b, box):
-    """Densities of brick ``b`` and a ``_HALO``-voxel halo into the flat box
-    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``).
-    Each row along z is three contiguous copies: the last ``H`` voxels of the
-    brick below, the brick's 8, the first ``H`` of the brick above."""
-    s = 0
-    for lx in range(_LB):
-        x = lx - _HALO
-        sx = ((x >> BRICK_SHIFT) + 1) * 9
-        ox = (x & BRICK_MASK) << 6
-        for ly in range(_LB):
-            y = ly - _HALO
-            sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
-            oy = ox | ((y & BRICK_MASK) << 3)
-            nb = nbr[b, sy]
-            if nb >= 0:
-                for q in range(_HALO):
-                    box[s + q] = density[nb, oy + BRICK - _HALO + q]
-            else:
-                for q in range(_HALO):
-                    box[s + q] = np.float32(0.0)
-            s += _HALO
-            nb = nbr[b, sy + 1]
-            if nb >= 0:
-                for q in range(BRICK):
-                    box[s + q] = density[nb, oy + q]
-            else:
-                for q in range(BRICK):
-                    box[s + q] = np.float32(0.0)
-            s += BRICK
-            nb = nbr[b, sy + 2]
-            if nb >= 0:
-                for q in range(_HALO):
-                    box[s + q] = density[nb, oy + q]
-            else:
-                for q in range(_HALO):
-                    box[s + q] = np.float32(0.0)
-            s += _HALO
+def _gather_plane(density, nbr, b, x, out, s):
+    """Densities of the plane ``x`` (brick-relative, ``-_HALO .. BRICK - 1 +
+    _HALO``) of brick ``b``'s box (the brick and a ``_HALO``-voxel halo) into
+    ``out[s:s + LB * LB]`` (voxel ``(x, y, z)`` of the brick at ``s + (y + H)
+    * LB + z + H``). Each row along z is three contiguous copies: the last
+    ``H`` voxels of the brick below, the brick's 8, the first ``H`` of the
+    brick above."""
+    sx = ((x >> BRICK_SHIFT) + 1) * 9
+    ox = (x & BRICK_MASK) << 6
+    for ly in range(_LB):
+        y = ly - _HALO
+        sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
+        oy = ox | ((y & BRICK_MASK) << 3)
+        nb = nbr[b, sy]
+        if nb >= 0:
+            for q in range(_HALO):
+                out[s + q] = density[nb, oy + BRICK - _HALO + q]
+        else:
+            for q in range(_HALO):
+                out[s + q] = np.float32(0.0)
+        s += _HALO
+        nb = nbr[b, sy + 1]
+        if nb >= 0:
+            for q in range(BRICK):
+                out[s + q] = density[nb, oy + q]
+        else:
+            for q in range(BRICK):
+                out[s + q] = np.float32(0.0)
+        s += BRICK
+        nb = nbr[b, sy + 2]
+        if nb >= 0:
+            for q in range(_HALO):
+                out[s + q] = density[nb, oy + q]
+        else:
+            for q in range(_HALO):
+                out[s + q] = np.float32(0.0)
+        s += _HALO
+
+
+#: Slots of a brick's neighbours along -x and +x in the neighbour table.
+_NBR_XM = 4
+_NBR_XP = 22
 
 
 @njit(cache=True, nogil=True)
-def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
-                 colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, ch, box, rs, rd,
-                 ring):
-    """:func:`_shade_all_kernel` of work item ``ch`` (scratch ``box``, ``rs``,
-    ``rd``, ``ring``)."""
-    nb_tot = bricks.shape[0]
+def _shade_run(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
+               colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, b, dring, rs, rd, ring,
+               nb27):
+    """:func:`_shade_all_kernel` of the run of bricks along +x that starts at
+    brick ``b``; returns its number of vertices. Run plane ``P`` is the
+    plane ``8 r + P - _HALO`` (brick-relative x) of the run's ``r``-th brick;
+    its densities and k and j passes (:func:`kj_flat`) are kept in slot ``P
+    % 7`` of the rings ``dring`` (``(7, LB, LB)``) and ``ring``, so each
+    plane along the run is computed once (the box of a brick shares six
+    planes with the next one's). ``rs``, ``rd``: :func:`kj_flat`'s scratch;
+    ``nb27``: :func:`fallback_normal`'s."""
     ncol = colors.shape[0]
     one = np.uint64(1)
     n_pl = BRICK * BRICK
+    pl_sz = _LB * _LB
     origin = fp[_F_ORIGIN:_F_ORIGIN + 3]
     spacing = fp[_F_SPACING]
     iso = fp[_F_ISO]
@@ -188,14 +197,16 @@ def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_
     s_in = fp[_F_IN]
     w0, w1, w2, w3, w4, w5, w6 = W[0], W[1], W[2], W[3], W[4], W[5], W[6]
     n = 0
-    for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
+    have = 0                  # run planes below this one are in the rings
+    r = 0
+    while b >= 0:
         v = voff[b]
         if voff[b + 1] == v:
             for o in range(BRICK * n_pl):
                 vmap[b, o] = -1
+            b = nbr[b, _NBR_XP]
+            r += 1
             continue
-        _gather_halo(density, nbr, b, box)
-        have = 0
         bi = bricks[b, 0] << BRICK_SHIFT
         bj = bricks[b, 1] << BRICK_SHIFT
         bk = bricks[b, 2] << BRICK_SHIFT
@@ -207,9 +218,12 @@ def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_
                 for o in range(x * n_pl, (x + 1) * n_pl):
                     vmap[b, o] = -1
                 continue
-            for pl in range(max(have, x), x + 7):
-                kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
-            have = x + 7
+            first = BRICK * r + x            # run planes first .. first + 6
+            for pl in range(max(have, first), first + 7):
+                sl = pl % 7
+                _gather_plane(density, nbr, b, pl - _HALO - BRICK * r, dring, sl * pl_sz)
+                kj_flat(dring, sl, W, rs, rd, ring, sl)
+            have = first + 7
             i = bi + x
             for y in range(BRICK):
                 bits = srf[b, x * BRICK + y]
@@ -226,11 +240,17 @@ def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_
                     ijk[v, 2] = k
                     q = (y << 3) | z
                     # the i-pass at this vertex only (same bits as i_plane)
-                    gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
+                    gx, gy, gz, fq = i_point(ring, first, FLAT_PLANE, w0, w1, w2, w3, w4, w5, w6,
+                                             y * FLAT_EDGE + z)
                     nx, ny, nz, ok = unit_normal(gx, gy, gz)
                     if not ok:
-                        nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
-                                                      + z + _HALO, _LB, _LB)
+                        for a in range(3):
+                            sa = (((first + 2 + a) % 7) * pl_sz + (y + _HALO - 1) * _LB + z
+                                  + _HALO - 1)
+                            for c in range(3):
+                                for d in range(3):
+                                    nb27[(a * 3 + c) * 3 + d] = dring[sa + c * _LB + d]
+                        nx, ny, nz = fallback_normal(nb27, 13, 3, 3)
                     sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
                     nrm[v, 0] = nx
                     nrm[v, 1] = ny
@@ -261,33 +281,36 @@ def _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_
                     col[v, 3] = ALPHA
                     v += 1
                     n += 1
-    counts[ch] = n
+        b = nbr[b, _NBR_XP]
+        r += 1
+    return n
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _shade_all_kernel(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
-                      colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, counter,
-                      n_workers):
-    """Vertex slots, voxels, positions, normals and colours of every vertex,
-    brick by brick: brick ``b``'s surface voxels (the bits ``srf[b, 8 x +
-    y]``, bit z) get the slots ``voff[b]...`` in (x, y, z) order, the other
-    voxels of ``vmap[b]`` -1. The brick plus a 3-voxel halo is the box of
-    the field's passes, plane by plane. Work items of ``_CHUNK`` bricks are
-    taken from ``counter`` by ``n_workers`` workers
-    (:mod:`bonesim.engine.work_items`); ``counts[item]``: its vertices."""
-    n_chunks = (bricks.shape[0] + _CHUNK - 1) // _CHUNK
+                      colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, starts, counts,
+                      counter, n_workers):
+    """Vertex slots, voxels, positions, normals and colours of every vertex:
+    brick ``b``'s surface voxels (the bits ``srf[b, 8 x + y]``, bit z) get
+    the slots ``voff[b]...`` in (x, y, z) order, the other voxels of
+    ``vmap[b]`` -1. Work item ``q`` is the run of bricks along +x from brick
+    ``starts[q]`` (:func:`_shade_run`), taken from ``counter`` by
+    ``n_workers`` workers (:mod:`bonesim.engine.work_items`); ``counts[q]``:
+    its vertices."""
+    n_items = starts.shape[0]
     for _ in prange(n_workers):
-        box = np.empty(_LB * _LB * _LB, dtype=np.float32)
-        rs = np.empty(_LB * BRICK, dtype=np.float32)
-        rd = np.empty(_LB * BRICK, dtype=np.float32)
-        ring = np.empty(21 * BRICK * BRICK, dtype=np.float32)
+        dring = np.empty(7 * _LB * _LB, dtype=np.float32)
+        rs = np.zeros(_LB * _LB, dtype=np.float32)
+        rd = np.zeros(_LB * _LB, dtype=np.float32)
+        ring = np.empty(21 * FLAT_PLANE, dtype=np.float32)
+        nb27 = np.empty(27, dtype=np.float32)
         while True:
-            ch = take_item(counter)
-            if ch >= n_chunks:
+            it = take_item(counter)
+            if it >= n_items:
                 break
-            _shade_chunk(keys, vals, density, label, nbr, bricks, srf, voff, bone, tint_on, near,
-                         colors, W, fp, tp, cone, vmap, ijk, pos, nrm, shf, col, counts, ch, box,
-                         rs, rd, ring)
+            counts[it] = _shade_run(keys, vals, density, label, nbr, bricks, srf, voff, bone,
+                                    tint_on, near, colors, W, fp, tp, cone, vmap, ijk, pos, nrm,
+                                    shf, col, starts[it], dring, rs, rd, ring, nb27)
 
 
 @njit(cache=True, nogil=True)
@@ -717,12 +740,13 @@ class Shader:
             raise ValueError(f"srf must be a ({grid.n_bricks}, 64) uint8 array")
         if voff.shape != (grid.n_bricks + 1,) or voff[-1] > pos.shape[0]:
             raise ValueError("voff must hold n_bricks + 1 slots within the vertex arrays")
-        n_chunks = max(1, (grid.n_bricks + _CHUNK - 1) // _CHUNK)
-        counts = np.zeros(n_chunks, dtype=np.int64)
+        # the runs of bricks along +x: from each brick without a -x neighbour
+        starts = np.flatnonzero(self._nbr[:, _NBR_XM] < 0)
+        counts = np.zeros(starts.shape[0], dtype=np.int64)
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
                           grid.bricks, srf, voff, self.bone, self.tint_on, self._near,
                           self.colors, self._W, self._fp, self._tp, self._cone, vmap, ijk, pos,
-                          nrm, shift, col, counts, new_counter(), workers())
+                          nrm, shift, col, starts, counts, new_counter(), workers())
         return int(counts.sum())
 
     def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from bonesim.engine.grid import BRICK, Grid
-from bonesim.engine.shading import _HALO, _LB, _gather_halo
+from bonesim.engine.shading import _HALO, _LB, _gather_plane
 from bonesim.engine.surface import Surface
 from bonesim.engine.surface_build import (_KEY_CORNERS, _gather_slots, build_count, build_prepare,
                                           occupancy_bits)
@@ -159,17 +159,17 @@ def test_shading_gather_equals_voxel_by_voxel():
     dens, lab = _volume(7)
     grid = Grid.from_dense(lab, dens)
     nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
-    box = np.empty(_LB ** 3, np.float32)
+    out = np.full(_LB * _LB + 5, -1, np.float32)
     for b, (bi, bj, bk) in enumerate(grid.bricks):
-        _gather_halo(grid.density, nbr, b, box)
-        want = np.zeros((_LB, _LB, _LB), np.float32)
-        for lx in range(_LB):
+        for x in range(-_HALO, BRICK + _HALO):
+            _gather_plane(grid.density, nbr, b, x, out, 5)
+            want = np.zeros((_LB, _LB), np.float32)
             for ly in range(_LB):
                 for lz in range(_LB):
-                    i, j, k = (bi * BRICK + lx - _HALO, bj * BRICK + ly - _HALO,
-                               bk * BRICK + lz - _HALO)
-                    want[lx, ly, lz] = grid.density_at(i, j, k)
-        assert np.array_equal(box.reshape(_LB, _LB, _LB), want), b
+                    want[ly, lz] = grid.density_at(bi * BRICK + x, bj * BRICK + ly - _HALO,
+                                                   bk * BRICK + lz - _HALO)
+            assert np.array_equal(out[5:].reshape(_LB, _LB), want), (b, x)
+            assert (out[:5] == -1).all()
 
 
 def _raw(surf):
@@ -223,3 +223,64 @@ def test_take_item_hands_out_every_item_once():
         run(owner.size, owner, counter, n_workers)
         assert ((owner >= 1) & (owner <= n_workers)).all()
         assert counter[0] == owner.size + n_workers      # each worker's last take overshoots once
+
+
+@pytest.mark.parametrize("x0", [0, 1, 5, 6, 7])
+def test_zero_gradient_takes_the_fallback_normal(x0):
+    """A surface voxel whose one empty neighbour (+x) is balanced by a
+    lighter voxel two to -x has no gradient (|g| below GRAD_EPS): its normal
+    is the offset toward its empty neighbours, +x, and it is not moved;
+    wherever it lies in its brick (the 3x3x3 neighbours across bricks)."""
+    from bonesim.engine.normals import stencil_weights
+    from bonesim.engine.shading import load_shading
+
+    w = stencil_weights(load_shading().sigma_voxels)
+    c = (8 + x0, 10, 10)
+    lab = np.zeros((29, 21, 21), np.uint8)
+    lab[c[0] - 8:c[0] + 9, 2:19, 2:19] = 1
+    dens = np.ones(lab.shape, np.float32)
+    lab[c[0] + 1, c[1], c[2]] = 0
+    dens[c[0] + 1, c[1], c[2]] = 0
+    dens[c[0] - 2, c[1], c[2]] = np.float32(1 - float(w[4]) / float(w[5]))
+    surf = Surface.build(Grid.from_dense(lab, dens), COLORS)
+    v = surf.vertex_at(*c)
+    assert v >= 0
+    assert surf.nrm[v].tolist() == [1.0, 0.0, 0.0]
+    assert surf.shift[v] == 0.0
+
+
+def test_flat_passes_equal_the_plane_passes_bit_for_bit():
+    """kj_flat (the full shading's k and j passes over a brick's plane as one
+    row) gives kj_plane's values, bit for bit, where they are read (z < 8),
+    and those are the separable Gaussian sums (float64 reference)."""
+    from bonesim.engine.normals import (FLAT_EDGE, FLAT_PLANE, kj_flat, kj_plane,
+                                        normal_weights, stencil_weights)
+
+    rng = np.random.default_rng(3)
+    e = FLAT_EDGE
+    w = stencil_weights(2.0)
+    s, d = normal_weights(2.0)
+    for trial in range(20):
+        box = rng.uniform(0, 1, (3, e, e)).astype(np.float32)
+        box[rng.random(box.shape) < 0.4] = 0.0
+        if trial % 4 == 0:
+            box[1] = 0.0                      # an empty plane
+        flat = box.ravel()
+        rs, rd = np.zeros(e * e, np.float32), np.zeros(e * e, np.float32)
+        ring_f = np.zeros(21 * FLAT_PLANE, np.float32)
+        rs_p, rd_p = np.zeros(e * 8, np.float32), np.zeros(e * 8, np.float32)
+        ring_p = np.zeros(21 * 64, np.float32)
+        for x in range(3):
+            slot = (x + trial) % 7
+            kj_flat(flat, x, w, rs, rd, ring_f, slot)
+            kj_plane(flat, x, e, e, w, rs_p, rd_p, ring_p, slot)
+            got = ring_f[3 * slot * FLAT_PLANE:3 * (slot + 1) * FLAT_PLANE].reshape(3, 8, e)[:, :, :8]
+            want = ring_p[3 * slot * 64:3 * (slot + 1) * 64].reshape(3, 8, 8)
+            assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+            # tx, ty, tz: S_j S_k, D_j S_k, S_j D_k of the plane
+            pl = box[x].astype(np.float64)
+            for y in range(8):
+                for z in range(8):
+                    win = pl[y:y + 7, z:z + 7]
+                    ref = (s @ win @ s, d @ win @ s, s @ win @ d)
+                    assert np.allclose(got[:, y, z], ref, atol=1e-5)
