@@ -274,7 +274,8 @@ def test_flat_passes_equal_the_plane_passes_bit_for_bit():
             slot = (x + trial) % 7
             kj_flat(flat, x, w, rs, rd, ring_f, slot)
             kj_plane(flat, x, e, e, w, rs_p, rd_p, ring_p, slot)
-            got = ring_f[3 * slot * FLAT_PLANE:3 * (slot + 1) * FLAT_PLANE].reshape(3, 8, e)[:, :, :8]
+            got = ring_f[3 * slot * FLAT_PLANE:3 * (slot + 1) * FLAT_PLANE]
+            got = got.reshape(3, 8, e)[:, :, :8]
             want = ring_p[3 * slot * 64:3 * (slot + 1) * 64].reshape(3, 8, 8)
             assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
             # tx, ty, tz: S_j S_k, D_j S_k, S_j D_k of the plane
