@@ -136,37 +136,40 @@ def _gather_plane(density, nbr, b, x, out, s):
     ``out[s:s + LB * LB]`` (voxel ``(x, y, z)`` of the brick at ``s + (y + H)
     * LB + z + H``). Each row along z is three contiguous copies: the last
     ``H`` voxels of the brick below, the brick's 8, the first ``H`` of the
-    brick above."""
+    brick above; the three bricks are looked up once for the rows of each
+    of the three bricks along y."""
     sx = ((x >> BRICK_SHIFT) + 1) * 9
     ox = (x & BRICK_MASK) << 6
-    for ly in range(_LB):
-        y = ly - _HALO
-        sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
-        oy = ox | ((y & BRICK_MASK) << 3)
-        nb = nbr[b, sy]
-        if nb >= 0:
-            for q in range(_HALO):
-                out[s + q] = density[nb, oy + BRICK - _HALO + q]
-        else:
-            for q in range(_HALO):
-                out[s + q] = np.float32(0.0)
-        s += _HALO
-        nb = nbr[b, sy + 1]
-        if nb >= 0:
-            for q in range(BRICK):
-                out[s + q] = density[nb, oy + q]
-        else:
-            for q in range(BRICK):
-                out[s + q] = np.float32(0.0)
-        s += BRICK
-        nb = nbr[b, sy + 2]
-        if nb >= 0:
-            for q in range(_HALO):
-                out[s + q] = density[nb, oy + q]
-        else:
-            for q in range(_HALO):
-                out[s + q] = np.float32(0.0)
-        s += _HALO
+    for gy in range(3):                        # the bricks below, at and above along y
+        y0 = 0 if gy == 0 else (_HALO if gy == 1 else _HALO + BRICK)
+        y1 = _HALO if gy == 0 else (_HALO + BRICK if gy == 1 else _LB)
+        sy = sx + gy * 3
+        n_lo = nbr[b, sy]
+        n_mid = nbr[b, sy + 1]
+        n_hi = nbr[b, sy + 2]
+        for ly in range(y0, y1):
+            oy = ox | (((ly - _HALO) & BRICK_MASK) << 3)
+            t = s + ly * _LB
+            if n_lo >= 0:
+                for q in range(_HALO):
+                    out[t + q] = density[n_lo, oy + BRICK - _HALO + q]
+            else:
+                for q in range(_HALO):
+                    out[t + q] = np.float32(0.0)
+            t += _HALO
+            if n_mid >= 0:
+                for q in range(BRICK):
+                    out[t + q] = density[n_mid, oy + q]
+            else:
+                for q in range(BRICK):
+                    out[t + q] = np.float32(0.0)
+            t += BRICK
+            if n_hi >= 0:
+                for q in range(_HALO):
+                    out[t + q] = density[n_hi, oy + q]
+            else:
+                for q in range(_HALO):
+                    out[t + q] = np.float32(0.0)
 
 
 #: Slots of a brick's neighbours along -x and +x in the neighbour table.
