@@ -428,21 +428,21 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        alive = np.zeros(vcap, dtype=np.uint8)
-        alive[:n_v] = 1
         shift = np.zeros(vcap, dtype=np.float32)
         # slots, voxels and shading of the vertices in one pass, before the
         # triangles are made, so that each triangle's drawn winding is found
         # as it is written (its corners' data in cache)
         shader.shade_all(grid, srf, voff, vmap, ijk, pos, nrm, shift, col)
         trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
         tflip = np.zeros(tcap, dtype=np.uint8)
         err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, new_counter(), nw)
+        vrec = np.empty((vcap, 2), dtype=np.int32)
+        alive = np.empty(vcap, dtype=np.uint8)
+        # the triangles, the spare triangle rows (TR_FILL), vrec (-1) and alive
+        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, vrec, alive, n_v,
+                        new_counter(), nw)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
-        vrec = np.full((vcap, 2), -1, dtype=np.int32)
         link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,

@@ -9,7 +9,7 @@ from numba import njit, prange
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
 from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
-                                           TR_KEY, flip_of, neighbours_of)
+                                           TR_FILL, TR_KEY, TR_WIDTH, flip_of, neighbours_of)
 from bonesim.engine.work_items import take_item
 
 __all__ = []
@@ -312,8 +312,30 @@ def _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, 
                         t += 1
 
 
+#: Rows per work item of the record fills that :func:`build_triangles` does
+#: besides the triangles.
+FILL_ROWS = 1 << 16
+
+
+@njit(cache=True, nogil=True)
+def _fill_chunk(trec, n_t, vrec, alive, n_v, q, n_tf):
+    """Fill item ``q`` of :func:`build_triangles`: rows of the spare
+    triangle records (``q < n_tf``) or of the vertex records and flags."""
+    if q < n_tf:
+        for t in range(n_t + q * FILL_ROWS, min(trec.shape[0], n_t + (q + 1) * FILL_ROWS)):
+            for c in range(TR_WIDTH):
+                trec[t, c] = TR_FILL[c]
+        return
+    q -= n_tf
+    for v in range(q * FILL_ROWS, min(vrec.shape[0], (q + 1) * FILL_ROWS)):
+        vrec[v, 0] = -1
+        vrec[v, 1] = -1
+        alive[v] = 1 if v < n_v else 0
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, counter, n_workers):
+def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, vrec, alive, n_v, counter,
+                    n_workers):
     """Triangle records ``toff[b]...`` of the triangles brick ``b``'s cells
     own, in (x, y, z, qualifying-triple) order (corners and key; the list
     links are :func:`bonesim.engine.surface_tables.link_all`'s), and their
@@ -321,15 +343,24 @@ def build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, counter, n_
     and ``nrm`` (:func:`bonesim.engine.surface_tables.flip_of`);
     ``err[chunk]`` counts triangles with a corner without a vertex. The
     corners' vertex slots are read from a per-brick copy of ``vmap``
-    (:func:`_gather_slots`).
-    Work items of ``CHUNK`` bricks are taken from ``counter`` by
+    (:func:`_gather_slots`). Besides, the records the triangles leave: the
+    spare triangle records (rows ``toff[-1]...``) get ``TR_FILL``, every
+    vertex record ``vrec`` -1 (empty lists, for ``link_all``), ``alive`` 1
+    for the ``n_v`` vertices and 0 after. Work items (``CHUNK`` bricks, then
+    ``FILL_ROWS`` rows of the fills) are taken from ``counter`` by
     ``n_workers`` workers."""
     n_chunks = (nbr.shape[0] + CHUNK - 1) // CHUNK
+    n_t = toff[toff.shape[0] - 1]
+    n_tf = (trec.shape[0] - n_t + FILL_ROWS - 1) // FILL_ROWS
+    n_items = n_chunks + n_tf + (vrec.shape[0] + FILL_ROWS - 1) // FILL_ROWS
     for _ in prange(n_workers):
         rows = np.empty((_L, _L), dtype=np.int64)
         loc = np.empty((BRICK + 1) ** 3, dtype=np.int32)
         while True:
             ch = take_item(counter)
-            if ch >= n_chunks:
+            if ch >= n_items:
                 break
-            _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, loc)
+            if ch < n_chunks:
+                _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, loc)
+            else:
+                _fill_chunk(trec, n_t, vrec, alive, n_v, ch - n_chunks, n_tf)
