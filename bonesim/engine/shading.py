@@ -122,7 +122,12 @@ _N_I = 8
 @njit(cache=True, nogil=True, inline="always")
 def _blend(r0, g0, b0, w, ar, ag, ab):
     """RGB (uint8) of the colour ``(r0, g0, b0)`` blended with weight ``w``
-    toward the weighted structure colour ``(ar, ag, ab)`` (module docstring)."""
+    toward the weighted structure colour ``(ar, ag, ab)`` (module docstring).
+    Without a blend (``w``, ``ar``, ``ag``, ``ab`` all 0, most vertices) the
+    formula gives the colour itself (``floor(c + 0.5) = c`` for an integer
+    ``c``), returned at once."""
+    if w == 0.0 and ar == 0.0 and ag == 0.0 and ab == 0.0:
+        return np.uint8(r0), np.uint8(g0), np.uint8(b0)
     r = np.floor(np.float64(r0) * (1.0 - w) + ar + 0.5)
     g = np.floor(np.float64(g0) * (1.0 - w) + ag + 0.5)
     b = np.floor(np.float64(b0) * (1.0 - w) + ab + 0.5)

@@ -78,31 +78,33 @@ def build_prepare(keys, vals, bricks, density, nbr, om, counter, n_workers):
 def _gather_rows(om, nbr, b, rows):
     """Occupancy bit rows of brick ``b`` plus a one-voxel halo into ``rows``
     (``(10, 10)`` int64, see above). Returns ``(anything occupied in the
-    brick and its upper halo, the whole box occupied)``."""
+    brick and its upper halo, the whole box occupied)``. The three words a
+    row takes bits from (bricks below, at and above along z) are read once
+    for the rows of each brick along y (a missing brick reads as 0)."""
     up = 0
     full = _FULL_ROW
     for lx in range(_L):
         x = lx - 1
         sx = ((x >> BRICK_SHIFT) + 1) * 9
         wx = x & BRICK_MASK
-        for ly in range(_L):
-            y = ly - 1
-            sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
-            sh = (y & BRICK_MASK) << 3
-            r = 0
+        for gy in range(3):                      # the bricks below, at and above along y
+            sy = sx + gy * 3
             nb = nbr[b, sy]
-            if nb >= 0:
-                r = (om[nb, wx] >> (sh + 7)) & 1
+            w0 = om[nb, wx] if nb >= 0 else 0
             nb = nbr[b, sy + 1]
-            if nb >= 0:
-                r |= ((om[nb, wx] >> sh) & 0xFF) << 1
+            w1 = om[nb, wx] if nb >= 0 else 0
             nb = nbr[b, sy + 2]
-            if nb >= 0:
-                r |= ((om[nb, wx] >> sh) & 1) << 9
-            rows[lx, ly] = r
-            full &= r
-            if lx > 0 and ly > 0:
-                up |= r
+            w2 = om[nb, wx] if nb >= 0 else 0
+            l0 = 0 if gy == 0 else (1 if gy == 1 else _L - 1)
+            l1 = 1 if gy == 0 else (_L - 1 if gy == 1 else _L)
+            for ly in range(l0, l1):
+                sh = ((ly - 1) & BRICK_MASK) << 3
+                r = (((w0 >> (sh + 7)) & 1) | (((w1 >> sh) & 0xFF) << 1)
+                     | (((w2 >> sh) & 1) << 9))
+                rows[lx, ly] = r
+                full &= r
+                if lx > 0 and ly > 0:
+                    up |= r
     return (up & ~1) != 0, full == _FULL_ROW
 
 

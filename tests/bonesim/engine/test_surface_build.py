@@ -18,8 +18,8 @@ import pytest
 from bonesim.engine.grid import BRICK, Grid
 from bonesim.engine.shading import _HALO, _LB, _gather_plane
 from bonesim.engine.surface import Surface
-from bonesim.engine.surface_build import (_KEY_CORNERS, _gather_slots, build_count, build_prepare,
-                                          occupancy_bits)
+from bonesim.engine.surface_build import (_KEY_CORNERS, _gather_rows, _gather_slots, build_count,
+                                          build_prepare, occupancy_bits)
 from bonesim.engine.work_items import new_counter
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, TRIPLE_CORNERS, TRIPLE_FACE,
                                            brick_neighbours, qualifying_triples)
@@ -130,6 +130,26 @@ def test_counts_match_dense_reference(seed, p_occ):
     assert np.array_equal(nt, want_t)
     assert np.array_equal(srf, want_bits)
     assert nv.sum() > 0 and nt.sum() > 0
+
+
+@pytest.mark.parametrize("seed,p_occ", [(0, 0.6), (2, 0.1)])
+def test_row_gather_equals_voxel_by_voxel(seed, p_occ):
+    dens, lab = _volume(seed, p_occ=p_occ)
+    grid = Grid.from_dense(lab, dens)
+    nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
+    om = np.empty((grid.n_bricks, BRICK), np.int64)
+    occupancy_bits(grid.density, om)
+    rows = np.empty((BRICK + 2, BRICK + 2), np.int64)
+    for b, (bi, bj, bk) in enumerate(grid.bricks):
+        up, full = _gather_rows(om, nbr, b, rows)
+        occ = np.array([[[grid.density_at(bi * BRICK + lx - 1, bj * BRICK + ly - 1,
+                                          bk * BRICK + lz - 1) > 0
+                          for lz in range(BRICK + 2)] for ly in range(BRICK + 2)]
+                        for lx in range(BRICK + 2)])
+        want = (occ * (1 << np.arange(BRICK + 2))).sum(axis=2)
+        assert np.array_equal(rows, want), b
+        assert up == bool(occ[1:, 1:, 1:].any())
+        assert full == bool(occ.all())
 
 
 @pytest.mark.parametrize("seed", [0, 5])
