@@ -86,8 +86,13 @@ brick's surface voxels as 64 bytes of bits), prefix sums give every brick
 its output ranges, a second pass gives the vertices their slots, voxels,
 positions, normals and colours and writes the voxel -> vertex map
 (:meth:`bonesim.engine.shading.Shader.shade_all`, one pass over the
-bricks), a third writes triangles (their corners' slots read from a
-per-brick copy of the map).
+bricks, along runs of bricks in x), a third writes triangles (their
+corners' slots read from a per-brick copy of the map) and fills the spare
+records, and one serial pass links the vertex -> triangle lists. Each
+parallel pass hands its work items (a few bricks, or a run) to the threads
+one at a time (:mod:`bonesim.engine.work_items`), and each item writes only
+its own outputs, so the result is the same bits whatever the number of
+threads and whoever ran what.
 
 Incremental update (:meth:`Surface.update`): a removed voxel that is empty
 now is a *source*. Only cells containing a source change code, and besides
