@@ -222,24 +222,28 @@ def _gather_slots(vmap, nbr, b, loc):
     """Vertex slots of brick ``b``'s voxels and of the one-voxel layer above
     it along each axis into ``loc`` (flat ``(9, 9, 9)`` int32, brick-relative
     ``(x, y, z)`` at ``(9 x + y) 9 + z``; -1 where no vertex or brick): the
-    corners of the brick's cells."""
-    s = 0
-    for rx in range(BRICK + 1):
-        sx = ((rx >> BRICK_SHIFT) + 1) * 9
-        ox = (rx & BRICK_MASK) << 6
-        for ry in range(BRICK + 1):
-            sy = sx + ((ry >> BRICK_SHIFT) + 1) * 3
-            oy = ox | ((ry & BRICK_MASK) << 3)
-            nb = nbr[b, sy + 1]
-            if nb >= 0:
-                for q in range(BRICK):
-                    loc[s + q] = vmap[nb, oy + q]
-            else:
-                for q in range(BRICK):
-                    loc[s + q] = -1
-            nb = nbr[b, sy + 2]
-            loc[s + BRICK] = vmap[nb, oy] if nb >= 0 else -1
-            s += BRICK + 1
+    corners of the brick's cells. The two bricks a row reads (at and above
+    along z) are looked up once per brick along x and y."""
+    for gx in range(2):                        # the brick itself, the one above along x
+        x0 = 0 if gx == 0 else BRICK
+        x1 = BRICK if gx == 0 else BRICK + 1
+        for gy in range(2):
+            y0 = 0 if gy == 0 else BRICK
+            y1 = BRICK if gy == 0 else BRICK + 1
+            sl = 9 * (gx + 1) + 3 * (gy + 1)
+            n_at = nbr[b, sl + 1]
+            n_up = nbr[b, sl + 2]
+            for rx in range(x0, x1):
+                for ry in range(y0, y1):
+                    s = (rx * (BRICK + 1) + ry) * (BRICK + 1)
+                    oy = ((rx & BRICK_MASK) << 6) | ((ry & BRICK_MASK) << 3)
+                    if n_at >= 0:
+                        for q in range(BRICK):
+                            loc[s + q] = vmap[n_at, oy + q]
+                    else:
+                        for q in range(BRICK):
+                            loc[s + q] = -1
+                    loc[s + BRICK] = vmap[n_up, oy] if n_up >= 0 else -1
 
 
 def _key_corner_offsets():
