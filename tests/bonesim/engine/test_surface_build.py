@@ -10,10 +10,14 @@ the same arrays, bit for bit, whatever the number of threads.
 from __future__ import annotations
 
 import functools
+import itertools
+import math
 
 import numba
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from bonesim.engine.grid import BRICK, Grid
 from bonesim.engine.shading import _HALO, _LB, _gather_plane
@@ -305,3 +309,85 @@ def test_flat_passes_equal_the_plane_passes_bit_for_bit():
                     win = pl[y:y + 7, z:z + 7]
                     ref = (s @ win @ s, d @ win @ s, s @ win @ d)
                     assert np.allclose(got[:, y, z], ref, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------
+# the shaded vertices, bit for bit, against the float32 operations of the
+# definition written out in numpy (one vertex at a time, no planes or rings)
+# ---------------------------------------------------------------------------
+def _s_pass(a, w):
+    """S-pass over the last axis (7 values): s0 v3 + s1 (v2 + v4) + ..."""
+    return (w[0] * a[..., 3] + w[1] * (a[..., 2] + a[..., 4]) + w[2] * (a[..., 1] + a[..., 5])
+            + w[3] * (a[..., 0] + a[..., 6]))
+
+
+def _d_pass(a, w):
+    """D-pass over the last axis: d1 (v4 - v2) + d2 (v5 - v1) + d3 (v6 - v0)."""
+    return (w[4] * (a[..., 4] - a[..., 2]) + w[5] * (a[..., 5] - a[..., 1])
+            + w[6] * (a[..., 6] - a[..., 0]))
+
+
+def _ref_shading(grid, surf, colors):
+    """Normals, shifts, positions and colours of every live vertex (no tint),
+    from the definition in bonesim.engine.normals: passes along k, then j,
+    then i, in float32, over the 7x7x7 densities around each vertex."""
+    from bonesim.engine.normals import GRAD_EPS, stencil_weights
+    from bonesim.engine.shading import load_shading
+
+    p = load_shading()
+    w = stencil_weights(p.sigma_voxels)
+    lo = grid.bricks.min(axis=0) * BRICK - 8
+    hi = (grid.bricks.max(axis=0) + 2) * BRICK + 8
+    dens, lab = grid.to_dense(lo=lo, shape=hi - lo)
+    vs = surf.vertex_slots
+    ijk = surf.ijk[vs].astype(np.int64)
+    c = ijk - lo
+    off = np.arange(-3, 4)
+    box = dens[c[:, 0, None, None, None] + off[:, None, None],
+               c[:, 1, None, None, None] + off[None, :, None],
+               c[:, 2, None, None, None] + off[None, None, :]]          # (n, 7, 7, 7) float32
+    rs, rd = _s_pass(box, w), _d_pass(box, w)                          # along k: (n, 7, 7)
+    tx, ty, tz = _s_pass(rs, w), _d_pass(rs, w), _s_pass(rd, w)        # along j: (n, 7)
+    gx, gy, gz, f = _d_pass(tx, w), _s_pass(ty, w), _s_pass(tz, w), _s_pass(tx, w)
+    assert gx.dtype == np.float32 and f.dtype == np.float32
+    nrm = np.empty((vs.size, 3))
+    shift = np.zeros(vs.size)
+    for q in range(vs.size):
+        g = [float(gx[q]), float(gy[q]), float(gz[q])]
+        norm = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+        if norm > GRAD_EPS:
+            nrm[q] = [-g[0] / norm, -g[1] / norm, -g[2] / norm]
+            shift[q] = min(max((float(f[q]) - p.iso_density) / norm, -p.max_in_voxels),
+                           p.max_out_voxels)
+        else:
+            s = np.zeros(3, np.int64)
+            for d in itertools.product((-1, 0, 1), repeat=3):
+                if d != (0, 0, 0) and not box[q, 3 + d[0], 3 + d[1], 3 + d[2]] > 0:
+                    s += d
+            sn = math.sqrt(float(s @ s))
+            nrm[q] = s / sn if sn > 0 else (0.0, 0.0, 1.0)
+    pos = np.array([[grid.origin_mm[a] + grid.spacing_mm * (ijk[q, a] + shift[q] * nrm[q, a])
+                     for a in range(3)] for q in range(vs.size)]).reshape(-1, 3)
+    col = np.concatenate([colors[lab[c[:, 0], c[:, 1], c[:, 2]]],
+                          np.full((vs.size, 1), 255, np.uint8)], axis=1)
+    return nrm.astype(np.float32), shift.astype(np.float32), pos.astype(np.float32), col
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2 ** 32 - 1), p_occ=st.sampled_from([0.1, 0.5, 0.9]),
+       graded=st.booleans(), shape=st.tuples(st.integers(1, 30), st.integers(1, 30),
+                                             st.integers(1, 30)))
+def test_shaded_vertices_are_the_definition_bit_for_bit(seed, p_occ, graded, shape):
+    rng = np.random.default_rng(seed)
+    lab = ((rng.random(shape) < p_occ) * rng.integers(1, 4, size=shape)).astype(np.uint8)
+    dens = rng.uniform(0.05, 1.0, size=shape).astype(np.float32) if graded else None
+    grid = Grid.from_dense(lab, dens, spacing_mm=0.19, origin_mm=(-3.0, 1.5, 0.25))
+    surf = Surface.build(grid, COLORS)
+    if surf.n_vertices == 0:
+        return
+    nrm, shift, pos, col = _ref_shading(grid, surf, COLORS)
+    vs = surf.vertex_slots
+    assert np.array_equal(surf.nrm[vs].view(np.uint32), nrm.view(np.uint32))
+    assert np.array_equal(surf.shift[vs].view(np.uint32), shift.view(np.uint32))
+    assert np.array_equal(surf.pos[vs].view(np.uint32), pos.view(np.uint32))
+    assert np.array_equal(surf.col[vs], col)
