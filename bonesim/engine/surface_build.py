@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from bonesim.engine.grid import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS)
-from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, QUAL_NMIN, TRIPLE_CORNERS, TRIPLE_FACE,
+from bonesim.engine.surface_tables import (QUAL_KEY, QUAL_N, TRIPLE_CORNERS, TRIPLE_FACE,
                                            TR_FILL, TR_KEY, TR_WIDTH, flip_of, neighbours_of)
 from bonesim.engine.work_items import take_item
 
@@ -36,6 +37,31 @@ _FULL_ROW = (1 << _L) - 1
 _INNER = ((1 << BRICK) - 1) << 1   # local bits 1..8: the brick's own voxels
 #: Number of set bits of each byte.
 _POP8 = np.array([bin(v).count("1") for v in range(256)], dtype=np.int64)
+
+
+def _owned_tables():
+    """What a cell owns, by its code and its *low mask* (bit ``a`` set when
+    the four voxels just below its minimum face along ``a`` are empty, so
+    that its triples in that face belong to the cell below): the number of
+    triangles (``(256, 8)`` int8) and their keys in ``QUAL_KEY`` order
+    (``(256, 8, 4)`` int16, -1 after)."""
+    n = np.zeros((256, 8), dtype=np.int8)
+    keys = np.full((256, 8, QUAL_KEY.shape[1]), -1, dtype=np.int16)
+    for code in range(256):
+        for low in range(8):
+            c = 0
+            for q in range(int(QUAL_N[code])):
+                key = int(QUAL_KEY[code, q])
+                f = int(TRIPLE_FACE[key >> 1])
+                if 0 <= f < 3 and (low >> f) & 1:
+                    continue
+                keys[code, low, c] = key
+                c += 1
+            n[code, low] = c
+    return n, keys
+
+
+_OWN_N, _OWN_KEY = _owned_tables()
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -146,6 +172,15 @@ def _mixed(r00, r01, r10, r11):
     return (a | (a >> 1)) & ~(al & (al >> 1)) & _INNER
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _low_mask(bx, by, bz, z):
+    """Low mask (see :func:`_owned_tables`) of the cell at local z, from the
+    rows below its minimum faces: ``bx`` (the two rows at x - 1), ``by``
+    (at y - 1) and ``bz`` (its own four rows, one voxel lower)."""
+    return ((1 if (bx >> z) & 3 == 0 else 0) | (2 if (by >> z) & 3 == 0 else 0)
+            | (4 if (bz >> (z - 1)) & 1 == 0 else 0))
+
+
 @njit(cache=True, nogil=True)
 def _owned_total(rows):
     """Triangles the cells of the brick own."""
@@ -162,19 +197,10 @@ def _owned_total(rows):
             bx = rows[x - 1, y] | rows[x - 1, y + 1]
             by = rows[x, y - 1] | rows[x + 1, y - 1]
             bz = r00 | r01 | r10 | r11
-            for z in range(1, _L - 1):
-                if not (m >> z) & 1:
-                    continue
-                code = _cell_code(r00, r01, r10, r11, z)
-                n = QUAL_N[code]
-                if n > 0:
-                    if (bx >> z) & 3 == 0:
-                        n -= QUAL_NMIN[code, 0]
-                    if (by >> z) & 3 == 0:
-                        n -= QUAL_NMIN[code, 1]
-                    if (bz >> (z - 1)) & 1 == 0:
-                        n -= QUAL_NMIN[code, 2]
-                    ct += n
+            while m != 0:
+                z = np.int64(trailing_zeros(m))
+                m &= m - 1
+                ct += _OWN_N[_cell_code(r00, r01, r10, r11, z), _low_mask(bx, by, bz, z)]
     return ct
 
 
@@ -288,21 +314,13 @@ def _triangles_chunk(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, ch, rows, 
                 by = rows[x, y - 1] | rows[x + 1, y - 1]
                 bz = r00 | r01 | r10 | r11
                 cbase = ((x - 1) * (BRICK + 1) + y - 1) * (BRICK + 1) - 1
-                for z in range(1, _L - 1):
-                    if not (m >> z) & 1:
-                        continue
+                while m != 0:
+                    z = np.int64(trailing_zeros(m))
+                    m &= m - 1
                     code = _cell_code(r00, r01, r10, r11, z)
-                    n = QUAL_N[code]
-                    if n == 0:
-                        continue
-                    low0 = (bx >> z) & 3 == 0
-                    low1 = (by >> z) & 3 == 0
-                    low2 = (bz >> (z - 1)) & 1 == 0
-                    for q in range(n):
-                        key = QUAL_KEY[code, q]
-                        f = TRIPLE_FACE[key >> 1]
-                        if (f == 0 and low0) or (f == 1 and low1) or (f == 2 and low2):
-                            continue
+                    low = _low_mask(bx, by, bz, z)
+                    for q in range(_OWN_N[code, low]):
+                        key = np.int64(_OWN_KEY[code, low, q])
                         c = cbase + z
                         v0 = loc[c + kc[key, 0]]
                         v1 = loc[c + kc[key, 1]]

@@ -391,3 +391,21 @@ def test_shaded_vertices_are_the_definition_bit_for_bit(seed, p_occ, graded, sha
     assert np.array_equal(surf.shift[vs].view(np.uint32), shift.view(np.uint32))
     assert np.array_equal(surf.pos[vs].view(np.uint32), pos.view(np.uint32))
     assert np.array_equal(surf.col[vs], col)
+
+
+def test_owned_tables_drop_the_faces_below():
+    """The keys a cell owns by code and low mask are QUAL_KEY's, in order,
+    less those in a minimum face whose four voxels below are empty; their
+    number is QUAL_N less QUAL_NMIN of those faces."""
+    from bonesim.engine.surface_build import _OWN_KEY, _OWN_N
+    from bonesim.engine.surface_tables import QUAL_KEY, QUAL_N, QUAL_NMIN
+
+    for code in range(256):
+        for low in range(8):
+            want = [int(k) for k in QUAL_KEY[code, :QUAL_N[code]]
+                    if not (0 <= TRIPLE_FACE[k >> 1] < 3 and (low >> TRIPLE_FACE[k >> 1]) & 1)]
+            n = int(_OWN_N[code, low])
+            assert _OWN_KEY[code, low, :n].tolist() == want
+            assert (_OWN_KEY[code, low, n:] == -1).all()
+            assert n == QUAL_N[code] - sum(int(QUAL_NMIN[code, a]) for a in range(3)
+                                           if (low >> a) & 1)
