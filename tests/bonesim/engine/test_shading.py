@@ -721,7 +721,7 @@ def test_blend_without_tint_is_the_colour_itself():
     """_blend returns the colour at once when nothing is blended; the
     formula gives the same bytes (floor(c + 0.5) = c), and blends go through
     the formula."""
-    from bonesim.engine.shading import _blend
+    from bonesim.engine.shading_full import blend as _blend
 
     def formula(c, w, a):
         return np.uint8(min(np.floor(np.float64(c) * (1.0 - w) + a + 0.5), 255.0))

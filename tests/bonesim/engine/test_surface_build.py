@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from bonesim.engine.grid import BRICK, Grid
-from bonesim.engine.shading import _HALO, _LB, _gather_plane
+from bonesim.engine.shading_full import _HALO, _LB, _gather_plane
 from bonesim.engine.surface import Surface
 from bonesim.engine.surface_build import (_KEY_CORNERS, _gather_rows, _gather_slots, build_count,
                                           build_prepare, occupancy_bits)
