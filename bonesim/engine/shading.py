@@ -59,8 +59,8 @@ the k and j passes), so the working set stays small: for the full shading
 and a 3-voxel halo, 14^3 voxels) along runs of bricks in x, in parallel
 over the runs, which also gives each vertex its slot (the surface's build
 hands it the surface voxels as bits); for the refresh, the inputs'
-bounding box plus ``2 NORMAL_RADIUS``. The refresh's sets of voxels (inputs, the vertices to refresh, the
-removed voxels dilated by one) are bit rows over a window around the inputs
+bounding box plus ``2 NORMAL_RADIUS``. The refresh's sets of voxels
+(inputs, the vertices to refresh, the removed voxels dilated by one) are bit rows over a window around the inputs
 (their bounding box plus ``max(tint_reach, 2 NORMAL_RADIUS)``, at most 64
 voxels deep along k; inputs spread too far are split into several
 windows), one uint64 per ``(i, j)`` row, obtained by shifts and ORs. Rays
