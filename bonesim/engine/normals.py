@@ -53,7 +53,9 @@ Vertex position
 The kernels (:func:`kj_plane`, :func:`i_plane` and its one-point form
 :func:`i_point`, :func:`unit_normal`,
 :func:`fallback_normal`) are used by :mod:`bonesim.engine.shading` for the full
-shading and for the refresh alike, so both give the same bits.
+shading and for the refresh alike, so both give the same bits; the full
+shading's k and j passes are :func:`kj_flat`, :func:`kj_plane` over a
+brick's plane as one long row (the same operations on the same values).
 """
 from __future__ import annotations
 
@@ -62,7 +64,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["NORMAL_RADIUS", "GRAD_EPS", "N_FIELD", "normal_weights", "stencil_weights"]
+__all__ = ["NORMAL_RADIUS", "GRAD_EPS", "N_FIELD", "FLAT_EDGE", "FLAT_PLANE", "normal_weights",
+           "stencil_weights"]
 
 #: Half-width [voxels] of the normal stencil (7x7x7 voxels; the kernels are
 #: written out for this value).
@@ -158,6 +161,57 @@ def kj_plane(d, x, Y, Z, W, rs, rd, ring, slot):
         for z in range(Zo):
             o[z] = (s0 * e[z + 3 * Zo] + s1 * (e[z + 2 * Zo] + e[z + 4 * Zo])
                     + s2 * (e[z + Zo] + e[z + 5 * Zo]) + s3 * (e[z] + e[z + 6 * Zo]))
+
+
+#: Edge of the square planes :func:`kj_flat` takes: a brick (8 voxels) and
+#: ``NORMAL_RADIUS`` voxels on each side.
+FLAT_EDGE = 8 + 2 * NORMAL_RADIUS
+#: Values per component and plane that :func:`kj_flat` writes to its ring:
+#: ``8`` rows (y) of ``FLAT_EDGE`` (z; the first 8 are the brick's).
+FLAT_PLANE = 8 * FLAT_EDGE
+_FLAT_Z = FLAT_EDGE * FLAT_EDGE - 2 * NORMAL_RADIUS
+
+
+@njit(cache=True, nogil=True)
+def kj_flat(d, x, W, rs, rd, ring, slot):
+    """:func:`kj_plane` of plane ``x`` of a box of ``(., FLAT_EDGE,
+    FLAT_EDGE)`` densities (a brick and its halo), computed over the plane
+    as one flat row so that the loops are long and vectorise: the k pass
+    ``rs[y * E + z]``, ``rd[y * E + z]`` (``E = FLAT_EDGE``; ``rs``, ``rd``:
+    ``E * E`` float32, their last ``2 R`` entries never written: allocate
+    them zeroed), the j pass into slot ``slot`` of ``ring`` (component ``c``
+    at ``(3 slot + c) FLAT_PLANE + y E + z``). The values at ``z < 8`` are
+    those of :func:`kj_plane` bit for bit (the same float32 operations in
+    the same order on the same densities); those at ``z >= 8`` mix
+    neighbouring rows and are never read (:func:`i_point` with ``n_pl =
+    FLAT_PLANE``, ``q = y E + z``)."""
+    e = FLAT_EDGE
+    s0 = W[0]
+    s1 = W[1]
+    s2 = W[2]
+    s3 = W[3]
+    d1 = W[4]
+    d2 = W[5]
+    d3 = W[6]
+    v = d[x * e * e:(x + 1) * e * e]
+    for q in range(_FLAT_Z):
+        rs[q] = (s0 * v[q + 3] + s1 * (v[q + 2] + v[q + 4]) + s2 * (v[q + 1] + v[q + 5])
+                 + s3 * (v[q] + v[q + 6]))
+    for q in range(_FLAT_Z):
+        rd[q] = d1 * (v[q + 4] - v[q + 2]) + d2 * (v[q + 5] - v[q + 1]) + d3 * (v[q + 6] - v[q])
+    tb = 3 * slot * FLAT_PLANE
+    o = ring[tb:tb + FLAT_PLANE]
+    for q in range(FLAT_PLANE):
+        o[q] = (s0 * rs[q + 3 * e] + s1 * (rs[q + 2 * e] + rs[q + 4 * e])
+                + s2 * (rs[q + e] + rs[q + 5 * e]) + s3 * (rs[q] + rs[q + 6 * e]))
+    o = ring[tb + FLAT_PLANE:tb + 2 * FLAT_PLANE]
+    for q in range(FLAT_PLANE):
+        o[q] = (d1 * (rs[q + 4 * e] - rs[q + 2 * e]) + d2 * (rs[q + 5 * e] - rs[q + e])
+                + d3 * (rs[q + 6 * e] - rs[q]))
+    o = ring[tb + 2 * FLAT_PLANE:tb + 3 * FLAT_PLANE]
+    for q in range(FLAT_PLANE):
+        o[q] = (s0 * rd[q + 3 * e] + s1 * (rd[q + 2 * e] + rd[q + 4 * e])
+                + s2 * (rd[q + e] + rd[q + 5 * e]) + s3 * (rd[q] + rd[q + 6 * e]))
 
 
 @njit(cache=True, nogil=True)

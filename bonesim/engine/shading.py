@@ -54,11 +54,13 @@ Implementation
 --------------
 The field (gradient and smoothed density) is computed on dense boxes of
 densities, separably and plane by plane along i (a ring of seven planes of
-the k and j passes), so the working set stays small: per brick (the brick
-and a 3-voxel halo, 14^3 voxels) for the full shading, in parallel over
-bricks; on the inputs' bounding box plus ``2 NORMAL_RADIUS`` for the
-refresh. The refresh's sets of voxels (inputs, the vertices to refresh, the
-removed voxels dilated by one) are bit rows over a window around the inputs
+the k and j passes), so the working set stays small: for the full shading
+(:mod:`bonesim.engine.shading_full`), the boxes of the bricks (the brick
+and a 3-voxel halo, 14^3 voxels) along runs of bricks in x, in parallel
+over the runs, which also gives each vertex its slot (the surface's build
+hands it the surface voxels as bits); for the refresh, the inputs'
+bounding box plus ``2 NORMAL_RADIUS``. The refresh's sets of voxels
+(inputs, the vertices to refresh, the removed voxels dilated by one) are bit rows over a window around the inputs
 (their bounding box plus ``max(tint_reach, 2 NORMAL_RADIUS)``, at most 64
 voxels deep along k; inputs spread too far are split into several
 windows), one uint64 per ``(i, j)`` row, obtained by shifts and ORs. Rays
@@ -71,13 +73,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from bonesim.errors import BonesimError
+from bonesim.engine.shading_full import (ALPHA, F_IN as _F_IN, F_ISO as _F_ISO,
+                                         F_ORIGIN as _F_ORIGIN, F_OUT as _F_OUT,
+                                         F_SPACING as _F_SPACING, N_F as _N_F, NBR_XM as _NBR_XM,
+                                         blend as _blend, shade_all_kernel as _shade_all_kernel)
+from bonesim.engine.work_items import new_counter, workers
 from bonesim.engine.grid import BRICK, BRICK_MASK, BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.normals import (GRAD_EPS, N_FIELD, NORMAL_RADIUS, fallback_normal, i_plane,
-                                    i_point,
                                     kj_plane, unit_normal, vertex_shift, normal_weights,
                                     stencil_weights)
 from bonesim.engine.shading_params import ShadingParams, default_shading_path, load_shading
@@ -90,15 +96,10 @@ __all__ = ["NORMAL_RADIUS", "GRAD_EPS", "ALPHA", "MAX_REACH_VOXELS",
            "stencil_weights", "tint_weight", "tint_reach", "bone_labels", "beneath", "Shader",
            ]
 
-#: Alpha of every vertex colour.
-ALPHA = 255
 #: Largest reach [voxels] of the refresh: ``tint_reach`` must not exceed it
 #: (a window is at most 64 voxels deep along k).
 MAX_REACH_VOXELS = 28
 
-_HALO = NORMAL_RADIUS
-_LB = BRICK + 2 * _HALO          # edge of the per-brick box of the full shading
-_CHUNK = 16                      # bricks per parallel work item
 # bit-row sets of the refresh window
 _R_ALL, _R_REM, _R_NRM, _R_TINT, _R_REM1, _R_T0 = range(6)
 _N_ROWSETS = 6
@@ -108,155 +109,9 @@ _WIN_MIN_VOXELS = 32768
 _WIN_VOXELS_PER_INPUT = 128
 _WIN_DEPTH = 64
 # layout of the float64 constants ``fp`` and int64 slots ``ip`` the kernels take
-_F_ORIGIN, _F_SPACING, _F_ISO, _F_OUT, _F_IN = 0, 3, 4, 5, 6   # origin (3), spacing, [surface]
-_N_F = 7
 _I_TINT, _I_REACH, _I_MARGIN, _I_NEED = 0, 1, 2, 3   # need: rows, bricks, f32, vertex list
 _I_NV = 7                                               # vertices moved, listed in vlist
 _N_I = 8
-
-
-# The hot loops below call only helpers on scalars: a numba helper taking
-# arrays, inlined or not, costs reference counting on every call (some 30 ns
-# per vertex); helpers with arrays are called in rare branches only.
-@njit(cache=True, nogil=True, inline="always")
-def _blend(r0, g0, b0, w, ar, ag, ab):
-    """RGB (uint8) of the colour ``(r0, g0, b0)`` blended with weight ``w``
-    toward the weighted structure colour ``(ar, ag, ab)`` (module docstring)."""
-    r = np.floor(np.float64(r0) * (1.0 - w) + ar + 0.5)
-    g = np.floor(np.float64(g0) * (1.0 - w) + ag + 0.5)
-    b = np.floor(np.float64(b0) * (1.0 - w) + ab + 0.5)
-    return np.uint8(min(r, 255.0)), np.uint8(min(g, 255.0)), np.uint8(min(b, 255.0))
-
-
-@njit(cache=True, nogil=True)
-def _gather_halo(density, nbr, b, box):
-    """Densities of brick ``b`` and a ``_HALO``-voxel halo into the flat box
-    (voxel ``(x, y, z)`` of the brick at ``((x + H) * LB + y + H) * LB + z + H``).
-    Each row along z is three contiguous copies: the last ``H`` voxels of the
-    brick below, the brick's 8, the first ``H`` of the brick above."""
-    s = 0
-    for lx in range(_LB):
-        x = lx - _HALO
-        sx = ((x >> BRICK_SHIFT) + 1) * 9
-        ox = (x & BRICK_MASK) << 6
-        for ly in range(_LB):
-            y = ly - _HALO
-            sy = sx + ((y >> BRICK_SHIFT) + 1) * 3
-            oy = ox | ((y & BRICK_MASK) << 3)
-            nb = nbr[b, sy]
-            if nb >= 0:
-                for q in range(_HALO):
-                    box[s + q] = density[nb, oy + BRICK - _HALO + q]
-            else:
-                for q in range(_HALO):
-                    box[s + q] = np.float32(0.0)
-            s += _HALO
-            nb = nbr[b, sy + 1]
-            if nb >= 0:
-                for q in range(BRICK):
-                    box[s + q] = density[nb, oy + q]
-            else:
-                for q in range(BRICK):
-                    box[s + q] = np.float32(0.0)
-            s += BRICK
-            nb = nbr[b, sy + 2]
-            if nb >= 0:
-                for q in range(_HALO):
-                    box[s + q] = density[nb, oy + q]
-            else:
-                for q in range(_HALO):
-                    box[s + q] = np.float32(0.0)
-            s += _HALO
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _shade_all_kernel(keys, vals, density, label, nbr, bricks, vmap, bone, tint_on, near,
-                      colors, W, fp, tp, cone, pos, nrm, shf, col, counts):
-    """Position, normal and colour of every vertex, brick by brick (the
-    brick plus a 3-voxel halo is the box of the field's passes, plane by
-    plane)."""
-    nb_tot = bricks.shape[0]
-    n_chunks = (nb_tot + _CHUNK - 1) // _CHUNK
-    ncol = colors.shape[0]
-    one = np.uint64(1)
-    n_pl = BRICK * BRICK
-    origin = fp[_F_ORIGIN:_F_ORIGIN + 3]
-    spacing = fp[_F_SPACING]
-    iso = fp[_F_ISO]
-    s_out = fp[_F_OUT]
-    s_in = fp[_F_IN]
-    w0, w1, w2, w3, w4, w5, w6 = W[0], W[1], W[2], W[3], W[4], W[5], W[6]
-    for ch in prange(n_chunks):
-        box = np.empty(_LB * _LB * _LB, dtype=np.float32)
-        rs = np.empty(_LB * BRICK, dtype=np.float32)
-        rd = np.empty(_LB * BRICK, dtype=np.float32)
-        ring = np.empty(21 * n_pl, dtype=np.float32)
-        n = 0
-        for b in range(ch * _CHUNK, min(nb_tot, (ch + 1) * _CHUNK)):
-            gathered = False
-            have = 0
-            bi = bricks[b, 0] << BRICK_SHIFT
-            bj = bricks[b, 1] << BRICK_SHIFT
-            bk = bricks[b, 2] << BRICK_SHIFT
-            for x in range(BRICK):
-                any_v = False
-                for o in range(x * n_pl, (x + 1) * n_pl):
-                    if vmap[b, o] >= 0:
-                        any_v = True
-                        break
-                if not any_v:
-                    continue
-                if not gathered:
-                    _gather_halo(density, nbr, b, box)
-                    gathered = True
-                for pl in range(max(have, x), x + 7):
-                    kj_plane(box, pl, _LB, _LB, W, rs, rd, ring, pl % 7)
-                have = x + 7
-                for q in range(n_pl):
-                    o = x * n_pl + q
-                    v = vmap[b, o]
-                    if v < 0:
-                        continue
-                    y = q >> 3
-                    z = q & BRICK_MASK
-                    i = bi + x
-                    j = bj + y
-                    k = bk + z
-                    # the i-pass at this vertex only (same bits as i_plane)
-                    gx, gy, gz, fq = i_point(ring, x, n_pl, w0, w1, w2, w3, w4, w5, w6, q)
-                    nx, ny, nz, ok = unit_normal(gx, gy, gz)
-                    if not ok:
-                        nx, ny, nz = fallback_normal(box, ((x + _HALO) * _LB + y + _HALO) * _LB
-                                                      + z + _HALO, _LB, _LB)
-                    sh = vertex_shift(fq, gx, gy, gz, iso, s_out, s_in)
-                    nrm[v, 0] = nx
-                    nrm[v, 1] = ny
-                    nrm[v, 2] = nz
-                    pos[v, 0] = origin[0] + spacing * (i + sh * nx)
-                    pos[v, 1] = origin[1] + spacing * (j + sh * ny)
-                    pos[v, 2] = origin[2] + spacing * (k + sh * nz)
-                    shf[v] = sh
-                    lab = np.int64(label[b, o])
-                    if lab >= ncol:
-                        lab = 0
-                    w = 0.0
-                    ar = 0.0
-                    ag = 0.0
-                    ab = 0.0
-                    if tint_on:
-                        if bone[lab] != 0:
-                            if (near[b, x] >> np.uint64(q)) & one:
-                                w, ar, ag, ab = tint_vertex(keys, vals, density, label, bone, colors,
-                                                      origin, spacing, tp, cone, i, j, k,
-                                                      nrm[v, 0], nrm[v, 1], nrm[v, 2], shf[v])
-                    cr, cg, cb = _blend(colors[lab, 0], colors[lab, 1], colors[lab, 2], w, ar,
-                                        ag, ab)
-                    col[v, 0] = cr
-                    col[v, 1] = cg
-                    col[v, 2] = cb
-                    col[v, 3] = ALPHA
-                    n += 1
-        counts[ch] = n
 
 
 @njit(cache=True, nogil=True)
@@ -656,15 +511,24 @@ class Shader:
         positions may change."""
         return NORMAL_RADIUS
 
-    def shade_all(self, grid, vmap, pos, nrm, shift, col) -> int:
-        """Position, normal, shift and colour of every vertex of ``vmap``;
-        returns their number.
+    def shade_all(self, grid, srf, voff, vmap, ijk, pos, nrm, shift, col) -> int:
+        """Give every surface voxel its vertex slot and the vertex its voxel,
+        position, normal, shift and colour; returns the number of vertices.
 
         Parameters
         ----------
         grid : Grid
+        srf : (n_bricks, 64) uint8
+            Surface voxels: bit ``z`` of ``srf[b, 8 x + y]`` set where voxel
+            ``(x, y, z)`` of brick ``b`` (brick-relative) is one.
+        voff : (n_bricks + 1,) int64
+            Slot of brick ``b``'s first vertex; its vertices take the slots
+            ``voff[b] .. voff[b + 1] - 1`` in ``(x, y, z)`` order (so
+            ``voff[b + 1] - voff[b]`` is its number of surface voxels).
         vmap : (n_bricks, 512) int32
-            Vertex slot per voxel, -1 for none.
+            Written: vertex slot per voxel, -1 for none.
+        ijk : (vcap, 3) int32
+            Written: each vertex's voxel ``(i, j, k)``.
         pos, nrm : (vcap, 3) float32
             Written: positions [mm] and unit normals.
         shift : (vcap,) float32
@@ -673,12 +537,17 @@ class Shader:
         col : (vcap, 4) uint8
             Written: RGBA.
         """
-        n_chunks = max(1, (grid.n_bricks + _CHUNK - 1) // _CHUNK)
-        counts = np.zeros(n_chunks, dtype=np.int64)
+        if srf.shape != (grid.n_bricks, BRICK * BRICK) or srf.dtype != np.uint8:
+            raise ValueError(f"srf must be a ({grid.n_bricks}, 64) uint8 array")
+        if voff.shape != (grid.n_bricks + 1,) or voff[-1] > pos.shape[0]:
+            raise ValueError("voff must hold n_bricks + 1 slots within the vertex arrays")
+        # the runs of bricks along +x: from each brick without a -x neighbour
+        starts = np.flatnonzero(self._nbr[:, _NBR_XM] < 0)
+        counts = np.zeros(starts.shape[0], dtype=np.int64)
         _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
-                          grid.bricks, vmap, self.bone, self.tint_on, self._near,
-                          self.colors, self._W, self._fp, self._tp, self._cone, pos, nrm, shift,
-                          col, counts)
+                          grid.bricks, srf, voff, self.bone, self.tint_on, self._near,
+                          self.colors, self._W, self._fp, self._tp, self._cone, vmap, ijk, pos,
+                          nrm, shift, col, starts, counts, new_counter(), workers())
         return int(counts.sum())
 
     def refresh(self, grid, vmap, pos, nrm, shift, col, removed, touched, moved=None) -> int:

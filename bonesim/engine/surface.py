@@ -81,9 +81,18 @@ one-voxel halo are gathered into 10x10 rows of 10 bits (surface voxels, cell
 codes and the ownership tests are shifts and ANDs of rows,
 :mod:`bonesim.engine.surface_build`); bricks whose
 box is all bone or whose brick-plus-upper-halo is all empty are skipped. A
-first pass counts vertices and owned triangles per brick, prefix sums give
-every brick its output ranges, a second pass writes vertices (and the
-voxel -> vertex map), a third writes triangles.
+first pass counts vertices and owned triangles per brick (keeping each
+brick's surface voxels as 64 bytes of bits), prefix sums give every brick
+its output ranges, a second pass gives the vertices their slots, voxels,
+positions, normals and colours and writes the voxel -> vertex map
+(:meth:`bonesim.engine.shading.Shader.shade_all`, one pass over the
+bricks, along runs of bricks in x), a third writes triangles (their
+corners' slots read from a per-brick copy of the map) and fills the spare
+records, and one serial pass links the vertex -> triangle lists. Each
+parallel pass hands its work items (a few bricks, or a run) to the threads
+one at a time (:mod:`bonesim.engine.work_items`), and each item writes only
+its own outputs, so the result is the same bits whatever the number of
+threads and whoever ran what.
 
 Incremental update (:meth:`Surface.update`): a removed voxel that is empty
 now is a *source*. Only cells containing a source change code, and besides
@@ -136,23 +145,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from bonesim.engine.grid import (BRICK, BRICK_SHIFT, BRICK_VOXELS, Grid,
                                  find_brick, voxel_offset)
 from bonesim.engine.shading import GRAD_EPS, Shader, ShadingParams, bone_labels
-from bonesim.engine.surface_build import (CHUNK, PARALLEL_CHUNKSIZE, build_count,
-                                          build_triangles, build_vertices, occupancy_bits)
+from bonesim.engine.surface_build import CHUNK, build_count, build_prepare, build_triangles
 from bonesim.engine.surface_tables import (CORNER_OFFSETS, MAX_PER_CELL, RESHADE_REACH, TRIPLE_CORNERS,
                                            N_STATS, qualifying_triples,
                                            S_CELLS, S_ERR, S_NEED_T, S_NEED_V, S_STATUS,
                                            S_T_ADD, S_T_DEL, S_V_ADD, S_V_DEL, TR_FILL, TR_KEY,
                                            TR_NEXT, TR_ONEXT, TR_WIDTH, T_ALIVE, T_HW, VR_HEAD,
-                                           VR_OHEAD, V_ALIVE, V_HW, brick_neighbours, link_all,
+                                           VR_OHEAD, V_ALIVE, V_HW, link_all,
                                            orient_of, triangles_of_vertex)
 from bonesim.engine.surface_tiles import COORD_LIMIT, TILE_SHIFT, WINDOW_MIN_VOXELS, update_tiles
 from bonesim.engine.surface_window import N_ROWSETS
+from bonesim.engine.work_items import new_counter, workers
 
 __all__ = ["Surface", "CanonicalSurface", "GRAD_EPS", "RESHADE_REACH", "warmup",
            "qualifying_triples", "CORNER_OFFSETS", "TRIPLE_CORNERS"]
@@ -394,23 +402,24 @@ class Surface:
         if grid.label.size and int(grid.label.max()) >= colors.shape[0]:
             raise ValueError(f"colors has {colors.shape[0]} rows but the grid uses "
                              f"label {int(grid.label.max())}")
-        # work items handed out a few at a time, not split in equal halves
-        # up front: a thread that the OS (a loaded machine) holds back does
-        # not hold the build back; each item writes its own outputs, so the
-        # result does not depend on who ran what
-        with numba.parallel_chunksize(PARALLEL_CHUNKSIZE):
-            return cls._build(grid, colors, bone, shading)
+        return cls._build(grid, colors, bone, shading)
 
     @classmethod
     def _build(cls, grid, colors, bone, shading) -> "Surface":
+        # the parallel kernels' work items are handed out one at a time, not
+        # split in equal parts up front: a thread that the OS (a loaded
+        # machine) holds back does not hold the build back; each item writes
+        # its own outputs, so the result does not depend on who ran what
         n_b = grid.n_bricks
-        nbr = brick_neighbours(grid.keys, grid.vals, grid.bricks)
-        shader = Shader(grid, nbr, colors, bone, shading)
-        nv = np.zeros(n_b, dtype=np.int64)
-        nt = np.zeros(n_b, dtype=np.int64)
+        nw = workers()
+        nbr = np.empty((n_b, 27), dtype=np.int32)
         om = np.empty((n_b, BRICK), dtype=np.int64)
-        occupancy_bits(grid.density, om)
-        build_count(om, nbr, nv, nt)
+        build_prepare(grid.keys, grid.vals, grid.bricks, grid.density, nbr, om, new_counter(), nw)
+        shader = Shader(grid, nbr, colors, bone, shading)
+        nv = np.empty(n_b, dtype=np.int64)
+        nt = np.empty(n_b, dtype=np.int64)
+        srf = np.empty((n_b, BRICK * BRICK), dtype=np.uint8)
+        build_count(om, nbr, nv, nt, srf, new_counter(), nw)
         voff = np.zeros(n_b + 1, dtype=np.int64)
         np.cumsum(nv, out=voff[1:])
         toff = np.zeros(n_b + 1, dtype=np.int64)
@@ -424,22 +433,21 @@ class Surface:
         nrm = np.zeros((vcap, 3), dtype=np.float32)
         col = np.zeros((vcap, 4), dtype=np.uint8)
         ijk = np.zeros((vcap, 3), dtype=np.int32)
-        build_vertices(om, nbr, grid.bricks, grid.origin_mm, grid.spacing_mm, voff,
-                       vmap, pos, ijk)
-        alive = np.zeros(vcap, dtype=np.uint8)
-        alive[:n_v] = 1
         shift = np.zeros(vcap, dtype=np.float32)
-        # shaded before the triangles are made, so that each triangle's drawn
-        # winding is found as it is written (its corners' data in cache)
-        shader.shade_all(grid, vmap, pos, nrm, shift, col)
+        # slots, voxels and shading of the vertices in one pass, before the
+        # triangles are made, so that each triangle's drawn winding is found
+        # as it is written (its corners' data in cache)
+        shader.shade_all(grid, srf, voff, vmap, ijk, pos, nrm, shift, col)
         trec = np.empty((tcap, TR_WIDTH), dtype=np.int32)
-        trec[n_t:] = TR_FILL       # rows below n_t: build_triangles, then link_all
         tflip = np.zeros(tcap, dtype=np.uint8)
         err = np.zeros(max(1, (n_b + CHUNK - 1) // CHUNK), dtype=np.int64)
-        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err)
+        vrec = np.empty((vcap, 2), dtype=np.int32)
+        alive = np.empty(vcap, dtype=np.uint8)
+        # the triangles, the spare triangle rows (TR_FILL), vrec (-1) and alive
+        build_triangles(om, nbr, toff, vmap, pos, nrm, trec, tflip, err, vrec, alive, n_v,
+                        new_counter(), nw)
         if err.sum():
             raise RuntimeError("surface: a qualifying triangle has a corner without vertex")
-        vrec = np.full((vcap, 2), -1, dtype=np.int32)
         link_all(trec, vrec, n_t)
         cnt = np.array([n_v, 0, n_t, 0, n_v, n_t], dtype=np.int64)
         return cls(grid.keys, grid.vals, colors, nbr, vmap, pos, nrm, shift, col, ijk, alive, vrec,

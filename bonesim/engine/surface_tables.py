@@ -163,6 +163,18 @@ N_STATS = 11
 # ----------------------------------------------------------------------------
 # Small kernels of the surface's lists
 # ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True, inline="always")
+def neighbours_of(keys, vals, bricks, b, out):
+    """``out[b, :]``: brick ``b``'s row of :func:`brick_neighbours`."""
+    s = 0
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            for dk in range(-1, 2):
+                out[b, s] = find_brick(keys, vals, bricks[b, 0] + di,
+                                       bricks[b, 1] + dj, bricks[b, 2] + dk)
+                s += 1
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def brick_neighbours(keys, vals, bricks):
     """(n_bricks, 27) int32: index of each brick's 26 neighbours and itself
@@ -170,13 +182,7 @@ def brick_neighbours(keys, vals, bricks):
     n = bricks.shape[0]
     out = np.empty((n, 27), dtype=np.int32)
     for b in prange(n):
-        s = 0
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    out[b, s] = find_brick(keys, vals, bricks[b, 0] + di,
-                                           bricks[b, 1] + dj, bricks[b, 2] + dk)
-                    s += 1
+        neighbours_of(keys, vals, bricks, b, out)
     return out
 
 

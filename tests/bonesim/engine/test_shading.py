@@ -715,3 +715,24 @@ def test_bad_bone_masks_and_reach():
         Surface.build(fine, COLORS, bone=BONE)
     Surface.build(fine, COLORS, bone=BONE, shading=ShadingParams(start_mm=1.0, full_mm=0.3))
     Surface.build(fine, COLORS)                                  # no tint: no reach limit
+
+
+def test_blend_without_tint_is_the_colour_itself():
+    """_blend returns the colour at once when nothing is blended; the
+    formula gives the same bytes (floor(c + 0.5) = c), and blends go through
+    the formula."""
+    from bonesim.engine.shading_full import blend as _blend
+
+    def formula(c, w, a):
+        return np.uint8(min(np.floor(np.float64(c) * (1.0 - w) + a + 0.5), 255.0))
+
+    for c in range(256):
+        assert _blend(c, c, c, 0.0, 0.0, 0.0, 0.0) == (formula(c, 0.0, 0.0),) * 3
+        assert _blend(c, 0, 255, -0.0, 0.0, -0.0, 0.0) == (c, 0, 255)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        c = rng.integers(0, 256, 3)
+        w = float(rng.uniform(0, 0.6))
+        a = rng.uniform(0, 0.6 * 255, 3)
+        assert _blend(c[0], c[1], c[2], w, a[0], a[1], a[2]) == tuple(
+            formula(c[q], w, a[q]) for q in range(3))
