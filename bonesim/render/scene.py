@@ -52,7 +52,8 @@ At native resolution (render.toml ``[lod]``: a voxel under
 surface away from the burr is drawn with one vertex per 2x2x2 voxels
 (:mod:`bonesim.render.lod`, no cracks, full detail around the burr and
 wherever bone was removed: give :meth:`update_surface` the removed
-voxels), and
+voxels), one vertex per 4x4x4 voxels of smooth bone beyond ``coarse_mm``
+of the burr (the second level), and
 the structures are meshed on a grid twice as coarse. Checked before every
 render (:meth:`_update_lod`).
 
@@ -86,7 +87,7 @@ from bonesim.render.dustview import DustLayer
 from bonesim.render.geometry import point_to, structure_polydata, tool_matrix
 from bonesim.render.gl import make_render_window
 from bonesim.render.layout import LayoutMixin
-from bonesim.render.lod import SurfaceLOD, voxel_px
+from bonesim.render.lod import BLOCK_SHIFT, SurfaceLOD, voxel_px
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
 from bonesim.render.structures_view import StructuresMixin
@@ -102,6 +103,15 @@ BACKGROUND = (0.05, 0.06, 0.08)
 REST_S = 0.25
 #: Camera view angle [deg]: a microscope's narrow field.
 VIEW_ANGLE_DEG = 30.0
+
+
+def _follow(want, cur, slack: int):
+    """A block range that covers ``want`` (inclusive block ranges): ``cur``
+    while it does (the lists are not made again), else ``want`` grown by
+    ``slack`` blocks each way."""
+    if cur is not None and np.all(cur[0] <= want[0]) and np.all(cur[1] >= want[1]):
+        return cur
+    return want[0] - slack, want[1] + slack
 
 
 def _void_array(cls, ncomp: int, name: str | None = None):
@@ -223,7 +233,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin, StructuresMixin):
         self._build_text()
         # visible-subset state machine
         self.surface = None
-        self._buffers = SurfaceBuffers()
+        self._buffers = SurfaceBuffers(coarse_min_cos=self.style.lod.coarse_min_cos)
         self._drawn = "full"
         self._cam_sig = None
         self._cam_still_since = time.perf_counter()
@@ -461,20 +471,23 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin, StructuresMixin):
                       int(self.renderer.GetSize()[1]),
                       cam.GetParallelScale() if par else None)
         on = px < lod.max_voxel_px and surf.n_triangles >= lod.min_triangles
-        box = None
+        box = mid = None
         if on and self.tool_pos_mm is not None:
             pos = self.tool_pos_mm
             if getattr(self, "_main_pose", None) is not None:
                 r, t = self._main_pose[:3, :3], self._main_pose[:3, 3]
                 pos = (np.asarray(pos) - t) @ r
-            box = SurfaceLOD.near_blocks(pos, lod.near_mm, surf._origin, surf._spacing)
-            cur = None if self._buffers.lod is None else self._buffers.lod.near_box
-            if cur is not None and np.all(cur[0] <= box[0]) and np.all(cur[1] >= box[1]):
-                box = cur               # still inside: keep it (no re-listing)
-            else:                       # a block of slack each way
-                box = (box[0] - 1, box[1] + 1)
+            cur = self._buffers.lod
+            box = _follow(SurfaceLOD.near_blocks(pos, lod.near_mm, surf._origin, surf._spacing),
+                          None if cur is None else cur.near_box, 1)
+            if lod.coarse_mm > 0 and px < lod.coarse_max_voxel_px:
+                # the second level beyond coarse_mm of the burr
+                slack = int(np.ceil(lod.coarse_slack_mm / (surf._spacing * (1 << BLOCK_SHIFT))))
+                mid = _follow(SurfaceLOD.near_blocks(pos, lod.coarse_mm, surf._origin,
+                                                     surf._spacing),
+                              None if cur is None else cur.mid_box, slack)
         self.renderer.SetUseOIT(not on)
-        if self._buffers.set_lod(surf, on, box):
+        if self._buffers.set_lod(surf, on, box, mid):
             self._push_cells()
 
     def _reset_clipping_range(self):
