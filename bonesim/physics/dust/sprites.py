@@ -14,9 +14,9 @@ point of its cell, with the age of the dust in it:
   species (dry 0, wet 1): the same every frame (no flicker), different from
   cell to cell (no regular grid pattern).
 * **Age.** Each cell remembers when dust arrived in it: the time of the
-  last :func:`_stamp` call that saw it at or below ``thr`` (a cell of a
-  brick that held no dust at the previous call counts as just arrived). The
-  age is ``now - arrival`` [s].
+  last call (:func:`_stamp`, :func:`_gather`) that saw it at or below
+  ``thr`` (a cell of a brick that held no dust at the previous call counts
+  as just arrived). The age is ``now - arrival`` [s].
 """
 from __future__ import annotations
 
