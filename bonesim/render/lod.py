@@ -671,9 +671,9 @@ class SurfaceLOD:
                 self.far_full = np.zeros(3 * nt, dtype=np.int32)
                 self.far_vis = np.zeros(3 * nt, dtype=np.int32)
             nf, nv = _far_pass(surface.tri, surface.tri_key, surface.pos, surface.nrm, self.rep,
-                               self.rep2, self.far, job_tag is not None, np.asarray(eye, np.float64),
-                               np.asarray(dirn, np.float64), bool(parallel), self.far_full,
-                               self.far_vis)
+                               self.rep2, self.far, job_tag is not None,
+                               np.asarray(eye, np.float64), np.asarray(dirn, np.float64),
+                               bool(parallel), self.far_full, self.far_vis)
             self.n_far_full, self.n_far_vis = int(nf), int(nv)
             self.far_valid = True
             self._far_tag = job_tag
