@@ -492,6 +492,7 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin, StructuresMixin):
                                                      surf._spacing),
                               None if cur is None else cur.mid_box, slack)
         self.renderer.SetUseOIT(not on)
+        self.dust.keep_one_in = int(lod.dust_keep_one_in) if on else 1
         # where the level of detail is on the surface's vertex buffers are
         # uploaded every frame while drilling: VTK's automatic shift and
         # scale of the coordinates would scan all of them for their range

@@ -41,7 +41,7 @@ _SCHEMA = {
     "lod": {"max_voxel_px": (_N, 0, 100), "min_triangles": (_N, 0, 1e9),
             "near_mm": (_N, 0, 1000), "coarse_mm": (_N, 0, 1000),
             "coarse_max_voxel_px": (_N, 0, 100), "coarse_min_cos": (_N, -1, 1),
-            "coarse_slack_mm": (_N, 0, 1000)},
+            "coarse_slack_mm": (_N, 0, 1000), "dust_keep_one_in": (_N, 1, 16)},
 }
 
 

@@ -523,6 +523,7 @@ def test_picture_with_level_of_detail_is_close(gl_info, drilled, coarse_mm):
         assert sc.refresh_visible()
         img = sc.image().astype(int)
         assert (sc._buffers.lod is not None) == on
+        assert sc.dust.keep_one_in == (int(sc.style.lod.dust_keep_one_in) if on else 1)
         if on:
             assert sc._buffers.n_vis < 0.7 * n_vis_full
             levels = sc._buffers.lod.far[surf.vertex_slots]
