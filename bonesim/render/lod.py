@@ -213,7 +213,7 @@ def _coarse_rep(vmap, nrm, b, i, j, k, min_cos):
 def _reps_all(keys, vals, vmap, nrm, ijk, alive, min_cos, rep, rep2):
     """Representative of every live vertex slot (dead ones: themselves),
     and coarse representative (``rep`` where its coarse cluster is not
-    smooth)."""
+    smooth, and everywhere for ``min_cos`` > 1: no second level)."""
     for v in range(alive.shape[0]):
         rep[v] = v
         rep2[v] = v
@@ -224,7 +224,7 @@ def _reps_all(keys, vals, vmap, nrm, ijk, alive, min_cos, rep, rep2):
                 u = _cluster_rep(vmap, b, i, j, k)
                 if u >= 0:
                     rep[v] = u
-                u2 = _coarse_rep(vmap, nrm, b, i, j, k, min_cos)
+                u2 = _coarse_rep(vmap, nrm, b, i, j, k, min_cos) if min_cos <= 1.0 else -1
                 rep2[v] = u2 if u2 >= 0 else rep[v]
 
 
