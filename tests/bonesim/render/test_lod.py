@@ -524,6 +524,9 @@ def test_picture_with_level_of_detail_is_close(gl_info, drilled, coarse_mm):
         img = sc.image().astype(int)
         assert (sc._buffers.lod is not None) == on
         assert sc.dust.keep_one_in == (int(sc.style.lod.dust_keep_one_in) if on else 1)
+        # no coordinate shift-scale scan and no frustum culler with it on
+        assert sc._surface_mapper.GetVBOShiftScaleMethod() == (0 if on else 1)
+        assert sc.renderer.GetCullers().GetNumberOfItems() == (0 if on else 1)
         if on:
             assert sc._buffers.n_vis < 0.7 * n_vis_full
             levels = sc._buffers.lod.far[surf.vertex_slots]
