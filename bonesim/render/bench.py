@@ -377,6 +377,8 @@ def bench_fps(quick: bool = False, voxel_mm=None, name: str = "render_fps_1024x7
         "drawn_triangles": int(scene._buffers.n_vis if scene.drawing == "visible"
                                else scene._buffers.n_full),
         "lod": scene._buffers.lod is not None,
+        "lod_second_level": bool(scene._buffers.lod is not None
+                                 and scene._buffers.lod.mid_box is not None),
         "order_independent_blending": bool(scene.renderer.GetUseOIT()),
         "structure_triangles_drawn": int(sum(v[0].n_drawn for v in scene._sealed.values())),
         "size": list(FPS_SIZE), "voxel_mm": float(state.grid.spacing_mm),

@@ -15,7 +15,11 @@ the real temporal-bone stacks, about 274^3 voxels):
     drilling: each frame the burr cuts the cavity's floor, the surface and
     scene are updated with the removed voxels, then dust, tool, HUD and
     render. Target >= 20. The surface is drawn with its level of detail
-    (:mod:`bonesim.render.lod`: full detail around the burr).
+    (:mod:`bonesim.render.lod`: full detail around the burr and wherever
+    bone was drilled, one vertex per 2x2x2 voxels beyond, per 4x4x4 voxels
+    of smooth bone beyond ``coarse_mm``), the dust thinned
+    (:mod:`bonesim.render.dustview`); the detail's ``lod_second_level``
+    says whether the second level was on.
 """
 from __future__ import annotations
 

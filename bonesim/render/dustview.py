@@ -14,6 +14,12 @@ jittered inside its cell) becomes one round sprite facing the camera:
 * **faded by age**: times ``aged + (1 - aged) * exp(-age / fade_s)``: fresh
   chips flying off the burr are seen, settled dust becomes a veil;
 * **wet paste** darker and more translucent (``wet_rgb``, ``wet_opacity``);
+* **thinned where the level of detail is on** (:attr:`DustLayer.keep_one_in`
+  ``k`` > 1, render.toml ``[lod] dust_keep_one_in``): one sprite in ``k``
+  is drawn, chosen by a hash of its position (the same cells every frame:
+  no flicker, no pattern), ``sqrt(k)`` times as wide (the area of ``k``
+  sprites; at the native voxel a sprite is about two pixels wide, and
+  each one costs a triangle however small);
 * **depth-tested** against the bone: drawn in VTK's translucent pass after
   the opaque surface, with the depth test on and depth writes off, so dust
   behind a wall is hidden and dust never hides dust behind it entirely
@@ -32,7 +38,7 @@ from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPointGaussianMapper
 
-__all__ = ["sprite_look", "DustLayer", "SPLAT_SHADER", "BOUND_SCALE"]
+__all__ = ["sprite_look", "thin_sprites", "DustLayer", "SPLAT_SHADER", "BOUND_SCALE"]
 
 #: Fragment code of a sprite: flat colour, opacity ``(1 - r^2)^2`` to the edge.
 SPLAT_SHADER = (
@@ -91,6 +97,37 @@ def sprite_look(density, age_s, wet, cell_mm: float, style):
     return radius, rgba
 
 
+def thin_sprites(positions, keep_one_in: int) -> np.ndarray:
+    """Which sprites to draw when drawing one in ``keep_one_in``.
+
+    Parameters
+    ----------
+    positions : (n, 3) float32
+        Sprite centres [mm] (a cell's is the same every frame).
+    keep_one_in : int
+        1 keeps every sprite.
+
+    Returns
+    -------
+    (n,) bool
+        Kept: a hash of the position's float32 bits is 0 modulo
+        ``keep_one_in``.
+    """
+    k = int(keep_one_in)
+    if k < 1:
+        raise ValueError(f"keep_one_in must be at least 1, got {keep_one_in}")
+    p = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
+    if k == 1:
+        return np.ones(len(p), bool)
+    u = p.view(np.uint32).astype(np.uint64)
+    h = (u[:, 0] * np.uint64(0x9E3779B1) + u[:, 1] * np.uint64(0x85EBCA77)
+         + u[:, 2] * np.uint64(0xC2B2AE3D)) & np.uint64(0xFFFFFFFF)
+    h ^= h >> np.uint64(15)
+    h = (h * np.uint64(0x2C1B3C6D)) & np.uint64(0xFFFFFFFF)
+    h ^= h >> np.uint64(12)
+    return (h % np.uint64(k)) == 0
+
+
 class DustLayer:
     """The dust actor of a scene.
 
@@ -147,6 +184,8 @@ class DustLayer:
         self.mapper = m
         self._bufs = None
         self.count = 0
+        #: Draw one sprite in this many (module docstring; the scene sets it).
+        self.keep_one_in = 1
 
     def set(self, positions, density, cell_mm: float, age_s=None, wet=None) -> None:
         """Show the sprites (see the module docstring); cells with no dust
@@ -165,7 +204,15 @@ class DustLayer:
             p, d = np.ascontiguousarray(p[keep]), d[keep]
             age = None if age is None else age[keep]
             w = None if w is None else w[keep]
+        k = int(self.keep_one_in)
+        if k > 1:
+            keep = thin_sprites(p, k)
+            p, d = np.ascontiguousarray(p[keep]), d[keep]
+            age = None if age is None else age[keep]
+            w = None if w is None else w[keep]
         radius, rgba = sprite_look(d, age, w, cell_mm, self.style)
+        if k > 1:           # the area of k sprites
+            radius *= np.float32(np.sqrt(k))
         self._bufs = (p, radius, rgba)                 # keep the memory VTK reads alive
         for arr, buf in ((self._pos, p), (self._radius, radius), (self._rgba, rgba)):
             arr.SetVoidArray(buf, int(buf.size), 1)

@@ -85,6 +85,38 @@ the near box, when the near box moves, for another camera for the visible
 subset, or for changes not given. Then one pass over the triangle slots
 lists them again (~10 ms for the phantom at 0.19 mm).
 
+Second level
+------------
+Farther still the surface is drawn coarser (render.toml ``[lod]``
+``coarse_*``; :mod:`bonesim.render.scene` turns it on while the burr is
+shown): a far vertex whose block also lies outside the *mid box* (blocks
+within ``coarse_mm`` of the burr, kept like the near box with some slack)
+is at *level 2* and is replaced by ``rep2[v]``, the *coarse representative*
+of its *coarse cluster* ``(i, j, k) >> COARSE_SHIFT`` (4x4x4 voxels, inside
+one block): the vertex of the cluster whose normal is nearest the cluster's
+mean normal (the largest dot product with the sum of the cluster's
+normals). Only *smooth* clusters get one, those whose every vertex normal
+lies within ``acos(coarse_min_cos)`` of the mean normal; the others (thin
+plates, crests, corners) keep ``rep2[v] = rep[v]``, the first level. Far
+vertices inside the mid box are at *level 1*, drawn with ``rep`` as above;
+:attr:`SurfaceLOD.far` holds the level (0 for full detail).
+
+Why the mean normal: the untouched surface of a native-resolution volume
+carries the voxel grid's terraces, faint rings a few voxels apart on gently
+curved bone. A representative picked by position samples them every four
+voxels and draws a cross-hatched moire over a smooth dome; the vertex with
+the mean normal shades the cluster as its average, so the distant surface
+reads smooth (the rings fade) instead of hatched. Positions are still real
+vertices on the level set, so outlines move by at most a coarse cluster.
+
+The level-2 map is a vertex map like the first, so there are no cracks and a
+closed mesh stays closed (whatever cracks the full-detail surface itself
+has are only mapped, never added; a test checks it). A coarse cluster lies
+in one block, and a removal changes vertices and normals only in blocks
+it turns drilled, so ``rep2`` is computed once per :meth:`SurfaceLOD.rebuild`
+and stays right for every block still drawn at level 2. Moving the mid box
+lists the far triangles again, as moving the near box does.
+
 Visible subset: a far triangle as drawn is not a triangle the visible
 subset judged, so it is tested itself (a corner's normal or its face toward
 the eye, the rule of :mod:`bonesim.render.meshbuf`) against the camera of
@@ -105,10 +137,12 @@ from bonesim.engine.brick_hash import unpack_brick_keys
 from bonesim.engine.grid import BRICK_MASK, BRICK_SHIFT, EMPTY_KEY, find_brick
 from bonesim.engine.normals import NORMAL_RADIUS
 
-__all__ = ["CLUSTER_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px"]
+__all__ = ["CLUSTER_SHIFT", "COARSE_SHIFT", "BLOCK_SHIFT", "SurfaceLOD", "voxel_px"]
 
 #: A cluster is ``2 ** CLUSTER_SHIFT`` voxels a side.
 CLUSTER_SHIFT = 1
+#: A coarse cluster (the second level) is ``2 ** COARSE_SHIFT`` voxels a side.
+COARSE_SHIFT = 2
 #: Near or far is decided per block of ``2 ** BLOCK_SHIFT`` voxels a side.
 BLOCK_SHIFT = 3
 
@@ -131,11 +165,58 @@ def _cluster_rep(vmap, b, i, j, k):
     return -1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _coarse_rep(vmap, nrm, b, i, j, k, min_cos):
+    """Coarse representative of the coarse cluster of voxel ``(i, j, k)``
+    (in brick ``b``): its vertex whose normal is nearest the cluster's mean
+    normal (the largest dot product with the sum of its vertices' normals,
+    summed in float64 in ``(i, j, k)`` order; the first in that order among
+    equals), or -1 if the cluster has no vertex or is not smooth (a vertex
+    whose normal makes a cosine under ``min_cos`` with the mean normal)."""
+    n = 1 << COARSE_SHIFT
+    ci = (i >> COARSE_SHIFT) << COARSE_SHIFT
+    cj = (j >> COARSE_SHIFT) << COARSE_SHIFT
+    ck = (k >> COARSE_SHIFT) << COARSE_SHIFT
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for a in range(n):
+        for e in range(n):
+            for c in range(n):
+                u = vmap[b, (((ci + a) & BRICK_MASK) << 6) | (((cj + e) & BRICK_MASK) << 3)
+                         | ((ck + c) & BRICK_MASK)]
+                if u >= 0:
+                    sx += nrm[u, 0]
+                    sy += nrm[u, 1]
+                    sz += nrm[u, 2]
+    norm = np.sqrt(sx * sx + sy * sy + sz * sz)
+    if not norm > 0.0:
+        return -1
+    best = -1
+    best_d = -np.inf
+    for a in range(n):
+        for e in range(n):
+            for c in range(n):
+                u = vmap[b, (((ci + a) & BRICK_MASK) << 6) | (((cj + e) & BRICK_MASK) << 3)
+                         | ((ck + c) & BRICK_MASK)]
+                if u >= 0:
+                    d = nrm[u, 0] * sx + nrm[u, 1] * sy + nrm[u, 2] * sz
+                    if d < min_cos * norm:
+                        return -1
+                    if d > best_d:
+                        best = u
+                        best_d = d
+    return best
+
+
 @njit(cache=True, nogil=True)
-def _reps_all(keys, vals, vmap, ijk, alive, rep):
-    """Representative of every live vertex slot (dead ones: themselves)."""
+def _reps_all(keys, vals, vmap, nrm, ijk, alive, min_cos, rep, rep2):
+    """Representative of every live vertex slot (dead ones: themselves),
+    and coarse representative (``rep`` where its coarse cluster is not
+    smooth, and everywhere for ``min_cos`` > 1: no second level)."""
     for v in range(alive.shape[0]):
         rep[v] = v
+        rep2[v] = v
         if alive[v]:
             i, j, k = ijk[v, 0], ijk[v, 1], ijk[v, 2]
             b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
@@ -143,6 +224,8 @@ def _reps_all(keys, vals, vmap, ijk, alive, rep):
                 u = _cluster_rep(vmap, b, i, j, k)
                 if u >= 0:
                     rep[v] = u
+                u2 = _coarse_rep(vmap, nrm, b, i, j, k, min_cos) if min_cos <= 1.0 else -1
+                rep2[v] = u2 if u2 >= 0 else rep[v]
 
 
 @njit(cache=True, nogil=True)
@@ -176,33 +259,36 @@ def _reps_near(keys, vals, vmap, changed, rep):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _is_fine(bi, bj, bk, lo, hi, drilled, dlo):
-    """Block ``(bi, bj, bk)`` is drawn at full detail: inside the near box
-    ``lo..hi`` or drilled (``drilled`` covers the blocks from ``dlo``)."""
-    if lo[0] <= bi <= hi[0] and lo[1] <= bj <= hi[1] and lo[2] <= bk <= hi[2]:
-        return True
+def _level(bi, bj, bk, box, drilled, dlo):
+    """Level of block ``(bi, bj, bk)``: 0 (full detail) inside the near
+    box ``box[0]..box[1]`` or drilled (``drilled`` covers the blocks from
+    ``dlo``), else 1 inside the mid box ``box[2]..box[3]``, else 2."""
+    if (box[0, 0] <= bi <= box[1, 0] and box[0, 1] <= bj <= box[1, 1]
+            and box[0, 2] <= bk <= box[1, 2]):
+        return 0
     x, y, z = bi - dlo[0], bj - dlo[1], bk - dlo[2]
     if (0 <= x < drilled.shape[0] and 0 <= y < drilled.shape[1]
-            and 0 <= z < drilled.shape[2]):
-        return drilled[x, y, z] != 0
-    return False
+            and 0 <= z < drilled.shape[2]) and drilled[x, y, z] != 0:
+        return 0
+    if (box[2, 0] <= bi <= box[3, 0] and box[2, 1] <= bj <= box[3, 1]
+            and box[2, 2] <= bk <= box[3, 2]):
+        return 1
+    return 2
 
 
 @njit(cache=True, nogil=True)
-def _far_flags(ijk, alive, lo, hi, drilled, dlo, far):
-    """``far[v]``: live vertex ``v``'s block is neither inside the box
-    ``lo..hi`` nor drilled."""
+def _far_flags(ijk, alive, box, drilled, dlo, far):
+    """``far[v]``: the level (:func:`_level`) of live vertex ``v``'s block."""
     for v in range(alive.shape[0]):
         if not alive[v]:
             far[v] = 0
             continue
-        fine = _is_fine(ijk[v, 0] >> BLOCK_SHIFT, ijk[v, 1] >> BLOCK_SHIFT,
-                        ijk[v, 2] >> BLOCK_SHIFT, lo, hi, drilled, dlo)
-        far[v] = 0 if fine else 1
+        far[v] = _level(ijk[v, 0] >> BLOCK_SHIFT, ijk[v, 1] >> BLOCK_SHIFT,
+                        ijk[v, 2] >> BLOCK_SHIFT, box, drilled, dlo)
 
 
 @njit(cache=True, nogil=True)
-def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, drilled, dlo, far):
+def _flags_near(keys, vals, vmap, ijk, alive, changed, box, drilled, dlo, far):
     """Far flags of the vertices in the 3x3x3 block around each voxel of
     ``changed`` (the only place a removal creates vertices)."""
     for q in range(changed.shape[0]):
@@ -219,9 +305,9 @@ def _flags_near(keys, vals, vmap, ijk, alive, changed, lo, hi, drilled, dlo, far
                     u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
                              | (k & BRICK_MASK)]
                     if 0 <= u < far.shape[0]:
-                        fine = _is_fine(i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT,
-                                        lo, hi, drilled, dlo)
-                        far[u] = 0 if fine or not alive[u] else 1
+                        lev = _level(i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT,
+                                     box, drilled, dlo)
+                        far[u] = lev if alive[u] else 0
 
 
 @njit(cache=True, nogil=True)
@@ -296,10 +382,11 @@ def _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel):
 
 
 @njit(cache=True, nogil=True)
-def _far_pass(tri, key, pos, nrm, rep, far, with_vis, eye, dirn, parallel, full, vis):
+def _far_pass(tri, key, pos, nrm, rep, rep2, far, with_vis, eye, dirn, parallel, full, vis):
     """The live triangles with a far corner, as their representatives'
-    (dropped when two coincide), wound by their normals, into ``full``
-    (flat), and those facing the eye into ``vis``; returns both counts."""
+    (``rep`` for a corner at level 1, ``rep2`` at level 2; dropped when two
+    coincide), wound by their normals, into ``full`` (flat), and those
+    facing the eye into ``vis``; returns both counts."""
     nf = 0
     nv = 0
     for t in range(key.shape[0]):
@@ -310,12 +397,9 @@ def _far_pass(tri, key, pos, nrm, rep, far, with_vis, eye, dirn, parallel, full,
         c = tri[t, 2]
         if far[a] == 0 and far[b] == 0 and far[c] == 0:
             continue
-        if far[a] != 0:
-            a = rep[a]
-        if far[b] != 0:
-            b = rep[b]
-        if far[c] != 0:
-            c = rep[c]
+        a = rep[a] if far[a] == 1 else (rep2[a] if far[a] == 2 else a)
+        b = rep[b] if far[b] == 1 else (rep2[b] if far[b] == 2 else b)
+        c = rep[c] if far[c] == 1 else (rep2[c] if far[c] == 2 else c)
         if a == b or b == c or a == c:
             continue
         keep = with_vis and _faces_eye(pos, nrm, a, b, c, eye, dirn, parallel)
@@ -376,10 +460,26 @@ class SurfaceLOD:
     rep : (nv,) int32
         Representative of each vertex slot's cluster (itself for dead
         ones), near or far; a triangle maps only its far corners.
+    rep2 : (nv,) int32
+        Coarse representative of each vertex slot (module docstring,
+        "Second level"): valid for the live vertices of the blocks that
+        are not drilled (the only ones drawn at level 2).
     far : (nv,) uint8
-        1 for far live vertices.
+        Level of each live vertex: 0 full detail, 1 (far: ``rep``), 2 (far
+        and outside the mid box: ``rep2``).
     near_box : ((3,) int64, (3,) int64) or None
         Inclusive block range of the near box, None when every vertex is far.
+    mid_box : ((3,) int64, (3,) int64) or None
+        Inclusive block range of the mid box; None: no level 2.
+    coarse_min_cos : float or None
+        Smallest cosine between the normals of a coarse cluster's vertices
+        and its representative's for the cluster to be drawn at level 2;
+        None: no level 2 (``rep2`` is ``rep``).
+
+    Parameters
+    ----------
+    coarse_min_cos : float, optional
+        :attr:`coarse_min_cos`.
     drilled : (nbi, nbj, nbk) uint8
         1 for the drilled blocks (module docstring) of the surface's grid,
         block ``(bi, bj, bk)`` at ``[bi, bj, bk] - drilled_lo``; they cover
@@ -392,10 +492,13 @@ class SurfaceLOD:
         :attr:`far_valid`.
     """
 
-    def __init__(self):
+    def __init__(self, coarse_min_cos=None):
         self.rep = np.zeros(0, dtype=np.int32)
+        self.rep2 = np.zeros(0, dtype=np.int32)
         self.far = np.zeros(0, dtype=np.uint8)
         self.near_box = None
+        self.mid_box = None
+        self.coarse_min_cos = None if coarse_min_cos is None else float(coarse_min_cos)
         self._surface = None
         self.drilled = np.zeros((0, 0, 0), dtype=np.uint8)
         self.drilled_lo = np.zeros(3, dtype=np.int64)
@@ -423,9 +526,18 @@ class SurfaceLOD:
         return lo, hi
 
     def _box(self):
+        """(4, 3) int64: the near box's and the mid box's inclusive block
+        ranges (:func:`_level`)."""
+        box = np.empty((4, 3), np.int64)
         if self.near_box is None:       # an empty box: every vertex is far
-            return np.ones(3, np.int64), np.zeros(3, np.int64)
-        return self.near_box
+            box[0], box[1] = 1, 0
+        else:
+            box[0], box[1] = self.near_box
+        if self.mid_box is None or self.coarse_min_cos is None:    # no level 2
+            box[2], box[3] = np.iinfo(np.int64).min, np.iinfo(np.int64).max
+        else:
+            box[2], box[3] = self.mid_box
+        return box
 
     def _reset_drilled(self, surface) -> None:
         """No block drilled yet; the flag array spans the blocks of every
@@ -477,6 +589,7 @@ class SurfaceLOD:
         off; :meth:`rebuild` makes the rest again): no reference to the
         surface is kept."""
         self.rep = np.zeros(0, dtype=np.int32)
+        self.rep2 = np.zeros(0, dtype=np.int32)
         self.far = np.zeros(0, dtype=np.uint8)
         self._surface = None
         self.far_full = np.zeros(0, dtype=np.int32)
@@ -489,27 +602,30 @@ class SurfaceLOD:
         """Block coordinates (m, 3) int64 of the drilled blocks."""
         return np.argwhere(self.drilled) + self.drilled_lo
 
-    def rebuild(self, surface, near_box) -> None:
-        """Recompute everything for ``surface`` and ``near_box`` (see
-        :meth:`near_blocks`); the drilled blocks are kept for the same
-        surface and start again from none for another one."""
+    def rebuild(self, surface, near_box, mid_box=None) -> None:
+        """Recompute everything for ``surface``, ``near_box`` and
+        ``mid_box`` (see :meth:`near_blocks`); the drilled blocks are kept
+        for the same surface and start again from none for another one."""
         if surface is not self._drilled_of():
             self._reset_drilled(surface)
         self._surface = surface
         nv = surface.pos.shape[0]
         if self.rep.shape[0] != nv:
             self.rep = np.zeros(nv, dtype=np.int32)
+            self.rep2 = np.zeros(nv, dtype=np.int32)
             self.far = np.zeros(nv, dtype=np.uint8)
-        _reps_all(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
-                  self.rep)
-        self.set_box(near_box)
+        # no level 2: a cosine no normal pair reaches (rep2 falls back to rep)
+        min_cos = 2.0 if self.coarse_min_cos is None else self.coarse_min_cos
+        _reps_all(surface._keys, surface._vals, surface.vmap, surface.nrm, surface.ijk,
+                  surface.alive, float(min_cos), self.rep, self.rep2)
+        self.set_box(near_box, mid_box)
 
-    def set_box(self, near_box) -> None:
-        """Move the near box (block range, or None)."""
-        self.near_box = None if near_box is None else (
-            np.asarray(near_box[0], dtype=np.int64), np.asarray(near_box[1], dtype=np.int64))
-        lo, hi = self._box()
-        _far_flags(self._surface.ijk, self._surface.alive, lo, hi, self.drilled,
+    def set_box(self, near_box, mid_box=None) -> None:
+        """Move the near box and the mid box (block ranges, or None)."""
+        self.near_box, self.mid_box = (None if b is None else (
+            np.asarray(b[0], dtype=np.int64), np.asarray(b[1], dtype=np.int64))
+            for b in (near_box, mid_box))
+        _far_flags(self._surface.ijk, self._surface.alive, self._box(), self.drilled,
                    self.drilled_lo, self.far)
         self.far_valid = False
 
@@ -523,13 +639,18 @@ class SurfaceLOD:
             ch = np.ascontiguousarray(changed, dtype=np.int32).reshape(-1, 3)
             new = self.mark_drilled(surface, ch)
         if surface is not self._surface or changed is None or self.rep.shape[0] != nv:
-            self.rebuild(surface, self.near_box)
+            self.rebuild(surface, self.near_box, self.mid_box)
             return
         if not len(ch):
             return
+        # rep2 needs no follow-up: a coarse cluster lies in one block, and
+        # every cluster whose vertices or normals a change reaches lies in a
+        # block now drilled
         _reps_near(surface._keys, surface._vals, surface.vmap, ch, self.rep)
-        lo, hi = self._box()
-        self._flag_near(surface, ch, lo, hi)
+        box = self._box()
+        lo, hi = box[0], box[1]
+        _flags_near(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
+                    ch, box, self.drilled, self.drilled_lo, self.far)
         # every block within NORMAL_RADIUS + 1 voxels of a changed voxel is
         # now drilled or near, so no far vertex is within reach of the
         # changes: the far triangles change only where blocks turned fine
@@ -539,11 +660,6 @@ class SurfaceLOD:
             _fine_blocks(surface._keys, surface._vals, surface.vmap, new[out], int(out.sum()),
                          self.far)
             self.far_valid = False
-
-    def _flag_near(self, surface, ch, lo, hi):
-        """Far flags of the vertices around ``ch`` (new ones among them)."""
-        _flags_near(surface._keys, surface._vals, surface.vmap, surface.ijk, surface.alive,
-                    ch, lo, hi, self.drilled, self.drilled_lo, self.far)
 
     def far_lists(self, surface, job_tag, eye, dirn, parallel):
         """The far triangles as drawn, all and (with ``job_tag`` not None)
@@ -555,9 +671,9 @@ class SurfaceLOD:
                 self.far_full = np.zeros(3 * nt, dtype=np.int32)
                 self.far_vis = np.zeros(3 * nt, dtype=np.int32)
             nf, nv = _far_pass(surface.tri, surface.tri_key, surface.pos, surface.nrm, self.rep,
-                               self.far, job_tag is not None, np.asarray(eye, np.float64),
-                               np.asarray(dirn, np.float64), bool(parallel), self.far_full,
-                               self.far_vis)
+                               self.rep2, self.far, job_tag is not None,
+                               np.asarray(eye, np.float64), np.asarray(dirn, np.float64),
+                               bool(parallel), self.far_full, self.far_vis)
             self.n_far_full, self.n_far_vis = int(nf), int(nv)
             self.far_valid = True
             self._far_tag = job_tag

@@ -338,9 +338,18 @@ class SurfaceBuffers:
         :attr:`vis_valid`.
     offsets : (cap + 1,) int32
         ``0, 3, 6, ...``: cell offsets for any prefix of either buffer.
+    coarse_min_cos : float or None
+        Given to the level of detail (:class:`~bonesim.render.lod.SurfaceLOD`):
+        None, no second level.
+
+    Parameters
+    ----------
+    coarse_min_cos : float, optional
+        :attr:`coarse_min_cos`.
     """
 
-    def __init__(self):
+    def __init__(self, coarse_min_cos=None):
+        self.coarse_min_cos = coarse_min_cos     # the level of detail's second level
         self.full = np.zeros(0, dtype=np.int32)
         self.vis = np.zeros(0, dtype=np.int32)
         self.offsets = np.zeros(1, dtype=np.int32)
@@ -451,11 +460,13 @@ class SurfaceBuffers:
         self.n_full, self.n_vis = int(nf), int(nv)
         return self.n_full, self.n_vis
 
-    def set_lod(self, surface, on: bool, near_box=None) -> bool:
+    def set_lod(self, surface, on: bool, near_box=None, mid_box=None) -> bool:
         """Draw ``surface`` with the level of detail of :mod:`bonesim.render.lod`
         (``on``), the near box ``near_box`` (block range, see
         :meth:`~bonesim.render.lod.SurfaceLOD.near_blocks`; None: everything
-        far but the drilled blocks) at full detail; recomputes the lists
+        far but the drilled blocks) at full detail, the far vertices outside
+        ``mid_box`` (None: none) at the second level when the buffers were
+        made with ``coarse_min_cos``; recomputes the lists
         when anything changed. The drilled blocks are followed by
         :meth:`sync` (from the removed and touched voxels) whether the
         level of detail is on or off, until another surface is given.
@@ -471,19 +482,17 @@ class SurfaceBuffers:
             self.lod.release()           # kept for its drilled blocks only
             self.lod = None
         else:
-            box = None if near_box is None else (np.asarray(near_box[0], dtype=np.int64),
-                                                np.asarray(near_box[1], dtype=np.int64))
+            box, mid = (None if b is None else (np.asarray(b[0], dtype=np.int64),
+                                                np.asarray(b[1], dtype=np.int64))
+                        for b in (near_box, mid_box))
             if self.lod is None or self.lod._surface is not surface:
                 if self.lod is None:
                     self.lod = self._lod_obj()
-                self.lod.rebuild(surface, box)
+                self.lod.rebuild(surface, box, mid)
             else:
-                old = self.lod.near_box
-                if ((old is None) == (box is None)
-                        and (box is None or (np.array_equal(old[0], box[0])
-                                             and np.array_equal(old[1], box[1])))):
+                if _same_box(self.lod.near_box, box) and _same_box(self.lod.mid_box, mid):
                     return False
-                self.lod.set_box(box)
+                self.lod.set_box(box, mid)
         self._fit(surface.tri_key.shape[0], surface.pos.shape[0])
         self._compact(surface)
         return True
@@ -494,7 +503,7 @@ class SurfaceBuffers:
         if self._lod_kept is None:
             from bonesim.render.lod import SurfaceLOD
 
-            self._lod_kept = SurfaceLOD()
+            self._lod_kept = SurfaceLOD(self.coarse_min_cos)
         return self._lod_kept
 
     @property
@@ -542,6 +551,13 @@ class SurfaceBuffers:
         """Drop the visible subset (the camera moved)."""
         self._job = None
         self.n_vis = 0
+
+
+def _same_box(a, b) -> bool:
+    """Two block ranges (or None) are the same."""
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]))
 
 
 def _surface_table(surface):

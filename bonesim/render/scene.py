@@ -52,7 +52,8 @@ At native resolution (render.toml ``[lod]``: a voxel under
 surface away from the burr is drawn with one vertex per 2x2x2 voxels
 (:mod:`bonesim.render.lod`, no cracks, full detail around the burr and
 wherever bone was removed: give :meth:`update_surface` the removed
-voxels), and
+voxels), one vertex per 4x4x4 voxels of smooth bone beyond ``coarse_mm``
+of the burr (the second level), and
 the structures are meshed on a grid twice as coarse. Checked before every
 render (:meth:`_update_lod`).
 
@@ -86,7 +87,7 @@ from bonesim.render.dustview import DustLayer
 from bonesim.render.geometry import point_to, structure_polydata, tool_matrix
 from bonesim.render.gl import make_render_window
 from bonesim.render.layout import LayoutMixin
-from bonesim.render.lod import SurfaceLOD, voxel_px
+from bonesim.render.lod import BLOCK_SHIFT, SurfaceLOD, voxel_px
 from bonesim.render.meshbuf import SurfaceBuffers
 from bonesim.render.stereo import STEREO_MODES, StereoUnavailable
 from bonesim.render.structures_view import StructuresMixin
@@ -102,6 +103,19 @@ BACKGROUND = (0.05, 0.06, 0.08)
 REST_S = 0.25
 #: Camera view angle [deg]: a microscope's narrow field.
 VIEW_ANGLE_DEG = 30.0
+
+
+#: vtkOpenGLVertexBufferObject's coordinate shift-and-scale methods.
+_NO_SHIFT_SCALE, _AUTO_SHIFT_SCALE = 0, 1
+
+
+def _follow(want, cur, slack: int):
+    """A block range that covers ``want`` (inclusive block ranges): ``cur``
+    while it does (the lists are not made again), else ``want`` grown by
+    ``slack`` blocks each way."""
+    if cur is not None and np.all(cur[0] <= want[0]) and np.all(cur[1] >= want[1]):
+        return cur
+    return want[0] - slack, want[1] + slack
 
 
 def _void_array(cls, ncomp: int, name: str | None = None):
@@ -217,13 +231,14 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin, StructuresMixin):
         self._structures: dict = {}
         self._sealed: dict = {}        # structure name -> its drawn subset (see add_structures)
         self._coarse_structures = False
+        self._cullers = None           # VTK's cullers, while the level of detail is on
         self._seal_sig = None          # camera the subsets' facing flags are for
         self._build_tool()
         self._build_dust()
         self._build_text()
         # visible-subset state machine
         self.surface = None
-        self._buffers = SurfaceBuffers()
+        self._buffers = SurfaceBuffers(coarse_min_cos=self.style.lod.coarse_min_cos)
         self._drawn = "full"
         self._cam_sig = None
         self._cam_still_since = time.perf_counter()
@@ -461,20 +476,43 @@ class Scene(LayoutMixin, ToolMixin, BodiesMixin, StructuresMixin):
                       int(self.renderer.GetSize()[1]),
                       cam.GetParallelScale() if par else None)
         on = px < lod.max_voxel_px and surf.n_triangles >= lod.min_triangles
-        box = None
+        box = mid = None
         if on and self.tool_pos_mm is not None:
             pos = self.tool_pos_mm
             if getattr(self, "_main_pose", None) is not None:
                 r, t = self._main_pose[:3, :3], self._main_pose[:3, 3]
                 pos = (np.asarray(pos) - t) @ r
-            box = SurfaceLOD.near_blocks(pos, lod.near_mm, surf._origin, surf._spacing)
-            cur = None if self._buffers.lod is None else self._buffers.lod.near_box
-            if cur is not None and np.all(cur[0] <= box[0]) and np.all(cur[1] >= box[1]):
-                box = cur               # still inside: keep it (no re-listing)
-            else:                       # a block of slack each way
-                box = (box[0] - 1, box[1] + 1)
+            cur = self._buffers.lod
+            box = _follow(SurfaceLOD.near_blocks(pos, lod.near_mm, surf._origin, surf._spacing),
+                          None if cur is None else cur.near_box, 1)
+            if lod.coarse_mm > 0 and px < lod.coarse_max_voxel_px:
+                # the second level beyond coarse_mm of the burr
+                slack = int(np.ceil(lod.coarse_slack_mm / (surf._spacing * (1 << BLOCK_SHIFT))))
+                mid = _follow(SurfaceLOD.near_blocks(pos, lod.coarse_mm, surf._origin,
+                                                     surf._spacing),
+                              None if cur is None else cur.mid_box, slack)
         self.renderer.SetUseOIT(not on)
-        if self._buffers.set_lod(surf, on, box):
+        self.dust.keep_one_in = int(lod.dust_keep_one_in) if on else 1
+        # where the level of detail is on the surface's vertex buffers are
+        # uploaded every frame while drilling: VTK's automatic shift and
+        # scale of the coordinates would scan all of them for their range
+        # each time (some 1.5 ms at 0.19 mm); positions in mm of a case
+        # need neither (float32 keeps about 1e-5 mm there)
+        self._surface_mapper.SetVBOShiftScaleMethod(_NO_SHIFT_SCALE if on else _AUTO_SHIFT_SCALE)
+        # and VTK's frustum culler would measure the surface (a pass over
+        # the points its cells use) at every frame the cells changed, some
+        # 2 ms at 0.19 mm, to find whether it is in view; every prop of a
+        # scene of the case is in view or clipped anyway
+        cullers = self.renderer.GetCullers()
+        if on and cullers.GetNumberOfItems():
+            self._cullers = [cullers.GetItemAsObject(i)
+                             for i in range(cullers.GetNumberOfItems())]
+            cullers.RemoveAllItems()
+        elif not on and self._cullers:
+            for c in self._cullers:
+                self.renderer.AddCuller(c)
+            self._cullers = None
+        if self._buffers.set_lod(surf, on, box, mid):
             self._push_cells()
 
     def _reset_clipping_range(self):

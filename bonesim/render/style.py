@@ -39,7 +39,9 @@ _SCHEMA = {
               "max_width_px": (_N, 60, 4000), "rgb": (_RGB,), "hint": (_S,)},
     "stereo": {"eye_separation_mm": (_N, 0, 200)},
     "lod": {"max_voxel_px": (_N, 0, 100), "min_triangles": (_N, 0, 1e9),
-            "near_mm": (_N, 0, 1000)},
+            "near_mm": (_N, 0, 1000), "coarse_mm": (_N, 0, 1000),
+            "coarse_max_voxel_px": (_N, 0, 100), "coarse_min_cos": (_N, -1, 1),
+            "coarse_slack_mm": (_N, 0, 1000), "dust_keep_one_in": (_N, 1, 16)},
 }
 
 

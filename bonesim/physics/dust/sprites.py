@@ -14,9 +14,9 @@ point of its cell, with the age of the dust in it:
   species (dry 0, wet 1): the same every frame (no flicker), different from
   cell to cell (no regular grid pattern).
 * **Age.** Each cell remembers when dust arrived in it: the time of the
-  last :func:`_stamp` call that saw it at or below ``thr`` (a cell of a
-  brick that held no dust at the previous call counts as just arrived). The
-  age is ``now - arrival`` [s].
+  last call (:func:`_stamp`, :func:`_gather`) that saw it at or below
+  ``thr`` (a cell of a brick that held no dust at the previous call counts
+  as just arrived). The age is ``now - arrival`` [s].
 """
 from __future__ import annotations
 
@@ -137,20 +137,31 @@ def _stamp(alive, bmass, hw, den, thr, bcoord, nbr, seen, seen_key, now, dom, up
 
 
 @njit(cache=True, nogil=True)
-def _fill(alive, bmass, hw, den, thr, bcoord, nbr, seen, now, dom, up, up_dd, top_only,
-          cover, origin, h, jitter, salt, pos, val, age, start):
-    """Write the sprites from index ``start`` on; returns the next index."""
+def _gather(alive, bmass, hw, den, thr, bcoord, nbr, seen, seen_key, now, dom, up, up_dd,
+            top_only, cover, origin, h, jitter, salt, pos, val, age, start):
+    """:func:`_stamp` and the sprites in one pass: update the arrival times
+    and write the sprites from index ``start`` on (``pos`` must hold them
+    all); returns the next index."""
     n = start
     inv_q = 1.0 / FULL_Q
     amp = jitter * h
     for b in range(hw):
         if not alive[b] or bmass[b] == 0:
+            seen_key[b] = -1
             continue
+        key = pack_brick_key(bcoord[b, 0], bcoord[b, 1], bcoord[b, 2])
+        if seen_key[b] != key:
+            for o in range(BRICK_VOXELS):
+                seen[b, o] = now
+            seen_key[b] = key
         x0 = np.int64(bcoord[b, 0]) << BRICK_SHIFT
         y0 = np.int64(bcoord[b, 1]) << BRICK_SHIFT
         z0 = np.int64(bcoord[b, 2]) << BRICK_SHIFT
         for o in range(BRICK_VOXELS):
-            if not _visible(b, o, den, thr, nbr, dom, up, up_dd, top_only, cover):
+            if den[b, o] <= thr:
+                seen[b, o] = now
+                continue
+            if top_only and _above(b, o, den, nbr, dom, up, up_dd) >= cover:
                 continue
             i = x0 + (o >> 6)
             j = y0 + ((o >> 3) & 7)
@@ -205,19 +216,21 @@ def gather_sprites(species, thr_q, cover_q, dom, dsgn, top_only, now, origin_mm,
     """
     up = -dsgn
     up_dd = 2 * dom + (1 if up > 0 else 0)
-    counts = [int(_stamp(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord,
-                         g.nbr, g._seen, g._seen_key, now, dom, up, up_dd, top_only, cover_q))
-              for g in species]
-    n = sum(counts)
-    pos = np.empty((n, 3), dtype=np.float32)
-    val = np.empty(n, dtype=np.float32)
-    age = np.empty(n, dtype=np.float32)
-    wet = np.zeros(n, dtype=np.uint8)
+    # one pass: room for every cell of the bricks holding dust (memory that
+    # is only reserved, not touched, but for the sprites written)
+    cap = sum(int(np.count_nonzero(g.alive[:int(g._ctr[C_HW])]
+                                   & (g.bmass[:int(g._ctr[C_HW])] != 0)))
+              for g in species) * BRICK_VOXELS
+    pos = np.empty((cap, 3), dtype=np.float32)
+    val = np.empty(cap, dtype=np.float32)
+    age = np.empty(cap, dtype=np.float32)
+    wet = np.empty(cap, dtype=np.uint8)
     start = 0
     for salt, g in enumerate(species):
-        end = _fill(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord, g.nbr,
-                    g._seen, now, dom, up, up_dd, top_only, cover_q, origin_mm, spacing_mm,
-                    jitter, salt, pos, val, age, start)
+        end = _gather(g.alive, g.bmass, int(g._ctr[C_HW]), g.density_q, thr_q, g.bcoord, g.nbr,
+                      g._seen, g._seen_key, now, dom, up, up_dd, top_only, cover_q, origin_mm,
+                      spacing_mm, jitter, salt, pos, val, age, start)
         wet[start:end] = salt
         start = end
-    return DustSprites(pos, val, spacing_mm, age, wet)
+    return DustSprites(pos[:start].copy(), val[:start].copy(), spacing_mm, age[:start].copy(),
+                       wet[:start].copy())

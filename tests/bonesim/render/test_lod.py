@@ -4,7 +4,8 @@ blocks), kept through removals near and far from the burr; drawn lists
 against a plain evaluation; the coarse mesh stays closed (no cracks), also
 after drilling far from the burr; what the burr opens is drawn at full
 detail, and stays so after the burr moves away; and the picture with it
-stays close to the picture without."""
+stays close to the picture without. The same for the second level (coarse
+representatives outside the mid box)."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -16,7 +17,7 @@ from scipy.ndimage import binary_erosion
 from bonesim.engine.grid import voxel_offset
 from bonesim.engine.normals import NORMAL_RADIUS
 from bonesim.engine.surface import Surface
-from bonesim.render.lod import BLOCK_SHIFT, CLUSTER_SHIFT, SurfaceLOD, voxel_px
+from bonesim.render.lod import BLOCK_SHIFT, CLUSTER_SHIFT, COARSE_SHIFT, SurfaceLOD, voxel_px
 from bonesim.render.meshbuf import SurfaceBuffers
 from tests.bonesim.render.scenes import nerve_block
 
@@ -68,8 +69,9 @@ def _ref_drilled(block, changed):
     return False
 
 
-def _ref_lod(surf, box, changed=()):
-    """Plain loops over the definition: (rep, far) of every live vertex;
+def _ref_lod(surf, box, changed=(), mid=None):
+    """Plain loops over the definition: (rep, level) of every live vertex
+    (level 0 full detail, 1 far, 2 far outside the ``mid`` box);
     ``changed``: every voxel removed since the level of detail was built."""
     live = surf.vertex_slots
     at = {tuple(int(x) for x in surf.ijk[v]): int(v) for v in live}
@@ -84,18 +86,49 @@ def _ref_lod(surf, box, changed=()):
                                           and np.all(np.array(blk) <= box[1]))
         if blk not in drilled:
             drilled[blk] = _ref_drilled(blk, changed)
-        far[int(v)] = not (inside or drilled[blk])
+        in_mid = mid is None or bool(np.all(np.array(blk) >= mid[0])
+                                     and np.all(np.array(blk) <= mid[1]))
+        far[int(v)] = 0 if (inside or drilled[blk]) else (1 if in_mid else 2)
         base = (ijk >> CLUSTER_SHIFT) << CLUSTER_SHIFT
         cand = [at[tuple(base + d)] for d in np.ndindex(n, n, n) if tuple(base + d) in at]
         rep[int(v)] = cand[0]              # ndindex is (i, j, k) order
     return rep, far
 
 
-def _check_against_ref(lod, surf, box, changed=()):
-    rep, far = _ref_lod(surf, box, changed)
+def _ref_rep2(surf, min_cos, rep1):
+    """Plain loops: the coarse representative of every live vertex (the
+    vertex of its coarse cluster whose normal is nearest the mean normal,
+    or ``rep1`` where a normal lies under ``min_cos`` from the mean)."""
+    at = {tuple(int(x) for x in surf.ijk[v]): int(v) for v in surf.vertex_slots}
+    n = 1 << COARSE_SHIFT
+    out = {}
+    for v in surf.vertex_slots:
+        base = (surf.ijk[v].astype(int) >> COARSE_SHIFT) << COARSE_SHIFT
+        members = [at[tuple(base + d)] for d in np.ndindex(n, n, n) if tuple(base + d) in at]
+        sx = sy = sz = 0.0                      # float64 sums in (i, j, k) order
+        for u in members:
+            sx, sy, sz = sx + float(surf.nrm[u, 0]), sy + float(surf.nrm[u, 1]), \
+                sz + float(surf.nrm[u, 2])
+        norm = float(np.sqrt(sx * sx + sy * sy + sz * sz))
+        dots = [float(surf.nrm[u, 0]) * sx + float(surf.nrm[u, 1]) * sy
+                + float(surf.nrm[u, 2]) * sz for u in members]
+        smooth = norm > 0 and all(d >= min_cos * norm for d in dots)
+        out[int(v)] = members[int(np.argmax(dots))] if smooth else rep1[int(v)]
+    return out
+
+
+def _check_against_ref(lod, surf, box, changed=(), mid=None):
+    """Representatives and levels against the plain loops; with a second
+    level, the coarse representatives of the vertices drawn with them."""
+    rep, far = _ref_lod(surf, box, changed, mid)
     for v in surf.vertex_slots:
         assert lod.rep[v] == rep[int(v)], v
-        assert bool(lod.far[v]) == far[int(v)], v
+        assert int(lod.far[v]) == far[int(v)], v
+    if mid is not None and lod.coarse_min_cos is not None:
+        rep2 = _ref_rep2(surf, lod.coarse_min_cos, rep)
+        for v in surf.vertex_slots:
+            if far[int(v)] == 2:
+                assert lod.rep2[v] == rep2[int(v)], v
 
 
 def _ref_drawn(surf, lod, eye=None):
@@ -109,7 +142,8 @@ def _ref_drawn(surf, lod, eye=None):
         if not (lod.far[a] or lod.far[b] or lod.far[c]):
             out.append((a, b, c))
             continue
-        a, b, c = (int(lod.rep[x]) if lod.far[x] else x for x in (a, b, c))
+        a, b, c = (int(lod.rep2[x]) if lod.far[x] == 2 else int(lod.rep[x]) if lod.far[x]
+                   else x for x in (a, b, c))
         if len({a, b, c}) < 3:
             continue
         if eye is not None:
@@ -339,6 +373,117 @@ def test_far_changes_are_drawn_too(drilled):
     assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
 
 
+MIN_COS = 0.9          # the second level's smoothness (render.toml's)
+
+
+def _odd_edges(flat):
+    """Edges (sorted vertex pairs) used an odd number of times: the cracks."""
+    t = np.asarray(flat).reshape(-1, 3)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    e.sort(axis=1)
+    u, counts = np.unique(e, axis=0, return_counts=True)
+    return {tuple(int(x) for x in p) for p in u[counts % 2 == 1]}
+
+
+def _no_new_cracks(buf, surf):
+    """The drawn full list's cracks are the full-detail surface's, mapped
+    by the level of detail's vertex map (some cuts leave the surface itself
+    with a few odd edges; the map must add none): none where it has none."""
+    lod = buf.lod
+    f = np.where(lod.far == 2, lod.rep2, np.where(lod.far == 1, lod.rep, np.arange(
+        len(lod.far))))
+    want = {}
+    for a, b in _odd_edges(surf.tri[surf.triangle_slots]):
+        fa, fb = int(f[a]), int(f[b])
+        if fa != fb:
+            key = (min(fa, fb), max(fa, fb))
+            want[key] = want.get(key, 0) ^ 1
+    assert _odd_edges(buf.full[:3 * buf.n_full]) == {k for k, v in want.items() if v}
+
+
+def _coarse_smooth(surf, v, min_cos):
+    """Whether the coarse cluster of vertex ``v`` is smooth (plain loops)."""
+    at = {tuple(int(x) for x in surf.ijk[u]): int(u) for u in surf.vertex_slots}
+    n = 1 << COARSE_SHIFT
+    base = (surf.ijk[v].astype(int) >> COARSE_SHIFT) << COARSE_SHIFT
+    nrm = np.array([surf.nrm[at[tuple(base + d)]] for d in np.ndindex(n, n, n)
+                    if tuple(base + d) in at], np.float64)
+    mean = nrm.sum(axis=0)
+    mean /= np.linalg.norm(mean)
+    return bool(np.all(nrm @ mean >= min_cos - 1e-9))
+
+
+def test_coarse_representatives_match_the_definition(drilled):
+    """Levels 0, 1 and 2 (near box, mid box) and the coarse representatives
+    against plain loops; clusters that are not smooth keep the first level's
+    representatives; without a smoothness cosine there is no second level."""
+    model, state, surf = drilled
+    near, mid = _box((1, 1, 1), (1, 1, 1)), _box((0, 0, 0), (2, 2, 2))
+    lod = SurfaceLOD(coarse_min_cos=MIN_COS)
+    lod.rebuild(surf, near, mid)
+    _check_against_ref(lod, surf, near, mid=mid)
+    live = surf.vertex_slots
+    lv = lod.far[live]
+    assert set(np.unique(lv).tolist()) == {0, 1, 2}
+    two = live[lv == 2]
+    smooth = np.array([_coarse_smooth(surf, v, MIN_COS) for v in two])
+    assert smooth.any() and not smooth.all()               # the block's edges are not
+    assert np.all(lod.rep2[two[~smooth]] == lod.rep[two[~smooth]])
+    assert np.any(lod.rep2[two[smooth]] != lod.rep[two[smooth]])
+    # a coarse representative is a vertex of the same coarse cluster
+    assert np.all(surf.ijk[lod.rep2[two]] >> COARSE_SHIFT == surf.ijk[two] >> COARSE_SHIFT)
+    plain = SurfaceLOD()
+    plain.rebuild(surf, near, mid)
+    assert np.array_equal(plain.far[live], np.minimum(lv, 1))
+    assert np.array_equal(plain.rep2[live], plain.rep[live])
+
+
+def test_coarse_level_follows_removals_and_stays_closed(drilled):
+    """With the second level: drawn lists against a plain evaluation and
+    no cracks (every edge used an even number of times), through removals
+    inside the near box, in the second level's region and across the seam
+    between the levels, the mid box moving, and the visible subset."""
+    model, state, surf = drilled
+    grid = state.grid
+    near, mid = _box((1, 1, 1), (1, 1, 1)), _box((0, 0, 0), (2, 2, 2))
+    buf = SurfaceBuffers(coarse_min_cos=MIN_COS)
+    buf.sync(surf)
+    assert buf.set_lod(surf, True, near)
+    n_first = buf.n_full
+    assert buf.set_lod(surf, True, near, mid)
+    assert not buf.set_lod(surf, True, near, mid)              # unchanged: nothing to do
+    assert buf.n_full < n_first                                # fewer triangles
+    _check_against_ref(buf.lod, surf, near, mid=mid)
+    assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
+    assert not _odd_edges(buf.full[:3 * buf.n_full])         # closed
+    changed = []
+    for c, r in (((12, 12, 14), 2), ((28, 28, 15), 2), ((24, 14, 15), 2)):
+        rem = _remove(grid, _ball(c, r))
+        assert len(rem)
+        changed.append(rem)
+        surf.update(grid, rem)
+        buf.sync(surf, rem)
+        _check_against_ref(buf.lod, surf, near, np.concatenate(changed), mid)
+        assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
+        _no_new_cracks(buf, surf)
+    assert (buf.lod.far[surf.vertex_slots] == 2).any()         # still some at level 2
+    mid2 = _box((0, 0, 0), (1, 1, 2))
+    assert buf.set_lod(surf, True, near, mid2)
+    _check_against_ref(buf.lod, surf, near, np.concatenate(changed), mid2)
+    assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
+    _no_new_cracks(buf, surf)
+    job = buf.start_visible(surf, EYE, DOWN, False, tag="cam")
+    assert job.wait(30) and buf.adopt(job, surf)
+    far_vis = _far_triples(buf, surf, buf.vis[:3 * buf.n_vis])
+    assert far_vis == [t for t in _ref_drawn(surf, buf.lod, EYE)
+                       if any(buf.lod.far[v] for v in t)]
+    rem = _remove(grid, _ball((6, 26, 15), 2))                # changes not given
+    surf.update(grid, rem)
+    buf.sync(surf, None)
+    _check_against_ref(buf.lod, surf, near, np.concatenate(changed), mid2)
+    assert _drawn(buf.full[:3 * buf.n_full]) == _ref_drawn(surf, buf.lod)
+
+
 def test_voxel_px():
     # 30 deg, 100 mm away: the view is 53.6 mm high; 768 px
     h = 2 * 100 * np.tan(np.radians(15))
@@ -347,24 +492,28 @@ def test_voxel_px():
     assert voxel_px(0.5, 0.0, 30.0, 768) == float("inf")
 
 
-def _lod_style(on: bool):
+def _lod_style(on: bool, coarse_mm: float = 0.0):
     from bonesim.render.style import RenderStyle, default_style
 
     st = default_style()
-    lod = SimpleNamespace(max_voxel_px=1000.0 if on else 0.0, min_triangles=0.0, near_mm=1.5)
+    lod = SimpleNamespace(**{**vars(st.lod), "max_voxel_px": 1000.0 if on else 0.0,
+                             "min_triangles": 0.0, "near_mm": 1.5, "coarse_mm": coarse_mm,
+                             "coarse_max_voxel_px": 1000.0})
     return RenderStyle(**{**vars(st), "lod": lod})
 
 
-def test_picture_with_level_of_detail_is_close(gl_info, drilled):
+@pytest.mark.parametrize("coarse_mm", [0.0, 4.0])
+def test_picture_with_level_of_detail_is_close(gl_info, drilled, coarse_mm):
     """The same drilled block drawn at full detail and with the level of
-    detail (burr in one corner): the bone covers the same pixels but for a
-    few at its outline, and the shading differs little."""
+    detail (burr in one corner; with the second level beyond ``coarse_mm``
+    of it, too): the bone covers the same pixels but for a few at its
+    outline, and the shading differs little."""
     from bonesim.render.scene import Scene
 
     model, state, surf = drilled
     images = []
     for on in (False, True):
-        sc = Scene(size=(320, 240), panel=False, style=_lod_style(on))
+        sc = Scene(size=(320, 240), panel=False, style=_lod_style(on, coarse_mm))
         sc.update_surface(surf)
         # a voxel covers about 2.5 px, as a native-resolution voxel does
         sc.set_camera((8.0, 2.0, 50.0), (8.0, 7.9, 4.0), up=(0.0, 1.0, 0.0))
@@ -374,8 +523,14 @@ def test_picture_with_level_of_detail_is_close(gl_info, drilled):
         assert sc.refresh_visible()
         img = sc.image().astype(int)
         assert (sc._buffers.lod is not None) == on
+        assert sc.dust.keep_one_in == (int(sc.style.lod.dust_keep_one_in) if on else 1)
+        # no coordinate shift-scale scan and no frustum culler with it on
+        assert sc._surface_mapper.GetVBOShiftScaleMethod() == (0 if on else 1)
+        assert sc.renderer.GetCullers().GetNumberOfItems() == (0 if on else 1)
         if on:
             assert sc._buffers.n_vis < 0.7 * n_vis_full
+            levels = sc._buffers.lod.far[surf.vertex_slots]
+            assert (levels == 2).any() == (coarse_mm > 0)
         else:
             n_vis_full = sc._buffers.n_vis
         sc.close()

@@ -139,7 +139,8 @@ def coarse_nerve_scene(gl_info):
     from bonesim.render.style import RenderStyle, default_style
 
     style = RenderStyle(**{**vars(default_style()), "lod": SimpleNamespace(
-        max_voxel_px=1000.0, min_triangles=0.0, near_mm=1.0)})
+        **{**vars(default_style().lod), "max_voxel_px": 1000.0, "min_triangles": 0.0,
+           "near_mm": 1.0})})
     model, state = nerve_block()
     surf = Surface.build(state.grid, model.colors)
     sc = Scene(size=(240, 180), panel=False, visible_subset=False, style=style)
