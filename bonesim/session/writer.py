@@ -122,17 +122,13 @@ class SessionWriter:
             if volume is not None:
                 write_volume(f, volume, header["case"]["name"])
             self.rows = {}
-            # the datasets' handles, kept: looking one up by name costs more
-            # than writing a batch of rows into it
-            self._ds = {}
             for g, cols in GROUPS.items():
                 grp = f.create_group(g)
-                self._ds[g] = {
-                    name: grp.create_dataset(name, shape=(0,) + tuple(shape),
-                                             maxshape=(None,) + tuple(shape),
-                                             chunks=(CHUNK_ROWS[g],) + tuple(shape),
-                                             dtype=np.dtype(dt), fletcher32=True)
-                    for name, (dt, shape) in cols.items()}
+                for name, (dt, shape) in cols.items():
+                    grp.create_dataset(name, shape=(0,) + tuple(shape),
+                                       maxshape=(None,) + tuple(shape),
+                                       chunks=(CHUNK_ROWS[g],) + tuple(shape),
+                                       dtype=np.dtype(dt), fletcher32=True)
                 self.rows[g] = 0
             # ``closed`` turns 1 when the writer finishes cleanly; attributes
             # cannot change under SWMR, datasets can
@@ -177,7 +173,7 @@ class SessionWriter:
         n = len(next(iter(cols.values()))) if cols else 0
         if n == 0 or self.failed is not None or self.f is None:
             return 0
-        grp = self._ds[group]
+        grp = self.f[group]
         r0 = self.rows[group]
         try:
             for name, (dt, shape) in spec.items():
@@ -213,8 +209,8 @@ class SessionWriter:
         if self.failed is not None or self.f is None:
             return
         try:
-            for cols in self._ds.values():
-                for ds in cols.values():
+            for g in GROUPS:
+                for ds in self.f[g].values():
                     ds.flush()
             self.f.flush()
         except (OSError, RuntimeError, ValueError) as exc:
