@@ -401,9 +401,14 @@ def _no_new_cracks(buf, surf):
     assert _odd_edges(buf.full[:3 * buf.n_full]) == {k for k, v in want.items() if v}
 
 
-def _coarse_smooth(surf, v, min_cos):
-    """Whether the coarse cluster of vertex ``v`` is smooth (plain loops)."""
-    at = {tuple(int(x) for x in surf.ijk[u]): int(u) for u in surf.vertex_slots}
+def _vertex_at(surf) -> dict:
+    """Voxel ``(i, j, k)`` -> the vertex slot there, for :func:`_coarse_smooth`."""
+    return {tuple(int(x) for x in surf.ijk[u]): int(u) for u in surf.vertex_slots}
+
+
+def _coarse_smooth(surf, v, min_cos, at):
+    """Whether the coarse cluster of vertex ``v`` is smooth (plain loops;
+    ``at``: :func:`_vertex_at` of ``surf``)."""
     n = 1 << COARSE_SHIFT
     base = (surf.ijk[v].astype(int) >> COARSE_SHIFT) << COARSE_SHIFT
     nrm = np.array([surf.nrm[at[tuple(base + d)]] for d in np.ndindex(n, n, n)
@@ -426,7 +431,8 @@ def test_coarse_representatives_match_the_definition(drilled):
     lv = lod.far[live]
     assert set(np.unique(lv).tolist()) == {0, 1, 2}
     two = live[lv == 2]
-    smooth = np.array([_coarse_smooth(surf, v, MIN_COS) for v in two])
+    at = _vertex_at(surf)
+    smooth = np.array([_coarse_smooth(surf, v, MIN_COS, at) for v in two])
     assert smooth.any() and not smooth.all()               # the block's edges are not
     assert np.all(lod.rep2[two[~smooth]] == lod.rep[two[~smooth]])
     assert np.any(lod.rep2[two[smooth]] != lod.rep[two[smooth]])
