@@ -565,6 +565,16 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
         # the lattice's rows along the tool axis: a row's samples sit
         # h apart, so each voxel coordinate is the row's first plus k steps
         d0, d1, d2 = r02 * h, r12 * h, r22 * h
+        # unsigned indices below (no negative-index wrapping): a sample's
+        # voxel lies in the block, past its first voxel, and ``b >= 0``
+        ub0, ub1, ub2 = np.uint64(b0), np.uint64(b1), np.uint64(b2)
+        uncell = np.uint64(ncell)
+        ucs = np.uint64(cs)
+        # the stiffness and lever products change only with the label: one
+        # run of a label computes them once and counts its contacts at its end
+        run_lab = -1
+        run_n = 0
+        w = wox = woy = 0.0
         s = 0
         for r in range(row_head.shape[0]):
             ox = row_head[r, 0]
@@ -573,39 +583,49 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
             a0 = c0 + r00 * ox + r01 * oy + r02 * oz
             a1 = c1 + r10 * ox + r11 * oy + r12 * oz
             a2 = c2 + r20 * ox + r21 * oy + r22 * oz
+            wox = w * ox
+            woy = w * oy
             n = row_off[r, 1]
+            us = np.uint64(s)
             for q in range(n):
                 i = lo0 + int(a0 + d0 * q)
                 j = lo1 + int(a1 + d1 * q)
                 k = lo2 + int(a2 + d2 * q)
-                b = lbrick[(i >> BRICK_SHIFT) - b0, (j >> BRICK_SHIFT) - b1,
-                           (k >> BRICK_SHIFT) - b2]
+                b = lbrick[np.uint64(i >> BRICK_SHIFT) - ub0, np.uint64(j >> BRICK_SHIFT) - ub1,
+                           np.uint64(k >> BRICK_SHIFT) - ub2]
                 if b < 0:
                     continue
-                # a cell known empty (the counts are exact or stale upward)
-                # needs no density read: the drilled cavity costs one small read
-                if occ[b, ((((i & 7) >> cs) * ncell) + ((j & 7) >> cs)) * ncell
-                       + ((k & 7) >> cs)] <= 0:
+                ub = np.uint64(b)
+                ui, uj, uk = np.uint64(i & 7), np.uint64(j & 7), np.uint64(k & 7)
+                off = (ui << np.uint64(6)) | (uj << np.uint64(3)) | uk
+                if density[ub, off] <= 0.0:
                     continue
-                off = voxel_offset(i, j, k)
-                if density[b, off] <= 0.0:
+                if gsel >= 0 and group[body[ub, off]] != gsel:
                     continue
-                if gsel >= 0 and group[body[b, off]] != gsel:
-                    continue
-                lab = label[b, off]
-                w = stiff[lab]
+                lab = label[ub, off]
+                if lab != run_lab:
+                    if run_n > 0:
+                        contact[run_lab] += run_n
+                    run_lab = lab
+                    run_n = 0
+                    w = stiff[lab]
+                    wox = w * ox
+                    woy = w * oy
+                    if contact[lab] == 0:
+                        onset_body[lab] = body[ub, off]
+                run_n += 1
                 n_imm += 1
                 wsum += w
-                if contact[lab] == 0:
-                    onset_body[lab] = body[b, off]
-                contact[lab] += 1
-                wr = w * np.float64(samples[s + q, 3])
+                uq = us + np.uint64(q)
+                wr = w * np.float64(samples[uq, 3])
                 sux += wr * ox
                 suy += wr * oy
-                suz += wr * np.float64(samples[s + q, 2])
-                stx += w * oy
-                sty -= w * ox
+                suz += wr * np.float64(samples[uq, 2])
+                stx += woy
+                sty -= wox
             s += n
+        if run_n > 0:
+            contact[run_lab] += run_n
     # force: the per-voxel kernel's law
     mag = force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
                     speed_factor, out)
