@@ -342,19 +342,26 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
     tcap = tch_ijk.shape[0] - 1
     n_occ = 0
     t_min = np.inf
+    n_rem = 0
+    n_tch = 0
+    # the cell lies in one brick: its voxels' offsets step from the first's
+    # (unsigned: no negative-index wrapping)
+    ub = np.uint64(b)
+    base = np.uint64(voxel_offset(i0, j0, k0))
     for x in range(cell):
         i = i0 + x
+        bx = base + np.uint64(x << 6)
         for y in range(cell):
             j = j0 + y
+            by = bx + np.uint64(y << 3)
             for z in range(cell):
-                k = k0 + z
-                off = voxel_offset(i, j, k)
-                d = density[b, off]
+                off = by + np.uint64(z)
+                d = density[ub, off]
                 if d <= 0.0:
                     continue
-                lab = label[b, off]
+                lab = label[ub, off]
                 m = removal[lab]
-                bod = body[b, off]
+                bod = body[ub, off]
                 if m <= 0.0 or amount <= 0.0 or not _same_pose(pose_m, bod, owner):
                     n_occ += 1
                     if m > 0.0 and np.float64(d) / m < t_min:
@@ -362,25 +369,27 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
                     continue
                 nd = d - amount * m
                 if nd <= 0.0:
-                    density[b, off] = 0.0
+                    density[ub, off] = 0.0
                     lost[lab] += 1
                     lab_body[lab] = bod
                     push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
-                                      ev_head, _EV_REMOVED, bod, lab, t, i, j, k, 0,
+                                      ev_head, _EV_REMOVED, bod, lab, t, i, j, k0 + z, 0,
                                       0.0, 0.0, 0.0)
-                    counts[0] += 1
+                    n_rem += 1
                 else:
                     df = np.float32(nd)
-                    density[b, off] = df
+                    density[ub, off] = df
                     n_occ += 1
                     if np.float64(df) / m < t_min:
                         t_min = np.float64(df) / m
-                    if touched_flag[b, off] == 0:
-                        touched_flag[b, off] = 1
+                    if touched_flag[ub, off] == 0:
+                        touched_flag[ub, off] = 1
                         h = tch_head[0] & tcap
-                        tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k
+                        tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k0 + z
                         tch_head[0] += 1
-                        counts[1] += 1
+                        n_tch += 1
+    counts[0] += n_rem
+    counts[1] += n_tch
     occ[b, cq] = n_occ
     thr[b, cq] = t_min
 
@@ -453,11 +462,13 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
                 bz = (k0 >> BRICK_SHIFT) - b2
                 if bz < 0 or bz >= nbk:
                     continue
-                b = lbrick[bx, by, bz]
+                b = lbrick[np.uint64(bx), np.uint64(by), np.uint64(bz)]
                 if b < 0:
                     continue
                 cq = ((((i0 & 7) >> cs) * n) + ((j0 & 7) >> cs)) * n + ((k0 & 7) >> cs)
-                if occ[b, cq] <= 0:
+                # (unsigned: no negative-index wrapping)
+                ub, ucq = np.uint64(b), np.uint64(cq)
+                if occ[ub, ucq] <= 0:
                     continue
                 oz = origin[2] + cw * ck + half - pos[2]
                 rr = np.sqrt(ox * ox + oy * oy + oz * oz)
@@ -475,15 +486,15 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
                 a = w * scale
                 if a <= 0.0:
                     continue
-                if dose[b, cq] > 0.0 and rep[b, cq] != owner:
+                if dose[ub, ucq] > 0.0 and rep[ub, ucq] != owner:
                     _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag,
                                 removal, pose_m, dose, thr, occ, rep, t, lost, lab_body,
                                 ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                 ev_head, tch_ijk, tch_head, counts)
-                rep[b, cq] = owner
-                dose[b, cq] += a
-                if queued[b, cq] == 0 and dose[b, cq] >= thr[b, cq]:
-                    queued[b, cq] = 1
+                rep[ub, ucq] = owner
+                dose[ub, ucq] += a
+                if queued[ub, ucq] == 0 and dose[ub, ucq] >= thr[ub, ucq]:
+                    queued[ub, ucq] = 1
                     queue[qhead[1] % cap] = b * cpb + cq
                     qhead[1] += 1
 
