@@ -75,6 +75,18 @@ Removal: doses per cell, flushed within a budget
     stale upward, which costs a flush that finds less, never a missed dose.
 
 All kernels allocate nothing and are deterministic.
+
+Recorded sessions replay bit for bit, so the step's speed comes only from
+work that changes no result (tested against a frozen copy of the kernels
+before the speed-up, ``tests/bonesim/engine/haptics_budget_previous.py``):
+indices are unsigned (no negative-index wrapping); a sample reads its
+voxel's density directly, without first reading its removal cell's
+occupancy (a cell counted empty holds no bone: the counts are exact or
+stale upward, so the density read skips the same samples); the stiffness
+and lever products are computed once per run of one label and its contact
+count is added at the run's end; the flush steps voxel offsets within the
+cell's brick and keeps its counts in locals. Every sum still adds the same
+terms in sample order.
 """
 from __future__ import annotations
 
