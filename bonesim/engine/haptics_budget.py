@@ -572,7 +572,6 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     radius = params[P_RADIUS]
     lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
     b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
-    ncell = BRICK >> cs
     sux = suy = suz = 0.0
     stx = sty = 0.0
     wsum = 0.0
@@ -591,8 +590,6 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
         # unsigned indices below (no negative-index wrapping): a sample's
         # voxel lies in the block, past its first voxel, and ``b >= 0``
         ub0, ub1, ub2 = np.uint64(b0), np.uint64(b1), np.uint64(b2)
-        uncell = np.uint64(ncell)
-        ucs = np.uint64(cs)
         # the stiffness and lever products change only with the label: one
         # run of a label computes them once and counts its contacts at its end
         run_lab = -1

@@ -34,7 +34,8 @@ def previous_same_pose(pose_m, a, b):
 
 
 @njit(cache=False, nogil=True)
-def previous_flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, removal, pose_m,
+def previous_flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, removal,
+                        pose_m,
                 dose, thr, occ, rep, t, lost, lab_body, ev_kind, ev_body, ev_label, ev_t,
                 ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head, counts):
     """Apply cell ``cq`` of brick ``b``'s dose to its voxels (see the module
@@ -97,7 +98,8 @@ def previous_flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_f
 
 
 @njit(cache=False, nogil=True)
-def previous_flush_kernel(budget_vox, cell, cs, bricks, density, label, body, touched_flag, removal,
+def previous_flush_kernel(budget_vox, cell, cs, bricks, density, label, body, touched_flag,
+                          removal,
                  pose_m, dose, thr, occ, queued, rep, queue, qhead, t, lost, lab_body,
                  ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
                  tch_ijk, tch_head, counts):
@@ -121,7 +123,8 @@ def previous_flush_kernel(budget_vox, cell, cs, bricks, density, label, body, to
 
 
 @njit(cache=False, nogil=True)
-def previous_dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, lbrick, cell,
+def previous_dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, lbrick,
+                        cell,
                 cs, owner, bricks, density, label, body, touched_flag, removal, pose_m, dose,
                 thr, occ, queued, rep, queue, qhead, t, lost, lab_body, ev_kind, ev_body,
                 ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head, tch_ijk, tch_head, counts):
@@ -187,7 +190,8 @@ def previous_dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1
                 if a <= 0.0:
                     continue
                 if dose[b, cq] > 0.0 and rep[b, cq] != owner:
-                    previous_flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag,
+                    previous_flush_cell(b, cq, cell, cs, bricks, density, label, body,
+                                        touched_flag,
                                 removal, pose_m, dose, thr, occ, rep, t, lost, lab_body,
                                 ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                 ev_head, tch_ijk, tch_head, counts)
