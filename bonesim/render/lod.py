@@ -148,6 +148,16 @@ BLOCK_SHIFT = 3
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _slot_at(keys, vals, vmap, i, j, k):
+    """The vertex slot at voxel ``(i, j, k)`` (``vmap``'s entry; -1 where its
+    brick is not in the grid)."""
+    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT)
+    if b < 0:
+        return -1
+    return vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3) | (k & BRICK_MASK)]
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _cluster_rep(vmap, b, i, j, k):
     """Vertex of the cluster of voxel ``(i, j, k)`` (in brick ``b``: a
     cluster never straddles bricks) at its smallest voxel, -1 if none."""
@@ -298,12 +308,7 @@ def _flags_near(keys, vals, vmap, ijk, alive, changed, box, drilled, dlo, far):
                     i = changed[q, 0] + di
                     j = changed[q, 1] + dj
                     k = changed[q, 2] + dk
-                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
-                                   k >> BRICK_SHIFT)
-                    if b < 0:
-                        continue
-                    u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
-                             | (k & BRICK_MASK)]
+                    u = _slot_at(keys, vals, vmap, i, j, k)
                     if 0 <= u < far.shape[0]:
                         lev = _level(i >> BLOCK_SHIFT, j >> BLOCK_SHIFT, k >> BLOCK_SHIFT,
                                      box, drilled, dlo)
@@ -348,12 +353,7 @@ def _fine_blocks(keys, vals, vmap, blocks, n, far):
         for i in range(i0, i0 + m):
             for j in range(j0, j0 + m):
                 for k in range(k0, k0 + m):
-                    b = find_brick(keys, vals, i >> BRICK_SHIFT, j >> BRICK_SHIFT,
-                                   k >> BRICK_SHIFT)
-                    if b < 0:
-                        continue
-                    u = vmap[b, ((i & BRICK_MASK) << 6) | ((j & BRICK_MASK) << 3)
-                             | (k & BRICK_MASK)]
+                    u = _slot_at(keys, vals, vmap, i, j, k)
                     if 0 <= u < far.shape[0]:
                         far[u] = 0
 
