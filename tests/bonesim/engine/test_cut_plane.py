@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as hs
 
 from bonesim.engine import events
@@ -55,9 +55,19 @@ def _ray_voxels(y0, dy, length, lo, hi):
     return [tuple(v) for v in ii[hit][order]]
 
 
+def _along_a_face(y0, dy, length):
+    """Whether a ray runs within 1e-9 voxel along a voxel face (parallel to
+    it, on it): which of the two voxels it removes there is a rounding tie
+    of the last bit, not a rule the reference can state."""
+    on = np.abs(y0 - np.rint(y0)) < 1e-9
+    flat = np.abs(dy) * max(length, 1.0) < 1e-9
+    return bool(np.any(on & flat))
+
+
 def _reference(model, state, pose, w, h, d):
     """Slow reference of one stroke: ``[(body, i, j, k)]`` of the voxels it
-    removes, in the order the stroke visits them, from the state before it."""
+    removes, in the order the stroke visits them, from the state before it;
+    None when a ray runs along a voxel face (:func:`_along_a_face`)."""
     g = state.grid
     sp = g.spacing_mm
     axes = plane_axes(pose)
@@ -73,6 +83,8 @@ def _reference(model, state, pose, w, h, d):
         hi = np.minimum(state.bounds[b, 3:], shape - 1)
         for p, q in itertools.product(su, sv):
             y0 = (cb + p * ub + q * vb - g.origin_mm) / sp + 0.5
+            if _along_a_face(y0, nb / sp, d):
+                return None
             for ijk in _ray_voxels(y0, nb / sp, d, lo, hi):
                 key = (int(b),) + tuple(int(x) for x in ijk)
                 if key in seen:
@@ -134,6 +146,7 @@ def test_a_stroke_removes_exactly_the_voxels_its_rays_pass(model, state, off, q,
     pose = _random_pose(c, list(off) + list(q))
     w, h, d = (float(x) * 1e-3 for x in quantize_size(w, h, d))
     ref = _reference(model, state, pose, w, h, d)
+    assume(ref is not None)
     start = state.tissue.count
     before = state.removed_by_label.sum()
     n = publish_cut(state, model.injury, pose, w, h, d, 1.0)
