@@ -94,6 +94,15 @@ def gather_box(keys, vals, arr, out, lo_i, lo_j, lo_k):
                     out[x, y, z] = arr[b, voxel_offset(i, j, k)]
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a``, or a read-only view of it: the labels of a grid never change."""
+    if not a.flags.writeable:
+        return a
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
 @njit(cache=True, nogil=True)
 def _mark_bricks(lab, dens, has_dens, bmask):
     """Flag bricks (offset by +1) that hold tissue or touch it across a face,
@@ -201,9 +210,12 @@ class Grid:
         self.shape = tuple(int(s) for s in shape)
         self.keys = keys
         self.vals = vals
-        self.bricks = bricks
+        # one layout and one flag for every grid, wherever it was built
+        # (np.argwhere gives Fortran order; a model's labels are read-only):
+        # each kernel then compiles once, not once per variant
+        self.bricks = np.ascontiguousarray(bricks, dtype=np.int32)
         self.density = density
-        self.label = label
+        self.label = _read_only(label)
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -246,7 +258,7 @@ class Grid:
         nb = tuple((s + BRICK - 1) // BRICK + 2 for s in shape)
         bmask = np.zeros(nb, dtype=np.bool_)
         _mark_bricks(lab, dens, has_dens, bmask)
-        bricks = (np.argwhere(bmask) - 1).astype(np.int32)      # lexicographic order
+        bricks = np.ascontiguousarray(np.argwhere(bmask) - 1, dtype=np.int32)  # lexicographic
         n_b = len(bricks)
         keys, vals = _brick_table(bricks)
         bd = np.zeros((n_b, BRICK_VOXELS), dtype=np.float32)
