@@ -14,11 +14,11 @@ Force: a fixed sample budget
     for bit: the phantom at 0.5 mm, default oversampling). Where it binds,
     each of the burr's lattice points inside it (about ``4/3 pi (r / h)^3``:
     11,536 for the 7 mm burr, 4,224 for the 5 mm) reads the *fine* voxel it
-    lies in through the brick table: one
-    read of the block's brick index (``lbrick``, filled once per step by
-    :func:`bonesim.engine.haptics.block_bricks`: ``(2 r / (8 voxel) + 3)^3``
-    hash probes, 1/512 of a voxel block), one read of the sample's removal
-    cell's occupancy (an empty cell ends the sample: the drilled cavity) and
+    lies in through the brick table: one read of the block's brick index
+    (``lbrick``, the bricks of :func:`bonesim.engine.haptics.block_bricks`:
+    ``(2 r / (8 voxel) + 3)^3`` hash probes, 1/512 of a voxel block, made
+    only for the bricks the table did not hold at the previous pass), one
+    read of the sample's removal cell's occupancy (an empty cell ends the sample: the drilled cavity) and
     one density read. Nothing is gathered. The force law is the per-voxel
     kernel's, with ``h^3`` per sample.
 
@@ -85,8 +85,13 @@ occupancy (a cell counted empty holds no bone: the counts are exact or
 stale upward, so the density read skips the same samples); the stiffness
 and lever products are computed once per run of one label and its contact
 count is added at the run's end; the flush steps voxel offsets within the
-cell's brick and keeps its counts in locals. Every sum still adds the same
-terms in sample order.
+cell's brick and keeps its counts in locals; the sample loop is a function
+of its own (its values stay in registers) and finds a sample's brick and
+place in it from its coordinate in the block (``(x + (lo & 7)) >> 3`` and
+``& 7``, the same integers as ``(lo + x) >> 3 - lo >> 3``); the brick table
+is kept from pass to pass and moved with the burr (the grid's brick hash
+never changes, so the table is a function of the block's first brick).
+Every sum still adds the same terms in sample order.
 """
 from __future__ import annotations
 
@@ -99,8 +104,8 @@ from numba import njit
 from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.events import REMOVED as _EV_REMOVED
-from bonesim.engine.grid import BRICK, BRICK_SHIFT, voxel_offset
-from bonesim.engine.haptics import (P_RADIUS, O_N_REMOVED, O_N_TOUCHED, block_bricks,
+from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.haptics import (P_RADIUS, O_N_REMOVED, O_N_TOUCHED,
                                     force_law, push_event_kernel, tool_frame)
 
 __all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "make_budget",
@@ -512,6 +517,140 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
 
 
 @njit(cache=True, nogil=True)
+def _brick_table(keys, vals, pos, radius, origin, spacing, lbrick, lbkey):
+    """:func:`bonesim.engine.haptics.block_bricks`, reusing the table of the
+    previous pass: ``lbkey`` holds the first brick ``(b0, b1, b2)`` the table
+    ``lbrick`` was filled for, whether it is valid and how many of its
+    entries are bricks. The grid's brick hash never changes (only densities
+    do), so the table is a function of its first brick alone: the same first
+    brick keeps it, a nearby one moves the overlapping entries and looks up
+    only the rest. The table and the returned values are exactly
+    ``block_bricks``'s."""
+    lo0 = int(np.floor((pos[0] - radius - origin[0]) / spacing + 0.5)) - 1
+    lo1 = int(np.floor((pos[1] - radius - origin[1]) / spacing + 0.5)) - 1
+    lo2 = int(np.floor((pos[2] - radius - origin[2]) / spacing + 0.5)) - 1
+    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    nbk = lbrick.shape[0]
+    d0, d1, d2 = b0 - lbkey[0], b1 - lbkey[1], b2 - lbkey[2]
+    if lbkey[3] == 1 and d0 == 0 and d1 == 0 and d2 == 0:
+        return lo0, lo1, lo2, lbkey[4] > 0
+    near = lbkey[3] == 1 and abs(d0) < nbk and abs(d1) < nbk and abs(d2) < nbk
+    n_any = 0
+    # in place: each axis is walked in the direction of the move, so an
+    # entry is read before it is overwritten
+    for xx in range(nbk):
+        x = xx if d0 >= 0 else nbk - 1 - xx
+        sx = x + d0
+        for yy in range(nbk):
+            y = yy if d1 >= 0 else nbk - 1 - yy
+            sy = y + d1
+            for zz in range(nbk):
+                z = zz if d2 >= 0 else nbk - 1 - zz
+                sz = z + d2
+                if (near and 0 <= sx < nbk and 0 <= sy < nbk and 0 <= sz < nbk):
+                    b = lbrick[sx, sy, sz]
+                else:
+                    b = find_brick(keys, vals, b0 + x, b1 + y, b2 + z)
+                lbrick[x, y, z] = b
+                if b >= 0:
+                    n_any += 1
+    lbkey[0], lbkey[1], lbkey[2], lbkey[3], lbkey[4] = b0, b1, b2, 1, n_any
+    return lo0, lo1, lo2, n_any > 0
+
+
+@njit(cache=True, nogil=True)
+def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_head, row_off,
+                 contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2):
+    """The budget step's samples (see :func:`budget_kernel`): the force sums
+    ``(sux, suy, suz, stx, sty, wsum, n_imm)``; ``contact`` and
+    ``onset_body`` updated. A function of its own so that the loop's values
+    stay in registers."""
+    sux = suy = suz = 0.0
+    stx = sty = 0.0
+    wsum = 0.0
+    n_imm = 0
+    inv = 1.0 / spacing
+    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
+    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
+    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
+    r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
+    r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
+    r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
+    # the lattice's rows along the tool axis: a row's samples sit
+    # h apart, so each voxel coordinate is the row's first plus k steps
+    d0, d1, d2 = r02 * h, r12 * h, r22 * h
+    # a sample's voxel is ``lo + x`` (x its coordinate in the block); its
+    # brick in the table is ``(lo + x) >> 3 - lo >> 3 = (x + (lo & 7)) >> 3``
+    # and its place in the brick ``(x + (lo & 7)) & 7``. Unsigned indices
+    # (no negative-index wrapping): a sample's voxel lies in the block, past
+    # its first voxel, and ``b >= 0``
+    e0, e1, e2 = lo0 & 7, lo1 & 7, lo2 & 7
+    # flat views: a voxel is ``brick * 512 + offset``, a table entry
+    # ``(x nbk + y) nbk + z`` (no strides to keep at hand)
+    nbk = np.uint64(lbrick.shape[0])
+    lbf = lbrick.reshape(lbrick.size)
+    dens = density.reshape(density.size)
+    labf = label.reshape(label.size)
+    bodf = body.reshape(body.size)
+    # the stiffness and lever products change only with the label: one
+    # run of a label computes them once and counts its contacts at its end
+    run_lab = -1
+    run_n = 0
+    w = wox = woy = 0.0
+    s = 0
+    for r in range(row_head.shape[0]):
+        ox = row_head[r, 0]
+        oy = row_head[r, 1]
+        oz = row_head[r, 2]
+        a0 = c0 + r00 * ox + r01 * oy + r02 * oz
+        a1 = c1 + r10 * ox + r11 * oy + r12 * oz
+        a2 = c2 + r20 * ox + r21 * oy + r22 * oz
+        wox = w * ox
+        woy = w * oy
+        n = row_off[r, 1]
+        us = np.uint64(s)
+        for q in range(n):
+            ui = np.uint64(int(a0 + d0 * q) + e0)
+            uj = np.uint64(int(a1 + d1 * q) + e1)
+            uk = np.uint64(int(a2 + d2 * q) + e2)
+            b = lbf[((ui >> np.uint64(BRICK_SHIFT)) * nbk + (uj >> np.uint64(BRICK_SHIFT))) * nbk
+                    + (uk >> np.uint64(BRICK_SHIFT))]
+            if b < 0:
+                continue
+            v = ((np.uint64(b) << np.uint64(3 * BRICK_SHIFT)) | ((ui & np.uint64(7)) << np.uint64(6))
+                 | ((uj & np.uint64(7)) << np.uint64(3)) | (uk & np.uint64(7)))
+            if dens[v] <= 0.0:
+                continue
+            if gsel >= 0 and group[bodf[v]] != gsel:
+                continue
+            lab = labf[v]
+            if lab != run_lab:
+                if run_n > 0:
+                    contact[run_lab] += run_n
+                run_lab = lab
+                run_n = 0
+                w = stiff[lab]
+                wox = w * ox
+                woy = w * oy
+                if contact[lab] == 0:
+                    onset_body[lab] = bodf[v]
+            run_n += 1
+            n_imm += 1
+            wsum += w
+            uq = us + np.uint64(q)
+            wr = w * np.float64(samples[uq, 3])
+            sux += wr * ox
+            suy += wr * oy
+            suz += wr * np.float64(samples[uq, 2])
+            stx += woy
+            sty -= wox
+        s += n
+    if run_n > 0:
+        contact[run_lab] += run_n
+    return sux, suy, suz, stx, sty, wsum, n_imm
+
+
+@njit(cache=True, nogil=True)
 def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin, spacing,
                   stiff, removal, injury, samples, row_head, row_off, h, params, lat,
                   budget_vox, cell, cs,
@@ -520,7 +659,7 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
                   R, lbrick, contact, prev_contact, lost, lab_body, onset_body,
                   dose, thr, occ, queued, rep, queue, qhead, counts,
                   ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                  tch_ijk, tch_head, out):
+                  tch_ijk, tch_head, out, lbkey):
     """One haptic pass of the fixed-budget step (see the module notes).
 
     Parameters as :func:`bonesim.engine.haptics.haptic_kernel`, except:
@@ -570,82 +709,16 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     counts[1] = 0
     tool_frame(axis, R)
     radius = params[P_RADIUS]
-    lo0, lo1, lo2, any_brick = block_bricks(keys, vals, pos, radius, origin, spacing, lbrick)
-    b0, b1, b2 = lo0 >> BRICK_SHIFT, lo1 >> BRICK_SHIFT, lo2 >> BRICK_SHIFT
+    lo0, lo1, lo2, any_brick = _brick_table(keys, vals, pos, radius, origin, spacing, lbrick,
+                                            lbkey)
     sux = suy = suz = 0.0
     stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
     if any_brick and gsel != -2:              # -2: a pass that only flushes
-        inv = 1.0 / spacing
-        c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
-        c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
-        c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
-        r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
-        r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
-        r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
-        # the lattice's rows along the tool axis: a row's samples sit
-        # h apart, so each voxel coordinate is the row's first plus k steps
-        d0, d1, d2 = r02 * h, r12 * h, r22 * h
-        # unsigned indices below (no negative-index wrapping): a sample's
-        # voxel lies in the block, past its first voxel, and ``b >= 0``
-        ub0, ub1, ub2 = np.uint64(b0), np.uint64(b1), np.uint64(b2)
-        # the stiffness and lever products change only with the label: one
-        # run of a label computes them once and counts its contacts at its end
-        run_lab = -1
-        run_n = 0
-        w = wox = woy = 0.0
-        s = 0
-        for r in range(row_head.shape[0]):
-            ox = row_head[r, 0]
-            oy = row_head[r, 1]
-            oz = row_head[r, 2]
-            a0 = c0 + r00 * ox + r01 * oy + r02 * oz
-            a1 = c1 + r10 * ox + r11 * oy + r12 * oz
-            a2 = c2 + r20 * ox + r21 * oy + r22 * oz
-            wox = w * ox
-            woy = w * oy
-            n = row_off[r, 1]
-            us = np.uint64(s)
-            for q in range(n):
-                i = lo0 + int(a0 + d0 * q)
-                j = lo1 + int(a1 + d1 * q)
-                k = lo2 + int(a2 + d2 * q)
-                b = lbrick[np.uint64(i >> BRICK_SHIFT) - ub0, np.uint64(j >> BRICK_SHIFT) - ub1,
-                           np.uint64(k >> BRICK_SHIFT) - ub2]
-                if b < 0:
-                    continue
-                ub = np.uint64(b)
-                ui, uj, uk = np.uint64(i & 7), np.uint64(j & 7), np.uint64(k & 7)
-                off = (ui << np.uint64(6)) | (uj << np.uint64(3)) | uk
-                if density[ub, off] <= 0.0:
-                    continue
-                if gsel >= 0 and group[body[ub, off]] != gsel:
-                    continue
-                lab = label[ub, off]
-                if lab != run_lab:
-                    if run_n > 0:
-                        contact[run_lab] += run_n
-                    run_lab = lab
-                    run_n = 0
-                    w = stiff[lab]
-                    wox = w * ox
-                    woy = w * oy
-                    if contact[lab] == 0:
-                        onset_body[lab] = body[ub, off]
-                run_n += 1
-                n_imm += 1
-                wsum += w
-                uq = us + np.uint64(q)
-                wr = w * np.float64(samples[uq, 3])
-                sux += wr * ox
-                suy += wr * oy
-                suz += wr * np.float64(samples[uq, 2])
-                stx += woy
-                sty -= wox
-            s += n
-        if run_n > 0:
-            contact[run_lab] += run_n
+        sux, suy, suz, stx, sty, wsum, n_imm = _sample_rows(
+            lbrick, density, label, body, group, gsel, stiff, samples, row_head, row_off,
+            contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2)
     # force: the per-voxel kernel's law
     mag = force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
                     speed_factor, out)

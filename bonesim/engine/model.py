@@ -418,6 +418,9 @@ class State:
     _budget: BudgetState | None = None
     _onset_body: np.ndarray = None
     _counts: np.ndarray = field(default_factory=lambda: np.zeros(2, np.int64))
+    #: the fixed-budget step's brick table and what it was filled for
+    _blbrick: np.ndarray = None
+    _blkey: np.ndarray = None
 
     def fit_scratch(self, model: Model) -> None:
         """Size the kernel's scratch for the largest burr of the model's table."""
@@ -433,6 +436,11 @@ class State:
                 self._llab = np.zeros(n3, dtype=np.uint8)
                 self._acc = np.zeros(n3)
                 self._dirty = np.zeros(n3 + 1, dtype=np.int32)
+                if model.budget.binding:
+                    # the budget step's own brick table, kept from pass to
+                    # pass (haptics_budget._brick_table); invalid until filled
+                    self._blbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
+                    self._blkey = np.zeros(5, dtype=np.int64)
 
     @property
     def n_removed(self) -> int:
@@ -662,12 +670,12 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
             bud.cell, bud.cell.bit_length() - 1,
             pos, ax, drill, direction, speed_factor, dt, t,
             state._group, gsel, owner, first, last, state._pos, state.pose_m,
-            state._R, state._lbrick, state._contact, state._prev_contact, state._lost,
+            state._R, state._blbrick, state._contact, state._prev_contact, state._lost,
             state._lab_body, state._onset_body,
             bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
             ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
             ev["value"], state.tissue.head,
-            tch["ijk"], state.touched.head, state.out)
+            tch["ijk"], state.touched.head, state.out, state._blkey)
         return
     if model.oversample >= ROWS_MIN_OVERSAMPLE:
         # fine sampling: one lookup per voxel a row of samples crosses
