@@ -18,8 +18,8 @@ Force: a fixed sample budget
     (``lbrick``, the bricks of :func:`bonesim.engine.haptics.block_bricks`:
     ``(2 r / (8 voxel) + 3)^3`` hash probes, 1/512 of a voxel block, made
     only for the bricks the table did not hold at the previous pass), one
-    read of the sample's removal cell's occupancy (an empty cell ends the sample: the drilled cavity) and
-    one density read. Nothing is gathered. The force law is the per-voxel
+    read of the sample's removal cell's occupancy (an empty cell ends the
+    sample: the drilled cavity) and one density read. Nothing is gathered. The force law is the per-voxel
     kernel's, with ``h^3`` per sample.
 
     Point samples of the fine voxels were chosen over a summarising density
@@ -617,7 +617,8 @@ def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_
                     + (uk >> np.uint64(BRICK_SHIFT))]
             if b < 0:
                 continue
-            v = ((np.uint64(b) << np.uint64(3 * BRICK_SHIFT)) | ((ui & np.uint64(7)) << np.uint64(6))
+            v = ((np.uint64(b) << np.uint64(3 * BRICK_SHIFT))
+                 | ((ui & np.uint64(7)) << np.uint64(6))
                  | ((uj & np.uint64(7)) << np.uint64(3)) | (uk & np.uint64(7)))
             if dens[v] <= 0.0:
                 continue
