@@ -19,8 +19,8 @@ Force: a fixed sample budget
     ``(2 r / (8 voxel) + 3)^3`` hash probes, 1/512 of a voxel block, made
     only for the bricks the table did not hold at the previous pass), one
     read of the sample's removal cell's occupancy (an empty cell ends the
-    sample: the drilled cavity) and one density read. Nothing is gathered. The force law is the per-voxel
-    kernel's, with ``h^3`` per sample.
+    sample: the drilled cavity) and one density read. Nothing is gathered.
+    The force law is the per-voxel kernel's, with ``h^3`` per sample.
 
     Point samples of the fine voxels were chosen over a summarising density
     (counts per brick or per cell): a sample that reads a cell's occupied
