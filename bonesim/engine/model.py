@@ -421,9 +421,12 @@ class State:
     #: the fixed-budget step's brick table and what it was filled for
     _blbrick: np.ndarray = None
     _blkey: np.ndarray = None
+    #: the budget kernel's arguments that stay from step to step (model.py:_budget_args)
+    _bargs: tuple | None = None
 
     def fit_scratch(self, model: Model) -> None:
         """Size the kernel's scratch for the largest burr of the model's table."""
+        self._bargs = None
         for burr in model.burrs:
             n_vox, n_brick = block_size(burr.radius_mm, model.spacing_mm)
             if n_vox > self._n_vox:
@@ -660,22 +663,12 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
     st = model.stencils[bi]
     if model.budget.binding:
         # the fixed-budget step (bone finer than the finest sample lattice)
-        bud, bs = model.budget, state._budget
+        a = state._bargs
+        if a is None or a[0] is not model or a[1] != bi:
+            a = state._bargs = _budget_args(model, state, bi)
         owner = 0 if gsel < 0 else int(state._pass_body[gsel])
-        budget_kernel(
-            g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
-            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
-            bud.lat[bi], bud.removal_voxels[bi],
-            bud.cell, bud.cell.bit_length() - 1,
-            pos, ax, drill, direction, speed_factor, dt, t,
-            state._group, gsel, owner, first, last, state._pos, state.pose_m,
-            state._R, state._blbrick, state._contact, state._prev_contact, state._lost,
-            state._lab_body, state._onset_body,
-            bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
-            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
-            ev["value"], state.tissue.head,
-            tch["ijk"], state.touched.head, state.out, state._blkey)
+        budget_kernel(*a[2], pos, ax, drill, direction, speed_factor, dt, t,
+                      a[3], gsel, owner, first, last, *a[4])
         return
     if model.oversample >= ROWS_MIN_OVERSAMPLE:
         # fine sampling: one lookup per voxel a row of samples crosses
@@ -703,6 +696,30 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
                   ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
                   ev["value"], state.tissue.head,
                   tch["ijk"], state.touched.head, state.out)
+
+
+def _budget_args(model, state, bi) -> tuple:
+    """``(model, bi, head, group, tail)``: the arguments of
+    :func:`~bonesim.engine.haptics_budget.budget_kernel` that stay the same
+    from step to step (the state's arrays, the model's tables for burr
+    ``bi``), kept in ``state._bargs`` (cleared by :meth:`State.fit_scratch`)."""
+    g = state.grid
+    ev, tch = state.tissue.fields, state.touched.fields
+    st = model.stencils[bi]
+    bud, bs = model.budget, state._budget
+    head = (g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
+            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
+            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
+            bud.lat[bi], bud.removal_voxels[bi],
+            bud.cell, bud.cell.bit_length() - 1)
+    tail = (state._pos, state.pose_m,
+            state._R, state._blbrick, state._contact, state._prev_contact, state._lost,
+            state._lab_body, state._onset_body,
+            bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
+            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
+            ev["value"], state.tissue.head,
+            tch["ijk"], state.touched.head, state.out, state._blkey)
+    return model, bi, head, state._group, tail
 
 
 def _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor, dt,
