@@ -451,6 +451,9 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
     half = 0.5 * (cell - 1) * spacing         # cell centre past its first voxel [mm]
     r2 = radius * radius
     nl = lat.shape[0] - 1
+    # flat views: cell ``b cpb + cq``
+    occ_f, dose_f, thr_f = occ.reshape(occ.size), dose.reshape(dose.size), thr.reshape(thr.size)
+    queued_f, rep_f = queued.reshape(queued.size), rep.reshape(rep.size)
     # cell C's centre: origin + cw C + half
     ci_lo = int(np.ceil((pos[0] - radius - origin[0] - half) / cw))
     ci_hi = int(np.floor((pos[0] + radius - origin[0] - half) / cw))
@@ -484,8 +487,8 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
                     continue
                 cq = ((((i0 & 7) >> cs) * n) + ((j0 & 7) >> cs)) * n + ((k0 & 7) >> cs)
                 # (unsigned: no negative-index wrapping)
-                ub, ucq = np.uint64(b), np.uint64(cq)
-                if occ[ub, ucq] <= 0:
+                f = np.uint64(b * cpb + cq)
+                if occ_f[f] <= 0:
                     continue
                 oz = origin[2] + cw * ck + half - pos[2]
                 rr = np.sqrt(ox * ox + oy * oy + oz * oz)
@@ -503,15 +506,15 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
                 a = w * scale
                 if a <= 0.0:
                     continue
-                if dose[ub, ucq] > 0.0 and rep[ub, ucq] != owner:
+                if dose_f[f] > 0.0 and rep_f[f] != owner:
                     _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag,
                                 removal, pose_m, dose, thr, occ, rep, t, lost, lab_body,
                                 ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
                                 ev_head, tch_ijk, tch_head, counts)
-                rep[ub, ucq] = owner
-                dose[ub, ucq] += a
-                if queued[ub, ucq] == 0 and dose[ub, ucq] >= thr[ub, ucq]:
-                    queued[ub, ucq] = 1
+                rep_f[f] = owner
+                dose_f[f] += a
+                if queued_f[f] == 0 and dose_f[f] >= thr_f[f]:
+                    queued_f[f] = 1
                     queue[qhead[1] % cap] = b * cpb + cq
                     qhead[1] += 1
 
