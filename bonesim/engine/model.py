@@ -658,9 +658,6 @@ def _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, 
 
 def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gsel,
             first, last) -> None:
-    g = state.grid
-    ev, tch = state.tissue.fields, state.touched.fields
-    st = model.stencils[bi]
     if model.budget.binding:
         # the fixed-budget step (bone finer than the finest sample lattice)
         a = state._bargs
@@ -670,6 +667,9 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
         budget_kernel(*a[2], pos, ax, drill, direction, speed_factor, dt, t,
                       a[3], gsel, owner, first, last, *a[4])
         return
+    g = state.grid
+    ev, tch = state.tissue.fields, state.touched.fields
+    st = model.stencils[bi]
     if model.oversample >= ROWS_MIN_OVERSAMPLE:
         # fine sampling: one lookup per voxel a row of samples crosses
         haptic_rows_kernel(
