@@ -122,6 +122,10 @@ __all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "mak
            "make_budget_state", "reset_budget_state", "budget_kernel", "flush_kernel",
            "cell_counts"]
 
+#: Columns of a stencil's packed samples (:attr:`bonesim.engine.haptics.Stencil.packed`:
+#: ``o_x, o_y, o_z, 1/|o|, lat``).
+_PACKED = 5
+
 #: Entries of the latitude table over ``|cos theta|`` in [0, 1] (linear
 #: interpolation; off by < 2e-3 of ``falloff`` from the exact weight, the
 #: worst next to the poles where ``asin`` is steep).
@@ -572,7 +576,7 @@ def _brick_table(keys, vals, pos, radius, origin, spacing, lbrick, lbkey):
 
 @njit(cache=True, nogil=True)
 def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_head, row_off,
-                 contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2):
+                 contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2, row_a):
     """The budget step's samples (see :func:`budget_kernel`): the force sums
     ``(sux, suy, suz, stx, sty, wsum, n_imm)``; ``contact`` and
     ``onset_body`` updated. A function of its own so that the loop's values
@@ -604,19 +608,29 @@ def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_
     dens = density.reshape(density.size)
     labf = label.reshape(label.size)
     bodf = body.reshape(body.size)
+    smp = samples.reshape(samples.size)        # rows of _PACKED (a constant stride)
     # the stiffness and lever products change only with the label: one
-    # run of a label computes them once and counts its contacts at its end
+    # run of a label computes them once and counts its contacts (and the
+    # immersed samples) at its end
     run_lab = -1
     run_n = 0
     w = wox = woy = 0.0
     s = 0
+    # each row's first voxel coordinates, before the samples (fewer values
+    # in hand in their loop)
     for r in range(row_head.shape[0]):
         ox = row_head[r, 0]
         oy = row_head[r, 1]
         oz = row_head[r, 2]
-        a0 = c0 + r00 * ox + r01 * oy + r02 * oz
-        a1 = c1 + r10 * ox + r11 * oy + r12 * oz
-        a2 = c2 + r20 * ox + r21 * oy + r22 * oz
+        row_a[r, 0] = c0 + r00 * ox + r01 * oy + r02 * oz
+        row_a[r, 1] = c1 + r10 * ox + r11 * oy + r12 * oz
+        row_a[r, 2] = c2 + r20 * ox + r21 * oy + r22 * oz
+    for r in range(row_head.shape[0]):
+        ox = row_head[r, 0]
+        oy = row_head[r, 1]
+        a0 = row_a[r, 0]
+        a1 = row_a[r, 1]
+        a2 = row_a[r, 2]
         wox = w * ox
         woy = w * oy
         n = row_off[r, 1]
@@ -640,6 +654,7 @@ def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_
             if lab != run_lab:
                 if run_n > 0:
                     contact[run_lab] += run_n
+                    n_imm += run_n
                 run_lab = lab
                 run_n = 0
                 w = stiff[lab]
@@ -648,18 +663,18 @@ def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_
                 if contact[lab] == 0:
                     onset_body[lab] = bodf[v]
             run_n += 1
-            n_imm += 1
             wsum += w
-            uq = us + np.uint64(q)
-            wr = w * np.float64(samples[uq, 3])
+            uq = (us + np.uint64(q)) * np.uint64(_PACKED)
+            wr = w * np.float64(smp[uq + np.uint64(3)])
             sux += wr * ox
             suy += wr * oy
-            suz += wr * np.float64(samples[uq, 2])
+            suz += wr * np.float64(smp[uq + np.uint64(2)])
             stx += woy
             sty -= wox
         s += n
     if run_n > 0:
         contact[run_lab] += run_n
+        n_imm += run_n
     return sux, suy, suz, stx, sty, wsum, n_imm
 
 
@@ -672,7 +687,7 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
                   R, lbrick, contact, prev_contact, lost, lab_body, onset_body,
                   dose, thr, occ, queued, rep, queue, qhead, counts,
                   ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, ev_head,
-                  tch_ijk, tch_head, out, lbkey):
+                  tch_ijk, tch_head, out, lbkey, row_a):
     """One haptic pass of the fixed-budget step (see the module notes).
 
     Parameters as :func:`bonesim.engine.haptics.haptic_kernel`, except:
@@ -709,6 +724,13 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
         The :class:`BudgetState` arrays (modified).
     counts : (2,) int64
         Scratch.
+    lbrick : (nb, nb, nb) int32
+        The brick table (as the per-voxel kernel's), kept from pass to pass.
+    lbkey : (5,) int64
+        What ``lbrick`` holds: its first brick, whether it is filled, how
+        many of its entries are bricks (zeros: not filled).
+    row_a : (>= n_rows, 3) float64
+        Scratch: each lattice row's first voxel coordinates.
 
     The pass also flushes the queue when ``last`` (once per step).
     """
@@ -731,7 +753,7 @@ def budget_kernel(keys, vals, bricks, density, label, body, touched_flag, origin
     if any_brick and gsel != -2:              # -2: a pass that only flushes
         sux, suy, suz, stx, sty, wsum, n_imm = _sample_rows(
             lbrick, density, label, body, group, gsel, stiff, samples, row_head, row_off,
-            contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2)
+            contact, onset_body, pos, origin, spacing, R, h, lo0, lo1, lo2, row_a)
     # force: the per-voxel kernel's law
     mag = force_law(params, R, sux, suy, suz, stx, sty, wsum, n_imm, drill, direction,
                     speed_factor, out)

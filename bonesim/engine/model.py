@@ -421,6 +421,7 @@ class State:
     #: the fixed-budget step's brick table and what it was filled for
     _blbrick: np.ndarray = None
     _blkey: np.ndarray = None
+    _brow: np.ndarray = None
     #: the budget kernel's arguments that stay from step to step (model.py:_budget_args)
     _bargs: tuple | None = None
 
@@ -444,6 +445,10 @@ class State:
                     # pass (haptics_budget._brick_table); invalid until filled
                     self._blbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
                     self._blkey = np.zeros(5, dtype=np.int64)
+        if model.budget.binding:
+            n_rows = max(st.row_head.shape[0] for st in model.stencils)
+            if self._brow is None or self._brow.shape[0] < n_rows:
+                self._brow = np.zeros((n_rows, 3))
 
     @property
     def n_removed(self) -> int:
@@ -718,7 +723,7 @@ def _budget_args(model, state, bi) -> tuple:
             bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
             ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
             ev["value"], state.tissue.head,
-            tch["ijk"], state.touched.head, state.out, state._blkey)
+            tch["ijk"], state.touched.head, state.out, state._blkey, state._brow)
     return model, bi, head, state._group, tail
 
 

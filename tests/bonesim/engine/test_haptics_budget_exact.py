@@ -26,10 +26,11 @@ from tests.bonesim.engine.haptics_budget_previous import previous_budget_kernel 
 
 
 def previous_budget_kernel(*args):
-    """The frozen kernel in the new kernel's place: the new kernel takes the
-    state's record of its brick table last (``lbkey``), which the frozen one
-    does not keep (it fills its table on every pass)."""
-    _frozen(*args[:-1])
+    """The frozen kernel in the new kernel's place: the new kernel takes two
+    scratch arrays last, the record of its brick table (``lbkey``: the frozen
+    kernel fills its table on every pass) and the rows' first voxel
+    coordinates (``row_a``)."""
+    _frozen(*args[:-2])
 from tests.bonesim.fakes import BONE, MATERIALS, NERVE, FakeBurr
 
 #: Voxel layers ``k < _TOP`` hold the random blocks' bone.
