@@ -32,8 +32,9 @@ from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, vox
 from bonesim.engine.haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
                                     P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                                     P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
-from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_kernel, lattice_spacing,
-                                           make_budget, make_budget_state, reset_budget_state)
+from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_step, lattice_spacing,
+                                           make_budget, make_budget_state, make_step_args,
+                                           reset_budget_state)
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 from bonesim.engine.rigid import gravity_direction
 from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
@@ -422,7 +423,8 @@ class State:
     _blbrick: np.ndarray = None
     _blkey: np.ndarray = None
     _brow: np.ndarray = None
-    #: the budget kernel's arguments that stay from step to step (model.py:_budget_args)
+    #: (model, burr, StepArgs): the budget kernel's arguments that stay from
+    #: step to step (:func:`budget_arrays`)
     _bargs: tuple | None = None
 
     def fit_scratch(self, model: Model) -> None:
@@ -667,10 +669,10 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
         # the fixed-budget step (bone finer than the finest sample lattice)
         a = state._bargs
         if a is None or a[0] is not model or a[1] != bi:
-            a = state._bargs = _budget_args(model, state, bi)
+            a = state._bargs = (model, bi, make_step_args(*budget_arrays(model, state, bi)))
         owner = 0 if gsel < 0 else int(state._pass_body[gsel])
-        budget_kernel(*a[2], pos, ax, drill, direction, speed_factor, dt, t,
-                      a[3], gsel, owner, first, last, *a[4])
+        budget_step(a[2], pos, ax, drill, direction, speed_factor, dt, t, gsel, owner, first,
+                    last)
         return
     g = state.grid
     ev, tch = state.tissue.fields, state.touched.fields
@@ -703,11 +705,14 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
                   tch["ijk"], state.touched.head, state.out)
 
 
-def _budget_args(model, state, bi) -> tuple:
-    """``(model, bi, head, group, tail)``: the arguments of
-    :func:`~bonesim.engine.haptics_budget.budget_kernel` that stay the same
-    from step to step (the state's arrays, the model's tables for burr
-    ``bi``), kept in ``state._bargs`` (cleared by :meth:`State.fit_scratch`)."""
+def budget_arrays(model, state, bi) -> tuple:
+    """The arguments of :func:`~bonesim.engine.haptics_budget.budget_kernel`
+    that stay the same from step to step (the state's arrays, the model's
+    tables for burr ``bi``), in the order of
+    :data:`~bonesim.engine.haptics_budget.STEP_FIELDS`. The step keeps them
+    in one :class:`~bonesim.engine.haptics_budget.StepArgs`
+    (``state._bargs``, built again for another model or burr and cleared by
+    :meth:`State.fit_scratch`)."""
     g = state.grid
     ev, tch = state.tissue.fields, state.touched.fields
     st = model.stencils[bi]
@@ -724,7 +729,7 @@ def _budget_args(model, state, bi) -> tuple:
             ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
             ev["value"], state.tissue.head,
             tch["ijk"], state.touched.head, state.out, state._blkey, state._brow)
-    return model, bi, head, state._group, tail
+    return head + (state._group,) + tail
 
 
 def _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor, dt,
