@@ -113,6 +113,7 @@ from numba.experimental import structref
 
 from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
+from bonesim.engine.events import N_VALUE as _N_VALUE
 from bonesim.engine.events import REMOVED as _EV_REMOVED
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.haptics import (P_RADIUS, O_N_REMOVED, O_N_TOUCHED,
@@ -380,6 +381,9 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
     # (unsigned: no negative-index wrapping)
     ub = np.uint64(b)
     base = np.uint64(voxel_offset(i0, j0, k0))
+    eh = ev_head[0]
+    emask = ev_kind.shape[0] - 1
+    evf = ev_value.reshape(ev_value.size)      # (capacity * N_VALUE,): rows of N_VALUE
     for x in range(cell):
         i = i0 + x
         bx = base + np.uint64(x << 6)
@@ -404,9 +408,20 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
                     density[ub, off] = 0.0
                     lost[lab] += 1
                     lab_body[lab] = bod
-                    push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value,
-                                      ev_head, _EV_REMOVED, bod, lab, t, i, j, k0 + z, 0,
-                                      0.0, 0.0, 0.0)
+                    # push_event_kernel's record, the head kept in hand
+                    h = np.uint64(eh & emask)
+                    ev_kind[h] = _EV_REMOVED
+                    ev_body[h] = bod
+                    ev_label[h] = lab
+                    ev_t[h] = t
+                    ev_ijk[h, 0] = i
+                    ev_ijk[h, 1] = j
+                    ev_ijk[h, 2] = k0 + z
+                    ev_n[h] = 0
+                    hv = h * np.uint64(_N_VALUE)
+                    for v in range(_N_VALUE):
+                        evf[hv + np.uint64(v)] = 0.0
+                    eh += 1
                     n_rem += 1
                 else:
                     df = np.float32(nd)
@@ -420,6 +435,7 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
                         tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k0 + z
                         tch_head[0] += 1
                         n_tch += 1
+    ev_head[0] = eh                              # the head moves last
     counts[0] += n_rem
     counts[1] += n_tch
     occ[b, cq] = n_occ
