@@ -384,6 +384,8 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
     eh = ev_head[0]
     emask = ev_kind.shape[0] - 1
     evf = ev_value.reshape(ev_value.size)      # (capacity * N_VALUE,): rows of N_VALUE
+    run_lab = 0
+    run_n = 0
     for x in range(cell):
         i = i0 + x
         bx = base + np.uint64(x << 6)
@@ -406,7 +408,14 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
                 nd = d - amount * m
                 if nd <= 0.0:
                     density[ub, off] = 0.0
-                    lost[lab] += 1
+                    # ``lost`` counted by runs of one label (no chain through
+                    # memory from one removal to the next)
+                    if lab != run_lab:
+                        if run_n > 0:
+                            lost[run_lab] += run_n
+                        run_lab = lab
+                        run_n = 0
+                    run_n += 1
                     lab_body[lab] = bod
                     # push_event_kernel's record, the head kept in hand
                     h = np.uint64(eh & emask)
@@ -435,6 +444,8 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
                         tch_ijk[h, 0], tch_ijk[h, 1], tch_ijk[h, 2] = i, j, k0 + z
                         tch_head[0] += 1
                         n_tch += 1
+    if run_n > 0:
+        lost[run_lab] += run_n
     ev_head[0] = eh                              # the head moves last
     counts[0] += n_rem
     counts[1] += n_tch
