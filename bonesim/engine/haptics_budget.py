@@ -519,15 +519,18 @@ def _dose_cells(pos, axis, radius, origin, spacing, scale, lat, lo0, lo1, lo2, l
             rz = np.sqrt(rz2)
             ck_lo = int(np.ceil((pos[2] - rz - origin[2] - half) / cw))
             ck_hi = int(np.floor((pos[2] + rz - origin[2] - half) / cw))
-            for ck in range(ck_lo, ck_hi + 1):
+            # the cells of the column in the table: brick ``(ck << cs) >> 3`` in
+            # ``b2 .. b2 + nbk - 1`` (a cell lies in one brick)
+            ck_a = max(ck_lo, (b2 << BRICK_SHIFT) >> cs)
+            ck_b = min(ck_hi, (((b2 + nbk) << BRICK_SHIFT) >> cs) - 1)
+            cq_ij = ((((i0 & 7) >> cs) * n) + ((j0 & 7) >> cs)) * n
+            for ck in range(ck_a, ck_b + 1):
                 k0 = ck << cs
                 bz = (k0 >> BRICK_SHIFT) - b2
-                if bz < 0 or bz >= nbk:
-                    continue
                 b = lbrick[np.uint64(bx), np.uint64(by), np.uint64(bz)]
                 if b < 0:
                     continue
-                cq = ((((i0 & 7) >> cs) * n) + ((j0 & 7) >> cs)) * n + ((k0 & 7) >> cs)
+                cq = cq_ij + ((k0 & 7) >> cs)
                 # (unsigned: no negative-index wrapping)
                 f = np.uint64(b * cpb + cq)
                 if occ_f[f] <= 0:
