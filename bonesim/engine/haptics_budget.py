@@ -365,10 +365,12 @@ def _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, rem
     amount = dose[b, cq]
     dose[b, cq] = 0.0
     owner = rep[b, cq]
-    n = BRICK >> cs
-    ci = cq // (n * n)
-    cj = (cq // n) % n
-    ck = cq % n
+    # the cell's place in its brick: ``cq = (ci n + cj) n + ck``, ``n = 8 >> cs``
+    # a power of two (shifts, not divisions; ``cq >= 0``)
+    ns = BRICK_SHIFT - cs
+    ci = cq >> (2 * ns)
+    cj = (cq >> ns) & ((1 << ns) - 1)
+    ck = cq & ((1 << ns) - 1)
     i0 = bricks[b, 0] * BRICK + (ci << cs)
     j0 = bricks[b, 1] * BRICK + (cj << cs)
     k0 = bricks[b, 2] * BRICK + (ck << cs)
@@ -461,14 +463,15 @@ def flush_kernel(budget_vox, cell, cs, bricks, density, label, body, touched_fla
     """Flush queued cells in order until ``budget_vox`` voxels were visited
     (the cell in hand is finished); ``counts[0:2]`` += removed, touched."""
     cpb = dose.shape[1]
+    cps = 3 * (BRICK_SHIFT - cs)              # cpb = (8 >> cs)^3 = 1 << cps
     cap = queue.shape[0]
     c3 = cell * cell * cell
     visited = 0
     while qhead[0] < qhead[1] and visited < budget_vox:
         q = queue[qhead[0] % cap]
         qhead[0] += 1
-        b = q // cpb
-        cq = q % cpb
+        b = q >> cps                  # q // cpb, q % cpb (cpb a power of two, q >= 0)
+        cq = q & (cpb - 1)
         queued[b, cq] = 0
         visited += c3
         _flush_cell(b, cq, cell, cs, bricks, density, label, body, touched_flag, removal,
