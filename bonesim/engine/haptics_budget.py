@@ -91,16 +91,24 @@ place in it from its coordinate in the block (``(x + (lo & 7)) >> 3`` and
 ``& 7``, the same integers as ``(lo + x) >> 3 - lo >> 3``); the brick table
 is kept from pass to pass and moved with the burr (the grid's brick hash
 never changes, so the table is a function of the block's first brick); the
-dosing indexes the carried cell arrays through flat views.
+rows' first voxel coordinates are computed before the sample loop and its
+immersed samples counted by label runs (its sums stay in registers); the
+dosing clips a column to the table once and indexes the carried cell arrays
+through flat views; the flush finds a cell by shifts, writes a removal's
+record in place with the ring head in hand (the head moves last) and counts
+the voxels lost by label runs; and the step calls the kernel with one
+:class:`StepArgs` of its step-invariant arguments (built once per state,
+model and burr) instead of 60 arguments.
 Every sum still adds the same terms in sample order.
 
 Where a step's time goes (the phantom's demo path, 5 mm burr, 0.1 mm
-voxels, the slowest 2 % of steps, about 60 us): the samples about 23 us
-(4,224 of them, near 1,850 immersed), the dosing about 11 us (about 1,000
-cells), the flush about 15 us (its full budget of 1,728 voxels, about 1,250
-removed: some 9 us of it is writing their tissue-event records), the
-Python call about 10 us (as for the per-voxel step). The flush is bounded
-by the removal budget, the rest by the burr.
+voxels, the slowest 2 % of steps, about 55 us): the samples about 23 us
+(4,224 of them, near 1,800 immersed), the dosing about 11 us (about 1,000
+cells, each a square root and a division for its latitude), the flush about
+14 us (its full budget of 1,728 voxels, about 1,250 removed: some 8 us of
+it is writing their tissue-event records, ten stores each), the Python
+step around the kernel about 4 us. The flush is bounded by the removal
+budget, the rest by the burr.
 """
 from __future__ import annotations
 
