@@ -32,8 +32,9 @@ from bonesim.engine.grid import BRICK_SHIFT, BRICK_VOXELS, Grid, find_brick, vox
 from bonesim.engine.haptics import (N_OUT, N_PARAMS, O_FX, O_FZ, O_MAG, O_TX, O_TZ, P_H3,
                                     P_INV_VOXEL_VOL, P_K_HIGH, P_K_LOW, P_K_TAN, P_MAX_FORCE, P_RADIUS,
                                     P_V_T, Stencil, block_size, haptic_kernel, make_stencil)
-from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_kernel, lattice_spacing,
-                                           make_budget, make_budget_state, reset_budget_state)
+from bonesim.engine.haptics_budget import (Budget, BudgetState, budget_step, lattice_spacing,
+                                           make_budget, make_budget_state, make_step_args,
+                                           reset_budget_state)
 from bonesim.engine.haptics_rows import ROWS_MIN_OVERSAMPLE, haptic_rows_kernel
 from bonesim.engine.rigid import gravity_direction
 from bonesim.engine.rigid_set import RIGID_SLOTS, RigidSet
@@ -418,9 +419,17 @@ class State:
     _budget: BudgetState | None = None
     _onset_body: np.ndarray = None
     _counts: np.ndarray = field(default_factory=lambda: np.zeros(2, np.int64))
+    #: the fixed-budget step's brick table and what it was filled for
+    _blbrick: np.ndarray = None
+    _blkey: np.ndarray = None
+    _brow: np.ndarray = None
+    #: (model, burr, StepArgs): the budget kernel's arguments that stay from
+    #: step to step (:func:`budget_arrays`)
+    _bargs: tuple | None = None
 
     def fit_scratch(self, model: Model) -> None:
         """Size the kernel's scratch for the largest burr of the model's table."""
+        self._bargs = None
         for burr in model.burrs:
             n_vox, n_brick = block_size(burr.radius_mm, model.spacing_mm)
             if n_vox > self._n_vox:
@@ -433,6 +442,15 @@ class State:
                 self._llab = np.zeros(n3, dtype=np.uint8)
                 self._acc = np.zeros(n3)
                 self._dirty = np.zeros(n3 + 1, dtype=np.int32)
+                if model.budget.binding:
+                    # the budget step's own brick table, kept from pass to
+                    # pass (haptics_budget._brick_table); invalid until filled
+                    self._blbrick = np.zeros((n_brick, n_brick, n_brick), dtype=np.int32)
+                    self._blkey = np.zeros(5, dtype=np.int64)
+        if model.budget.binding:
+            n_rows = max(st.row_head.shape[0] for st in model.stencils)
+            if self._brow is None or self._brow.shape[0] < n_rows:
+                self._brow = np.zeros((n_rows, 3))
 
     @property
     def n_removed(self) -> int:
@@ -647,28 +665,18 @@ def _step_bodies(model, state, bi, pos, ax, drill, direction, speed_factor, dt, 
 
 def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gsel,
             first, last) -> None:
+    if model.budget.binding:
+        # the fixed-budget step (bone finer than the finest sample lattice)
+        a = state._bargs
+        if a is None or a[0] is not model or a[1] != bi:
+            a = state._bargs = (model, bi, make_step_args(*budget_arrays(model, state, bi)))
+        owner = 0 if gsel < 0 else int(state._pass_body[gsel])
+        budget_step(a[2], pos, ax, drill, direction, speed_factor, dt, t, gsel, owner, first,
+                    last)
+        return
     g = state.grid
     ev, tch = state.tissue.fields, state.touched.fields
     st = model.stencils[bi]
-    if model.budget.binding:
-        # the fixed-budget step (bone finer than the finest sample lattice)
-        bud, bs = model.budget, state._budget
-        owner = 0 if gsel < 0 else int(state._pass_body[gsel])
-        budget_kernel(
-            g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
-            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
-            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
-            bud.lat[bi], bud.removal_voxels[bi],
-            bud.cell, bud.cell.bit_length() - 1,
-            pos, ax, drill, direction, speed_factor, dt, t,
-            state._group, gsel, owner, first, last, state._pos, state.pose_m,
-            state._R, state._lbrick, state._contact, state._prev_contact, state._lost,
-            state._lab_body, state._onset_body,
-            bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
-            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
-            ev["value"], state.tissue.head,
-            tch["ijk"], state.touched.head, state.out)
-        return
     if model.oversample >= ROWS_MIN_OVERSAMPLE:
         # fine sampling: one lookup per voxel a row of samples crosses
         haptic_rows_kernel(
@@ -695,6 +703,33 @@ def _kernel(model, state, bi, pos, ax, drill, direction, speed_factor, dt, t, gs
                   ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
                   ev["value"], state.tissue.head,
                   tch["ijk"], state.touched.head, state.out)
+
+
+def budget_arrays(model, state, bi) -> tuple:
+    """The arguments of :func:`~bonesim.engine.haptics_budget.budget_kernel`
+    that stay the same from step to step (the state's arrays, the model's
+    tables for burr ``bi``), in the order of
+    :data:`~bonesim.engine.haptics_budget.STEP_FIELDS`. The step keeps them
+    in one :class:`~bonesim.engine.haptics_budget.StepArgs`
+    (``state._bargs``, built again for another model or burr and cleared by
+    :meth:`State.fit_scratch`)."""
+    g = state.grid
+    ev, tch = state.tissue.fields, state.touched.fields
+    st = model.stencils[bi]
+    bud, bs = model.budget, state._budget
+    head = (g.keys, g.vals, g.bricks, g.density, g.label, state.body, state.touched_flag,
+            g.origin_mm, g.spacing_mm, model.stiff, model.removal, model.injury,
+            st.packed, st.row_head, st.row_off, st.spacing_mm, model.burr_params[bi],
+            bud.lat[bi], bud.removal_voxels[bi],
+            bud.cell, bud.cell.bit_length() - 1)
+    tail = (state._pos, state.pose_m,
+            state._R, state._blbrick, state._contact, state._prev_contact, state._lost,
+            state._lab_body, state._onset_body,
+            bs.dose, bs.thr, bs.occ, bs.queued, bs.rep, bs.queue, bs.qhead, state._counts,
+            ev["kind"], ev["body"], ev["label"], ev["t_s"], ev["ijk"], ev["n"],
+            ev["value"], state.tissue.head,
+            tch["ijk"], state.touched.head, state.out, state._blkey, state._brow)
+    return head + (state._group,) + tail
 
 
 def _step_passes(model, state, bi, n_pass, pos, ax, drill, direction, speed_factor, dt,

@@ -55,6 +55,38 @@ def test_budget_binds_only_below_the_finest_lattice():
     assert len(set(n.values())) == 1
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=hs.integers(0, 2**31 - 1), radius=hs.sampled_from([0.6, 1.5, 2.5]),
+       moves=hs.lists(hs.sampled_from(["same", "small", "brick", "bricks", "far"]),
+                      min_size=1, max_size=25))
+def test_brick_table_kept_between_passes_is_the_table_filled_afresh(seed, radius, moves):
+    """The budget step's brick table, moved with the burr from pass to pass,
+    against :func:`bonesim.engine.haptics.block_bricks` filled afresh."""
+    from bonesim.engine.grid import BRICK, Grid
+    from bonesim.engine.haptics import block_bricks, block_size
+    from bonesim.engine.haptics_budget import _brick_table
+
+    rng = np.random.default_rng(seed)
+    labels = (rng.random((70, 60, 50)) < 0.3).astype(np.uint8)
+    labels[rng.random(labels.shape) < 0.5] = 0        # brick-sized holes come and go
+    labels[:, :, 30:] = 0                               # whole bricks absent
+    v = 0.1
+    g = Grid.from_dense(labels, spacing_mm=v, origin_mm=(-1.0, 2.0, 0.5))
+    nb = block_size(radius, v)[1]
+    kept = np.zeros((nb, nb, nb), np.int32)
+    key = np.zeros(5, np.int64)
+    fresh = np.zeros_like(kept)
+    pos = g.origin_mm + v * np.array([35.0, 30.0, 25.0])
+    step_mm = {"same": 0.01, "small": 0.2, "brick": BRICK * v, "bricks": 3 * BRICK * v,
+               "far": 30.0}
+    for mv in moves:
+        pos = pos + rng.choice([-1.0, 0.0, 1.0], 3) * step_mm[mv] * rng.random(3)
+        got = _brick_table(g.keys, g.vals, pos, radius, g.origin_mm, v, kept, key)
+        want = block_bricks(g.keys, g.vals, pos, radius, g.origin_mm, v, fresh)
+        assert got == want
+        np.testing.assert_array_equal(kept, fresh)
+
+
 def test_lat_table_matches_the_removal_law():
     t = lat_table(4.0, 2.0)
     u = np.linspace(0, 1, 1001)

@@ -3,9 +3,10 @@ were made with.
 
 :mod:`tests.bonesim.engine.haptics_budget_previous` holds the budget kernel
 as it was before its speed-up; every test here steps two states of one
-model, one with :func:`bonesim.engine.haptics_budget.budget_kernel` and one
-with the frozen copy (swapped in where :func:`bonesim.engine.model.step`
-calls it), and compares every array the step writes (force, outputs, event
+model, one with :func:`bonesim.engine.haptics_budget.budget_step` (the kernel
+with the arguments the state keeps) and one with the frozen copy of the
+kernel (swapped in where :func:`bonesim.engine.model.step` calls the
+step), and compares every array the step writes (force, outputs, event
 rings, the carried doses, thresholds, counts and queue, touched flags,
 densities) as bytes after every step.
 """
@@ -20,10 +21,29 @@ from hypothesis import strategies as hs
 
 from bonesim.engine import model as model_mod
 from bonesim.engine.bodies import publish_pose, publish_split
+from bonesim.engine.haptics_budget import STEP_FIELDS
 from bonesim.engine.model import Sample, make_model, make_state, step
 
-from tests.bonesim.engine.haptics_budget_previous import previous_budget_kernel
+from tests.bonesim.engine.haptics_budget_previous import previous_budget_kernel as _frozen
 from tests.bonesim.fakes import BONE, MATERIALS, NERVE, FakeBurr
+
+
+def previous_budget_step(m, state):
+    """The frozen kernel in :func:`bonesim.engine.haptics_budget.budget_step`'s
+    place for ``state``'s passes (burr 0): its arguments taken afresh from
+    the state and the model (not through the step's kept
+    :class:`~bonesim.engine.haptics_budget.StepArgs`), without the new
+    kernel's last two scratch arrays (``lbkey``, the record of its brick
+    table: the frozen kernel fills its table on every pass; ``row_a``)."""
+    g = STEP_FIELDS.index("group")
+
+    def step_(a, pos, axis, drill, direction, speed_factor, dt, t, gsel, owner, first, last):
+        f = model_mod.budget_arrays(m, state, 0)
+        assert STEP_FIELDS[-2:] == ("lbkey", "row_a") and len(f) == len(STEP_FIELDS)
+        _frozen(*f[:g], pos, axis, drill, direction, speed_factor, dt, t, f[g], gsel, owner,
+                first, last, *f[g + 1:-2])
+    return step_
+
 
 #: Voxel layers ``k < _TOP`` hold the random blocks' bone.
 _TOP = 24
@@ -102,7 +122,7 @@ def _run_both(m, prepare, samples, monkeypatch):
     for q, smp in enumerate(samples):
         step(m, new, smp)
         with monkeypatch.context() as mp:
-            mp.setattr(model_mod, "budget_kernel", previous_budget_kernel)
+            mp.setattr(model_mod, "budget_step", previous_budget_step(m, old))
             step(m, old, smp)
         _assert_same(new, old, q)
         immersed += new.out[8]
