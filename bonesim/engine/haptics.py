@@ -407,6 +407,22 @@ def push_event_kernel(ev_kind, ev_body, ev_label, ev_t, ev_ijk, ev_n, ev_value, 
 
 # The start and end of a pass, shared by the per-sample kernel below and the
 # row kernel (bonesim.engine.haptics_rows).
+@njit(cache=True, nogil=True, inline="always")
+def local_frame(pos, origin, spacing, R, lo0, lo1, lo2):
+    """The tool centre ``pos`` [mm] in local block voxel coordinates (the
+    block's first voxel ``lo0..lo2``), shifted by +1/2 so that truncation
+    toward zero rounds to the nearest voxel, and the rotation ``R`` (3, 3)
+    over ``spacing`` [mm]: ``(c0, c1, c2, r00, ..., r22)``, the arithmetic
+    every per-step kernel does in this order."""
+    inv = 1.0 / spacing
+    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
+    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
+    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
+    return (c0, c1, c2, R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv,
+            R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv,
+            R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv)
+
+
 @njit(cache=True, nogil=True)
 def begin_pass(keys, vals, density, label, body, origin, spacing, params, pos, axis, group,
            gsel, first, last, R, n_vox, lbrick, ldens, llab, contact, prev_contact, lost,
@@ -704,15 +720,8 @@ def haptic_kernel(keys, vals, density, label, body, touched_flag, origin, spacin
     stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
-    inv = 1.0 / spacing
-    # tool centre in local block coordinates, shifted by +1/2 so that
-    # truncation toward zero rounds to the nearest voxel (all values > 0)
-    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
-    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
-    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
-    r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
-    r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
-    r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
+    (c0, c1, c2, r00, r01, r02, r10, r11, r12, r20, r21, r22) = local_frame(
+        pos, origin, spacing, R, lo0, lo1, lo2)
     # the samples row by row (consecutive samples with one (o_x, o_y), see
     # Stencil): the part of a sample's voxel coordinate that is the same along
     # its row, ``(c + r o_x) + r o_y``, is computed once per row (the same

@@ -124,7 +124,7 @@ from bonesim.engine.events import CONTACT as _EV_CONTACT
 from bonesim.engine.events import INJURY as _EV_INJURY
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick
 from bonesim.engine.haptics import (P_RADIUS, O_N_REMOVED, O_N_TOUCHED,
-                                    force_law, push_event_kernel, tool_frame)
+                                    force_law, local_frame, push_event_kernel, tool_frame)
 from bonesim.engine.haptics_budget_flush import flush_cell, flush_kernel
 
 __all__ = ["LAT_TABLE", "BudgetSettings", "load_budget_settings", "Budget", "make_budget",
@@ -492,13 +492,8 @@ def _sample_rows(lbrick, density, label, body, group, gsel, stiff, samples, row_
     stx = sty = 0.0
     wsum = 0.0
     n_imm = 0
-    inv = 1.0 / spacing
-    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
-    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
-    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
-    r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
-    r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
-    r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
+    (c0, c1, c2, r00, r01, r02, r10, r11, r12, r20, r21, r22) = local_frame(
+        pos, origin, spacing, R, lo0, lo1, lo2)
     # the lattice's rows along the tool axis: a row's samples sit
     # h apart, so each voxel coordinate is the row's first plus k steps
     d0, d1, d2 = r02 * h, r12 * h, r22 * h

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from bonesim.engine.haptics import begin_pass, finish_pass
+from bonesim.engine.haptics import begin_pass, finish_pass, local_frame
 
 __all__ = ["ROWS_MIN_OVERSAMPLE", "haptic_rows_kernel"]
 
@@ -120,13 +120,8 @@ def haptic_rows_kernel(keys, vals, density, label, body, touched_flag, origin, s
     wsum = 0.0
     n_imm = 0
     n_dirty = 0
-    inv = 1.0 / spacing
-    c0 = (pos[0] - origin[0]) * inv + 0.5 - lo0
-    c1 = (pos[1] - origin[1]) * inv + 0.5 - lo1
-    c2 = (pos[2] - origin[2]) * inv + 0.5 - lo2
-    r00, r01, r02 = R[0, 0] * inv, R[0, 1] * inv, R[0, 2] * inv
-    r10, r11, r12 = R[1, 0] * inv, R[1, 1] * inv, R[1, 2] * inv
-    r20, r21, r22 = R[2, 0] * inv, R[2, 1] * inv, R[2, 2] * inv
+    (c0, c1, c2, r00, r01, r02, r10, r11, r12, r20, r21, r22) = local_frame(
+        pos, origin, spacing, R, lo0, lo1, lo2)
     # one sample's step along a row, local voxel units, and its inverse
     d0, d1, d2 = r02 * h, r12 * h, r22 * h
     id0 = 1.0 / d0 if d0 != 0.0 else 0.0
