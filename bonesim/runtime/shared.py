@@ -133,6 +133,9 @@ class SharedArrays:
         self._shm = shm
         self._layout = layout
         self.owner = owner
+        #: the process that started this one when it attached (the block's
+        #: owner, for a child process)
+        self._parent = os.getppid()
         self.arrays = {name: np.ndarray(shape, dtype=dt, buffer=shm.buf, offset=off)
                        for name, shape, dt, off in layout}
 
@@ -189,7 +192,11 @@ class SharedArrays:
                 pass
         else:
             pid = owner_pid(self._shm.name)
-            if pid is not None and not pid_alive(pid):
+            # the owner is gone, or it was the parent that started us and we
+            # have been handed to another (the kernel does that as the parent
+            # dies, before any state of its own says so)
+            orphaned = pid == self._parent and os.getppid() != pid
+            if pid is not None and (orphaned or not pid_alive(pid)):
                 try:
                     self._shm.unlink()
                 except FileNotFoundError:
