@@ -30,7 +30,14 @@ cheaply into the haptic, monitor and recorder processes):
   ``2n + 2``; at most :data:`LEAF_SIZE` voxels per leaf), each node with the
   index bounds of its voxels. A branch-and-bound search, with the node's
   bounds widened by half a voxel as the lower bound, returns the exact
-  nearest box; structures are searched nearest first and share the bound;
+  nearest box; structures are searched nearest first and share the bound. Points come
+  in batches along paths (the planner's segments and floors, a run's
+  samples), so each search starts from a bound: the previous point's
+  distance plus the step between them (distance is 1-Lipschitz), widened by
+  :data:`_BOUND_RTOL` and :data:`_BOUND_ATOL` past rounding. The nearest box
+  lies within it, so the search returns the same box and the same bits as a
+  search from infinity, only pruning sooner (a search that finds nothing
+  under the bound, which the bound rules out, is run again from infinity);
 * the structures' voxels as **runs along z**, column ``(i, j)`` by column:
   whether a point lies inside one (distance 0).
 
@@ -57,6 +64,10 @@ MAX_LABEL = 255
 _MAX_AXIS = np.iinfo(np.int16).max
 #: Depth of the search stack (two entries per tree level; 2**60 leaves).
 _STACK = 128
+#: Relative and absolute widening of a search's starting bound [mm]: far
+#: above the rounding of a distance of a few hundred mm in float64.
+_BOUND_RTOL = 1e-9
+_BOUND_ATOL = 1e-9
 # Columns of a node row: voxel index bounds lo (3), hi (3), first and end
 # (exclusive) surface voxel of its range.
 _N_LO, _N_HI, _N_START, _N_END = 0, 3, 6, 7
@@ -192,6 +203,56 @@ def _node_lb2(node, g, px, py, pz, geom):
 
 
 @njit(cache=True, nogil=True)
+def _nearest2(order_s, order_lb, nt, trees, node, ijk, geom, px, py, pz, stack, stack_lb,
+              best):
+    """Squared distance [mm^2] from a point to the nearest voxel box of the
+    structures ``order_s[:nt]`` (their roots' bounds ``order_lb``, nearest
+    first) if it is below ``best``; else ``best``."""
+    for t in range(nt):
+        if order_lb[t] >= best:
+            break
+        s = order_s[t]
+        base = trees[s, 0]
+        cnt = trees[s, 1]
+        stack[0] = 0
+        stack_lb[0] = order_lb[t]
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            n = stack[sp]
+            if stack_lb[sp] >= best:
+                continue
+            c = 2 * n + 1
+            if c >= cnt:                        # a leaf: its voxels' boxes
+                gn = base + n
+                for p in range(node[gn, _N_START], node[gn, _N_END]):
+                    d2 = 0.0
+                    for a in range(3):
+                        pa = px if a == 0 else (py if a == 1 else pz)
+                        e = abs(pa - geom[0, a] - geom[1, a] * ijk[p, a]) \
+                            - geom[2, a]
+                        if e > 0.0:
+                            d2 += e * e
+                    if d2 < best:
+                        best = d2
+            else:
+                l1 = _node_lb2(node, base + c, px, py, pz, geom)
+                l2 = _node_lb2(node, base + c + 1, px, py, pz, geom)
+                near, far, lnear, lfar = c, c + 1, l1, l2
+                if l2 < l1:
+                    near, far, lnear, lfar = c + 1, c, l2, l1
+                if lfar < best:
+                    stack[sp] = far
+                    stack_lb[sp] = lfar
+                    sp += 1
+                if lnear < best:
+                    stack[sp] = near
+                    stack_lb[sp] = lnear
+                    sp += 1
+    return best
+
+
+@njit(cache=True, nogil=True)
 def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, out):
     """Distance [mm] from each point to each group's union of voxel boxes.
 
@@ -224,12 +285,28 @@ def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, o
     order_s = np.empty(MAX_LABEL + 1, np.int64)
     order_lb = np.empty(MAX_LABEL + 1)
     n0, n1, n2 = dims[0], dims[1], dims[2]
+    # the previous finite point and its distance to each group: a bound
+    # for the next point's (see the module notes)
+    # each group's structures that have voxels
+    members = np.empty((groups.shape[0], MAX_LABEL), np.int64)
+    n_mem = np.zeros(groups.shape[0], np.int64)
+    for g in range(groups.shape[0]):
+        for s in range(1, MAX_LABEL + 1):
+            if groups[g, s] != 0 and trees[s, 1] > 0:
+                members[g, n_mem[g]] = s
+                n_mem[g] += 1
+    have_prev = False
+    prev = 0
+    qx = qy = qz = 0.0
     for q in range(pos.shape[0]):
         px, py, pz = pos[q, 0], pos[q, 1], pos[q, 2]
         if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
             for g in range(groups.shape[0]):
                 out[q, g] = math.nan
             continue
+        step = 0.0
+        if have_prev:
+            step = math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
         fi = (px - geom[0, 0]) / geom[1, 0] + 0.5
         fj = (py - geom[0, 1]) / geom[1, 1] + 0.5
         fk = (pz - geom[0, 2]) / geom[1, 2] + 0.5
@@ -250,62 +327,36 @@ def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, o
                 if inside:
                     out[q, g] = 0.0
                     continue
+            # squared bound: the previous distance plus the step, widened
+            # past rounding (distance is 1-Lipschitz); inf for the first point
+            bound = math.inf
+            if have_prev:
+                ub = (out[prev, g] + step) * (1.0 + _BOUND_RTOL) + _BOUND_ATOL
+                bound = ub * ub
             # the group's structures, nearest root first
             nt = 0
-            for s in range(1, MAX_LABEL + 1):
-                if groups[g, s] != 0 and trees[s, 1] > 0:
-                    lb = _node_lb2(node, trees[s, 0], px, py, pz, geom)
-                    t = nt
-                    while t > 0 and order_lb[t - 1] > lb:
-                        order_lb[t] = order_lb[t - 1]
-                        order_s[t] = order_s[t - 1]
-                        t -= 1
-                    order_lb[t] = lb
-                    order_s[t] = s
-                    nt += 1
-            best = math.inf
-            for t in range(nt):
-                if order_lb[t] >= best:
-                    break
-                s = order_s[t]
-                base = trees[s, 0]
-                cnt = trees[s, 1]
-                stack[0] = 0
-                stack_lb[0] = order_lb[t]
-                sp = 1
-                while sp > 0:
-                    sp -= 1
-                    n = stack[sp]
-                    if stack_lb[sp] >= best:
-                        continue
-                    c = 2 * n + 1
-                    if c >= cnt:                        # a leaf: its voxels' boxes
-                        gn = base + n
-                        for p in range(node[gn, _N_START], node[gn, _N_END]):
-                            d2 = 0.0
-                            for a in range(3):
-                                pa = px if a == 0 else (py if a == 1 else pz)
-                                e = abs(pa - geom[0, a] - geom[1, a] * ijk[p, a]) \
-                                    - geom[2, a]
-                                if e > 0.0:
-                                    d2 += e * e
-                            if d2 < best:
-                                best = d2
-                    else:
-                        l1 = _node_lb2(node, base + c, px, py, pz, geom)
-                        l2 = _node_lb2(node, base + c + 1, px, py, pz, geom)
-                        near, far, lnear, lfar = c, c + 1, l1, l2
-                        if l2 < l1:
-                            near, far, lnear, lfar = c + 1, c, l2, l1
-                        if lfar < best:
-                            stack[sp] = far
-                            stack_lb[sp] = lfar
-                            sp += 1
-                        if lnear < best:
-                            stack[sp] = near
-                            stack_lb[sp] = lnear
-                            sp += 1
+            for m in range(n_mem[g]):
+                s = members[g, m]
+                lb = _node_lb2(node, trees[s, 0], px, py, pz, geom)
+                t = nt
+                while t > 0 and order_lb[t - 1] > lb:
+                    order_lb[t] = order_lb[t - 1]
+                    order_s[t] = order_s[t - 1]
+                    t -= 1
+                order_lb[t] = lb
+                order_s[t] = s
+                nt += 1
+            best = _nearest2(order_s, order_lb, nt, trees, node, ijk, geom, px, py, pz,
+                             stack, stack_lb, bound)
+            if bound < math.inf and not best < bound:
+                # nothing nearer than the bound: search afresh (never
+                # taken while the bound holds)
+                best = _nearest2(order_s, order_lb, nt, trees, node, ijk, geom, px, py, pz,
+                                 stack, stack_lb, math.inf)
             out[q, g] = math.sqrt(best)
+        have_prev = True
+        prev = q
+        qx, qy, qz = px, py, pz
 
 
 # ------------------------------------------------------------------- public

@@ -242,3 +242,31 @@ def test_from_native_and_bad_input():
         cl.distance([0, 0, 0], [3])
     with pytest.raises(ValueError, match="groups mask"):
         cl.distances([0, 0, 0], np.ones((1, 3), np.uint8))
+
+
+# ------------------------------------------------------ the starting bound
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), step=st.sampled_from([0.0, 0.05, 0.7, 9.0]))
+def test_a_batch_answers_each_point_as_if_asked_alone(seed, step):
+    """Each search starts from the previous point's distance plus the step
+    (the batch order matters for speed only): a path of points, with
+    jumps, repeats, non-finite points and points inside, gives the bits of
+    the same points asked one at a time (every search from infinity)."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(5, 16, 3))
+    spacing = rng.uniform(0.2, 1.0, 3)
+    origin = rng.uniform(-5, 5, 3)
+    lab = random_map(rng, shape, 3)
+    cl = Clearance(lab, spacing, origin, [1, 2, 3])
+    walk = points_around(rng, shape, spacing, origin, 40)[:1] + np.cumsum(
+        rng.normal(0.0, step + 1e-3, (60, 3)), axis=0)
+    pts = np.concatenate([walk, points_around(rng, shape, spacing, origin, 40), walk[::-1]])
+    pts[rng.integers(0, len(pts), 3)] = np.nan
+    groups = [[1], [2, 3], [1, 2, 3]]
+    got = cl.distances(pts, groups)
+    alone = np.array([cl.distances(p, groups)[0] for p in pts])
+    np.testing.assert_array_equal(got, alone)
+    finite = np.all(np.isfinite(pts), axis=1)
+    for g, group in enumerate(groups):
+        np.testing.assert_allclose(got[finite, g], brute(pts[finite], lab, spacing, origin,
+                                                         group), rtol=0, atol=1e-9)
