@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from bonesim.errors import BonesimError
 
@@ -73,20 +74,58 @@ def view_frame(view):
     return u, np.cross(view, u)
 
 
-def first_bone(is_bone, origin, spacing, base, view, depth, chunk=256):
+def first_bone(is_bone, origin, spacing, base, view, depth):
     """Depth of the first bone voxel centre met along each ray ``base + t
-    view`` sampled at ``depth`` (inf where none)."""
-    shape = np.array(is_bone.shape)
-    out = np.full(len(base), np.inf)
-    for a in range(0, len(base), chunk):
-        ray = base[a:a + chunk, None, :] + depth[None, :, None] * view
-        idx = np.floor((ray - origin) / spacing + 0.5).astype(np.int64)
-        ok = np.all((idx >= 0) & (idx < shape), axis=-1)
-        hit = np.zeros(ok.shape, dtype=bool)
-        hit[ok] = is_bone[tuple(idx[ok].T)]
-        any_hit = hit.any(axis=1)
-        out[a:a + chunk][any_hit] = depth[np.argmax(hit[any_hit], axis=1)]
+    view`` sampled at ``depth`` (inf where none).
+
+    Parameters
+    ----------
+    is_bone : (n0, n1, n2) bool
+        Bone voxels, axes along the case frame's x, y, z.
+    origin : (3,) float
+        Case-frame centre of voxel ``(0, 0, 0)`` [mm].
+    spacing : float or (3,) float
+        Voxel edge [mm].
+    base : (n, 3) float
+        Ray origins, case frame [mm].
+    view : (3,) float
+        Ray direction (unit).
+    depth : (m,) float
+        Depths sampled along each ray, increasing [mm].
+
+    Returns
+    -------
+    (n,) float64
+        The first sampled depth whose nearest voxel centre (rounded half
+        up) lies in the volume and is bone [mm]; inf where none is.
+    """
+    bone = np.ascontiguousarray(is_bone, dtype=np.bool_)
+    if bone.ndim != 3:
+        raise ValueError(f"is_bone must be 3-D, got shape {bone.shape}")
+    base = np.ascontiguousarray(np.asarray(base, np.float64).reshape(-1, 3))
+    out = np.empty(len(base))
+    _first_bone(bone, _vec3(origin), _vec3(spacing), base, _vec3(view),
+                np.ascontiguousarray(depth, dtype=np.float64), out)
     return out
+
+
+def _vec3(x) -> np.ndarray:
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), (3,)))
+
+
+@njit(cache=True, nogil=True)
+def _first_bone(bone, origin, spacing, base, view, depth, out):
+    n0, n1, n2 = bone.shape
+    for r in range(base.shape[0]):
+        out[r] = np.inf
+        for q in range(depth.shape[0]):
+            d = depth[q]
+            i = math.floor((base[r, 0] + d * view[0] - origin[0]) / spacing[0] + 0.5)
+            j = math.floor((base[r, 1] + d * view[1] - origin[1]) / spacing[1] + 0.5)
+            k = math.floor((base[r, 2] + d * view[2] - origin[2]) / spacing[2] + 0.5)
+            if 0 <= i < n0 and 0 <= j < n1 and 0 <= k < n2 and bone[i, j, k]:
+                out[r] = d
+                break
 
 
 def trace_floors(dist, base, view, clear, t_max):

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from bonesim.io.mastoid_plan import strokes
-from bonesim.io.path_moves import PathBuilder, segment_clear, trace_floors
+from bonesim.io.path_moves import PathBuilder, first_bone, segment_clear, trace_floors
 from bonesim.physics.clearance import Clearance
 
 
@@ -94,3 +94,37 @@ def test_strokes_cover_the_region_along_its_edge(seed, step):
     first = out[0]
     if edt.max() > step:
         assert np.abs(edt[first[:, 0], first[:, 1]] - 0.5 * step).max() <= 1.5
+
+
+def _first_bone_ref(is_bone, origin, spacing, base, view, depth):
+    """Every ray sampled at every depth, then the first bone sample."""
+    shape = np.array(is_bone.shape)
+    ray = base[:, None, :] + depth[None, :, None] * view
+    idx = np.floor((ray - origin) / spacing + 0.5).astype(np.int64)
+    ok = np.all((idx >= 0) & (idx < shape), axis=-1)
+    hit = np.zeros(ok.shape, dtype=bool)
+    hit[ok] = is_bone[tuple(idx[ok].T)]
+    out = np.full(len(base), np.inf)
+    out[hit.any(axis=1)] = depth[np.argmax(hit[hit.any(axis=1)], axis=1)]
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), per_axis=st.booleans())
+def test_first_bone_is_the_first_bone_sample_of_each_ray(seed, per_axis):
+    """Rays into, past and beside a random bone block, from inside and
+    outside the volume, with scalar and per-axis spacing: the depths of
+    sampling every ray at every depth, to the bit."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(3, 14, 3))
+    bone = rng.random(shape) < rng.uniform(0.01, 0.4)
+    spacing = rng.uniform(0.1, 0.8, 3) if per_axis else float(rng.uniform(0.1, 0.8))
+    origin = rng.uniform(-4, 4, 3)
+    extent = np.asarray(spacing) * np.array(shape)
+    view = rng.normal(size=3)
+    view /= np.linalg.norm(view)
+    base = origin - 0.3 * extent + rng.random((50, 3)) * 1.6 * extent - 2.0 * view
+    depth = np.arange(0.0, 3.0 * extent.max(), float(np.min(spacing)) / 2)
+    got = first_bone(bone, origin, spacing, base, view, depth)
+    np.testing.assert_array_equal(got, _first_bone_ref(bone, origin, spacing, base, view,
+                                                       depth))
