@@ -691,13 +691,20 @@ def build_phantom(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     return PhantomParts(masks, envelope, cells, hu, cv.origin.copy(), cv.h)
 
 
-#: Largest phantom volume [voxels] :func:`phantom_volume` keeps for the
-#: process's later calls (the default 0.5 mm phantom has 1.1 million; a
-#: native 0.19 mm one, 20 million, is built again each time instead).
-CACHED_VOXELS_MAX = 4_000_000
+#: Most bytes of phantom volumes (labels and HU) :func:`phantom_volume`
+#: keeps for the process's later calls [bytes]: the default 0.5 mm phantom
+#: holds 5.6 MB, a native 0.19 mm one 103 MB (built in about 5 s); a 0.1 mm
+#: one (700 MB) is built again each time instead.
+CACHED_BYTES_MAX = 160 * 2 ** 20
 #: How many such volumes it keeps (the least recently used goes first).
 CACHED_VOLUMES = 4
-_volumes = Recent(CACHED_VOLUMES)
+
+
+def _volume_bytes(vol: CaseVolume) -> int:
+    return vol.labels.nbytes + (0 if vol.hu is None else vol.hu.nbytes)
+
+
+_volumes = Recent(CACHED_VOLUMES, max_bytes=CACHED_BYTES_MAX, nbytes=_volume_bytes)
 
 
 def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
@@ -705,8 +712,8 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
                    generation: int = LATEST_GENERATION) -> CaseVolume:
     """The phantom as a :class:`~bonesim.io.volumes.CaseVolume`.
 
-    The phantom is a function of the arguments alone: a volume of at most
-    :data:`CACHED_VOXELS_MAX` voxels is built once per process and each call
+    The phantom is a function of the arguments alone: volumes of up to
+    :data:`CACHED_BYTES_MAX` together are built once per process and each call
     returns its own copy of the arrays (a cohort of sessions, a plan and its
     runs load the same phantom many times).
 
@@ -731,9 +738,8 @@ def phantom_volume(seed: int = DEFAULT_SEED, voxel_mm: float = DEFAULT_VOXEL_MM,
     vol = _volumes.get(key)
     if vol is None:
         vol = _phantom_volume(seed, voxel_mm, size_mm, structures, generation)
-        if vol.labels.size > CACHED_VOXELS_MAX:
-            return vol
-        _volumes.put(key, vol)
+        if not _volumes.put(key, vol):
+            return vol                              # too large to keep: this one is its own
     return CaseVolume(vol.labels.copy(), vol.spacing_mm, vol.origin_mm.copy(), vol.source,
                       None if vol.hu is None else vol.hu.copy())
 

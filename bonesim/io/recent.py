@@ -19,10 +19,19 @@ class Recent:
     ----------
     size : int
         How many values are kept.
+    max_bytes : int, optional
+        With ``nbytes``: the most bytes the kept values may hold together
+        [bytes]; a value larger than that is not kept.
+    nbytes : callable, optional
+        A value's size [bytes].
     """
 
-    def __init__(self, size: int):
+    def __init__(self, size: int, max_bytes: int | None = None, nbytes=None):
+        if (max_bytes is None) != (nbytes is None):
+            raise ValueError("give max_bytes and nbytes together")
         self.size = int(size)
+        self.max_bytes = max_bytes
+        self._nbytes = nbytes
         self._values: dict = {}
 
     def get(self, key):
@@ -32,13 +41,25 @@ class Recent:
             self._values[key] = value
         return value
 
-    def put(self, key, value) -> None:
+    def put(self, key, value) -> bool:
         """Keep ``value`` for ``key``, dropping the least recently used
-        beyond :attr:`size`."""
+        beyond :attr:`size` (and :attr:`max_bytes`). Returns whether it was
+        kept (not when it alone is larger than :attr:`max_bytes`)."""
         self._values.pop(key, None)
+        if self.max_bytes is not None and self._nbytes(value) > self.max_bytes:
+            return False
         self._values[key] = value
-        while len(self._values) > self.size:
+        while len(self._values) > self.size or (
+                self.max_bytes is not None and self.nbytes > self.max_bytes):
             del self._values[next(iter(self._values))]
+        return True
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the kept values hold (0 without ``nbytes``) [bytes]."""
+        if self._nbytes is None:
+            return 0
+        return sum(self._nbytes(v) for v in self._values.values())
 
     def __len__(self) -> int:
         return len(self._values)
