@@ -75,7 +75,7 @@ def stencil_density_pass(grid, samples, pos_mm, radius_mm: float, scratch=None) 
         raise ValueError(f"samples must be (n, >=3), got {samples.shape}")
     lbrick, ldens = scratch if scratch is not None else floor_scratch(radius_mm,
                                                                       grid.spacing_mm)
-    return _density_pass(grid.keys, grid.vals, grid.density,
+    return _density_pass(grid.keys, grid.vals, grid.density_ro,
                          np.asarray(grid.origin_mm, np.float64), float(grid.spacing_mm),
                          samples, np.asarray(pos_mm, np.float64), float(radius_mm),
                          lbrick, ldens)

@@ -44,6 +44,7 @@ from numba import njit
 from bonesim.engine.events import POSE, SPLIT, push_event
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
 from bonesim.engine.haptics import push_event_kernel
+from bonesim.engine.kernel_args import read_only
 
 __all__ = ["DEFAULT_MAX_BODIES", "BODY_LIMIT", "IDENTITY_POSE", "body_arrays_spec",
            "init_bodies", "pose_matrix", "is_identity", "validate_pose", "plan_passes",
@@ -265,8 +266,8 @@ def split_body(state, src: int, ijk: np.ndarray, dst: int | None = None,
                          f"of range 0..{len(alive) - 1}")
     ijk = np.ascontiguousarray(np.asarray(ijk, dtype=np.int32).reshape(-1, 3))
     g = state.grid
-    n = _split(g.keys, g.vals, state.body, g.density, ijk, np.uint8(src), np.uint8(dst),
-               state.bounds, grow)
+    n = _split(g.keys, g.vals, state.body, g.density, read_only(ijk), np.uint8(src),
+               np.uint8(dst), state.bounds, grow)
     if n:
         state._one_body = False
     if n and not grow:

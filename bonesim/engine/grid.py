@@ -39,6 +39,7 @@ from numba import njit
 # the brick hash table is shared with the dust grid
 from bonesim.engine.brick_hash import (BRICK, BRICK_MASK, BRICK_SHIFT, BRICK_VOXELS, EMPTY_KEY,
                                        find_brick, pack_brick_key, table_insert)
+from bonesim.engine.kernel_args import read_only
 
 __all__ = ["BRICK", "BRICK_SHIFT", "BRICK_MASK", "BRICK_VOXELS", "EMPTY_KEY",
            "pack_brick_key", "find_brick", "voxel_offset", "density_at", "gather_box",
@@ -92,15 +93,6 @@ def gather_box(keys, vals, arr, out, lo_i, lo_j, lo_k):
                                k >> BRICK_SHIFT)
                 if b >= 0:
                     out[x, y, z] = arr[b, voxel_offset(i, j, k)]
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """``a``, or a read-only view of it: the labels of a grid never change."""
-    if not a.flags.writeable:
-        return a
-    v = a.view()
-    v.flags.writeable = False
-    return v
 
 
 @njit(cache=True, nogil=True)
@@ -215,7 +207,13 @@ class Grid:
         # each kernel then compiles once, not once per variant
         self.bricks = np.ascontiguousarray(bricks, dtype=np.int32)
         self.density = density
-        self.label = _read_only(label)
+        self.label = read_only(label)           # a grid's labels never change
+
+    @property
+    def density_ro(self) -> np.ndarray:
+        """:attr:`density` as a read-only view (for kernels that only read
+        it: one compiled form whether the grid is a model's or a state's)."""
+        return read_only(self.density)
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -318,7 +316,7 @@ class Grid:
 
     def density_at(self, i: int, j: int, k: int) -> float:
         """Density of voxel ``(i, j, k)`` (0.0 outside allocated bricks)."""
-        return float(density_at(self.keys, self.vals, self.density, i, j, k))
+        return float(density_at(self.keys, self.vals, self.density_ro, i, j, k))
 
     def label_at(self, i: int, j: int, k: int) -> int:
         """Structure index of voxel ``(i, j, k)`` (0 where empty)."""
@@ -343,7 +341,7 @@ class Grid:
         shape = self.shape if shape is None else tuple(int(s) for s in shape)
         d = np.zeros(shape, dtype=np.float32)
         lab = np.zeros(shape, dtype=np.uint8)
-        gather_box(self.keys, self.vals, self.density, d, *map(int, lo))
+        gather_box(self.keys, self.vals, self.density_ro, d, *map(int, lo))
         gather_box(self.keys, self.vals, self.label, lab, *map(int, lo))
         return d, lab
 

@@ -42,6 +42,7 @@ from bonesim.engine import events
 from bonesim.engine.body_surfaces import BodySurfaces
 from bonesim.engine.bodies import is_identity, set_pose, split_body
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, sync_replica, voxel_offset
+from bonesim.engine.kernel_args import read_only
 from bonesim.engine.model import Model, clear_touched, make_state, reset_state
 from bonesim.engine.rigid_set import track_plates
 
@@ -297,7 +298,8 @@ class TissueReplica:
             k = int(kinds[a])
             if k == events.REMOVED:
                 ijk = np.ascontiguousarray(ev["ijk"][a:b], dtype=np.int32)
-                _remove(g.keys, g.vals, g.density, g.label, ijk, st.removed_by_label)
+                _remove(g.keys, g.vals, g.density, g.label, read_only(ijk),
+                        st.removed_by_label)
                 removed.append(ijk)
             elif k == events.RESET:
                 reset_state(self.model, st, rings=False)

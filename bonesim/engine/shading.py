@@ -544,7 +544,7 @@ class Shader:
         # the runs of bricks along +x: from each brick without a -x neighbour
         starts = np.flatnonzero(self._nbr[:, _NBR_XM] < 0)
         counts = np.zeros(starts.shape[0], dtype=np.int64)
-        _shade_all_kernel(grid.keys, grid.vals, grid.density, grid.label, self._nbr,
+        _shade_all_kernel(grid.keys, grid.vals, grid.density_ro, grid.label, self._nbr,
                           grid.bricks, srf, voff, self.bone, self.tint_on, self._near,
                           self.colors, self._W, self._fp, self._tp, self._cone, vmap, ijk, pos,
                           nrm, shift, col, starts, counts, new_counter(), workers())
@@ -566,7 +566,7 @@ class Shader:
         while stack:
             rem, tch = stack.pop()
             while True:
-                got = _refresh(grid.keys, grid.vals, grid.density, grid.label, vmap, self.bone,
+                got = _refresh(grid.keys, grid.vals, grid.density_ro, grid.label, vmap, self.bone,
                                self._near, self.colors, self._W, self._fp, self._tp, self._cone,
                                self._ip, rem, tch, self._rows, self._wbr, self._f32,
                                self._vlist, pos, nrm, shift, col)

@@ -414,7 +414,8 @@ class Surface:
         nw = workers()
         nbr = np.empty((n_b, 27), dtype=np.int32)
         om = np.empty((n_b, BRICK), dtype=np.int64)
-        build_prepare(grid.keys, grid.vals, grid.bricks, grid.density, nbr, om, new_counter(), nw)
+        build_prepare(grid.keys, grid.vals, grid.bricks, grid.density_ro, nbr, om, new_counter(),
+                      nw)
         shader = Shader(grid, nbr, colors, bone, shading)
         nv = np.empty(n_b, dtype=np.int64)
         nt = np.empty(n_b, dtype=np.int64)

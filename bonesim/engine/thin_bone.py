@@ -64,6 +64,7 @@ import numpy as np
 from numba import njit, prange
 
 from bonesim.engine.grid import BRICK, BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.kernel_args import filled
 from bonesim.engine.shading_params import ShadingParams, load_shading
 
 __all__ = ["TINT_STEP_FRACTION", "TINT_BISECT_ITERS", "tint_reach", "near_radius",
@@ -465,15 +466,14 @@ def beneath(grid, ijk, normals, bone, params: ShadingParams | None = None, shift
     nrm = np.ascontiguousarray(np.asarray(normals, dtype=np.float32).reshape(-1, 3))
     if nrm.shape[0] != ijk.shape[0]:
         raise ValueError("ijk and normals must have the same length")
-    sh = np.ascontiguousarray(np.broadcast_to(np.asarray(shift, dtype=np.float32),
-                                              (ijk.shape[0],)))
+    sh = filled(shift, (ijk.shape[0],), np.float32)
     bone_u8 = as_bone(bone, len(bone))
     if grid.label.size and int(grid.label.max()) >= len(bone_u8):
         raise ValueError(f"bone has {len(bone_u8)} entries but the grid uses label "
                          f"{int(grid.label.max())}")
     t = np.empty(ijk.shape[0])
     s = np.empty(ijk.shape[0], dtype=np.int64)
-    _beneath_many(grid.keys, grid.vals, grid.density, grid.label, bone_u8,
+    _beneath_many(grid.keys, grid.vals, grid.density_ro, grid.label, bone_u8,
                   np.asarray(grid.origin_mm, dtype=np.float64), float(grid.spacing_mm),
                   ray_params(p, grid.spacing_mm), ijk, nrm, sh, t, s)
     return t, s

@@ -54,6 +54,8 @@ from typing import Iterable, Sequence
 import numpy as np
 from numba import njit
 
+from bonesim.engine.kernel_args import read_only
+
 __all__ = ["Clearance", "LEAF_SIZE", "MAX_LABEL"]
 
 #: Most surface voxels in one leaf of a structure's hierarchy.
@@ -518,8 +520,11 @@ class Clearance:
             out = np.empty((p.shape[0], mask.shape[0]))
         elif out.shape != (p.shape[0], mask.shape[0]) or out.dtype != np.float64:
             raise ValueError(f"out must be ({p.shape[0]}, {mask.shape[0]}) float64")
-        _distance_kernel(p, mask, self._geom, self._dims, self._trees, self._node,
-                         self._ijk, self._col_off, self._runs, out)
+        # read-only forms throughout (also after unpickling): one compiled kernel
+        _distance_kernel(read_only(p), read_only(mask), read_only(self._geom),
+                         read_only(self._dims), read_only(self._trees), read_only(self._node),
+                         read_only(self._ijk), read_only(self._col_off), read_only(self._runs),
+                         out)
         return out
 
     def distance(self, pos_mm, structures: Iterable[int] | None = None) -> np.ndarray:

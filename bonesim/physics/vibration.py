@@ -71,6 +71,8 @@ import math
 import numpy as np
 from numba import njit
 
+from bonesim.engine.kernel_args import filled
+
 __all__ = ["NYQUIST_FRACTION", "SUBHARMONIC_TOL", "RAMP_S", "MAX_DT_S", "Vibration",
            "vibration_signal", "free_components", "contact_components", "warmup"]
 
@@ -345,7 +347,7 @@ class Vibration:
         n = t.shape[0]
 
         def col(x, dtype, name):
-            a = np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=dtype), (n,)))
+            a = filled(x, (n,), dtype)
             if dtype is np.float64 and not np.isfinite(a).all():
                 raise ValueError(f"{name} must be finite")
             return a

@@ -30,6 +30,7 @@ from numba import njit
 from bonesim.engine import events
 from bonesim.engine.bodies import all_identity, pose_groups, to_body_frame
 from bonesim.engine.grid import BRICK_SHIFT, find_brick, voxel_offset
+from bonesim.engine.kernel_args import filled
 from bonesim.engine.replica import TissueReplica
 
 __all__ = ["CONTACT_MARGIN_VOXELS", "occluders", "judge_removals", "VisibilityTracker"]
@@ -149,9 +150,9 @@ def judge_removals(grid, occluder, ijk, eye_mm, tool_mm, contact_r_mm, body=None
     """
     ijk = np.ascontiguousarray(ijk, dtype=np.int64).reshape(-1, 3)
     n = len(ijk)
-    eye = np.ascontiguousarray(np.broadcast_to(eye_mm, (n, 3)), dtype=np.float64)
-    tool = np.ascontiguousarray(np.broadcast_to(tool_mm, (n, 3)), dtype=np.float64)
-    r = np.ascontiguousarray(np.broadcast_to(contact_r_mm, (n,)), dtype=np.float64)
+    eye = filled(eye_mm, (n, 3), np.float64)
+    tool = filled(tool_mm, (n, 3), np.float64)
+    r = filled(contact_r_mm, (n,), np.float64)
     if not (np.isfinite(eye).all() and np.isfinite(tool).all()):
         raise ValueError("eye and tool positions must be finite")
     occ = np.ascontiguousarray(occluder, dtype=np.uint8)

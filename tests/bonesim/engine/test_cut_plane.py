@@ -98,7 +98,7 @@ def _reference(model, state, pose, w, h, d):
 def _material(state, ijk):
     g = state.grid
     from bonesim.engine.grid import density_at
-    return density_at(g.keys, g.vals, g.density, *map(int, ijk)) > 0
+    return density_at(g.keys, g.vals, g.density_ro, *map(int, ijk)) > 0
 
 
 def _body_of(state, ijk):

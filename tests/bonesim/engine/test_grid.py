@@ -27,7 +27,7 @@ def test_dense_round_trip_and_lookups(labels, origin):
         inside = all(0 <= c < s for c, s in zip((i, j, k), labels.shape))
         expect = labels[i, j, k] if inside else 0
         assert g.label_at(i, j, k) == expect
-        assert density_at(g.keys, g.vals, g.density, i, j, k) == (1.0 if expect else 0.0)
+        assert density_at(g.keys, g.vals, g.density_ro, i, j, k) == (1.0 if expect else 0.0)
 
 
 def test_halo_bricks_cover_every_neighbour_of_tissue():

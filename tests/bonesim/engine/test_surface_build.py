@@ -111,7 +111,7 @@ def test_prepare_gives_neighbours_and_occupancy(seed, n_workers):
     occupancy_bits(grid.density, want_om)
     nbr = np.full((grid.n_bricks, 27), -7, np.int32)
     om = np.full((grid.n_bricks, BRICK), -7, np.int64)
-    build_prepare(grid.keys, grid.vals, grid.bricks, grid.density, nbr, om, new_counter(),
+    build_prepare(grid.keys, grid.vals, grid.bricks, grid.density_ro, nbr, om, new_counter(),
                   n_workers)
     assert np.array_equal(nbr, want_nbr)
     assert np.array_equal(nbr, brick_neighbours(grid.keys, grid.vals, grid.bricks))
@@ -186,7 +186,7 @@ def test_shading_gather_equals_voxel_by_voxel():
     out = np.full(_LB * _LB + 5, -1, np.float32)
     for b, (bi, bj, bk) in enumerate(grid.bricks):
         for x in range(-_HALO, BRICK + _HALO):
-            _gather_plane(grid.density, nbr, b, x, out, 5)
+            _gather_plane(grid.density_ro, nbr, b, x, out, 5)
             want = np.zeros((_LB, _LB), np.float32)
             for ly in range(_LB):
                 for lz in range(_LB):
