@@ -22,9 +22,11 @@ import time
 __all__ = ["SECOND", "warmup_all", "cmd_warmup"]
 
 #: Parts a second process compiles while this one compiles the others (about
-#: half the time each; parts that share kernels stay in one process).
+#: half the time each: on a fresh clone of a 2-core machine, 66 + 5 s there
+#: against 79 s here; parts that share kernels stay in one process, and the
+#: sound, vibration and tutoring kernels share none).
 SECOND = ("surface", "surface consumer", "mesh buffers", "thickness", "nerve monitor",
-          "label stacks", "colour neighbours")
+          "label stacks", "colour neighbours", "vibration", "sound", "clicks", "tutoring")
 
 
 def _monitor() -> None:

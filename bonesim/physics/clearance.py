@@ -30,9 +30,9 @@ cheaply into the haptic, monitor and recorder processes):
   ``2n + 2``; at most :data:`LEAF_SIZE` voxels per leaf), each node with the
   index bounds of its voxels. A branch-and-bound search, with the node's
   bounds widened by half a voxel as the lower bound, returns the exact
-  nearest box; structures are searched nearest first and share the bound. Points come
-  in batches along paths (the planner's segments and floors, a run's
-  samples), so each search starts from a bound: the previous point's
+  nearest box; structures are searched nearest first and share the bound.
+  Points come in batches along paths (the planner's segments and floors, a
+  run's samples), so each search starts from a bound: the previous point's
   distance plus the step between them (distance is 1-Lipschitz), widened by
   :data:`_BOUND_RTOL` and :data:`_BOUND_ATOL` past rounding. The nearest box
   lies within it, so the search returns the same box and the same bits as a
@@ -287,8 +287,6 @@ def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, o
     order_s = np.empty(MAX_LABEL + 1, np.int64)
     order_lb = np.empty(MAX_LABEL + 1)
     n0, n1, n2 = dims[0], dims[1], dims[2]
-    # the previous finite point and its distance to each group: a bound
-    # for the next point's (see the module notes)
     # each group's structures that have voxels
     members = np.empty((groups.shape[0], MAX_LABEL), np.int64)
     n_mem = np.zeros(groups.shape[0], np.int64)
@@ -297,6 +295,8 @@ def _distance_kernel(pos, groups, geom, dims, trees, node, ijk, col_off, runs, o
             if groups[g, s] != 0 and trees[s, 1] > 0:
                 members[g, n_mem[g]] = s
                 n_mem[g] += 1
+    # the previous finite point (row ``prev`` of ``out``): its distances
+    # bound the next point's (see the module notes)
     have_prev = False
     prev = 0
     qx = qy = qz = 0.0
