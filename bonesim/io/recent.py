@@ -52,7 +52,7 @@ class Recent:
         while len(self._values) > self.size or (
                 self.max_bytes is not None and self.nbytes > self.max_bytes):
             del self._values[next(iter(self._values))]
-        return True
+        return key in self._values
 
     @property
     def nbytes(self) -> int:

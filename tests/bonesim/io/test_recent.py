@@ -25,4 +25,4 @@ def test_a_byte_budget_drops_the_oldest_and_keeps_nothing_too_large():
     assert not r.put("d", b"q" * 11)               # alone too large: not kept
     assert r.get("d") is None and len(r) == 2
     assert r.put("c", b"zz") and r.nbytes == 6     # replaced under its key
-    assert Recent(1).nbytes == 0
+    assert Recent(1).nbytes == 0 and not Recent(0).put("e", b"")
