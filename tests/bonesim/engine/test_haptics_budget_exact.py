@@ -118,7 +118,7 @@ def _run_both(m, prepare, samples, monkeypatch):
     ``samples``, the new kernel and the frozen one; compare after every
     step. Returns the immersed samples and the voxels removed.
 
-    The rings hold :data:`_RING` records (they wrap in the longer runs), so
+    The rings hold :data:`_RING` records (more would wrap, as a ring does), so
     comparing them whole after every step is cheap."""
     new, old = make_state(m, ring_capacity=_RING), make_state(m, ring_capacity=_RING)
     prepare(new)
