@@ -36,6 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
+from bonesim.engine.kernel_args import filled
 from bonesim.errors import BonesimError
 
 __all__ = ["TRACE_TOL_MM", "TRACE_STEPS", "TRAVEL_RAISE_MM", "TRAVEL_ABOVE_MM",
@@ -104,13 +105,10 @@ def first_bone(is_bone, origin, spacing, base, view, depth):
         raise ValueError(f"is_bone must be 3-D, got shape {bone.shape}")
     base = np.ascontiguousarray(np.asarray(base, np.float64).reshape(-1, 3))
     out = np.empty(len(base))
-    _first_bone(bone, _vec3(origin), _vec3(spacing), base, _vec3(view),
+    _first_bone(bone, filled(origin, (3,), np.float64), filled(spacing, (3,), np.float64),
+                base, filled(view, (3,), np.float64),
                 np.ascontiguousarray(depth, dtype=np.float64), out)
     return out
-
-
-def _vec3(x) -> np.ndarray:
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), (3,)))
 
 
 @njit(cache=True, nogil=True)
