@@ -520,11 +520,9 @@ class Clearance:
             out = np.empty((p.shape[0], mask.shape[0]))
         elif out.shape != (p.shape[0], mask.shape[0]) or out.dtype != np.float64:
             raise ValueError(f"out must be ({p.shape[0]}, {mask.shape[0]}) float64")
-        # read-only forms throughout (also after unpickling): one compiled kernel
-        _distance_kernel(read_only(p), read_only(mask), read_only(self._geom),
-                         read_only(self._dims), read_only(self._trees), read_only(self._node),
-                         read_only(self._ijk), read_only(self._col_off), read_only(self._runs),
-                         out)
+        # the caller's arrays read-only too (the held ones are): one compiled kernel
+        _distance_kernel(read_only(p), read_only(mask), self._geom, self._dims, self._trees,
+                         self._node, self._ijk, self._col_off, self._runs, out)
         return out
 
     def distance(self, pos_mm, structures: Iterable[int] | None = None) -> np.ndarray:
@@ -533,6 +531,13 @@ class Clearance:
         See :meth:`distances`."""
         members = self.structures if structures is None else structures
         return self.distances(pos_mm, [members])[:, 0]
+
+    def __setstate__(self, state: dict) -> None:
+        # unpickled arrays come back writeable: read-only again, as built
+        for v in state.values():
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False
+        self.__dict__.update(state)
 
     def __repr__(self) -> str:
         return (f"Clearance(shape={self.shape}, spacing_mm={self.spacing_mm.tolist()}, "
