@@ -3,6 +3,7 @@ along the walls (bonesim.io.mastoid_plan.strokes)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
@@ -128,3 +129,9 @@ def test_first_bone_is_the_first_bone_sample_of_each_ray(seed, per_axis):
     got = first_bone(bone, origin, spacing, base, view, depth)
     np.testing.assert_array_equal(got, _first_bone_ref(bone, origin, spacing, base, view,
                                                        depth))
+
+
+def test_first_bone_names_a_volume_that_is_not_3d():
+    with pytest.raises(ValueError, match="is_bone must be 3-D"):
+        first_bone(np.ones((4, 4), bool), np.zeros(3), 0.5, np.zeros((1, 3)),
+                   np.array([1.0, 0.0, 0.0]), np.arange(3.0))
